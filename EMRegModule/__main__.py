@@ -1,0 +1,7 @@
+"""``python -m EMRegModule`` is the ``emreg`` command."""
+
+import sys
+
+from .cli import main
+
+sys.exit(main())

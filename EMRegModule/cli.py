@@ -1,0 +1,436 @@
+"""The ``emreg`` command: a thin face over the controller and the core modules.
+
+Exit codes (spec): 0 success; 2 bad input or usage (one line naming the file and what is
+wrong); 3 the data do not allow a safe answer. Every output file is written atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from . import __version__
+from .errors import EXIT_BAD_INPUT, EMRegError, NoSafeAnswerError, StageNotAvailableError
+from .progress import Progress
+
+#: Output files of each stage in OUT, in workflow order (used to clear stale results).
+STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
+    "detect": ("markers.json", "markers.mrk.json"),
+    "calibrate": ("frame_calibration.json",),
+    "register": ("registration.json", "ReferenceToImage.h5"),
+    "navigate": ("navigation.csv",),
+    "evaluate": ("evaluation.json",),
+    "report": ("report.html",),
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the spec's exit code 2 and a one-line message for usage errors."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.print_usage(sys.stderr)
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message}\n")
+
+
+def stage_available(module: str) -> bool:
+    """True when the core module for a stage exists in this build."""
+    return importlib.util.find_spec(f"EMRegModule.{module}") is not None
+
+
+def _need_stage(module: str, what: str) -> None:
+    if not stage_available(module):
+        raise StageNotAvailableError(f"{what} is not built yet in this version of EMReg")
+
+
+def _progress(args: argparse.Namespace) -> Progress:
+    return Progress(enabled=not getattr(args, "quiet", False))
+
+
+def _settings(args: argparse.Namespace, case_dir: Path | None = None) -> dict:
+    from .io.case import read_case_settings
+
+    if getattr(args, "settings", None):
+        path = Path(args.settings)
+        if not path.is_file():
+            raise EMRegError(f"{path}: settings file not found")
+        return read_case_settings(path)
+    if case_dir is not None:
+        return read_case_settings(case_dir / "case.toml")
+    return {}
+
+
+def _controller(args: argparse.Namespace, settings: dict):
+    from .controller import EMRegController
+
+    controller = EMRegController(settings, _progress(args))
+    controller.set_sensors(getattr(args, "reference_sensor", None), getattr(args, "probe_sensor", None))
+    return controller
+
+
+# --- subcommands ----------------------------------------------------------------------------
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    _need_stage("simulation", "the case simulator")
+    from .simulation import simulate_case
+
+    simulate_case(
+        Path(args.out), seed=args.seed, difficulty=args.difficulty, spacing_mm=args.spacing,
+        progress=_progress(args),
+    )
+    print(f"simulated case written to {args.out}")
+    return 0
+
+
+def cmd_detect(args: argparse.Namespace) -> int:
+    _need_stage("detection", "marker detection")
+    from .detection import write_detection
+    from .io.image import find_ct
+
+    source = Path(args.ct)
+    case_dir = source if source.is_dir() and find_ct(source) is not None else None
+    ct_path = find_ct(source) if case_dir is not None else source
+    controller = _controller(args, _settings(args, case_dir))
+    controller.load_ct(ct_path)
+    result = controller.detect_markers()
+    write_detection(result, Path(args.out))
+    print(f"{len(result.markers)} markers detected, {len(result.rejected)} candidates rejected -> {args.out}")
+    return 0
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    _need_stage("calibration", "frame calibration")
+    from .calibration import write_frame_calibration
+
+    controller = _controller(args, _settings(args))
+    controller.load_calibration_recording(args.recording)
+    result = controller.calibrate_frame()
+    write_frame_calibration(result, Path(args.out) / "frame_calibration.json")
+    print(f"{len(result.points)} pinholes calibrated -> {args.out}")
+    return 0
+
+
+def cmd_register(args: argparse.Namespace) -> int:
+    _need_stage("registration", "registration")
+    from .calibration import read_frame_calibration
+    from .detection import read_detection
+    from .registration import write_registration
+
+    controller = _controller(args, _settings(args))
+    controller.set_detection(read_detection(args.markers))
+    controller.set_frame_calibration(read_frame_calibration(args.calibration))
+    targets = None
+    if args.targets:
+        from .io.markups import read_markups
+
+        targets = read_markups(args.targets)[1]
+    try:
+        result = controller.register(targets)
+    except NoSafeAnswerError:
+        _remove_outputs(Path(args.out), "register")
+        raise
+    write_registration(result, Path(args.out))
+    print(f"registered: FRE {result.fre_mm:.2f} mm, l = {result.sensor_offset_l_mm:.2f} mm, "
+          f"{len(result.pairs)} pairs -> {args.out}")
+    return 0
+
+
+def cmd_navigate(args: argparse.Namespace) -> int:
+    live = args.igtl_port is not None or not args.source.startswith("replay:")
+    if live:
+        _need_stage("live", "live navigation (tracker / OpenIGTLink)")
+        from .live.commands import run_live_navigate
+
+        return run_live_navigate(args)
+    if not args.out:
+        raise EMRegError("navigate: --out DIR is needed to write navigation.csv from a replay")
+    _need_stage("navigation", "navigation")
+    from .navigation import write_navigation_csv
+    from .registration import read_registration
+
+    controller = _controller(args, _settings(args))
+    controller.set_registration(read_registration(args.registration))
+    from .io.tracking_csv import read_tracking_csv
+
+    recording = read_tracking_csv(args.source[len("replay:"):])
+    result = controller.navigate_recording(recording)
+    write_navigation_csv(result, Path(args.out) / "navigation.csv")
+    print(f"{len(result)} probe samples mapped into image space -> {args.out}")
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    _need_stage("evaluation", "evaluation")
+    from .evaluation import evaluate_case, write_evaluation
+    from .io.case import open_case
+    from .registration import read_registration
+
+    case = open_case(args.case)
+    if args.settings:
+        case.settings = _settings(args)
+    controller = _controller(args, case.settings)
+    controller.set_registration(read_registration(args.registration))
+    result = evaluate_case(case, controller.reference_to_image, controller.reference_sensor,
+                           controller.probe_sensor)
+    write_evaluation(result, Path(args.out) / "evaluation.json")
+    print(f"evaluation -> {Path(args.out) / 'evaluation.json'}")
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    _need_stage("report", "the verification report")
+    from .report import write_report, write_reports_batch
+
+    if args.batch:
+        folders = sorted(p for p in Path(args.batch).iterdir() if p.is_dir())
+        write_reports_batch(folders, jobs=args.jobs, progress=_progress(args))
+        print(f"{len(folders)} reports written under {args.batch}")
+        return 0
+    if not args.out:
+        raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
+    case = Path(args.case) if args.case else None
+    path = write_report(Path(args.out), case_dir=case, progress=_progress(args))
+    print(f"report -> {path}")
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    summary = run_case(Path(args.case), Path(args.out), _progress(args), reference_sensor=args.reference_sensor,
+                       probe_sensor=args.probe_sensor, settings_path=args.settings)
+    for line in summary:
+        print(line)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    _need_stage("simulation", "the case simulator")
+    from .simulation import simulate_case
+
+    out = Path(args.out)
+    case_dir = out / "case"
+    progress = _progress(args)
+    start = time.perf_counter()
+    progress.message(f"[emreg] demo: simulating the sample case into {case_dir}")
+    simulate_case(case_dir, seed=args.seed, difficulty="standard", spacing_mm=args.spacing, progress=progress)
+    summary = run_case(case_dir, out / "result", progress)
+    for line in summary:
+        print(line)
+    print(f"demo finished in {time.perf_counter() - start:.1f} s; outputs in {out / 'result'}")
+    return 0
+
+
+def _remove_outputs(out: Path, from_stage: str) -> None:
+    """Delete the outputs of ``from_stage`` and every later stage (stale after a refusal)."""
+    stages = list(STAGE_OUTPUTS)
+    for stage in stages[stages.index(from_stage):]:
+        for name in STAGE_OUTPUTS[stage]:
+            (out / name).unlink(missing_ok=True)
+
+
+def run_case(
+    case_dir: Path, out: Path, progress: Progress, reference_sensor: int | None = None,
+    probe_sensor: int | None = None, settings_path: str | None = None,
+) -> list[str]:
+    """Run every available stage on a case folder through the controller; returns summary lines.
+
+    A stage that refuses (no safe answer) removes its own and all later outputs from OUT,
+    so no stale result of an earlier run can be mistaken for this one's, then re-raises.
+    """
+    from .controller import EMRegController
+    from .io.case import open_case, read_case_settings
+
+    case = open_case(case_dir)
+    if settings_path:
+        case.settings = read_case_settings(settings_path)
+    if case.ct is None:
+        raise EMRegError(f"{case_dir}: no CT found (ct.nrrd, ct.nii.gz, ct.mha or a ct/ DICOM folder)")
+    controller = EMRegController.for_case(case, progress)
+    controller.set_sensors(reference_sensor, probe_sensor)
+    out.mkdir(parents=True, exist_ok=True)
+    summary: list[str] = []
+    current = "detect"
+    try:
+        if stage_available("detection"):
+            from .detection import write_detection
+
+            controller.load_ct(case.ct)
+            detection = controller.detect_markers()
+            write_detection(detection, out)
+            summary.append(f"detect: {len(detection.markers)} markers, {len(detection.rejected)} rejected")
+        else:
+            summary.append("detect: not built yet, skipped")
+        current = "calibrate"
+        if case.calibration is not None and stage_available("calibration"):
+            from .calibration import write_frame_calibration
+
+            controller.load_calibration_recording(case.calibration)
+            calibration = controller.calibrate_frame()
+            write_frame_calibration(calibration, out / "frame_calibration.json")
+            summary.append(f"calibrate: {len(calibration.points)} pinholes")
+        current = "register"
+        if controller.detection is not None and controller.frame_calibration is not None \
+                and stage_available("registration"):
+            from .registration import write_registration
+
+            targets = None
+            if case.targets is not None:
+                from .io.markups import read_markups
+
+                targets = read_markups(case.targets)[1]
+            registration = controller.register(targets)
+            write_registration(registration, out)
+            summary.append(f"register: FRE {registration.fre_mm:.2f} mm, l = "
+                           f"{registration.sensor_offset_l_mm:.2f} mm, {len(registration.pairs)} pairs")
+        current = "navigate"
+        if controller.registration is not None and case.navigation is not None \
+                and stage_available("navigation"):
+            from .io.tracking_csv import read_tracking_csv
+            from .navigation import write_navigation_csv
+
+            navigation = controller.navigate_recording(read_tracking_csv(case.navigation))
+            write_navigation_csv(navigation, out / "navigation.csv")
+            summary.append(f"navigate: {len(navigation)} probe samples")
+        current = "evaluate"
+        if controller.registration is not None and stage_available("evaluation") \
+                and (case.navigation is not None or case.board is not None):
+            from .evaluation import evaluate_case, write_evaluation
+
+            evaluation = evaluate_case(case, controller.reference_to_image, controller.reference_sensor,
+                                       controller.probe_sensor)
+            write_evaluation(evaluation, out / "evaluation.json")
+            if "tre" in evaluation:
+                summary.append(f"evaluate: TRE {evaluation['tre']['mean_mm']:.2f} "
+                               f"+/- {evaluation['tre']['std_mm']:.2f} mm")
+            if "board" in evaluation:
+                summary.append("evaluate: board edges " + ", ".join(
+                    f"{k} {v['mean_mm']:.2f}" for k, v in evaluation["board"]["edges"].items()))
+        current = "report"
+        if stage_available("report"):
+            from .report import write_report
+
+            summary.append(f"report: {write_report(out, case_dir=case.folder, progress=progress)}")
+    except NoSafeAnswerError:
+        _remove_outputs(out, current)
+        raise
+    return summary
+
+
+# --- parser -----------------------------------------------------------------------------------
+
+
+def _add_sensor_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--reference-sensor", type=int, default=None, metavar="PORT",
+                        help="port of the reference sensor (default 1 or case.toml [sensors])")
+    parser.add_argument("--probe-sensor", type=int, default=None, metavar="PORT",
+                        help="port of the probe sensor (default 2 or case.toml [sensors])")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``emreg`` argument parser with every subcommand."""
+    parser = _Parser(prog="emreg", description="Automatic patient-to-image registration for EM navigation.")
+    parser.add_argument("--version", action="version", version=f"emreg {__version__}")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--quiet", action="store_true", help="no progress output")
+    common.add_argument("--settings", metavar="case.toml", help="settings file (default: the case's case.toml)")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    def add(name: str, func: Callable[[argparse.Namespace], int], help_text: str) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, parents=[common], help=help_text, description=help_text)
+        p.set_defaults(func=func)
+        return p
+
+    p = add("simulate", cmd_simulate, "write a simulated case folder with its ground truth (truth.json)")
+    p.add_argument("out", metavar="OUT")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--difficulty", choices=("standard", "hard"), default="standard")
+    p.add_argument("--spacing", type=float, default=None, metavar="MM", help="CT voxel size in mm")
+
+    p = add("detect", cmd_detect, "find the markers in a CT: OUT/markers.json and markers.mrk.json")
+    p.add_argument("ct", metavar="CT_OR_CASE", help="a CT file, a DICOM folder, or a case folder")
+    p.add_argument("--out", required=True, metavar="OUT")
+
+    p = add("calibrate", cmd_calibrate, "frame calibration from a tracking recording: OUT/frame_calibration.json")
+    p.add_argument("recording", metavar="RECORDING")
+    p.add_argument("--out", required=True, metavar="OUT")
+    _add_sensor_options(p)
+
+    p = add("register", cmd_register, "pair, solve the sensor offset, register: OUT/registration.json")
+    p.add_argument("--markers", required=True, metavar="markers.json")
+    p.add_argument("--calibration", required=True, metavar="frame_calibration.json")
+    p.add_argument("--targets", metavar="targets.mrk.json", help="targets for the predicted TRE")
+    p.add_argument("--out", required=True, metavar="OUT")
+
+    p = add("navigate", cmd_navigate, "map probe samples into image space (replay or live)")
+    p.add_argument("--registration", required=True, metavar="registration.json")
+    p.add_argument("--source", required=True, metavar="URL",
+                   help="replay:FILE.csv, trakstar:///dev/ttyUSB0?baud=115200 or igtl://HOST:PORT")
+    p.add_argument("--out", metavar="OUT")
+    p.add_argument("--igtl-port", type=int, default=None, metavar="PORT", help="publish ProbeToImage over OpenIGTLink")
+    _add_sensor_options(p)
+    if stage_available("live"):
+        from .live.commands import add_live_navigate_arguments
+
+        add_live_navigate_arguments(p)
+
+    p = add("evaluate", cmd_evaluate, "TRE at targets and the board table: OUT/evaluation.json")
+    p.add_argument("case", metavar="CASE")
+    p.add_argument("--registration", required=True, metavar="registration.json")
+    p.add_argument("--out", required=True, metavar="OUT")
+    _add_sensor_options(p)
+
+    p = add("report", cmd_report, "render the verification report: OUT/report.html")
+    p.add_argument("out", nargs="?", metavar="OUT")
+    p.add_argument("--case", metavar="CASE", help="the case folder (for the CT), when not recorded in OUT")
+    p.add_argument("--batch", metavar="DIR", help="render a report in every output folder under DIR")
+    p.add_argument("--jobs", type=int, default=1)
+
+    p = add("run", cmd_run, "run every stage on a case folder")
+    p.add_argument("case", metavar="CASE")
+    p.add_argument("--out", required=True, metavar="OUT")
+    _add_sensor_options(p)
+
+    p = add("demo", cmd_demo, "simulate the built-in sample case and run it")
+    p.add_argument("--out", default="demo-output", metavar="DIR")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--spacing", type=float, default=None, metavar="MM")
+
+    if stage_available("live"):
+        from .live import commands as live
+
+        for name, add_arguments, run, help_text in live.SUBCOMMANDS:
+            p = add(name, run, help_text)
+            add_arguments(p)
+    else:
+        for name in ("record", "sim-tracker", "serve"):
+            p = add(name, _not_built(name), f"{name} (not built yet)")
+            p.add_argument("rest", nargs=argparse.REMAINDER)
+    return parser
+
+
+def _not_built(name: str) -> Callable[[argparse.Namespace], int]:
+    def run(args: argparse.Namespace) -> int:
+        raise StageNotAvailableError(f"'emreg {name}' is not built yet in this version of EMReg")
+
+    return run
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``emreg`` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except EMRegError as exc:
+        print(f"emreg {args.command}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print(f"emreg {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

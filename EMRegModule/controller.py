@@ -1,0 +1,249 @@
+"""The workflow controller: calibration -> detection -> pairing/registration -> navigation.
+
+A small state machine shared by the ``emreg`` command and the 3D Slicer module's Logic.
+It holds the inputs and the results of each stage, refuses a step whose prerequisites are
+missing (saying what is missing), and drops every result that a new input makes stale:
+
+    CT image ──────────────> detection ─┐
+                                         ├─> registration ─> navigation / evaluation
+    calibration recording -> frame calibration ─┘
+
+All poses are in millimetres; ``ReferenceToImage`` maps Reference-sensor coordinates into
+the CT's LPS image space.
+"""
+
+from __future__ import annotations
+
+import enum
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from .errors import EMRegError
+from .io.case import DEFAULT_PROBE_SENSOR, DEFAULT_REFERENCE_SENSOR, Case
+from .marker_model import MarkerModel
+from .progress import QUIET, Progress
+
+if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only when used
+    import SimpleITK as sitk
+
+    from .calibration import FrameCalibration
+    from .detection import DetectionResult
+    from .navigation import NavigationResult
+    from .registration import RegistrationResult
+    from .tracking import TrackingRecording
+
+
+class WorkflowState(enum.Enum):
+    """How far the workflow has come (each state implies the ones before it)."""
+
+    EMPTY = "empty"
+    FRAME_CALIBRATED = "frame calibrated"
+    MARKERS_DETECTED = "markers detected"
+    READY_TO_REGISTER = "frame calibrated and markers detected"
+    REGISTERED = "paired and registered"
+    NAVIGATING = "navigating"
+
+
+class WorkflowError(EMRegError):
+    """A step was asked for before its prerequisites exist."""
+
+
+class EMRegController:
+    """Sequences the EMReg workflow; usable without any GUI.
+
+    ``settings`` is the parsed ``case.toml`` (sections ``sensors``, ``marker``,
+    ``detection``, ``calibration``, ``registration``, ``board``...).
+    """
+
+    def __init__(self, settings: dict[str, Any] | None = None, progress: Progress | None = None) -> None:
+        self.settings: dict[str, Any] = dict(settings or {})
+        self.progress = progress or QUIET
+        self.marker_model = MarkerModel.from_settings(self.settings.get("marker"))
+        sensors = self.settings.get("sensors", {})
+        self.reference_sensor: int = int(sensors.get("reference", DEFAULT_REFERENCE_SENSOR))
+        self.probe_sensor: int = int(sensors.get("probe", DEFAULT_PROBE_SENSOR))
+        self.image: sitk.Image | None = None
+        self.image_source: str | None = None
+        self.calibration_recording: TrackingRecording | None = None
+        self.detection: DetectionResult | None = None
+        self.frame_calibration: FrameCalibration | None = None
+        self.registration: RegistrationResult | None = None
+        self.navigation: NavigationResult | None = None
+
+    @classmethod
+    def for_case(cls, case: Case, progress: Progress | None = None) -> EMRegController:
+        """A controller configured with a case folder's ``case.toml``."""
+        return cls(case.settings, progress)
+
+    # --- state ----------------------------------------------------------------------------
+
+    @property
+    def state(self) -> WorkflowState:
+        """The furthest state reached."""
+        if self.navigation is not None:
+            return WorkflowState.NAVIGATING
+        if self.registration is not None:
+            return WorkflowState.REGISTERED
+        if self.detection is not None and self.frame_calibration is not None:
+            return WorkflowState.READY_TO_REGISTER
+        if self.detection is not None:
+            return WorkflowState.MARKERS_DETECTED
+        if self.frame_calibration is not None:
+            return WorkflowState.FRAME_CALIBRATED
+        return WorkflowState.EMPTY
+
+    def _require(self, **needed: object) -> None:
+        missing = [what for what, value in needed.items() if value is None]
+        if missing:
+            names = {
+                "image": "a CT (load_ct)",
+                "calibration_recording": "a calibration recording (load_calibration_recording)",
+                "detection": "detected markers (detect_markers or set_detection)",
+                "frame_calibration": "a frame calibration (calibrate_frame or set_frame_calibration)",
+                "registration": "a registration (register or set_registration)",
+            }
+            raise WorkflowError("this step needs " + " and ".join(names[m] for m in missing) + " first")
+
+    def _invalidate(self, *, detection: bool = False, frame_calibration: bool = False) -> None:
+        if detection:
+            self.detection = None
+        if frame_calibration:
+            self.frame_calibration = None
+        self.registration = None
+        self.navigation = None
+
+    # --- inputs -----------------------------------------------------------------------------
+
+    def load_ct(self, path: str | os.PathLike[str]) -> sitk.Image:
+        """Read the CT (file or DICOM folder); drops detection and everything after it."""
+        from .io.image import read_ct
+
+        with self.progress.step("reading CT"):
+            image = read_ct(path)
+        self.set_image(image, str(path))
+        return image
+
+    def set_image(self, image: sitk.Image, source: str = "CT") -> None:
+        """Use an image already in memory (e.g. a Slicer volume node converted to SimpleITK)."""
+        from .io.image import check_ct
+
+        check_ct(image, source)
+        self.image = image
+        self.image_source = source
+        self._invalidate(detection=True)
+
+    def load_calibration_recording(self, path: str | os.PathLike[str]) -> TrackingRecording:
+        """Read the frame-calibration recording; drops the frame calibration and what follows."""
+        from .io.tracking_csv import read_tracking_csv
+
+        recording = read_tracking_csv(path)
+        self.set_calibration_recording(recording)
+        return recording
+
+    def set_calibration_recording(self, recording: TrackingRecording) -> None:
+        self.calibration_recording = recording
+        self._invalidate(frame_calibration=True)
+
+    def set_sensors(self, reference_sensor: int | None = None, probe_sensor: int | None = None) -> None:
+        """Change the sensor ports; a change drops the frame calibration and what follows."""
+        changed = False
+        if reference_sensor is not None and reference_sensor != self.reference_sensor:
+            self.reference_sensor, changed = int(reference_sensor), True
+        if probe_sensor is not None and probe_sensor != self.probe_sensor:
+            self.probe_sensor, changed = int(probe_sensor), True
+        if changed:
+            self._invalidate(frame_calibration=True)
+
+    # --- stages -----------------------------------------------------------------------------
+
+    def detect_markers(self) -> DetectionResult:
+        """Find the markers in the CT and estimate each one's pose (image space, LPS)."""
+        self._require(image=self.image)
+        from .detection import detect_markers
+
+        result = detect_markers(self.image, self.marker_model, self.settings.get("detection"), self.progress)
+        self.set_detection(result)
+        return result
+
+    def set_detection(self, detection: DetectionResult) -> None:
+        """Use detected markers (e.g. read from ``markers.json``); drops the registration."""
+        self._invalidate()
+        self.detection = detection
+
+    def calibrate_frame(self) -> FrameCalibration:
+        """One point per marker pinhole in the Reference frame from the calibration recording."""
+        self._require(calibration_recording=self.calibration_recording)
+        from .calibration import calibrate_frame
+
+        with self.progress.step("calibrating frame"):
+            result = calibrate_frame(
+                self.calibration_recording, self.reference_sensor, self.probe_sensor,
+                self.settings.get("calibration"),
+            )
+        self.set_frame_calibration(result)
+        return result
+
+    def set_frame_calibration(self, frame_calibration: FrameCalibration) -> None:
+        """Use a frame calibration (e.g. read from ``frame_calibration.json``); drops the registration."""
+        self._invalidate()
+        self.frame_calibration = frame_calibration
+
+    def register(self, targets_image: np.ndarray | None = None) -> RegistrationResult:
+        """Pair markers with calibration points, solve the sensor offset l, fit ``ReferenceToImage``.
+
+        ``targets_image`` (N, 3, LPS mm), when given, gets a predicted TRE in the result.
+        """
+        self._require(detection=self.detection, frame_calibration=self.frame_calibration)
+        from .registration import register
+
+        with self.progress.step("pairing and registering"):
+            result = register(
+                self.detection, self.frame_calibration, self.marker_model,
+                self.settings.get("registration"), targets_image=targets_image,
+            )
+        self.registration = result
+        self.navigation = None
+        return result
+
+    def set_registration(self, registration: RegistrationResult) -> None:
+        """Use a registration (e.g. read from ``registration.json``)."""
+        self.registration = registration
+        self.navigation = None
+
+    def navigate_recording(self, recording: TrackingRecording) -> NavigationResult:
+        """Map every probe sample of a recording into image space (paper Eq. 11-12)."""
+        self._require(registration=self.registration)
+        from .navigation import navigate_recording
+
+        result = navigate_recording(
+            recording, self.registration.reference_to_image, self.reference_sensor, self.probe_sensor
+        )
+        self.navigation = result
+        return result
+
+    @property
+    def reference_to_image(self) -> np.ndarray:
+        """The current ``ReferenceToImage`` (4x4, mm); a :class:`WorkflowError` before registration."""
+        self._require(registration=self.registration)
+        return self.registration.reference_to_image
+
+    def describe(self) -> str:
+        """A one-line summary of the state for logs and the Slicer module's status label."""
+        parts = [f"state: {self.state.value}"]
+        if self.detection is not None:
+            parts.append(f"{len(self.detection.markers)} markers detected")
+        if self.frame_calibration is not None:
+            parts.append(f"{len(self.frame_calibration.points)} pinholes calibrated")
+        if self.registration is not None:
+            parts.append(f"FRE {self.registration.fre_mm:.2f} mm, l = {self.registration.sensor_offset_l_mm:.2f} mm")
+        return "; ".join(parts)
+
+
+def output_path(out_dir: str | os.PathLike[str], name: str) -> Path:
+    """``OUT/name``, creating OUT."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    return out / name

@@ -1,0 +1,82 @@
+"""Case folders (spec: ``ct.*`` or ``ct/``, ``calibration.csv``, ``navigation.csv``,
+``targets.mrk.json``, ``board.csv``, ``case.toml``) and their settings.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..errors import EMRegError
+from .image import find_ct
+
+DEFAULT_REFERENCE_SENSOR = 1
+DEFAULT_PROBE_SENSOR = 2
+
+
+@dataclass
+class Case:
+    """The files of one case folder (None where absent) and its ``case.toml`` settings."""
+
+    folder: Path
+    ct: Path | None
+    calibration: Path | None
+    navigation: Path | None
+    targets: Path | None
+    board: Path | None
+    settings: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def reference_sensor(self) -> int:
+        return int(self.settings.get("sensors", {}).get("reference", DEFAULT_REFERENCE_SENSOR))
+
+    @property
+    def probe_sensor(self) -> int:
+        return int(self.settings.get("sensors", {}).get("probe", DEFAULT_PROBE_SENSOR))
+
+    def section(self, name: str) -> dict[str, Any]:
+        """One ``case.toml`` table (empty when absent)."""
+        value = self.settings.get(name, {})
+        if not isinstance(value, dict):
+            raise EMRegError(f"{self.folder / 'case.toml'}: [{name}] must be a table")
+        return value
+
+
+def open_case(folder: str | os.PathLike[str]) -> Case:
+    """Discover a case folder's files by the spec's names and read ``case.toml``."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise EMRegError(f"{folder}: case folder not found")
+
+    def optional(name: str) -> Path | None:
+        return folder / name if (folder / name).is_file() else None
+
+    return Case(
+        folder=folder,
+        ct=find_ct(folder),
+        calibration=optional("calibration.csv"),
+        navigation=optional("navigation.csv"),
+        targets=optional("targets.mrk.json"),
+        board=optional("board.csv"),
+        settings=read_case_settings(folder / "case.toml"),
+    )
+
+
+def read_case_settings(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Read ``case.toml`` (empty dict when the file is absent); malformed TOML is an :class:`EMRegError`."""
+    path = Path(path)
+    if not path.is_file():
+        return {}
+    try:
+        with path.open("rb") as f:
+            settings = tomllib.load(f)
+    except tomllib.TOMLDecodeError as exc:
+        raise EMRegError(f"{path}: malformed TOML ({exc})") from None
+    sensors = settings.get("sensors", {})
+    for role in ("reference", "probe"):
+        if role in sensors and not (isinstance(sensors[role], int) and 1 <= sensors[role] <= 16):
+            raise EMRegError(f"{path}: [sensors] {role} must be a port number (1..4), got {sensors[role]!r}")
+    return settings

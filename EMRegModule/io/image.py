@@ -1,0 +1,113 @@
+"""CT volume reading (NRRD / NIfTI / MHA / DICOM series) and image-geometry helpers.
+
+Image space is the physical LPS space SimpleITK reports; origin, spacing and direction
+cosines are kept as read.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import SimpleITK as sitk
+
+from ..errors import EMRegError
+
+CT_FILE_NAMES = ("ct.nrrd", "ct.nii.gz", "ct.nii", "ct.mha", "ct.mhd")
+CT_FOLDER_NAME = "ct"
+
+_SCALAR_TYPES = {
+    sitk.sitkInt8, sitk.sitkUInt8, sitk.sitkInt16, sitk.sitkUInt16, sitk.sitkInt32,
+    sitk.sitkUInt32, sitk.sitkInt64, sitk.sitkUInt64, sitk.sitkFloat32, sitk.sitkFloat64,
+}
+
+
+def find_ct(case_dir: str | os.PathLike[str]) -> Path | None:
+    """The CT of a case folder by the spec's names, or None."""
+    case_dir = Path(case_dir)
+    for name in CT_FILE_NAMES:
+        if (case_dir / name).is_file():
+            return case_dir / name
+    if (case_dir / CT_FOLDER_NAME).is_dir():
+        return case_dir / CT_FOLDER_NAME
+    return None
+
+
+def read_ct(path: str | os.PathLike[str]) -> sitk.Image:
+    """Read a scalar 3D CT from a file or a folder holding one DICOM series.
+
+    Raises :class:`EMRegError` with a one-line message for a missing, empty, truncated
+    or unreadable file, a non-scalar or non-3D image, or a folder without one series.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise EMRegError(f"{path}: CT not found")
+    try:
+        if path.is_dir():
+            image = _read_dicom_series(path)
+        else:
+            if path.stat().st_size == 0:
+                raise EMRegError(f"{path}: CT file is empty")
+            image = sitk.ReadImage(str(path))
+    except RuntimeError as exc:
+        reason = str(exc).strip().splitlines()
+        detail = next((line for line in reversed(reason) if line.strip()), "unreadable")
+        raise EMRegError(f"{path}: cannot read CT ({detail.strip()[:200]})") from None
+    check_ct(image, path)
+    return image
+
+
+def _read_dicom_series(folder: Path) -> sitk.Image:
+    series_ids = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder)) or []
+    if not series_ids:
+        raise EMRegError(f"{folder}: no DICOM series found in the CT folder")
+    if len(series_ids) > 1:
+        raise EMRegError(f"{folder}: {len(series_ids)} DICOM series found; keep exactly one in the CT folder")
+    files = sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), series_ids[0])
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames(files)
+    return reader.Execute()
+
+
+def check_ct(image: sitk.Image, source: str | os.PathLike[str] = "CT") -> None:
+    """Refuse images EMReg cannot use: not 3D, not scalar, unsupported pixel type, degenerate."""
+    if image.GetDimension() != 3:
+        raise EMRegError(f"{source}: CT must be a 3D volume, got a {image.GetDimension()}D image")
+    if image.GetNumberOfComponentsPerPixel() != 1 or image.GetPixelID() not in _SCALAR_TYPES:
+        raise EMRegError(
+            f"{source}: CT must hold scalar intensities (HU), got pixel type {image.GetPixelIDTypeAsString()}"
+        )
+    if min(image.GetSize()) < 2:
+        raise EMRegError(f"{source}: CT has a degenerate size {image.GetSize()}")
+    if min(image.GetSpacing()) <= 0:
+        raise EMRegError(f"{source}: CT has a non-positive spacing {image.GetSpacing()}")
+
+
+def image_geometry(image: sitk.Image) -> dict[str, Any]:
+    """The geometry block of ``markers.json``: size, spacing, origin, direction (9 numbers)."""
+    return {
+        "size": list(image.GetSize()),
+        "spacing": list(image.GetSpacing()),
+        "origin": list(image.GetOrigin()),
+        "direction": list(image.GetDirection()),
+    }
+
+
+def index_to_physical_matrix(image: sitk.Image) -> np.ndarray:
+    """4x4 ``IndexToImage``: continuous (i, j, k) index -> LPS physical point (mm)."""
+    direction = np.asarray(image.GetDirection(), dtype=float).reshape(3, 3)
+    spacing = np.asarray(image.GetSpacing(), dtype=float)
+    index_to_image = np.eye(4)
+    index_to_image[:3, :3] = direction * spacing[None, :]
+    index_to_image[:3, 3] = image.GetOrigin()
+    return index_to_image
+
+
+def write_image(image: sitk.Image, path: str | os.PathLike[str], compress: bool = True) -> None:
+    """Write an image atomically (format by extension)."""
+    from .atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        sitk.WriteImage(image, str(tmp), compress)

@@ -1,0 +1,128 @@
+"""Tracking recording CSV (spec: ``time_s,sensor,x_mm,y_mm,z_mm,azimuth_deg,elevation_deg,roll_deg,quality,label``).
+
+Orientation is either the trakSTAR angles (azimuth, elevation, roll in degrees,
+``R = Rz @ Ry @ Rx``) or a unit quaternion ``qw,qx,qy,qz``. ``quality`` may be empty,
+``label`` may be absent or empty. Poses are ``SensorToTracker``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import EMRegError
+from ..tracking import TrackingRecording
+from ..transforms import angles_to_rotation, quaternion_to_rotation, rotation_to_angles, rotation_to_quaternion
+from .atomic import atomic_path
+
+ANGLE_COLUMNS = ("azimuth_deg", "elevation_deg", "roll_deg")
+QUATERNION_COLUMNS = ("qw", "qx", "qy", "qz")
+POSITION_COLUMNS = ("x_mm", "y_mm", "z_mm")
+HEADER_ANGLES = ("time_s", "sensor", *POSITION_COLUMNS, *ANGLE_COLUMNS, "quality", "label")
+HEADER_QUATERNION = ("time_s", "sensor", *POSITION_COLUMNS, *QUATERNION_COLUMNS, "quality", "label")
+
+
+def read_tracking_csv(path: str | os.PathLike[str]) -> TrackingRecording:
+    """Read a tracking recording; a malformed file raises :class:`EMRegError` naming file and line."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise EMRegError(f"{path}: tracking recording not found") from None
+    except UnicodeDecodeError:
+        raise EMRegError(f"{path}: not a text CSV file") from None
+    return parse_tracking_csv(text, source=str(path))
+
+
+def parse_tracking_csv(text: str, source: str = "recording") -> TrackingRecording:
+    """Parse tracking CSV text (see module docstring)."""
+    reader = csv.reader(io.StringIO(text))
+    try:
+        header = [h.strip() for h in next(reader)]
+    except StopIteration:
+        raise EMRegError(f"{source}: empty tracking recording (no header row)") from None
+    columns = {name: i for i, name in enumerate(header)}
+    missing = [c for c in ("time_s", "sensor", *POSITION_COLUMNS) if c not in columns]
+    if all(c in columns for c in ANGLE_COLUMNS):
+        orientation, orientation_columns = "angles", ANGLE_COLUMNS
+    elif all(c in columns for c in QUATERNION_COLUMNS):
+        orientation, orientation_columns = "quaternion", QUATERNION_COLUMNS
+    else:
+        missing.append("azimuth_deg,elevation_deg,roll_deg (or qw,qx,qy,qz)")
+    if missing:
+        raise EMRegError(f"{source}: tracking CSV header lacks column(s) {', '.join(missing)}")
+    numeric = ["time_s", "sensor", *POSITION_COLUMNS, *orientation_columns]
+    numeric_idx = [columns[c] for c in numeric]
+    quality_idx = columns.get("quality")
+    label_idx = columns.get("label")
+    values: list[list[float]] = []
+    quality: list[float] = []
+    labels: list[str] = []
+    for line_no, row in enumerate(reader, start=2):
+        if not row or all(not cell.strip() for cell in row):
+            continue
+        if len(row) < len(header) - (1 if label_idx == len(header) - 1 else 0):
+            raise EMRegError(f"{source}: line {line_no} has {len(row)} fields, the header has {len(header)}")
+        try:
+            values.append([float(row[i]) for i in numeric_idx])
+            q = row[quality_idx].strip() if quality_idx is not None and quality_idx < len(row) else ""
+            quality.append(float(q) if q else np.nan)
+        except (ValueError, IndexError):
+            raise EMRegError(f"{source}: line {line_no} has a non-numeric value where a number is expected") from None
+        labels.append(row[label_idx].strip() if label_idx is not None and label_idx < len(row) else "")
+    if not values:
+        raise EMRegError(f"{source}: tracking recording has a header but no samples")
+    data = np.asarray(values)
+    if not np.all(np.isfinite(data)):
+        bad = int(np.nonzero(~np.all(np.isfinite(data), axis=1))[0][0]) + 2
+        raise EMRegError(f"{source}: line {bad} holds a non-finite number")
+    sensor = data[:, 1]
+    if np.any(sensor != np.round(sensor)) or np.any(sensor < 1):
+        raise EMRegError(f"{source}: the sensor column must hold port numbers 1, 2, 3, ...")
+    if orientation == "angles":
+        rotation = angles_to_rotation(data[:, 5], data[:, 6], data[:, 7])
+    else:
+        norms = np.linalg.norm(data[:, 5:9], axis=1)
+        if np.any(norms < 1e-6):
+            raise EMRegError(f"{source}: a quaternion of zero length")
+        rotation = quaternion_to_rotation(data[:, 5:9])
+    return TrackingRecording(
+        time_s=data[:, 0], sensor=sensor.astype(int), position_mm=data[:, 2:5], rotation=rotation,
+        quality=np.asarray(quality), label=np.asarray(labels, dtype=object), source=source,
+        orientation_format=orientation,
+    )
+
+
+def format_tracking_csv(recording: TrackingRecording, orientation: str | None = None) -> str:
+    """CSV text for a recording; ``orientation`` 'angles' (default as read) or 'quaternion'."""
+    orientation = orientation or recording.orientation_format
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    if orientation == "quaternion":
+        writer.writerow(HEADER_QUATERNION)
+        orient = rotation_to_quaternion(recording.rotation)
+    else:
+        writer.writerow(HEADER_ANGLES)
+        orient = rotation_to_angles(recording.rotation)
+    for i in range(len(recording)):
+        q = recording.quality[i]
+        writer.writerow([
+            f"{recording.time_s[i]:.4f}", int(recording.sensor[i]),
+            *(f"{v:.4f}" for v in recording.position_mm[i]),
+            *(f"{v:.6f}" for v in orient[i]),
+            "" if np.isnan(q) else f"{q:g}",
+            recording.label[i] or "",
+        ])
+    return out.getvalue()
+
+
+def write_tracking_csv(
+    recording: TrackingRecording, path: str | os.PathLike[str], orientation: str | None = None
+) -> None:
+    """Write a recording as tracking CSV atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(format_tracking_csv(recording, orientation), encoding="utf-8")

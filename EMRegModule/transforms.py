@@ -1,0 +1,295 @@
+"""Rigid transforms, trakSTAR angles, rigid point fitting and registration error figures.
+
+Conventions:
+- A transform named ``AToB`` is a 4x4 homogeneous matrix mapping points given in frame A
+  into frame B: ``p_B = AToB @ [p_A, 1]``.
+- Lengths in millimetres, angles in degrees unless a name says ``_rad``.
+- trakSTAR angles: ``R = Rz(azimuth) @ Ry(elevation) @ Rx(roll)`` maps sensor axes to
+  tracker axes (seed paper Eq. 2, with its Ry/Rz typos corrected).
+- Quaternions are ``(w, x, y, z)``, unit norm, the same rotation as the matrix.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+Array = NDArray[np.float64]
+
+# LPS <-> RAS: negate x and y. The matrix is its own inverse.
+LPS_TO_RAS: Array = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+def make_transform(rotation: ArrayLike | None = None, translation: ArrayLike | None = None) -> Array:
+    """Build a 4x4 homogeneous transform from a 3x3 rotation and a translation (mm)."""
+    transform = np.eye(4)
+    if rotation is not None:
+        transform[:3, :3] = np.asarray(rotation, dtype=float)
+    if translation is not None:
+        transform[:3, 3] = np.asarray(translation, dtype=float)
+    return transform
+
+
+def invert_rigid(a_to_b: ArrayLike) -> Array:
+    """Inverse of a rigid 4x4 transform (``AToB`` -> ``BToA``) without a general matrix inverse."""
+    a_to_b = np.asarray(a_to_b, dtype=float)
+    rotation = a_to_b[:3, :3]
+    b_to_a = np.eye(4)
+    b_to_a[:3, :3] = rotation.T
+    b_to_a[:3, 3] = -rotation.T @ a_to_b[:3, 3]
+    return b_to_a
+
+
+def apply_transform(a_to_b: ArrayLike, points_a: ArrayLike) -> Array:
+    """Map points (N x 3 or 3, frame A, mm) into frame B with a 4x4 transform."""
+    a_to_b = np.asarray(a_to_b, dtype=float)
+    points_a = np.asarray(points_a, dtype=float)
+    return points_a @ a_to_b[:3, :3].T + a_to_b[:3, 3]
+
+
+def apply_rotation(a_to_b: ArrayLike, vectors_a: ArrayLike) -> Array:
+    """Rotate direction vectors (N x 3 or 3) from frame A into frame B (translation ignored)."""
+    a_to_b = np.asarray(a_to_b, dtype=float)
+    return np.asarray(vectors_a, dtype=float) @ a_to_b[:3, :3].T
+
+
+def is_rigid(transform: ArrayLike, tolerance: float = 1e-6) -> bool:
+    """True when the 4x4 matrix is a proper rigid transform (orthonormal rotation, det +1)."""
+    transform = np.asarray(transform, dtype=float)
+    if transform.shape != (4, 4):
+        return False
+    rotation = transform[:3, :3]
+    return bool(
+        np.allclose(rotation @ rotation.T, np.eye(3), atol=tolerance)
+        and abs(np.linalg.det(rotation) - 1.0) < tolerance
+        and np.allclose(transform[3], [0, 0, 0, 1], atol=tolerance)
+    )
+
+
+# --- trakSTAR angles ----------------------------------------------------------------------
+
+
+def angles_to_rotation(azimuth_deg: ArrayLike, elevation_deg: ArrayLike, roll_deg: ArrayLike) -> Array:
+    """Rotation(s) ``SensorToTracker`` from trakSTAR azimuth/elevation/roll in degrees.
+
+    ``R = Rz(azimuth) @ Ry(elevation) @ Rx(roll)``. Vectorised: inputs of shape (N,) give
+    an (N, 3, 3) array, scalars a (3, 3) array.
+    """
+    az = np.radians(np.asarray(azimuth_deg, dtype=float))
+    el = np.radians(np.asarray(elevation_deg, dtype=float))
+    ro = np.radians(np.asarray(roll_deg, dtype=float))
+    ca, sa = np.cos(az), np.sin(az)
+    ce, se = np.cos(el), np.sin(el)
+    cr, sr = np.cos(ro), np.sin(ro)
+    rotation = np.empty(np.broadcast(az, el, ro).shape + (3, 3))
+    rotation[..., 0, 0] = ca * ce
+    rotation[..., 0, 1] = ca * se * sr - sa * cr
+    rotation[..., 0, 2] = ca * se * cr + sa * sr
+    rotation[..., 1, 0] = sa * ce
+    rotation[..., 1, 1] = sa * se * sr + ca * cr
+    rotation[..., 1, 2] = sa * se * cr - ca * sr
+    rotation[..., 2, 0] = -se
+    rotation[..., 2, 1] = ce * sr
+    rotation[..., 2, 2] = ce * cr
+    return rotation
+
+
+def rotation_to_angles(rotation: ArrayLike) -> Array:
+    """trakSTAR (azimuth, elevation, roll) in degrees from rotation(s) (..., 3, 3).
+
+    Inverse of :func:`angles_to_rotation`; elevation is in [-90, 90], azimuth and roll in
+    (-180, 180]. At gimbal lock (elevation = +-90) roll is set to 0.
+    """
+    rotation = np.asarray(rotation, dtype=float)
+    elevation = np.arcsin(np.clip(-rotation[..., 2, 0], -1.0, 1.0))
+    cos_el = np.sqrt(rotation[..., 0, 0] ** 2 + rotation[..., 1, 0] ** 2)
+    locked = cos_el < 1e-9
+    azimuth = np.where(
+        locked,
+        np.arctan2(-rotation[..., 0, 1], rotation[..., 1, 1]),
+        np.arctan2(rotation[..., 1, 0], rotation[..., 0, 0]),
+    )
+    roll = np.where(locked, 0.0, np.arctan2(rotation[..., 2, 1], rotation[..., 2, 2]))
+    return np.degrees(np.stack([azimuth, elevation, roll], axis=-1))
+
+
+def pose_to_transform(position_mm: ArrayLike, angles_deg: ArrayLike) -> Array:
+    """``SensorToTracker`` 4x4 (N x 4 x 4 for N poses) from trakSTAR position and angles."""
+    position_mm = np.asarray(position_mm, dtype=float)
+    angles_deg = np.asarray(angles_deg, dtype=float)
+    rotation = angles_to_rotation(angles_deg[..., 0], angles_deg[..., 1], angles_deg[..., 2])
+    transform = np.zeros(rotation.shape[:-2] + (4, 4))
+    transform[..., :3, :3] = rotation
+    transform[..., :3, 3] = position_mm
+    transform[..., 3, 3] = 1.0
+    return transform
+
+
+# --- quaternions (w, x, y, z) ------------------------------------------------------------
+
+
+def quaternion_to_rotation(quaternion_wxyz: ArrayLike) -> Array:
+    """Rotation matrix (..., 3, 3) from unit quaternion(s) (..., 4) ordered (w, x, y, z)."""
+    q = np.asarray(quaternion_wxyz, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rotation = np.empty(q.shape[:-1] + (3, 3))
+    rotation[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    rotation[..., 0, 1] = 2 * (x * y - z * w)
+    rotation[..., 0, 2] = 2 * (x * z + y * w)
+    rotation[..., 1, 0] = 2 * (x * y + z * w)
+    rotation[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    rotation[..., 1, 2] = 2 * (y * z - x * w)
+    rotation[..., 2, 0] = 2 * (x * z - y * w)
+    rotation[..., 2, 1] = 2 * (y * z + x * w)
+    rotation[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return rotation
+
+
+def rotation_to_quaternion(rotation: ArrayLike) -> Array:
+    """Unit quaternion(s) (w, x, y, z) with w >= 0 from rotation matrices (..., 3, 3)."""
+    rotation = np.asarray(rotation, dtype=float)
+    flat = rotation.reshape(-1, 3, 3)
+    out = np.empty((flat.shape[0], 4))
+    for i, m in enumerate(flat):
+        # Shepperd's method: choose the largest diagonal term for numerical stability.
+        trace = np.trace(m)
+        candidates = [trace, m[0, 0], m[1, 1], m[2, 2]]
+        k = int(np.argmax(candidates))
+        if k == 0:
+            s = 2.0 * np.sqrt(1.0 + trace)
+            q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+        elif k == 1:
+            s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+            q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+        elif k == 2:
+            s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+            q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+        else:
+            s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+            q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+        q = np.asarray(q)
+        q /= np.linalg.norm(q)
+        out[i] = q if q[0] >= 0 else -q
+    return out.reshape(rotation.shape[:-2] + (4,))
+
+
+# --- rigid fitting and errors ------------------------------------------------------------
+
+
+def fit_rigid(
+    points_a: ArrayLike, points_b: ArrayLike, weights: ArrayLike | None = None
+) -> Array:
+    """Least-squares rigid ``AToB`` mapping paired points A onto B (Arun / Umeyama, no scale).
+
+    Reflection-safe (the determinant of the rotation is forced to +1). ``weights`` (N,)
+    are non-negative per-pair weights. Needs at least 3 non-collinear pairs.
+    """
+    points_a = np.asarray(points_a, dtype=float)
+    points_b = np.asarray(points_b, dtype=float)
+    if points_a.shape != points_b.shape or points_a.ndim != 2 or points_a.shape[1] != 3:
+        raise ValueError(f"fit_rigid needs two N x 3 arrays of equal shape, got {points_a.shape} and {points_b.shape}")
+    if points_a.shape[0] < 3:
+        raise ValueError(f"fit_rigid needs at least 3 point pairs, got {points_a.shape[0]}")
+    w = np.ones(len(points_a)) if weights is None else np.asarray(weights, dtype=float)
+    if w.shape != (len(points_a),) or np.any(w < 0) or w.sum() <= 0:
+        raise ValueError("weights must be N non-negative numbers with a positive sum")
+    w = w / w.sum()
+    centroid_a = w @ points_a
+    centroid_b = w @ points_b
+    covariance = (points_a - centroid_a).T @ ((points_b - centroid_b) * w[:, None])
+    u, _, vt = np.linalg.svd(covariance)
+    correction = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T)) or 1.0])
+    rotation = vt.T @ correction @ u.T
+    return make_transform(rotation, centroid_b - rotation @ centroid_a)
+
+
+def residuals(a_to_b: ArrayLike, points_a: ArrayLike, points_b: ArrayLike) -> Array:
+    """Per-pair distances (mm) between ``AToB @ points_a`` and ``points_b``."""
+    return np.linalg.norm(apply_transform(a_to_b, points_a) - np.asarray(points_b, dtype=float), axis=-1)
+
+
+def fre(a_to_b: ArrayLike, points_a: ArrayLike, points_b: ArrayLike) -> float:
+    """Fiducial registration error: RMS of the pair residuals in mm (paper Eq. 7)."""
+    return float(np.sqrt(np.mean(residuals(a_to_b, points_a, points_b) ** 2)))
+
+
+def predicted_tre(fiducials: ArrayLike, fle_rms_mm: float, targets: ArrayLike) -> Array:
+    """Expected RMS TRE (mm) at each target from the RMS FLE (Fitzpatrick, West & Maurer 1998).
+
+    ``TRE^2(r) = FLE^2 / N * (1 + 1/3 * sum_k d_k^2 / f_k^2)`` where ``d_k`` is the target's
+    distance from principal axis k of the fiducial configuration and ``f_k`` the RMS distance
+    of the fiducials from that axis. ``fle_rms_mm`` is the RMS (isotropic) localisation
+    error of one fiducial; fiducials and targets share one frame.
+    """
+    fiducials = np.asarray(fiducials, dtype=float)
+    targets = np.atleast_2d(np.asarray(targets, dtype=float))
+    if fiducials.ndim != 2 or fiducials.shape[0] < 3:
+        raise ValueError("predicted_tre needs at least 3 fiducials")
+    centroid = fiducials.mean(axis=0)
+    centred = fiducials - centroid
+    _, eigenvectors = np.linalg.eigh(centred.T @ centred)
+    ratio = np.zeros(len(targets))
+    for k in range(3):
+        axis = eigenvectors[:, k]
+        f_k2 = np.mean(_squared_distance_from_axis(centred, axis))
+        d_k2 = _squared_distance_from_axis(targets - centroid, axis)
+        ratio += d_k2 / f_k2
+    return np.sqrt(fle_rms_mm**2 / len(fiducials) * (1.0 + ratio / 3.0))
+
+
+def _squared_distance_from_axis(points: Array, unit_axis: Array) -> Array:
+    along = points @ unit_axis
+    return np.sum(points**2, axis=-1) - along**2
+
+
+def rotation_angle_deg(rotation_a: ArrayLike, rotation_b: ArrayLike) -> float:
+    """Angle in degrees of the rotation taking ``rotation_a`` to ``rotation_b`` (3x3 each)."""
+    relative = np.asarray(rotation_a, dtype=float)[:3, :3].T @ np.asarray(rotation_b, dtype=float)[:3, :3]
+    return float(np.degrees(np.arccos(np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def angle_between_deg(u: ArrayLike, v: ArrayLike) -> Array:
+    """Angle(s) in degrees between vectors (..., 3)."""
+    u = np.asarray(u, dtype=float)
+    v = np.asarray(v, dtype=float)
+    cos = np.sum(u * v, axis=-1) / (np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1))
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def lps_to_ras(transform_lps: ArrayLike) -> Array:
+    """Express a 4x4 transform whose both frames are LPS-based in RAS (and back: same formula)."""
+    return LPS_TO_RAS @ np.asarray(transform_lps, dtype=float) @ LPS_TO_RAS
+
+
+def random_rotation(rng: np.random.Generator, max_angle_deg: float | None = None) -> Array:
+    """A random rotation; uniform over SO(3), or about a random axis by at most ``max_angle_deg``."""
+    if max_angle_deg is None:
+        q = rng.normal(size=4)
+        return quaternion_to_rotation(q / np.linalg.norm(q))
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angle = np.radians(rng.uniform(-max_angle_deg, max_angle_deg))
+    return axis_angle_to_rotation(axis, angle)
+
+
+def axis_angle_to_rotation(axis: ArrayLike, angle_rad: float) -> Array:
+    """Rotation matrix about a unit axis by an angle in radians (Rodrigues)."""
+    axis = np.asarray(axis, dtype=float)
+    axis = axis / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle_rad) * k + (1 - np.cos(angle_rad)) * (k @ k)
+
+
+def rotation_from_y_axis(direction: ArrayLike) -> Array:
+    """A rotation whose +Y column is the given direction (the other two axes chosen stably).
+
+    Used for axisymmetric objects (markers) whose pose is defined up to a spin about +Y.
+    """
+    y = np.asarray(direction, dtype=float)
+    y = y / np.linalg.norm(y)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(y[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
+    z = np.cross(helper, y)
+    z /= np.linalg.norm(z)
+    x = np.cross(y, z)
+    return np.column_stack([x, y, z])
