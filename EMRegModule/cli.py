@@ -237,10 +237,13 @@ def run_case(
 ) -> list[str]:
     """Run every available stage on a case folder through the controller; returns summary lines.
 
+    ``OUT/run.json`` records the case folder, the CT, the sensor ports and the summary (the
+    report finds the CT through it).
     A stage that refuses (no safe answer) removes its own and all later outputs from OUT,
     so no stale result of an earlier run can be mistaken for this one's, then re-raises.
     """
     from .controller import EMRegController
+    from .io.atomic import atomic_write_json
     from .io.case import open_case, read_case_settings
 
     case = open_case(case_dir)
@@ -252,6 +255,10 @@ def run_case(
     controller.set_sensors(reference_sensor, probe_sensor)
     out.mkdir(parents=True, exist_ok=True)
     summary: list[str] = []
+    run_record = {"case": str(case.folder.resolve()), "ct": str(case.ct.resolve()), "emreg_version": __version__,
+                  "reference_sensor": controller.reference_sensor, "probe_sensor": controller.probe_sensor,
+                  "summary": summary}
+    atomic_write_json(out / "run.json", run_record)
     current = "detect"
     try:
         if stage_available("detection"):
@@ -313,9 +320,12 @@ def run_case(
             from .report import write_report
 
             summary.append(f"report: {write_report(out, case_dir=case.folder, progress=progress)}")
-    except NoSafeAnswerError:
+    except NoSafeAnswerError as exc:
         _remove_outputs(out, current)
+        summary.append(f"{current}: refused: {exc}")
+        atomic_write_json(out / "run.json", run_record)
         raise
+    atomic_write_json(out / "run.json", run_record)
     return summary
 
 
