@@ -59,24 +59,13 @@ def parse_tracking_csv(text: str, source: str = "recording") -> TrackingRecordin
     numeric_idx = [columns[c] for c in numeric]
     quality_idx = columns.get("quality")
     label_idx = columns.get("label")
-    values: list[list[float]] = []
-    quality: list[float] = []
-    labels: list[str] = []
-    for line_no, row in enumerate(reader, start=2):
-        if not row or all(not cell.strip() for cell in row):
-            continue
-        if len(row) < len(header) - (1 if label_idx == len(header) - 1 else 0):
-            raise EMRegError(f"{source}: line {line_no} has {len(row)} fields, the header has {len(header)}")
-        try:
-            values.append([float(row[i]) for i in numeric_idx])
-            q = row[quality_idx].strip() if quality_idx is not None and quality_idx < len(row) else ""
-            quality.append(float(q) if q else np.nan)
-        except (ValueError, IndexError):
-            raise EMRegError(f"{source}: line {line_no} has a non-numeric value where a number is expected") from None
-        labels.append(row[label_idx].strip() if label_idx is not None and label_idx < len(row) else "")
-    if not values:
+    body = text.split("\n", 1)[1] if "\n" in text else ""
+    parsed = _parse_fast(body, len(header), numeric_idx, quality_idx, label_idx)
+    if parsed is None:
+        parsed = _parse_checked(reader, header, numeric_idx, quality_idx, label_idx, source)
+    data, quality, labels = parsed
+    if len(data) == 0:
         raise EMRegError(f"{source}: tracking recording has a header but no samples")
-    data = np.asarray(values)
     if not np.all(np.isfinite(data)):
         bad = int(np.nonzero(~np.all(np.isfinite(data), axis=1))[0][0]) + 2
         raise EMRegError(f"{source}: line {bad} holds a non-finite number")
@@ -92,9 +81,63 @@ def parse_tracking_csv(text: str, source: str = "recording") -> TrackingRecordin
         rotation = quaternion_to_rotation(data[:, 5:9])
     return TrackingRecording(
         time_s=data[:, 0], sensor=sensor.astype(int), position_mm=data[:, 2:5], rotation=rotation,
-        quality=np.asarray(quality), label=np.asarray(labels, dtype=object), source=source,
+        quality=quality, label=labels, source=source,
         orientation_format=orientation,
     )
+
+
+def _parse_fast(
+    body: str, n_columns: int, numeric_idx: list[int], quality_idx: int | None, label_idx: int | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Vectorised parse of well-formed bodies (no quoting); None sends the caller to the checked path."""
+    if '"' in body:
+        return None
+    lines = [line for line in body.splitlines() if line.strip(" ,\r")]
+    if not lines:
+        return np.zeros((0, len(numeric_idx))), np.zeros(0), np.zeros(0, dtype=object)
+    if body.count(",") != len(lines) * (n_columns - 1):  # some row has a field too many or too few
+        return None
+    try:
+        data = np.loadtxt(lines, delimiter=",", usecols=numeric_idx, ndmin=2)
+        if quality_idx is not None:
+            text = np.char.strip(np.loadtxt(lines, delimiter=",", usecols=[quality_idx], dtype=str, ndmin=1))
+            quality = np.full(len(lines), np.nan)
+            given = text != ""
+            quality[given] = text[given].astype(float)
+        else:
+            quality = np.full(len(lines), np.nan)
+        if label_idx is not None:
+            labels = np.char.strip(np.loadtxt(lines, delimiter=",", usecols=[label_idx], dtype=str, ndmin=1))
+        else:
+            labels = np.full(len(lines), "")
+    except ValueError:
+        return None
+    return data, quality, labels.astype(object)
+
+
+def _parse_checked(
+    reader, header: list[str], numeric_idx: list[int], quality_idx: int | None, label_idx: int | None, source: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Row-by-row parse that names the first bad line."""
+    values: list[list[float]] = []
+    quality: list[float] = []
+    labels: list[str] = []
+    for line_no, row in enumerate(reader, start=2):
+        if not row or all(not cell.strip() for cell in row):
+            continue
+        if len(row) < len(header) - (1 if label_idx == len(header) - 1 else 0):
+            raise EMRegError(f"{source}: line {line_no} has {len(row)} fields, the header has {len(header)}")
+        try:
+            values.append([float(row[i]) for i in numeric_idx])
+            q = row[quality_idx].strip() if quality_idx is not None and quality_idx < len(row) else ""
+            quality.append(float(q) if q else np.nan)
+        except (ValueError, IndexError):
+            raise EMRegError(
+                f"{source}: line {line_no} has a non-numeric value where a number is expected"
+            ) from None
+        labels.append(row[label_idx].strip() if label_idx is not None and label_idx < len(row) else "")
+    return (np.asarray(values, dtype=float).reshape(-1, len(numeric_idx)), np.asarray(quality, dtype=float),
+            np.asarray(labels, dtype=object))
 
 
 def format_tracking_csv(recording: TrackingRecording, orientation: str | None = None) -> str:
