@@ -1,0 +1,383 @@
+"""A trakSTAR RS-232 client over pyserial: POINT and STREAM, record formats, examine / change value.
+
+Protocol facts and their sources are in :mod:`.trakstar_protocol`. What the driver adds:
+
+- Framing: records are found by the phasing bit; a record is used only if it passes every check of
+  :class:`~.trakstar_protocol.RecordParser` (start byte, no stray phasing bit, exact length,
+  group-mode address, followed by a record start when that byte is already there, no long silence
+  inside it) *and* its values are possible (:func:`~.trakstar_protocol.record_values_plausible`).
+  Anything else is dropped and counted; the parser resynchronises on the next record start. No
+  pose is ever made from a record that failed these checks.
+- Limits of the protocol: records carry no checksum, so a flipped *data* bit (bits 0..6) that keeps
+  the framing intact cannot be detected by any trakSTAR RS-232 client; the value checks catch the
+  large ones in orientation, none in position. Use a shielded cable; the watchdog in
+  :mod:`.navigator` adds staleness and quality checks on top.
+- Sensor status: the RS-232 records carry no status bits. A port without a sensor answers with an
+  all-zero record (position zero is the transmitter's centre, where no sensor can be) and sensor
+  serial number 0 ([LTS] ``sensorAttached``); a sensor beyond the position range answers with
+  saturated position words ([FOB]: the output saturates at full scale). The driver reports these as
+  ``not_attached`` and ``out_of_range`` (choice, documented in the simulator too).
+- Quality: with METAL enabled each record ends with a METAL byte, 0 (no distortion) .. 127, reported
+  as ``quality``.
+- Line settings: 8 data bits, no parity, 1 stop bit, no flow control; RTS left low (RTS high holds
+  the unit in reset: [FOB], [IGSTK] Reset()).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections.abc import Callable, Iterable, Sequence
+
+import numpy as np
+
+from ..errors import EMRegError
+from . import trakstar_protocol as tp
+from .samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE, SensorSample
+from .trakstar_protocol import DecodedRecord, FramingStats, RecordFormat, RecordParser
+
+SampleCallback = Callable[[SensorSample], None]
+
+
+class TrakstarDriver:
+    """Talks to a trakSTAR (or the simulator) on a serial port.
+
+    >>> driver = TrakstarDriver("/dev/ttyUSB0").open()          # doctest: +SKIP
+    >>> driver.configure(record_format="POSITION/ANGLES")       # doctest: +SKIP
+    >>> sample = driver.point(2)                                # doctest: +SKIP
+    """
+
+    def __init__(self, port: str, baud: int = tp.DEFAULT_BAUD, timeout_s: float = 0.5,
+                 max_gap_ms: float = 50.0) -> None:
+        if baud not in tp.BAUD_RATES:
+            raise EMRegError(f"baud={baud}: the trakSTAR supports {', '.join(map(str, tp.BAUD_RATES))}")
+        self.port = port
+        self.baud = baud
+        self.timeout_s = timeout_s
+        self.serial = None
+        self.scale_inches: float = tp.POWER_ON_SCALE_INCHES
+        self.rate_hz: float = tp.POWER_ON_RATE_HZ
+        self.formats: dict[int, RecordFormat] = dict.fromkeys(range(1, tp.MAX_SENSORS + 1), tp.POWER_ON_FORMAT)
+        self.metal: dict[int, bool] = dict.fromkeys(range(1, tp.MAX_SENSORS + 1), False)
+        self.group_mode = False
+        self.group_sensors: tuple[int, ...] = tuple(range(1, tp.MAX_SENSORS + 1))
+        self.parser = RecordParser(tp.record_length(tp.POWER_ON_FORMAT), None, int(max_gap_ms * 1e6))
+        self._reader: threading.Thread | None = None
+        self._stop_reader = threading.Event()
+        self._lock = threading.Lock()
+        self._t0_ns = time.monotonic_ns()
+        self._frame = -1
+        self._frame_time_s = 0.0
+        self._last_address = 99
+        self._last_record_ns = 0
+        self.error: str | None = None
+
+    # -- connection ----------------------------------------------------------------------
+    def open(self) -> TrakstarDriver:
+        """Open the port (8N1, no flow control), stop any stream left running, read the scale."""
+        import serial
+
+        try:
+            self.serial = serial.Serial(self.port, self.baud, bytesize=serial.EIGHTBITS, parity=serial.PARITY_NONE,
+                                        stopbits=serial.STOPBITS_ONE, timeout=self.timeout_s, xonxoff=False,
+                                        rtscts=False, dsrdtr=False)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise EMRegError(f"trakSTAR port {self.port}: cannot open it ({exc}); check the device path "
+                             "and permissions (dialout group)") from None
+        with contextlib.suppress(Exception):
+            self.serial.rts = False
+        self._write(bytes([tp.POINT]))  # ends a stream left running by a previous program
+        time.sleep(0.05)
+        self._purge()
+        self.scale_inches = 72 if self.examine_word(tp.PARAM_POSITION_SCALING) == 1 else 36
+        self.rate_hz = self.examine_word(tp.PARAM_MEASUREMENT_RATE) / 256.0 or tp.POWER_ON_RATE_HZ
+        return self
+
+    def close(self) -> None:
+        """Stop streaming and close the port (idempotent)."""
+        if self.serial is None:
+            return
+        with contextlib.suppress(Exception):
+            self.stop_stream()
+        with contextlib.suppress(Exception):
+            self.serial.close()
+        self.serial = None
+
+    def __enter__(self) -> TrakstarDriver:
+        return self.open() if self.serial is None else self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def stats(self) -> FramingStats:
+        """Counters of accepted and rejected records."""
+        return self.parser.stats
+
+    # -- low level -----------------------------------------------------------------------
+    def _write(self, data: bytes) -> None:
+        if self.serial is None:
+            raise EMRegError(f"trakSTAR port {self.port} is not open")
+        try:
+            self.serial.write(data)
+            self.serial.flush()
+        except Exception as exc:  # serial.SerialException, OSError
+            raise EMRegError(f"trakSTAR port {self.port}: write failed ({exc})") from None
+
+    def _read_exact(self, n: int, what: str) -> bytes:
+        data = self.serial.read(n)
+        if len(data) < n:
+            raise EMRegError(f"trakSTAR on {self.port}: no reply to {what} within {self.timeout_s:g} s "
+                             f"(got {len(data)} of {n} bytes); check power, cable and baud rate ({self.baud})")
+        return data
+
+    def _purge(self) -> None:
+        time.sleep(0.002)
+        self.serial.reset_input_buffer()
+        self.parser.reset()
+
+    @staticmethod
+    def _prefix(sensor: int | None) -> bytes:
+        return b"" if sensor is None else bytes([tp.address_byte(sensor)])
+
+    # -- examine / change value ----------------------------------------------------------
+    def examine(self, param: int, sensor: int | None = None) -> bytes:
+        """EXAMINE VALUE: the parameter's reply bytes (plain bytes, no phasing)."""
+        if param not in tp.EXAMINE_LENGTH:
+            raise ValueError(f"unknown EXAMINE VALUE parameter {param}")
+        self._ensure_not_streaming()
+        self._write(self._prefix(sensor) + bytes([tp.EXAMINE_VALUE, param]))
+        return self._read_exact(tp.EXAMINE_LENGTH[param], f"EXAMINE VALUE {param}")
+
+    def examine_word(self, param: int, sensor: int | None = None) -> int:
+        """EXAMINE VALUE of a 1- or 2-byte parameter as an unsigned number (LSB first)."""
+        return int.from_bytes(self.examine(param, sensor), "little")
+
+    def change(self, param: int, data: bytes, sensor: int | None = None) -> None:
+        """CHANGE VALUE with raw parameter data (length as the protocol wants it)."""
+        if tp.CHANGE_LENGTH.get(param) != len(data):
+            raise ValueError(f"CHANGE VALUE {param} takes {tp.CHANGE_LENGTH.get(param)} data bytes, got {len(data)}")
+        self._ensure_not_streaming()
+        self._write(self._prefix(sensor) + bytes([tp.CHANGE_VALUE, param]) + data)
+
+    def error_code(self) -> int:
+        """The tracker's last error code (reading clears it); see ``trakstar_protocol.ERROR_CODES``."""
+        return self.examine_word(tp.PARAM_ERROR_CODE)
+
+    def sensor_attached(self, sensor: int) -> bool:
+        """True when a sensor is plugged into the port (its serial number is non-zero; [LTS])."""
+        return self.examine_word(tp.PARAM_SENSOR_SERIAL, sensor) != 0
+
+    def set_position_scale(self, inches: int) -> None:
+        """36- or 72-inch full scale (CHANGE VALUE 3: word 0 or 1)."""
+        if inches not in (36, 72):
+            raise ValueError("the position scale is 36 or 72 inches")
+        self.change(tp.PARAM_POSITION_SCALING, (0 if inches == 36 else 1).to_bytes(2, "little"))
+        self.scale_inches = inches
+
+    def set_measurement_rate(self, rate_hz: float) -> None:
+        """Measurement rate in Hz (CHANGE VALUE 7: rate x 256 as a word; 20..255 Hz)."""
+        if not tp.MIN_RATE_HZ <= rate_hz <= tp.MAX_RATE_HZ:
+            raise EMRegError(f"measurement rate {rate_hz:g} Hz: the trakSTAR allows "
+                             f"{tp.MIN_RATE_HZ:g}..{tp.MAX_RATE_HZ:g} Hz")
+        self.change(tp.PARAM_MEASUREMENT_RATE, round(rate_hz * 256).to_bytes(2, "little"))
+        self.rate_hz = rate_hz
+
+    def set_group_mode(self, on: bool) -> None:
+        """Group mode: POINT / STREAM answer for every sensor, each record followed by its address."""
+        self.change(tp.PARAM_GROUP_MODE, bytes([int(on)]))
+        self.group_mode = on
+
+    def set_format(self, record_format: str | RecordFormat, sensors: Iterable[int] = (1, 2, 3, 4)) -> None:
+        """Select the record format of each sensor (address prefix + format command byte)."""
+        fmt = record_format if isinstance(record_format, RecordFormat) else tp.get_format(record_format)
+        self._ensure_not_streaming()
+        for sensor in sensors:
+            self._write(self._prefix(sensor) + bytes([fmt.command]))
+            self.formats[sensor] = fmt
+
+    def set_metal(self, on: bool, sensors: Iterable[int] = (1, 2, 3, 4), sensitivity: int = 32) -> None:
+        """METAL: append a quality byte (0 best .. 127) to each record of these sensors."""
+        self._ensure_not_streaming()
+        for sensor in sensors:
+            self._write(self._prefix(sensor) + bytes([tp.METAL, int(on), sensitivity & 0x7F]))
+            self.metal[sensor] = on
+
+    def configure(self, record_format: str | RecordFormat = "POSITION/ANGLES", metal: bool = True,
+                  group: bool = True, rate_hz: float | None = None, scale_inches: int | None = None) -> None:
+        """The usual set-up: one format for all four ports, METAL on or off, group mode."""
+        if scale_inches is not None:
+            self.set_position_scale(scale_inches)
+        if rate_hz is not None:
+            self.set_measurement_rate(rate_hz)
+        self.set_format(record_format)
+        self.set_metal(metal)
+        self.set_group_mode(group)
+
+    # -- data ----------------------------------------------------------------------------
+    def record_length(self, sensor: int) -> int:
+        return tp.record_length(self.formats[sensor], self.metal[sensor], self.group_mode)
+
+    def point(self, sensor: int | None = None) -> SensorSample | None:
+        """POINT: one record of ``sensor`` (group mode off), or None if it failed framing / timed out."""
+        if self.group_mode:
+            raise EMRegError("point(sensor) needs group mode off; use point_all() in group mode")
+        sensor = sensor or 1
+        self._ensure_not_streaming()
+        self.parser.configure(self.record_length(sensor), None)
+        self.serial.reset_input_buffer()
+        self._write(self._prefix(sensor) + bytes([tp.POINT]))
+        records = self._read_records(1, self.record_length(sensor))
+        if not records:
+            return None
+        data, t_ns = records[0]
+        return self._sample(data, sensor, t_ns, new_frame=True)
+
+    def point_all(self) -> list[SensorSample]:
+        """POINT in group mode: one record per sensor of the flock (those that passed framing)."""
+        if not self.group_mode:
+            raise EMRegError("point_all() needs group mode (set_group_mode(True))")
+        self._ensure_not_streaming()
+        length = self._group_length()
+        self.parser.configure(length, self.group_sensors)
+        self.serial.reset_input_buffer()
+        self._write(bytes([tp.POINT]))
+        samples = []
+        first = True
+        for data, t_ns in self._read_records(len(self.group_sensors), length):
+            sample = self._sample(data, None, t_ns, new_frame=first)
+            first = False
+            if sample is not None:
+                samples.append(sample)
+        return samples
+
+    def _read_records(self, count: int, length: int) -> list[tuple[bytes, int]]:
+        deadline = time.monotonic() + self.timeout_s
+        out: list[tuple[bytes, int]] = []
+        while len(out) < count and time.monotonic() < deadline:
+            need = max(1, min(self.serial.in_waiting, 4096))
+            chunk = self.serial.read(need)
+            if not chunk:
+                continue
+            t_ns = time.monotonic_ns()
+            out.extend((r, t_ns) for r in self.parser.feed(chunk, t_ns))
+        return out
+
+    def _group_length(self) -> int:
+        lengths = {tp.record_length(self.formats[s], self.metal[s], True) for s in self.group_sensors}
+        if len(lengths) != 1:
+            raise EMRegError("group mode needs the same record format and METAL setting on every sensor; "
+                             "use configure()")
+        return lengths.pop()
+
+    def _sample(self, data: bytes, sensor: int | None, t_ns: int, new_frame: bool = False) -> SensorSample | None:
+        """Decode a framed record into a sample; None (and counted) when its values are impossible."""
+        if sensor is None:
+            sensor = data[-1] & 0x7F
+        fmt = self.formats[sensor]
+        record = tp.decode_record(fmt, data, self.scale_inches, self.metal[sensor], self.group_mode)
+        if not tp.record_values_plausible(record):
+            self.parser.stats.value_errors += 1
+            self.parser.stats.records -= 1
+            return None
+        if new_frame:
+            self._frame += 1
+            self._frame_time_s = (t_ns - self._t0_ns) / 1e9
+        return record_to_sample(record, sensor, self._frame_time_s, self._frame, t_ns)
+
+    # -- streaming -----------------------------------------------------------------------
+    @property
+    def streaming(self) -> bool:
+        return self._reader is not None
+
+    def start_stream(self, callback: SampleCallback, group: bool = True) -> None:
+        """STREAM: records of every sensor at the measurement rate; ``callback(sample)`` runs in the
+        reader thread for each accepted record (keep it short: it is on the latency path)."""
+        if self.streaming:
+            raise EMRegError("the trakSTAR is already streaming")
+        if group and not self.group_mode:
+            self.set_group_mode(True)
+        length = self._group_length() if self.group_mode else self.record_length(1)
+        self.parser.configure(length, self.group_sensors if self.group_mode else None)
+        self.serial.reset_input_buffer()
+        self._t0_ns = time.monotonic_ns()
+        self._frame = -1
+        self._last_address = 99
+        self._stop_reader.clear()
+        self.error = None
+        self._write(bytes([tp.STREAM]))
+        self._reader = threading.Thread(target=self._read_stream, args=(callback,), name="trakstar-reader",
+                                        daemon=True)
+        self._reader.start()
+
+    def stop_stream(self) -> None:
+        """End STREAM mode (POINT byte), stop the reader thread and discard what is still in flight."""
+        if self._reader is None:
+            return
+        self._stop_reader.set()
+        with contextlib.suppress(EMRegError):
+            self._write(bytes([tp.POINT]))
+        self._reader.join(timeout=2.0)
+        self._reader = None
+        time.sleep(0.02)
+        with contextlib.suppress(Exception):
+            self._purge()
+
+    def _ensure_not_streaming(self) -> None:
+        if self.streaming:
+            self.stop_stream()
+        if self.serial is None:
+            raise EMRegError(f"trakSTAR port {self.port} is not open")
+
+    def _read_stream(self, callback: SampleCallback) -> None:
+        ser = self.serial
+        period_ns = 1e9 / max(self.rate_hz, 1.0)
+        try:
+            while not self._stop_reader.is_set():
+                chunk = ser.read(1)
+                if not chunk:
+                    continue
+                waiting = ser.in_waiting
+                if waiting:
+                    chunk += ser.read(waiting)
+                t_ns = time.monotonic_ns()
+                for data in self.parser.feed(chunk, t_ns):
+                    address = data[-1] & 0x7F if self.group_mode else 1
+                    new_frame = (address <= self._last_address or t_ns - self._last_record_ns > 0.6 * period_ns)
+                    self._last_address = address
+                    self._last_record_ns = t_ns
+                    sample = self._sample(data, address if self.group_mode else 1, t_ns, new_frame)
+                    if sample is not None:
+                        callback(sample)
+        except Exception as exc:  # the port vanished (cable pulled, simulator stopped)
+            if not self._stop_reader.is_set():
+                self.error = f"trakSTAR port {self.port}: read failed ({exc})"
+
+
+def record_to_sample(record: DecodedRecord, sensor: int, time_s: float, frame: int, received_ns: int) -> SensorSample:
+    """A :class:`SensorSample` from a decoded record (missing parts NaN; status from the record)."""
+    position = record.position_mm if record.position_mm is not None else np.full(3, np.nan)
+    rotation = record.rotation()
+    if rotation is None:
+        rotation = np.full((3, 3), np.nan)
+    status = STATUS_OK
+    if record.all_zero:
+        status = STATUS_NOT_ATTACHED
+    elif record.saturated:
+        status = STATUS_OUT_OF_RANGE
+    quality = float(record.metal) if record.metal is not None else float("nan")
+    sample = SensorSample(sensor, time_s, np.asarray(position, dtype=float), rotation, quality, status,
+                          frame=frame, received_ns=received_ns, angles_deg=record.angles())
+    sample.extra["record"] = record
+    return sample
+
+
+def sensors_from_list(text: str | Sequence[int] | None) -> tuple[int, ...]:
+    """Sensor ports from '1,2,3' (or a sequence); each 1..4."""
+    if text is None:
+        return tuple(range(1, tp.MAX_SENSORS + 1))
+    values = [int(v) for v in text.split(",")] if isinstance(text, str) else [int(v) for v in text]
+    if not values or any(not 1 <= v <= tp.MAX_SENSORS for v in values):
+        raise EMRegError(f"sensor ports must be 1..{tp.MAX_SENSORS}, got {text}")
+    return tuple(values)
