@@ -1,0 +1,223 @@
+"""Frame calibration: one point per marker pinhole in the Reference frame (paper section 2.3).
+
+Every probe sample is expressed in the Reference frame at its own moment (paper Eq. 3-5,
+:func:`EMRegModule.tracking.probe_in_reference`), so a frame or transmitter moved between
+dwells changes nothing. The dwells (probe held in a pinhole) come from the labels, or are
+found automatically when the recording has none (:mod:`EMRegModule.dwell`). Each pinhole's
+point is the robust average of its dwell samples (wild samples dropped), its direction the
+robust mean of ``-(probe +X)``: the probe goes in tip first, so its +X points into the hole
+and the marker's +Y (out of the hole) is its opposite.
+
+Revisits: two dwells at the same pinhole (the same label, or, without labels, averages
+closer than ``merge_radius_mm``) are merged into one point (samples pooled); when the
+visits disagree by more than ``revisit_tolerance_mm`` the point carries a warning.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .dwell import DwellSettings, find_dwells, group_by_place, robust_mean, robust_mean_direction
+from .errors import EMRegError
+from .io.atomic import atomic_write_json, read_json
+from .tracking import TrackingRecording, probe_in_reference
+
+#: Visits of one pinhole whose averages differ by more than this (mm) earn a warning.
+DEFAULT_REVISIT_TOLERANCE_MM = 1.0
+
+
+@dataclass
+class CalibrationPoint:
+    """One calibrated pinhole, in the Reference frame.
+
+    ``position`` (3,) mm: the probe sensor's centre in the pinhole; ``direction`` (3,) unit:
+    the marker's +Y (out of the hole), NaN when unknown; ``samples``: samples averaged;
+    ``std_mm``: RMS 3D distance of those samples from ``position``; ``visits``: dwells merged.
+    """
+
+    label: str
+    position: np.ndarray
+    direction: np.ndarray
+    samples: int
+    std_mm: float
+    visits: int = 1
+    direction_std_deg: float = float("nan")
+    start_s: float = float("nan")
+    end_s: float = float("nan")
+    warning: str = ""
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "label": self.label, "position": [float(v) for v in self.position],
+            "direction": [float(v) for v in self.direction], "samples": int(self.samples),
+            "std_mm": round(float(self.std_mm), 4), "visits": int(self.visits),
+            "direction_std_deg": round(float(self.direction_std_deg), 3),
+            "start_s": float(self.start_s), "end_s": float(self.end_s),
+        }
+        if self.warning:
+            out["warning"] = self.warning
+        return out
+
+
+@dataclass
+class FrameCalibration:
+    """The calibrated pinholes of a fiducial frame (Reference frame, mm) and how they were found."""
+
+    points: list[CalibrationPoint]
+    reference_sensor: int = 1
+    probe_sensor: int = 2
+    labelled: bool = True
+    source: str = ""
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def labels(self) -> list[str]:
+        return [p.label for p in self.points]
+
+    @property
+    def positions(self) -> np.ndarray:
+        """Pinhole points (N, 3) in the Reference frame, mm."""
+        return np.array([p.position for p in self.points], dtype=float).reshape(-1, 3)
+
+    @property
+    def directions(self) -> np.ndarray:
+        """Unit marker +Y directions (N, 3) in the Reference frame (NaN rows when unknown)."""
+        return np.array([p.direction for p in self.points], dtype=float).reshape(-1, 3)
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``frame_calibration.json`` document (spec keys plus a few extra)."""
+        return {
+            "reference_sensor": int(self.reference_sensor), "probe_sensor": int(self.probe_sensor),
+            "points": [p.to_json() for p in self.points],
+            "labelled": bool(self.labelled), "source": self.source, "warnings": list(self.warnings),
+        }
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any], source: str = "frame calibration") -> FrameCalibration:
+        """Parse a ``frame_calibration.json`` document; :class:`EMRegError` naming ``source`` if malformed."""
+        try:
+            points = []
+            for i, item in enumerate(document["points"]):
+                position = np.asarray(item["position"], dtype=float)
+                direction = np.asarray(item.get("direction") or [np.nan] * 3, dtype=float)
+                if position.shape != (3,) or not np.all(np.isfinite(position)):
+                    raise EMRegError(f"{source}: point {i + 1} has no valid 3D position")
+                if direction.shape != (3,):
+                    raise EMRegError(f"{source}: point {i + 1} has a malformed direction")
+                norm = np.linalg.norm(direction)
+                if np.isfinite(norm) and norm > 0:
+                    direction = direction / norm
+                else:
+                    direction = np.full(3, np.nan)
+                points.append(CalibrationPoint(
+                    label=str(item.get("label") or f"P{i + 1:02d}"), position=position, direction=direction,
+                    samples=int(item.get("samples", 0)), std_mm=float(item.get("std_mm", np.nan)),
+                    visits=int(item.get("visits", 1)),
+                    direction_std_deg=_float(item.get("direction_std_deg")),
+                    start_s=_float(item.get("start_s")), end_s=_float(item.get("end_s")),
+                    warning=str(item.get("warning", "")),
+                ))
+            labels = [p.label for p in points]
+            if len(set(labels)) != len(labels):
+                raise EMRegError(f"{source}: point labels must be unique")
+            return cls(points, int(document.get("reference_sensor", 1)), int(document.get("probe_sensor", 2)),
+                       bool(document.get("labelled", True)), str(document.get("source", "")),
+                       [str(w) for w in document.get("warnings", [])])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise EMRegError(f"{source}: not a frame calibration file ({exc!s:.100})") from None
+
+
+def _float(value: Any) -> float:
+    return float("nan") if value is None else float(value)
+
+
+def calibrate_frame(
+    recording: TrackingRecording,
+    reference_sensor: int = 1,
+    probe_sensor: int = 2,
+    settings: Mapping[str, Any] | None = None,
+) -> FrameCalibration:
+    """One point per marker pinhole, in the Reference frame (mm), from a calibration recording.
+
+    ``settings``: the ``case.toml`` ``[calibration]`` table (see :class:`EMRegModule.dwell.DwellSettings`
+    and ``revisit_tolerance_mm``). Unlabelled dwells are named ``P01, P02, ...`` in time order
+    of their first visit. Raises :class:`EMRegError` when no dwell is found.
+    """
+    dwell_settings = DwellSettings.from_settings(settings, "calibration", strict=True)
+    revisit_tolerance = float(dict(settings or {}).get("revisit_tolerance_mm", DEFAULT_REVISIT_TOLERANCE_MM))
+    samples = probe_in_reference(recording, reference_sensor, probe_sensor)
+    position = samples.position_mm
+    out_of_hole = -samples.direction
+    dwells = find_dwells(samples.time_s, position, samples.label, samples.quality, dwell_settings)
+    if not dwells:
+        raise EMRegError(
+            f"{recording.source}: no dwell found (the probe never stayed still in a pinhole for "
+            f"{dwell_settings.min_duration_s:g} s); check the sensor ports or [calibration] min_duration_s"
+        )
+    labelled = bool(dwells[0].label)
+    inlier_index = []
+    centres = []
+    for dwell in dwells:
+        average = robust_mean(position[dwell.indices])
+        inlier_index.append(dwell.indices[average.inliers])
+        centres.append(average.mean)
+    centres_array = np.asarray(centres)
+    if labelled:
+        names = [d.label for d in dwells]
+        order = list(dict.fromkeys(names))
+        group = np.array([order.index(n) for n in names])
+    else:
+        group = group_by_place(centres_array, dwell_settings.merge_radius_mm)
+        order = [f"P{g + 1:02d}" for g in range(int(group.max()) + 1)]
+    points = []
+    for g, label in enumerate(order):
+        members = np.nonzero(group == g)[0]
+        pooled = np.concatenate([inlier_index[m] for m in members])
+        average = robust_mean(position[pooled])
+        used = pooled[average.inliers]
+        direction, direction_std = robust_mean_direction(out_of_hole[used])
+        warning = ""
+        if len(members) > 1:
+            spread = max(np.linalg.norm(centres_array[m] - average.mean) for m in members)
+            if spread > revisit_tolerance:
+                warning = (f"{len(members)} visits disagree by up to {spread:.2f} mm "
+                           f"(more than {revisit_tolerance:g} mm): check that the probe was fully inserted")
+        points.append(CalibrationPoint(
+            label=label, position=average.mean, direction=direction, samples=len(used), std_mm=average.std_mm,
+            visits=len(members), direction_std_deg=direction_std,
+            start_s=float(min(dwells[m].start_s for m in members)),
+            end_s=float(max(dwells[m].end_s for m in members)), warning=warning,
+        ))
+    warnings = [f"{p.label}: {p.warning}" for p in points if p.warning]
+    if labelled:
+        warnings += _same_place_warnings(points, dwell_settings.merge_radius_mm)
+    return FrameCalibration(points, int(reference_sensor), int(probe_sensor), labelled, recording.source, warnings)
+
+
+def _same_place_warnings(points: list[CalibrationPoint], radius_mm: float) -> list[str]:
+    """Two differently labelled points at one place: probably a labelling mistake."""
+    warnings = []
+    positions = np.array([p.position for p in points])
+    for i in range(len(points)):
+        for k in range(i + 1, len(points)):
+            distance = float(np.linalg.norm(positions[i] - positions[k]))
+            if distance < radius_mm:
+                warnings.append(f"{points[i].label} and {points[k].label} are only {distance:.2f} mm apart: "
+                                "the same pinhole under two labels?")
+    return warnings
+
+
+def write_frame_calibration(result: FrameCalibration, path: str | os.PathLike[str]) -> None:
+    """Write ``frame_calibration.json`` atomically (spec layout plus extra keys)."""
+    atomic_write_json(Path(path), result.to_json())
+
+
+def read_frame_calibration(path: str | os.PathLike[str]) -> FrameCalibration:
+    """Read a ``frame_calibration.json``; a missing or malformed file is an :class:`EMRegError`."""
+    return FrameCalibration.from_json(read_json(path, "frame calibration JSON"), str(path))

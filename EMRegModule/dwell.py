@@ -1,0 +1,286 @@
+"""Dwells: the periods when the probe is held still (in a pinhole, a board hole, at a target).
+
+A dwell is found either from the recording's labels (a run of samples carrying the same
+non-empty label) or, for a recording without labels, automatically: a period in which the
+probe, expressed in the frame the caller chooses (normally the Reference frame, so that a
+frame or transmitter moved between dwells changes nothing), stays within a small radius
+for at least a minimum duration. Transitions, short stops and samples of bad quality are
+ignored, and a few wild samples inside a dwell neither split it nor move its average.
+
+Everything here is plain numpy over arrays of times (s) and positions (mm).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from .errors import EMRegError
+
+#: A chi-distributed 3D distance with per-axis sigma s has median about 1.538 s.
+_MEDIAN_CHI3 = 1.5382
+
+
+@dataclass(frozen=True)
+class DwellSettings:
+    """How dwells are found (``case.toml`` ``[calibration]`` keys of the same names).
+
+    ``min_duration_s``: an unlabelled still period shorter than this is a pause, not a dwell.
+    ``still_radius_mm``: the probe counts as still while the median distance of the samples in
+    a ``window_s`` window from their median stays below this (tracker jitter is ~0.1 mm).
+    ``max_gap_s``: still periods split by a shorter interruption (a burst of wild or bad-quality
+    samples) at the same place are one dwell. ``merge_radius_mm``: dwells closer than this are
+    at the same hole (revisits). ``max_quality``: samples whose tracker quality number exceeds it
+    are ignored (None: an automatic limit from the recording's own quality distribution).
+    ``min_samples``: fewer good samples than this make no dwell.
+    """
+
+    min_duration_s: float = 0.5
+    still_radius_mm: float = 0.5
+    window_s: float = 0.25
+    max_gap_s: float = 0.3
+    merge_radius_mm: float = 3.0
+    max_quality: float | None = None
+    min_samples: int = 5
+
+    @classmethod
+    def from_settings(cls, settings: Mapping[str, Any] | None, section: str = "calibration",
+                      strict: bool = False) -> DwellSettings:
+        """Build from a settings table; with ``strict`` an unknown key is an :class:`EMRegError`."""
+        settings = dict(settings or {})
+        known = {f.name for f in fields(cls)}
+        if strict:
+            unknown = sorted(set(settings) - known - _OTHER_CALIBRATION_KEYS)
+            if unknown:
+                raise EMRegError(f"case.toml [{section}]: unknown key(s) {', '.join(unknown)}; "
+                                 f"known: {', '.join(sorted(known | _OTHER_CALIBRATION_KEYS))}")
+        values: dict[str, Any] = {}
+        for name in known & set(settings):
+            value = settings[name]
+            if name == "max_quality" and value is None:
+                continue
+            try:
+                number = float(value)
+            except (TypeError, ValueError):
+                raise EMRegError(f"case.toml [{section}]: {name} must be a number, got {value!r}") from None
+            if not np.isfinite(number) or number < 0 or (number == 0 and name != "max_quality"):
+                raise EMRegError(f"case.toml [{section}]: {name} must be a positive number, got {value!r}")
+            values[name] = int(number) if name == "min_samples" else number
+        return cls(**values)
+
+
+#: Other keys of ``[calibration]`` (used by :mod:`EMRegModule.calibration`).
+_OTHER_CALIBRATION_KEYS = frozenset({"revisit_tolerance_mm"})
+
+
+@dataclass
+class Dwell:
+    """One dwell: indices into the arrays it was found in (time order), a label, its time span (s).
+
+    ``label`` is the recording's label, or empty for an automatically found dwell.
+    """
+
+    indices: np.ndarray
+    label: str
+    start_s: float
+    end_s: float
+
+    @property
+    def duration_s(self) -> float:
+        return self.end_s - self.start_s
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+
+@dataclass
+class RobustMean:
+    """A robust average of points: ``mean`` (3,), ``inliers`` (boolean mask), ``std_mm``.
+
+    ``std_mm`` is the RMS 3D distance of the inliers from the mean (the dwell's spread).
+    """
+
+    mean: np.ndarray
+    inliers: np.ndarray
+    std_mm: float
+
+    @property
+    def count(self) -> int:
+        return int(np.count_nonzero(self.inliers))
+
+
+def robust_mean(points: np.ndarray, cutoff: float = 2.5, iterations: int = 4) -> RobustMean:
+    """Mean of the points (N, 3, mm) after dropping wild ones: start from the coordinate-wise
+    median, keep the points within ``cutoff`` times the median distance (about 3.8 sigma of
+    isotropic jitter), average them, repeat. A minority of wild samples does not move it.
+    """
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(points) == 0:
+        raise ValueError("robust_mean needs at least one point")
+    center = np.median(points, axis=0)
+    inliers = np.ones(len(points), dtype=bool)
+    for _ in range(iterations):
+        distance = np.linalg.norm(points - center, axis=1)
+        scale = max(float(np.median(distance)), 1e-3)
+        new_inliers = distance <= cutoff * scale
+        if np.count_nonzero(new_inliers) < max(1, len(points) // 2):
+            new_inliers = distance <= np.median(distance)
+        center = points[new_inliers].mean(axis=0)
+        if np.array_equal(new_inliers, inliers):
+            break
+        inliers = new_inliers
+    spread = float(np.sqrt(np.mean(np.sum((points[inliers] - center) ** 2, axis=1))))
+    return RobustMean(center, inliers, spread)
+
+
+def robust_mean_direction(vectors: np.ndarray, cutoff: float = 2.5) -> tuple[np.ndarray, float]:
+    """Robust mean of unit vectors (N, 3): the unit mean direction and the RMS angle (degrees)
+    of the inliers from it. Wild orientations (a minority) are dropped as in :func:`robust_mean`.
+    """
+    vectors = np.asarray(vectors, dtype=float).reshape(-1, 3)
+    vectors = vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+    result = robust_mean(vectors, cutoff)
+    direction = result.mean / np.linalg.norm(result.mean)
+    cos = np.clip(vectors[result.inliers] @ direction, -1.0, 1.0)
+    return direction, float(np.degrees(np.sqrt(np.mean(np.arccos(cos) ** 2))))
+
+
+def good_quality_mask(quality: np.ndarray, max_quality: float | None = None) -> np.ndarray:
+    """Samples whose tracker quality number is acceptable (0 = best; NaN = unknown = accepted).
+
+    ``max_quality`` None: an automatic limit, far above the recording's typical values
+    (median + 8 robust sigma, at least twice the median plus one), so only the clearly
+    disturbed samples go.
+    """
+    quality = np.asarray(quality, dtype=float)
+    known = np.isfinite(quality)
+    if max_quality is None:
+        if not np.any(known):
+            return np.ones(len(quality), dtype=bool)
+        median = float(np.median(quality[known]))
+        mad = float(np.median(np.abs(quality[known] - median)))
+        max_quality = max(median + 8 * 1.4826 * mad, 2 * median + 1.0)
+    return ~known | (quality <= max_quality)
+
+
+def find_dwells(
+    time_s: np.ndarray,
+    position_mm: np.ndarray,
+    labels: np.ndarray | None = None,
+    quality: np.ndarray | None = None,
+    settings: DwellSettings | None = None,
+) -> list[Dwell]:
+    """The dwells of one probe track, in time order.
+
+    ``time_s`` (N,) sorted, ``position_mm`` (N, 3) in one frame (normally Reference),
+    ``labels`` (N,) strings (empty while moving) or None, ``quality`` (N,) or None.
+    When any label is present the dwells are the labelled runs; otherwise they are found
+    automatically (:func:`still_periods`). Bad-quality samples are never part of a dwell.
+    """
+    settings = settings or DwellSettings()
+    time_s = np.asarray(time_s, dtype=float)
+    position_mm = np.asarray(position_mm, dtype=float).reshape(-1, 3)
+    valid = np.all(np.isfinite(position_mm), axis=1) & np.isfinite(time_s)
+    if quality is not None:
+        valid &= good_quality_mask(quality, settings.max_quality)
+    if labels is not None:
+        labels = np.asarray(["" if v is None else str(v).strip() for v in labels], dtype=object)
+        if any(labels[valid]):
+            return labelled_dwells(time_s, labels, valid, settings)
+    return still_periods(time_s, position_mm, valid, settings)
+
+
+def labelled_dwells(time_s: np.ndarray, labels: np.ndarray, valid: np.ndarray,
+                    settings: DwellSettings | None = None) -> list[Dwell]:
+    """Runs of consecutive valid samples carrying the same non-empty label (bad samples inside
+    a run are skipped, not splitting it); runs with fewer than ``min_samples`` are dropped."""
+    settings = settings or DwellSettings()
+    index = np.nonzero(valid & (labels != ""))[0]
+    if len(index) == 0:
+        return []
+    # A run ends where the label changes or an unlabelled valid sample intervenes.
+    valid_index = np.nonzero(valid)[0]
+    position_in_valid = np.searchsorted(valid_index, index)
+    breaks = (labels[index[1:]] != labels[index[:-1]]) | (np.diff(position_in_valid) > 1)
+    starts = np.concatenate([[0], np.nonzero(breaks)[0] + 1])
+    ends = np.concatenate([starts[1:], [len(index)]])
+    dwells = []
+    for s, e in zip(starts, ends, strict=True):
+        members = index[s:e]
+        if len(members) >= settings.min_samples:
+            dwells.append(Dwell(members, str(labels[members[0]]), float(time_s[members[0]]),
+                                float(time_s[members[-1]])))
+    return dwells
+
+
+def still_periods(time_s: np.ndarray, position_mm: np.ndarray, valid: np.ndarray | None = None,
+                  settings: DwellSettings | None = None) -> list[Dwell]:
+    """Periods when the probe stays still, found without labels (see :class:`DwellSettings`).
+
+    Stillness of a sample: the median distance of the valid samples in a window around it
+    from their coordinate-wise median (robust to wild samples). Still runs interrupted by
+    a short gap at the same place are joined; runs shorter than ``min_duration_s`` dropped.
+    """
+    settings = settings or DwellSettings()
+    time_s = np.asarray(time_s, dtype=float)
+    valid = np.ones(len(time_s), dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    index = np.nonzero(valid)[0]
+    if len(index) < max(3, settings.min_samples):
+        return []
+    t = time_s[index]
+    p = position_mm[index]
+    dt = np.diff(t)
+    step = float(np.median(dt[dt > 0])) if np.any(dt > 0) else 1.0
+    k = int(np.clip(round(settings.window_s / step), 3, len(index)))
+    windows = np.lib.stride_tricks.sliding_window_view(p, k, axis=0)  # (W, 3, k)
+    centre = np.median(windows, axis=2)
+    spread = np.median(np.linalg.norm(windows - centre[:, :, None], axis=1), axis=1)
+    still = np.zeros(len(index), dtype=bool)
+    half = k // 2
+    still[half:half + len(spread)] = spread <= settings.still_radius_mm
+    runs = _runs(still)
+    periods: list[tuple[int, int]] = []  # [start, end) in valid-sample positions
+    for s, e in runs:
+        if periods:
+            ps, pe = periods[-1]
+            gap = t[s] - t[pe - 1]
+            if gap <= settings.max_gap_s and np.linalg.norm(
+                    np.median(p[ps:pe], axis=0) - np.median(p[s:e], axis=0)) <= max(2 * settings.still_radius_mm, 1.0):
+                periods[-1] = (ps, e)
+                continue
+        periods.append((s, e))
+    dwells = []
+    for s, e in periods:
+        if e - s < settings.min_samples or t[e - 1] - t[s] < settings.min_duration_s:
+            continue
+        members = index[s:e]
+        dwells.append(Dwell(members, "", float(t[s]), float(t[e - 1])))
+    return dwells
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """[start, end) of the runs of True in a boolean array."""
+    padded = np.concatenate([[False], mask, [False]])
+    edges = np.flatnonzero(np.diff(padded.astype(np.int8)))
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
+
+
+def group_by_place(centres: np.ndarray, radius_mm: float) -> np.ndarray:
+    """Group ids (first-seen order, 0..G-1) for points (N, 3) closer than ``radius_mm`` to a
+    group's first point (single pass in the given order: dwells are far apart or together)."""
+    centres = np.asarray(centres, dtype=float).reshape(-1, 3)
+    group = np.full(len(centres), -1, dtype=int)
+    anchors: list[np.ndarray] = []
+    for i, c in enumerate(centres):
+        if anchors:
+            d = np.linalg.norm(np.asarray(anchors) - c, axis=1)
+            j = int(np.argmin(d))
+            if d[j] <= radius_mm:
+                group[i] = j
+                continue
+        anchors.append(c)
+        group[i] = len(anchors) - 1
+    return group

@@ -1,0 +1,548 @@
+"""Automatic pairing of image markers with calibration points (paper section 2.5).
+
+The two sets come unordered, with missing and extra points on either side (calibrated
+markers absent from the CT, CT markers never calibrated, decoys the detector kept, a pause
+of the probe mistaken for a dwell). Each image marker is a segment of possible pinhole
+points ``origin + l * axis`` (the sensor offset l in [a, b] is unknown until registration);
+each calibration point is a pinhole point with its direction, in the Reference frame.
+
+The paper treats pairing as a constraint-satisfaction problem over the distance graph. Here:
+
+- **Constraints.** Two calibration points (i, k) may pair with two image markers (j, m) only
+  if their distance lies in the interval the image distance |q_j(l) - q_m(l)| spans over
+  l in [a, b], widened by the localisation tolerance, and the angle between their directions
+  matches the angle between the marker axes (both invariant under the rigid motion).
+- **Search.** Seed triangles of calibration points (ranked by how many of their distances the
+  image can explain, large well-shaped triangles first) are matched to every image triangle
+  satisfying the three edge constraints. Each match fixes a rigid transform (l chosen on a
+  grid); all calibration points are mapped through it and checked against the image segments.
+  The best candidates are refined (mutual nearest neighbours, l and the rigid fit re-solved,
+  tolerance tightened) until the assignment stops changing.
+- **Safety.** Every distinct refined pairing is kept. When a rival pairing that contradicts
+  the best one explains nearly as many points (fewer than ``ambiguity_margin`` points less),
+  the layout does not identify the pairing and :class:`NoSafeAnswerError` is raised. Fewer
+  than ``min_pairs`` pairs is refused the same way.
+
+Tolerances follow from the expected localisation errors (RMS, 3D): the tracker's for a
+calibration point, the image's for a marker, and the angular error of the directions.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+from .errors import EMRegError, NoSafeAnswerError
+from .transforms import make_transform
+
+
+@dataclass(frozen=True)
+class PairingSettings:
+    """Pairing tolerances and safety margins (``case.toml`` ``[registration]`` keys of the same names).
+
+    ``tracker_error_mm`` / ``image_error_mm``: RMS 3D localisation error of a calibration point
+    and of an image marker's pinhole; ``direction_error_deg``: RMS angular error of a direction
+    (probe or marker axis); ``n_sigma``: how many error units a constraint tolerates;
+    ``min_pairs``: fewest pairs accepted; ``ambiguity_margin``: a rival pairing must explain at
+    least this many points fewer than the best, else the pairing is refused as ambiguous.
+    """
+
+    tracker_error_mm: float = 0.5
+    image_error_mm: float = 0.3
+    direction_error_deg: float = 2.5
+    n_sigma: float = 4.0
+    min_pairs: int = 4
+    ambiguity_margin: int = 2
+    max_seeds: int = 60
+    rival_seeds: int = 24
+
+    @classmethod
+    def from_settings(cls, settings: Mapping[str, Any] | None) -> PairingSettings:
+        """Build from the ``[registration]`` table (other keys of that table are ignored here)."""
+        settings = dict(settings or {})
+        values: dict[str, Any] = {}
+        for f in fields(cls):
+            if f.name not in settings:
+                continue
+            value = settings[f.name]
+            try:
+                number = float(value)
+            except (TypeError, ValueError):
+                raise EMRegError(f"case.toml [registration]: {f.name} must be a number, got {value!r}") from None
+            if not np.isfinite(number) or number <= 0:
+                raise EMRegError(f"case.toml [registration]: {f.name} must be positive, got {value!r}")
+            values[f.name] = int(number) if f.type in ("int", int) else number
+        return cls(**values)
+
+    @property
+    def point_sigma_mm(self) -> float:
+        """RMS 3D error of the difference between a calibration point and its image pinhole."""
+        return float(np.hypot(self.tracker_error_mm, self.image_error_mm))
+
+    @property
+    def distance_tolerance_mm(self) -> float:
+        """Tolerance on an inter-point distance (two points' errors projected on the line)."""
+        return self.n_sigma * self.point_sigma_mm * np.sqrt(2.0 / 3.0)
+
+    @property
+    def point_tolerance_mm(self) -> float:
+        """Largest residual of a paired point after the fit."""
+        return self.n_sigma * self.point_sigma_mm
+
+    @property
+    def angle_tolerance_deg(self) -> float:
+        """Tolerance on an angle between two directions, or between a mapped direction and an axis."""
+        return self.n_sigma * self.direction_error_deg * np.sqrt(2.0)
+
+
+@dataclass
+class PairingResult:
+    """The pairing and the coarse registration that proved it.
+
+    ``pairs``: (image_index, calibration_index) sorted by calibration index;
+    ``reference_to_image`` (4x4) and ``l_mm``: the refined transform and offset of the best
+    pairing; ``residuals_mm`` per pair; ``rival_support``: pairs explained by the best rival
+    pairing (0 when none); ``hypotheses``: transforms tried; ``seeds``: seed triangles used.
+    """
+
+    pairs: list[tuple[int, int]]
+    reference_to_image: np.ndarray
+    l_mm: float
+    residuals_mm: np.ndarray
+    rival_support: int = 0
+    rival_fre_mm: float = float("nan")
+    hypotheses: int = 0
+    seeds: int = 0
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def support(self) -> int:
+        return len(self.pairs)
+
+
+@dataclass
+class _Candidate:
+    assignment: dict[int, int]  # calibration index -> image index
+    reference_to_image: np.ndarray
+    l_mm: float
+    residuals: np.ndarray  # per pair, in calibration-index order of `assignment`
+    cost: float
+
+    @property
+    def support(self) -> int:
+        return len(self.assignment)
+
+    @property
+    def key(self) -> frozenset[tuple[int, int]]:
+        return frozenset(self.assignment.items())
+
+    @property
+    def fre(self) -> float:
+        return float(np.sqrt(np.mean(self.residuals**2))) if len(self.residuals) else float("nan")
+
+    def conflicts_with(self, other: _Candidate) -> bool:
+        """True when the two pairings disagree on some point (not merely one being a subset)."""
+        inverse = {j: i for i, j in other.assignment.items()}
+        for i, j in self.assignment.items():
+            if i in other.assignment and other.assignment[i] != j:
+                return True
+            if j in inverse and inverse[j] != i:
+                return True
+        return False
+
+
+def pair_markers(
+    origins_image: np.ndarray,
+    axes_image: np.ndarray,
+    points_reference: np.ndarray,
+    directions_reference: np.ndarray | None,
+    l_range_mm: tuple[float, float],
+    settings: PairingSettings | Mapping[str, Any] | None = None,
+) -> PairingResult:
+    """Pair image markers (origins (M, 3) and unit +Y axes (M, 3), image space, mm) with
+    calibration points (pinhole sensor points (N, 3) and unit directions (N, 3) or NaN, in
+    the Reference frame) for a sensor offset l in ``l_range_mm`` = (a, b).
+
+    Raises :class:`NoSafeAnswerError` when fewer than ``min_pairs`` pairs are found or when
+    two different pairings explain the data about equally well (symmetric layout).
+    """
+    if not isinstance(settings, PairingSettings):
+        settings = PairingSettings.from_settings(settings)
+    problem = _Problem(origins_image, axes_image, points_reference, directions_reference, l_range_mm, settings)
+    return problem.solve()
+
+
+# --- the search -----------------------------------------------------------------------------
+
+
+class _Problem:
+    def __init__(self, origins, axes, points, directions, l_range, settings: PairingSettings) -> None:
+        self.origins = np.asarray(origins, dtype=float).reshape(-1, 3)
+        axes = np.asarray(axes, dtype=float).reshape(-1, 3)
+        self.axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
+        self.points = np.asarray(points, dtype=float).reshape(-1, 3)
+        if directions is None:
+            directions = np.full_like(self.points, np.nan)
+        directions = np.asarray(directions, dtype=float).reshape(-1, 3)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            self.directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+        self.a, self.b = float(l_range[0]), float(l_range[1])
+        if not self.a <= self.b:
+            raise EMRegError(f"pairing: sensor offset range [{self.a}, {self.b}] is empty")
+        self.settings = settings
+        self.n_image = len(self.origins)
+        self.n_cal = len(self.points)
+        self.tol_d = settings.distance_tolerance_mm
+        self.tol_point = settings.point_tolerance_mm
+        self.tol_loose = 2.0 * self.tol_point + 1.0
+        self.tol_angle = settings.angle_tolerance_deg
+        self.cos_loose = np.cos(np.radians(min(2.0 * self.tol_angle, 60.0)))
+        self.cos_tight = np.cos(np.radians(min(self.tol_angle, 45.0)))
+        self.l_grid = np.linspace(self.a, self.b, max(2, int(np.ceil((self.b - self.a) / 0.5)) + 1))
+        self.hypotheses = 0
+
+    # --- invariants ----------------------------------------------------------------------
+
+    def _tables(self) -> None:
+        p = self.points
+        self.d_cal = np.linalg.norm(p[:, None] - p[None], axis=2)
+        w = self.origins[None, :] - self.origins[:, None]  # (M, M, 3): o_m - o_j
+        v = self.axes[None, :] - self.axes[:, None]
+        def dist(l_value):
+            return np.linalg.norm(w + l_value[..., None] * v, axis=2)
+        vv = np.sum(v * v, axis=2)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            l_star = np.where(vv > 1e-12, -np.sum(w * v, axis=2) / vv, self.a)
+        l_star = np.clip(l_star, self.a, self.b)
+        at_a, at_b, at_star = dist(np.full(vv.shape, self.a)), dist(np.full(vv.shape, self.b)), dist(l_star)
+        self.d_img_lo = np.minimum(np.minimum(at_a, at_b), at_star) - self.tol_d
+        self.d_img_hi = np.maximum(at_a, at_b) + self.tol_d
+        np.fill_diagonal(self.d_img_lo, np.inf)
+        np.fill_diagonal(self.d_img_hi, -np.inf)
+        self.angle_cal = _angles(self.directions)
+        self.angle_img = _angles(self.axes)
+
+    def _compatible(self, i: int, k: int) -> np.ndarray:
+        """(M, M) mask: image pairs (j, m) that calibration pair (i, k) may map onto."""
+        d = self.d_cal[i, k]
+        ok = (self.d_img_lo <= d) & (d <= self.d_img_hi)
+        angle = self.angle_cal[i, k]
+        if np.isfinite(angle):
+            ok &= np.abs(self.angle_img - angle) <= self.tol_angle
+        return ok
+
+    def _unary_scores(self) -> np.ndarray:
+        """Per calibration point: the largest fraction of its distances some image marker explains."""
+        n, m = self.n_cal, self.n_image
+        best = np.zeros(n)
+        off_diagonal = ~np.eye(n, dtype=bool)
+        for j in range(m):
+            lo = np.delete(self.d_img_lo[j], j)
+            hi = np.delete(self.d_img_hi[j], j)
+            order = np.argsort(lo)
+            lo, hi_max = lo[order], np.maximum.accumulate(hi[order])
+            idx = np.searchsorted(lo, self.d_cal, side="right") - 1
+            inside = (idx >= 0) & (hi_max[np.clip(idx, 0, None)] >= self.d_cal) & off_diagonal
+            best = np.maximum(best, inside.sum(axis=1))
+        return best / max(1, n - 1)
+
+    # --- seeds ---------------------------------------------------------------------------
+
+    def _seed_triangles(self, scores: np.ndarray):
+        order = np.argsort(-scores, kind="stable")
+        used: set[tuple[int, int, int]] = set()
+        for top in (8, 14, 22, self.n_cal):
+            pool = order[:min(top, self.n_cal)]
+            tier = []
+            for tri in itertools.combinations(sorted(pool.tolist()), 3):
+                if tri in used:
+                    continue
+                used.add(tri)
+                quality = _triangle_height(self.points[list(tri)])
+                if quality < 10.0:
+                    continue
+                tier.append((-round(float(scores[list(tri)].sum()), 1), -quality, tri))
+            tier.sort()
+            for _, _, tri in tier:
+                yield tri
+            if top >= self.n_cal:
+                return
+
+    def _image_triangles(self, tri: tuple[int, int, int]) -> np.ndarray:
+        i, k, n = tri
+        jm = np.argwhere(self._compatible(i, k))
+        if len(jm) == 0:
+            return np.zeros((0, 3), dtype=int)
+        ok = self._compatible(i, n)[jm[:, 0]] & self._compatible(k, n)[jm[:, 1]]
+        rows, o = np.nonzero(ok)
+        triples = np.column_stack([jm[rows], o])
+        distinct = (triples[:, 2] != triples[:, 0]) & (triples[:, 2] != triples[:, 1])
+        return triples[distinct]
+
+    # --- hypotheses ----------------------------------------------------------------------
+
+    def _triangle_transforms(self, tri, triples: np.ndarray) -> np.ndarray:
+        """ReferenceToImage (T, 4, 4) per image triangle, l chosen on the grid by fit residual."""
+        p = self.points[list(tri)]  # (3, 3)
+        q = self.origins[triples][:, None] + self.l_grid[None, :, None, None] * self.axes[triples][:, None]  # (T,L,3,3)
+        rotation, translation = _kabsch_batch(np.broadcast_to(p, q.shape), q)
+        mapped = np.einsum("tlij,nj->tlni", rotation, p) + translation[:, :, None]
+        error = np.sum((mapped - q) ** 2, axis=(2, 3))
+        best = np.argmin(error, axis=1)
+        pick = np.arange(len(triples))
+        transforms = np.zeros((len(triples), 4, 4))
+        transforms[:, :3, :3] = rotation[pick, best]
+        transforms[:, :3, 3] = translation[pick, best]
+        transforms[:, 3, 3] = 1.0
+        return transforms
+
+    def _segment_distances(self, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distances (T, N, M) of mapped calibration points from the image pinhole segments,
+        and cosines (T, N, M) between mapped directions and marker axes (1 where unknown)."""
+        mapped = np.einsum("tij,nj->tni", transforms[:, :3, :3], self.points) + transforms[:, None, :3, 3]
+        rel = mapped[:, :, None, :] - self.origins[None, None]  # (T, N, M, 3)
+        along = np.clip(np.einsum("tnmk,mk->tnm", rel, self.axes), self.a, self.b)
+        distance = np.linalg.norm(rel - along[..., None] * self.axes[None, None], axis=3)
+        directions = np.einsum("tij,nj->tni", transforms[:, :3, :3], self.directions)
+        cos = np.einsum("tnk,mk->tnm", directions, self.axes)
+        return distance, np.where(np.isnan(cos), 1.0, cos)
+
+    def _loose_assignments(self, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per hypothesis: nearest image marker of each calibration point within the loose
+        tolerance (-1 if none) and the count of such points."""
+        assignment = np.full((len(transforms), self.n_cal), -1)
+        for start in range(0, len(transforms), 256):
+            chunk = transforms[start:start + 256]
+            distance, cos = self._segment_distances(chunk)
+            distance = np.where(cos >= self.cos_loose, distance, np.inf)
+            nearest = np.argmin(distance, axis=2)
+            near = np.take_along_axis(distance, nearest[..., None], axis=2)[..., 0] <= self.tol_loose
+            assignment[start:start + 256] = np.where(near, nearest, -1)
+        return assignment, np.sum(assignment >= 0, axis=1)
+
+    def _refine(self, reference_to_image: np.ndarray) -> _Candidate | None:
+        """Iterate assignment (mutual nearest) and the fit with l, from loose to tight tolerance."""
+        transform = reference_to_image
+        l_value: float | None = None
+        previous: frozenset | None = None
+        for iteration in range(8):
+            if l_value is None:
+                distance, cos = self._segment_distances(transform[None])
+                distance, cos = distance[0], cos[0]
+                tolerance, min_cos = self.tol_loose, self.cos_loose
+            else:
+                mapped = self.points @ transform[:3, :3].T + transform[:3, 3]
+                pinholes = self.origins + l_value * self.axes
+                distance = np.linalg.norm(mapped[:, None] - pinholes[None], axis=2)
+                cos = (self.directions @ transform[:3, :3].T) @ self.axes.T
+                cos = np.where(np.isnan(cos), 1.0, cos)
+                tolerance = self.tol_point if iteration >= 3 else max(self.tol_point, self.tol_loose / 2)
+                min_cos = self.cos_tight
+            assignment = _mutual_nearest(np.where(cos >= min_cos, distance, np.inf), tolerance)
+            if len(assignment) < 3:
+                return None
+            key = frozenset(assignment.items())
+            cal = np.fromiter(assignment.keys(), dtype=int)
+            img = np.fromiter(assignment.values(), dtype=int)
+            transform, l_value, residuals = _fit_with_offset(
+                self.points[cal], self.origins[img], self.axes[img], self.l_grid)
+            if key == previous and iteration >= 3:
+                break
+            previous = key
+        keep = residuals <= self.tol_point
+        if not np.all(keep):
+            if np.count_nonzero(keep) < 3:
+                return None
+            assignment = {int(i): int(j) for i, j, k in zip(cal, img, keep, strict=True) if k}
+            cal, img = cal[keep], img[keep]
+            transform, l_value, residuals = _fit_with_offset(
+                self.points[cal], self.origins[img], self.axes[img], self.l_grid)
+        sigma2 = (self.settings.point_sigma_mm**2) / 3.0
+        cap = self.settings.n_sigma**2
+        cost = float(np.sum(np.minimum(residuals**2 / sigma2, cap)) + cap * (self.n_cal - len(residuals)))
+        return _Candidate(assignment, transform, l_value, residuals, cost)
+
+    # --- driver --------------------------------------------------------------------------
+
+    def _try_seed(self, tri: tuple[int, int, int], floor: int, candidates: dict, tried: set,
+                  exclude: tuple[int, int, int] | None = None) -> int:
+        """Enumerate the image triangles a seed may map onto, verify them in one batch, refine
+        those explaining at least ``floor`` points; returns the best loose count seen."""
+        triples = self._image_triangles(tri)
+        if exclude is not None and len(triples):
+            triples = triples[~np.all(triples == np.asarray(exclude), axis=1)]
+        if len(triples) == 0:
+            return 0
+        transforms = self._triangle_transforms(tri, triples)
+        self.hypotheses += len(transforms)
+        loose, count = self._loose_assignments(transforms)
+        for h in np.argsort(-count, kind="stable"):
+            if count[h] < floor:
+                break
+            signature = tuple(loose[h].tolist())
+            if signature in tried:
+                continue
+            tried.add(signature)
+            candidate = self._refine(transforms[h])
+            if candidate is not None:
+                candidates.setdefault(candidate.key, candidate)
+        return int(count.max())
+
+    def _rival_seeds(self, best: _Candidate, count: int):
+        """Random well-shaped triangles of paired calibration points (with their image triangle
+        under the best pairing, to exclude): a rival pairing that explains nearly as many points
+        contains some of them, so trying each finds it."""
+        paired = np.array(sorted(best.assignment))
+        if len(paired) < 3:
+            return
+        rng = np.random.default_rng(len(paired))
+        seen: set[tuple[int, int, int]] = set()
+        for _ in range(20 * count):
+            if len(seen) >= count:
+                return
+            tri = tuple(sorted(rng.choice(paired, 3, replace=False).tolist()))
+            if tri in seen or _triangle_height(self.points[list(tri)]) < 10.0:
+                continue
+            seen.add(tri)
+            yield tri, tuple(best.assignment[i] for i in tri)
+
+    def solve(self) -> PairingResult:
+        s = self.settings
+        if min(self.n_cal, self.n_image) < s.min_pairs:
+            raise NoSafeAnswerError(
+                f"pairing needs at least {s.min_pairs} markers on each side, got {self.n_image} image markers "
+                f"and {self.n_cal} calibration points"
+            )
+        self._tables()
+        scores = self._unary_scores()
+        candidates: dict[frozenset, _Candidate] = {}
+        tried: set[tuple[int, ...]] = set()
+        confirming = seeds = best_loose = 0
+        best: _Candidate | None = None
+        # 1. Find the pairing that explains the most points.
+        for tri in self._seed_triangles(scores):
+            seeds += 1
+            floor = max(s.min_pairs, best_loose - s.ambiguity_margin - 3)
+            best_loose = max(best_loose, self._try_seed(tri, floor, candidates, tried))
+            previous = best
+            best = _best(candidates.values())
+            if best is not previous:
+                confirming = 0
+            if best is not None and all(i in best.assignment for i in tri):
+                confirming += 1
+            if (best is not None and best.support >= s.min_pairs and confirming >= 2) or seeds >= s.max_seeds:
+                break
+        if best is None or best.support < s.min_pairs:
+            found = 0 if best is None else best.support
+            raise NoSafeAnswerError(
+                f"pairing: only {found} image markers could be paired consistently with calibration points "
+                f"(at least {s.min_pairs} needed); check that the CT and the calibration show the same frame "
+                "and the marker model"
+            )
+        # 2. Look for a rival pairing that contradicts it and explains nearly as many points.
+        for _ in range(2):
+            floor = max(s.min_pairs, best.support - s.ambiguity_margin - 2)
+            for tri, image_tri in self._rival_seeds(best, s.rival_seeds):
+                seeds += 1
+                self._try_seed(tri, floor, candidates, tried, exclude=image_tri)
+            new_best = _best(candidates.values())
+            if new_best is best:
+                break
+            best = new_best
+        rivals = [c for c in candidates.values() if c.conflicts_with(best)]
+        rival = _best(rivals)
+        if rival is not None and best.support - rival.support < s.ambiguity_margin:
+            raise NoSafeAnswerError(
+                f"ambiguous pairing: two different pairings explain {best.support} and {rival.support} markers "
+                f"(FRE {best.fre:.2f} and {rival.fre:.2f} mm); the marker layout is (nearly) symmetric, "
+                "so the calibration points cannot be told apart by their distances; "
+                "make the layout asymmetric or label the calibration dwells"
+            )
+        order = sorted(best.assignment)
+        return PairingResult(
+            pairs=[(best.assignment[i], i) for i in order],
+            reference_to_image=best.reference_to_image, l_mm=best.l_mm,
+            residuals_mm=np.asarray(best.residuals),
+            rival_support=0 if rival is None else rival.support,
+            rival_fre_mm=float("nan") if rival is None else rival.fre,
+            hypotheses=self.hypotheses, seeds=seeds,
+        )
+
+
+def _best(candidates) -> _Candidate | None:
+    """The candidate explaining most points (then the lowest truncated cost)."""
+    return max(candidates, key=lambda c: (c.support, -c.cost), default=None)
+
+
+# --- small numerical helpers ------------------------------------------------------------------
+
+
+def _angles(unit: np.ndarray) -> np.ndarray:
+    """Pairwise angles (deg) between unit vectors (NaN where a vector is unknown)."""
+    cos = np.clip(unit @ unit.T, -1.0, 1.0)
+    return np.degrees(np.arccos(cos))
+
+
+def _triangle_height(points: np.ndarray) -> float:
+    """Smallest height of a triangle (mm): small for thin or tiny triangles."""
+    a, b, c = points
+    area2 = np.linalg.norm(np.cross(b - a, c - a))
+    longest = max(np.linalg.norm(b - a), np.linalg.norm(c - b), np.linalg.norm(a - c))
+    return float(area2 / longest) if longest > 0 else 0.0
+
+
+def _kabsch_batch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rotations (..., 3, 3) and translations (..., 3) mapping point sets a onto b
+    (..., n, 3), vectorised over the leading axes (reflection-safe)."""
+    ca = a.mean(axis=-2)
+    cb = b.mean(axis=-2)
+    h = np.einsum("...ni,...nj->...ij", a - ca[..., None, :], b - cb[..., None, :])
+    u, _, vt = np.linalg.svd(h)
+    v = np.swapaxes(vt, -1, -2)
+    ut = np.swapaxes(u, -1, -2)
+    sign = np.sign(np.linalg.det(v @ ut))
+    sign[sign == 0] = 1.0
+    v = v.copy()
+    v[..., :, 2] *= sign[..., None]
+    rotation = v @ ut
+    translation = cb - np.einsum("...ij,...j->...i", rotation, ca)
+    return rotation, translation
+
+
+def _fit_with_offset(points: np.ndarray, origins: np.ndarray, axes: np.ndarray,
+                     l_grid: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """Rigid fit of points onto ``origins + l * axes`` with l minimising the residual on the
+    grid, then refined by a parabola through the grid minimum. Returns (transform, l, residuals)."""
+    def fit(l_values: np.ndarray):
+        q = origins[None] + l_values[:, None, None] * axes[None]
+        rotation, translation = _kabsch_batch(np.broadcast_to(points, q.shape), q)
+        mapped = np.einsum("lij,nj->lni", rotation, points) + translation[:, None]
+        return rotation, translation, np.sum((mapped - q) ** 2, axis=(1, 2)), mapped, q
+
+    _, _, sse, _, _ = fit(l_grid)
+    k = int(np.argmin(sse))
+    l_best = float(l_grid[k])
+    if 0 < k < len(l_grid) - 1:
+        y0, y1, y2 = sse[k - 1], sse[k], sse[k + 1]
+        denominator = y0 - 2 * y1 + y2
+        if denominator > 1e-12:
+            step = l_grid[k + 1] - l_grid[k]
+            l_best = float(np.clip(l_grid[k] + 0.5 * step * (y0 - y2) / denominator, l_grid[k - 1], l_grid[k + 1]))
+    rotation, translation, _, mapped, q = fit(np.array([l_best]))
+    residuals = np.linalg.norm(mapped[0] - q[0], axis=1)
+    return make_transform(rotation[0], translation[0]), l_best, residuals
+
+
+def _mutual_nearest(distance: np.ndarray, tolerance: float) -> dict[int, int]:
+    """Pairs (row -> column) that are each other's nearest and closer than ``tolerance``."""
+    if distance.size == 0:
+        return {}
+    row_best = np.argmin(distance, axis=1)
+    col_best = np.argmin(distance, axis=0)
+    rows = np.arange(distance.shape[0])
+    ok = (col_best[row_best] == rows) & (distance[rows, row_best] <= tolerance)
+    return {int(i): int(row_best[i]) for i in rows[ok]}

@@ -1,0 +1,406 @@
+"""Sensor offset and patient-to-image registration (paper sections 2.4-2.5, Eq. 10-11).
+
+Given the markers detected in the CT (origin and +Y axis of each marker frame, image space)
+and the calibrated pinhole points (Reference frame), :func:`register`
+
+1. pairs them automatically (:mod:`EMRegModule.pairing`; refuses when ambiguous);
+2. solves the probe sensor's depth l in [a, b] by minimising FRE(l) (paper Eq. 10): the
+   image pinhole points are ``q_j(l) = origin_j + l * axis_j`` and for each l the least-squares
+   rigid fit (:func:`EMRegModule.transforms.fit_rigid`) of the calibration points onto them
+   gives FRE(l); a 0.1 mm grid then a bounded scalar minimisation find the minimum;
+3. reports how well l is determined: its standard error from the curvature of the residual
+   sum of squares at the minimum, ``std(l) = sqrt(2 sigma^2 / SSE''(l))`` with sigma^2 the
+   per-coordinate noise variance estimated from the residuals. When the marker axes are
+   (nearly) parallel, a change of l is (nearly) a translation that the fit absorbs, the
+   curvature vanishes and so does the information about l: above ``warn_l_std_mm`` the
+   result carries a warning, above ``max_l_std_mm`` it is refused (the translation along the
+   axes would be unknown by that much) unless l is given in ``[registration] sensor_offset_l_mm``;
+4. returns ``ReferenceToImage`` with FRE overall and per pair, flagged outliers (residual
+   above ``outlier_factor`` times the robust RMS residual and above ``outlier_min_mm``), the
+   FLE estimated from the FRE (``FLE^2 = FRE^2 N / (N - 2)``) and the predicted TRE at the
+   targets (Fitzpatrick, West & Maurer), plus FRE(l) samples for the report's plot.
+
+FRE above ``max_fre_mm`` raises :class:`NoSafeAnswerError`: nothing is written.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from .calibration import FrameCalibration
+from .errors import EMRegError, NoSafeAnswerError
+from .io.atomic import atomic_write_json, read_json
+from .io.itk_transform import write_slicer_linear_transform
+from .marker_model import MarkerModel
+from .pairing import PairingSettings, pair_markers
+from .transforms import apply_transform, fit_rigid, is_rigid, predicted_tre, residuals
+
+#: Name of the ITK transform file written beside ``registration.json``.
+TRANSFORM_FILE = "ReferenceToImage.h5"
+
+#: Median of a chi-squared variable with 3 degrees of freedom (robust RMS of 3D residuals).
+_CHI2_3_MEDIAN = 2.3660
+
+
+@dataclass(frozen=True)
+class RegistrationSettings:
+    """``case.toml`` ``[registration]`` (pairing keys: see :class:`EMRegModule.pairing.PairingSettings`)."""
+
+    max_fre_mm: float = 2.0
+    outlier_factor: float = 2.5
+    outlier_min_mm: float = 1.0
+    warn_l_std_mm: float = 0.3
+    max_l_std_mm: float = 1.0
+    sensor_offset_l_mm: float | None = None
+    exclude_outliers: bool = False
+    pairing: PairingSettings = field(default_factory=PairingSettings)
+
+    @classmethod
+    def from_settings(cls, settings: Mapping[str, Any] | None) -> RegistrationSettings:
+        settings = dict(settings or {})
+        own = {f.name for f in fields(cls)} - {"pairing"}
+        pairing_keys = {f.name for f in fields(PairingSettings)}
+        unknown = sorted(set(settings) - own - pairing_keys)
+        if unknown:
+            raise EMRegError(f"case.toml [registration]: unknown key(s) {', '.join(unknown)}; "
+                             f"known: {', '.join(sorted(own | pairing_keys))}")
+        values: dict[str, Any] = {}
+        for name in own & set(settings):
+            value = settings[name]
+            if name == "exclude_outliers":
+                if not isinstance(value, bool):
+                    raise EMRegError(f"case.toml [registration]: exclude_outliers must be true or false, got {value!r}")
+                values[name] = value
+                continue
+            try:
+                number = float(value)
+            except (TypeError, ValueError):
+                raise EMRegError(f"case.toml [registration]: {name} must be a number, got {value!r}") from None
+            if not np.isfinite(number) or number <= 0:
+                raise EMRegError(f"case.toml [registration]: {name} must be a positive number, got {value!r}")
+            values[name] = number
+        pairing = PairingSettings.from_settings({k: v for k, v in settings.items() if k in pairing_keys})
+        return cls(pairing=pairing, **values)
+
+
+@dataclass
+class RegistrationResult:
+    """``ReferenceToImage`` (4x4, mm, Reference -> CT LPS) and everything that qualifies it.
+
+    ``pairs``: dicts ``image_marker``, ``calibration_point``, ``residual_mm``, ``outlier``;
+    ``fre_curve``: (l values, FRE values) in mm; ``predicted_tre_mm``: per target (or None).
+    """
+
+    reference_to_image: np.ndarray
+    sensor_offset_l_mm: float
+    fre_mm: float
+    pairs: list[dict[str, Any]]
+    unpaired_image_markers: list[str] = field(default_factory=list)
+    unpaired_calibration_points: list[str] = field(default_factory=list)
+    sensor_offset_l_std_mm: float = float("nan")
+    sensor_offset_range_mm: tuple[float, float] = (float("nan"), float("nan"))
+    sensor_offset_fixed: bool = False
+    fle_mm: float = float("nan")
+    fre_curve: tuple[np.ndarray, np.ndarray] = field(default_factory=lambda: (np.zeros(0), np.zeros(0)))
+    targets_image: np.ndarray | None = None
+    predicted_tre_mm: np.ndarray | None = None
+    warnings: list[str] = field(default_factory=list)
+    pairing: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def outliers(self) -> list[str]:
+        """Image marker ids of the pairs flagged as outliers."""
+        return [p["image_marker"] for p in self.pairs if p.get("outlier")]
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``registration.json`` document: the spec's keys first, then extra ones."""
+        document: dict[str, Any] = {
+            "ReferenceToImage": np.asarray(self.reference_to_image).tolist(),
+            "sensor_offset_l_mm": round(float(self.sensor_offset_l_mm), 4),
+            "fre_mm": round(float(self.fre_mm), 4),
+            "pairs": [{**p, "residual_mm": round(float(p["residual_mm"]), 4)} for p in self.pairs],
+            "unpaired_image_markers": list(self.unpaired_image_markers),
+            "unpaired_calibration_points": list(self.unpaired_calibration_points),
+            "transform_file": TRANSFORM_FILE,
+            "transform_file_note": ("ITK file: stores ImageToReference (the resampling direction, LPS); "
+                                    "3D Slicer loads it as the ReferenceToImage linear transform"),
+            "sensor_offset_l_std_mm": _round(self.sensor_offset_l_std_mm),
+            "sensor_offset_range_mm": [float(v) for v in self.sensor_offset_range_mm],
+            "sensor_offset_fixed": bool(self.sensor_offset_fixed),
+            "fle_mm": _round(self.fle_mm),
+            "outliers": self.outliers,
+            "fre_curve": {"l_mm": [round(float(v), 4) for v in self.fre_curve[0]],
+                          "fre_mm": [round(float(v), 5) for v in self.fre_curve[1]]},
+            "warnings": list(self.warnings),
+            "pairing": self.pairing,
+        }
+        if self.targets_image is not None and self.predicted_tre_mm is not None:
+            document["targets_image"] = np.asarray(self.targets_image).tolist()
+            document["predicted_tre_mm"] = [round(float(v), 4) for v in self.predicted_tre_mm]
+        return document
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any], source: str = "registration") -> RegistrationResult:
+        try:
+            matrix = np.asarray(document["ReferenceToImage"], dtype=float)
+            if matrix.shape != (4, 4) or not is_rigid(matrix, 1e-4):
+                raise EMRegError(f"{source}: ReferenceToImage must be a rigid 4x4 matrix")
+            curve = document.get("fre_curve") or {}
+            targets = document.get("targets_image")
+            tre = document.get("predicted_tre_mm")
+            return cls(
+                reference_to_image=matrix,
+                sensor_offset_l_mm=float(document["sensor_offset_l_mm"]),
+                fre_mm=float(document["fre_mm"]),
+                pairs=[dict(p) for p in document.get("pairs", [])],
+                unpaired_image_markers=[str(v) for v in document.get("unpaired_image_markers", [])],
+                unpaired_calibration_points=[str(v) for v in document.get("unpaired_calibration_points", [])],
+                sensor_offset_l_std_mm=_float(document.get("sensor_offset_l_std_mm")),
+                sensor_offset_range_mm=tuple(_float(v) for v in document.get("sensor_offset_range_mm",
+                                                                            [None, None])),
+                sensor_offset_fixed=bool(document.get("sensor_offset_fixed", False)),
+                fle_mm=_float(document.get("fle_mm")),
+                fre_curve=(np.asarray(curve.get("l_mm", []), dtype=float),
+                           np.asarray(curve.get("fre_mm", []), dtype=float)),
+                targets_image=None if targets is None else np.asarray(targets, dtype=float).reshape(-1, 3),
+                predicted_tre_mm=None if tre is None else np.asarray(tre, dtype=float),
+                warnings=[str(w) for w in document.get("warnings", [])],
+                pairing=dict(document.get("pairing", {})),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise EMRegError(f"{source}: not a registration file ({exc!s:.100})") from None
+
+
+def _round(value: float, digits: int = 4) -> float | None:
+    return None if value is None or not np.isfinite(value) else round(float(value), digits)
+
+
+def _float(value: Any) -> float:
+    return float("nan") if value is None else float(value)
+
+
+# --- image markers ---------------------------------------------------------------------------
+
+
+def _image_markers(detection: Any) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Ids, origins (M, 3) and unit axes (M, 3) from a DetectionResult (or a list of markers)."""
+    markers = getattr(detection, "markers", detection)
+    ids, origins, axes = [], [], []
+    for k, marker in enumerate(markers):
+        get = marker.get if isinstance(marker, Mapping) else lambda name, m=marker: getattr(m, name)
+        ids.append(str(get("id") or f"I{k + 1:02d}"))
+        origins.append(np.asarray(get("origin"), dtype=float))
+        axes.append(np.asarray(get("axis"), dtype=float))
+    origins_array = np.asarray(origins, dtype=float).reshape(-1, 3)
+    axes_array = np.asarray(axes, dtype=float).reshape(-1, 3)
+    norms = np.linalg.norm(axes_array, axis=1)
+    if np.any(~np.isfinite(norms)) or np.any(norms < 1e-9) or not np.all(np.isfinite(origins_array)):
+        raise EMRegError("detected markers: every marker needs a finite origin and a non-zero axis")
+    return ids, origins_array, axes_array / norms[:, None]
+
+
+# --- sensor offset ---------------------------------------------------------------------------
+
+
+def fre_at_offset(l_mm: float, points_reference: np.ndarray, origins_image: np.ndarray,
+                  axes_image: np.ndarray) -> tuple[float, np.ndarray]:
+    """FRE (mm, paper Eq. 10) and the fitted ``ReferenceToImage`` for a sensor offset l (mm):
+    calibration points (N, 3, Reference) fitted onto ``origins + l * axes`` (N, 3, image)."""
+    pinholes = origins_image + l_mm * axes_image
+    reference_to_image = fit_rigid(points_reference, pinholes)
+    return float(np.sqrt(np.mean(residuals(reference_to_image, points_reference, pinholes) ** 2))), reference_to_image
+
+
+@dataclass
+class OffsetSolution:
+    """The l minimising FRE(l) in [a, b], its standard error (mm) and FRE(l) samples."""
+
+    l_mm: float
+    l_std_mm: float
+    fre_mm: float
+    reference_to_image: np.ndarray
+    curve_l_mm: np.ndarray
+    curve_fre_mm: np.ndarray
+
+
+def solve_sensor_offset(points_reference: np.ndarray, origins_image: np.ndarray, axes_image: np.ndarray,
+                        l_range_mm: tuple[float, float], grid_step_mm: float = 0.1) -> OffsetSolution:
+    """Minimise FRE(l) over l in ``l_range_mm`` (grid, then bounded Brent around the best node)."""
+    a, b = float(l_range_mm[0]), float(l_range_mm[1])
+    n = len(points_reference)
+
+    def sse(l_value: float) -> float:
+        return n * fre_at_offset(l_value, points_reference, origins_image, axes_image)[0] ** 2
+
+    if b - a < 1e-9:
+        fre_value, transform = fre_at_offset(a, points_reference, origins_image, axes_image)
+        return OffsetSolution(a, 0.0, fre_value, transform, np.array([a]), np.array([fre_value]))
+    grid = np.linspace(a, b, max(3, int(round((b - a) / grid_step_mm)) + 1))
+    grid_sse = np.array([sse(v) for v in grid])
+    k = int(np.argmin(grid_sse))
+    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    found = minimize_scalar(sse, bounds=(lo, hi), method="bounded", options={"xatol": 1e-5})
+    l_best = float(found.x) if found.fun <= grid_sse[k] else float(grid[k])
+    fre_value, transform = fre_at_offset(l_best, points_reference, origins_image, axes_image)
+    # Curvature of SSE(l) at the minimum (central difference, one-sided at a bound).
+    h = 0.05
+    if l_best - h < a:
+        c = sse(l_best) - 2 * sse(l_best + h) + sse(l_best + 2 * h)
+    elif l_best + h > b:
+        c = sse(l_best) - 2 * sse(l_best - h) + sse(l_best - 2 * h)
+    else:
+        c = sse(l_best - h) - 2 * sse(l_best) + sse(l_best + h)
+    curvature = c / h**2
+    dof = 3 * n - 7
+    sigma2 = (n * fre_value**2) / dof if dof > 0 else float("nan")
+    l_std = float(np.sqrt(2 * sigma2 / curvature)) if curvature > 1e-12 and np.isfinite(sigma2) else float("inf")
+    curve_l = np.linspace(a, b, max(2, int(round((b - a) / 0.25)) + 1))
+    curve_fre = np.sqrt(np.interp(curve_l, grid, grid_sse) / n)
+    return OffsetSolution(l_best, l_std, fre_value, transform, curve_l, curve_fre)
+
+
+# --- registration ----------------------------------------------------------------------------
+
+
+def register(
+    detection: Any,
+    frame_calibration: FrameCalibration,
+    model: MarkerModel,
+    settings: Mapping[str, Any] | None = None,
+    targets_image: np.ndarray | None = None,
+) -> RegistrationResult:
+    """Pair, solve the sensor offset l and fit ``ReferenceToImage`` (Reference -> CT LPS, mm).
+
+    ``detection``: a DetectionResult (markers with ``id``, ``origin``, ``axis`` in image space);
+    ``frame_calibration``: pinhole points in the Reference frame; ``model``: gives l's range
+    [a, b]; ``settings``: ``case.toml`` ``[registration]``; ``targets_image`` (K, 3, LPS mm):
+    targets for the predicted TRE. Raises :class:`NoSafeAnswerError` for an ambiguous pairing,
+    too few pairs, FRE above ``max_fre_mm`` or a poorly determined l.
+    """
+    config = RegistrationSettings.from_settings(settings)
+    image_ids, origins, axes = _image_markers(detection)
+    labels = frame_calibration.labels
+    points = frame_calibration.positions
+    directions = frame_calibration.directions
+    if config.sensor_offset_l_mm is not None:
+        l_range = (config.sensor_offset_l_mm, config.sensor_offset_l_mm)
+    else:
+        l_range = (model.pinhole_bottom_mm, model.pinhole_top_mm)
+    pairing = pair_markers(origins, axes, points, directions, l_range, config.pairing)
+    image_index = np.array([j for j, _ in pairing.pairs])
+    cal_index = np.array([i for _, i in pairing.pairs])
+    warnings: list[str] = []
+
+    solution = solve_sensor_offset(points[cal_index], origins[image_index], axes[image_index], l_range)
+    pair_residuals = residuals(solution.reference_to_image, points[cal_index],
+                               origins[image_index] + solution.l_mm * axes[image_index])
+    outlier = _flag_outliers(pair_residuals, config)
+    used = np.ones(len(cal_index), dtype=bool)
+    if config.exclude_outliers and np.any(outlier) and np.count_nonzero(~outlier) >= config.pairing.min_pairs:
+        used = ~outlier
+        solution = solve_sensor_offset(points[cal_index[used]], origins[image_index[used]],
+                                       axes[image_index[used]], l_range)
+        pair_residuals = residuals(solution.reference_to_image, points[cal_index],
+                                   origins[image_index] + solution.l_mm * axes[image_index])
+        warnings.append(f"{np.count_nonzero(outlier)} outlier pair(s) left out of the fit")
+    if np.any(outlier):
+        names = ", ".join(f"{image_ids[j]}/{labels[i]} ({r:.2f} mm)"
+                          for j, i, r, o in zip(image_index, cal_index, pair_residuals, outlier, strict=True) if o)
+        warnings.append(f"outlier pair(s): {names}")
+
+    fre_value = float(np.sqrt(np.mean(pair_residuals[used] ** 2)))
+    if fre_value > config.max_fre_mm:
+        raise NoSafeAnswerError(
+            f"registration FRE {fre_value:.2f} mm is above the limit of {config.max_fre_mm:g} mm "
+            f"([registration] max_fre_mm); check the calibration recording and the detected markers"
+        )
+    fixed = config.sensor_offset_l_mm is not None
+    if not fixed:
+        a, b = l_range
+        if solution.l_std_mm > config.max_l_std_mm:
+            raise NoSafeAnswerError(
+                f"the sensor offset l is poorly determined (standard error {solution.l_std_mm:.2f} mm > "
+                f"{config.max_l_std_mm:g} mm): the paired markers' axes are (nearly) parallel, so l trades off "
+                "against a translation along them; give l in case.toml [registration] sensor_offset_l_mm "
+                "or use markers on more than one face"
+            )
+        if solution.l_std_mm > config.warn_l_std_mm:
+            warnings.append(f"sensor offset l poorly determined: standard error {solution.l_std_mm:.2f} mm")
+        if min(solution.l_mm - a, b - solution.l_mm) < 0.05:
+            warnings.append(f"sensor offset l = {solution.l_mm:.2f} mm is at the end of the pinhole range "
+                            f"[{a:g}, {b:g}] mm: check the marker model")
+    n_used = int(np.count_nonzero(used))
+    fle = fre_value * np.sqrt(n_used / (n_used - 2)) if n_used > 2 else float("nan")
+    predicted = None
+    targets = None
+    if targets_image is not None and len(np.atleast_2d(targets_image)) and np.isfinite(fle):
+        targets = np.asarray(targets_image, dtype=float).reshape(-1, 3)
+        fiducials = origins[image_index[used]] + solution.l_mm * axes[image_index[used]]
+        predicted = predicted_tre(fiducials, fle, targets)
+
+    pairs = [
+        {"image_marker": image_ids[j], "calibration_point": labels[i], "residual_mm": float(r), "outlier": bool(o)}
+        for j, i, r, o in zip(image_index, cal_index, pair_residuals, outlier, strict=True)
+    ]
+    paired_images = set(image_index.tolist())
+    paired_cal = set(cal_index.tolist())
+    return RegistrationResult(
+        reference_to_image=solution.reference_to_image,
+        sensor_offset_l_mm=solution.l_mm,
+        fre_mm=fre_value,
+        pairs=pairs,
+        unpaired_image_markers=[m for k, m in enumerate(image_ids) if k not in paired_images],
+        unpaired_calibration_points=[p for k, p in enumerate(labels) if k not in paired_cal],
+        sensor_offset_l_std_mm=0.0 if fixed else solution.l_std_mm,
+        sensor_offset_range_mm=(model.pinhole_bottom_mm, model.pinhole_top_mm),
+        sensor_offset_fixed=fixed,
+        fle_mm=fle,
+        fre_curve=(solution.curve_l_mm, solution.curve_fre_mm),
+        targets_image=targets,
+        predicted_tre_mm=predicted,
+        warnings=warnings + list(frame_calibration.warnings),
+        pairing={"support": pairing.support, "rival_support": pairing.rival_support,
+                 "hypotheses": pairing.hypotheses, "seed_triangles": pairing.seeds,
+                 "ambiguity_margin": config.pairing.ambiguity_margin,
+                 "point_tolerance_mm": round(config.pairing.point_tolerance_mm, 3),
+                 "distance_tolerance_mm": round(config.pairing.distance_tolerance_mm, 3)},
+    )
+
+
+def _flag_outliers(pair_residuals: np.ndarray, config: RegistrationSettings) -> np.ndarray:
+    """Residuals above ``outlier_factor`` x the robust RMS residual and above ``outlier_min_mm``."""
+    if len(pair_residuals) < 4:
+        return np.zeros(len(pair_residuals), dtype=bool)
+    robust_rms = float(np.sqrt(np.median(pair_residuals**2) * 3.0 / _CHI2_3_MEDIAN))
+    return (pair_residuals > config.outlier_factor * robust_rms) & (pair_residuals > config.outlier_min_mm)
+
+
+def map_reference_points(result: RegistrationResult, points_reference: Sequence[Sequence[float]]) -> np.ndarray:
+    """Points (N, 3) from the Reference frame into image space with ``ReferenceToImage``."""
+    return apply_transform(result.reference_to_image, np.asarray(points_reference, dtype=float))
+
+
+# --- files -----------------------------------------------------------------------------------
+
+
+def write_registration(result: RegistrationResult, out_dir: str | os.PathLike[str]) -> None:
+    """Write ``registration.json`` and ``ReferenceToImage.h5`` (both atomically) into ``out_dir``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    write_slicer_linear_transform(out / TRANSFORM_FILE, result.reference_to_image)
+    atomic_write_json(out / "registration.json", result.to_json())
+
+
+def read_registration(path: str | os.PathLike[str]) -> RegistrationResult:
+    """Read ``registration.json`` (a folder holding one is accepted too)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "registration.json"
+    return RegistrationResult.from_json(read_json(path, "registration JSON"), str(path))
