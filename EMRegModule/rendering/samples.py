@@ -218,3 +218,83 @@ def write_sample_run(case_dir: Path, out_dir: Path, unpaired_marker: bool = True
         "reference_sensor": 1, "probe_sensor": 2,
         "summary": ["detect: 5 markers, 1 rejected", f"register: FRE {fre_mm:.2f} mm"]}, indent=2) + "\n")
     return {"reference_to_image": reference_to_image, "l_mm": SENSOR_L_MM, "solved_l_mm": l_mm, "fre_mm": fre_mm}
+
+
+# --- the golden-image scenes (Testing/Baseline) ------------------------------------------------
+
+GOLDEN_WINDOW = (400, 300)
+GOLDEN_RESIDUALS = (0.2, 0.6, 1.1, 1.6, None)
+
+
+def golden_frame_scene(shift_mm: tuple[float, float, float] = (0.0, 0.0, 0.0), colormap: str = "viridis"):
+    """The 3D golden scene: five markers (the first moved by ``shift_mm``), a coarse CT block, the
+    reference sensor and four calibration points; returns ``(FrameScene, Camera)``."""
+    from .scene3d import Camera, FrameScene, SceneMarker
+
+    model = MarkerModel()
+    markers = sample_markers(shift_mm, which=0)
+    ct = paint_sample_ct(sample_markers(), model, size=(60, 60, 30), spacing_mm=1.2, origin=(-36.0, -36.0, -12.0))
+    calibration = np.stack([m.origin + SENSOR_L_MM * m.axis for m in markers[:4]]) + 0.3
+    scene = FrameScene(
+        model=model,
+        markers=[SceneMarker(m.label, m.marker_to_image, r) for m, r in zip(markers, GOLDEN_RESIDUALS, strict=True)],
+        ct=ct, iso_value=-350.0, reference_to_image=sample_reference_to_image(), calibration_points=calibration,
+        colormap=colormap, residual_range=(0.0, 2.0), show_labels=False,
+    )
+    camera = Camera(position=(60.0, -110.0, 95.0), focal_point=(0.0, 0.0, 8.0), view_up=(0.0, 0.0, 1.0))
+    return scene, camera
+
+
+def golden_frame_image(shift_mm: tuple[float, float, float] = (0.0, 0.0, 0.0), colormap: str = "viridis"
+                       ) -> np.ndarray:
+    """The rendered 3D golden scene (RGB, 400 x 300)."""
+    from .scene3d import render_frame_scene
+
+    scene, camera = golden_frame_scene(shift_mm, colormap)
+    return render_frame_scene(scene, GOLDEN_WINDOW, camera=camera)
+
+
+def golden_slices_image(ct_shift_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """The slice-mosaic golden image: two markers of a 0.5 mm CT (the first painted ``ct_shift_mm`` away
+    from where its fitted model is drawn), fixed display window."""
+    from .slices import SliceMarker, marker_slices_mosaic
+
+    model = MarkerModel()
+    fitted = sample_markers()[:2]
+    ct = paint_sample_ct(sample_markers(ct_shift_mm, which=0)[:2], model, size=(136, 70, 45), spacing_mm=0.5,
+                         origin=(-36.0, -32.0, -4.0))
+    markers = [SliceMarker(m.label, m.marker_to_image, f"{m.label} -> M0{i + 1}", paired=i == 0,
+                           sensor_point=m.origin + SENSOR_L_MM * m.axis,
+                           calibration_point=m.origin + SENSOR_L_MM * m.axis + np.array([0.3, 0.2, 0.0]))
+               for i, m in enumerate(fitted)]
+    return marker_slices_mosaic(ct, markers, model, columns=2, view_px=100, mm_per_px=0.25, window=(-1000.0, 1500.0))
+
+
+def golden_residual_bars_image(colormap: str = "viridis") -> np.ndarray:
+    """The bar-chart golden image: residuals coloured by ``colormap`` (RGB, 400 x 300)."""
+    from .colors import colorize
+    from .plots import bar_chart
+
+    values = np.array([0.2, 0.6, 1.1, 1.6, 0.9])
+    colors = [tuple(int(c) for c in rgb) for rgb in colorize(values, 0.0, 2.0, colormap)]
+    return bar_chart([f"I0{i}" for i in range(1, 6)], values, title="Residual per marker", y_label="residual (mm)",
+                     colors=colors, reference_lines=[(1.0, "FRE 1.00 mm")], size=GOLDEN_WINDOW)
+
+
+def golden_fre_curve_image(l_chosen_mm: float = 14.2) -> np.ndarray:
+    """The line-chart golden image: an FRE(l) parabola-like curve with the chosen l (RGB, 400 x 300)."""
+    from .plots import line_chart
+
+    l_values = np.linspace(11.0, 18.5, 76)
+    values = np.sqrt(0.8 ** 2 + 0.3 * (l_values - 14.2) ** 2)
+    return line_chart(l_values, values, "FRE(l)", "sensor offset l (mm)", "FRE (mm)", marker_x=l_chosen_mm,
+                      marker_label=f"l = {l_chosen_mm:.2f} mm", size=GOLDEN_WINDOW)
+
+
+#: Baseline file name -> function rendering it (no arguments: the unperturbed scene).
+GOLDEN_IMAGES = {
+    "frame_scene.png": golden_frame_image,
+    "marker_slices.png": golden_slices_image,
+    "residual_bars.png": golden_residual_bars_image,
+    "fre_curve.png": golden_fre_curve_image,
+}

@@ -202,9 +202,11 @@ def render_frame_scene(
         if scalar_mapper is not None and scene.show_scalar_bar:
             steps = int(round((clim[1] - clim[0]) / 0.5))
             n_labels = steps + 1 if steps <= 6 else 5
+            font_scale = min(1.0, window_size[0] / 960.0)
             plotter.add_scalar_bar(title="residual (mm)", mapper=scalar_mapper, n_labels=n_labels, fmt="%.1f",
-                                   color="black", vertical=True, position_x=0.87, position_y=0.25, width=0.08,
-                                   height=0.5, title_font_size=14, label_font_size=12)
+                                   color="black", vertical=True, position_x=0.84, position_y=0.25, width=0.07,
+                                   height=0.5, title_font_size=max(9, int(round(14 * font_scale))),
+                                   label_font_size=max(8, int(round(12 * font_scale))))
 
         if scene.reference_to_image is not None:
             _add_reference_sensor(plotter, np.asarray(scene.reference_to_image, dtype=float))

@@ -1,0 +1,108 @@
+"""Golden-image regression tests of the report's renderers.
+
+Each test renders a small fixed scene (EMRegModule.rendering.samples) and compares it with
+``Testing/Baseline/<name>.png`` using VTK's ``vtkImageDifference`` (shift tolerance off). On a
+failure the rendered image and the difference image are written next to the failure
+(``<failure dir>/<name>.actual.png`` and ``<name>.diff.png``; by default the pytest temp dir).
+
+Regenerate the baselines on purpose (after an intended change in rendering) with
+``EMREG_REGENERATE_BASELINES=1 pytest Testing/Python/test_golden_images.py`` or
+``scripts/regenerate_baselines``, then look at the new PNGs before committing them.
+
+The perturbation tests prove the comparison can fail: moving one marker by one voxel, or
+changing the colour map, must exceed the tolerance.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from EMRegModule.rendering import samples
+from EMRegModule.rendering.compare import REGENERATE_ENV, check_against_baseline, compare_images, regenerate_requested
+from EMRegModule.rendering.images import read_png
+
+BASELINE_DIR = Path(__file__).resolve().parents[1] / "Baseline"
+
+#: Largest accepted vtkImageDifference thresholded error. Identical renders give 0; a one-voxel
+#: (0.5-0.6 mm) marker shift gives about 200-300 and a colour-map change 500 or more.
+MAX_ERROR = 20.0
+
+CT_VOXEL_3D_MM = 1.2 / 2  # the golden 3D scene's markers move by one voxel of the 0.6 mm sample CT
+CT_VOXEL_SLICES_MM = 0.5
+
+
+@pytest.fixture(scope="module")
+def rendered():
+    """Every golden image rendered once (unperturbed)."""
+    return {name: render() for name, render in samples.GOLDEN_IMAGES.items()}
+
+
+@pytest.mark.parametrize("name", sorted(samples.GOLDEN_IMAGES))
+def test_matches_baseline(name, rendered, tmp_path):
+    check_against_baseline(rendered[name], BASELINE_DIR / name, MAX_ERROR, failure_dir=tmp_path)
+    if not regenerate_requested():
+        baseline = read_png(BASELINE_DIR / name)
+        assert baseline.shape == rendered[name].shape
+        assert max(baseline.shape[:2]) <= 700  # baselines stay small
+
+
+def test_rendering_is_deterministic(rendered):
+    again = samples.golden_frame_image()
+    assert np.array_equal(again, rendered["frame_scene.png"])
+    assert np.array_equal(samples.golden_slices_image(), rendered["marker_slices.png"])
+
+
+def _expect_failure(image, name, tmp_path):
+    with pytest.raises(AssertionError, match="differs from the baseline") as info:
+        check_against_baseline(image, BASELINE_DIR / name, MAX_ERROR, failure_dir=tmp_path)
+    stem = Path(name).stem
+    assert (tmp_path / f"{stem}.actual.png").is_file() and (tmp_path / f"{stem}.diff.png").is_file()
+    diff = read_png(tmp_path / f"{stem}.diff.png")
+    assert diff.shape == image.shape and diff.max() > 0
+    return str(info.value)
+
+
+skip_when_regenerating = pytest.mark.skipif(regenerate_requested(), reason="regenerating baselines")
+
+
+@skip_when_regenerating
+def test_marker_moved_by_one_voxel_fails(tmp_path):
+    _expect_failure(samples.golden_frame_image(shift_mm=(CT_VOXEL_3D_MM, 0.0, 0.0)), "frame_scene.png", tmp_path)
+
+
+@skip_when_regenerating
+def test_colour_map_change_fails(tmp_path):
+    _expect_failure(samples.golden_frame_image(colormap="plasma"), "frame_scene.png", tmp_path)
+    _expect_failure(samples.golden_residual_bars_image(colormap="cividis"), "residual_bars.png", tmp_path)
+
+
+@skip_when_regenerating
+def test_ct_marker_moved_by_one_voxel_under_its_outline_fails(tmp_path):
+    _expect_failure(samples.golden_slices_image(ct_shift_mm=(CT_VOXEL_SLICES_MM, 0.0, 0.0)), "marker_slices.png",
+                    tmp_path)
+
+
+@skip_when_regenerating
+def test_moved_marker_of_fre_curve_fails(tmp_path):
+    _expect_failure(samples.golden_fre_curve_image(l_chosen_mm=14.6), "fre_curve.png", tmp_path)
+
+
+def test_comparison_metric_orders_perturbations(rendered):
+    """Sub-voxel shifts give smaller errors than a voxel: the metric measures displacement, not noise."""
+    base = rendered["frame_scene.png"]
+    small = compare_images(samples.golden_frame_image(shift_mm=(0.1, 0.0, 0.0)), base).error
+    voxel = compare_images(samples.golden_frame_image(shift_mm=(CT_VOXEL_3D_MM, 0.0, 0.0)), base).error
+    assert 0 < small < voxel
+    assert voxel > 5 * MAX_ERROR
+
+
+def test_regeneration_option_writes_baselines(tmp_path, monkeypatch):
+    monkeypatch.setenv(REGENERATE_ENV, "1")
+    image = samples.golden_residual_bars_image()
+    result = check_against_baseline(image, tmp_path / "new.png", MAX_ERROR)
+    assert result.error == 0.0
+    assert np.array_equal(read_png(tmp_path / "new.png"), image)
+    monkeypatch.delenv(REGENERATE_ENV)
+    with pytest.raises(AssertionError, match="missing"):
+        check_against_baseline(image, tmp_path / "absent.png", MAX_ERROR)
