@@ -238,9 +238,11 @@ def still_periods(time_s: np.ndarray, position_mm: np.ndarray, valid: np.ndarray
     windows = np.lib.stride_tricks.sliding_window_view(p, k, axis=0)  # (W, 3, k)
     centre = np.median(windows, axis=2)
     spread = np.median(np.linalg.norm(windows - centre[:, :, None], axis=1), axis=1)
-    still = np.zeros(len(index), dtype=bool)
+    # Each window's verdict goes to its centre sample; the first and last half windows take
+    # the verdict of the first and last full window.
     half = k // 2
-    still[half:half + len(spread)] = spread <= settings.still_radius_mm
+    centred = np.concatenate([np.full(half, spread[0]), spread, np.full(len(index) - half - len(spread), spread[-1])])
+    still = centred <= settings.still_radius_mm
     runs = _runs(still)
     periods: list[tuple[int, int]] = []  # [start, end) in valid-sample positions
     for s, e in runs:

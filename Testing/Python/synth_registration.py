@@ -177,3 +177,76 @@ def calibration_recording(
     recording = TrackingRecording(time_s, sensor, transforms[:, :3, 3], transforms[:, :3, :3], quality, label,
                                   source="synthetic")
     return recording, np.asarray(true_points)
+
+
+@dataclass
+class PairingProblem:
+    """Shuffled, noisy image markers and calibration points with missing and extra ones.
+
+    ``image_truth[j]`` / ``calibration_truth[i]``: the true marker index of each entry, or -1
+    for an extra (decoy / stray dwell); a correct pairing (j, i) has equal non-negative truths.
+    """
+
+    frame: SyntheticFrame
+    origins_image: np.ndarray
+    axes_image: np.ndarray
+    points_reference: np.ndarray
+    directions_reference: np.ndarray
+    image_truth: np.ndarray
+    calibration_truth: np.ndarray
+
+    @property
+    def expected_pairs(self) -> int:
+        image = set(self.image_truth[self.image_truth >= 0].tolist())
+        return len(image & set(self.calibration_truth[self.calibration_truth >= 0].tolist()))
+
+    def correct(self, pairs) -> bool:
+        return all(self.image_truth[j] >= 0 and self.image_truth[j] == self.calibration_truth[i] for j, i in pairs)
+
+
+def pairing_problem(seed: int, n_markers: int = 28, missing_image: int = 3, extra_image: int = 3,
+                    missing_calibration: int = 3, extra_calibration: int = 3, tracker_error_mm: float = 0.5,
+                    image_error_mm: float = 0.2, direction_error_deg: float = 2.0, l_mm: float | None = None,
+                    frame: SyntheticFrame | None = None) -> PairingProblem:
+    """Image and calibration sets of one frame (RMS 3D errors as given), each missing some true
+    markers (different ones) and holding extra random points near the frame."""
+    frame = frame or make_frame(seed, n_markers, l_mm)
+    n = len(frame.origins_image)
+    rng = np.random.default_rng(seed + 1000)
+
+    def unit(v):
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    def jitter_directions(v):
+        return unit(v + rng.normal(0, np.radians(direction_error_deg) / np.sqrt(2), v.shape))
+
+    origins = frame.origins_image + rng.normal(0, image_error_mm / np.sqrt(3), (n, 3))
+    axes = jitter_directions(frame.axes_image)
+    points = frame.pinholes_reference + rng.normal(0, tracker_error_mm / np.sqrt(3), (n, 3))
+    directions = jitter_directions(frame.axes_reference)
+    image_keep = rng.permutation(n)[missing_image:]
+    cal_keep = rng.permutation(n)[missing_calibration:]
+
+    def extras(centre, spread, count):
+        return centre + rng.uniform(-spread, spread, (count, 3)), unit(rng.normal(size=(count, 3)))
+
+    extra_o, extra_a = extras(origins.mean(axis=0), 150.0, extra_image)
+    extra_p, extra_d = extras(points.mean(axis=0), 150.0, extra_calibration)
+    image_perm = rng.permutation(len(image_keep) + extra_image)
+    cal_perm = rng.permutation(len(cal_keep) + extra_calibration)
+    return PairingProblem(
+        frame,
+        np.vstack([origins[image_keep], extra_o])[image_perm],
+        np.vstack([axes[image_keep], extra_a])[image_perm],
+        np.vstack([points[cal_keep], extra_p])[cal_perm],
+        np.vstack([directions[cal_keep], extra_d])[cal_perm],
+        np.concatenate([image_keep, np.full(extra_image, -1)])[image_perm],
+        np.concatenate([cal_keep, np.full(extra_calibration, -1)])[cal_perm],
+    )
+
+
+def symmetric_layout(seed: int = 5, half: int = 14) -> tuple[np.ndarray, np.ndarray]:
+    """A layout with a 2-fold rotational symmetry about the frame's vertical axis."""
+    origins, axes = frame_layout(np.random.default_rng(seed), half, min_spacing=30.0)
+    turn = np.diag([-1.0, -1.0, 1.0])
+    return np.vstack([origins, origins @ turn.T]), np.vstack([axes, axes @ turn.T])

@@ -1,0 +1,176 @@
+"""Sensor offset and registration: l recovered, ReferenceToImage accurate, refusals, files."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from synth_registration import calibration_recording, make_frame, pairing_problem
+
+from EMRegModule.calibration import CalibrationPoint, FrameCalibration, calibrate_frame
+from EMRegModule.errors import EMRegError, NoSafeAnswerError
+from EMRegModule.io.itk_transform import read_slicer_linear_transform
+from EMRegModule.marker_model import MarkerModel
+from EMRegModule.registration import (
+    RegistrationSettings,
+    read_registration,
+    register,
+    solve_sensor_offset,
+    write_registration,
+)
+from EMRegModule.transforms import apply_transform, invert_rigid
+
+MODEL = MarkerModel()
+
+
+def _inputs(problem):
+    markers = [{"id": f"I{k + 1:02d}", "origin": o, "axis": a}
+               for k, (o, a) in enumerate(zip(problem.origins_image, problem.axes_image, strict=True))]
+    points = [CalibrationPoint(f"P{k + 1:02d}", p, d, 100, 0.2)
+              for k, (p, d) in enumerate(zip(problem.points_reference, problem.directions_reference, strict=True))]
+    return markers, FrameCalibration(points)
+
+
+def _target_error(result, frame, targets_image):
+    truth = apply_transform(invert_rigid(frame.reference_to_image), targets_image)
+    return np.linalg.norm(apply_transform(result.reference_to_image, truth) - targets_image, axis=1)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_register_recovers_l_and_the_transform(seed):
+    problem = pairing_problem(seed + 100)
+    markers, calibration = _inputs(problem)
+    frame = problem.frame
+    targets = frame.origins_image.mean(axis=0) + np.random.default_rng(seed).uniform(-80, 80, (6, 3))
+    result = register(markers, calibration, MODEL, None, targets)
+    assert problem.correct([(int(p["image_marker"][1:]) - 1, int(p["calibration_point"][1:]) - 1)
+                            for p in result.pairs])
+    assert len(result.pairs) == problem.expected_pairs
+    assert len(result.unpaired_image_markers) == len(markers) - len(result.pairs)
+    assert abs(result.sensor_offset_l_mm - frame.l_mm) < 0.3
+    assert result.sensor_offset_l_std_mm < 0.2
+    # RMS point error ~0.73 mm (0.5 tracker, 0.2 image origin, 2 deg axis error x 14 mm), less 7 parameters
+    assert 0.45 < result.fre_mm < 0.9
+    error = _target_error(result, frame, targets)
+    assert error.mean() < 0.35 and error.max() < 0.55
+    assert result.predicted_tre_mm is not None and result.predicted_tre_mm.shape == (6,)
+    n = len(result.pairs)
+    assert result.fle_mm == pytest.approx(result.fre_mm * np.sqrt(n / (n - 2)), rel=1e-6)
+    assert not result.outliers and result.warnings == []
+    assert len(result.fre_curve[0]) == 31 and result.fre_curve[1].min() <= result.fre_mm + 0.01
+
+
+def test_predicted_tre_matches_the_observed_error():
+    observed, predicted = [], []
+    for seed in range(30):
+        problem = pairing_problem(seed + 300, missing_image=0, extra_image=0, missing_calibration=0,
+                                  extra_calibration=0, image_error_mm=0.05, direction_error_deg=0.5)
+        markers, calibration = _inputs(problem)
+        targets = problem.frame.origins_image.mean(axis=0) + np.random.default_rng(seed).uniform(-120, 120, (5, 3))
+        result = register(markers, calibration, MODEL, {"sensor_offset_l_mm": problem.frame.l_mm}, targets)
+        observed.append(_target_error(result, problem.frame, targets) ** 2)
+        predicted.append(result.predicted_tre_mm**2)
+    ratio = np.sqrt(np.mean(observed) / np.mean(predicted))
+    assert 0.75 < ratio < 1.3, ratio
+
+
+def test_parallel_axes_leave_l_undetermined_and_are_refused():
+    frame = make_frame(5)
+    top = np.nonzero(np.abs(frame.axes_image @ frame.axes_image[np.argmax(frame.axes_image[:, 2])]) > 0.99)[0]
+    problem = pairing_problem(5, frame=_subset(frame, top), missing_image=0, extra_image=0, missing_calibration=0,
+                              extra_calibration=0)
+    markers, calibration = _inputs(problem)
+    with pytest.raises(NoSafeAnswerError, match="poorly determined"):
+        register(markers, calibration, MODEL)
+    result = register(markers, calibration, MODEL, {"sensor_offset_l_mm": 14.0})
+    assert result.sensor_offset_l_mm == 14.0 and result.sensor_offset_fixed
+
+
+def _subset(frame, keep):
+    from synth_registration import SyntheticFrame
+
+    return SyntheticFrame(frame.origins_image[keep], frame.axes_image[keep], frame.reference_to_image, frame.l_mm,
+                          frame.pinholes_reference[keep], frame.axes_reference[keep])
+
+
+def test_l_std_reflects_the_axis_geometry():
+    rng = np.random.default_rng(0)
+    origins = rng.uniform(-100, 100, (12, 3))
+    spread_axes = rng.normal(size=(12, 3))
+    spread_axes /= np.linalg.norm(spread_axes, axis=1, keepdims=True)
+    tilt = np.array([0, 0, 1.0]) + 0.02 * rng.normal(size=(12, 3))
+    tilt /= np.linalg.norm(tilt, axis=1, keepdims=True)
+    values = {}
+    for name, axes in (("spread", spread_axes), ("nearly parallel", tilt)):
+        points = origins + 14.0 * axes + rng.normal(0, 0.3, (12, 3))
+        values[name] = solve_sensor_offset(points, origins, axes, (11.0, 18.5))
+    assert abs(values["spread"].l_mm - 14.0) < 0.3 and values["spread"].l_std_mm < 0.15
+    assert values["nearly parallel"].l_std_mm > 1.0
+
+
+def test_fre_limit_refuses():
+    problem = pairing_problem(7)
+    markers, calibration = _inputs(problem)
+    with pytest.raises(NoSafeAnswerError, match="max_fre_mm"):
+        register(markers, calibration, MODEL, {"max_fre_mm": 0.2})
+
+
+def test_an_outlier_pair_is_flagged_and_can_be_left_out():
+    problem = pairing_problem(8, missing_image=0, extra_image=0, missing_calibration=0, extra_calibration=0,
+                              tracker_error_mm=0.3, image_error_mm=0.1)
+    markers, calibration = _inputs(problem)
+    bad = calibration.points[4]
+    bad.position = bad.position + np.array([1.2, -1.0, 0.6])
+    result = register(markers, calibration, MODEL)
+    partner = int(np.nonzero(problem.image_truth == problem.calibration_truth[4])[0][0])
+    assert result.outliers == [markers[partner]["id"]]
+    assert any("outlier" in w for w in result.warnings)
+    cleaned = register(markers, calibration, MODEL, {"exclude_outliers": True})
+    assert cleaned.fre_mm < result.fre_mm
+    assert any("left out" in w for w in cleaned.warnings)
+
+
+def test_settings_are_checked():
+    with pytest.raises(EMRegError, match="unknown key"):
+        RegistrationSettings.from_settings({"max_fre": 2})
+    with pytest.raises(EMRegError, match="true or false"):
+        RegistrationSettings.from_settings({"exclude_outliers": "yes"})
+    settings = RegistrationSettings.from_settings({"max_fre_mm": 1.5, "tracker_error_mm": 0.8})
+    assert settings.max_fre_mm == 1.5 and settings.pairing.tracker_error_mm == 0.8
+
+
+def test_files_round_trip_and_spec_layout(tmp_path):
+    problem = pairing_problem(9)
+    markers, calibration = _inputs(problem)
+    targets = problem.frame.origins_image[:3] + 20.0
+    result = register(markers, calibration, MODEL, None, targets)
+    write_registration(result, tmp_path)
+    document = json.loads((tmp_path / "registration.json").read_text())
+    for key in ("ReferenceToImage", "sensor_offset_l_mm", "fre_mm", "pairs", "unpaired_image_markers",
+                "unpaired_calibration_points"):
+        assert key in document
+    assert set(document["pairs"][0]) >= {"image_marker", "calibration_point", "residual_mm"}
+    assert np.asarray(document["ReferenceToImage"]).shape == (4, 4)
+    np.testing.assert_allclose(read_slicer_linear_transform(tmp_path / "ReferenceToImage.h5"),
+                               result.reference_to_image, atol=1e-9)
+    again = read_registration(tmp_path / "registration.json")
+    np.testing.assert_allclose(again.reference_to_image, result.reference_to_image)
+    assert again.pairs == json.loads(json.dumps(document["pairs"]))
+    assert again.predicted_tre_mm is not None and len(again.predicted_tre_mm) == 3
+    (tmp_path / "registration.json").write_text('{"ReferenceToImage": [[1, 0], [0, 1]]}')
+    with pytest.raises(EMRegError, match="registration"):
+        read_registration(tmp_path / "registration.json")
+
+
+def test_register_from_a_recording_with_bumps():
+    frame = make_frame(21)
+    recording, _ = calibration_recording(frame.pinholes_reference, frame.axes_reference, seed=21, bumps=True,
+                                         wild_fraction=0.03)
+    calibration = calibrate_frame(recording, 1, 2, None)
+    markers = [{"id": f"I{k + 1:02d}", "origin": o, "axis": a}
+               for k, (o, a) in enumerate(zip(frame.origins_image, frame.axes_image, strict=True))]
+    result = register(markers[3:], calibration, MODEL)
+    assert all(int(p["image_marker"][1:]) == int(p["calibration_point"][1:]) for p in result.pairs)
+    assert result.unpaired_calibration_points == ["P01", "P02", "P03"]
+    assert abs(result.sensor_offset_l_mm - frame.l_mm) < 0.2
