@@ -1,0 +1,100 @@
+"""Options of the case simulator and their defaults per difficulty (``standard`` / ``hard``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+import numpy as np
+
+from ..errors import EMRegError
+
+DIFFICULTIES = ("standard", "hard")
+
+
+@dataclass(frozen=True)
+class SimulationOptions:
+    """Every knob of :func:`EMRegModule.simulation.simulate_case` (mm, degrees, HU).
+
+    Pass any of these as keyword options to ``simulate_case``; the difficulty sets the
+    defaults.
+    """
+
+    frame_size_mm: tuple[float, float, float] = (350.0, 350.0, 200.0)
+    n_markers: int = 28
+    marker: dict[str, float] = field(default_factory=dict)  # MarkerModel fields; {} = the paper's marker
+    spacing: tuple[float, float, float] = (0.6, 0.6, 0.6)
+    noise_hu: float = 20.0
+    psf_fwhm_mm: float = 1.0
+    oblique_deg: float = 2.0  # largest rotation of the voxel grid's axes away from LPS
+    flip: bool = False  # a left-handed voxel grid (det(direction) = -1) before writing
+    frame_tilt_deg: float = 4.0  # largest rotation of the frame in the scanner
+    ct_format: str = "nrrd"  # "nrrd" -> ct.nrrd, "dicom" -> ct/ series
+    patient: bool = True
+    metal_streaks: bool = True
+    n_decoys: int = 0
+    n_absent: int = 0  # calibrated markers absent from the CT (removed before the scan)
+    n_uncalibrated: int = 0  # markers in the CT that the calibration recording skips
+    calibration_labels: bool = True
+    n_bumps: int = 0  # times the frame is bumped during the calibration recording
+    hesitation_rate: float = 0.0  # chance of a short mid-air pause in a transition
+    bad_sample_rate: float = 0.002
+    sensor_offset_l_mm: float | None = None  # None: drawn in [a + 1, b - 1]
+    n_targets: int = 6
+    navigation_rounds: int = 15
+    board_rounds: int = 60
+    board_edges_mm: tuple[float, float, float, float] = (75.3, 60.4, 75.5, 60.4)
+    board_quaternions: bool = False  # write board.csv with qw,qx,qy,qz columns
+
+    def check(self) -> None:
+        """Refuse impossible values with an :class:`EMRegError` naming the option."""
+        size = np.asarray(self.frame_size_mm, dtype=float)
+        if size.shape != (3,) or np.any(size < 80) or np.any(size > 1000):
+            raise EMRegError(f"simulate: frame_size_mm must be three lengths of 80..1000 mm, got {self.frame_size_mm}")
+        spacing = np.asarray(self.spacing, dtype=float)
+        if spacing.shape != (3,) or np.any(spacing < 0.1) or np.any(spacing > 3.0):
+            raise EMRegError(f"simulate: spacing must be 0.1..3 mm per axis, got {self.spacing}")
+        if not 4 <= self.n_markers <= 60:
+            raise EMRegError(f"simulate: n_markers must be 4..60, got {self.n_markers}")
+        if self.n_absent + self.n_uncalibrated > self.n_markers - 4:
+            raise EMRegError("simulate: too many absent/uncalibrated markers for the number of markers")
+        if self.ct_format not in ("nrrd", "dicom"):
+            raise EMRegError(f"simulate: ct_format must be 'nrrd' or 'dicom', got {self.ct_format!r}")
+        if self.noise_hu < 0 or self.psf_fwhm_mm < 0:
+            raise EMRegError("simulate: noise_hu and psf_fwhm_mm must not be negative")
+        if len(self.board_edges_mm) != 4:
+            raise EMRegError("simulate: board_edges_mm needs four edge lengths")
+        for name in ("n_decoys", "n_bumps", "n_targets", "navigation_rounds", "board_rounds"):
+            if getattr(self, name) < 0:
+                raise EMRegError(f"simulate: {name} must not be negative")
+
+
+HARD_DEFAULTS: dict[str, Any] = {
+    "spacing": (0.5, 0.5, 0.8), "noise_hu": 35.0, "oblique_deg": 25.0, "flip": True, "frame_tilt_deg": 6.0,
+    "ct_format": "dicom", "n_decoys": 6, "n_absent": 2, "n_uncalibrated": 1, "calibration_labels": False,
+    "n_bumps": 2, "hesitation_rate": 0.25, "bad_sample_rate": 0.004, "board_quaternions": True,
+}
+
+
+def resolve_options(difficulty: str, spacing_mm: float | Any | None, options: dict[str, Any]) -> SimulationOptions:
+    """Defaults of ``difficulty``, then ``spacing_mm`` (isotropic number or three values), then ``options``."""
+    if difficulty not in DIFFICULTIES:
+        raise EMRegError(f"simulate: difficulty must be one of {', '.join(DIFFICULTIES)}, got {difficulty!r}")
+    known = {f.name for f in fields(SimulationOptions)}
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise EMRegError(f"simulate: unknown option(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+    resolved = SimulationOptions()
+    if difficulty == "hard":
+        resolved = replace(resolved, **HARD_DEFAULTS)
+    if spacing_mm is not None:
+        spacing = np.broadcast_to(np.asarray(spacing_mm, dtype=float), (3,))
+        resolved = replace(resolved, spacing=tuple(float(v) for v in spacing))
+    clean = dict(options)
+    if "spacing" in clean:
+        clean["spacing"] = tuple(float(v) for v in np.broadcast_to(np.asarray(clean["spacing"], dtype=float), (3,)))
+    if "frame_size_mm" in clean:
+        clean["frame_size_mm"] = tuple(float(v) for v in clean["frame_size_mm"])
+    resolved = replace(resolved, **clean)
+    resolved.check()
+    return resolved

@@ -1,0 +1,46 @@
+"""Shared pytest fixtures: CI-sized simulated cases, generated once per test session.
+
+``standard_case`` and ``hard_case`` are paths of case folders (spec layout plus
+``truth.json``) written by :func:`EMRegModule.simulation.simulate_case` into temporary
+folders. They keep the frame's character at a smaller size so that they are cheap:
+a 220 x 220 x 140 mm frame with 16 markers (the full frame is 350 x 350 x 200 mm with 28).
+
+- standard: ``ct.nrrd``, 0.6 mm isotropic, mildly oblique grid, 20 HU noise, labelled
+  calibration recording.
+- hard: ``ct/`` DICOM series, 0.5 x 0.5 x 0.8 mm, oblique and flipped grid, 35 HU noise,
+  6 decoys, 2 calibrated markers absent from the CT, 1 CT marker not calibrated, an
+  unlabelled calibration recording in which the frame is bumped twice.
+
+``load_truth(case_dir)`` returns the case's ``truth.json`` as a dict.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from EMRegModule.simulation import load_truth, simulate_case
+
+#: Options of the CI-sized cases (shared so tests can state what they rely on).
+CI_CASE_OPTIONS = {"frame_size_mm": (220.0, 220.0, 140.0), "n_markers": 16}
+STANDARD_SEED = 11
+HARD_SEED = 12
+
+__all__ = ["CI_CASE_OPTIONS", "load_truth"]
+
+
+@pytest.fixture(scope="session")
+def standard_case(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A CI-sized standard simulated case folder (see module docstring)."""
+    folder = tmp_path_factory.mktemp("standard_case")
+    simulate_case(folder, seed=STANDARD_SEED, difficulty="standard", **CI_CASE_OPTIONS)
+    return folder
+
+
+@pytest.fixture(scope="session")
+def hard_case(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A CI-sized hard simulated case folder (see module docstring)."""
+    folder = tmp_path_factory.mktemp("hard_case")
+    simulate_case(folder, seed=HARD_SEED, difficulty="hard", **CI_CASE_OPTIONS)
+    return folder
