@@ -1,0 +1,330 @@
+"""The live commands: ``emreg record``, ``emreg sim-tracker``, ``emreg serve`` and live ``emreg navigate``.
+
+``cli.py`` registers every entry of :data:`SUBCOMMANDS` (name, add_arguments, run, help) and hands
+``emreg navigate`` to :func:`run_live_navigate` when ``--igtl-port`` is given or the source is not a
+``replay:`` file. Every loop here stops by itself with ``--duration`` / ``--max-samples`` (or on
+Ctrl-C / SIGTERM), and releases the serial port, the sockets and the pty.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import EMRegError
+from ..io.case import DEFAULT_PROBE_SENSOR, DEFAULT_REFERENCE_SENSOR
+from ..transforms import is_rigid
+from . import trakstar_protocol as tp
+from .igtl_server import DEFAULT_PORT
+
+# --- shared helpers ---------------------------------------------------------------------------
+
+
+def _sensor_ports(args: argparse.Namespace) -> tuple[int, int]:
+    settings: dict = {}
+    if getattr(args, "settings", None):
+        from ..io.case import read_case_settings
+
+        settings = read_case_settings(args.settings)
+    sensors = settings.get("sensors", {})
+    reference = args.reference_sensor or int(sensors.get("reference", DEFAULT_REFERENCE_SENSOR))
+    probe = args.probe_sensor or int(sensors.get("probe", DEFAULT_PROBE_SENSOR))
+    if reference == probe:
+        raise EMRegError(f"--reference-sensor and --probe-sensor are both port {reference}; give two different ports")
+    return reference, probe
+
+
+def load_reference_to_image(path: str) -> np.ndarray:
+    """``ReferenceToImage`` (4x4, mm, LPS) from ``registration.json`` (via the registration module)."""
+    if importlib.util.find_spec("EMRegModule.registration") is not None:
+        from ..registration import read_registration
+
+        matrix = np.asarray(read_registration(path).reference_to_image, dtype=float)
+    else:  # pragma: no cover - only before the registration stage exists
+        from ..io.atomic import read_json
+
+        data = read_json(Path(path), "registration JSON")
+        matrix = np.asarray(data.get("ReferenceToImage"), dtype=float)
+    if matrix.shape != (4, 4) or not is_rigid(matrix, 1e-4):
+        raise EMRegError(f"{path}: ReferenceToImage is not a rigid 4x4 transform")
+    return matrix
+
+
+class _StopFlag:
+    """Set by SIGTERM / SIGINT so loops end cleanly (the previous handlers come back afterwards)."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self._previous: dict[int, object] = {}
+
+    def __enter__(self) -> _StopFlag:
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                self._previous[sig] = signal.signal(sig, lambda *_: self.event.set())
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+def _run_loop(source, stop: _StopFlag, duration_s: float | None, done: Callable[[], bool],
+              tick: Callable[[], object] | None = None, interval_s: float = 0.01) -> str:
+    """Wait until the source ends, a limit is reached or a signal arrives; returns why."""
+    deadline = None if duration_s is None else time.monotonic() + duration_s
+    while True:
+        if stop.event.wait(interval_s):
+            return "interrupted"
+        if tick is not None:
+            tick()
+        if source.error:
+            raise EMRegError(source.error)
+        if done():
+            return "sample limit reached"
+        if deadline is not None and time.monotonic() >= deadline:
+            return "duration reached"
+        if source.finished.is_set():
+            return "source finished"
+
+
+def _add_limits(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    parser.add_argument("--max-samples", type=int, default=None, metavar="N", help="stop after N samples / frames")
+
+
+def _add_replay_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--fast", action="store_true", help="replay: as fast as possible, not at the recording's rate")
+    parser.add_argument("--loop", action="store_true", help="replay: start again at the end")
+
+
+def _add_watchdog_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--max-quality", type=float, default=20.0, metavar="Q",
+                        help="worst acceptable tracker quality number, 0 = best (default 20; -1: do not check)")
+    parser.add_argument("--stale-periods", type=float, default=3.0, metavar="K",
+                        help="data are stale after K sample periods without a sample (default 3)")
+
+
+def _max_quality(args: argparse.Namespace) -> float | None:
+    return None if args.max_quality is not None and args.max_quality < 0 else args.max_quality
+
+
+def _say(args: argparse.Namespace, text: str) -> None:
+    if not getattr(args, "quiet", False):
+        print(text, file=sys.stderr, flush=True)
+
+
+def _report_framing(args: argparse.Namespace, source) -> None:
+    driver = getattr(source, "driver", None)
+    if driver is not None:
+        st = driver.stats
+        _say(args, f"[emreg] trakSTAR records: {st.records} accepted, {st.rejected} rejected "
+                   f"(phase {st.phase_errors}, address {st.address_errors}, follow {st.follow_errors}, "
+                   f"gap {st.gap_errors}, values {st.value_errors}), {st.stray_bytes} stray bytes")
+
+
+# --- emreg sim-tracker -------------------------------------------------------------------------
+
+
+def add_sim_tracker_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--replay", metavar="FILE.csv", help="replay this tracking recording (default: built-in scene)")
+    parser.add_argument("--fast", action="store_true", help="STREAM as fast as the baud rate allows")
+    parser.add_argument("--baud", type=int, default=tp.DEFAULT_BAUD, help="line speed to emulate (default 115200)")
+    parser.add_argument("--link", metavar="PATH", help="also make PATH a symbolic link to the pty (like socat's link)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the scene and of the faults")
+    parser.add_argument("--fault", action="append", default=[], metavar="KIND=VALUE",
+                        help="inject faults: drop=P, flip=P (per byte), stall=EVERY_S:DURATION_S, "
+                             "unplug=SENSOR@START-END, out-of-range=SENSOR@START-END (repeatable)")
+    parser.add_argument("--attached", default=None, metavar="1,2,3,4", help="ports with a sensor (default all)")
+    parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    parser.add_argument("--max-records", type=int, default=None, metavar="N", help="stop after N records sent")
+
+
+def run_sim_tracker(args: argparse.Namespace) -> int:
+    from .tracker_simulator import BuiltinScene, FaultPlan, ReplayScene, TrackerSimulator
+    from .trakstar_driver import sensors_from_list
+
+    scene = BuiltinScene(args.seed)
+    if args.replay:
+        from ..io.tracking_csv import read_tracking_csv
+
+        scene = ReplayScene(read_tracking_csv(args.replay))
+    attached = sensors_from_list(args.attached) if args.attached else None
+    sim = TrackerSimulator(scene, baud=args.baud, faults=FaultPlan.parse(args.fault), seed=args.seed, link=args.link,
+                           fast=args.fast, max_records=args.max_records, duration_s=args.duration, attached=attached)
+    link = f" (link {args.link})" if args.link else ""
+    print(f"trakSTAR simulator on {sim.path}{link}: connect with trakstar://{sim.path}?baud={args.baud}", flush=True)
+    with _StopFlag() as stop:
+        watcher = threading.Thread(target=lambda: (stop.event.wait(), sim._stop.set()), daemon=True)
+        watcher.start()
+        try:
+            sim.run()
+        finally:
+            stop.event.set()
+            sim.close()
+    _say(args, f"simulator stopped after {sim.records_sent} records")
+    return 0
+
+
+# --- emreg record ---------------------------------------------------------------------------
+
+
+def add_record_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--device", required=True, metavar="URL",
+                        help="trakstar:///dev/ttyUSB0?baud=115200, igtl://HOST:PORT or replay:FILE.csv")
+    parser.add_argument("--out", required=True, metavar="rec.csv", help="tracking CSV to write (flushed every second)")
+    parser.add_argument("--reference-sensor", type=int, default=None, metavar="PORT")
+    parser.add_argument("--probe-sensor", type=int, default=None, metavar="PORT")
+    _add_limits(parser)
+    _add_replay_options(parser)
+
+
+def run_record(args: argparse.Namespace) -> int:
+    from .sources import open_source
+    from .writers import RecordingWriter
+
+    reference, probe = _sensor_ports(args)
+    source = open_source(args.device, reference, probe, fast=args.fast, loop=args.loop)
+    writer = RecordingWriter(args.out)
+    count = [0]
+
+    def on_sample(sample) -> None:
+        if writer.write_sample(sample):
+            count[0] += 1
+
+    _say(args, f"[emreg] recording {source.description} -> {args.out}")
+    try:
+        with _StopFlag() as stop:
+            source.start(on_sample)
+            why = _run_loop(source, stop, args.duration,
+                            lambda: args.max_samples is not None and count[0] >= args.max_samples)
+    finally:
+        source.stop()
+        writer.close()
+    print(f"{writer.rows} samples recorded -> {args.out} ({why})")
+    _report_framing(args, source)
+    return 0
+
+
+# --- emreg serve ------------------------------------------------------------------------------
+
+
+def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--device", required=True, metavar="URL",
+                        help="trakstar:///dev/ttyUSB0?baud=115200, igtl://HOST:PORT or replay:FILE.csv")
+    parser.add_argument("--igtl-port", type=int, default=DEFAULT_PORT, metavar="PORT",
+                        help=f"OpenIGTLink port (default {DEFAULT_PORT})")
+    parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    parser.add_argument("--reference-sensor", type=int, default=None, metavar="PORT")
+    parser.add_argument("--probe-sensor", type=int, default=None, metavar="PORT")
+    _add_limits(parser)
+    _add_replay_options(parser)
+    _add_watchdog_options(parser)
+
+
+def run_serve(args: argparse.Namespace) -> int:
+    from .igtl_server import IGTLServer
+    from .navigator import TrackerPublisher
+    from .sources import open_source
+
+    reference, probe = _sensor_ports(args)
+    source = open_source(args.device, reference, probe, fast=args.fast, loop=args.loop)
+    try:
+        server = IGTLServer(args.host, args.igtl_port)
+    except BaseException:
+        source.stop()
+        raise
+    publisher = TrackerPublisher(server, reference, probe, source.period_s, args.stale_periods, _max_quality(args),
+                                 out=None if args.quiet else sys.stderr)
+    _say(args, f"[emreg] serving {source.description} on OpenIGTLink {args.host}:{server.port} "
+               f"(ReferenceToTracker, ProbeToTracker, STATUS Tracker)")
+    try:
+        with _StopFlag() as stop:
+            source.start(publisher.on_sample)
+            why = _run_loop(source, stop, args.duration,
+                            lambda: args.max_samples is not None and publisher.samples >= args.max_samples,
+                            publisher.tick)
+    finally:
+        source.stop()
+        server.close()
+    print(f"{publisher.published} transforms published to {server.connections} client(s) ({why})")
+    _report_framing(args, source)
+    return 0
+
+
+# --- emreg navigate (live) -----------------------------------------------------------------------
+
+
+def add_live_navigate_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of live ``emreg navigate`` beyond those ``cli.py`` defines."""
+    parser.add_argument("--host", default="127.0.0.1", help="address the OpenIGTLink server listens on")
+    _add_replay_options(parser)
+    _add_limits(parser)
+    _add_watchdog_options(parser)
+
+
+def run_live_navigate(args: argparse.Namespace) -> int:
+    """Live navigation: samples from ``--source`` -> ``ProbeToImage`` on ``--igtl-port`` and/or
+    ``OUT/navigation.csv``."""
+    from .igtl_server import IGTLServer
+    from .navigator import LiveNavigator
+    from .sources import open_source
+    from .writers import NavigationWriter
+
+    if args.igtl_port is None and not args.out:
+        raise EMRegError("navigate: a live source needs --igtl-port PORT (publish) and/or --out DIR (record)")
+    reference_to_image = load_reference_to_image(args.registration)
+    reference, probe = _sensor_ports(args)
+    source = open_source(args.source, reference, probe, fast=args.fast, loop=args.loop)
+    server = writer = None
+    try:
+        if args.igtl_port is not None:
+            server = IGTLServer(args.host, args.igtl_port)
+        if args.out:
+            writer = NavigationWriter(Path(args.out) / "navigation.csv")
+    except BaseException:
+        source.stop()
+        if server is not None:
+            server.close()
+        raise
+    navigator = LiveNavigator(reference_to_image, reference, probe, server, writer, source.period_s,
+                              args.stale_periods, _max_quality(args), out=None if args.quiet else sys.stderr)
+    where = f"OpenIGTLink {args.host}:{server.port} (ProbeToImage, RAS)" if server else ""
+    if writer:
+        where += (" and " if where else "") + str(writer.path)
+    _say(args, f"[emreg] navigating from {source.description} -> {where}")
+    try:
+        with _StopFlag() as stop:
+            source.start(navigator.on_sample)
+            why = _run_loop(source, stop, args.duration,
+                            lambda: args.max_samples is not None and navigator.frames >= args.max_samples,
+                            navigator.tick)
+    finally:
+        source.stop()
+        if server is not None:
+            server.close()
+        if writer is not None:
+            writer.close()
+    print(f"{navigator.published} probe poses published, {navigator.withheld} withheld by the watchdog ({why})")
+    _report_framing(args, source)
+    return 0
+
+
+#: ``(name, add_arguments, run, help)`` for ``cli.py``.
+SUBCOMMANDS = [
+    ("record", add_record_arguments, run_record,
+     ("record a tracking CSV from a trakSTAR, an OpenIGTLink server or a replay")),
+    ("sim-tracker", add_sim_tracker_arguments, run_sim_tracker,
+     ("run a simulated trakSTAR on a pseudo-terminal (RS-232 protocol, fault injection)")),
+    ("serve", add_serve_arguments, run_serve,
+     ("publish every tracker sensor over OpenIGTLink (ReferenceToTracker, ProbeToTracker, STATUS)")),
+]
+
+__all__ = ["SUBCOMMANDS", "add_live_navigate_arguments", "run_live_navigate", "load_reference_to_image"]

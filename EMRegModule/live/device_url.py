@@ -1,0 +1,82 @@
+"""Device URLs of live sources.
+
+- ``trakstar:///dev/ttyUSB0?baud=115200`` (also ``trakstar:/dev/pts/7``): a trakSTAR (or the
+  simulator's pty) on a serial port. Query options: ``baud`` (default 115200), ``format``
+  (record format, default ``POSITION/ANGLES``, ``_`` for ``/``), ``rate`` (measurement rate, Hz),
+  ``metal`` (1/0: quality byte, default 1), ``scale`` (36 or 72 inches), ``gap_ms`` (max silence
+  inside a record, default 50).
+- ``igtl://HOST:PORT``: another EMReg (``emreg serve``) or PLUS server; options ``reference`` and
+  ``probe``: the TRANSFORM device names to consume (default ``ReferenceToTracker``,
+  ``ProbeToTracker``).
+- ``replay:FILE.csv``: a tracking recording (spec CSV).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from urllib.parse import parse_qs, urlsplit
+
+from ..errors import EMRegError
+from . import trakstar_protocol as tp
+
+SCHEMES = ("trakstar", "igtl", "replay")
+
+
+@dataclass
+class DeviceURL:
+    """A parsed device URL: ``kind`` is ``trakstar``, ``igtl`` or ``replay``."""
+
+    kind: str
+    path: str = ""
+    host: str = ""
+    port: int = 0
+    options: dict[str, str] = field(default_factory=dict)
+    text: str = ""
+
+    @property
+    def baud(self) -> int:
+        return int(self.options.get("baud", tp.DEFAULT_BAUD))
+
+
+def parse_device_url(text: str) -> DeviceURL:
+    """Parse a device URL; a malformed one raises :class:`EMRegError` saying what is expected."""
+    text = text.strip()
+    scheme, sep, rest = text.partition(":")
+    scheme = scheme.lower()
+    if not sep or scheme not in SCHEMES:
+        raise EMRegError(f"device {text!r}: use trakstar:///dev/ttyUSB0?baud=115200, igtl://HOST:PORT "
+                         "or replay:FILE.csv")
+    if scheme == "replay":
+        path = rest[2:] if rest.startswith("//") else rest
+        if not path:
+            raise EMRegError(f"device {text!r}: replay: needs a file, e.g. replay:navigation.csv")
+        return DeviceURL("replay", path=path, text=text)
+    parts = urlsplit(text)
+    options = {k: v[-1] for k, v in parse_qs(parts.query).items()}
+    if scheme == "trakstar":
+        path = parts.path or parts.netloc
+        if parts.netloc and parts.path:  # trakstar://dev/ttyUSB0 (two slashes): netloc holds the first part
+            path = "/" + parts.netloc + parts.path
+        if not path:
+            raise EMRegError(f"device {text!r}: trakstar: needs a serial device, e.g. trakstar:///dev/ttyUSB0")
+        url = DeviceURL("trakstar", path=path, options=options, text=text)
+        try:
+            baud = url.baud
+        except ValueError:
+            raise EMRegError(f"device {text!r}: baud must be a number") from None
+        if baud not in tp.BAUD_RATES:
+            raise EMRegError(f"device {text!r}: baud={baud}; the trakSTAR supports "
+                             f"{', '.join(map(str, tp.BAUD_RATES))}")
+        if "format" in options:
+            try:
+                tp.get_format(options["format"])
+            except ValueError as exc:
+                raise EMRegError(f"device {text!r}: {exc}") from None
+        return url
+    try:
+        port = parts.port
+    except ValueError:
+        port = None
+    if not parts.hostname or port is None:
+        raise EMRegError(f"device {text!r}: igtl: needs a host and port, e.g. igtl://127.0.0.1:18944")
+    return DeviceURL("igtl", host=parts.hostname, port=port, options=options, text=text)

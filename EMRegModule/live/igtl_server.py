@@ -1,0 +1,262 @@
+"""An OpenIGTLink server for any number of clients that never lets one client slow the others.
+
+pyigtl's own ``OpenIGTLinkServer`` serves one client from one shared queue with blocking sends, so
+a stalled client would stall the tracker loop. This server keeps pyigtl for the message encoding
+(TRANSFORM, STATUS, ...) and does the TCP part itself:
+
+- ``send(message)`` packs once and offers the bytes to every client with a non-blocking ``send``
+  from the caller's thread (the tracker loop: no queue hop on the latency path); what a client's
+  socket cannot take now waits in that client's own queue, flushed by the server thread when the
+  socket becomes writable;
+- a client whose queue exceeds ``max_pending_bytes`` loses its oldest whole queued messages
+  (transforms are superseded by newer ones anyway) - it is never allowed to block anyone;
+- clients that disconnect are dropped; what they send is read and ignored;
+- the last STATUS message of each device name is replayed to every new client, so a client that
+  connects while the watchdog holds poses back learns why.
+
+Binds 127.0.0.1 unless told otherwise. ``port=0`` picks a free port (see ``.port``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import selectors
+import socket
+import threading
+import time
+from collections import deque
+
+import numpy as np
+from pyigtl.messages import MessageBase, TransformMessage
+
+from ..errors import EMRegError
+from .igtl_status import StatusMessage
+
+DEFAULT_PORT = 18944
+
+
+class _Client:
+    def __init__(self, sock: socket.socket, address: tuple) -> None:
+        self.sock = sock
+        self.address = address
+        self.pending: deque[memoryview] = deque()
+        self.pending_bytes = 0
+        self.partial = False  # the head of ``pending`` is a message already partly sent
+        self.dropped_messages = 0
+        self.alive = True
+
+
+class IGTLServer:
+    """OpenIGTLink TCP server: ``send(message)`` to every connected client."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, max_pending_bytes: int = 1 << 20) -> None:
+        self.host = host
+        self.max_pending_bytes = max_pending_bytes
+        self._listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            self._listener.bind((host, port))
+        except OSError as exc:
+            self._listener.close()
+            raise EMRegError(f"OpenIGTLink port {host}:{port}: cannot listen ({exc.strerror}); "
+                             "choose another --igtl-port or stop the program using it") from None
+        self._listener.listen(16)
+        self._listener.setblocking(False)
+        self.port = self._listener.getsockname()[1]
+        self._clients: list[_Client] = []
+        self._lock = threading.Lock()
+        self._sticky: dict[str, bytes] = {}
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
+        self._stop = threading.Event()
+        self.messages_sent = 0
+        self.connections = 0
+        self._thread = threading.Thread(target=self._serve, name="igtl-server", daemon=True)
+        self._thread.start()
+
+    # -- public ------------------------------------------------------------------------------
+    @property
+    def client_count(self) -> int:
+        with self._lock:
+            return sum(1 for c in self._clients if c.alive)
+
+    def send(self, message: MessageBase) -> int:
+        """Pack ``message`` and offer it to every client now; returns ``time.monotonic_ns()`` after
+        the last non-blocking send (the moment the bytes were handed to the operating system)."""
+        data = message.pack()
+        if isinstance(message, StatusMessage):
+            with self._lock:
+                self._sticky[message.device_name] = data
+        return self.send_bytes(data)
+
+    def send_transform(self, device_name: str, matrix: np.ndarray, timestamp: float | None = None) -> int:
+        """Send a TRANSFORM (4x4, mm) under ``device_name``."""
+        return self.send(TransformMessage(np.asarray(matrix, dtype=np.float32), timestamp=timestamp,
+                                          device_name=device_name))
+
+    def send_bytes(self, data: bytes) -> int:
+        wake = False
+        with self._lock:
+            for client in self._clients:
+                if client.alive:
+                    wake |= self._offer(client, memoryview(data))
+            self.messages_sent += 1
+        done_ns = time.monotonic_ns()
+        if wake:
+            with contextlib.suppress(OSError):
+                self._wake_w.send(b"w")
+        return done_ns
+
+    def wait_for_clients(self, count: int = 1, timeout_s: float = 5.0) -> bool:
+        """Block until ``count`` clients are connected (True) or the timeout passes (False)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.client_count >= count:
+                return True
+            time.sleep(0.01)
+        return False
+
+    def close(self) -> None:
+        """Stop the server thread and close every socket (idempotent)."""
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        with contextlib.suppress(OSError):
+            self._wake_w.send(b"x")
+        self._thread.join(timeout=5.0)
+        with self._lock:
+            for client in self._clients:
+                self._drop(client)
+            self._clients.clear()
+        for sock in (self._listener, self._wake_r, self._wake_w):
+            with contextlib.suppress(OSError):
+                sock.close()
+
+    def __enter__(self) -> IGTLServer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- internals (called with the lock held) -------------------------------------------------
+    def _offer(self, client: _Client, data: memoryview) -> bool:
+        """Send now if nothing is queued, else queue. Returns True if the server thread must watch
+        the socket for writability."""
+        if not client.pending:
+            try:
+                n = client.sock.send(data)
+            except (BlockingIOError, InterruptedError):
+                n = 0
+            except OSError:
+                self._drop(client)
+                return False
+            if n == len(data):
+                return False
+            client.pending.append(data[n:])
+            client.pending_bytes += len(data) - n
+            client.partial = n > 0
+            return True
+        client.pending.append(data)
+        client.pending_bytes += len(data)
+        while client.pending_bytes > self.max_pending_bytes and len(client.pending) > 1:
+            # drop the oldest whole message (never the partly sent head: that would break framing)
+            index = 1 if client.partial else 0
+            dropped = client.pending[index]
+            del client.pending[index]
+            client.pending_bytes -= len(dropped)
+            client.dropped_messages += 1
+        return True
+
+    def _flush(self, client: _Client) -> None:
+        while client.pending:
+            head = client.pending[0]
+            try:
+                n = client.sock.send(head)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                self._drop(client)
+                return
+            client.pending_bytes -= n
+            if n < len(head):
+                client.pending[0] = head[n:]
+                client.partial = True
+                return
+            client.pending.popleft()
+            client.partial = False
+
+    def _drop(self, client: _Client) -> None:
+        client.alive = False
+        client.pending.clear()
+        client.pending_bytes = 0
+        with contextlib.suppress(OSError):
+            client.sock.close()
+
+    # -- server thread -------------------------------------------------------------------------
+    def _serve(self) -> None:
+        sel = selectors.DefaultSelector()
+        sel.register(self._listener, selectors.EVENT_READ, "accept")
+        sel.register(self._wake_r, selectors.EVENT_READ, "wake")
+        registered: dict[_Client, int] = {}
+        try:
+            while not self._stop.is_set():
+                with self._lock:
+                    for client in list(registered):
+                        if not client.alive:
+                            with contextlib.suppress(KeyError, ValueError):
+                                sel.unregister(client.sock)
+                            del registered[client]
+                    self._clients = [c for c in self._clients if c.alive]
+                    for client in self._clients:
+                        events = selectors.EVENT_READ | (selectors.EVENT_WRITE if client.pending else 0)
+                        if client not in registered:
+                            sel.register(client.sock, events, client)
+                            registered[client] = events
+                        elif registered[client] != events:
+                            sel.modify(client.sock, events, client)
+                            registered[client] = events
+                for key, mask in sel.select(timeout=0.2):
+                    if key.data == "wake":
+                        with contextlib.suppress(OSError):
+                            self._wake_r.recv(4096)
+                    elif key.data == "accept":
+                        self._accept()
+                    else:
+                        client: _Client = key.data
+                        if mask & selectors.EVENT_READ:
+                            self._read(client)
+                        if mask & selectors.EVENT_WRITE and client.alive:
+                            with self._lock:
+                                self._flush(client)
+        finally:
+            sel.close()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                sock, address = self._listener.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return
+            sock.setblocking(False)
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            client = _Client(sock, address)
+            with self._lock:
+                self._clients.append(client)
+                self.connections += 1
+                for data in self._sticky.values():
+                    self._offer(client, memoryview(data))
+
+    def _read(self, client: _Client) -> None:
+        try:
+            data = client.sock.recv(65536)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            data = b""
+        if not data:
+            with self._lock:
+                self._drop(client)

@@ -1,0 +1,295 @@
+"""Live navigation: every tracker frame -> ``ProbeToImage`` over OpenIGTLink, guarded by a watchdog.
+
+For each measurement cycle with both sensors (paper Eq. 12)::
+
+    ProbeToImage = ReferenceToImage @ inv(ReferenceToTracker) @ ProbeToTracker
+
+``ProbeToImage`` maps probe-sensor coordinates into the CT's LPS space. 3D Slicer's OpenIGTLinkIF
+applies a received TRANSFORM as is, in Slicer's RAS world, so the message carries
+``ProbeToRAS = LPS_TO_RAS @ ProbeToImage`` (only the image side changes: the probe frame is the
+sensor's own frame, not an LPS one, so conjugating both sides would mirror the tool's own axes;
+the position - the last column - is the same either way). ``navigation.csv`` keeps LPS, as the
+offline ``emreg navigate`` writes it.
+
+The :class:`Watchdog` withholds poses - and says why, in an OpenIGTLink STATUS message and on the
+terminal - when data are stale (no sample within ``stale_periods`` sample periods), when the
+reference or probe sensor is missing, out of range or of bad quality; it resumes by itself when
+good data return. Poses come only from samples that passed the driver's framing checks.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import TextIO
+
+import numpy as np
+
+from ..navigation import probe_to_image as probe_to_image_pose
+from ..transforms import LPS_TO_RAS
+from . import igtl_status as st
+from .igtl_status import StatusMessage
+from .samples import STATUS_NOT_ATTACHED, STATUS_OUT_OF_RANGE, SensorSample
+
+#: Default worst acceptable quality number (0 = best). The trakSTAR's METAL byte runs 0..127 and a
+#: clean field reads a few units; the simulated recordings mark wild samples with 40..250 (choice).
+DEFAULT_MAX_QUALITY = 20.0
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The watchdog's judgement: publish (``ok``) or not, and why."""
+
+    ok: bool
+    reason: str  # ok, no_data, stale, reference_missing, probe_missing, out_of_range, bad_quality
+    message: str
+    code: int  # OpenIGTLink status code
+    error_name: str
+
+    @property
+    def key(self) -> tuple[str, str]:
+        return (self.reason, self.error_name)
+
+
+OK = Verdict(True, "ok", "tracking data good", st.STATUS_OK, "OK")
+
+
+class Watchdog:
+    """Decides from the latest samples whether a pose may be published (times in monotonic seconds).
+
+    ``period_s``: nominal time between samples of a sensor; None estimates it from the arrivals.
+    ``max_quality``: worst acceptable quality number (None: not checked; NaN quality passes).
+    """
+
+    def __init__(self, reference_sensor: int = 1, probe_sensor: int = 2, period_s: float | None = None,
+                 stale_periods: float = 3.0, max_quality: float | None = DEFAULT_MAX_QUALITY) -> None:
+        self.reference_sensor = reference_sensor
+        self.probe_sensor = probe_sensor
+        self.nominal_period_s = period_s
+        self.stale_periods = stale_periods
+        self.max_quality = max_quality
+        self._last: dict[int, tuple[SensorSample, float]] = {}
+        self._estimate: float | None = None
+        self._first_s: float | None = None
+
+    @property
+    def period_s(self) -> float:
+        """The sample period used for staleness (nominal, else estimated, else 50 ms)."""
+        return self.nominal_period_s or self._estimate or 0.05
+
+    @property
+    def stale_after_s(self) -> float:
+        return self.stale_periods * self.period_s
+
+    def observe(self, sample: SensorSample, now_s: float) -> None:
+        """Record that ``sample`` arrived at ``now_s``."""
+        previous = self._last.get(sample.sensor)
+        if previous is not None and self.nominal_period_s is None and sample.frame != previous[0].frame:
+            step = now_s - previous[1]
+            if step > 0:
+                self._estimate = step if self._estimate is None else 0.9 * self._estimate + 0.1 * step
+        self._last[sample.sensor] = (sample, now_s)
+        if self._first_s is None:
+            self._first_s = now_s
+
+    def evaluate(self, now_s: float) -> Verdict:
+        """The verdict at ``now_s``."""
+        if not self._last:
+            return Verdict(False, "no_data", "no tracker data yet", st.STATUS_NOT_READY, "NoData")
+        limit = self.stale_after_s
+        newest = max(t for _, t in self._last.values())
+        if now_s - newest > limit:
+            return Verdict(False, "stale", f"no tracker sample for {1000 * (now_s - newest):.0f} ms "
+                           f"(limit {self.stale_periods:g} sample periods = {1000 * limit:.0f} ms)",
+                           st.STATUS_TIME_OUT, "Stale")
+        for role, sensor, reason in (("reference", self.reference_sensor, "reference_missing"),
+                                     ("probe", self.probe_sensor, "probe_missing")):
+            entry = self._last.get(sensor)
+            name = f"{role.capitalize()}Missing"
+            if entry is None:
+                if now_s - self._first_s <= limit:  # start-up: the other sensor's first record is on its way
+                    return Verdict(False, "no_data", "waiting for both sensors", st.STATUS_NOT_READY, "NoData")
+                return Verdict(False, reason, f"{role} sensor (port {sensor}) missing: no sample from it",
+                               st.STATUS_NOT_PRESENT, name)
+            sample, t = entry
+            if now_s - t > limit:
+                return Verdict(False, reason, f"{role} sensor (port {sensor}) missing: no sample for "
+                               f"{1000 * (now_s - t):.0f} ms", st.STATUS_NOT_PRESENT, name)
+            if sample.status == STATUS_NOT_ATTACHED:
+                return Verdict(False, reason, f"{role} sensor (port {sensor}) missing: not attached",
+                               st.STATUS_NOT_PRESENT, name)
+        for role, sensor in (("reference", self.reference_sensor), ("probe", self.probe_sensor)):
+            sample = self._last[sensor][0]
+            if sample.status == STATUS_OUT_OF_RANGE:
+                return Verdict(False, "out_of_range", f"{role} sensor (port {sensor}) out of the tracker's range",
+                               st.STATUS_OVERFLOW, "OutOfRange")
+        if self.max_quality is not None:
+            for role, sensor in (("reference", self.reference_sensor), ("probe", self.probe_sensor)):
+                quality = self._last[sensor][0].quality
+                if not np.isnan(quality) and quality > self.max_quality:
+                    return Verdict(False, "bad_quality", f"{role} sensor (port {sensor}) quality {quality:g} "
+                                   f"worse than {self.max_quality:g}", st.STATUS_UNKNOWN_ERROR, "BadQuality")
+        return OK
+
+
+class _Announcer:
+    """Sends a STATUS and prints one terminal line when the verdict changes (and re-sends STATUS each second)."""
+
+    def __init__(self, server, device_name: str, out: TextIO | None) -> None:
+        self.server = server
+        self.device_name = device_name
+        self.out = out
+        self.current: Verdict | None = None
+        self._last_sent = 0.0
+        self.changes: list[Verdict] = []
+
+    def update(self, verdict: Verdict, now_s: float) -> None:
+        changed = self.current is None or verdict.key != self.current.key
+        if changed:
+            self.changes.append(verdict)
+            quiet = verdict.reason == "no_data" or (verdict.ok and (self.current is None or
+                                                                    self.current.reason == "no_data"))
+            if self.out is not None and not quiet:
+                if verdict.ok:
+                    line = f"[emreg] watchdog: publishing {self.device_name} again ({verdict.message})"
+                else:
+                    line = f"[emreg] watchdog: not publishing {self.device_name}: {verdict.message}"
+                print(line, file=self.out, flush=True)
+            self.current = verdict
+        if self.server is not None and (changed or now_s - self._last_sent >= 1.0):
+            self._last_sent = now_s
+            self.server.send(StatusMessage(verdict.code, 0, verdict.error_name, verdict.message,
+                                           device_name=self.device_name))
+
+
+class LiveNavigator:
+    """Turns sensor samples into published ``ProbeToImage`` poses (see module docstring).
+
+    Feed it with ``on_sample`` (any thread) and call ``tick()`` regularly (it notices staleness
+    when no samples come at all). ``server``: an :class:`~.igtl_server.IGTLServer` or None;
+    ``writer``: a :class:`~.writers.NavigationWriter` or None.
+    """
+
+    def __init__(self, reference_to_image: np.ndarray, reference_sensor: int = 1, probe_sensor: int = 2,
+                 server=None, writer=None, period_s: float | None = None, stale_periods: float = 3.0,
+                 max_quality: float | None = DEFAULT_MAX_QUALITY, out: TextIO | None = sys.stderr,
+                 device_name: str = "ProbeToImage") -> None:
+        self.reference_to_image = np.asarray(reference_to_image, dtype=float)
+        self.reference_sensor = reference_sensor
+        self.probe_sensor = probe_sensor
+        self.server = server
+        self.writer = writer
+        self.device_name = device_name
+        self.watchdog = Watchdog(reference_sensor, probe_sensor, period_s, stale_periods, max_quality)
+        self.announcer = _Announcer(server, device_name, out)
+        self._latest: dict[int, SensorSample] = {}
+        self._done_frame: int | None = None
+        self._lock = threading.Lock()
+        self.published = 0
+        self.withheld = 0
+        self.frames = 0
+        #: (frame, received_ns of the frame's later sensor record, send-complete ns) per published pose
+        self.latencies: deque[tuple[int, int, int]] = deque(maxlen=200_000)
+        self.last_probe_to_image: np.ndarray | None = None
+
+    @property
+    def verdict(self) -> Verdict | None:
+        return self.announcer.current
+
+    def on_sample(self, sample: SensorSample) -> None:
+        now = time.monotonic()
+        with self._lock:
+            self.watchdog.observe(sample, now)
+            verdict = self.watchdog.evaluate(now)
+            self.announcer.update(verdict, now)
+            if sample.sensor not in (self.reference_sensor, self.probe_sensor):
+                return
+            self._latest[sample.sensor] = sample
+            reference = self._latest.get(self.reference_sensor)
+            probe = self._latest.get(self.probe_sensor)
+            if reference is None or probe is None or reference.frame != probe.frame or probe.frame == self._done_frame:
+                return
+            self._done_frame = probe.frame
+            self.frames += 1
+            if not (verdict.ok and reference.valid and probe.valid):
+                self.withheld += 1
+                return
+            probe_to_image = probe_to_image_pose(self.reference_to_image, reference.transform(), probe.transform())
+            self.last_probe_to_image = probe_to_image
+            received_ns = max(reference.received_ns, probe.received_ns)
+            if self.server is not None:
+                stamp = time.time() - (time.monotonic_ns() - received_ns) / 1e9
+                sent_ns = self.server.send_transform(self.device_name, LPS_TO_RAS @ probe_to_image, stamp)
+                self.latencies.append((probe.frame, received_ns, sent_ns))
+            if self.writer is not None:
+                self.writer.write_position(probe.time_s, probe_to_image[:3, 3], probe.label)
+            self.published += 1
+
+    def tick(self) -> Verdict:
+        """Re-evaluate without a new sample (staleness); returns the verdict."""
+        now = time.monotonic()
+        with self._lock:
+            verdict = self.watchdog.evaluate(now)
+            self.announcer.update(verdict, now)
+            return verdict
+
+
+class TrackerPublisher:
+    """``emreg serve``: every sensor sample as a TRANSFORM ``<Name>ToTracker`` (tracker frame, mm,
+    sent as measured), plus a STATUS under ``Tracker`` from the watchdog. Names: the reference port
+    is ``ReferenceToTracker``, the probe port ``ProbeToTracker``, others ``Sensor<N>ToTracker``.
+    Samples of one cycle share one timestamp."""
+
+    def __init__(self, server, reference_sensor: int = 1, probe_sensor: int = 2, period_s: float | None = None,
+                 stale_periods: float = 3.0, max_quality: float | None = DEFAULT_MAX_QUALITY,
+                 out: TextIO | None = sys.stderr) -> None:
+        self.server = server
+        self.reference_sensor = reference_sensor
+        self.probe_sensor = probe_sensor
+        self.watchdog = Watchdog(reference_sensor, probe_sensor, period_s, stale_periods, max_quality)
+        self.announcer = _Announcer(server, "Tracker", out)
+        self._sensor_status: dict[int, str] = {}
+        self._frame: int | None = None
+        self._stamp = 0.0
+        self._lock = threading.Lock()
+        self.published = 0
+        self.samples = 0
+        self.latencies: deque[tuple[int, int, int]] = deque(maxlen=200_000)
+
+    def name(self, sensor: int) -> str:
+        if sensor == self.reference_sensor:
+            return "ReferenceToTracker"
+        if sensor == self.probe_sensor:
+            return "ProbeToTracker"
+        return f"Sensor{sensor}ToTracker"
+
+    def on_sample(self, sample: SensorSample) -> None:
+        now = time.monotonic()
+        with self._lock:
+            self.samples += 1
+            self.watchdog.observe(sample, now)
+            self.announcer.update(self.watchdog.evaluate(now), now)
+            if sample.frame != self._frame:
+                self._frame = sample.frame
+                self._stamp = time.time() - (time.monotonic_ns() - sample.received_ns) / 1e9
+            name = self.name(sample.sensor)
+            if self._sensor_status.get(sample.sensor) != sample.status:
+                self._sensor_status[sample.sensor] = sample.status
+                code = {STATUS_NOT_ATTACHED: st.STATUS_NOT_PRESENT, STATUS_OUT_OF_RANGE: st.STATUS_OVERFLOW}.get(
+                    sample.status, st.STATUS_OK)
+                self.server.send(StatusMessage(code, 0, "OK" if code == st.STATUS_OK else sample.status[:20],
+                                               f"{name}: {sample.status.replace('_', ' ')}", device_name=name))
+            if sample.valid:
+                sent_ns = self.server.send_transform(name, sample.transform(), self._stamp)
+                self.latencies.append((sample.frame, sample.received_ns, sent_ns))
+                self.published += 1
+
+    def tick(self) -> Verdict:
+        now = time.monotonic()
+        with self._lock:
+            verdict = self.watchdog.evaluate(now)
+            self.announcer.update(verdict, now)
+            return verdict

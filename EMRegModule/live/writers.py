@@ -1,0 +1,93 @@
+"""CSV files written while data arrive: flushed (and synced) at least once a second.
+
+A live recording cannot be written atomically at the end without risking the whole session on a
+crash, so these files are written in place: the header first, then rows, flushed to disk every
+``flush_interval_s`` so that a crash loses at most the last second. (Files produced in one go
+elsewhere in EMReg are written atomically.)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ..io.tracking_csv import HEADER_ANGLES
+from ..transforms import rotation_to_angles
+from .samples import SensorSample
+
+NAVIGATION_HEADER = ("time_s", "x_mm", "y_mm", "z_mm", "label")
+
+
+class StreamingCSV:
+    """Append rows to a CSV file, flushing and fsync-ing at least every ``flush_interval_s``."""
+
+    def __init__(self, path: str | os.PathLike[str], header: Sequence[str], flush_interval_s: float = 1.0) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(self.path, "w", encoding="utf-8", newline="")  # noqa: SIM115 (closed in close())
+        self._file.write(",".join(header) + "\n")
+        self._lock = threading.Lock()
+        self.flush_interval_s = flush_interval_s
+        self._last_flush = time.monotonic()
+        self.rows = 0
+        self._sync()
+
+    def write_row(self, cells: Sequence[str]) -> None:
+        with self._lock:
+            if self._file.closed:
+                return
+            self._file.write(",".join(cells) + "\n")
+            self.rows += 1
+            if time.monotonic() - self._last_flush >= self.flush_interval_s:
+                self._sync()
+
+    def _sync(self) -> None:
+        self._file.flush()
+        with contextlib.suppress(OSError):
+            os.fsync(self._file.fileno())
+        self._last_flush = time.monotonic()
+
+    def close(self) -> None:
+        with self._lock:
+            if not self._file.closed:
+                self._sync()
+                self._file.close()
+
+    def __enter__(self) -> StreamingCSV:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class RecordingWriter(StreamingCSV):
+    """The spec's tracking CSV (``time_s,sensor,x_mm,...,roll_deg,quality,label``) from live samples."""
+
+    def __init__(self, path: str | os.PathLike[str], flush_interval_s: float = 1.0) -> None:
+        super().__init__(path, HEADER_ANGLES, flush_interval_s)
+
+    def write_sample(self, sample: SensorSample) -> bool:
+        """Write one sample; samples without a usable pose are skipped (returns False)."""
+        if not sample.valid:
+            return False
+        angles = sample.angles_deg if sample.angles_deg is not None else rotation_to_angles(sample.rotation)
+        quality = "" if np.isnan(sample.quality) else f"{sample.quality:g}"
+        self.write_row([f"{sample.time_s:.4f}", str(sample.sensor), *(f"{v:.4f}" for v in sample.position_mm),
+                        *(f"{v:.6f}" for v in angles), quality, sample.label])
+        return True
+
+
+class NavigationWriter(StreamingCSV):
+    """``navigation.csv`` (``time_s,x_mm,y_mm,z_mm,label``): the probe position in LPS image space."""
+
+    def __init__(self, path: str | os.PathLike[str], flush_interval_s: float = 1.0) -> None:
+        super().__init__(path, NAVIGATION_HEADER, flush_interval_s)
+
+    def write_position(self, time_s: float, position_image_mm: np.ndarray, label: str = "") -> None:
+        self.write_row([f"{time_s:.4f}", *(f"{v:.4f}" for v in position_image_mm), label])
