@@ -12,8 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import EMRegError
 from .io.atomic import atomic_path
-from .tracking import TrackingRecording, invert_rigid_batch, probe_in_reference
+from .tracking import TrackingRecording, invert_rigid_batch, match_moments
 
 NAVIGATION_HEADER = "time_s,x_mm,y_mm,z_mm,label"
 
@@ -58,11 +59,25 @@ def navigate_recording(recording: TrackingRecording, reference_to_image: np.ndar
                        reference_sensor: int = 1, probe_sensor: int = 2) -> NavigationResult:
     """Map every probe sample that has a reference sample at the same moment into image space.
 
-    Vectorised: ``ProbeToReference`` per moment (paper Eq. 3-5), then ``ReferenceToImage`` on top.
+    Vectorised Eq. 12 in 3x3 blocks (no 4x4 stacks are built or inverted): with
+    ``TrackerToImage = ReferenceToImage @ inv(ReferenceToTracker)`` per moment,
+    ``R = R_ri @ R_ref^T @ R_probe`` and ``p = R_ri @ R_ref^T @ (p_probe - p_ref) + t_ri``.
+    Moments are paired as in :func:`EMRegModule.tracking.probe_in_reference`.
     """
-    samples = probe_in_reference(recording, reference_sensor, probe_sensor)
-    mapped = np.matmul(np.asarray(reference_to_image, dtype=float), samples.probe_to_reference)
-    return NavigationResult(samples.time_s, mapped, samples.label, samples.quality)
+    reference_to_image = np.asarray(reference_to_image, dtype=float)
+    reference = recording.for_sensor(reference_sensor, "reference")
+    probe = recording.for_sensor(probe_sensor, "probe")
+    ref_idx, probe_idx = match_moments(reference, probe)
+    if len(probe_idx) == 0:
+        raise EMRegError(f"{recording.source}: no probe sample has a reference sample at the same time (within 1 ms)")
+    tracker_to_image = reference_to_image[:3, :3] @ np.swapaxes(reference.rotation[ref_idx], 1, 2)
+    mapped = np.zeros((len(probe_idx), 4, 4))
+    mapped[:, :3, :3] = tracker_to_image @ probe.rotation[probe_idx]
+    offset = probe.position_mm[probe_idx] - reference.position_mm[ref_idx]
+    mapped[:, :3, 3] = np.einsum("nij,nj->ni", tracker_to_image, offset) + reference_to_image[:3, 3]
+    mapped[:, 3, 3] = 1.0
+    quality = np.fmax(reference.quality[ref_idx], probe.quality[probe_idx])
+    return NavigationResult(probe.time_s[probe_idx], mapped, probe.label[probe_idx], quality)
 
 
 def format_navigation_csv(result: NavigationResult) -> str:

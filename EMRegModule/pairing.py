@@ -35,6 +35,7 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .errors import EMRegError, NoSafeAnswerError
 from .transforms import make_transform
@@ -204,6 +205,7 @@ class _Problem:
         self.cos_tight = np.cos(np.radians(min(self.tol_angle, 45.0)))
         self.l_grid = np.linspace(self.a, self.b, max(2, int(np.ceil((self.b - self.a) / 0.5)) + 1))
         self.hypotheses = 0
+        self._tree: cKDTree | None = None
 
     # --- invariants ----------------------------------------------------------------------
 
@@ -302,26 +304,47 @@ class _Problem:
 
     def _segment_distances(self, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distances (T, N, M) of mapped calibration points from the image pinhole segments,
-        and cosines (T, N, M) between mapped directions and marker axes (1 where unknown)."""
+        and cosines (T, N, M) between mapped directions and marker axes (1 where unknown).
+
+        Written with matrix products only: with rel = x - o_j and s = clip(rel . u_j, a, b),
+        |rel - s u_j|^2 = |rel|^2 - 2 s (rel . u_j) + s^2.
+        """
         mapped = np.einsum("tij,nj->tni", transforms[:, :3, :3], self.points) + transforms[:, None, :3, 3]
-        rel = mapped[:, :, None, :] - self.origins[None, None]  # (T, N, M, 3)
-        along = np.clip(np.einsum("tnmk,mk->tnm", rel, self.axes), self.a, self.b)
-        distance = np.linalg.norm(rel - along[..., None] * self.axes[None, None], axis=3)
+        origin_dot_axis = np.sum(self.origins * self.axes, axis=1)
+        along = mapped @ self.axes.T - origin_dot_axis  # (T, N, M): rel . u_j
+        rel2 = (np.sum(mapped**2, axis=2)[..., None] - 2.0 * (mapped @ self.origins.T)
+                + np.sum(self.origins**2, axis=1))
+        clipped = np.clip(along, self.a, self.b)
+        distance = np.sqrt(np.maximum(rel2 - 2.0 * clipped * along + clipped**2, 0.0))
         directions = np.einsum("tij,nj->tni", transforms[:, :3, :3], self.directions)
-        cos = np.einsum("tnk,mk->tnm", directions, self.axes)
+        cos = directions @ self.axes.T
         return distance, np.where(np.isnan(cos), 1.0, cos)
 
     def _loose_assignments(self, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per hypothesis: nearest image marker of each calibration point within the loose
-        tolerance (-1 if none) and the count of such points."""
-        assignment = np.full((len(transforms), self.n_cal), -1)
-        for start in range(0, len(transforms), 256):
-            chunk = transforms[start:start + 256]
-            distance, cos = self._segment_distances(chunk)
-            distance = np.where(cos >= self.cos_loose, distance, np.inf)
-            nearest = np.argmin(distance, axis=2)
-            near = np.take_along_axis(distance, nearest[..., None], axis=2)[..., 0] <= self.tol_loose
-            assignment[start:start + 256] = np.where(near, nearest, -1)
+        tolerance of its pinhole segment (-1 if none), and the count of such points.
+
+        A k-d tree over the segments' midpoints proposes the few markers that can be that
+        close (segment distance >= midpoint distance - half the segment's length)."""
+        if self._tree is None:
+            self._tree = cKDTree(self.origins + 0.5 * (self.a + self.b) * self.axes)
+        k = min(3, self.n_image)
+        mapped = np.einsum("tij,nj->tni", transforms[:, :3, :3], self.points) + transforms[:, None, :3, 3]
+        directions = np.einsum("tij,nj->tni", transforms[:, :3, :3], self.directions)
+        flat = mapped.reshape(-1, 3)
+        _, index = self._tree.query(flat, k=k, distance_upper_bound=self.tol_loose + 0.5 * (self.b - self.a))
+        index = index.reshape(len(flat), k)
+        found = index < self.n_image
+        safe = np.where(found, index, 0)
+        rel = flat[:, None, :] - self.origins[safe]
+        along = np.clip(np.sum(rel * self.axes[safe], axis=2), self.a, self.b)
+        distance = np.linalg.norm(rel - along[..., None] * self.axes[safe], axis=2)
+        cos = np.sum(directions.reshape(-1, 1, 3) * self.axes[safe], axis=2)
+        ok = found & (distance <= self.tol_loose) & ((cos >= self.cos_loose) | np.isnan(cos))
+        distance = np.where(ok, distance, np.inf)
+        best = np.argmin(distance, axis=1)
+        rows = np.arange(len(flat))
+        assignment = np.where(ok[rows, best], safe[rows, best], -1).reshape(len(transforms), self.n_cal)
         return assignment, np.sum(assignment >= 0, axis=1)
 
     def _refine(self, reference_to_image: np.ndarray) -> _Candidate | None:
