@@ -225,3 +225,12 @@ def test_format_is_stable_text():
     text = format_tracking_csv(_recording(4))
     assert text.splitlines()[0] == HEADER.strip()
     assert len(text.splitlines()) == 5
+
+
+def test_atomic_files_get_the_usual_permissions(tmp_path):
+    import os
+
+    atomic_write_json(tmp_path / "a.json", {})
+    mask = os.umask(0)
+    os.umask(mask)
+    assert (tmp_path / "a.json").stat().st_mode & 0o777 == 0o666 & ~mask
