@@ -344,7 +344,10 @@ class TrakstarDriver:
                 t_ns = time.monotonic_ns()
                 for data in self.parser.feed(chunk, t_ns):
                     address = data[-1] & 0x7F if self.group_mode else 1
-                    new_frame = (address <= self._last_address or t_ns - self._last_record_ns > 0.6 * period_ns)
+                    # a new measurement cycle starts when the address sequence wraps (group mode sends
+                    # ports in order), or after a silence of two periods (read jitter makes anything
+                    # tighter unreliable)
+                    new_frame = (address <= self._last_address or t_ns - self._last_record_ns > 2 * period_ns)
                     self._last_address = address
                     self._last_record_ns = t_ns
                     sample = self._sample(data, address if self.group_mode else 1, t_ns, new_frame)

@@ -1,0 +1,188 @@
+"""The trakSTAR driver against the simulator over a real pseudo-terminal (pyserial on /dev/pts/N).
+
+Every decoded pose is compared with the truth the simulator encoded, within the protocol's
+quantisation (half a 14-bit step; one step for unit elements, which saturate at 1 - 2^-13).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from EMRegModule.errors import EMRegError
+from EMRegModule.live import trakstar_protocol as tp
+from EMRegModule.live.samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE
+from EMRegModule.live.tracker_simulator import EmittedRecord, FaultPlan, TrackerSimulator
+from EMRegModule.live.trakstar_driver import TrakstarDriver
+
+EPS = 1e-9
+
+
+def _step_mm(scale: float) -> float:
+    return 4 * scale / 32768 * 25.4
+
+
+def matches(sample, truth: EmittedRecord, scale: float) -> bool:
+    """True when the sample's record encodes ``truth`` within the quantisation."""
+    record = sample.extra["record"]
+    pose = truth.pose
+    if record.position_mm is not None and np.max(np.abs(record.position_mm - pose.position_mm)) > \
+            0.5 * _step_mm(scale) + EPS:
+        return False
+    if record.angles_deg is not None:
+        diff = (record.angles_deg - pose.angles_deg + 180.0) % 360.0 - 180.0
+        if np.max(np.abs(diff)) > 0.5 * 4 * 180 / 32768 + EPS:
+            return False
+    if record.matrix is not None and np.max(np.abs(record.matrix - pose.rotation)) > 4 / 32768 + EPS:
+        return False
+    return not (record.quaternion is not None and np.max(np.abs(record.quaternion - pose.quaternion)) > 4 / 32768 + EPS)
+
+
+def assert_subsequence_of_truth(samples, truth: list[EmittedRecord], scale: float) -> int:
+    """Each sensor's decoded samples must be, in order, uncorrupted records the simulator sent."""
+    checked = 0
+    for sensor in {s.sensor for s in samples}:
+        sent = [t for t in truth if t.sensor == sensor]
+        i = 0
+        for sample in (s for s in samples if s.sensor == sensor):
+            # the next record sent intact whose truth the sample encodes (a static sensor repeats its pose,
+            # so an identical pose of a corrupted record is skipped over, never counted as the match)
+            while i < len(sent) and (sent[i].corrupted or not matches(sample, sent[i], scale)):
+                i += 1
+            assert i < len(sent), f"sensor {sensor}: decoded pose {sample.position_mm} matches no intact record sent"
+            assert sample.status == ("ok" if sent[i].status == "ok" else sent[i].status)
+            i += 1
+            checked += 1
+    return checked
+
+
+@pytest.fixture()
+def sim():
+    simulator = TrackerSimulator(keep_truth=True, seed=1).start()
+    yield simulator
+    simulator.stop()
+
+
+@pytest.fixture()
+def driver(sim):
+    d = TrakstarDriver(sim.path).open()
+    yield d
+    d.close()
+
+
+def test_power_on_state_and_examine(sim, driver):
+    assert driver.scale_inches == 36 and driver.rate_hz == pytest.approx(80.0)
+    status = driver.examine_word(tp.PARAM_STATUS)
+    assert (status & tp.STATUS_FORMAT_MASK) >> 1 == tp.POWER_ON_FORMAT.status_code
+    assert not status & tp.STATUS_STREAMING
+    assert all(driver.sensor_attached(s) for s in (1, 2, 3, 4))
+    assert driver.examine(tp.PARAM_SYSTEM_MODEL).startswith(b"trakSTAR")
+    assert driver.error_code() == 0
+    sample = driver.point(2)  # power-on format: POSITION/ANGLES, no METAL byte
+    assert sample is not None and sample.extra["record"].fmt.name == "POSITION/ANGLES"
+    assert matches(sample, sim.truth[-1], 36)
+
+
+@pytest.mark.parametrize("name", list(tp.FORMATS))
+def test_point_every_format_four_sensors(sim, driver, name):
+    driver.set_format(name)
+    for sensor in (1, 2, 3, 4):
+        for _ in range(3):
+            sample = driver.point(sensor)
+            assert sample is not None and sample.sensor == sensor and sample.status == STATUS_OK
+            truth = sim.truth[-1]
+            assert truth.sensor == sensor and truth.fmt == name
+            assert matches(sample, truth, 36), (name, sensor)
+    assert driver.stats.rejected == 0
+
+
+def test_scale_rate_and_group_point(sim, driver):
+    driver.set_position_scale(72)
+    assert driver.examine_word(tp.PARAM_POSITION_SCALING) == 1
+    driver.set_measurement_rate(150.0)
+    assert driver.examine_word(tp.PARAM_MEASUREMENT_RATE) / 256 == pytest.approx(150.0)
+    driver.configure("POSITION/MATRIX", metal=True, group=True)
+    for _ in range(5):
+        samples = driver.point_all()
+        assert [s.sensor for s in samples] == [1, 2, 3, 4]
+        assert len({s.frame for s in samples}) == 1 and all(s.quality == 0 for s in samples)
+        for sample, truth in zip(samples, sim.truth[-4:], strict=True):
+            assert matches(sample, truth, 72)
+    with pytest.raises(EMRegError):
+        driver.set_measurement_rate(400.0)
+
+
+@pytest.mark.parametrize("name", ["POSITION/ANGLES", "POSITION/QUATERNION", "POSITION/MATRIX"])
+def test_stream_four_sensors_every_pose_matches_truth(sim, driver, name):
+    driver.configure(name, metal=True, group=True, rate_hz=200.0)
+    got = []
+    driver.start_stream(got.append)
+    time.sleep(0.6)
+    driver.stop_stream()
+    rate = min(200.0, tp.max_stream_rate_hz(tp.get_format(name), 4, metal=True))  # the line limits MATRIX
+    assert len(got) >= 0.6 * 4 * 0.6 * rate
+    assert {s.sensor for s in got} == {1, 2, 3, 4}
+    checked = assert_subsequence_of_truth(got, sim.truth, 36)
+    assert checked == len(got) and driver.stats.rejected == 0
+    # samples of one measurement cycle share time and frame; frames advance
+    by_frame = {}
+    for s in got:
+        by_frame.setdefault(s.frame, []).append(s)
+    full = [v for v in by_frame.values() if len(v) == 4]
+    assert len(full) >= 0.9 * len(by_frame)
+    assert all(len({s.time_s for s in v}) == 1 for v in full)
+
+
+def test_faults_never_yield_a_wrong_pose():
+    faults = FaultPlan(drop=0.004, flip=0.004)
+    with TrackerSimulator(keep_truth=True, seed=7, faults=faults, fast=True) as sim, \
+            TrakstarDriver(sim.path) as driver:
+        driver.configure("POSITION/ANGLES", metal=True, group=True)
+        got = []
+        driver.start_stream(got.append)
+        time.sleep(1.5)
+        driver.stop_stream()
+        stream_truth = [t for t in sim.truth if t.emit_ns]
+    corrupted = sum(t.corrupted for t in stream_truth)
+    assert corrupted > 20, "the fault injection did not corrupt enough records to test anything"
+    checked = assert_subsequence_of_truth(got, stream_truth, 36)
+    stats = driver.stats
+    assert checked == len(got)
+    assert stats.phase_errors + stats.follow_errors + stats.address_errors > 0
+    clean = len(stream_truth) - corrupted
+    assert len(got) >= 0.8 * clean, (len(got), clean, stats)
+
+
+def test_unplugged_and_out_of_range_sensors_are_flagged(sim, driver):
+    driver.configure("POSITION/ANGLES", metal=True, group=True)
+    sim.set_unplugged(3)
+    sim.set_out_of_range(4)
+    samples = driver.point_all()
+    status = {s.sensor: s.status for s in samples}
+    assert status == {1: STATUS_OK, 2: STATUS_OK, 3: STATUS_NOT_ATTACHED, 4: STATUS_OUT_OF_RANGE}
+    assert not samples[2].valid and not samples[3].valid and samples[3].quality == tp.METAL_MAX
+    assert not driver.sensor_attached(3) and driver.sensor_attached(4)
+    assert driver.error_code() == tp.ERROR_SENSOR_NOT_CONNECTED
+    sim.set_unplugged(3, False)
+    sim.set_out_of_range(4, False)
+    assert all(s.status == STATUS_OK for s in driver.point_all())
+
+
+def test_stall_then_resume(sim, driver):
+    driver.configure("POSITION/ANGLES", metal=False, group=True)
+    arrivals = []
+    driver.start_stream(lambda s: arrivals.append(time.monotonic()))
+    time.sleep(0.3)
+    sim.stall(0.3)
+    time.sleep(0.6)
+    driver.stop_stream()
+    gaps = np.diff(arrivals)
+    assert gaps.max() >= 0.25  # silence during the stall
+    assert arrivals[-1] - arrivals[0] >= 0.75  # and data again after it
+
+
+def test_unknown_port_is_a_clear_error(tmp_path):
+    with pytest.raises(EMRegError, match="cannot open"):
+        TrakstarDriver(str(tmp_path / "no-such-tty")).open()
