@@ -290,6 +290,49 @@ def fre_curve(rows: Sequence[MarkerRow], points: dict[str, dict], l_range: tuple
     return l_values, values
 
 
+def registration_fre_curve(registration: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """The FRE(l) curve the registration stored (``fre_curve``: ``l_mm``, ``fre_mm``), if any."""
+    curve = registration.get("fre_curve") or {}
+    try:
+        l_values = np.asarray(curve.get("l_mm", []), dtype=float)
+        values = np.asarray(curve.get("fre_mm", []), dtype=float)
+    except (TypeError, ValueError, AttributeError):
+        return None
+    if l_values.ndim != 1 or l_values.shape != values.shape or len(l_values) < 2 or np.ptp(l_values) <= 0:
+        return None
+    return l_values, values
+
+
+def predicted_tre_by_target(inputs: ReportInputs) -> dict[str, float]:
+    """Fitzpatrick's predicted TRE (mm) per target label, from ``registration.json`` when it has one.
+
+    The registration stores ``targets_image`` with ``predicted_tre_mm``; labels come from the
+    case's ``targets.mrk.json`` (matched by position) or, without it, T1, T2, ... in order.
+    """
+    registration = inputs.registration or {}
+    predicted, targets = registration.get("predicted_tre_mm"), registration.get("targets_image")
+    if predicted is None or targets is None:
+        return {}
+    try:
+        predicted = np.asarray(predicted, dtype=float).reshape(-1)
+        targets = np.asarray(targets, dtype=float).reshape(-1, 3)
+    except (TypeError, ValueError):
+        return {}
+    if len(predicted) != len(targets):
+        return {}
+    result = {}
+    for i, (target, value) in enumerate(zip(targets, predicted, strict=True)):
+        label = f"T{i + 1}"
+        if inputs.targets_positions is not None and len(inputs.targets_positions):
+            distance = np.linalg.norm(inputs.targets_positions - target, axis=1)
+            k = int(np.argmin(distance))
+            if distance[k] > 0.01:
+                continue
+            label = inputs.targets_labels[k]
+        result[label] = float(value)
+    return result
+
+
 @dataclass
 class ReportWarning:
     """One warning of the report: ``kind`` is "refused", "warning" or "note"."""
@@ -314,9 +357,11 @@ def collect_warnings(inputs: ReportInputs, rows: list[MarkerRow], points: dict[s
         for text in (document or {}).get("warnings", []) or []:
             found.append(ReportWarning("warning", str(text)))
     if registration is not None:
+        # A registration written by EMReg lists its own outliers and l warnings; check a bare spec file here.
+        own_checks = "warnings" not in registration
         residuals = np.array([r.residual_mm for r in rows if r.residual_mm is not None], dtype=float)
         median = float(np.median(residuals)) if residuals.size else 0.0
-        for r in rows:
+        for r in rows if own_checks else []:
             if r.residual_mm is None:
                 continue
             if r.residual_mm > OUTLIER_RESIDUAL_MM or (r.residual_mm > 1.0 and r.residual_mm > 3.0 * median):
@@ -330,16 +375,18 @@ def collect_warnings(inputs: ReportInputs, rows: list[MarkerRow], points: dict[s
         unpaired_calibration = registration.get("unpaired_calibration_points") or []
         if unpaired_image:
             found.append(ReportWarning("warning", f"{len(unpaired_image)} detected marker(s) not paired: "
-                                             + ", ".join(map(str, unpaired_image))))
+                                                  + ", ".join(map(str, unpaired_image))))
         if unpaired_calibration:
             found.append(ReportWarning("warning", f"{len(unpaired_calibration)} calibration point(s) not paired: "
-                                             + ", ".join(map(str, unpaired_calibration))))
+                                                  + ", ".join(map(str, unpaired_calibration))))
         l_mm = _maybe_float(registration.get("sensor_offset_l_mm"))
         a, b = inputs.model.pinhole_bottom_mm, inputs.model.pinhole_top_mm
-        if l_mm is not None and (l_mm <= a + 0.05 or l_mm >= b - 0.05):
-            found.append(ReportWarning("warning", f"the sensor offset l = {l_mm:.2f} mm sits at an end of the pinhole "
-                                             f"range [{a:.1f}, {b:.1f}] mm: check the marker model and that the "
-                                             "probe reached the pinhole's floor"))
+        fixed = bool(registration.get("sensor_offset_fixed", False))
+        if own_checks and not fixed and l_mm is not None and (l_mm <= a + 0.05 or l_mm >= b - 0.05):
+            found.append(ReportWarning(
+                "warning", f"the sensor offset l = {l_mm:.2f} mm sits at an end of the pinhole range "
+                           f"[{a:.1f}, {b:.1f}] mm: check the marker model and that the probe reached the "
+                           "pinhole's floor"))
         if curve is not None and l_mm is not None:
             l_values, values = curve
             l_best = float(l_values[int(np.argmin(values))])
@@ -507,10 +554,12 @@ def render_figures(inputs: ReportInputs, rows: list[MarkerRow], points: dict[str
                 label = f"chosen l = {l_mm:.2f} mm, FRE {float(np.interp(l_mm, l_values, values)):.2f} mm"
             chart = line_chart(l_values, values, "FRE(l) over the pinhole range", "sensor offset l (mm)", "FRE (mm)",
                                marker_x=l_mm, marker_label=label)
+            source = "as the registration computed it" if registration_fre_curve(registration) is not None \
+                else "recomputed here from the reported pairs"
             figures.append(Figure("fre_curve", "FRE as a function of the sensor offset l",
-                                  "Paper Eq. 10, recomputed here from the reported pairs: for each l in [a, b] the "
-                                  "rigid fit of the calibration points to the sensor points at l; the dot marks the "
-                                  "l the registration chose.", encode_png(chart)))
+                                  f"Paper Eq. 10, {source}: for each l in the pinhole range the rigid fit of the "
+                                  "calibration points to the sensor points at l; the dot marks the l the "
+                                  "registration chose.", encode_png(chart)))
             step.advance()
         if "tre_targets" in planned:
             targets = tre["targets"]
@@ -520,11 +569,16 @@ def render_figures(inputs: ReportInputs, rows: list[MarkerRow], points: dict[str
             lines = []
             if _maybe_float(tre.get("mean_mm")) is not None:
                 lines.append((float(tre["mean_mm"]), f"mean {float(tre['mean_mm']):.2f} mm"))
+            predicted = predicted_tre_by_target(inputs)
+            overlay = [predicted.get(t, np.nan) for t in labels] if predicted else None
             chart = bar_chart(labels, means, errors=stds, title="Target registration error", y_label="TRE (mm)",
-                              reference_lines=lines)
+                              reference_lines=lines, overlay=overlay,
+                              overlay_label="predicted from FLE (Fitzpatrick)" if overlay else "")
             figures.append(Figure("tre_targets", "TRE per target",
-                                  "Mean and standard deviation over the dwells at each target (paper: 1.38 +/- "
-                                  "0.32 mm over 6 targets x 15 placements).", encode_png(chart)))
+                                  "Mean and standard deviation over the dwells at each target"
+                                  + (", with the RMS TRE predicted from the fiducial configuration and FLE (red)"
+                                     if overlay else "")
+                                  + " (paper: 1.38 +/- 0.32 mm over 6 targets x 15 placements).", encode_png(chart)))
             step.advance()
     return figures
 
@@ -664,12 +718,12 @@ def build_html(inputs: ReportInputs, rows: list[MarkerRow], points: dict[str, di
             marker = by_id.get(str(pair.get("image_marker")))
             point = points.get(str(pair.get("calibration_point")), {})
             pair_rows.append((_e(pair.get("image_marker")), _e(pair.get("calibration_point")),
-                              _num(pair.get("residual_mm")),
+                              _num(pair.get("residual_mm")), "<b>yes</b>" if pair.get("outlier") else "",
                               _num(marker.volume_mm3 if marker else None, 0),
                               _num(marker.fit_rms_mm if marker else None, 3),
                               _num(point.get("std_mm"), 3), _e(point.get("samples", "")) or "&ndash;"))
         parts.append("<h3>Pairs</h3>" + _table(
-            ("image marker", "calibration point", "residual (mm)", "marker volume (mm³)", "fit RMS (mm)",
+            ("image marker", "calibration point", "residual (mm)", "outlier", "marker volume (mm³)", "fit RMS (mm)",
              "dwell spread (mm)", "samples"), pair_rows, left_columns=2))
         unpaired = [("detected markers", ", ".join(map(str, registration.get("unpaired_image_markers") or []))),
                     ("calibration points", ", ".join(map(str, registration.get("unpaired_calibration_points") or [])))]
@@ -677,7 +731,8 @@ def build_html(inputs: ReportInputs, rows: list[MarkerRow], points: dict[str, di
                                                   [(k, _e(v) or "none") for k, v in unpaired], left_columns=2))
         extra = {k: v for k, v in registration.items()
                  if k not in ("ReferenceToImage", "sensor_offset_l_mm", "fre_mm", "pairs", "unpaired_image_markers",
-                              "unpaired_calibration_points", "warnings") and _maybe_float(v) is not None}
+                              "unpaired_calibration_points", "warnings")
+                 and not isinstance(v, bool) and _maybe_float(v) is not None}
         if extra:
             parts.append("<h3>Other figures</h3>" + _table(("name", "value"),
                                                             [(_e(k), _num(v, 3)) for k, v in extra.items()]))
@@ -722,11 +777,15 @@ def build_html(inputs: ReportInputs, rows: list[MarkerRow], points: dict[str, di
     if tre:
         if "tre_targets" in figure:
             parts.append(_figure_html(figure["tre_targets"]))
-        target_rows = [(_e(name), _num(t.get("mean_mm")), _num(t.get("std_mm")), _e(t.get("n", "")))
+        predicted = predicted_tre_by_target(inputs)
+        target_rows = [(_e(name), _num(t.get("mean_mm")), _num(t.get("std_mm")), _e(t.get("n", "")),
+                        _num(predicted.get(name)))
                        for name, t in (tre.get("targets") or {}).items()]
         target_rows.append(("<b>all</b>", _num(tre.get("mean_mm")), _num(tre.get("std_mm")),
-                            _e(tre.get("n", "")) if tre.get("n") is not None else ""))
-        parts.append(_table(("target", "mean (mm)", "std (mm)", "n"), target_rows))
+                            _e(tre.get("n", "")) if tre.get("n") is not None else "",
+                            _num(np.sqrt(np.mean(np.square(list(predicted.values()))))) if predicted else
+                            "&ndash;"))
+        parts.append(_table(("target", "mean (mm)", "std (mm)", "n", "predicted RMS (mm)"), target_rows))
     else:
         parts.append("<div class=\"note\">Not shown: no TRE in evaluation.json (needs navigation.csv and "
                      "targets.mrk.json in the case).</div>")
@@ -742,12 +801,20 @@ def build_html(inputs: ReportInputs, rows: list[MarkerRow], points: dict[str, di
                 reference = _maybe_float(nominal[i])
             mean = _maybe_float(edge.get("mean_mm"))
             error = f"{mean - reference:+.2f}" if reference is not None and mean is not None else "&ndash;"
-            relative = f"{100 * (mean - reference) / reference:+.2f}%" \
-                if reference is not None and mean is not None and reference else "&ndash;"
-            board_rows.append((_e(name), _num(mean), _num(edge.get("std_mm")), _e(edge.get("n", "")),
-                               _num(reference), error, relative))
-        parts.append(_table(("edge", "mean length (mm)", "std (mm)", "n", "nominal (mm)", "error (mm)",
-                             "relative error"), board_rows))
+            if "abs_error_mean_mm" in edge:
+                absolute = f"{_num(edge.get('abs_error_mean_mm'))} &plusmn; {_num(edge.get('abs_error_std_mm'))}"
+                relative = (f"{_num(edge.get('rel_error_mean_percent'))}% &plusmn; "
+                            f"{_num(edge.get('rel_error_std_percent'))}%")
+            else:
+                absolute = "&ndash;"
+                relative = f"{100 * (mean - reference) / reference:+.2f}%" \
+                    if reference is not None and mean is not None and reference else "&ndash;"
+            holes = "&ndash;".join(_e(h) for h in edge.get("holes", []))
+            board_rows.append((_e(name), holes, _num(mean), _num(edge.get("std_mm")), _e(edge.get("n", "")),
+                               _num(reference), error, absolute, relative))
+        parts.append(_table(("edge", "holes", "mean length (mm)", "std (mm)", "n", "nominal (mm)",
+                             "mean - nominal (mm)", "absolute error (mm)", "relative error"), board_rows,
+                            left_columns=2))
         parts.append("<p class=\"muted\">Paper Table 1: absolute errors 0.16 to 0.21 mm against a Vernier caliper, "
                      "all below 1 mm.</p>")
     else:
@@ -791,7 +858,8 @@ def write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[st
         raise EMRegError(f"{inputs.out_dir}: an output file does not follow the spec ({exc!s:.120})") from None
     curve = None
     if inputs.registration is not None:
-        curve = fre_curve(rows, points, (inputs.model.pinhole_bottom_mm, inputs.model.pinhole_top_mm))
+        curve = registration_fre_curve(inputs.registration) or \
+            fre_curve(rows, points, (inputs.model.pinhole_bottom_mm, inputs.model.pinhole_top_mm))
     warnings = collect_warnings(inputs, rows, points, curve)
     figures = render_figures(inputs, rows, points, curve, progress)
     from .io.atomic import atomic_write_bytes

@@ -122,11 +122,12 @@ def bar_chart(
     labels: Sequence[str], values: Sequence[float], errors: Sequence[float] | None = None, title: str = "",
     y_label: str = "", colors: Sequence[tuple[int, int, int]] | None = None,
     reference_lines: Sequence[tuple[float, str]] = (), size: tuple[int, int] = (760, 360),
-    value_format: str = "{:.2f}",
+    value_format: str = "{:.2f}", overlay: Sequence[float] | None = None, overlay_label: str = "",
 ) -> np.ndarray:
     """A bar chart: one bar per label, optional symmetric error bars and dashed reference lines.
 
     ``colors`` are RGB per bar; values are written above the bars when there is room.
+    ``overlay`` draws a second value per bar as a red tick (e.g. a prediction), named in a legend.
     """
     values = np.asarray(values, dtype=float)
     if len(labels) != len(values):
@@ -134,7 +135,9 @@ def bar_chart(
     width, height = size
     canvas = np.full((height, width, 3), WHITE, dtype=np.uint8)
     errors_arr = np.zeros_like(values) if errors is None else np.nan_to_num(np.asarray(errors, dtype=float))
-    top_value = max([0.0, *np.nan_to_num(values + errors_arr).tolist(), *(v for v, _ in reference_lines)])
+    overlay_arr = None if overlay is None else np.asarray(overlay, dtype=float)
+    top_value = max([0.0, *np.nan_to_num(values + errors_arr).tolist(), *(v for v, _ in reference_lines),
+                     *(np.nan_to_num(overlay_arr).tolist() if overlay_arr is not None else [])])
     ticks = nice_ticks(0.0, top_value * 1.12 if top_value > 0 else 1.0, 5)
     longest = max((_text_size(str(lab), 0.38)[0] for lab in labels), default=0)
     n = max(1, len(labels))
@@ -168,6 +171,16 @@ def bar_chart(
             _put_vertical(canvas, label, centre, axes.bottom + 6, 0.38)
         else:
             _put(canvas, label, centre, axes.bottom + 17, 0.38, align="center")
+    if overlay_arr is not None:
+        for i, value in enumerate(overlay_arr):
+            if np.isfinite(value):
+                centre = axes.x(i + 0.5)
+                y = int(round(axes.y(value)))
+                cv2.line(canvas, (int(round(centre - bar_width * 0.45)), y), (int(round(centre + bar_width * 0.45)), y),
+                         HIGHLIGHT, 3)
+        if overlay_label:
+            cv2.line(canvas, (axes.left + 10, axes.top + 8), (axes.left + 34, axes.top + 8), HIGHLIGHT, 3)
+            _put(canvas, overlay_label, axes.left + 40, axes.top + 12, 0.38, HIGHLIGHT)
     for value, text in reference_lines:
         axes.dashed_hline(value, REFERENCE, text)
     return canvas
