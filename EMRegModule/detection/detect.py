@@ -1,0 +1,133 @@
+"""``detect_markers``: find every marker in a CT and estimate its pose (image space, LPS mm).
+
+Coarse-to-fine (see ``segmentation``): the volume is read through a zero-copy view, a strided
+pass finds candidate regions, and only those regions are processed at full resolution.
+Every candidate of marker-like density and at least a third of a marker's volume ends either
+as a marker or in ``rejected`` with a reason (code in brackets):
+
+- ``edge``: cut by the image's edge;
+- ``volume``: too large or too small for the marker model;
+- ``bone``: touches voxels brighter than ``high_hu`` (cortical bone);
+- ``shape``: principal spreads unlike the model's (rods, plates), or the CAD model does not fit
+  its edges (spheres, boxes, fragments);
+- ``metal``: fails a check with metal voxels nearby (the reference sensor's streaks), where the
+  fit tolerances are halved.
+
+Marker ids are ``I01, I02, ...`` ordered by origin (z, then y, then x, LPS).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import SimpleITK as sitk
+
+from ..errors import NoSafeAnswerError
+from ..io.image import check_ct, image_geometry, index_to_physical_matrix
+from ..marker_model import MarkerModel
+from ..progress import QUIET, Progress
+from ..transforms import apply_transform
+from .measure import measure_blob, metal_distance_mm
+from .pose import fit_pose, model_moments
+from .result import DetectedMarker, DetectionResult, RejectedCandidate
+from .segmentation import Blob, blobs_in_region, coarse_pass
+from .settings import DetectionSettings, settings_from_dict
+
+
+def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings: dict | None = None,
+                   progress: Progress | None = None) -> DetectionResult:
+    """Markers in ``image`` (a scalar 3D CT in HU): origins (bottom-face centres) and +Y axes, LPS mm.
+
+    ``settings`` is the ``[detection]`` table of ``case.toml`` (unknown keys are an error).
+    Raises :class:`NoSafeAnswerError` (exit 3) when fewer than ``min_markers`` markers are found.
+    """
+    model = model or MarkerModel()
+    options = settings_from_dict(settings, model)
+    progress = progress or QUIET
+    check_ct(image)
+    volume = sitk.GetArrayViewFromImage(image)
+    spacing_zyx = np.asarray(image.GetSpacing(), dtype=float)[::-1]
+    index_to_image = index_to_physical_matrix(image)
+    markers: list[DetectedMarker] = []
+    rejected: list[RejectedCandidate] = []
+    with progress.step("finding candidates"):
+        coarse = coarse_pass(volume, spacing_zyx, model, options)
+    for centroid_zyx, volume_mm3 in coarse.too_large:
+        centroid = apply_transform(index_to_image, centroid_zyx[::-1].astype(float))
+        rejected.append(RejectedCandidate(centroid, volume_mm3, "too large for a marker (coarse pass)", "volume"))
+    seen: list[np.ndarray] = []
+    with progress.step("fitting markers", total=len(coarse.regions)) as step:
+        for region in coarse.regions:
+            for blob in blobs_in_region(volume, region, spacing_zyx, model, options):
+                key = apply_transform(index_to_image, blob.centroid_index_zyx()[::-1])
+                if any(np.linalg.norm(key - other) < 1.0 for other in seen):
+                    continue
+                seen.append(key)
+                outcome = _classify(blob, coarse.metal_zyx, index_to_image, spacing_zyx, model, options)
+                (markers if isinstance(outcome, DetectedMarker) else rejected).append(outcome)
+            step.advance()
+    markers.sort(key=lambda m: (m.origin[2], m.origin[1], m.origin[0]))
+    for i, marker in enumerate(markers, start=1):
+        marker.id = f"I{i:02d}"
+    rejected.sort(key=lambda r: (r.centroid[2], r.centroid[1], r.centroid[0]))
+    if len(markers) < options.min_markers:
+        raise NoSafeAnswerError(_too_few_message(len(markers), options, rejected))
+    return DetectionResult(markers, rejected, image_geometry(image))
+
+
+def _classify(blob: Blob, metal_zyx: np.ndarray, index_to_image: np.ndarray, spacing_zyx: np.ndarray,
+              model: MarkerModel, options: DetectionSettings) -> DetectedMarker | RejectedCandidate:
+    measures = measure_blob(blob, index_to_image, spacing_zyx, options)
+    centroid, volume = measures.centroid, measures.volume_mm3
+
+    def reject(reason: str, code: str) -> RejectedCandidate:
+        return RejectedCandidate(centroid, volume, reason, code)
+
+    if blob.touches_image_edge:
+        return reject("cut by the edge of the image", "edge")
+    reach = 0.5 * float(np.hypot(model.height_mm, model.bottom_diameter_mm))
+    near_metal = metal_distance_mm(centroid, metal_zyx, index_to_image, blob, options) \
+        <= options.metal_distance_mm + reach
+    strict = 0.5 if near_metal else 1.0
+    problem, code = None, ""
+    if blob.touches_region_edge:
+        problem, code = "extends beyond a marker-sized region (too large)", "volume"
+    elif measures.bone_fraction > options.bone_fraction:
+        problem, code = f"touches bone-density voxels (>= {options.high_hu:g} HU)", "bone"
+    else:
+        problem, code = _size_and_shape_problem(measures.volume_mm3, measures.spreads_mm, model, options, strict)
+    if problem is None:
+        fit = fit_pose(blob.values, blob.mask, blob.offset_zyx, index_to_image, model,
+                       min_contrast_hu=0.5 * (measures.marker_hu - options.low_hu),
+                       min_inner_hu=options.low_hu, trim_mm=3 * options.max_fit_rms_mm)
+        if fit.fit_rms_mm > strict * options.max_fit_rms_mm:
+            problem, code = f"the marker model does not fit (rms {fit.fit_rms_mm:.2f} mm)", "shape"
+        elif fit.inlier_fraction < options.min_inlier_fraction:
+            problem, code = f"the marker model fits only {100 * fit.inlier_fraction:.0f}% of its edges", "shape"
+    if problem is not None:
+        if near_metal:
+            return reject(f"wrecked by metal artefacts nearby ({problem})", "metal")
+        return reject(problem, code)
+    return DetectedMarker("", fit.origin, fit.axis, volume, fit.fit_rms_mm)
+
+
+def _size_and_shape_problem(volume: float, spreads: np.ndarray, model: MarkerModel, options: DetectionSettings,
+                            strict: float) -> tuple[str | None, str]:
+    ratio = volume / model.volume_mm3
+    if abs(ratio - 1) > strict * options.volume_tolerance:
+        return f"volume {volume:.0f} mm3 is {100 * ratio:.0f}% of the marker's {model.volume_mm3:.0f} mm3", "volume"
+    model_spreads, _ = model_moments(model)
+    relative = np.abs(spreads / model_spreads - 1)
+    if np.max(relative) > strict * options.shape_tolerance:
+        return ("principal spreads " + "/".join(f"{v:.1f}" for v in spreads) + " mm unlike the marker's "
+                + "/".join(f"{v:.1f}" for v in model_spreads) + " mm"), "shape"
+    return None, ""
+
+
+def _too_few_message(found: int, options: DetectionSettings, rejected: list[RejectedCandidate]) -> str:
+    counts: dict[str, int] = {}
+    for r in rejected:
+        counts[r.code] = counts.get(r.code, 0) + 1
+    summary = ", ".join(f"{n} {code}" for code, n in sorted(counts.items())) or "none"
+    return (f"{found} marker(s) found in the CT, at least {options.min_markers} needed (rejected candidates: "
+            f"{summary}); check that the CT shows the frame and the [detection] thresholds "
+            f"(low_hu {options.low_hu:g}, high_hu {options.high_hu:g}) bracket the markers' intensity")

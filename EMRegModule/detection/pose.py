@@ -1,0 +1,304 @@
+"""Marker pose in image space: flying-edges surface, principal-axes start, edge points, VTK ICP.
+
+Frames: ``Marker`` is the CAD frame (origin bottom-face centre, +Y toward the narrow top),
+``Image`` the CT's LPS physical space (mm). Poses are ``marker_to_image`` (4x4).
+
+Steps, for one segmented blob:
+
+1. Start: centroid and principal axes of the blob's voxels; the symmetry axis is the
+   principal direction with the largest third moment (the marker is wide at the bottom and
+   narrow at the top), whose sign points +Y toward the narrow top.
+2. Coarse fit: the blob's surface by ``vtkFlyingEdges3D``, aligned to the CAD surface with
+   ``vtkIterativeClosestPointTransform``.
+3. Sub-voxel fit: a single iso-level is biased where the marker meets plastic on one side and
+   air on the other, so edge points are found per surface point instead: the intensity profile
+   along the CAD normal is sampled (trilinear) and the edge is where it crosses half-way between
+   its own inner (PVC) and outer (local background) plateaus, which is the true edge of a blurred
+   step whatever the background. Those points are aligned to the CAD surface with ICP again,
+   twice, trimming outliers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from scipy import ndimage
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtkmodules.vtkCommonCore import vtkPoints
+from vtkmodules.vtkCommonDataModel import vtkImageData, vtkIterativeClosestPointTransform, vtkPolyData
+from vtkmodules.vtkFiltersCore import vtkFlyingEdges3D
+
+from ..marker_model import MarkerModel
+from ..transforms import apply_rotation, apply_transform, invert_rigid, make_transform
+
+
+@dataclass(frozen=True)
+class EdgeSamples:
+    """Points on the CAD surface away from corners, their outward normals and inner profile length (marker frame)."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    inner_mm: np.ndarray
+
+
+@dataclass
+class PoseFit:
+    """A fitted marker pose and its quality (distances of edge points to the CAD surface, mm)."""
+
+    marker_to_image: np.ndarray
+    fit_rms_mm: float
+    inlier_fraction: float
+    edge_points: int
+
+    @property
+    def origin(self) -> np.ndarray:
+        return self.marker_to_image[:3, 3].copy()
+
+    @property
+    def axis(self) -> np.ndarray:
+        return self.marker_to_image[:3, 1].copy()
+
+
+# --- the model side -------------------------------------------------------------------------
+
+
+@lru_cache(maxsize=8)
+def edge_samples(model: MarkerModel, spacing_mm: float = 1.0, corner_margin_mm: float = 1.0) -> EdgeSamples:
+    """Surface points of the marker for edge search, at least ``corner_margin_mm`` from every rim.
+
+    Near rims the blurred edges of two faces mix, and profiles along one face's normal would
+    cross the other face; the pinhole opening is left out for the same reason.
+    """
+    r_b, r_t, r_h = model.bottom_diameter_mm / 2, model.top_diameter_mm / 2, model.pinhole_diameter_mm / 2
+    h_b, h = model.bottom_height_mm, model.height_mm
+    m = corner_margin_mm
+    parts: list[tuple[np.ndarray, np.ndarray, float]] = []
+
+    def disc(r0: float, r1: float, y: float, normal_y: float, inner: float) -> None:
+        if r1 <= r0:
+            return
+        rings = np.arange(r0 + spacing_mm / 2 if r0 > 0 else 0.0, r1 + 1e-9, spacing_mm)
+        pts = []
+        for radius in rings:
+            n = max(1, int(np.ceil(2 * np.pi * radius / spacing_mm)))
+            a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+            pts.append(np.column_stack([radius * np.cos(a), np.full(n, y), radius * np.sin(a)]))
+        p = np.concatenate(pts)
+        parts.append((p, np.tile([0.0, normal_y, 0.0], (len(p), 1)), inner))
+
+    def side(radius: float, y0: float, y1: float, inner: float) -> None:
+        if y1 <= y0:
+            return
+        n = max(6, int(np.ceil(2 * np.pi * radius / spacing_mm)))
+        a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+        ys = np.arange(y0, y1 + 1e-9, spacing_mm)
+        aa, yy = np.meshgrid(a, ys)
+        p = np.column_stack([radius * np.cos(aa).ravel(), yy.ravel(), radius * np.sin(aa).ravel()])
+        nrm = np.column_stack([np.cos(aa).ravel(), np.zeros(aa.size), np.sin(aa).ravel()])
+        parts.append((p, nrm, inner))
+
+    disc(0.0, r_b - m, 0.0, -1.0, min(2.0, h_b - 1.0))
+    side(r_b, m, h_b - m, min(2.0, r_b - r_t - 0.5))
+    disc(r_t + 1.5 * m, r_b - m, h_b, 1.0, min(2.0, h_b - 1.0))
+    side(r_t, h_b + m, h - m, min(2.0, r_t - r_h - 0.8))
+    disc(r_h + m, r_t - m, h, 1.0, 2.0)
+    points = np.concatenate([p for p, _, _ in parts])
+    normals = np.concatenate([n for _, n, _ in parts])
+    inner = np.concatenate([np.full(len(p), i) for p, _, i in parts])
+    return EdgeSamples(points, normals, inner)
+
+
+@lru_cache(maxsize=8)
+def cad_surface(model: MarkerModel) -> vtkPolyData:
+    """The CAD surface (marker frame) used as the ICP target; cached per model (read-only)."""
+    return model.surface_polydata(resolution=96)
+
+
+@lru_cache(maxsize=8)
+def model_moments(model: MarkerModel, step_mm: float = 0.2) -> tuple[np.ndarray, float]:
+    """Principal spreads (sqrt of the principal second moments, ascending, mm) and the centroid's y."""
+    r = model.bottom_diameter_mm / 2
+    axis = np.arange(-r + step_mm / 2, r, step_mm)
+    ys = np.arange(step_mm / 2, model.height_mm, step_mm)
+    x, y, z = np.meshgrid(axis, ys, axis, indexing="ij")
+    points = np.stack([x, y, z], axis=-1)[model.contains(np.stack([x, y, z], axis=-1))]
+    spreads = np.sqrt(np.sort(np.linalg.eigvalsh(np.cov(points.T))))
+    return spreads, float(points[:, 1].mean())
+
+
+# --- the image side -----------------------------------------------------------------------
+
+
+def principal_start(points_image: np.ndarray, model: MarkerModel) -> np.ndarray:
+    """Initial ``marker_to_image`` from the centroid and principal axes of blob points (image, mm).
+
+    The symmetry axis is the principal direction with the largest absolute third moment; its
+    sign makes the long tail (the narrow top) point along +Y.
+    """
+    centroid = points_image.mean(axis=0)
+    centred = points_image - centroid
+    _, vectors = np.linalg.eigh(np.cov(centred.T))
+    projections = centred @ vectors
+    third = np.mean(projections**3, axis=0) / np.maximum(np.mean(projections**2, axis=0), 1e-12) ** 1.5
+    k = int(np.argmax(np.abs(third)))
+    axis = vectors[:, k] * (1.0 if third[k] > 0 else -1.0)
+    helper = vectors[:, (k + 1) % 3]
+    z = np.cross(helper, axis)
+    z /= np.linalg.norm(z)
+    x = np.cross(axis, z)
+    rotation = np.column_stack([x, axis, z])
+    _, centroid_y = model_moments(model)
+    return make_transform(rotation, centroid - centroid_y * axis)
+
+
+def blob_surface_points(mask_zyx: np.ndarray, index_to_image: np.ndarray, offset_zyx: np.ndarray,
+                        sigma_vox: float = 0.7) -> np.ndarray:
+    """Points of the blob's iso-surface (``vtkFlyingEdges3D`` on the smoothed mask at 0.5), image mm."""
+    field = ndimage.gaussian_filter(np.pad(mask_zyx.astype(np.float32), 2), sigma_vox)
+    image = vtkImageData()
+    image.SetDimensions(field.shape[2], field.shape[1], field.shape[0])
+    image.GetPointData().SetScalars(numpy_to_vtk(field.ravel(), deep=True))
+    surface = vtkFlyingEdges3D()
+    surface.SetInputData(image)
+    surface.SetValue(0, 0.5)
+    surface.ComputeNormalsOff()
+    surface.ComputeGradientsOff()
+    surface.ComputeScalarsOff()
+    surface.Update()
+    points = surface.GetOutput().GetPoints()
+    if points is None:
+        return np.empty((0, 3))
+    ijk = vtk_to_numpy(points.GetData()).astype(float) - 2.0 + offset_zyx[::-1]
+    return apply_transform(index_to_image, ijk)
+
+
+def icp_to_model(points_marker: np.ndarray, model: MarkerModel, max_iterations: int = 40,
+                 max_landmarks: int = 1500, tolerance_mm: float = 1e-3) -> np.ndarray:
+    """Rigid ``vtkIterativeClosestPointTransform`` of points (near the marker frame) onto the CAD surface.
+
+    Returns the 4x4 correction ``C`` with ``C @ p`` on the CAD surface. Stops when the points
+    move less than ``tolerance_mm`` (RMS) in one iteration.
+    """
+    vtk_points = vtkPoints()
+    vtk_points.SetData(numpy_to_vtk(np.ascontiguousarray(points_marker, dtype=float), deep=True))
+    source = vtkPolyData()
+    source.SetPoints(vtk_points)
+    icp = vtkIterativeClosestPointTransform()
+    icp.SetSource(source)
+    icp.SetTarget(cad_surface(model))
+    icp.GetLandmarkTransform().SetModeToRigidBody()
+    icp.SetMaximumNumberOfIterations(max_iterations)
+    icp.SetMaximumNumberOfLandmarks(max_landmarks)
+    icp.StartByMatchingCentroidsOff()
+    icp.CheckMeanDistanceOn()
+    icp.SetMeanDistanceModeToRMS()
+    icp.SetMaximumMeanDistance(tolerance_mm)
+    icp.Update()
+    matrix = icp.GetMatrix()
+    return np.array([[matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
+
+
+def refine_with(points_image: np.ndarray, marker_to_image: np.ndarray, model: MarkerModel,
+                **icp_options) -> np.ndarray:
+    """One ICP refinement of ``marker_to_image`` from image points on the marker surface."""
+    points_marker = apply_transform(invert_rigid(marker_to_image), points_image)
+    correction = icp_to_model(points_marker, model, **icp_options)
+    return _orthonormal(marker_to_image @ invert_rigid(correction))
+
+
+def edge_points(values_zyx: np.ndarray, offset_zyx: np.ndarray, image_to_index: np.ndarray,
+                marker_to_image: np.ndarray, samples: EdgeSamples, outer_mm: float = 2.0,
+                step_mm: float = 0.1, min_contrast_hu: float = 300.0, min_inner_hu: float = 600.0) -> np.ndarray:
+    """Sub-voxel edge points (image mm) along the CAD normals of ``samples`` placed at ``marker_to_image``.
+
+    Each profile's level is half-way between its inner plateau (inside the PVC) and its outer
+    plateau (the local background: air, plastic or tissue); the edge is the level crossing
+    nearest to the predicted surface. Profiles with too little contrast give no point.
+    """
+    s = np.arange(-2.0, outer_mm + step_mm / 2, step_mm)
+    base = apply_transform(marker_to_image, samples.points)
+    direction = apply_rotation(marker_to_image, samples.normals)
+    physical = base[:, None, :] + s[None, :, None] * direction[:, None, :]
+    ijk = apply_transform(image_to_index, physical.reshape(-1, 3))
+    coordinates = (ijk[:, ::-1] - offset_zyx).T
+    profiles = ndimage.map_coordinates(values_zyx, coordinates, order=1, mode="nearest").reshape(len(base), len(s))
+    plateau = 0.6
+    inner_lo = -samples.inner_mm
+    in_inner = (s[None, :] >= inner_lo[:, None]) & (s[None, :] <= inner_lo[:, None] + plateau)
+    inner = _masked_median(profiles, in_inner)
+    outer = np.median(profiles[:, s >= outer_mm - plateau], axis=1)
+    level = (inner + outer) / 2
+    usable = (inner - outer >= min_contrast_hu) & (inner >= min_inner_hu)
+    above = profiles - level[:, None]
+    valid_region = s[None, :] >= inner_lo[:, None]
+    crossing = (above[:, :-1] >= 0) & (above[:, 1:] < 0) & valid_region[:, :-1]
+    centre = np.argmin(np.abs(s))
+    distance = np.where(crossing, np.abs(np.arange(len(s) - 1) - centre), np.iinfo(np.int32).max)
+    k = np.argmin(distance, axis=1)
+    found = crossing[np.arange(len(k)), k] & usable
+    rows = np.nonzero(found)[0]
+    k = k[rows]
+    a0, a1 = above[rows, k], above[rows, k + 1]
+    offset = s[k] + step_mm * a0 / (a0 - a1)
+    return base[rows] + offset[:, None] * direction[rows]
+
+
+def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    data = np.where(mask, values, np.nan)
+    return np.nanmedian(data, axis=1)
+
+
+def _orthonormal(transform: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(transform[:3, :3])
+    rotation = u @ vt
+    if np.linalg.det(rotation) < 0:
+        u[:, -1] *= -1
+        rotation = u @ vt
+    out = transform.copy()
+    out[:3, :3] = rotation
+    return out
+
+
+def surface_distances(points_image: np.ndarray, marker_to_image: np.ndarray, model: MarkerModel) -> np.ndarray:
+    """Signed distances (mm, negative inside) of image points to the CAD surface at ``marker_to_image``."""
+    return model.signed_distance(apply_transform(invert_rigid(marker_to_image), points_image))
+
+
+def fit_pose(values_zyx: np.ndarray, mask_zyx: np.ndarray, offset_zyx: np.ndarray, index_to_image: np.ndarray,
+             model: MarkerModel, min_contrast_hu: float = 300.0, min_inner_hu: float = 600.0,
+             trim_mm: float = 1.0) -> PoseFit:
+    """The pose of one blob: principal start, flying-edges ICP, then two edge-point ICP refinements.
+
+    ``values_zyx`` holds the raw intensities of the blob's region, ``mask_zyx`` the blob;
+    ``offset_zyx`` is the image index of ``values_zyx[0, 0, 0]``; ``index_to_image`` maps
+    (i, j, k) to LPS mm.
+    """
+    image_to_index = np.linalg.inv(index_to_image)
+    voxels_ijk = np.argwhere(mask_zyx)[:, ::-1] + offset_zyx[::-1]
+    start = principal_start(apply_transform(index_to_image, voxels_ijk.astype(float)), model)
+    surface = blob_surface_points(mask_zyx, index_to_image, offset_zyx)
+    pose = refine_with(surface, start, model, max_iterations=50, max_landmarks=400, tolerance_mm=5e-3)
+    samples = edge_samples(model)
+    points = np.empty((0, 3))
+    for landmarks, tolerance in ((400, 1e-3), (len(samples.points), 2e-4)):
+        points = edge_points(values_zyx, offset_zyx, image_to_index, pose, samples,
+                             min_contrast_hu=min_contrast_hu, min_inner_hu=min_inner_hu)
+        if len(points) < 30:
+            break
+        distances = surface_distances(points, pose, model)
+        keep = np.abs(distances - np.median(distances)) <= max(trim_mm, 4 * 1.4826 * _mad(distances))
+        pose = refine_with(points[keep], pose, model, max_iterations=40, max_landmarks=landmarks,
+                           tolerance_mm=tolerance)
+    if len(points) < 30:
+        return PoseFit(pose, float("inf"), 0.0, len(points))
+    distances = surface_distances(points, pose, model)
+    inliers = np.abs(distances) <= trim_mm
+    rms = float(np.sqrt(np.mean(distances[inliers] ** 2))) if inliers.any() else float("inf")
+    coverage = len(points) / len(samples.points)
+    return PoseFit(pose, rms, float(inliers.mean()) * min(1.0, coverage / 0.5), len(points))
+
+
+def _mad(values: np.ndarray) -> float:
+    return float(np.median(np.abs(values - np.median(values))))
