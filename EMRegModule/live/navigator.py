@@ -11,10 +11,12 @@ sensor's own frame, not an LPS one, so conjugating both sides would mirror the t
 the position - the last column - is the same either way). ``navigation.csv`` keeps LPS, as the
 offline ``emreg navigate`` writes it.
 
-The :class:`Watchdog` withholds poses - and says why, in an OpenIGTLink STATUS message and on the
-terminal - when data are stale (no sample within ``stale_periods`` sample periods), when the
-reference or probe sensor is missing, out of range or of bad quality; it resumes by itself when
-good data return. Poses come only from samples that passed the driver's framing checks.
+The :class:`Watchdog` withholds poses - and says why, in an OpenIGTLink STATUS message (device
+name ``Navigation``; a name of its own, because pyigtl clients keep one message per device name
+and a STATUS named ``ProbeToImage`` would displace the pose) and on the terminal - when data
+are stale (no sample within ``stale_periods`` sample periods), when the reference or probe
+sensor is missing, out of range or of bad quality; it resumes by itself when good data return.
+Poses come only from samples that passed the driver's framing checks.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from ..navigation import probe_to_image as probe_to_image_pose
 from ..transforms import LPS_TO_RAS
 from . import igtl_status as st
 from .igtl_status import StatusMessage
-from .samples import STATUS_NOT_ATTACHED, STATUS_OUT_OF_RANGE, SensorSample
+from .samples import STATUS_NOT_ATTACHED, STATUS_OUT_OF_RANGE, SensorSample  # noqa: F401
 
 #: Default worst acceptable quality number (0 = best). The trakSTAR's METAL byte runs 0..127 and a
 #: clean field reads a few units; the simulated recordings mark wild samples with 40..250 (choice).
@@ -138,9 +140,10 @@ class Watchdog:
 class _Announcer:
     """Sends a STATUS and prints one terminal line when the verdict changes (and re-sends STATUS each second)."""
 
-    def __init__(self, server, device_name: str, out: TextIO | None) -> None:
+    def __init__(self, server, device_name: str, out: TextIO | None, what: str) -> None:
         self.server = server
         self.device_name = device_name
+        self.what = what
         self.out = out
         self.current: Verdict | None = None
         self._last_sent = 0.0
@@ -154,9 +157,9 @@ class _Announcer:
                                                                     self.current.reason == "no_data"))
             if self.out is not None and not quiet:
                 if verdict.ok:
-                    line = f"[emreg] watchdog: publishing {self.device_name} again ({verdict.message})"
+                    line = f"[emreg] watchdog: publishing {self.what} again ({verdict.message})"
                 else:
-                    line = f"[emreg] watchdog: not publishing {self.device_name}: {verdict.message}"
+                    line = f"[emreg] watchdog: not publishing {self.what}: {verdict.message}"
                 print(line, file=self.out, flush=True)
             self.current = verdict
         if self.server is not None and (changed or now_s - self._last_sent >= 1.0):
@@ -176,7 +179,7 @@ class LiveNavigator:
     def __init__(self, reference_to_image: np.ndarray, reference_sensor: int = 1, probe_sensor: int = 2,
                  server=None, writer=None, period_s: float | None = None, stale_periods: float = 3.0,
                  max_quality: float | None = DEFAULT_MAX_QUALITY, out: TextIO | None = sys.stderr,
-                 device_name: str = "ProbeToImage") -> None:
+                 device_name: str = "ProbeToImage", status_name: str = "Navigation") -> None:
         self.reference_to_image = np.asarray(reference_to_image, dtype=float)
         self.reference_sensor = reference_sensor
         self.probe_sensor = probe_sensor
@@ -184,7 +187,7 @@ class LiveNavigator:
         self.writer = writer
         self.device_name = device_name
         self.watchdog = Watchdog(reference_sensor, probe_sensor, period_s, stale_periods, max_quality)
-        self.announcer = _Announcer(server, device_name, out)
+        self.announcer = _Announcer(server, status_name, out, device_name)
         self._latest: dict[int, SensorSample] = {}
         self._done_frame: int | None = None
         self._lock = threading.Lock()
@@ -239,7 +242,8 @@ class LiveNavigator:
 
 class TrackerPublisher:
     """``emreg serve``: every sensor sample as a TRANSFORM ``<Name>ToTracker`` (tracker frame, mm,
-    sent as measured), plus a STATUS under ``Tracker`` from the watchdog. Names: the reference port
+    sent as measured; a sensor without a usable pose - not attached, out of range - is not sent),
+    plus a STATUS named ``Tracker`` from the watchdog. Names: the reference port
     is ``ReferenceToTracker``, the probe port ``ProbeToTracker``, others ``Sensor<N>ToTracker``.
     Samples of one cycle share one timestamp."""
 
@@ -250,8 +254,7 @@ class TrackerPublisher:
         self.reference_sensor = reference_sensor
         self.probe_sensor = probe_sensor
         self.watchdog = Watchdog(reference_sensor, probe_sensor, period_s, stale_periods, max_quality)
-        self.announcer = _Announcer(server, "Tracker", out)
-        self._sensor_status: dict[int, str] = {}
+        self.announcer = _Announcer(server, "Tracker", out, "tracker transforms")
         self._frame: int | None = None
         self._stamp = 0.0
         self._lock = threading.Lock()
@@ -276,12 +279,6 @@ class TrackerPublisher:
                 self._frame = sample.frame
                 self._stamp = time.time() - (time.monotonic_ns() - sample.received_ns) / 1e9
             name = self.name(sample.sensor)
-            if self._sensor_status.get(sample.sensor) != sample.status:
-                self._sensor_status[sample.sensor] = sample.status
-                code = {STATUS_NOT_ATTACHED: st.STATUS_NOT_PRESENT, STATUS_OUT_OF_RANGE: st.STATUS_OVERFLOW}.get(
-                    sample.status, st.STATUS_OK)
-                self.server.send(StatusMessage(code, 0, "OK" if code == st.STATUS_OK else sample.status[:20],
-                                               f"{name}: {sample.status.replace('_', ' ')}", device_name=name))
             if sample.valid:
                 sent_ns = self.server.send_transform(name, sample.transform(), self._stamp)
                 self.latencies.append((sample.frame, sample.received_ns, sent_ns))

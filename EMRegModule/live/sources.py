@@ -15,7 +15,7 @@ from ..errors import EMRegError
 from ..io.tracking_csv import read_tracking_csv
 from ..tracking import SAME_MOMENT_S
 from .device_url import DeviceURL, parse_device_url
-from .samples import STATUS_NOT_ATTACHED, STATUS_OUT_OF_RANGE, SensorSample
+from .samples import SensorSample
 
 SampleCallback = Callable[[SensorSample], None]
 
@@ -164,8 +164,8 @@ class IGTLSource(SampleSource):
     the reference and probe ports. They are tracker-frame transforms and are taken as sent, in
     millimetres, with no RAS/LPS change (the Tracker frame is the transmitter's own, neither LPS
     nor RAS; ``emreg serve`` sends it unchanged too). Transforms sharing a timestamp (within 1 ms)
-    form one frame. A STATUS for one of these names with code 16 (not present) or 8 (can't be
-    reached) marks the sensor not attached / out of range.
+    form one frame. A sensor the server stops sending (not attached, out of range) shows up as
+    missing in the watchdog.
     """
 
     def __init__(self, url: DeviceURL, reference_sensor: int, probe_sensor: int) -> None:
@@ -181,21 +181,12 @@ class IGTLSource(SampleSource):
 
     def start(self, callback: SampleCallback) -> None:
         from .igtl_client import IGTLReceiver
-        from .igtl_status import STATUS_NOT_PRESENT, STATUS_OVERFLOW, StatusMessage
 
         def on_message(message) -> None:
             sensor = self.names.get(message.device_name)
             if sensor is None:
                 return
             now_ns = time.monotonic_ns()
-            if isinstance(message, StatusMessage):
-                status = {STATUS_NOT_PRESENT: STATUS_NOT_ATTACHED,
-                          STATUS_OVERFLOW: STATUS_OUT_OF_RANGE}.get(message.code)
-                if status is not None:
-                    callback(SensorSample(sensor, self._time(message.timestamp), np.full(3, np.nan),
-                                          np.full((3, 3), np.nan), status=status, frame=self._frame,
-                                          received_ns=now_ns))
-                return
             if getattr(message, "message_type", "") != "TRANSFORM":
                 return
             stamp = float(message.timestamp)
