@@ -9,6 +9,7 @@ import pytest
 from synth_registration import calibration_recording, make_frame, pairing_problem
 
 from EMRegModule.calibration import CalibrationPoint, FrameCalibration, calibrate_frame
+from EMRegModule.cli import stage_available
 from EMRegModule.errors import EMRegError, NoSafeAnswerError
 from EMRegModule.io.itk_transform import read_slicer_linear_transform
 from EMRegModule.marker_model import MarkerModel
@@ -174,3 +175,46 @@ def test_register_from_a_recording_with_bumps():
     assert all(int(p["image_marker"][1:]) == int(p["calibration_point"][1:]) for p in result.pairs)
     assert result.unpaired_calibration_points == ["P01", "P02", "P03"]
     assert abs(result.sensor_offset_l_mm - frame.l_mm) < 0.2
+
+
+def _write_inputs(problem, folder):
+    from EMRegModule.calibration import write_frame_calibration
+    from EMRegModule.io.atomic import atomic_write_json
+
+    markers, calibration = _inputs(problem)
+    atomic_write_json(folder / "markers.json", {
+        "coordinate_system": "LPS", "image": {"size": [10, 10, 10], "spacing": [1, 1, 1], "origin": [0, 0, 0],
+                                              "direction": [1, 0, 0, 0, 1, 0, 0, 0, 1]},
+        "markers": [{"id": m["id"], "origin": list(m["origin"]), "axis": list(m["axis"]), "volume_mm3": 1985.0,
+                     "fit_rms_mm": 0.1} for m in markers],
+        "rejected": []})
+    write_frame_calibration(calibration, folder / "frame_calibration.json")
+
+
+@pytest.mark.skipif(not stage_available("detection"),
+                    reason="marker detection (read_detection) not built yet")
+def test_emreg_register_command_and_its_refusal_of_a_symmetric_frame(tmp_path, capsys):
+    from synth_registration import symmetric_layout
+
+    from EMRegModule.cli import main
+
+    good = tmp_path / "good"
+    good.mkdir()
+    _write_inputs(pairing_problem(10), good)
+    args = ["register", "--markers", str(good / "markers.json"), "--calibration", str(good / "frame_calibration.json")]
+    assert main([*args, "--out", str(good / "out"), "--quiet"]) == 0
+    assert (good / "out" / "registration.json").is_file() and (good / "out" / "ReferenceToImage.h5").is_file()
+
+    symmetric = tmp_path / "symmetric"
+    symmetric.mkdir()
+    frame = make_frame(7, layout=symmetric_layout())
+    _write_inputs(pairing_problem(7, frame=frame, missing_image=0, extra_image=0, missing_calibration=0,
+                                  extra_calibration=0), symmetric)
+    out = symmetric / "out"
+    out.mkdir()
+    (out / "registration.json").write_text("{}")  # a stale result of an earlier run
+    code = main(["register", "--markers", str(symmetric / "markers.json"), "--calibration",
+                 str(symmetric / "frame_calibration.json"), "--out", str(out), "--quiet"])
+    assert code == 3
+    assert "ambiguous pairing" in capsys.readouterr().err
+    assert not (out / "registration.json").exists() and not (out / "ReferenceToImage.h5").exists()
