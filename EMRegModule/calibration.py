@@ -195,21 +195,21 @@ def calibrate_frame(
             end_s=float(max(dwells[m].end_s for m in members)), warning=warning,
         ))
     warnings = [f"{p.label}: {p.warning}" for p in points if p.warning]
-    if labelled:
-        warnings += _same_place_warnings(points, dwell_settings.merge_radius_mm)
+    warnings += _close_point_warnings(points, 2.0 * dwell_settings.merge_radius_mm)
     return FrameCalibration(points, int(reference_sensor), int(probe_sensor), labelled, recording.source, warnings)
 
 
-def _same_place_warnings(points: list[CalibrationPoint], radius_mm: float) -> list[str]:
-    """Two differently labelled points at one place: probably a labelling mistake."""
+def _close_point_warnings(points: list[CalibrationPoint], radius_mm: float) -> list[str]:
+    """Two points closer than any two pinholes can be: one pinhole under two labels, or visited
+    twice with the probe at different depths."""
     warnings = []
-    positions = np.array([p.position for p in points])
+    positions = np.array([p.position for p in points]).reshape(-1, 3)
     for i in range(len(points)):
         for k in range(i + 1, len(points)):
             distance = float(np.linalg.norm(positions[i] - positions[k]))
             if distance < radius_mm:
                 warnings.append(f"{points[i].label} and {points[k].label} are only {distance:.2f} mm apart: "
-                                "the same pinhole under two labels?")
+                                "the same pinhole twice (another label, or the probe not fully inserted)?")
     return warnings
 
 

@@ -415,6 +415,15 @@ class _Problem:
                 candidates.setdefault(candidate.key, candidate)
         return int(count.max())
 
+    def _moves(self, best: _Candidate, other: _Candidate) -> bool:
+        """True when the other pairing's transform puts some of the best pairing's calibration
+        points somewhere else (beyond the point tolerance): a different registration, not the
+        same one with a near-duplicate point swapped in."""
+        points = self.points[sorted(best.assignment)]
+        a, b = best.reference_to_image, other.reference_to_image
+        shift = (points @ a[:3, :3].T + a[:3, 3]) - (points @ b[:3, :3].T + b[:3, 3])
+        return bool(np.max(np.linalg.norm(shift, axis=1)) > self.tol_point)
+
     def _rival_seeds(self, best: _Candidate, count: int):
         """Random well-shaped triangles of paired calibration points (with their image triangle
         under the best pairing, to exclude): a rival pairing that explains nearly as many points
@@ -476,7 +485,7 @@ class _Problem:
             if new_best is best:
                 break
             best = new_best
-        rivals = [c for c in candidates.values() if c.conflicts_with(best)]
+        rivals = [c for c in candidates.values() if c.conflicts_with(best) and self._moves(best, c)]
         rival = _best(rivals)
         if rival is not None and best.support - rival.support < s.ambiguity_margin:
             raise NoSafeAnswerError(

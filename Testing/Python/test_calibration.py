@@ -182,3 +182,12 @@ def test_emreg_calibrate_command(tmp_path, frame, capsys):
     assert np.linalg.norm(positions - true_points, axis=1).max() < 0.1
     assert main(["calibrate", str(csv), "--out", str(tmp_path / "out2"), "--probe-sensor", "3", "--quiet"]) == 2
     assert "probe sensor on port 3" in capsys.readouterr().err
+
+
+def test_two_labels_at_one_pinhole_are_flagged(frame):
+    points = frame.pinholes_reference[:4].copy()
+    points[3] = points[1] + [1.0, 0.5, 0.0]  # "M04" recorded in M02's pinhole
+    recording, _ = calibration_recording(points, frame.axes_reference[:4], seed=12, labels=LABELS[:4])
+    calibration = calibrate_frame(recording, 1, 2, None)
+    assert len(calibration.points) == 4
+    assert any("M02 and M04" in w for w in calibration.warnings)

@@ -95,3 +95,15 @@ def test_settings_from_case_toml():
     settings = PairingSettings.from_settings({"tracker_error_mm": 1.0, "min_pairs": 6, "max_fre_mm": 3})
     assert settings.tracker_error_mm == 1.0 and settings.min_pairs == 6 and isinstance(settings.min_pairs, int)
     assert settings.point_tolerance_mm == pytest.approx(4 * np.hypot(1.0, 0.3))
+
+
+def test_a_near_duplicate_calibration_point_is_not_an_ambiguity():
+    problem = pairing_problem(47, missing_image=0, extra_image=0, missing_calibration=0, extra_calibration=0)
+    # The probe was also held 3.5 mm short of the bottom in pinhole 0 (a second, shallower dwell).
+    duplicate = problem.points_reference[0] + 3.5 * problem.directions_reference[0]
+    points = np.vstack([problem.points_reference, duplicate])
+    directions = np.vstack([problem.directions_reference, problem.directions_reference[:1]])
+    result = pair_markers(problem.origins_image, problem.axes_image, points, directions, L_RANGE)
+    truth = np.append(problem.calibration_truth, problem.calibration_truth[0])
+    assert all(problem.image_truth[j] == truth[i] for j, i in result.pairs)
+    assert result.support == 28
