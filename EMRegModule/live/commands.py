@@ -145,6 +145,8 @@ def add_sim_tracker_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--attached", default=None, metavar="1,2,3,4", help="ports with a sensor (default all)")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     parser.add_argument("--max-records", type=int, default=None, metavar="N", help="stop after N records sent")
+    parser.add_argument("--emit-log", metavar="FILE.csv", help="at exit, write every record sent: seq, sensor, "
+                        "monotonic ns of its last byte, truth position (for latency measurements)")
 
 
 def run_sim_tracker(args: argparse.Namespace) -> int:
@@ -158,7 +160,8 @@ def run_sim_tracker(args: argparse.Namespace) -> int:
         scene = ReplayScene(read_tracking_csv(args.replay))
     attached = sensors_from_list(args.attached) if args.attached else None
     sim = TrackerSimulator(scene, baud=args.baud, faults=FaultPlan.parse(args.fault), seed=args.seed, link=args.link,
-                           fast=args.fast, max_records=args.max_records, duration_s=args.duration, attached=attached)
+                           fast=args.fast, max_records=args.max_records, duration_s=args.duration, attached=attached,
+                           keep_truth=bool(args.emit_log))
     link = f" (link {args.link})" if args.link else ""
     print(f"trakSTAR simulator on {sim.path}{link}: connect with trakstar://{sim.path}?baud={args.baud}", flush=True)
     with _StopFlag() as stop:
@@ -169,6 +172,14 @@ def run_sim_tracker(args: argparse.Namespace) -> int:
         finally:
             stop.event.set()
             sim.close()
+    if args.emit_log:
+        from ..io.atomic import atomic_write_text
+
+        lines = ["seq,sensor,emit_ns,status,corrupted,x_mm,y_mm,z_mm,azimuth_deg,elevation_deg,roll_deg"]
+        lines += [f"{r.seq},{r.sensor},{r.emit_ns},{r.status},{int(r.corrupted)},"
+                  + ",".join(f"{v:.6f}" for v in (*r.pose.position_mm, *r.pose.angles_deg))
+                  for r in sim.truth if r.emit_ns]
+        atomic_write_text(args.emit_log, "\n".join(lines) + "\n")
     _say(args, f"simulator stopped after {sim.records_sent} records")
     return 0
 

@@ -387,7 +387,9 @@ class TrackerSimulator:
     def _send(self, data: bytes, record: EmittedRecord | None = None, after_ns: int = 0) -> None:
         """Queue bytes for the line: they are written when their last bit would have arrived."""
         now = time.monotonic_ns()
-        start = max(now, self._line_free_ns, after_ns, self._stall_until_ns)
+        # a STREAM cycle is scheduled at its planned time (a late loop must not stretch the line);
+        # a reply starts when the command has arrived
+        start = max(after_ns or now, self._line_free_ns, self._stall_until_ns)
         done = int(start + len(data) * self.byte_ns)
         self._line_free_ns = done
         self._queue.append(_Pending(done, data, record))
@@ -475,12 +477,14 @@ class TrackerSimulator:
         tick_ns = self._next_tick_ns
         self._stream_k += 1
         sensors = self._tick_sensors()
-        if self.fast:
+        if self.fast:  # cycles back to back: the next one starts when this one's last byte is out
             frame_bytes = sum(tp.record_length(self.formats[s], self.metal[s], self.group_mode) for s in sensors)
             period_ns = int(frame_bytes * self.byte_ns)
+            tick_ns = max(tick_ns, self._line_free_ns)
         self._next_tick_ns = tick_ns + period_ns
         if self._next_tick_ns < now - 10 * period_ns:  # fell far behind (descheduled): do not burst
             self._next_tick_ns = now + period_ns
+            tick_ns = now
         if self.sleeping or self._stall_active(now) or self._line_free_ns > tick_ns + period_ns // 2:
             self.skipped_measurements += 1
             return

@@ -1,0 +1,242 @@
+#!/usr/bin/env python3
+"""Benchmark of the live path: trakSTAR rate at 115200 baud and added latency to OpenIGTLink.
+
+1. Rate: the simulator (its own process, ``--fast``) streams four sensors in group mode as fast as
+   115200 baud allows (POSITION/ANGLES + METAL byte + address byte = 14 bytes per record, 56 per
+   cycle, 11520 bytes/s -> 205.7 cycles/s). The driver must decode every record sent (no loss).
+2. Latency: from the moment the simulator wrote the probe record's last byte to the pty (its
+   ``--emit-log``, CLOCK_MONOTONIC) to the moment EMReg handed the ``ProbeToImage`` OpenIGTLink
+   message to the kernel (driver -> framing -> decode -> watchdog -> Eq. 12 -> TRANSFORM pack ->
+   non-blocking send), median and 99th percentile; goal < 2 ms / < 5 ms.
+3. Baseline, same run, same pty and TCP client: a plain loop that reads the serial port with
+   pyserial and sends each raw record on a socket as soon as its bytes are in (no framing checks,
+   no decoding, no OpenIGTLink).
+
+Run: ``.venv/bin/python scripts/bench_tracker.py [--seconds 4]``. Loopback only; stops by itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from EMRegModule.live import trakstar_protocol as tp  # noqa: E402
+from EMRegModule.live.device_url import parse_device_url  # noqa: E402
+from EMRegModule.live.igtl_server import IGTLServer  # noqa: E402
+from EMRegModule.live.navigator import LiveNavigator  # noqa: E402
+from EMRegModule.live.sources import TrakstarSource  # noqa: E402
+
+DRAIN = """
+import socket, sys
+s = socket.create_connection(("127.0.0.1", int(sys.argv[1])))
+n = 0
+while True:
+    data = s.recv(1 << 16)
+    if not data:
+        break
+    n += len(data)
+print(n)
+"""
+
+
+def start_drain(port: int) -> subprocess.Popen:
+    """A TCP client in its own process that reads and discards everything."""
+    return subprocess.Popen([sys.executable, "-c", DRAIN, str(port)], stdout=subprocess.PIPE, text=True)
+
+
+def read_emit_log(path: Path) -> dict[int, list[tuple[int, np.ndarray]]]:
+    """Per sensor: (emit ns, truth [x, y, z, azimuth, elevation, roll]) of every record sent."""
+    out: dict[int, list[tuple[int, np.ndarray]]] = {}
+    keys = ("x_mm", "y_mm", "z_mm", "azimuth_deg", "elevation_deg", "roll_deg")
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            truth = np.array([float(row[k]) for k in keys])
+            out.setdefault(int(row["sensor"]), []).append((int(row["emit_ns"]), truth))
+    return out
+
+
+def _same(truth: np.ndarray, decoded: np.ndarray) -> bool:
+    position_ok = np.max(np.abs(truth[:3] - decoded[:3])) <= 0.5 * 4 * 36 / 32768 * 25.4 + 1e-6
+    angles = (truth[3:] - decoded[3:] + 180.0) % 360.0 - 180.0
+    return bool(position_ok and np.max(np.abs(angles)) <= 0.5 * 4 * 180 / 32768 + 1e-6)
+
+
+def match_emits(poses: list[np.ndarray], emitted: list[tuple[int, np.ndarray]]) -> list[int | None]:
+    """For each decoded probe pose [x, y, z, az, el, roll] (in order), the emit time of its record."""
+    out: list[int | None] = []
+    i = 0
+    for pose in poses:
+        j = i
+        while j < len(emitted) and not _same(emitted[j][1], pose):
+            j += 1
+        if j == len(emitted):
+            out.append(None)
+            continue
+        out.append(emitted[j][0])
+        i = j + 1
+    return out
+
+
+def run_emreg(path: str, seconds: float, port: int) -> dict:
+    """EMReg's live path: driver -> navigator -> OpenIGTLink server -> one TCP client."""
+    source = TrakstarSource(parse_device_url(f"trakstar://{path}?metal=1"))
+    server = IGTLServer("127.0.0.1", port)
+    drain = start_drain(server.port)
+    server.wait_for_clients(1, 5.0)
+    navigator = LiveNavigator(np.eye(4), 1, 2, server, None, period_s=1 / 205.0, out=None)
+    probe_positions: dict[int, np.ndarray] = {}
+    samples = [0]
+
+    def on_sample(sample) -> None:
+        samples[0] += 1
+        if sample.sensor == 2:
+            probe_positions[sample.frame] = np.concatenate([sample.position_mm, sample.angles_deg])
+        navigator.on_sample(sample)
+
+    start = time.monotonic()
+    source.start(on_sample)
+    time.sleep(seconds)
+    elapsed = time.monotonic() - start
+    stats = source.driver.stats
+    source.stop()
+    server.close()
+    drain.wait(timeout=10)
+    frames = sorted({f for f, _, _ in navigator.latencies})
+    return {"samples": samples[0], "elapsed": elapsed, "stats": stats, "latencies": list(navigator.latencies),
+            "probe_positions": probe_positions, "frames": len(frames), "published": navigator.published,
+            "withheld": navigator.withheld}
+
+
+def run_baseline(path: str, seconds: float) -> dict:
+    """A plain loop: pyserial read -> raw record bytes -> socket.send (no checks, no decoding)."""
+    import serial
+
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(1)
+    drain = start_drain(listener.getsockname()[1])
+    conn, _ = listener.accept()
+    conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    ser = serial.Serial(path, 115200, timeout=0.05)
+    fmt = tp.get_format("POSITION/ANGLES")
+    for sensor in (1, 2, 3, 4):
+        ser.write(bytes([tp.address_byte(sensor), fmt.command, tp.address_byte(sensor), tp.METAL, 1, 32]))
+    ser.write(bytes([tp.CHANGE_VALUE, tp.PARAM_GROUP_MODE, 1]))
+    time.sleep(0.05)
+    ser.reset_input_buffer()
+    start_ns = time.monotonic_ns()
+    ser.write(bytes([tp.STREAM]))
+    length = tp.record_length(fmt, metal=True, group=True)
+    buffer = bytearray()
+    sent: list[tuple[bytes, int]] = []
+    stop = time.monotonic() + seconds
+    while time.monotonic() < stop:
+        chunk = ser.read(1)
+        if not chunk:
+            continue
+        waiting = ser.in_waiting
+        if waiting:
+            chunk += ser.read(waiting)
+        buffer.extend(chunk)
+        while len(buffer) >= length:
+            record = bytes(buffer[:length])
+            del buffer[:length]
+            conn.sendall(record)
+            sent.append((record, time.monotonic_ns()))
+    ser.write(bytes([tp.POINT]))
+    time.sleep(0.05)
+    ser.close()
+    conn.close()
+    listener.close()
+    drain.wait(timeout=10)
+    return {"sent": sent, "start_ns": start_ns}
+
+
+def percentiles(values_ms: np.ndarray) -> tuple[float, float]:
+    return float(np.median(values_ms)), float(np.percentile(values_ms, 99))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=4.0, help="length of each measuring phase")
+    parser.add_argument("--igtl-port", type=int, default=0)
+    args = parser.parse_args()
+
+    fmt = tp.get_format("POSITION/ANGLES")
+    record_bytes = tp.record_length(fmt, metal=True, group=True)
+    theoretical_hz = tp.max_stream_rate_hz(fmt, 4, 115200, metal=True, group=True)
+    print(f"4 sensors, POSITION/ANGLES + METAL + group address: {record_bytes} bytes/record, "
+          f"{4 * record_bytes} bytes/cycle; 115200 baud 8N1 = {tp.bytes_per_second(115200):.0f} bytes/s "
+          f"-> theoretical {theoretical_hz:.1f} cycles/s ({4 * theoretical_hz:.0f} records/s)")
+
+    with tempfile.TemporaryDirectory() as tmp:
+        link = Path(tmp) / "trakstar"
+        emit_log = Path(tmp) / "emit.csv"
+        sim = subprocess.Popen([sys.executable, "-m", "EMRegModule", "sim-tracker", "--fast", "--link", str(link),
+                                "--emit-log", str(emit_log), "--duration", str(4 * args.seconds + 20), "--quiet"],
+                               stdout=subprocess.PIPE, text=True, cwd=ROOT,
+                               env=dict(os.environ, PYTHONUNBUFFERED="1"))
+        sim.stdout.readline()
+        ours = run_emreg(str(link), args.seconds, args.igtl_port)
+        time.sleep(0.2)
+        base = run_baseline(str(link), args.seconds)
+        sim.terminate()
+        sim.wait(timeout=20)
+        emitted = read_emit_log(emit_log)
+
+    # --- rate -------------------------------------------------------------------------------------
+    stats = ours["stats"]
+    achieved_hz = ours["frames"] / ours["elapsed"]
+    print(f"\nEMReg driver: {stats.records} records decoded in {ours['elapsed']:.2f} s = "
+          f"{stats.records / ours['elapsed']:.0f} records/s, {achieved_hz:.1f} cycles/s "
+          f"({100 * achieved_hz / theoretical_hz:.1f}% of theoretical); rejected {stats.rejected}, "
+          f"stray bytes {stats.stray_bytes}; {ours['published']} ProbeToImage published, "
+          f"{ours['withheld']} withheld")
+
+    # --- latency: EMReg ----------------------------------------------------------------------------
+    frames = [f for f, _, _ in ours["latencies"]]
+    positions = [ours["probe_positions"][f] for f in frames]
+    emits = match_emits(positions, emitted.get(2, []))
+    ours_ms = np.array([(sent - e) / 1e6 for (_, _, sent), e in zip(ours["latencies"], emits, strict=True)
+                        if e is not None])
+    lost = sum(e is None for e in emits)
+    matched = [e for e in emits if e is not None]
+    # every probe record the simulator sent between the first and the last one EMReg published
+    sent_in_window = sum(1 for t, _ in emitted.get(2, []) if min(matched) <= t <= max(matched))
+    # --- latency: baseline ---------------------------------------------------------------------------
+    probe_records = [(r, t) for r, t in base["sent"] if r[-1] == 2 and r[0] & 0x80]
+    decoded = [tp.decode_record(fmt, r, 36, metal=True, group=True) for r, _ in probe_records]
+    base_positions = [np.concatenate([d.position_mm, d.angles_deg]) for d in decoded]
+    base_emits = match_emits(base_positions, [e for e in emitted.get(2, []) if e[0] >= base["start_ns"]])
+    base_ms = np.array([(t - e) / 1e6 for (_, t), e in zip(probe_records, base_emits, strict=True) if e is not None])
+
+    om, op = percentiles(ours_ms)
+    bm, bp = percentiles(base_ms)
+    print(f"\nlatency, last byte of the probe record written -> message handed to TCP (n = {len(ours_ms)}):")
+    print(f"  EMReg (framing, decode, watchdog, Eq. 12, OpenIGTLink TRANSFORM): median {om:.3f} ms, p99 {op:.3f} ms "
+          f"(goal < 2 / < 5 ms)")
+    print(f"  baseline (raw pty read + socket send, n = {len(base_ms)}):          median {bm:.3f} ms, p99 {bp:.3f} ms")
+    print(f"  added by EMReg over the baseline: median {om - bm:+.3f} ms, p99 {op - bp:+.3f} ms; "
+          f"ratio median {om / bm:.2f}x, p99 {op / bp:.2f}x")
+    print(f"  probe records published: {len(matched)} of the {sent_in_window} the simulator sent in that window; "
+          f"unmatched to its log: {lost}")
+    loss_free = stats.rejected == 0 and stats.stray_bytes == 0 and lost == 0 and len(matched) == sent_in_window
+    print(f"\nno loss at the line-limited rate: {'yes' if loss_free else 'NO'}; "
+          f"latency goal met: {'yes' if om < 2 and op < 5 else 'NO'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
