@@ -328,3 +328,31 @@ def test_cli_sim_tracker_link_and_live_navigate(tmp_path):
     assert message is not None
     lps = (LPS_TO_RAS @ np.asarray(message.matrix, dtype=float))[:3, 3]
     assert np.linalg.norm(positions - lps, axis=1).min() < 1e-2
+
+
+def test_cli_serve_publishes_tracker_transforms_as_measured(tmp_path):
+    recording = _recording(n_frames=60)
+    csv = tmp_path / "rec.csv"
+    write_tracking_csv(recording, csv)
+    port = _free_port()
+    client = pyigtl.OpenIGTLinkClient("127.0.0.1", port)
+    argv = ["serve", "--device", f"replay:{csv}", "--igtl-port", str(port), "--max-samples", "110", "--quiet"]
+    result = {}
+    runner = threading.Thread(target=lambda: result.setdefault("code", cli.main(argv)))
+    got = {}
+    try:
+        runner.start()
+        deadline = time.monotonic() + 15
+        while runner.is_alive() and time.monotonic() < deadline and len(got) < 3:
+            for message in client.get_latest_messages():
+                got.setdefault(message.device_name, message)
+            time.sleep(0.01)
+        runner.join(timeout=10)
+    finally:
+        client.stop()
+    assert result.get("code") == 0
+    assert {"ReferenceToTracker", "ProbeToTracker", "Tracker"} <= set(got)
+    assert isinstance(got["Tracker"], StatusMessage)
+    probe_rows = recording.transforms()[recording.sensor == 2]
+    sent = np.asarray(got["ProbeToTracker"].matrix, dtype=float)
+    assert np.abs(probe_rows - sent).max(axis=(1, 2)).min() < 1e-3  # tracker frame, unchanged (no RAS flip)
