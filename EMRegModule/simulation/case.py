@@ -6,6 +6,7 @@ Frames: ``Frame`` (the fiducial frame's CAD frame, see :mod:`.frame`), ``Image``
 
 from __future__ import annotations
 
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -56,6 +57,8 @@ def simulate_case(out_dir: Path, seed: int = 0, difficulty: str = "standard", sp
         direction = random_rotation(placement, opts.oblique_deg) if opts.oblique_deg > 0 else np.eye(3)
         if opts.flip:
             direction = direction @ np.diag([-1.0, 1.0, 1.0])
+        if opts.direction is not None:
+            direction = np.asarray(opts.direction, dtype=float).reshape(3, 3)
         extent_image = apply_transform(frame_to_image, phantom.extent_points)
         grid = ct.grid_around(extent_image, np.asarray(opts.spacing), direction, margin_mm=8.0)
 
@@ -102,7 +105,7 @@ def _phantom(seed: int, opts: SimulationOptions, model: MarkerModel) -> Phantom:
     uncalibrated = [int(i) for i in chosen[opts.n_absent:opts.n_absent + opts.n_uncalibrated]]
     try:
         return build_phantom(layout, model, opts.frame_size_mm, opts.n_markers, opts.n_decoys, absent,
-                             uncalibrated, opts.n_targets, opts.patient)
+                             uncalibrated, opts.n_targets, opts.patient, opts.couch)
     except ValueError as exc:
         from ..errors import EMRegError
 
@@ -152,15 +155,28 @@ def _write_ct(image, grid: ct.Grid, out_dir: Path, opts: SimulationOptions, seed
     start = time.perf_counter()
     if opts.ct_format == "dicom":
         ct.write_dicom_series(image, out_dir / "ct", seed, progress=progress)
-        for stale in ("ct.nrrd",):
-            (out_dir / stale).unlink(missing_ok=True)
         name = "ct"
     else:
         with progress.step("simulate: write ct.nrrd"):
             ct.write_nrrd(image, out_dir / "ct.nrrd")
         name = "ct.nrrd"
+    _remove_stale_cts(out_dir, keep=name)
     progress.message(f"[emreg] {name} written in {time.perf_counter() - start:.1f}s")
     return {"file": name, **grid.to_dict()}
+
+
+def _remove_stale_cts(out_dir: Path, keep: str) -> None:
+    """A case holds one CT: drop those an earlier simulation into the same folder left behind."""
+    from ..io.image import CT_FILE_NAMES, CT_FOLDER_NAME
+
+    for name in (*CT_FILE_NAMES, CT_FOLDER_NAME):
+        path = out_dir / name
+        if name == keep or not path.exists():
+            continue
+        if path.is_dir():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
 
 
 # --- tracking ---------------------------------------------------------------------------------
@@ -319,7 +335,8 @@ def _truth(seed: int, difficulty: str, opts: SimulationOptions, model: MarkerMod
             "marker_to_image": marker_to_image, "in_ct": m.in_ct, "calibrated": m.calibrated,
             "pinhole_in_reference": pinhole, "face": m.face,
         })
-    decoys = [{"center": apply_transform(frame_to_image, d.centre), "kind": d.kind, "hu": d.hu}
+    decoys = [{"center": apply_transform(frame_to_image, d.centre), "kind": d.kind, "hu": d.hu,
+               "resting_on": d.resting_on}
               for d in phantom.decoys]
     image = {k: ct_written[k] for k in ("size", "spacing", "origin", "direction")}
     return {

@@ -223,7 +223,7 @@ def blur_and_noise(volume: np.ndarray, grid: Grid, fwhm_mm: float, noise_hu: flo
 
 def add_metal_streaks(volume: np.ndarray, grid: Grid, centre_image: np.ndarray, half_extent_z_mm: float,
                       rng: np.random.Generator, radius_mm: float = 110.0, n_streaks: int = 9,
-                      amplitude_hu: float = 450.0) -> None:
+                      amplitude_hu: float = 700.0) -> None:
     """Bright and dark streaks through a metal object in the scanner's axial planes (constant LPS z).
 
     Each streak is a line through ``centre_image`` at a random angle, alternating in sign,
@@ -247,7 +247,7 @@ def add_metal_streaks(volume: np.ndarray, grid: Grid, centre_image: np.ndarray, 
     widths = rng.uniform(0.5, 1.1, n_streaks)
     a = grid.index_to_image[:3, :3].astype(F32)
     b = (grid.index_to_image[:3, 3] - centre).astype(F32)
-    r0 = F32(12.0)
+    r0 = F32(16.0)
     for k0 in range(start[2], stop[2], 4):
         k1 = min(k0 + 4, stop[2])
         ii = np.arange(start[0], stop[0], dtype=F32)

@@ -38,7 +38,7 @@ from .shapes import (
 #: Densities (HU) of the phantom's materials.
 HU = {
     "pom": 340.0, "pvc": 1100.0, "metal": 15000.0, "cable": 2200.0, "fat": -100.0, "soft_tissue": 40.0,
-    "liver": 60.0, "lung": -780.0, "brain": 35.0, "marrow": 300.0,
+    "liver": 60.0, "lung": -780.0, "brain": 35.0, "marrow": 300.0, "carbon": 450.0, "foam": -930.0,
 }
 #: Model 800 reference sensor: a cylinder 7.9 mm x 19.8 mm (NDI data sheet).
 REFERENCE_SENSOR_DIAMETER_MM = 7.9
@@ -78,6 +78,7 @@ class Decoy:
     shape: Shape
     centre: np.ndarray
     hu: float
+    resting_on: str = "frame"  # "frame" or "patient"
 
 
 @dataclass
@@ -265,12 +266,14 @@ def _reference_layers(geometry: FrameGeometry, reference_to_frame: np.ndarray) -
     outward = -sensor_axis
     top = centre[2] + radius + 0.4
     slot_rotation = _horizontal_frame(sensor_axis)
-    slot = Box((radius + 0.5, half + 0.5, (top + 1.0) / 2))
-    slot_pose = pose(slot_rotation, [centre[0], centre[1], (top - 1.0) / 2])
+    bottom = -0.5  # open to the bottom face
+    slot = Box((radius + 0.5, half + 0.5, (top - bottom) / 2))
+    slot_pose = pose(slot_rotation, [centre[0], centre[1], (top + bottom) / 2])
     groove_len = reach - half + 2.0
     groove_centre = centre + outward * (half + groove_len / 2)
-    groove = Box((2.5, groove_len / 2, (centre[2] + 2.5 + 1.0) / 2))
-    groove_pose = pose(_horizontal_frame(outward), [groove_centre[0], groove_centre[1], (centre[2] + 1.5) / 2])
+    groove_top = centre[2] + 2.5
+    groove = Box((2.5, groove_len / 2, (groove_top - bottom) / 2))
+    groove_pose = pose(_horizontal_frame(outward), [groove_centre[0], groove_centre[1], (groove_top + bottom) / 2])
     sensor = Posed(CylinderY(radius, -half, half), pose(rotation_from_y_axis(sensor_axis), centre))
     cable_length = groove_len + 25.0
     cable = Posed(CapsuleY(1.1, 0.0, cable_length), pose(rotation_from_y_axis(outward), centre + outward * half))
@@ -362,7 +365,6 @@ def _rib_pose(centre: np.ndarray) -> np.ndarray:
 
 def patient_targets(body: dict, n_targets: int, rng: np.random.Generator, min_spacing_mm: float = 25.0):
     """``n_targets`` points on the trunk's skin (anterior half) and their outward normals (Frame)."""
-    centre, radii = body["centre"], body["radii"]
     points: list[np.ndarray] = []
     normals: list[np.ndarray] = []
     spacing = min_spacing_mm
@@ -371,15 +373,11 @@ def patient_targets(body: dict, n_targets: int, rng: np.random.Generator, min_sp
         tries += 1
         if tries % 500 == 0:
             spacing *= 0.8
-        polar = rng.uniform(0.0, np.radians(65.0))  # from the anterior pole (+Z)
-        azimuth = rng.uniform(0, 2 * np.pi)
-        u = np.array([np.sin(polar) * np.cos(azimuth), 0.8 * np.sin(polar) * np.sin(azimuth), np.cos(polar)])
-        p = centre + radii * u / np.linalg.norm(u)
+        p, n = _skin_point(body, rng, 65.0)
         if points and np.min(np.linalg.norm(np.asarray(points) - p, axis=1)) < spacing:
             continue
-        n = (p - centre) / radii**2
         points.append(p)
-        normals.append(n / np.linalg.norm(n))
+        normals.append(n)
     return np.asarray(points), np.asarray(normals)
 
 
@@ -408,9 +406,21 @@ def _decoy_shape(kind: str, volume: float, rng: np.random.Generator) -> tuple[Sh
     return CylinderY(r, 0.0, height), height
 
 
+def _skin_point(body: dict, rng: np.random.Generator, max_polar_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """A point on the trunk's skin within ``max_polar_deg`` of the anterior pole, and its outward normal."""
+    centre, radii = body["centre"], body["radii"]
+    polar = rng.uniform(0.0, np.radians(max_polar_deg))
+    azimuth = rng.uniform(0, 2 * np.pi)
+    u = np.array([np.sin(polar) * np.cos(azimuth), 0.8 * np.sin(polar) * np.sin(azimuth), np.cos(polar)])
+    p = centre + radii * u / np.linalg.norm(u)
+    n = (p - centre) / radii**2
+    return p, n / np.linalg.norm(n)
+
+
 def place_decoys(geometry: FrameGeometry, markers: list[MarkerSlot], model: MarkerModel, n_decoys: int,
-                 rng: np.random.Generator, keep_out: list[tuple[np.ndarray, float]]) -> list[Decoy]:
-    """Marker-sized PVC-like objects of other shapes resting on the frame's top and side faces."""
+                 rng: np.random.Generator, keep_out: list[tuple[np.ndarray, float]],
+                 body: dict | None = None) -> list[Decoy]:
+    """Marker-sized PVC-like objects of other shapes resting on the frame's faces or on the patient's skin."""
     decoys: list[Decoy] = []
     margin = 14.0
     z_min = margin + 0.1 * geometry.size[2]
@@ -420,12 +430,16 @@ def place_decoys(geometry: FrameGeometry, markers: list[MarkerSlot], model: Mark
         kind = DECOY_KINDS[n % len(DECOY_KINDS)]
         volume = model.volume_mm3 * rng.uniform(0.85, 1.15)
         shape, height = _decoy_shape(kind, volume, rng)
-        for _ in range(500):
-            face = faces[int(rng.integers(len(faces)))]
-            p = _sample_on_face(face, geometry, margin, rng, z_min)
-            if p is None:
-                continue
-            normal = FACE_NORMALS[face]
+        on_patient = body is not None and n % 3 == 1  # every third decoy lies on the patient
+        for attempt in range(1000):
+            face = "patient" if on_patient and attempt < 500 else faces[int(rng.integers(len(faces)))]
+            if face == "patient":
+                p, normal = _skin_point(body, rng, 60.0)
+            else:
+                p = _sample_on_face(face, geometry, margin, rng, z_min)
+                if p is None:
+                    continue
+                normal = FACE_NORMALS[face]
             centre = p + normal * height / 2
             if any(np.linalg.norm(centre - c) < r + 14.0 for c, r in occupied):
                 continue
@@ -434,10 +448,25 @@ def place_decoys(geometry: FrameGeometry, markers: list[MarkerSlot], model: Mark
             c, s_ = np.cos(spin), np.sin(spin)
             spin_y = np.array([[c, 0, s_], [0, 1, 0], [-s_, 0, c]])
             placed = Posed(shape, pose(base @ spin_y, p))
-            decoys.append(Decoy(kind, placed, centre, float(rng.uniform(1000.0, 1200.0))))
+            resting_on = "patient" if face == "patient" else "frame"
+            decoys.append(Decoy(kind, placed, centre, float(rng.uniform(1000.0, 1200.0)), resting_on))
             occupied.append((centre, 20.0))
             break
     return decoys
+
+
+def _couch_layers(geometry: FrameGeometry) -> tuple[list[Layer], list[np.ndarray]]:
+    """The scanner couch under the frame: carbon-fibre skins around a foam core, 40 mm thick.
+
+    Wider and longer than the frame; the CT grid cuts it off at its edges.
+    """
+    w, length, _ = geometry.size
+    half_w, half_l = w / 2 + 60.0, length / 2 + 60.0
+    slab = Posed(Box((half_w, half_l, 20.0)), pose(translation=[0.0, 0.0, -20.0]))
+    core = Posed(Box((half_w - 1.5, half_l + 1.0, 18.5)), pose(translation=[0.0, 0.0, -20.0]))
+    layers = [Layer("couch skin", slab, HU["carbon"]), Layer("couch core", core, HU["foam"])]
+    extent = [np.array([sx * (w / 2 + 10.0), sy * (length / 2 + 10.0), -40.0]) for sx in (-1, 1) for sy in (-1, 1)]
+    return layers, extent
 
 
 # --- assembly -----------------------------------------------------------------------------------
@@ -445,7 +474,8 @@ def place_decoys(geometry: FrameGeometry, markers: list[MarkerSlot], model: Mark
 
 def build_phantom(rng: np.random.Generator, model: MarkerModel, size_mm=(350.0, 350.0, 200.0),
                   n_markers: int = 28, n_decoys: int = 0, absent: list[int] | None = None,
-                  uncalibrated: list[int] | None = None, n_targets: int = 6, patient: bool = True) -> Phantom:
+                  uncalibrated: list[int] | None = None, n_targets: int = 6, patient: bool = True,
+                  couch: bool = True) -> Phantom:
     """The phantom in the Frame with its painting layers (patient, block, slots, sensor, markers, decoys).
 
     ``absent``: indices of markers removed before the scan (empty slots in the CT, still
@@ -481,19 +511,25 @@ def build_phantom(rng: np.random.Generator, model: MarkerModel, size_mm=(350.0, 
     for m in markers:
         extent.append(m.origin + model.height_mm * m.axis)
         if m.in_ct:
-            layers.append(Layer(f"marker {m.label}", Posed(solid, m.marker_to_frame), HU["pvc"], 5))
-    decoys = place_decoys(geometry, markers, model, n_decoys, rng, sensor_keep_out) if n_decoys else []
-    for d in decoys:
-        layers.append(Layer(f"decoy {d.kind}", d.shape, d.hu, 4))
-        extent += [d.shape.bounds[0], d.shape.bounds[1]]
+            hu = HU["pvc"] + float(rng.normal(0.0, 12.0))  # markers cut from one rod: nearly equal
+            layers.append(Layer(f"marker {m.label}", Posed(solid, m.marker_to_frame), hu, 5))
     targets = np.zeros((0, 3))
     normals = np.zeros((0, 3))
     if body is not None and n_targets:
         targets, normals = patient_targets(body, n_targets, rng)
-    elif n_targets:  # no patient: targets on the top face between the markers
+    elif n_targets:  # no patient: targets on the bed between the markers
         targets = np.column_stack([rng.uniform(-0.3, 0.3, n_targets) * geometry.size[0],
                                    rng.uniform(-0.4, 0.4, n_targets) * geometry.size[1],
                                    np.full(n_targets, geometry.bed_bottom_z)])
         normals = np.tile([0.0, 0.0, 1.0], (n_targets, 1))
+    keep_out = sensor_keep_out + [(t, 8.0) for t in targets]
+    decoys = place_decoys(geometry, markers, model, n_decoys, rng, keep_out, body) if n_decoys else []
+    for d in decoys:
+        layers.append(Layer(f"decoy {d.kind}", d.shape, d.hu, 4))
+        extent += [d.shape.bounds[0], d.shape.bounds[1]]
+    if couch:
+        couch_layers, couch_extent = _couch_layers(geometry)
+        layers = couch_layers + layers
+        extent += couch_extent
     return Phantom(geometry, model, markers, reference_to_frame, layers, decoys, targets, normals,
                    np.asarray(extent, dtype=float))

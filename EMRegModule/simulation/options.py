@@ -28,9 +28,11 @@ class SimulationOptions:
     psf_fwhm_mm: float = 1.0
     oblique_deg: float = 2.0  # largest rotation of the voxel grid's axes away from LPS
     flip: bool = False  # a left-handed voxel grid (det(direction) = -1) before writing
+    direction: tuple[float, ...] | None = None  # explicit 9 direction cosines (row-major); overrides the two above
     frame_tilt_deg: float = 4.0  # largest rotation of the frame in the scanner
     ct_format: str = "nrrd"  # "nrrd" -> ct.nrrd, "dicom" -> ct/ series
     patient: bool = True
+    couch: bool = True  # the scanner couch under the frame
     metal_streaks: bool = True
     n_decoys: int = 0
     n_absent: int = 0  # calibrated markers absent from the CT (removed before the scan)
@@ -60,6 +62,11 @@ class SimulationOptions:
             raise EMRegError("simulate: too many absent/uncalibrated markers for the number of markers")
         if self.ct_format not in ("nrrd", "dicom"):
             raise EMRegError(f"simulate: ct_format must be 'nrrd' or 'dicom', got {self.ct_format!r}")
+        if self.direction is not None:
+            matrix = np.asarray(self.direction, dtype=float)
+            if matrix.size != 9 or not np.allclose(matrix.reshape(3, 3) @ matrix.reshape(3, 3).T, np.eye(3),
+                                                   atol=1e-6):
+                raise EMRegError("simulate: direction must be 9 numbers forming an orthonormal 3x3 matrix")
         if self.noise_hu < 0 or self.psf_fwhm_mm < 0:
             raise EMRegError("simulate: noise_hu and psf_fwhm_mm must not be negative")
         if len(self.board_edges_mm) != 4:
@@ -93,6 +100,8 @@ def resolve_options(difficulty: str, spacing_mm: float | Any | None, options: di
     clean = dict(options)
     if "spacing" in clean:
         clean["spacing"] = tuple(float(v) for v in np.broadcast_to(np.asarray(clean["spacing"], dtype=float), (3,)))
+    if clean.get("direction") is not None:
+        clean["direction"] = tuple(float(v) for v in np.asarray(clean["direction"], dtype=float).ravel())
     if "frame_size_mm" in clean:
         clean["frame_size_mm"] = tuple(float(v) for v in clean["frame_size_mm"])
     resolved = replace(resolved, **clean)

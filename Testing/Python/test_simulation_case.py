@@ -16,7 +16,7 @@ from EMRegModule.io.image import read_ct
 from EMRegModule.marker_model import MarkerModel
 from EMRegModule.simulation import simulate_case
 from EMRegModule.simulation.frame import FACE_NORMALS
-from EMRegModule.transforms import apply_transform, invert_rigid, is_rigid
+from EMRegModule.transforms import apply_transform, invert_rigid, is_rigid, random_rotation
 
 SPEC_FILES = ("calibration.csv", "navigation.csv", "targets.mrk.json", "board.csv", "case.toml", "truth.json")
 TINY = {"frame_size_mm": (160.0, 160.0, 100.0), "n_markers": 8, "navigation_rounds": 2, "board_rounds": 2,
@@ -124,3 +124,24 @@ def test_layout_is_on_the_faces_irregular_and_spread(standard_case):
     profiles = np.sort(distances, axis=1)
     difference = np.abs(profiles[:, None] - profiles[None]).max(axis=2) + np.eye(len(origins)) * 1e3
     assert difference.min() > 2.0  # each marker is told apart by its distances to the others
+
+
+def test_left_handed_nrrd_keeps_physical_truth_and_replaces_stale_ct(tmp_path):
+    out = tmp_path / "case"
+    simulate_case(out, seed=8, difficulty="hard", spacing_mm=1.5, **TINY)
+    assert (out / "ct").is_dir()
+    direction = (random_rotation(np.random.default_rng(1), 35.0) @ np.diag([1.0, 1.0, -1.0])).ravel()
+    truth = simulate_case(out, seed=8, difficulty="hard", spacing_mm=(0.9, 1.0, 1.2), ct_format="nrrd",
+                          direction=direction, noise_hu=10.0, **TINY)
+    assert (out / "ct.nrrd").is_file() and not (out / "ct").exists()
+    image = read_ct(out / "ct.nrrd")
+    assert np.allclose(image.GetDirection(), direction) and np.linalg.det(direction.reshape(3, 3)) < 0
+    array = sitk.GetArrayViewFromImage(image)
+    for marker in truth["markers"]:
+        inside = apply_transform(marker["marker_to_image"], [0.0, 4.0, 0.0])
+        above = apply_transform(marker["marker_to_image"], [0.0, 22.0, 0.0])
+        values = []
+        for point in (inside, above):
+            i, j, k = np.round(image.TransformPhysicalPointToContinuousIndex(point.tolist())).astype(int)
+            values.append(array[k, j, i])
+        assert (values[0] > 900) == marker["in_ct"] and values[1] < -800, (marker["label"], values)
