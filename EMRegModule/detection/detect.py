@@ -51,9 +51,11 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
     rejected: list[RejectedCandidate] = []
     with progress.step("finding candidates"):
         coarse = coarse_pass(volume, spacing_zyx, model, options)
-    for centroid_zyx, volume_mm3 in coarse.too_large:
+    for centroid_zyx, volume_mm3, extent_mm in coarse.too_large:
         centroid = apply_transform(index_to_image, centroid_zyx[::-1].astype(float))
-        rejected.append(RejectedCandidate(centroid, volume_mm3, "too large for a marker (coarse pass)", "volume"))
+        rejected.append(RejectedCandidate(
+            centroid, volume_mm3, f"too large for a marker (about {volume_mm3:.0f} mm3, {extent_mm:.0f} mm long)",
+            "volume"))
     seen: list[np.ndarray] = []
     with progress.step("fitting markers", total=len(coarse.regions)) as step:
         for region in coarse.regions:

@@ -116,16 +116,24 @@ def cad_surface(model: MarkerModel) -> vtkPolyData:
     return model.surface_polydata(resolution=96)
 
 
-@lru_cache(maxsize=8)
-def model_moments(model: MarkerModel, step_mm: float = 0.2) -> tuple[np.ndarray, float]:
-    """Principal spreads (sqrt of the principal second moments, ascending, mm) and the centroid's y."""
-    r = model.bottom_diameter_mm / 2
-    axis = np.arange(-r + step_mm / 2, r, step_mm)
-    ys = np.arange(step_mm / 2, model.height_mm, step_mm)
-    x, y, z = np.meshgrid(axis, ys, axis, indexing="ij")
-    points = np.stack([x, y, z], axis=-1)[model.contains(np.stack([x, y, z], axis=-1))]
-    spreads = np.sqrt(np.sort(np.linalg.eigvalsh(np.cov(points.T))))
-    return spreads, float(points[:, 1].mean())
+def model_moments(model: MarkerModel) -> tuple[np.ndarray, float]:
+    """Principal spreads (sqrt of the principal second moments, ascending, mm) and the centroid's y.
+
+    Exact for the solid: bottom cylinder + top cylinder - pinhole, each a cylinder about +Y.
+    """
+    parts = [(model.bottom_diameter_mm / 2, 0.0, model.bottom_height_mm, 1.0),
+             (model.top_diameter_mm / 2, model.bottom_height_mm, model.height_mm, 1.0),
+             (model.pinhole_diameter_mm / 2, model.pinhole_bottom_mm, model.height_mm, -1.0)]
+    volume = first = second_y = second_x = 0.0
+    for radius, y0, y1, sign in parts:
+        area = sign * np.pi * radius**2
+        volume += area * (y1 - y0)
+        first += area * (y1**2 - y0**2) / 2
+        second_y += area * (y1**3 - y0**3) / 3
+        second_x += area * (y1 - y0) * radius**2 / 4
+    centroid_y = first / volume
+    variances = [second_x / volume, second_x / volume, second_y / volume - centroid_y**2]
+    return np.sqrt(np.sort(variances)), float(centroid_y)
 
 
 # --- the image side -----------------------------------------------------------------------

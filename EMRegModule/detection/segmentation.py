@@ -39,7 +39,7 @@ class CoarseResult:
     """What the coarse pass found: candidate regions, too-large blobs, metal sample positions (index zyx)."""
 
     regions: list[Region]
-    too_large: list[tuple[np.ndarray, float]]
+    too_large: list[tuple[np.ndarray, float, float]]
     metal_zyx: np.ndarray
     strides_zyx: np.ndarray
 
@@ -76,39 +76,56 @@ def coarse_pass(volume_zyx: np.ndarray, spacing_zyx: np.ndarray, model: MarkerMo
                 settings: DetectionSettings) -> CoarseResult:
     """Find candidate regions from a strided view of ``volume_zyx`` (touches ~1/stride^2 of the memory)."""
     strides = coarse_strides(spacing_zyx, settings.coarse_step_mm)
-    sample = volume_zyx[::strides[0], ::strides[1], ::strides[2]]
-    band = (sample >= settings.low_hu) & (sample < settings.high_hu)
-    metal_zyx = np.argwhere(sample >= settings.metal_hu) * strides
+    band, metal_zyx = _coarse_band(volume_zyx, strides, settings)
     labels, count = ndimage.label(band, structure=_CONNECTIVITY_26)
+    del band
     shape = np.array(volume_zyx.shape)
     sample_volume = float(np.prod(spacing_zyx * strides))
     model_volume = model.volume_mm3
     regions: list[Region] = []
-    too_large: list[tuple[np.ndarray, float]] = []
+    too_large: list[tuple[np.ndarray, float, float]] = []
     if count == 0:
         return CoarseResult(regions, too_large, metal_zyx, strides)
-    sizes = np.bincount(labels.ravel(), minlength=count + 1)
     boxes = ndimage.find_objects(labels)
     max_extent_mm = 1.5 * np.hypot(model.height_mm, model.bottom_diameter_mm)
     margin = strides + np.ceil(3.0 / np.asarray(spacing_zyx)).astype(int)
     for label_value, box in enumerate(boxes, start=1):
-        if box is None:
+        if box is None or np.prod([s.stop - s.start for s in box]) * sample_volume < 0.3 * model_volume:
             continue
-        volume = sizes[label_value] * sample_volume
+        members = np.argwhere(labels[box] == label_value)  # bincount would make an int64 copy of labels
+        volume = len(members) * sample_volume
         if volume < 0.3 * model_volume:
             continue  # specks: noise, thin partial-volume shells of bone
         lo = np.array([s.start for s in box]) * strides
         hi = (np.array([s.stop for s in box]) - 1) * strides + 1
         extent_mm = (hi - lo) * np.asarray(spacing_zyx)
-        centroid = np.argwhere(labels[box] == label_value).mean(axis=0) * strides + lo
+        centroid = members.mean(axis=0) * strides + lo
         if volume > 3.0 * model_volume or np.max(extent_mm) > max_extent_mm:
-            too_large.append((centroid, volume))
+            too_large.append((centroid, volume, float(np.max(extent_mm))))
             continue
         start = np.maximum(lo - margin, 0)
         stop = np.minimum(hi + margin, shape)
         regions.append(Region(tuple(slice(int(a), int(b)) for a, b in zip(start, stop, strict=True)),
                               centroid, volume))
     return CoarseResult(regions, too_large, metal_zyx, strides)
+
+
+def _coarse_band(volume_zyx: np.ndarray, strides: np.ndarray, settings: DetectionSettings,
+                 slab: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """In-band mask of the strided samples, and the metal samples (index zyx), slab by slab (small temporaries)."""
+    sz, sy, sx = (int(v) for v in strides)
+    sample = volume_zyx[::sz, ::sy, ::sx]  # a view: nothing is copied
+    band = np.empty(sample.shape, dtype=bool)
+    metal = []
+    for z0 in range(0, sample.shape[0], slab):
+        block = sample[z0:z0 + slab]
+        np.logical_and(block >= settings.low_hu, block < settings.high_hu, out=band[z0:z0 + slab])
+        hits = np.argwhere(block >= settings.metal_hu)
+        if len(hits):
+            hits[:, 0] += z0
+            metal.append(hits)
+    metal_zyx = (np.concatenate(metal) if metal else np.empty((0, 3), dtype=int)) * strides
+    return band, metal_zyx
 
 
 def ball(radius_mm: float, spacing_zyx: np.ndarray) -> np.ndarray:
