@@ -255,9 +255,11 @@ class _Problem:
     # --- seeds ---------------------------------------------------------------------------
 
     def _seed_triangles(self, scores: np.ndarray):
+        """Calibration triangles to start from: drawn from the best-explained points in growing
+        tiers (8, 14, 22, 30 points), best scores then largest smallest-height first."""
         order = np.argsort(-scores, kind="stable")
         used: set[tuple[int, int, int]] = set()
-        for top in (8, 14, 22, self.n_cal):
+        for top in (8, 14, 22, 30):
             pool = order[:min(top, self.n_cal)]
             tier = []
             for tri in itertools.combinations(sorted(pool.tolist()), 3):
