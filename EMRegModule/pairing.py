@@ -260,19 +260,16 @@ class _Problem:
         order = np.argsort(-scores, kind="stable")
         used: set[tuple[int, int, int]] = set()
         for top in (8, 14, 22, 30):
-            pool = order[:min(top, self.n_cal)]
-            tier = []
-            for tri in itertools.combinations(sorted(pool.tolist()), 3):
-                if tri in used:
-                    continue
-                used.add(tri)
-                quality = _triangle_height(self.points[list(tri)])
-                if quality < 10.0:
-                    continue
-                tier.append((-round(float(scores[list(tri)].sum()), 1), -quality, tri))
-            tier.sort()
-            for _, _, tri in tier:
-                yield tri
+            pool = sorted(order[:min(top, self.n_cal)].tolist())
+            triangles = np.array([t for t in itertools.combinations(pool, 3) if t not in used], dtype=int)
+            if len(triangles):
+                used.update(map(tuple, triangles.tolist()))
+                heights = _triangle_heights(self.points[triangles])
+                keep = heights >= 10.0
+                triangles, heights = triangles[keep], heights[keep]
+                score = np.round(scores[triangles].sum(axis=1), 1)
+                for k in np.lexsort((-heights, -score)):
+                    yield tuple(triangles[k].tolist())
             if top >= self.n_cal:
                 return
 
@@ -434,14 +431,11 @@ class _Problem:
         if len(paired) < 3:
             return
         rng = np.random.default_rng(len(paired))
-        seen: set[tuple[int, int, int]] = set()
-        for _ in range(20 * count):
-            if len(seen) >= count:
-                return
-            tri = tuple(sorted(rng.choice(paired, 3, replace=False).tolist()))
-            if tri in seen or _triangle_height(self.points[list(tri)]) < 10.0:
-                continue
-            seen.add(tri)
+        drawn = np.sort(paired[np.argsort(rng.random((20 * count, len(paired))), axis=1)[:, :3]], axis=1)
+        drawn = drawn[_triangle_heights(self.points[drawn]) >= 10.0]
+        _, first = np.unique(drawn, axis=0, return_index=True)
+        for k in np.sort(first)[:count]:
+            tri = tuple(drawn[k].tolist())
             yield tri, tuple(best.assignment[i] for i in tri)
 
     def solve(self) -> PairingResult:
@@ -521,12 +515,13 @@ def _angles(unit: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(cos))
 
 
-def _triangle_height(points: np.ndarray) -> float:
-    """Smallest height of a triangle (mm): small for thin or tiny triangles."""
-    a, b, c = points
-    area2 = np.linalg.norm(np.cross(b - a, c - a))
-    longest = max(np.linalg.norm(b - a), np.linalg.norm(c - b), np.linalg.norm(a - c))
-    return float(area2 / longest) if longest > 0 else 0.0
+def _triangle_heights(triangles: np.ndarray) -> np.ndarray:
+    """Smallest height (mm) of each triangle (T, 3, 3): small for thin or tiny triangles."""
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    twice_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    longest = np.max(np.stack([np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1),
+                               np.linalg.norm(a - c, axis=1)]), axis=0)
+    return np.divide(twice_area, longest, out=np.zeros_like(longest), where=longest > 0)
 
 
 def _kabsch_batch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
