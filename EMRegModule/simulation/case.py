@@ -215,7 +215,7 @@ def _calibration(seed: int, opts: SimulationOptions, phantom: Phantom, l_mm: flo
             delta = pose(rotation, pivot - rotation @ pivot + shift)
             current = delta @ current
             bumps[int(i)] = current
-    noise = NoiseModel(bad_sample_rate=opts.bad_sample_rate)
+    noise = NoiseModel(bad_sample_rate=opts.bad_sample_rate).scaled(opts.tracker_noise_scale)
     centre = np.array([0.0, 0.0, phantom.geometry.size[2] / 2])
     recording, dwells, body_poses = simulate_session(
         rng, visits, frame_to_tracker, phantom.reference_to_frame, centre, lift_mm=25.0, bump_before=bumps,
@@ -245,7 +245,7 @@ def _navigation(seed: int, opts: SimulationOptions, phantom: Phantom, frame_to_i
         out["recording"] = TrackingRecording(np.zeros(0), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)),
                                              np.zeros(0), np.zeros(0))
         return out
-    noise = NoiseModel(bad_sample_rate=opts.bad_sample_rate)
+    noise = NoiseModel(bad_sample_rate=opts.bad_sample_rate).scaled(opts.tracker_noise_scale)
     centre = np.asarray(phantom.targets).mean(axis=0)
     recording, dwells, body_poses = simulate_session(
         rng, visits, frame_to_tracker, phantom.reference_to_frame, centre, lift_mm=20.0, noise=noise,
@@ -291,7 +291,7 @@ def _board(seed: int, opts: SimulationOptions, phantom: Phantom) -> dict:
         for h in range(4):
             rotation = probe_rotation_into(-normal, rng.uniform(0, 2 * np.pi), 2.0, rng)
             visits.append(Visit(pose(rotation, holes[h]), float(rng.uniform(0.7, 1.3)), f"H{h + 1}", f"H{h + 1}"))
-    noise = NoiseModel(bad_sample_rate=opts.bad_sample_rate)
+    noise = NoiseModel(bad_sample_rate=opts.bad_sample_rate).scaled(opts.tracker_noise_scale)
     recording, dwells, _ = simulate_session(
         rng, visits, reference_to_tracker, np.eye(4), holes.mean(axis=0), lift_mm=15.0, noise=noise,
         start_time_s=round(float(rng.uniform(0, 5)), 2))

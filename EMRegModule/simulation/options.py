@@ -41,6 +41,7 @@ class SimulationOptions:
     n_bumps: int = 0  # times the frame is bumped during the calibration recording
     hesitation_rate: float = 0.0  # chance of a short mid-air pause in a transition
     bad_sample_rate: float = 0.002
+    tracker_noise_scale: float = 1.0  # multiplies every tracker error magnitude (0: exact poses)
     sensor_offset_l_mm: float | None = None  # None: drawn in [a + 1, b - 1]
     n_targets: int = 6
     navigation_rounds: int = 15
@@ -67,8 +68,9 @@ class SimulationOptions:
             if matrix.size != 9 or not np.allclose(matrix.reshape(3, 3) @ matrix.reshape(3, 3).T, np.eye(3),
                                                    atol=1e-6):
                 raise EMRegError("simulate: direction must be 9 numbers forming an orthonormal 3x3 matrix")
-        if self.noise_hu < 0 or self.psf_fwhm_mm < 0:
-            raise EMRegError("simulate: noise_hu and psf_fwhm_mm must not be negative")
+        if self.noise_hu < 0 or self.psf_fwhm_mm < 0 or self.tracker_noise_scale < 0 or self.bad_sample_rate < 0:
+            raise EMRegError("simulate: noise_hu, psf_fwhm_mm, tracker_noise_scale and bad_sample_rate must not be "
+                             "negative")
         if len(self.board_edges_mm) != 4:
             raise EMRegError("simulate: board_edges_mm needs four edge lengths")
         for name in ("n_decoys", "n_bumps", "n_targets", "navigation_rounds", "board_rounds"):

@@ -17,7 +17,7 @@ Errors, in the Tracker frame, with the trakSTAR's character:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 from scipy.signal import lfilter
@@ -45,6 +45,12 @@ class NoiseModel:
     reference_jitter_deg: float = 0.03
     correlation: float = 0.7  # AR(1) coefficient of the jitter, sample to sample
     bad_sample_rate: float = 0.002
+
+    def scaled(self, factor: float) -> NoiseModel:
+        """Every error magnitude times ``factor`` (correlation and bad-sample rate unchanged)."""
+        values = {f.name: getattr(self, f.name) * factor for f in fields(self)
+                  if f.name not in ("correlation", "bad_sample_rate")}
+        return replace(self, **values)
 
 
 @dataclass
@@ -187,13 +193,12 @@ def simulate_session(rng: np.random.Generator, visits: list[Visit], body_to_trac
         track.dwell_index.append(dwell)
         track.label.append(label)
 
-    # start: the probe comes from well away from the first hole
+    # start: the probe is already on its way from well away from the first hole (never held still
+    # outside a hole, which an unlabelled recording would show as a dwell)
     first = visits[0].probe_to_body
     approach = first.copy()
     approach[:3, 3] = first[:3, 3] - first[:3, 0] * 120.0 + rng.normal(0, 30.0, 3)
     previous = approach
-    for _ in range(int(RATE_HZ * 0.5)):
-        add(approach, current_body, -1, "")
     for i, visit in enumerate(visits):
         out_prev = -previous[:3, 0]
         out_next = -visit.probe_to_body[:3, 0]
@@ -219,7 +224,10 @@ def simulate_session(rng: np.random.Generator, visits: list[Visit], body_to_trac
         previous = visit.probe_to_body
     leave = previous.copy()
     leave[:3, 3] = previous[:3, 3] - previous[:3, 0] * 100.0
-    for p in _interpolate_pose(previous, leave, int(RATE_HZ * 0.8))[1:]:
+    n_leave = int(RATE_HZ * 0.8)
+    for k in range(1, n_leave + 1):  # pulled out and away at a steady speed, not coming to rest
+        p = previous.copy()
+        p[:3, 3] += (leave[:3, 3] - previous[:3, 3]) * k / n_leave
         add(p, current_body, -1, "")
     recording = _report(rng, track, np.asarray(reference_to_body, dtype=float), noise, len(visits))
     return recording, dwells, visit_body_to_tracker

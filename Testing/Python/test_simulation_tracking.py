@@ -9,7 +9,7 @@ from conftest import load_truth
 from EMRegModule.io.case import open_case
 from EMRegModule.io.markups import read_markups
 from EMRegModule.io.tracking_csv import read_tracking_csv
-from EMRegModule.simulation import board_holes
+from EMRegModule.simulation import board_holes, simulate_case
 from EMRegModule.tracking import probe_in_reference
 from EMRegModule.transforms import angle_between_deg, apply_transform
 
@@ -136,3 +136,28 @@ def test_board_hole_geometry():
     edges = np.linalg.norm(holes - np.roll(holes, -1, axis=0), axis=1)
     assert np.allclose(edges, [75.3, 60.4, 75.5, 60.4], atol=1e-9)
     assert np.allclose(holes.mean(axis=0), 0.0) and np.allclose(holes[:, 2], 0.0)
+
+
+def test_noise_free_recordings_are_exact(tmp_path):
+    """With the tracker's errors off, every dwell sample is the truth itself (frames and angle conventions)."""
+    case = tmp_path / "exact"
+    truth = simulate_case(case, seed=9, difficulty="hard", spacing_mm=2.0, tracker_noise_scale=0.0,
+                          bad_sample_rate=0.0, frame_size_mm=(160.0, 160.0, 100.0), n_markers=8,
+                          navigation_rounds=1, board_rounds=1, n_targets=3, n_decoys=0)
+    markers = {m["label"]: m for m in truth["markers"]}
+    reference_to_frame = np.asarray(truth["frame"]["ReferenceToFrame"])
+    image_to_frame = np.linalg.inv(np.asarray(truth["frame"]["FrameToImage"]))
+    samples = probe_in_reference(read_tracking_csv(case / "calibration.csv"), 1, 2)
+    for dwell in truth["calibration"]["dwells"]:
+        inside = (samples.time_s >= dwell["start_s"] - 1e-6) & (samples.time_s <= dwell["end_s"] + 1e-6)
+        pinhole = markers[dwell["name"]]["pinhole_in_reference"]
+        assert np.abs(samples.position_mm[inside] - pinhole).max() < 2e-3  # CSV keeps 4 decimals
+        axis_reference = reference_to_frame[:3, :3].T @ image_to_frame[:3, :3] @ markers[dwell["name"]]["axis"]
+        assert np.abs(samples.direction[inside] + axis_reference).max() < 1e-4  # probe +X = marker -Y
+    samples = probe_in_reference(read_tracking_csv(case / "navigation.csv"), 1, 2)
+    reference_to_image = np.asarray(truth["ReferenceToImage"])
+    targets = {t["label"]: np.asarray(t["position"]) for t in truth["targets"]}
+    for dwell in truth["navigation"]["dwells"]:
+        inside = (samples.time_s >= dwell["start_s"] - 1e-6) & (samples.time_s <= dwell["end_s"] + 1e-6)
+        mapped = apply_transform(reference_to_image, samples.position_mm[inside])
+        assert np.linalg.norm(mapped - targets[dwell["name"]], axis=1).max() < 0.5  # hand tremor only
