@@ -159,11 +159,13 @@ class FaultPlan:
     stall_s: float = 0.0
     unplugged: list[tuple[int, float, float]] = field(default_factory=list)
     out_of_range: list[tuple[int, float, float]] = field(default_factory=list)
+    distorted: list[tuple[int, float, float]] = field(default_factory=list)
 
     @classmethod
     def parse(cls, items: Iterable[str]) -> FaultPlan:
         """From ``KIND=VALUE`` strings: ``drop=0.001``, ``flip=0.001``, ``stall=EVERY_S:DURATION_S``,
-        ``unplug=SENSOR@START-END``, ``out-of-range=SENSOR@START-END`` (seconds after start)."""
+        ``unplug=SENSOR@START-END``, ``out-of-range=SENSOR@START-END``, ``distort=SENSOR@START-END``
+        (metal distortion: bad METAL byte, pose still sent) (seconds after start)."""
         plan = cls()
         for item in items:
             kind, _, value = item.partition("=")
@@ -174,18 +176,23 @@ class FaultPlan:
                 elif kind == "stall":
                     every, _, duration = value.partition(":")
                     plan.stall_every_s, plan.stall_s = float(every), float(duration or 0.2)
-                elif kind in ("unplug", "out-of-range"):
+                elif kind in ("unplug", "out-of-range", "distort"):
                     sensor, _, window = value.partition("@")
                     start, _, end = window.partition("-")
                     entry = (int(sensor), float(start or 0.0), float(end) if end else float("inf"))
-                    (plan.unplugged if kind == "unplug" else plan.out_of_range).append(entry)
+                    {"unplug": plan.unplugged, "out-of-range": plan.out_of_range,
+                     "distort": plan.distorted}[kind].append(entry)
                 else:
                     raise ValueError(kind)
             except ValueError:
                 raise EMRegError(
-                    f"--fault {item!r}: use drop=P, flip=P, stall=EVERY_S:DURATION_S, unplug=SENSOR@START-END "
-                    "or out-of-range=SENSOR@START-END") from None
+                    f"--fault {item!r}: use drop=P, flip=P, stall=EVERY_S:DURATION_S, unplug=SENSOR@START-END, "
+                    "out-of-range=SENSOR@START-END or distort=SENSOR@START-END") from None
         return plan
+
+
+#: METAL byte the simulator sends for a distorted sensor (the scale runs 0 = clean .. 127).
+DISTORTED_METAL = 90
 
 
 @dataclass
@@ -197,7 +204,7 @@ class EmittedRecord:
     time_s: float
     pose: Pose
     fmt: str
-    status: str  # "ok", "not_attached", "out_of_range"
+    status: str  # "ok", "not_attached", "out_of_range", "distorted"
     corrupted: bool
     emit_ns: int = 0  # time.monotonic_ns() when its last byte was written to the pty
 
@@ -241,6 +248,7 @@ class TrackerSimulator:
         self.sensors = tuple(self.scene.sensors)
         self._manual_unplugged: set[int] = set() if attached is None else set(self.sensors) - set(attached)
         self._manual_out_of_range: set[int] = set()
+        self._manual_distorted: set[int] = set()
         self._stall_until_ns = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -284,6 +292,10 @@ class TrackerSimulator:
     def set_out_of_range(self, sensor: int, out: bool = True) -> None:
         """Move a sensor out of the position range (or back) now."""
         (self._manual_out_of_range.add if out else self._manual_out_of_range.discard)(sensor)
+
+    def set_distorted(self, sensor: int, distorted: bool = True) -> None:
+        """Metal distortion at a sensor now (or gone): its METAL byte reads ``DISTORTED_METAL``."""
+        (self._manual_distorted.add if distorted else self._manual_distorted.discard)(sensor)
 
     def stall(self, seconds: float) -> None:
         """Fall silent for ``seconds`` from now (records due meanwhile are skipped or delayed)."""
@@ -422,6 +434,8 @@ class TrackerSimulator:
         if sensor in self._manual_out_of_range or any(
                 s == sensor and a <= t_s < b for s, a, b in self.faults.out_of_range):
             return "out_of_range"
+        if sensor in self._manual_distorted or any(s == sensor and a <= t_s < b for s, a, b in self.faults.distorted):
+            return "distorted"
         return "ok"
 
     def _record(self, sensor: int, pose: Pose | None, t_s: float, group: bool, after_ns: int = 0) -> None:
@@ -435,7 +449,7 @@ class TrackerSimulator:
             self.error_code = tp.ERROR_SENSOR_NOT_CONNECTED
         else:
             sent_pose = pose
-            quality = 0 if metal else None
+            quality = (DISTORTED_METAL if state == "distorted" else 0) if metal else None
             if state == "out_of_range":
                 full_scale_mm = self.scale_inches * tp.MM_PER_INCH
                 position = np.array(pose.position_mm, dtype=float)
