@@ -47,6 +47,7 @@ def simulate_case(out_dir: Path, seed: int = 0, difficulty: str = "standard", sp
     opts = resolve_options(difficulty, spacing_mm, options)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "truth.json").unlink(missing_ok=True)  # written last: present only for a complete case
     model = MarkerModel.from_settings(opts.marker)
     start = time.perf_counter()
 
