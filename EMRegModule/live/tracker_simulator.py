@@ -16,7 +16,8 @@ any RS-232 client (EMReg's driver, or another trakSTAR program) opens the slave 
 - sources: a built-in scene (frame at rest on port 1, a probe moving between waypoints on port 2,
   two slowly moving tools on ports 3 and 4) or a replayed tracking CSV (successive POINT requests
   for a sensor return that sensor's successive samples; STREAM sends them in order at the
-  recording's rate, or as fast as the line allows with ``fast``);
+  recording's rate, or as fast as the line allows with ``fast``; the recording's quality numbers
+  become the METAL bytes, capped at 127);
 - faults on demand: dropped bytes, flipped phasing bits, stalls, a sensor unplugged (all-zero
   records, sensor serial 0, error code 5) or out of range (saturated position, worst METAL byte).
 
@@ -105,6 +106,7 @@ class ReplayScene:
         sensors = recording.sensor[order]
         positions = recording.position_mm[order]
         angles = rotation_to_angles(recording.rotation[order])
+        quality = np.nan_to_num(recording.quality[order], nan=0.0)
         self.sensors = tuple(sorted(int(s) for s in np.unique(sensors)))
         if any(not 1 <= s <= tp.MAX_SENSORS for s in self.sensors):
             raise EMRegError(f"{recording.source}: the simulator has sensor ports 1..4, "
@@ -113,7 +115,7 @@ class ReplayScene:
         for i in range(len(times)):
             if not self.frames or times[i] - self.frames[-1][0] > 1e-3:
                 self.frames.append((float(times[i]), {}))
-            self.frames[-1][1][int(sensors[i])] = Pose(positions[i].copy(), angles[i].copy())
+            self.frames[-1][1][int(sensors[i])] = Pose(positions[i].copy(), angles[i].copy(), float(quality[i]))
         self.per_sensor = {s: [p[s] for _, p in self.frames if s in p] for s in self.sensors}
         self._cursor = dict.fromkeys(self.sensors, 0)
         frame_times = np.array([t for t, _ in self.frames])
@@ -449,7 +451,8 @@ class TrackerSimulator:
             self.error_code = tp.ERROR_SENSOR_NOT_CONNECTED
         else:
             sent_pose = pose
-            quality = (DISTORTED_METAL if state == "distorted" else 0) if metal else None
+            clean = int(min(max(pose.quality, 0.0), tp.METAL_MAX))  # a replay carries its recording's quality
+            quality = (DISTORTED_METAL if state == "distorted" else clean) if metal else None
             if state == "out_of_range":
                 full_scale_mm = self.scale_inches * tp.MM_PER_INCH
                 position = np.array(pose.position_mm, dtype=float)

@@ -287,6 +287,7 @@ class Pose:
 
     position_mm: np.ndarray
     angles_deg: np.ndarray
+    quality: float = 0.0  # what the METAL byte reports for this pose (0 = clean), when enabled
 
     @property
     def rotation(self) -> np.ndarray:
