@@ -18,7 +18,9 @@ and the calibrated pinhole points (Reference frame), :func:`register`
 4. returns ``ReferenceToImage`` with FRE overall and per pair, flagged outliers (residual
    above ``outlier_factor`` times the robust RMS residual and above ``outlier_min_mm``), the
    FLE estimated from the FRE (``FLE^2 = FRE^2 N / (N - 2)``) and the predicted TRE at the
-   targets (Fitzpatrick, West & Maurer), plus FRE(l) samples for the report's plot.
+   targets (Fitzpatrick, West & Maurer), plus FRE(l) samples for the report's plot. The
+   predicted TRE is the registration's own contribution; an error measured at a target with
+   the tracked probe adds the probe's localisation error during navigation.
 
 FRE above ``max_fre_mm`` raises :class:`NoSafeAnswerError`: nothing is written.
 """
@@ -322,6 +324,9 @@ def register(
             f"([registration] max_fre_mm); check the calibration recording and the detected markers"
         )
     fixed = config.sensor_offset_l_mm is not None
+    if fixed and not model.pinhole_bottom_mm <= config.sensor_offset_l_mm <= model.pinhole_top_mm:
+        warnings.append(f"the given sensor offset l = {config.sensor_offset_l_mm:g} mm lies outside the pinhole "
+                        f"[{model.pinhole_bottom_mm:g}, {model.pinhole_top_mm:g}] mm")
     if not fixed:
         a, b = l_range
         if solution.l_std_mm > config.max_l_std_mm:
