@@ -106,3 +106,50 @@ def test_regeneration_option_writes_baselines(tmp_path, monkeypatch):
     monkeypatch.delenv(REGENERATE_ENV)
     with pytest.raises(AssertionError, match="missing"):
         check_against_baseline(image, tmp_path / "absent.png", MAX_ERROR)
+
+
+def _oblique_flipped_copy(image):
+    """The same CT resampled onto a rotated (30 degrees), left-handed, anisotropic voxel grid."""
+    import SimpleITK as sitk
+
+    from EMRegModule.transforms import axis_angle_to_rotation
+
+    direction = axis_angle_to_rotation([0.3, -0.5, 1.0], np.radians(30.0)) @ np.diag([-1.0, 1.0, 1.0])
+    spacing = np.array([0.45, 0.5, 0.6])
+    size = np.array([160, 150, 110])
+    centre = np.array(image.TransformContinuousIndexToPhysicalPoint([(s - 1) / 2 for s in image.GetSize()]))
+    grid = sitk.Image([int(s) for s in size], sitk.sitkInt16)
+    grid.SetSpacing(spacing.tolist())
+    grid.SetDirection(direction.ravel().tolist())
+    grid.SetOrigin((centre - direction @ (spacing * (size - 1) / 2)).tolist())
+    return sitk.Resample(image, grid, sitk.Transform(), sitk.sitkLinear, -1000.0, sitk.sitkInt16)
+
+
+def test_slices_and_surface_honour_an_oblique_flipped_anisotropic_ct():
+    """Physical space, not voxel order: the same CT on another grid gives the same slices and surface."""
+    from EMRegModule.marker_model import MarkerModel
+    from EMRegModule.rendering.scene3d import ct_context_surface
+    from EMRegModule.rendering.slices import SliceMarker, marker_slices_mosaic
+
+    model = MarkerModel()
+    fitted = samples.sample_markers()[:2]
+    geometry = {"size": (136, 70, 45), "spacing_mm": 0.5, "origin": (-36.0, -32.0, -4.0), "supersample": 5}
+    ct = samples.paint_sample_ct(fitted, model, **geometry)
+    shifted = samples.paint_sample_ct(samples.sample_markers((CT_VOXEL_SLICES_MM, 0.0, 0.0), which=0)[:2], model,
+                                      **geometry)
+    oblique = _oblique_flipped_copy(ct)
+    assert np.linalg.det(np.reshape(oblique.GetDirection(), (3, 3))) < 0
+
+    def mosaic(image):
+        markers = [SliceMarker(m.label, m.marker_to_image, m.label) for m in fitted]
+        return marker_slices_mosaic(image, markers, model, columns=2, view_px=100, mm_per_px=0.25,
+                                    window=(-1000.0, 1500.0))
+
+    base = mosaic(ct)
+    resampled_error = compare_images(mosaic(oblique), base).error  # only the resampling's blur differs
+    voxel_error = compare_images(mosaic(shifted), base).error
+    assert resampled_error < 0.5 * voxel_error, (resampled_error, voxel_error)
+
+    surface, _ = ct_context_surface(ct, iso_value=500.0)
+    surface_oblique, _ = ct_context_surface(oblique, iso_value=500.0)
+    assert np.allclose(surface.bounds, surface_oblique.bounds, atol=1.0)
