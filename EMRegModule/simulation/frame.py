@@ -179,13 +179,15 @@ def layout_markers(geometry: FrameGeometry, model: MarkerModel, n_markers: int, 
     faces = list(FACE_WEIGHTS)
     weights = np.array([FACE_WEIGHTS[f] for f in faces])
     spacing = min_spacing_mm
+    floor = model.bottom_diameter_mm + 8.0  # slots never closer than this (4 mm of POM between them)
     for attempt in range(400):
         if attempt and attempt % 40 == 0:
-            spacing *= 0.92  # crowded: relax the spacing a little
+            spacing = max(spacing * 0.92, floor)  # crowded: relax the spacing a little
         counts = rng.multinomial(n_markers, weights / weights.sum())
         if n_markers >= len(faces) and np.any(counts == 0):
             continue
         points: list[np.ndarray] = []
+        origins: list[np.ndarray] = []
         normals: list[np.ndarray] = []
         names: list[str] = []
         ok = True
@@ -195,11 +197,14 @@ def layout_markers(geometry: FrameGeometry, model: MarkerModel, n_markers: int, 
                     p = _sample_on_face(face, geometry, margin, rng, z_min)
                     if p is None:
                         continue
-                    if points and np.min(np.linalg.norm(np.asarray(points) - p, axis=1)) < spacing:
+                    origin = p - model.bottom_height_mm * FACE_NORMALS[face]
+                    if points and (np.min(np.linalg.norm(np.asarray(points) - p, axis=1)) < spacing
+                                   or np.min(np.linalg.norm(np.asarray(origins) - origin, axis=1)) < floor):
                         continue
                     if keep_out and any(np.linalg.norm(p - c) < r for c, r in keep_out):
                         continue
                     points.append(p)
+                    origins.append(origin)
                     normals.append(FACE_NORMALS[face])
                     names.append(face)
                     break

@@ -120,7 +120,7 @@ def test_layout_is_on_the_faces_irregular_and_spread(standard_case):
     assert faces == set(FACE_NORMALS)
     origins = np.asarray(origins)
     distances = np.linalg.norm(origins[:, None] - origins[None], axis=2)
-    assert np.min(distances + np.eye(len(origins)) * 1e3) > 20.0
+    assert np.min(distances + np.eye(len(origins)) * 1e3) >= model.bottom_diameter_mm + 8.0 - 1e-9
     profiles = np.sort(distances, axis=1)
     difference = np.abs(profiles[:, None] - profiles[None]).max(axis=2) + np.eye(len(origins)) * 1e3
     assert difference.min() > 2.0  # each marker is told apart by its distances to the others
