@@ -184,7 +184,8 @@ def calibrate_frame(
         direction, direction_std = robust_mean_direction(out_of_hole[used])
         warning = ""
         if len(members) > 1:
-            spread = max(np.linalg.norm(centres_array[m] - average.mean) for m in members)
+            visit_centres = centres_array[members]
+            spread = float(np.max(np.linalg.norm(visit_centres[:, None] - visit_centres[None], axis=2)))
             if spread > revisit_tolerance:
                 warning = (f"{len(members)} visits disagree by up to {spread:.2f} mm "
                            f"(more than {revisit_tolerance:g} mm): check that the probe was fully inserted")

@@ -32,6 +32,8 @@ from .tracking import TrackingRecording, probe_in_reference
 
 #: Dwells farther than this from every target (mm) are not counted for TRE (unlabelled recordings).
 DEFAULT_MAX_TARGET_DISTANCE_MM = 15.0
+#: Stillness radius (mm) for finding dwells in navigation and board recordings without labels.
+DEFAULT_STILL_RADIUS_MM = 1.0
 
 
 def evaluate_case(case: Case, reference_to_image: np.ndarray, reference_sensor: int = 1,
@@ -40,13 +42,16 @@ def evaluate_case(case: Case, reference_to_image: np.ndarray, reference_sensor: 
     recording and targets, ``board`` when it has a board recording (see module docstring).
 
     ``reference_to_image``: Reference -> CT LPS (mm). Settings: ``case.toml`` ``[evaluation]``
-    (dwell keys as in ``[calibration]``, ``max_target_distance_mm``) and ``[board] edges_mm``.
+    (dwell keys as in ``[calibration]``, ``still_radius_mm`` defaulting to 1 mm here, and
+    ``max_target_distance_mm``) and ``[board] edges_mm``.
     """
     from .io.markups import read_markups
     from .io.tracking_csv import read_tracking_csv
 
     section = case.section("evaluation")
-    dwell_settings = DwellSettings.from_settings(section, "evaluation")
+    # Hand-held touches at targets shake more than a probe resting in a pinhole: a wider
+    # stillness radius by default (targets and holes are tens of mm apart).
+    dwell_settings = DwellSettings.from_settings({"still_radius_mm": DEFAULT_STILL_RADIUS_MM, **section}, "evaluation")
     result: dict[str, Any] = {}
     if case.navigation is not None and case.targets is not None:
         labels, positions = read_markups(case.targets)

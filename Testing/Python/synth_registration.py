@@ -97,12 +97,14 @@ def calibration_recording(
     bad_quality_fraction: float = 0.0,
     short_stops: bool = False,
     visit_order: list[int] | None = None,
+    tremor_mm: float = 0.0,
 ) -> tuple[TrackingRecording, np.ndarray]:
     """A two-sensor recording (reference = 1, probe = 2) visiting each pinhole in turn.
 
     Returns the recording and the true per-visit biased points (for checks). Between dwells
     the probe is lifted and moved at ~150 mm/s; with ``bumps`` the frame (Reference sensor)
-    jumps to a new pose in the tracker between dwells.
+    jumps to a new pose in the tracker between dwells; ``tremor_mm`` adds a slow hand-held
+    wobble (1-3 Hz, that amplitude per axis) during the dwells.
     """
     rng = np.random.default_rng(seed)
     order = list(range(len(points_reference))) if visit_order is None else visit_order
@@ -142,10 +144,12 @@ def calibration_recording(
         bias = rng.normal(0, bias_mm / np.sqrt(3), 3)
         true_points.append(target + bias)
         label = "" if labels is None else labels[index]
-        for _ in range(int(dwell_s * rate_hz)):
+        frequency, phase = rng.uniform(1.0, 3.0, 3), rng.uniform(0, 2 * np.pi, 3)
+        for k in range(int(dwell_s * rate_hz)):
+            shake = tremor_mm * np.sin(2 * np.pi * frequency * k / rate_hz + phase)
             wobble = axis_angle_to_rotation(rng.normal(size=3), np.radians(rng.normal(0, angle_noise_deg)))
             noisy_rotation = rotation @ wobble
-            position = target + bias + rng.normal(0, jitter_mm, 3)
+            position = target + bias + shake + rng.normal(0, jitter_mm, 3)
             quality = rng.uniform(0, 1)
             if rng.random() < wild_fraction:
                 position = position + rng.normal(0, 5.0, 3)

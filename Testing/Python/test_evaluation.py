@@ -47,7 +47,7 @@ def case_folder(tmp_path_factory):
     targets_reference = apply_transform(invert_rigid(frame.reference_to_image), targets_image)
     visits = [0, 1, 2] * 4
     navigation, nav_truth = calibration_recording(targets_reference, frame.axes_reference[:3], seed=52, bumps=True,
-                                                  labels=TARGETS, visit_order=visits, dwell_s=0.8)
+                                                  labels=TARGETS, visit_order=visits, dwell_s=1.0, tremor_mm=0.3)
     write_tracking_csv(navigation, folder / "navigation.csv")
     holes = _board_holes(rng)
     board, board_truth = calibration_recording(holes, np.tile([0, 0, 1.0], (4, 1)), seed=53, bumps=True,
@@ -74,11 +74,11 @@ def test_tre_and_board_from_a_labelled_case(case_folder):
     expected = _expected_target_errors(frame, targets_image, visits, nav_truth)
     tre = result["tre"]
     assert tre["n"] == 12 and set(tre["targets"]) == set(TARGETS)
-    assert tre["mean_mm"] == pytest.approx(expected.mean(), abs=0.03)
-    assert tre["std_mm"] == pytest.approx(expected.std(ddof=1), abs=0.03)
+    assert tre["mean_mm"] == pytest.approx(expected.mean(), abs=0.06)  # hand tremor 0.3 mm does not average out
+    assert tre["std_mm"] == pytest.approx(expected.std(ddof=1), abs=0.06)
     for k, label in enumerate(TARGETS):
         assert tre["targets"][label]["n"] == 4
-        assert tre["targets"][label]["mean_mm"] == pytest.approx(expected[k::3].mean(), abs=0.03)
+        assert tre["targets"][label]["mean_mm"] == pytest.approx(expected[k::3].mean(), abs=0.06)
     edges = result["board"]["edges"]
     lengths = _expected_edges(board_truth)
     assert list(edges) == ["L1", "L2", "L3", "L4"] and result["board"]["rounds"] == 5
@@ -111,8 +111,8 @@ def test_unlabelled_recordings_give_the_same_figures(case_folder, tmp_path):
         (tmp_path / name).write_bytes((folder / name).read_bytes())
     result = evaluate_case(open_case(tmp_path), frame.reference_to_image, 1, 2)
     expected = _expected_target_errors(frame, targets_image, visits, nav_truth)
-    assert result["tre"]["n"] == 12 and not result["tre"]["labelled"]
-    assert result["tre"]["mean_mm"] == pytest.approx(expected.mean(), abs=0.03)
+    assert result["tre"]["n"] == 12 and not result["tre"]["labelled"]  # every hand-held dwell found
+    assert result["tre"]["mean_mm"] == pytest.approx(expected.mean(), abs=0.06)
     lengths = _expected_edges(board_truth)
     assert result["board"]["rounds"] == 5 and not result["board"]["labelled"]
     for k, name in enumerate(("L1", "L2", "L3", "L4")):
