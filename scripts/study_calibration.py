@@ -29,13 +29,13 @@ def main(argv=None) -> int:
     frame = sc.prepare_frame(args)
     rng = np.random.default_rng(2020)
     start = time.perf_counter()
-    sessions = [sc.calibrate_and_register(frame, rng) for _ in range(repetitions)]
+    sessions = [sc.calibrate_and_register(frame, rng, sc.noise_model(args.noise_scale)) for _ in range(repetitions)]
     done = [s for s in sessions if s.registration is not None]
     fre = np.array([s.registration.fre_mm for s in done])
     l_err = np.array([s.l_error_mm for s in done])
     tre = np.array([np.sqrt(np.mean(s.target_errors_mm ** 2)) for s in done])
     print(f"\nFrame calibration repeated {repetitions} times at different frame positions "
-          f"({len(frame.labels)} markers, {time.perf_counter() - start:.1f} s)\n")
+          f"({len(frame.labels)} markers, tracker noise x{args.noise_scale:g}, {time.perf_counter() - start:.1f} s)\n")
     print(sc.table(["figure", "EMReg (simulated)", "paper (Fig. 8)"], [
         ["calibrations", f"{len(done)} ({len(sessions) - len(done)} refused)", "30"],
         ["FRE mean (mm)", f"{fre.mean():.2f}", f"{sc.PAPER['calibration_fre_mean_mm']:.2f}"],

@@ -56,6 +56,8 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=1, help="seed of the simulated case")
     parser.add_argument("--quick", action="store_true",
                         help="a smaller frame (220 x 220 x 140 mm, 16 markers) and fewer repetitions")
+    parser.add_argument("--noise-scale", type=float, default=1.0,
+                        help="multiply the simulated tracker's error magnitudes (about 4 gives the paper's FRE)")
 
 
 @dataclass

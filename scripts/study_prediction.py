@@ -30,7 +30,7 @@ def main(argv=None) -> int:
     rng = np.random.default_rng(1998)
     predicted, measured, fle_estimated = [], [], []
     for _ in range(repetitions):
-        session = sc.calibrate_and_register(frame, rng)
+        session = sc.calibrate_and_register(frame, rng, sc.noise_model(args.noise_scale))
         if session.registration is None or session.registration.predicted_tre_mm is None:
             continue
         predicted.append(np.asarray(session.registration.predicted_tre_mm, dtype=float))
@@ -50,7 +50,8 @@ def main(argv=None) -> int:
 
     tracker_errors = []
     for _ in range(5):
-        calibration = calibrate_frame(sc.simulate_calibration(frame, rng), 1, 2, None)
+        calibration = calibrate_frame(sc.simulate_calibration(frame, rng, sc.noise_model(args.noise_scale)), 1, 2,
+                                      None)
         index = {label: i for i, label in enumerate(frame.labels)}
         tracker_errors += [np.linalg.norm(p.position - frame.pinholes[index[p.label]]) for p in calibration.points]
     fle_image = float(np.sqrt(np.mean(np.square(image_errors))))

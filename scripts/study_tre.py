@@ -33,12 +33,12 @@ def main(argv=None) -> int:
     overall = []
     done = 0
     for _ in range(registrations):
-        session = sc.calibrate_and_register(frame, rng)
+        session = sc.calibrate_and_register(frame, rng, sc.noise_model(args.noise_scale))
         if session.registration is None:
             print(f"refused: {session.refused}")
             continue
         done += 1
-        recording = sc.simulate_navigation(frame, rng, rounds=args.placements)
+        recording = sc.simulate_navigation(frame, rng, rounds=args.placements, noise=sc.noise_model(args.noise_scale))
         result = evaluate_targets(recording, frame.target_labels, frame.targets_image,
                                   session.registration.reference_to_image)
         for dwell in result["dwells"]:
@@ -47,7 +47,8 @@ def main(argv=None) -> int:
         print(f"registration {done}: FRE {session.registration.fre_mm:.2f} mm, TRE {result['mean_mm']:.2f} +/- "
               f"{result['std_mm']:.2f} mm over {result['n']} placements")
     overall = np.asarray(overall)
-    print(f"\nTRE at {len(frame.target_labels)} targets x {args.placements} placements, {done} registrations\n")
+    print(f"\nTRE at {len(frame.target_labels)} targets x {args.placements} placements, {done} registrations, "
+          f"tracker noise x{args.noise_scale:g}\n")
     rows = [[label, str(len(v)), sc.mean_std(v), f"{np.max(v):.2f}" if v else "-"] for label, v in per_target.items()]
     rows.append(["all", str(len(overall)), sc.mean_std(overall), f"{overall.max():.2f}"])
     print(sc.table(["target", "placements", "TRE mean +/- std (mm)", "max (mm)"], rows))
