@@ -181,8 +181,9 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self.updateGUIFromLogic()
 
     def onLoadCase(self):
-        output = self.ui.outputDirectoryButton.directory or None
-        self._run("Loading the case failed.", self.logic.loadCase, self.ui.caseDirectoryButton.directory, output)
+        output = self.ui.outputDirectoryPathLineEdit.currentPath or None
+        self._run("Loading the case failed.", self.logic.loadCase, self.ui.caseDirectoryPathLineEdit.currentPath,
+                  output)
 
     def onSensorsChanged(self, value=None):
         self.logic.setSensors(self.ui.referenceSensorSpinBox.value, self.ui.probeSensorSpinBox.value)

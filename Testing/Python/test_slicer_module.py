@@ -167,12 +167,12 @@ class QLineEdit(FakeSignalWidget):
     signals = ("textChanged(QString)",)
 
 
-class ctkDirectoryButton(FakeSignalWidget):  # noqa: N801 - Slicer's class name
-    signals = ("directoryChanged(QString)",)
+class ctkPathLineEdit(FakeSignalWidget):  # noqa: N801 - Slicer's class name
+    signals = ("currentPathChanged(QString)",)
 
     def __init__(self, name, properties):
         super().__init__(name, properties)
-        self.directory = ""
+        self.currentPath = ""
 
 
 class ctkCollapsibleButton(FakeSignalWidget):  # noqa: N801
@@ -192,7 +192,7 @@ class qMRMLWidget(FakeSignalWidget):  # noqa: N801
         self.scene = scene
 
 
-WIDGET_CLASSES = {cls.__name__: cls for cls in (QPushButton, QSpinBox, QLabel, QLineEdit, ctkDirectoryButton,
+WIDGET_CLASSES = {cls.__name__: cls for cls in (QPushButton, QSpinBox, QLabel, QLineEdit, ctkPathLineEdit,
                                                 ctkCollapsibleButton, qMRMLWidget)}
 
 
@@ -573,8 +573,8 @@ def test_widget_wires_the_buttons_to_the_controller(fake_slicer, standard_case, 
         ui.loadCaseButton.click()
     assert fake_slicer.errors and "Loading the case failed." in fake_slicer.errors[-1]
 
-    ui.caseDirectoryButton.directory = str(standard_case)
-    ui.outputDirectoryButton.directory = str(tmp_path / "out")
+    ui.caseDirectoryPathLineEdit.currentPath = str(standard_case)
+    ui.outputDirectoryPathLineEdit.currentPath = str(tmp_path / "out")
     ui.loadCaseButton.click()
     assert widget.logic.controller.image is not None
     assert fake_slicer.layers[0] is fake_slicer.scene.GetFirstNodeByName("EMReg CT")
