@@ -63,6 +63,12 @@ def _settings(args: argparse.Namespace, case_dir: Path | None = None) -> dict:
     return {}
 
 
+def _warn(command: str, warnings: Sequence[str]) -> None:
+    """Print a stage's warnings (also kept in its JSON output), one line each, on stderr."""
+    for warning in warnings:
+        print(f"emreg {command}: warning: {warning}", file=sys.stderr)
+
+
 def _controller(args: argparse.Namespace, settings: dict):
     from .controller import EMRegController
 
@@ -110,6 +116,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     controller.load_calibration_recording(args.recording)
     result = controller.calibrate_frame()
     write_frame_calibration(result, Path(args.out) / "frame_calibration.json")
+    _warn("calibrate", result.warnings)
     print(f"{len(result.points)} pinholes calibrated -> {args.out}")
     return 0
 
@@ -134,6 +141,7 @@ def cmd_register(args: argparse.Namespace) -> int:
         _remove_outputs(Path(args.out), "register")
         raise
     write_registration(result, Path(args.out))
+    _warn("register", result.warnings)
     print(f"registered: FRE {result.fre_mm:.2f} mm, l = {result.sensor_offset_l_mm:.2f} mm, "
           f"{len(result.pairs)} pairs -> {args.out}")
     return 0
@@ -277,6 +285,8 @@ def run_case(
             controller.load_calibration_recording(case.calibration)
             calibration = controller.calibrate_frame()
             write_frame_calibration(calibration, out / "frame_calibration.json")
+            if controller.detection is None:  # otherwise the registration repeats them
+                _warn("run", calibration.warnings)
             summary.append(f"calibrate: {len(calibration.points)} pinholes")
         current = "register"
         if controller.detection is not None and controller.frame_calibration is not None \
@@ -290,6 +300,7 @@ def run_case(
                 targets = read_markups(case.targets)[1]
             registration = controller.register(targets)
             write_registration(registration, out)
+            _warn("run", registration.warnings)
             summary.append(f"register: FRE {registration.fre_mm:.2f} mm, l = "
                            f"{registration.sensor_offset_l_mm:.2f} mm, {len(registration.pairs)} pairs")
         current = "navigate"
