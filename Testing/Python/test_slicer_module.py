@@ -402,6 +402,8 @@ class FakeSlicer:
                              ("qt", qt), ("ctk", types.ModuleType("ctk")), ("sitkUtils", sitk_utils)):
             monkeypatch.setitem(sys.modules, name, module)
         monkeypatch.delitem(sys.modules, "EMReg", raising=False)
+        monkeypatch.setattr(sys, "path", list(sys.path))  # the module inserts the repository root itself
+        self.monkeypatch = monkeypatch
         self.slicer = slicer
 
     @contextlib.contextmanager
@@ -423,7 +425,7 @@ class FakeSlicer:
     def load_module(self):
         spec = importlib.util.spec_from_file_location("EMReg", MODULE_FILE)
         module = importlib.util.module_from_spec(spec)
-        sys.modules["EMReg"] = module
+        self.monkeypatch.setitem(sys.modules, "EMReg", module)
         spec.loader.exec_module(module)
         return module
 
