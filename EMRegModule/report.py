@@ -468,7 +468,7 @@ def render_figures(inputs: ReportInputs, rows: list[MarkerRow], points: dict[str
     evaluation = inputs.evaluation or {}
     tre = evaluation.get("tre") or {}
     planned = []
-    if rows or points:
+    if rows or (points and "ReferenceToImage" in registration):  # calibration points alone have no image place
         planned += ["scene_oblique", "scene_top"]
     if rows and inputs.image is not None:
         planned.append("marker_slices")
@@ -699,8 +699,8 @@ def build_html(inputs: ReportInputs, rows: list[MarkerRow], points: dict[str, di
     if "scene_oblique" in figure:
         parts.append(_figure_html(figure["scene_oblique"]) + _figure_html(figure["scene_top"]))
     else:
-        parts.append("<div class=\"note\">Not shown: no markers.json or frame_calibration.json in the output "
-                     "folder.</div>")
+        parts.append("<div class=\"note\">Not shown: no markers.json (nor a registration placing the calibration "
+                     "points) in the output folder.</div>")
 
     # Registration
     parts.append("<h2>Registration</h2>")

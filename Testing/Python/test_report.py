@@ -150,6 +150,16 @@ def test_missing_inputs_leave_sections_out_with_a_note(tmp_path, sample_run):
     assert sorted(p.name for p in (out / FIGURE_DIR).iterdir()) == ["scene_oblique.png", "scene_top.png"]
 
 
+def test_calibration_alone_gives_tables_but_no_empty_scene(tmp_path, sample_run):
+    root, _, _ = sample_run
+    out = tmp_path / "out"
+    out.mkdir()
+    shutil.copy(root / "out" / "frame_calibration.json", out / "frame_calibration.json")
+    text = write_report(out).read_text()
+    assert "<img" not in text and "Not shown: no markers.json" in text
+    assert "M04" in text  # the calibration table
+
+
 def test_refusal_and_stale_figures(tmp_path, sample_run):
     """A refused registration (run.json) is shown first; figures of an earlier run are removed."""
     out = _copy_run(sample_run, tmp_path)
