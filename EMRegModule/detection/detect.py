@@ -59,12 +59,12 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
     seen: list[np.ndarray] = []
     with progress.step("fitting markers", total=len(coarse.regions)) as step:
         for region in coarse.regions:
-            for blob in blobs_in_region(volume, region, spacing_zyx, model, options):
-                key = apply_transform(index_to_image, blob.centroid_index_zyx()[::-1])
+            for blob in blobs_in_region(volume, region, index_to_image, spacing_zyx, model, options):
+                key = blob.centroid()
                 if any(np.linalg.norm(key - other) < 1.0 for other in seen):
                     continue
                 seen.append(key)
-                outcome = _classify(blob, coarse.metal_zyx, index_to_image, spacing_zyx, model, options)
+                outcome = _classify(blob, coarse.metal_zyx, index_to_image, model, options)
                 (markers if isinstance(outcome, DetectedMarker) else rejected).append(outcome)
             step.advance()
     markers.sort(key=lambda m: (m.origin[2], m.origin[1], m.origin[0]))
@@ -76,9 +76,9 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
     return DetectionResult(markers, rejected, image_geometry(image))
 
 
-def _classify(blob: Blob, metal_zyx: np.ndarray, index_to_image: np.ndarray, spacing_zyx: np.ndarray,
-              model: MarkerModel, options: DetectionSettings) -> DetectedMarker | RejectedCandidate:
-    measures = measure_blob(blob, index_to_image, spacing_zyx, options)
+def _classify(blob: Blob, metal_zyx: np.ndarray, index_to_image: np.ndarray, model: MarkerModel,
+              options: DetectionSettings) -> DetectedMarker | RejectedCandidate:
+    measures = measure_blob(blob, options)
     centroid, volume = measures.centroid, measures.volume_mm3
 
     def reject(reason: str, code: str) -> RejectedCandidate:
@@ -98,7 +98,7 @@ def _classify(blob: Blob, metal_zyx: np.ndarray, index_to_image: np.ndarray, spa
     else:
         problem, code = _size_and_shape_problem(measures.volume_mm3, measures.spreads_mm, model, options, strict)
     if problem is None:
-        fit = fit_pose(blob.values, blob.mask, blob.offset_zyx, index_to_image, model,
+        fit = fit_pose(blob.mask, blob.work_to_image, blob.full_values, blob.full_to_image, model,
                        min_contrast_hu=0.5 * (measures.marker_hu - options.low_hu),
                        min_inner_hu=options.low_hu, trim_mm=3 * options.max_fit_rms_mm)
         if fit.fit_rms_mm > strict * options.max_fit_rms_mm:

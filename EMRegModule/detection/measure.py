@@ -30,47 +30,54 @@ class BlobMeasures:
     points: np.ndarray
 
 
-def measure_blob(blob: Blob, index_to_image: np.ndarray, spacing_zyx: np.ndarray,
-                 settings: DetectionSettings) -> BlobMeasures:
-    """Volume, centroid, principal spreads and the marker's own intensity of ``blob``."""
-    spacing_zyx = np.asarray(spacing_zyx, dtype=float)
-    near = ndimage.binary_dilation(blob.mask, structure=ball(1.5, spacing_zyx))
-    core = ndimage.binary_erosion(blob.mask, structure=ball(1.0, spacing_zyx))
-    marker_hu = float(np.median(blob.values[core] if core.sum() >= 20 else blob.values[blob.mask]))
+def measure_blob(blob: Blob, settings: DetectionSettings) -> BlobMeasures:
+    """Volume, centroid, principal spreads and the marker's own intensity of ``blob``.
+
+    Works in the blob's bounding box grown by 2 mm (all it needs), not the whole region.
+    """
+    spacing_zyx = blob.spacing_zyx
+    crop = _grown_box(blob.mask, np.ceil(2.0 / spacing_zyx).astype(int))
+    mask, values, smoothed = blob.mask[crop], blob.values[crop], blob.smoothed[crop]
+    near = ndimage.binary_dilation(mask, structure=ball(1.5, spacing_zyx))
+    core = ndimage.binary_erosion(mask, structure=ball(1.0, spacing_zyx))
+    marker_hu = float(np.median(values[core] if np.count_nonzero(core) >= 20 else values[mask]))
     size = 2 * np.ceil(1.5 / spacing_zyx).astype(int) + 1
-    background = ndimage.minimum_filter(blob.smoothed, size=tuple(size), mode="nearest")
+    background = ndimage.minimum_filter(smoothed, size=tuple(size), mode="nearest")
     contrast = marker_hu - background
     flat = contrast < 200.0
-    inside = near & np.where(flat, blob.smoothed >= settings.low_hu,
-                             blob.smoothed - background >= 0.5 * contrast)
+    inside = near & np.where(flat, smoothed >= settings.low_hu, smoothed - background >= 0.5 * contrast)
     if inside.any():
         labels, _ = ndimage.label(inside)
-        keep = np.unique(labels[blob.mask & inside])
+        keep = np.unique(labels[mask & inside])
         inside = np.isin(labels, keep[keep > 0])
-    voxel_volume = float(np.prod(spacing_zyx))
-    ijk = (np.argwhere(inside) + blob.offset_zyx)[:, ::-1].astype(float)
-    points = apply_transform(index_to_image, ijk) if len(ijk) else np.empty((0, 3))
+    offset = np.array([c.start for c in crop], dtype=float)
+    ijk = (np.argwhere(inside) + offset)[:, ::-1]
+    points = apply_transform(blob.work_to_image, ijk) if len(ijk) else np.empty((0, 3))
     if len(points) >= 4:
         spreads = np.sqrt(np.maximum(np.sort(np.linalg.eigvalsh(np.cov(points.T))), 0))
         centroid = points.mean(axis=0)
     else:
         spreads = np.zeros(3)
-        centroid = apply_transform(index_to_image, blob.centroid_index_zyx()[::-1])
-    shell = ndimage.binary_dilation(blob.mask, structure=ball(1.0, spacing_zyx))
-    bone = np.count_nonzero(shell & (blob.values >= settings.high_hu))
-    return BlobMeasures(centroid, inside.sum() * voxel_volume, spreads, marker_hu,
+        centroid = blob.centroid()
+    bone = np.count_nonzero(near & (values >= settings.high_hu))
+    return BlobMeasures(centroid, np.count_nonzero(inside) * blob.voxel_volume_mm3, spreads, marker_hu,
                         bone / max(1, blob.voxel_count), points)
+
+
+def _grown_box(mask: np.ndarray, margin: np.ndarray) -> tuple[slice, slice, slice]:
+    """The bounding box of ``mask`` grown by ``margin`` voxels per axis, clipped to the array."""
+    box = ndimage.find_objects(mask.astype(np.uint8))[0]
+    return tuple(slice(max(0, b.start - int(m)), min(n, b.stop + int(m)))
+                 for b, m, n in zip(box, margin, mask.shape, strict=True))
 
 
 def metal_distance_mm(centroid: np.ndarray, metal_zyx: np.ndarray, index_to_image: np.ndarray,
                       blob: Blob, settings: DetectionSettings) -> float:
     """Distance (mm) from the blob's centroid to the nearest metal voxel (coarse samples and the region)."""
-    candidates = [metal_zyx]
-    local = np.argwhere(blob.values >= settings.metal_hu)
+    points = [apply_transform(index_to_image, metal_zyx[:, ::-1].astype(float))] if len(metal_zyx) else []
+    local = np.argwhere(blob.full_values >= settings.metal_hu)
     if len(local):
-        candidates.append(local + blob.offset_zyx)
-    metal = np.concatenate(candidates) if any(len(c) for c in candidates) else np.empty((0, 3))
-    if len(metal) == 0:
+        points.append(apply_transform(blob.full_to_image, local[:, ::-1].astype(float)))
+    if not points:
         return float("inf")
-    points = apply_transform(index_to_image, metal[:, ::-1].astype(float))
-    return float(np.min(np.linalg.norm(points - centroid, axis=1)))
+    return float(np.min(np.linalg.norm(np.concatenate(points) - centroid, axis=1)))

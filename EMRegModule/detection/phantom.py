@@ -130,7 +130,7 @@ def paint(volume_zyx: np.ndarray, index_to_image: np.ndarray, obj: PaintedObject
     index_to_object = invert_rigid(obj.object_to_image) @ index_to_image
     occupancy = _grid_aligned_box(obj, index_to_object, ii, jj, kk)
     if occupancy is None:
-        occupancy = _sampled_occupancy(obj, index_to_object, ii, jj, kk, supersample)
+        occupancy = sampled_occupancy(obj, index_to_object, ii, jj, kk, supersample)
     block = volume_zyx[start[2]:stop[2], start[1]:stop[1], start[0]:stop[0]]
     if obj.over:
         block *= 1 - occupancy
@@ -160,7 +160,7 @@ def _grid_aligned_box(obj: PaintedObject, index_to_object: np.ndarray, ii: np.nd
     return fractions[2][:, None, None] * fractions[1][None, :, None] * fractions[0][None, None, :]
 
 
-def _sampled_occupancy(obj: PaintedObject, index_to_object: np.ndarray, ii: np.ndarray, jj: np.ndarray,
+def sampled_occupancy(obj: PaintedObject, index_to_object: np.ndarray, ii: np.ndarray, jj: np.ndarray,
                        kk: np.ndarray, supersample: int) -> np.ndarray:
     grid = np.stack(np.meshgrid(kk, jj, ii, indexing="ij")[::-1], axis=-1).astype(float)
     centres = obj.inside(apply_transform(index_to_object, grid.reshape(-1, 3))).reshape(grid.shape[:3])

@@ -31,7 +31,7 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkIterativeClosestPoint
 from vtkmodules.vtkFiltersCore import vtkFlyingEdges3D
 
 from ..marker_model import MarkerModel
-from ..transforms import apply_rotation, apply_transform, invert_rigid, make_transform
+from ..transforms import apply_rotation, apply_transform, axis_angle_to_rotation, invert_rigid, make_transform
 
 
 @dataclass(frozen=True)
@@ -161,8 +161,7 @@ def principal_start(points_image: np.ndarray, model: MarkerModel) -> np.ndarray:
     return make_transform(rotation, centroid - centroid_y * axis)
 
 
-def blob_surface_points(mask_zyx: np.ndarray, index_to_image: np.ndarray, offset_zyx: np.ndarray,
-                        sigma_vox: float = 0.7) -> np.ndarray:
+def blob_surface_points(mask_zyx: np.ndarray, local_to_image: np.ndarray, sigma_vox: float = 0.7) -> np.ndarray:
     """Points of the blob's iso-surface (``vtkFlyingEdges3D`` on the smoothed mask at 0.5), image mm."""
     field = ndimage.gaussian_filter(np.pad(mask_zyx.astype(np.float32), 2), sigma_vox)
     image = vtkImageData()
@@ -178,8 +177,7 @@ def blob_surface_points(mask_zyx: np.ndarray, index_to_image: np.ndarray, offset
     points = surface.GetOutput().GetPoints()
     if points is None:
         return np.empty((0, 3))
-    ijk = vtk_to_numpy(points.GetData()).astype(float) - 2.0 + offset_zyx[::-1]
-    return apply_transform(index_to_image, ijk)
+    return apply_transform(local_to_image, vtk_to_numpy(points.GetData()).astype(float) - 2.0)
 
 
 def icp_to_model(points_marker: np.ndarray, model: MarkerModel, max_iterations: int = 40,
@@ -216,46 +214,87 @@ def refine_with(points_image: np.ndarray, marker_to_image: np.ndarray, model: Ma
     return _orthonormal(marker_to_image @ invert_rigid(correction))
 
 
-def edge_points(values_zyx: np.ndarray, offset_zyx: np.ndarray, image_to_index: np.ndarray,
-                marker_to_image: np.ndarray, samples: EdgeSamples, outer_mm: float = 2.0,
-                step_mm: float = 0.1, min_contrast_hu: float = 300.0, min_inner_hu: float = 600.0) -> np.ndarray:
-    """Sub-voxel edge points (image mm) along the CAD normals of ``samples`` placed at ``marker_to_image``.
+@dataclass
+class EdgeHits:
+    """Edges found along CAD normals: the predicted surface points, normals (image) and signed offsets (mm)."""
+
+    surface: np.ndarray
+    normals: np.ndarray
+    offsets: np.ndarray
+
+    @property
+    def points(self) -> np.ndarray:
+        """The edge points (image mm)."""
+        return self.surface + self.offsets[:, None] * self.normals
+
+    def __len__(self) -> int:
+        return len(self.offsets)
+
+
+def edge_points(values_zyx: np.ndarray, local_to_image: np.ndarray, marker_to_image: np.ndarray,
+                samples: EdgeSamples, outer_mm: float = 2.0, step_mm: float = 0.1, min_contrast_hu: float = 300.0,
+                min_inner_hu: float = 600.0, image_to_local: np.ndarray | None = None) -> EdgeHits:
+    """Sub-voxel edges along the CAD normals of ``samples`` placed at ``marker_to_image`` (image mm).
 
     Each profile's level is half-way between its inner plateau (inside the PVC) and its outer
     plateau (the local background: air, plastic or tissue); the edge is the level crossing
     nearest to the predicted surface. Profiles with too little contrast give no point.
     """
+    if image_to_local is None:
+        image_to_local = np.linalg.inv(local_to_image)
     s = np.arange(-2.0, outer_mm + step_mm / 2, step_mm)
     base = apply_transform(marker_to_image, samples.points)
     direction = apply_rotation(marker_to_image, samples.normals)
-    physical = base[:, None, :] + s[None, :, None] * direction[:, None, :]
-    ijk = apply_transform(image_to_index, physical.reshape(-1, 3))
-    coordinates = (ijk[:, ::-1] - offset_zyx).T
+    # index coordinates along every profile: start point plus a per-step increment (cheap)
+    start_ijk = apply_transform(image_to_local, base + s[0] * direction)
+    step_ijk = apply_rotation(image_to_local, direction) * step_mm
+    ijk = start_ijk[:, None, :] + np.arange(len(s))[None, :, None] * step_ijk[:, None, :]
+    coordinates = ijk.reshape(-1, 3)[:, ::-1].T
     profiles = ndimage.map_coordinates(values_zyx, coordinates, order=1, mode="nearest").reshape(len(base), len(s))
-    plateau = 0.6
-    inner_lo = -samples.inner_mm
-    in_inner = (s[None, :] >= inner_lo[:, None]) & (s[None, :] <= inner_lo[:, None] + plateau)
-    inner = _masked_median(profiles, in_inner)
-    outer = np.median(profiles[:, s >= outer_mm - plateau], axis=1)
+    plateau = int(round(0.6 / step_mm))
+    inner = np.empty(len(base))
+    for depth in np.unique(samples.inner_mm):
+        rows = samples.inner_mm == depth
+        first = int(np.argmin(np.abs(s + depth)))
+        inner[rows] = np.median(profiles[rows, first:first + plateau + 1], axis=1)
+    outer = np.median(profiles[:, -plateau - 1:], axis=1)
     level = (inner + outer) / 2
     usable = (inner - outer >= min_contrast_hu) & (inner >= min_inner_hu)
     above = profiles - level[:, None]
-    valid_region = s[None, :] >= inner_lo[:, None]
-    crossing = (above[:, :-1] >= 0) & (above[:, 1:] < 0) & valid_region[:, :-1]
-    centre = np.argmin(np.abs(s))
+    valid = s[None, :-1] >= -samples.inner_mm[:, None]
+    crossing = (above[:, :-1] >= 0) & (above[:, 1:] < 0) & valid
+    centre = int(np.argmin(np.abs(s)))
     distance = np.where(crossing, np.abs(np.arange(len(s) - 1) - centre), np.iinfo(np.int32).max)
     k = np.argmin(distance, axis=1)
     found = crossing[np.arange(len(k)), k] & usable
     rows = np.nonzero(found)[0]
     k = k[rows]
     a0, a1 = above[rows, k], above[rows, k + 1]
-    offset = s[k] + step_mm * a0 / (a0 - a1)
-    return base[rows] + offset[:, None] * direction[rows]
+    offsets = s[k] + step_mm * a0 / (a0 - a1)
+    return EdgeHits(base[rows], direction[rows], offsets)
 
 
-def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    data = np.where(mask, values, np.nan)
-    return np.nanmedian(data, axis=1)
+def point_to_plane_step(hits: EdgeHits, marker_to_image: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """One Gauss-Newton step moving the CAD surface onto the edges along their normals.
+
+    Linearised small rotation ``w`` about the marker's centre and translation ``v``:
+    ``offset_i ~ ((q_i - c) x n_i) . w + n_i . v``; the spin about the symmetry axis is not
+    observable and the least-squares solution leaves it at zero.
+    """
+    centre = marker_to_image[:3, 3] + 6.0 * marker_to_image[:3, 1]
+    q, n, r = hits.surface[keep], hits.normals[keep], hits.offsets[keep]
+    jacobian = np.hstack([np.cross(q - centre, n), n])
+    delta, *_ = np.linalg.lstsq(jacobian, r, rcond=1e-6)
+    w, v = delta[:3], delta[3:]
+    angle = float(np.linalg.norm(w))
+    rotation = axis_angle_to_rotation(w / angle, angle) if angle > 1e-12 else np.eye(3)
+    update = make_transform(rotation, centre + v - rotation @ centre)
+    return update @ marker_to_image
+
+
+def _robust_keep(offsets: np.ndarray, trim_mm: float) -> np.ndarray:
+    centre = np.median(offsets)
+    return np.abs(offsets - centre) <= max(min(trim_mm, 0.5), 4 * 1.4826 * _mad(offsets))
 
 
 def _orthonormal(transform: np.ndarray) -> np.ndarray:
@@ -274,38 +313,48 @@ def surface_distances(points_image: np.ndarray, marker_to_image: np.ndarray, mod
     return model.signed_distance(apply_transform(invert_rigid(marker_to_image), points_image))
 
 
-def fit_pose(values_zyx: np.ndarray, mask_zyx: np.ndarray, offset_zyx: np.ndarray, index_to_image: np.ndarray,
+def fit_pose(mask_zyx: np.ndarray, mask_to_image: np.ndarray, values_zyx: np.ndarray, values_to_image: np.ndarray,
              model: MarkerModel, min_contrast_hu: float = 300.0, min_inner_hu: float = 600.0,
              trim_mm: float = 1.0) -> PoseFit:
-    """The pose of one blob: principal start, flying-edges ICP, then two edge-point ICP refinements.
+    """The pose of one blob (``marker_to_image``) and the fit's quality.
 
-    ``values_zyx`` holds the raw intensities of the blob's region, ``mask_zyx`` the blob;
-    ``offset_zyx`` is the image index of ``values_zyx[0, 0, 0]``; ``index_to_image`` maps
-    (i, j, k) to LPS mm.
+    ``mask_zyx`` is the segmented blob and ``values_zyx`` the raw intensities around it
+    (float32, any resolution); ``*_to_image`` map their local (i, j, k) indices to LPS mm.
+    Steps: principal-axes start; ``vtkIterativeClosestPointTransform`` of the flying-edges
+    surface onto the CAD surface; edge points along the CAD normals with two point-to-plane
+    steps; a final ICP of the edge points onto the CAD surface from that close start.
     """
-    image_to_index = np.linalg.inv(index_to_image)
-    voxels_ijk = np.argwhere(mask_zyx)[:, ::-1] + offset_zyx[::-1]
-    start = principal_start(apply_transform(index_to_image, voxels_ijk.astype(float)), model)
-    surface = blob_surface_points(mask_zyx, index_to_image, offset_zyx)
-    pose = refine_with(surface, start, model, max_iterations=50, max_landmarks=400, tolerance_mm=5e-3)
+    voxels_ijk = np.argwhere(mask_zyx)[:, ::-1].astype(float)
+    start = principal_start(apply_transform(mask_to_image, voxels_ijk), model)
+    surface = blob_surface_points(mask_zyx, mask_to_image)
+    pose = refine_with(surface, start, model, max_iterations=40, max_landmarks=250, tolerance_mm=0.01)
     samples = edge_samples(model)
-    points = np.empty((0, 3))
-    for landmarks, tolerance in ((400, 1e-3), (len(samples.points), 2e-4)):
-        points = edge_points(values_zyx, offset_zyx, image_to_index, pose, samples,
-                             min_contrast_hu=min_contrast_hu, min_inner_hu=min_inner_hu)
-        if len(points) < 30:
+    image_to_local = np.linalg.inv(values_to_image)
+
+    def edges(at: np.ndarray) -> EdgeHits:
+        return edge_points(values_zyx, values_to_image, at, samples, min_contrast_hu=min_contrast_hu,
+                           min_inner_hu=min_inner_hu, image_to_local=image_to_local)
+
+    hits = edges(pose)
+    for _ in range(4):
+        if len(hits) < 30:
+            return PoseFit(pose, float("inf"), 0.0, len(hits))
+        previous = pose
+        pose = point_to_plane_step(hits, pose, _robust_keep(hits.offsets, trim_mm))
+        hits = edges(pose)
+        moved = apply_transform(pose, samples.points[::25]) - apply_transform(previous, samples.points[::25])
+        if np.max(np.linalg.norm(moved, axis=1)) < 0.02:  # Gauss-Newton: the next step would be ~1e-4 mm
             break
-        distances = surface_distances(points, pose, model)
-        keep = np.abs(distances - np.median(distances)) <= max(trim_mm, 4 * 1.4826 * _mad(distances))
-        pose = refine_with(points[keep], pose, model, max_iterations=40, max_landmarks=landmarks,
-                           tolerance_mm=tolerance)
-    if len(points) < 30:
-        return PoseFit(pose, float("inf"), 0.0, len(points))
-    distances = surface_distances(points, pose, model)
+    if len(hits) < 30:
+        return PoseFit(pose, float("inf"), 0.0, len(hits))
+    keep = _robust_keep(hits.offsets, trim_mm)
+    pose = refine_with(hits.points[keep], pose, model, max_iterations=20, max_landmarks=len(samples.points),
+                       tolerance_mm=1e-4)
+    distances = surface_distances(hits.points, pose, model)
     inliers = np.abs(distances) <= trim_mm
     rms = float(np.sqrt(np.mean(distances[inliers] ** 2))) if inliers.any() else float("inf")
-    coverage = len(points) / len(samples.points)
-    return PoseFit(pose, rms, float(inliers.mean()) * min(1.0, coverage / 0.5), len(points))
+    coverage = len(hits) / len(samples.points)
+    return PoseFit(pose, rms, float(inliers.mean()) * min(1.0, coverage / 0.5), len(hits))
 
 
 def _mad(values: np.ndarray) -> float:

@@ -46,25 +46,41 @@ class CoarseResult:
 
 @dataclass
 class Blob:
-    """One full-resolution connected component inside a region.
+    """One connected component inside a region, on the region's work grid.
 
-    ``values`` is the region's raw intensity (float32), ``smoothed`` its Gaussian-smoothed copy,
-    ``mask`` the component; ``offset_zyx`` is the image index of ``values[0, 0, 0]``.
+    The work grid is the full-resolution grid, or for voxels finer than ``WORK_SPACING_MM`` its
+    block average (segmentation needs no finer voxels; the pose's edge profiles still sample
+    ``full_values``). ``values`` holds the work grid's raw intensities (float32), ``smoothed``
+    their Gaussian-smoothed copy, ``mask`` the component. Each array set has its own
+    ``*_to_image`` (4x4: local array index (i, j, k) -> LPS mm).
     """
 
     values: np.ndarray
     smoothed: np.ndarray
     mask: np.ndarray
-    offset_zyx: np.ndarray
+    work_to_image: np.ndarray
+    spacing_zyx: np.ndarray
+    full_values: np.ndarray
+    full_to_image: np.ndarray
     touches_image_edge: bool
     touches_region_edge: bool
 
     @property
     def voxel_count(self) -> int:
-        return int(self.mask.sum())
+        return int(np.count_nonzero(self.mask))
 
-    def centroid_index_zyx(self) -> np.ndarray:
-        return np.argwhere(self.mask).mean(axis=0) + self.offset_zyx
+    @property
+    def voxel_volume_mm3(self) -> float:
+        return float(np.prod(self.spacing_zyx))
+
+    def centroid(self) -> np.ndarray:
+        """Centroid of the mask's voxels (LPS mm)."""
+        ijk = np.argwhere(self.mask).mean(axis=0)[::-1]
+        return self.work_to_image[:3, :3] @ ijk + self.work_to_image[:3, 3]
+
+
+WORK_SPACING_MM = 0.6
+"""Regions with finer voxels are block-averaged to about this size for segmentation."""
 
 
 def coarse_strides(spacing_zyx: np.ndarray, step_mm: float) -> np.ndarray:
@@ -137,31 +153,68 @@ def ball(radius_mm: float, spacing_zyx: np.ndarray) -> np.ndarray:
     return element
 
 
-def blobs_in_region(volume_zyx: np.ndarray, region: Region, spacing_zyx: np.ndarray, model: MarkerModel,
-                    settings: DetectionSettings) -> list[Blob]:
-    """Full-resolution connected components of the smoothed, band-thresholded, opened region."""
-    values = np.asarray(volume_zyx[region.slices], dtype=np.float32)
-    sigma = [settings.smoothing_sigma_mm / s for s in spacing_zyx]
+def work_factors(spacing_zyx: np.ndarray) -> np.ndarray:
+    """Block-averaging factors (z, y, x) that bring voxels up to about ``WORK_SPACING_MM``."""
+    return np.maximum(1, np.floor(WORK_SPACING_MM / np.asarray(spacing_zyx) + 1e-6)).astype(int)
+
+
+def local_to_image(index_to_image: np.ndarray, offset_zyx: np.ndarray, factors_zyx: np.ndarray) -> np.ndarray:
+    """4x4 mapping a (block-averaged) region's local index (i, j, k) to LPS mm."""
+    factors = np.asarray(factors_zyx, dtype=float)[::-1]
+    local = np.eye(4)
+    local[:3, :3] = np.diag(factors)
+    local[:3, 3] = np.asarray(offset_zyx, dtype=float)[::-1] + (factors - 1) / 2
+    return index_to_image @ local
+
+
+def block_mean(values: np.ndarray, factors_zyx: np.ndarray) -> np.ndarray:
+    """Average over blocks of ``factors_zyx`` voxels (the shape must be a multiple of the factors)."""
+    fz, fy, fx = (int(f) for f in factors_zyx)
+    if fz == fy == fx == 1:
+        return values
+    nz, ny, nx = (n // f for n, f in zip(values.shape, (fz, fy, fx), strict=True))
+    return values.reshape(nz, fz, ny, fy, nx, fx).mean(axis=(1, 3, 5), dtype=np.float32)
+
+
+def blobs_in_region(volume_zyx: np.ndarray, region: Region, index_to_image: np.ndarray, spacing_zyx: np.ndarray,
+                    model: MarkerModel, settings: DetectionSettings) -> list[Blob]:
+    """Connected components of the smoothed, band-thresholded, opened region (work grid)."""
+    spacing_zyx = np.asarray(spacing_zyx, dtype=float)
+    factors = work_factors(spacing_zyx)
+    image_shape = np.array(volume_zyx.shape)
+    start = np.array([sl.start for sl in region.slices])
+    stop = np.array([sl.stop for sl in region.slices])
+    stop = start + (stop - start) // factors * factors  # whole blocks only
+    slices = tuple(slice(int(a), int(b)) for a, b in zip(start, stop, strict=True))
+    full_values = np.asarray(volume_zyx[slices], dtype=np.float32)
+    values = block_mean(full_values, factors)
+    work_spacing = spacing_zyx * factors
+    sigma = [settings.smoothing_sigma_mm / s for s in work_spacing]
     smoothed = ndimage.gaussian_filter(values, sigma, mode="nearest") if settings.smoothing_sigma_mm > 0 else values
     mask = (smoothed >= settings.low_hu) & (smoothed < settings.high_hu)
     if settings.opening_radius_mm > 0:
-        mask = ndimage.binary_opening(mask, structure=ball(settings.opening_radius_mm, spacing_zyx))
+        mask = ndimage.binary_opening(mask, structure=ball(settings.opening_radius_mm, work_spacing))
     labels, count = ndimage.label(mask, structure=_CONNECTIVITY_26)
     if count == 0:
         return []
-    sizes = np.bincount(labels.ravel(), minlength=count + 1)
-    voxel_volume = float(np.prod(spacing_zyx))
-    offset = region.offset_zyx
-    image_shape = np.array(volume_zyx.shape)
+    work_to_image = local_to_image(index_to_image, start, factors)
+    full_to_image = local_to_image(index_to_image, start, np.ones(3, dtype=int))
+    voxel_volume = float(np.prod(work_spacing))
     blobs = []
     for label_value, box in enumerate(ndimage.find_objects(labels), start=1):
-        if box is None or sizes[label_value] * voxel_volume < 0.3 * model.volume_mm3:
+        if box is None or np.prod([b.stop - b.start for b in box]) * voxel_volume < 0.3 * model.volume_mm3:
             continue
-        lo = np.array([s.start for s in box])
-        hi = np.array([s.stop for s in box])
+        component = labels == label_value
+        if np.count_nonzero(component) * voxel_volume < 0.3 * model.volume_mm3:
+            continue
+        lo = np.array([b.start for b in box])
+        hi = np.array([b.stop for b in box])
         on_low = lo == 0
         on_high = hi == np.array(values.shape)
-        touches_image = bool(np.any(on_low & (offset == 0)) or np.any(on_high & (offset + hi == image_shape)))
-        touches_region = bool(np.any(on_low & (offset > 0)) or np.any(on_high & (offset + hi < image_shape)))
-        blobs.append(Blob(values, smoothed, labels == label_value, offset, touches_image, touches_region))
+        at_image_low = start == 0
+        at_image_high = stop + factors > image_shape
+        touches_image = bool(np.any(on_low & at_image_low) or np.any(on_high & at_image_high))
+        touches_region = bool(np.any(on_low & ~at_image_low) or np.any(on_high & ~at_image_high))
+        blobs.append(Blob(values, smoothed, component, work_to_image, work_spacing, full_values, full_to_image,
+                          touches_image, touches_region))
     return blobs

@@ -130,7 +130,8 @@ def test_pose_from_a_poor_start_converges():
     marker = ph.marker_object(model, centre - axis * model.centroid_y_mm, axis, ph.PVC_HU)
     image = ph.render(geometry, [marker], noise_hu=20.0, blur_mm=0.45, seed=2)
     values = sitk.GetArrayFromImage(image).astype(np.float32)
-    fit = fit_pose(values, values > 600, np.zeros(3, dtype=int), ph.index_to_image_of(image), model)
+    index_to_image = ph.index_to_image_of(image)
+    fit = fit_pose(values > 600, index_to_image, values, index_to_image, model)
     assert np.linalg.norm(fit.origin - marker.info["origin"]) < 0.1
     assert angle_between_deg(fit.axis, axis) < 0.3
     assert fit.fit_rms_mm < 0.1 and fit.inlier_fraction > 0.95
