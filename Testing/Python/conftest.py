@@ -5,11 +5,15 @@
 folders. They keep the frame's character at a smaller size so that they are cheap:
 a 220 x 220 x 140 mm frame with 16 markers (the full frame is 350 x 350 x 200 mm with 28).
 
-- standard: ``ct.nrrd``, 0.6 mm isotropic, mildly oblique grid, 20 HU noise, labelled
-  calibration recording.
-- hard: ``ct/`` DICOM series, 0.5 x 0.5 x 0.8 mm, oblique and flipped grid, 35 HU noise,
-  6 decoys, 2 calibrated markers absent from the CT, 1 CT marker not calibrated, an
-  unlabelled calibration recording in which the frame is bumped twice.
+- standard (seed 11): ``ct.nrrd``, 0.6 mm isotropic (474 x 361 x 452 voxels), grid
+  oblique by under 2 degrees, 20 HU noise, labelled calibration recording; about 7 s.
+- hard (seed 12): ``ct/`` DICOM series of 349 slices, 0.5 x 0.5 x 0.8 mm (542 x 423 x 349
+  voxels), oblique and flipped grid, 35 HU noise, 6 decoys (2 on the patient), 2 calibrated
+  markers absent from the CT, 1 CT marker not calibrated, an unlabelled calibration
+  recording in which the frame is bumped twice, board.csv with quaternions; about 8 s.
+
+Both have the patient, the couch, the reference sensor with streaks, navigation (6 targets
+x 15 dwells) and the board (60 rounds).
 
 ``load_truth(case_dir)`` returns the case's ``truth.json`` as a dict.
 """
