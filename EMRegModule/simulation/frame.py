@@ -309,21 +309,23 @@ def _patient_layers(geometry: FrameGeometry, rng: np.random.Generator) -> tuple[
 
     # trunk
     ax, ay, az = 58.0 * s, 92.0 * s, 40.0 * s
-    body_y = -0.12 * length + rng.uniform(-8, 8) * s
+    head_r = 40.0 * s
+    head = 1.0 if rng.random() < 0.5 else -1.0  # the head lies at the +Y or the -Y end of the bed
+    head_y = head * (length / 2 - head_r - rng.uniform(3.0, 8.0) * s)  # the skull near the end face
+    body_y = head_y - head * (ay + 0.55 * head_r)
     body_c = np.array([rng.uniform(-4, 4) * s, body_y, bed_bottom + az - 6.0 * s])
     layers.append(Layer("body fat", Posed(Ellipsoid((ax, ay, az)), pose(translation=body_c)), HU["fat"]))
     inner = (ax - 4 * s, ay - 4 * s, az - 4 * s)
     layers.append(Layer("body soft tissue", Posed(Ellipsoid(inner), pose(translation=body_c)), HU["soft_tissue"]))
     for side in (-1.0, 1.0):
-        lung_c = body_c + np.array([side * 0.42 * ax, 0.3 * ay, 0.12 * az])
+        lung_c = body_c + np.array([side * 0.42 * ax, head * 0.3 * ay, 0.12 * az])
         layers.append(Layer("lung", Posed(Ellipsoid((0.33 * ax, 0.33 * ay, 0.5 * az)), pose(translation=lung_c)),
                             HU["lung"]))
-    liver_c = body_c + np.array([-0.25 * ax, -0.15 * ay, 0.05 * az])
+    liver_c = body_c + np.array([-0.25 * ax, -head * 0.15 * ay, 0.05 * az])
     layers.append(Layer("liver", Posed(Ellipsoid((0.45 * ax, 0.18 * ay, 0.5 * az)), pose(translation=liver_c)),
                         HU["liver"]))
     # head with skull
-    head_r = 40.0 * s
-    head_c = np.array([body_c[0], body_y + ay + 0.55 * head_r, bed_bottom + head_r - 4.0 * s])
+    head_c = np.array([body_c[0], head_y, bed_bottom + head_r - 4.0 * s])
     layers.append(Layer("skull", Posed(Sphere(head_r), pose(translation=head_c)), cortex()))
     layers.append(Layer("brain", Posed(Sphere(head_r - 2.6 * s), pose(translation=head_c)), HU["brain"]))
     # spine: vertebral bodies with cortex and marrow, ribs in the upper half
@@ -337,7 +339,7 @@ def _patient_layers(geometry: FrameGeometry, rng: np.random.Generator) -> tuple[
         inner_v = tuple(v - 1.4 * s for v in outer)
         layers.append(Layer(f"vertebra {i} marrow", Posed(Ellipsoid(inner_v), pose(translation=centre)),
                             HU["marrow"]))
-        if y > body_y - 0.1 * ay:
+        if head * (y - body_y) > -0.1 * ay:  # thoracic half
             ring = min(ax, az) * 0.82
             rib_centre = np.array([body_c[0], y, body_c[2] + 0.1 * az])
             # arc over the anterior side, leaving the posterior (spine side, -Z) open
@@ -347,20 +349,91 @@ def _patient_layers(geometry: FrameGeometry, rng: np.random.Generator) -> tuple[
             layers.append(Layer(f"rib {i} marrow", Posed(marrow, _rib_pose(rib_centre)), HU["marrow"]))
     # arms along the body, resting against the bed near its rim (bones near the top-face markers)
     arm_r = 14.0 * s
-    rim_x = geometry.bed_half_width - 1.2 * arm_r
+    rim_x = geometry.bed_half_width - 1.05 * arm_r
+    arms: list[dict] = []
     for side in (-1.0, 1.0):
         x = side * rim_x
         dz = np.sqrt(max((geometry.bed_radius - arm_r) ** 2 - x**2, 0.0))
         z = geometry.bed_axis_z - dz
-        start, end = body_y - 0.6 * ay, body_y + 0.7 * ay
+        start, end = sorted((body_y - head * 0.6 * ay, body_y + head * 0.75 * ay))
         arm_pose = pose(translation=[x, 0.0, z])
         layers.append(Layer("arm", Posed(CapsuleY(arm_r, start, end), arm_pose), HU["soft_tissue"]))
         bone_pose = pose(translation=[x + side * 1.5 * s, 0.0, z + 2.0 * s])
         layers.append(Layer("humerus", Posed(CapsuleY(4.6 * s, start + 8 * s, end - 8 * s), bone_pose), cortex()))
         layers.append(Layer("humerus marrow", Posed(CapsuleY(2.6 * s, start + 9 * s, end - 9 * s), bone_pose),
                             HU["marrow"]))
-    body = {"centre": body_c, "radii": np.array([ax, ay, az]), "head_centre": head_c, "head_radius": head_r}
+        arms.append({"x": x, "z": z, "elbow_y": body_y - head * 0.6 * ay, "radius": arm_r})
+    body = {"centre": body_c, "radii": np.array([ax, ay, az]), "head_centre": head_c, "head_radius": head_r,
+            "arms": arms, "scale": s}
     return layers, body
+
+
+def _segment(a: np.ndarray, b: np.ndarray, radius: float) -> Shape:
+    """A capsule (rod with round ends) of ``radius`` from point ``a`` to point ``b`` (Frame, mm)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    length = float(np.linalg.norm(b - a))
+    return Posed(CapsuleY(radius, 0.0, length), pose(rotation_from_y_axis(b - a), a))
+
+
+def _hand_layers(geometry: FrameGeometry, markers: list[MarkerSlot], model: MarkerModel, body: dict,
+                 rng: np.random.Generator) -> tuple[list[Layer], list[tuple[np.ndarray, float]]]:
+    """Forearms reaching over the bed's rim, hands resting on the top face beside a marker.
+
+    Each hand lies along Y a few millimetres from a top-face marker's top cylinder, with
+    four finger bones (thin cortical rods) about 8 mm from the marker: bone close to a
+    marker, as on a real patient. Returns the layers and keep-out spheres (centre, radius).
+    """
+    w, length, h = geometry.size
+    s = body["scale"]
+    hand_radii = np.array([11.0, 18.0, 5.5]) * s
+    gap = 4.0  # soft tissue to the marker's top cylinder
+    layers: list[Layer] = []
+    keep_out: list[tuple[np.ndarray, float]] = []
+    tops = [m for m in markers if m.face == "top"]
+    for arm in body["arms"]:
+        side = np.sign(arm["x"])
+        candidates = sorted((m for m in tops if np.sign(m.origin[0]) == side),
+                            key=lambda m: abs(m.origin[1] - arm["elbow_y"]))
+        placed = False
+        for marker in candidates:
+            for direction in rng.permutation([-1.0, 1.0]):
+                offset = model.top_diameter_mm / 2 + gap + hand_radii[1]
+                centre = np.array([marker.origin[0] + rng.uniform(-2.0, 2.0) * s, marker.origin[1] + direction * offset,
+                                   h + hand_radii[2] - 1.0])
+                if (abs(centre[0]) - hand_radii[0] < geometry.bed_half_width - 4.0
+                        or abs(centre[0]) + hand_radii[0] > w / 2 - 2.0
+                        or abs(centre[1]) + hand_radii[1] > length / 2 - 2.0
+                        or abs(centre[1] - arm["elbow_y"]) > 110.0 * s):
+                    continue
+                others = [m for m in markers if m is not marker]
+                clear = all(np.linalg.norm(m.origin + model.height_mm / 2 * m.axis - centre)
+                            > hand_radii[1] + model.height_mm / 2 + gap for m in others)
+                wrist = centre + np.array([0.0, direction * hand_radii[1] * 0.8, 0.0])  # away from the marker
+                elbow = np.array([arm["x"], arm["elbow_y"], arm["z"]])
+                forearm = elbow + np.linspace(0.0, 1.0, 30)[:, None] * (wrist - elbow)
+                axis_points = np.array([m.origin + t * m.axis for m in markers for t in (0.0, 8.5, 18.5)])
+                nearest = np.min(np.linalg.norm(forearm[:, None] - axis_points[None], axis=2))
+                if not clear or nearest < 0.62 * arm["radius"] + model.bottom_diameter_mm / 2 + gap:
+                    continue
+                layers.append(Layer("forearm", _segment(elbow, wrist, 0.62 * arm["radius"]), HU["soft_tissue"]))
+                layers.append(Layer("hand", Posed(Ellipsoid(tuple(hand_radii)), pose(translation=centre)),
+                                    HU["soft_tissue"]))
+                for dx in (-4.5, 4.5):  # radius and ulna
+                    shift = np.array([dx * s * 0.5, 0.0, 0.0])
+                    layers.append(Layer("forearm bone", _segment(elbow + shift, wrist + shift, 1.8 * s),
+                                        float(rng.uniform(1400.0, 1900.0))))
+                bone_start = centre[1] + direction * (hand_radii[1] - 4.0)  # from the wrist side ...
+                bone_end = centre[1] - direction * (hand_radii[1] - 4.0 * s - 4.0)  # ... to ~8 mm from the marker
+                for dx in np.linspace(-6.0, 6.0, 4) * s:
+                    a = np.array([centre[0] + dx, bone_start, centre[2]])
+                    b = np.array([centre[0] + dx, bone_end, centre[2]])
+                    layers.append(Layer("finger bone", _segment(a, b, 1.3 * s), float(rng.uniform(1400.0, 1900.0))))
+                keep_out.append((centre, hand_radii[1] + 6.0))
+                placed = True
+                break
+            if placed:
+                break
+    return layers, keep_out
 
 
 def _rib_pose(centre: np.ndarray) -> np.ndarray:
@@ -490,6 +563,7 @@ def build_phantom(rng: np.random.Generator, model: MarkerModel, size_mm=(350.0, 
     reference_to_frame = reference_sensor_pose(geometry, rng)
     sensor_keep_out = [(reference_to_frame[:3, 3], 45.0 * float(min(geometry.size[:2]) / 350.0) + 20.0)]
     markers = layout_markers(geometry, model, n_markers, rng, keep_out=sensor_keep_out)
+    occupied = list(sensor_keep_out)  # where decoys must not go
     for i in absent or []:
         markers[i].in_ct = False
     for i in uncalibrated or []:
@@ -500,6 +574,9 @@ def build_phantom(rng: np.random.Generator, model: MarkerModel, size_mm=(350.0, 
     body = None
     if patient:
         patient_layers, body = _patient_layers(geometry, rng)
+        hand_layers, hand_keep_out = _hand_layers(geometry, markers, model, body, rng)
+        patient_layers += hand_layers
+        occupied = occupied + hand_keep_out
         layers += patient_layers
         for layer in patient_layers:
             lo, hi = layer.shape.bounds
@@ -527,7 +604,7 @@ def build_phantom(rng: np.random.Generator, model: MarkerModel, size_mm=(350.0, 
                                    rng.uniform(-0.4, 0.4, n_targets) * geometry.size[1],
                                    np.full(n_targets, geometry.bed_bottom_z)])
         normals = np.tile([0.0, 0.0, 1.0], (n_targets, 1))
-    keep_out = sensor_keep_out + [(t, 8.0) for t in targets]
+    keep_out = occupied + [(t, 8.0) for t in targets]
     decoys = place_decoys(geometry, markers, model, n_decoys, rng, keep_out, body) if n_decoys else []
     for d in decoys:
         layers.append(Layer(f"decoy {d.kind}", d.shape, d.hu, 4))

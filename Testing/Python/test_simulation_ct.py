@@ -207,3 +207,27 @@ def test_grid_around_holds_points_for_any_direction():
         grid = ct.grid_around(points, np.array([0.5, 0.7, 1.1]), direction, 3.0)
         index = apply_transform(np.linalg.inv(grid.index_to_image), points)
         assert np.all(index >= 0) and np.all(index <= np.asarray(grid.size) - 1)
+
+
+def test_bones_lie_near_some_markers(standard_case):
+    """Hands rest on the top face beside markers: bone-bright voxels within 12 mm of a marker's surface."""
+    truth = load_truth(standard_case)
+    model = MarkerModel(**truth["marker_model"])
+    image = read_ct(find_ct(standard_case))
+    array = sitk.GetArrayViewFromImage(image)
+    index_to_image = np.eye(4)
+    index_to_image[:3, :3] = np.asarray(image.GetDirection()).reshape(3, 3) * np.asarray(image.GetSpacing())
+    index_to_image[:3, 3] = image.GetOrigin()
+    near = 0
+    for marker in truth["markers"]:
+        centre = apply_transform(marker["marker_to_image"], [0.0, model.height_mm / 2, 0.0])
+        index = np.round(image.TransformPhysicalPointToContinuousIndex(centre.tolist())).astype(int)
+        r = int(np.ceil(24 / min(image.GetSpacing())))
+        lo = np.maximum(index - r, 0)
+        block = array[lo[2]:index[2] + r, lo[1]:index[1] + r, lo[0]:index[0] + r]
+        k, j, i = np.nonzero(block > 700)
+        points = apply_transform(index_to_image, np.column_stack([i + lo[0], j + lo[1], k + lo[2]]))
+        local = apply_transform(np.linalg.inv(marker["marker_to_image"]), points)
+        distance = model.signed_distance(local)
+        near += bool(np.any((distance > 3.0) & (distance < 12.0)))
+    assert near >= 2, near
