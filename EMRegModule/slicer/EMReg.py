@@ -184,6 +184,9 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         output = self.ui.outputDirectoryPathLineEdit.currentPath or None
         self._run("Loading the case failed.", self.logic.loadCase, self.ui.caseDirectoryPathLineEdit.currentPath,
                   output)
+        # the case's ports (case.toml [sensors]) show in the panel; changing them afterwards re-runs calibration
+        self.ui.referenceSensorSpinBox.value = self.logic.controller.reference_sensor
+        self.ui.probeSensorSpinBox.value = self.logic.controller.probe_sensor
 
     def onSensorsChanged(self, value=None):
         self.logic.setSensors(self.ui.referenceSensorSpinBox.value, self.ui.probeSensorSpinBox.value)
@@ -285,15 +288,12 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         case = open_case(caseDirectory)
         if case.ct is None:
             raise EMRegError(f"{case.folder}: no CT found (ct.nrrd, ct.nii.gz, ct.mha or a ct/ DICOM folder)")
-        sensors = (self.controller.reference_sensor, self.controller.probe_sensor)
-        self.controller = EMRegController.for_case(case)
+        self.controller = EMRegController.for_case(case)  # sensor ports from case.toml (default 1 and 2)
         self.case = case
         self.outputDirectory = Path(outputDirectory) if outputDirectory else case.folder / "emreg-output"
         self.outputDirectory.mkdir(parents=True, exist_ok=True)
         self.reportPath = None
         self.evaluation = None
-        if sensors != (1, 2):  # ports chosen in the panel before loading win over case.toml
-            self.controller.set_sensors(*sensors)
         self.controller.load_ct(case.ct)
         if case.calibration is not None:
             self.controller.load_calibration_recording(case.calibration)

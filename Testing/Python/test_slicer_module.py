@@ -581,6 +581,7 @@ def test_widget_wires_the_buttons_to_the_controller(fake_slicer, standard_case, 
     assert widget.logic.controller.image is not None
     assert fake_slicer.layers[0] is fake_slicer.scene.GetFirstNodeByName("EMReg CT")
     assert ui.calibrateButton.enabled and ui.detectButton.enabled and not ui.registerButton.enabled
+    assert (ui.referenceSensorSpinBox.value, ui.probeSensorSpinBox.value) == (1, 2)  # from case.toml
 
     ui.probeSensorSpinBox.setValue(3)  # a port change drops the calibration, like in the controller
     assert widget.logic.controller.probe_sensor == 3
