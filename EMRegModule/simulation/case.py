@@ -74,13 +74,16 @@ def simulate_case(out_dir: Path, seed: int = 0, difficulty: str = "standard", sp
         calibration = _calibration(seed, opts, phantom, l_mm)
         navigation = _navigation(seed, opts, phantom, frame_to_image)
         board = _board(seed, opts, phantom)
-        write_tracking_csv(calibration.pop("recording"), out_dir / "calibration.csv")
-        write_tracking_csv(navigation.pop("recording"), out_dir / "navigation.csv")
-        write_tracking_csv(board.pop("recording"), out_dir / "board.csv",
-                           orientation="quaternion" if opts.board_quaternions else "angles")
+        _write_recording(calibration.pop("recording"), out_dir / "calibration.csv")
+        _write_recording(navigation.pop("recording"), out_dir / "navigation.csv")
+        _write_recording(board.pop("recording"), out_dir / "board.csv",
+                         orientation="quaternion" if opts.board_quaternions else "angles")
         targets_image = navigation["targets_image"]
-        write_markups(out_dir / "targets.mrk.json", [f"T{i + 1}" for i in range(len(targets_image))],
-                      targets_image, name="T")
+        if len(targets_image):
+            write_markups(out_dir / "targets.mrk.json", [f"T{i + 1}" for i in range(len(targets_image))],
+                          targets_image, name="T")
+        else:
+            (out_dir / "targets.mrk.json").unlink(missing_ok=True)
         atomic_write_text(out_dir / "case.toml", _case_toml(seed, difficulty, opts, model))
 
     truth = _truth(seed, difficulty, opts, model, phantom, frame_to_image, ct_written, l_mm,
@@ -183,6 +186,14 @@ def _remove_stale_cts(out_dir: Path, keep: str) -> None:
 # --- tracking ---------------------------------------------------------------------------------
 
 
+def _write_recording(recording, path: Path, orientation: str | None = None) -> None:
+    """Write a recording, or remove a stale file when there is nothing to record."""
+    if recording is None:
+        path.unlink(missing_ok=True)
+    else:
+        write_tracking_csv(recording, path, orientation=orientation)
+
+
 def _frame_to_tracker(rng: np.random.Generator, size: np.ndarray, yaw_deg: float, offset: np.ndarray) -> np.ndarray:
     """The frame in the transmitter's field: tracker +Z points down, so Frame +Z (up) maps to Tracker -Z."""
     base = np.diag([1.0, -1.0, -1.0])
@@ -239,12 +250,9 @@ def _navigation(seed: int, opts: SimulationOptions, phantom: Phantom, frame_to_i
             visits.append(Visit(pose(rotation, phantom.targets[t]), float(rng.uniform(1.0, 2.0)), f"T{t + 1}",
                                 f"T{t + 1}", tremor_mm=0.08))
     targets_image = apply_transform(frame_to_image, phantom.targets) if n else np.zeros((0, 3))
-    out: dict[str, Any] = {"targets_image": targets_image, "dwells": [], "reference_to_tracker": None}
+    out: dict[str, Any] = {"targets_image": targets_image, "dwells": [], "reference_to_tracker": None,
+                           "recording": None}
     if not visits:
-        from ..tracking import TrackingRecording
-
-        out["recording"] = TrackingRecording(np.zeros(0), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)),
-                                             np.zeros(0), np.zeros(0))
         return out
     noise = NoiseModel(bad_sample_rate=opts.bad_sample_rate).scaled(opts.tracker_noise_scale)
     centre = np.asarray(phantom.targets).mean(axis=0)
@@ -293,9 +301,11 @@ def _board(seed: int, opts: SimulationOptions, phantom: Phantom) -> dict:
             rotation = probe_rotation_into(-normal, rng.uniform(0, 2 * np.pi), 2.0, rng)
             visits.append(Visit(pose(rotation, holes[h]), float(rng.uniform(0.7, 1.3)), f"H{h + 1}", f"H{h + 1}"))
     noise = NoiseModel(bad_sample_rate=opts.bad_sample_rate).scaled(opts.tracker_noise_scale)
-    recording, dwells, _ = simulate_session(
-        rng, visits, reference_to_tracker, np.eye(4), holes.mean(axis=0), lift_mm=15.0, noise=noise,
-        start_time_s=round(float(rng.uniform(0, 5)), 2))
+    recording, dwells = None, []
+    if visits:
+        recording, dwells, _ = simulate_session(
+            rng, visits, reference_to_tracker, np.eye(4), holes.mean(axis=0), lift_mm=15.0, noise=noise,
+            start_time_s=round(float(rng.uniform(0, 5)), 2))
     return {"recording": recording, "dwells": dwells, "holes_in_reference": holes,
             "reference_to_tracker": reference_to_tracker}
 
