@@ -157,9 +157,11 @@ def large_case(folder: Path, spacing: float, seed: int, size_mm=(360.0, 360.0, 2
                 a, b = max(k0, lo_index[2]), min(k1, lo_index[2] + patch.shape[2])
                 if a >= b:
                     continue
-                n = patch.shape[0]
-                i0, j0 = lo_index[0], lo_index[1]
-                slab[a - k0:b - k0, j0:j0 + n, i0:i0 + n] += patch[a - lo_index[2]:b - lo_index[2]]
+                (i0, j0), n = lo_index[:2], patch.shape[1]
+                ia, ib = max(i0, 0), min(i0 + n, size[0])
+                ja, jb = max(j0, 0), min(j0 + n, size[1])
+                slab[a - k0:b - k0, ja:jb, ia:ib] += patch[a - lo_index[2]:b - lo_index[2], ja - j0:jb - j0,
+                                                           ia - i0:ib - i0]
             slab += noise_rng.standard_normal(slab.shape, dtype=np.float32) * noise
             f.write(compressor.compress(np.clip(np.rint(slab), -1024, 3071).astype("<i2").tobytes()))
         f.write(compressor.flush())
@@ -309,23 +311,31 @@ def main() -> None:
         sys.exit(f"emreg detect failed ({code}): {err.strip()}")
     steps = dict(re.findall(r"\[emreg\] (.+?) done in (\S+)s", err))
 
-    t_pipeline = float("nan")
-    pipeline_peak = float("nan")
+    t_pipeline = t_pipeline_read = pipeline_peak = float("nan")
     if not args.skip_baseline:
         _, pipeline_peak, out, err, code = run_child(env_python + [SITK_PIPELINE, str(ct), "600", "1800"])
         if code != 0:
             sys.exit(f"SimpleITK pipeline failed ({code}): {err.strip()[-500:]}")
         t_pipeline = float(re.search(r"pipeline (\S+)", out).group(1))
+        t_pipeline_read = float(re.search(r"read (\S+)", out).group(1))
     t_pose, n_posed = pose_timing(ct)
 
+    t_inside = sum(float(v) for k, v in steps.items() if k in ("reading CT", "finding candidates", "fitting markers"))
+    b_total = t_pipeline + t_pipeline_read
     print(f"\nCT {ct} : {voxels / 1e6:.0f} M voxels, {volume_bytes / 1e9:.2f} GB in memory, "
           f"{ct.stat().st_size / 1e9:.2f} GB on disk, spacing {args.spacing} mm")
-    print(f"  (a) emreg detect, end to end          {t_detect:8.2f} s   peak RSS {detect_peak / 1e9:5.2f} GB")
-    print("      of which " + ", ".join(f"{k} {float(v):.2f} s" for k, v in steps.items()))
-    print(f"  (b) SimpleITK pipeline (filters only)  {t_pipeline:8.2f} s   peak RSS {pipeline_peak / 1e9:5.2f} GB")
-    print(f"  (c) SimpleITK ReadImage                {t_read:8.2f} s   peak RSS {read_peak / 1e9:5.2f} GB")
-    print(f"  a/b = {t_detect / t_pipeline:.3f}  (goal <= 0.15)")
-    print(f"  a/c = {t_detect / t_read:.2f}   (goal <= 2.5)")
+    print(f"  (a) emreg detect, end to end (process wall time)     {t_detect:8.2f} s   peak RSS "
+          f"{detect_peak / 1e9:5.2f} GB")
+    print("      its steps: " + ", ".join(f"{k} {float(v):.2f} s" for k, v in steps.items())
+          + f"; the rest (interpreter, imports, writing) {t_detect - t_inside:.2f} s")
+    print(f"  (b) SimpleITK pipeline: read {t_pipeline_read:.2f} s + filters {t_pipeline:.2f} s = {b_total:8.2f} s"
+          f"   peak RSS {pipeline_peak / 1e9:5.2f} GB")
+    print(f"  (c) SimpleITK ReadImage                              {t_read:8.2f} s   peak RSS "
+          f"{read_peak / 1e9:5.2f} GB")
+    print(f"  a/b = {t_detect / b_total:.3f} against the whole pipeline from the file, "
+          f"{t_detect / t_pipeline:.3f} against its filters alone  (goal <= 0.15)")
+    print(f"  a/c = {t_detect / t_read:.2f}; reading + detection inside emreg / c = {t_inside / t_read:.2f}"
+          "  (goal <= 2.5)")
     print(f"  peak memory of (a) / volume bytes = {detect_peak / volume_bytes:.2f}  (goal < 1.5)")
     print(f"  posing {n_posed} markers: {t_pose:.3f} s ({1e3 * t_pose / max(1, n_posed):.1f} ms each)")
     print(f"  accuracy: {accuracy(out_dir / 'markers.json', case / 'truth.json')}")

@@ -29,7 +29,7 @@ from ..transforms import apply_transform
 from .measure import measure_blob, metal_distance_mm
 from .pose import fit_pose, model_moments
 from .result import DetectedMarker, DetectionResult, RejectedCandidate
-from .segmentation import Blob, blobs_in_region, coarse_pass
+from .segmentation import Blob, blobs_in_region, coarse_pass, region_around
 from .settings import DetectionSettings, settings_from_dict
 
 
@@ -60,6 +60,8 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
     with progress.step("fitting markers", total=len(coarse.regions)) as step:
         for region in coarse.regions:
             for blob in blobs_in_region(volume, region, index_to_image, spacing_zyx, model, options):
+                if blob.touches_region_edge:
+                    blob = _regrown(volume, blob, index_to_image, spacing_zyx, model, options)
                 key = blob.centroid()
                 if any(np.linalg.norm(key - other) < 1.0 for other in seen):
                     continue
@@ -74,6 +76,23 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
     if len(markers) < options.min_markers:
         raise NoSafeAnswerError(_too_few_message(len(markers), options, rejected))
     return DetectionResult(markers, rejected, image_geometry(image))
+
+
+def _regrown(volume: np.ndarray, blob: Blob, index_to_image: np.ndarray, spacing_zyx: np.ndarray,
+             model: MarkerModel, options: DetectionSettings) -> Blob:
+    """The whole of a blob that its coarse region cut (e.g. a marker split in two by the coarse pass)."""
+    reach = 1.5 * float(np.hypot(model.height_mm, model.bottom_diameter_mm))
+    for _ in range(2):
+        extent = (blob.box_zyx[1] - blob.box_zyx[0]) * spacing_zyx
+        if not blob.touches_region_edge or np.max(extent) > reach:
+            return blob
+        centre = blob.centroid()
+        region = region_around(blob, spacing_zyx, volume.shape, margin_mm=model.height_mm)
+        grown = blobs_in_region(volume, region, index_to_image, spacing_zyx, model, options)
+        if not grown:
+            return blob
+        blob = min(grown, key=lambda b: float(np.linalg.norm(b.centroid() - centre)))
+    return blob
 
 
 def _classify(blob: Blob, metal_zyx: np.ndarray, index_to_image: np.ndarray, model: MarkerModel,

@@ -64,6 +64,8 @@ class Blob:
     full_to_image: np.ndarray
     touches_image_edge: bool
     touches_region_edge: bool
+    box_zyx: tuple[np.ndarray, np.ndarray] = (np.zeros(3, dtype=int), np.zeros(3, dtype=int))
+    """Bounding box of the mask in full-resolution image indices (z, y, x): start, stop."""
 
     @property
     def voxel_count(self) -> int:
@@ -216,5 +218,15 @@ def blobs_in_region(volume_zyx: np.ndarray, region: Region, index_to_image: np.n
         touches_image = bool(np.any(on_low & at_image_low) or np.any(on_high & at_image_high))
         touches_region = bool(np.any(on_low & ~at_image_low) or np.any(on_high & ~at_image_high))
         blobs.append(Blob(values, smoothed, component, work_to_image, work_spacing, full_values, full_to_image,
-                          touches_image, touches_region))
+                          touches_image, touches_region, (start + lo * factors, start + hi * factors)))
     return blobs
+
+
+def region_around(blob: Blob, spacing_zyx: np.ndarray, image_shape: tuple[int, ...], margin_mm: float = 3.0) -> Region:
+    """A region holding ``blob``'s bounding box with ``margin_mm`` around it (to regrow a cut blob)."""
+    margin = np.ceil(margin_mm / np.asarray(spacing_zyx)).astype(int) + 1
+    lo, hi = blob.box_zyx
+    start = np.maximum(lo - margin, 0)
+    stop = np.minimum(hi + margin, np.asarray(image_shape))
+    return Region(tuple(slice(int(a), int(b)) for a, b in zip(start, stop, strict=True)), (lo + hi) / 2.0,
+                  float("nan"))

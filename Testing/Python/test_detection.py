@@ -236,3 +236,28 @@ def test_bad_markers_json_is_refused(tmp_path, document, message):
     path.write_text(json.dumps(document))
     with pytest.raises(EMRegError, match=message):
         read_detection(path)
+
+
+def test_a_marker_cut_by_its_coarse_region_is_regrown():
+    """When the coarse pass splits a marker (its region cuts the blob), the whole marker is recovered."""
+    from EMRegModule.detection.detect import _regrown
+    from EMRegModule.detection.segmentation import Region, blobs_in_region
+    from EMRegModule.detection.settings import default_settings
+    from EMRegModule.io.image import index_to_physical_matrix
+
+    model = MarkerModel()
+    geometry = ph.make_image_geometry((60, 60, 60), (0.6, 0.6, 0.6))
+    origin = ph.center_of(geometry) - [0, 0, 9]
+    image = ph.render(geometry, [ph.marker_object(model, origin, [0, 0, 1], ph.PVC_HU)], noise_hu=10.0)
+    volume = sitk.GetArrayViewFromImage(image)
+    spacing = np.array([0.6, 0.6, 0.6])
+    options = default_settings(model)
+    index_to_image = index_to_physical_matrix(image)
+    lower_half = Region((slice(0, 33), slice(0, 60), slice(0, 60)), np.zeros(3), 0.0)  # cuts the top cylinder
+    (part,) = blobs_in_region(volume, lower_half, index_to_image, spacing, model, options)
+    assert part.touches_region_edge and not part.touches_image_edge
+    whole = _regrown(volume, part, index_to_image, spacing, model, options)
+    assert not whole.touches_region_edge
+    assert whole.voxel_count * 0.6**3 == pytest.approx(model.volume_mm3, rel=0.15)
+    height_of = lambda blob: (blob.box_zyx[1] - blob.box_zyx[0])[0] * 0.6  # noqa: E731  (mm along z)
+    assert height_of(part) < 11.0 and height_of(whole) >= model.height_mm - 0.6

@@ -158,3 +158,22 @@ def test_ct_without_markers_gives_exit_3(tmp_path, capsys):
     code, _, err = run_detect(tmp_path, tmp_path / "out", capsys)
     assert code == 3 and "0 marker(s) found" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "out" / "markers.json").exists()
+
+
+@pytest.mark.parametrize("name", ["ct.nii.gz", "ct.mha"])
+def test_nifti_and_mha_cases_give_the_same_markers(name, tmp_path, capsys):
+    """NIfTI stores RAS on disk; SimpleITK hands back LPS: markers must land at the same LPS points."""
+    direction = ph.oblique_direction(seed=7, flip=(1, 1, 1))
+    scene = ph.scene(spacing=(0.6, 0.7, 0.8), direction=direction, decoys=False, metal=False, cut_marker=False,
+                     seed=9)
+    case = tmp_path / "case"
+    case.mkdir()
+    sitk.WriteImage(scene.image, str(case / name))
+    code, out, _ = run_detect(case, tmp_path / "out", capsys)
+    assert code == 0
+    result = read_detection(tmp_path / "out")
+    truth = {"markers": [{"label": str(i), "origin": list(t["origin"]), "axis": list(t["axis"]), "in_ct": True}
+                         for i, t in enumerate(scene.markers)]}
+    origin_errors, axis_errors, false, missed = errors_against_truth(result, truth)
+    assert not false and not missed
+    assert origin_errors.max() < 0.2 and axis_errors.max() < 1.0
