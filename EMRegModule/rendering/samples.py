@@ -216,7 +216,8 @@ def write_sample_run(case_dir: Path, out_dir: Path, unpaired_marker: bool = True
     (out_dir / "run.json").write_text(json.dumps({
         "case": str(case_dir.resolve()), "ct": str((case_dir / "ct.nrrd").resolve()), "emreg_version": "test",
         "reference_sensor": 1, "probe_sensor": 2,
-        "summary": ["detect: 5 markers, 1 rejected", f"register: FRE {fre_mm:.2f} mm"]}, indent=2) + "\n")
+        "summary": ["detect: 5 markers, 1 rejected", f"register: FRE {fre_mm:.2f} mm"]}, indent=2) + "\n",
+        encoding="utf-8")
     return {"reference_to_image": reference_to_image, "l_mm": SENSOR_L_MM, "solved_l_mm": l_mm, "fre_mm": fre_mm}
 
 

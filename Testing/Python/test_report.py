@@ -93,7 +93,7 @@ def test_report_shows_every_figure_and_table(sample_run):
         png = root / "out" / FIGURE_DIR / f"{name}.png"
         assert png.is_file() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert base64.b64encode(png.read_bytes()).decode() in text  # the page embeds the very same file
-    registration = json.loads((root / "out" / "registration.json").read_text())
+    registration = json.loads((root / "out" / "registration.json").read_text(encoding="utf-8"))
     assert f"{registration['fre_mm']:.2f} mm" in text
     assert f"{registration['sensor_offset_l_mm']:.2f} mm" in text
     for heading in ("Summary", "Warnings", "Frame in 3D", "Registration", "Markers in the CT", "Frame calibration",
@@ -142,7 +142,7 @@ def test_missing_inputs_leave_sections_out_with_a_note(tmp_path, sample_run):
     out.mkdir()
     shutil.copy(root / "out" / "markers.json", out / "markers.json")
     path = write_report(out)
-    text = path.read_text()
+    text = path.read_text(encoding="utf-8")
     assert "Not shown: no registration.json" in text
     assert "Not shown: no frame_calibration.json" in text
     assert "the CT was not found" in text and "no CT available" in text
@@ -155,7 +155,7 @@ def test_calibration_alone_gives_tables_but_no_empty_scene(tmp_path, sample_run)
     out = tmp_path / "out"
     out.mkdir()
     shutil.copy(root / "out" / "frame_calibration.json", out / "frame_calibration.json")
-    text = write_report(out).read_text()
+    text = write_report(out).read_text(encoding="utf-8")
     assert "<img" not in text and "Not shown: no markers.json" in text
     assert "M04" in text  # the calibration table
 
@@ -165,10 +165,10 @@ def test_refusal_and_stale_figures(tmp_path, sample_run):
     out = _copy_run(sample_run, tmp_path)
     (out / "registration.json").unlink()
     (out / "evaluation.json").unlink()
-    run = json.loads((out / "run.json").read_text())
+    run = json.loads((out / "run.json").read_text(encoding="utf-8"))
     run["summary"].append("register: refused: the pairing is ambiguous (two hypotheses explain 5 markers)")
-    (out / "run.json").write_text(json.dumps(run))
-    text = write_report(out).read_text()
+    (out / "run.json").write_text(json.dumps(run), encoding="utf-8")
+    text = write_report(out).read_text(encoding="utf-8")
     assert "Refused: register: refused: the pairing is ambiguous" in text
     assert text.index("Refused:") < text.index("Frame in 3D")
     assert not (out / FIGURE_DIR / "residuals.png").exists() and not (out / FIGURE_DIR / "fre_curve.png").exists()
@@ -177,11 +177,11 @@ def test_refusal_and_stale_figures(tmp_path, sample_run):
 
 def test_warnings_for_outliers_and_an_offset_off_the_fre_minimum(tmp_path, sample_run):
     out = _copy_run(sample_run, tmp_path)
-    registration = json.loads((out / "registration.json").read_text())
+    registration = json.loads((out / "registration.json").read_text(encoding="utf-8"))
     registration["pairs"][1]["residual_mm"] = 3.1
     registration["sensor_offset_l_mm"] = 17.0
-    (out / "registration.json").write_text(json.dumps(registration))
-    text = write_report(out).read_text()
+    (out / "registration.json").write_text(json.dumps(registration), encoding="utf-8")
+    text = write_report(out).read_text(encoding="utf-8")
     assert "outlier: marker I02 (calibration point M02) has a residual of 3.10 mm" in text
     assert re.search(r"lowest at l = 13\.5\d mm, not at the reported 17\.00 mm", text)
 
@@ -189,7 +189,7 @@ def test_warnings_for_outliers_and_an_offset_off_the_fre_minimum(tmp_path, sampl
 def test_unreadable_input_is_a_warning_not_a_crash(tmp_path, sample_run):
     out = _copy_run(sample_run, tmp_path)
     (out / "frame_calibration.json").write_text("{not json")
-    text = write_report(out).read_text()
+    text = write_report(out).read_text(encoding="utf-8")
     assert "could not read" in text and "frame_calibration.json" in text
 
 
@@ -285,7 +285,7 @@ def _load_in_chromium(page: Path, tmp_path: Path) -> dict:
          "--disable-background-networking", "--disable-component-update", "--disable-sync",
          f"--user-data-dir={tmp_path / 'chromium-profile'}", "--virtual-time-budget=10000", "--dump-dom",
          probe_page.as_uri()],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True, text=True, encoding="utf-8", errors="replace", timeout=120,
     )
     match = re.search(r'<pre id="emreg-check">(.*?)</pre>', result.stdout, re.S)
     assert match, f"chromium did not run the page's probe (exit {result.returncode}): {result.stderr[-500:]}"
@@ -329,15 +329,15 @@ def test_emreg_run_writes_the_report_with_all_figures(request, tmp_path):
         pytest.skip("the simulator's standard_case fixture is not available yet")
     out = tmp_path / "out"
     assert main(["run", str(case), "--out", str(out), "--quiet"]) == 0
-    text = (out / "report.html").read_text()
+    text = (out / "report.html").read_text(encoding="utf-8")
     page = _parse(text)
     assert page.external == []
     for name in ("scene_oblique", "scene_top", "marker_slices", "residuals", "fre_curve"):
         assert f"fig-{name}" in text, name
-    registration = json.loads((out / "registration.json").read_text())
+    registration = json.loads((out / "registration.json").read_text(encoding="utf-8"))
     assert f"{registration['fre_mm']:.2f} mm" in text
     if (out / "evaluation.json").is_file():
-        evaluation = json.loads((out / "evaluation.json").read_text())
+        evaluation = json.loads((out / "evaluation.json").read_text(encoding="utf-8"))
         if "tre" in evaluation:
             assert "fig-tre_targets" in text
         if "board" in evaluation:
