@@ -236,7 +236,7 @@ print(f"read {t1 - t0:.4f} pipeline {t2 - t1:.4f} components {len(centroids)}")
 
 
 def pose_timing(ct: Path) -> tuple[float, int]:
-    """Time ``fit_pose`` for every marker the detection keeps (in this process)."""
+    """Time ``fit_pose`` for every marker the detection keeps (in this process, one thread)."""
     from EMRegModule.detection import detect as detect_module
     from EMRegModule.detection import detect_markers
     from EMRegModule.io.image import read_ct
@@ -252,11 +252,14 @@ def pose_timing(ct: Path) -> tuple[float, int]:
         calls.append((time.perf_counter() - start, result.fit_rms_mm))
         return result
 
+    workers = detect_module._workers
     detect_module.fit_pose = timed
+    detect_module._workers = lambda tasks: 1  # one thread: each pose's own time
     try:
         result = detect_markers(image, MarkerModel())
     finally:
         detect_module.fit_pose = original
+        detect_module._workers = workers
     kept = {round(float(m.fit_rms_mm), 6) for m in result.markers}
     total = sum(t for t, rms in calls if round(float(rms), 6) in kept)
     return total, len(result.markers)

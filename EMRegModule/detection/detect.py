@@ -18,6 +18,9 @@ Marker ids are ``I01, I02, ...`` ordered by origin (z, then y, then x, LPS).
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import SimpleITK as sitk
 
@@ -29,7 +32,7 @@ from ..transforms import apply_transform
 from .measure import measure_blob, metal_distance_mm
 from .pose import fit_pose, model_moments
 from .result import DetectedMarker, DetectionResult, RejectedCandidate
-from .segmentation import Blob, blobs_in_region, coarse_pass, region_around
+from .segmentation import Blob, Region, blobs_in_region, coarse_pass, region_around
 from .settings import DetectionSettings, settings_from_dict
 
 
@@ -56,19 +59,27 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
         rejected.append(RejectedCandidate(
             centroid, volume_mm3, f"too large for a marker (about {volume_mm3:.0f} mm3, {extent_mm:.0f} mm long)",
             "volume"))
-    seen: list[np.ndarray] = []
-    with progress.step("fitting markers", total=len(coarse.regions)) as step:
-        for region in coarse.regions:
-            for blob in blobs_in_region(volume, region, index_to_image, spacing_zyx, model, options):
-                if blob.touches_region_edge:
-                    blob = _regrown(volume, blob, index_to_image, spacing_zyx, model, options)
-                key = blob.centroid()
-                if any(np.linalg.norm(key - other) < 1.0 for other in seen):
-                    continue
-                seen.append(key)
-                outcome = _classify(blob, coarse.metal_zyx, index_to_image, model, options)
-                (markers if isinstance(outcome, DetectedMarker) else rejected).append(outcome)
+    outcomes: list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]] = []
+
+    def examine(region: Region) -> list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]]:
+        found = []
+        for blob in blobs_in_region(volume, region, index_to_image, spacing_zyx, model, options):
+            if blob.touches_region_edge:
+                blob = _regrown(volume, blob, index_to_image, spacing_zyx, model, options)
+            found.append((blob.centroid(), _classify(blob, coarse.metal_zyx, index_to_image, model, options)))
+        return found
+
+    with progress.step("fitting markers", total=len(coarse.regions)) as step, \
+            ThreadPoolExecutor(max_workers=_workers(len(coarse.regions))) as pool:
+        for found in pool.map(examine, coarse.regions):  # regions in order: the result does not depend on timing
+            outcomes.extend(found)
             step.advance()
+    kept: list[np.ndarray] = []
+    for key, outcome in sorted(outcomes, key=lambda item: not isinstance(item[1], DetectedMarker)):
+        if any(np.linalg.norm(key - other) < 1.0 for other in kept):
+            continue  # the same blob reached from two overlapping regions
+        kept.append(key)
+        (markers if isinstance(outcome, DetectedMarker) else rejected).append(outcome)
     markers.sort(key=lambda m: (m.origin[2], m.origin[1], m.origin[0]))
     for i, marker in enumerate(markers, start=1):
         marker.id = f"I{i:02d}"
@@ -76,6 +87,11 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
     if len(markers) < options.min_markers:
         raise NoSafeAnswerError(_too_few_message(len(markers), options, rejected))
     return DetectionResult(markers, rejected, image_geometry(image))
+
+
+def _workers(tasks: int) -> int:
+    """Threads for the regions: the heavy parts (numpy, VTK, most of scipy.ndimage) release the GIL."""
+    return max(1, min(4, os.cpu_count() or 1, tasks))
 
 
 def _regrown(volume: np.ndarray, blob: Blob, index_to_image: np.ndarray, spacing_zyx: np.ndarray,

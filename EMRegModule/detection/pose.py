@@ -20,6 +20,7 @@ Steps, for one segmented blob:
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -110,10 +111,21 @@ def edge_samples(model: MarkerModel, spacing_mm: float = 1.0, corner_margin_mm: 
     return EdgeSamples(points, normals, inner)
 
 
-@lru_cache(maxsize=8)
+_PER_THREAD = threading.local()
+
+
 def cad_surface(model: MarkerModel) -> vtkPolyData:
-    """The CAD surface (marker frame) used as the ICP target; cached per model (read-only)."""
-    return model.surface_polydata(resolution=96)
+    """The CAD surface (marker frame) used as the ICP target; cached per model and per thread.
+
+    VTK builds a polydata's cell links and bounds lazily on first use, so threads that pose
+    markers at the same time each get their own copy.
+    """
+    cache = getattr(_PER_THREAD, "surfaces", None)
+    if cache is None:
+        cache = _PER_THREAD.surfaces = {}
+    if model not in cache:
+        cache[model] = model.surface_polydata(resolution=96)
+    return cache[model]
 
 
 def model_moments(model: MarkerModel) -> tuple[np.ndarray, float]:
