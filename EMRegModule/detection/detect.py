@@ -1,9 +1,9 @@
 """``detect_markers``: find every marker in a CT and estimate its pose (image space, LPS mm).
 
 Coarse-to-fine (see ``segmentation``): the volume is read through a zero-copy view, a strided
-pass finds candidate regions, and only those regions are processed at full resolution.
-Every candidate of marker-like density and at least a third of a marker's volume ends either
-as a marker or in ``rejected`` with a reason (code in brackets):
+pass finds candidate regions, and only those regions are processed at full resolution, on a
+few threads (the result does not depend on them). Every candidate of marker-like density and
+at least a third of a marker's volume ends either as a marker or in ``rejected`` with a reason (code in brackets):
 
 - ``edge``: cut by the image's edge;
 - ``volume``: too large or too small for the marker model;
@@ -14,6 +14,10 @@ as a marker or in ``rejected`` with a reason (code in brackets):
   fit tolerances are halved.
 
 Marker ids are ``I01, I02, ...`` ordered by origin (z, then y, then x, LPS).
+
+Fewer than ``min_markers`` markers (default 1, ``[detection] min_markers``) is "no safe
+answer" (``NoSafeAnswerError``, exit 3): the message counts the rejected candidates by reason
+and nothing is written. Registration needs three or more and checks that itself.
 """
 
 from __future__ import annotations

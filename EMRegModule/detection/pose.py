@@ -14,8 +14,16 @@ Steps, for one segmented blob:
    air on the other, so edge points are found per surface point instead: the intensity profile
    along the CAD normal is sampled (trilinear) and the edge is where it crosses half-way between
    its own inner (PVC) and outer (local background) plateaus, which is the true edge of a blurred
-   step whatever the background. Those points are aligned to the CAD surface with ICP again,
-   twice, trimming outliers.
+   step whatever the background. Since each edge point belongs to a known CAD point and
+   normal, a point-to-plane Gauss-Newton step moves the model onto them; profiles are sampled
+   again at the new pose until the step is below 0.02 mm (two or three steps: the method
+   converges quadratically).
+4. Final refinement: ``vtkIterativeClosestPointTransform`` of the edge points (outliers
+   trimmed) onto the CAD surface, from that close start with a 1e-4 mm convergence criterion;
+   the fit RMS is the distance of the edge points to the fitted surface.
+
+Cost: about 20 ms per marker (a few thousand profile samples, one ICP of ~250 landmarks and
+one of ~800 that starts converged).
 """
 
 from __future__ import annotations

@@ -171,7 +171,7 @@ def test_no_whole_volume_copy():
     assert peak < 0.15 * 200 * 400 * 400 * 2, peak
 
 
-def test_float_and_unsigned_images_work(standard_scene):
+def test_float_images_work(standard_scene):
     as_float = sitk.Cast(standard_scene.image, sitk.sitkFloat32)
     result = detect_markers(as_float, standard_scene.model)
     assert len(result.markers) == len(standard_scene.markers)
