@@ -1,11 +1,23 @@
 """ITK transform files (``.h5``, ``.tfm``, ``.txt``) that 3D Slicer loads as linear transforms.
 
-ITK stores the *resampling* transform, which maps points of the fixed (parent) space into
-the moving (child) space, in LPS. 3D Slicer therefore loads a file holding ``BToA`` as a
-linear transform node whose "to parent" transform is ``AToB``. So
-:func:`write_slicer_linear_transform` writes the **inverse** of the ``AToB`` it is given:
-``ReferenceToImage.h5`` holds ``ImageToReference`` (LPS); in Slicer it appears as the
-transform that moves a node in Reference coordinates to its place in the CT (``ReferenceToImage``).
+Two conventions meet in such a file:
+
+- ITK stores the *resampling* transform (it maps points of the fixed/parent space into the
+  moving/child space) and works in LPS. 3D Slicer, reading an ITK file holding ``T``, converts
+  both sides to RAS and sets the node's "to parent" transform to ``F @ inv(T) @ F`` with
+  ``F = diag(-1, -1, 1)``.
+- In 3D Slicer (as in PLUS and SlicerIGT) the coordinates of tracker-side frames — Tracker,
+  Reference, Probe — are used as they are: a ``ProbeToReference`` streamed by a tracker server is
+  applied unchanged, and a registration node maps raw Reference coordinates to RAS
+  (``ReferenceToRAS = F @ ReferenceToImage``). EMReg's Slicer module and live navigation use
+  that same node.
+
+So :func:`write_slicer_linear_transform` stores ``T = F @ ImageToReference`` for a given
+``ReferenceToImage`` (Reference = a tracker-side frame, Image = LPS): loaded in Slicer, the node's
+"to parent" transform is exactly ``F @ ReferenceToImage``, and a model or stream in Reference
+coordinates placed under it lands where it is in the CT. Read in SimpleITK or ITK, ``T`` maps an
+LPS image point to its Reference-frame coordinates with x and y negated; for plain numpy work
+use ``registration.json``'s ``ReferenceToImage`` matrix instead.
 """
 
 from __future__ import annotations
@@ -16,22 +28,22 @@ import numpy as np
 import SimpleITK as sitk
 
 from ..errors import EMRegError
-from ..transforms import invert_rigid
+from ..transforms import LPS_TO_RAS, invert_rigid
 from .atomic import atomic_path
 
 
-def write_slicer_linear_transform(path: str | os.PathLike[str], a_to_b: np.ndarray) -> None:
-    """Write ``AToB`` (4x4, LPS frames, mm) so that Slicer loads it as the A->B "to parent" transform."""
-    b_to_a = invert_rigid(a_to_b)
+def write_slicer_linear_transform(path: str | os.PathLike[str], tracker_side_to_image: np.ndarray) -> None:
+    """Write ``AToImage`` (4x4, mm; A a tracker-side frame, Image LPS) for 3D Slicer (module docstring)."""
+    stored = LPS_TO_RAS @ invert_rigid(tracker_side_to_image)
     transform = sitk.AffineTransform(3)
-    transform.SetMatrix(b_to_a[:3, :3].ravel().tolist())
-    transform.SetTranslation(b_to_a[:3, 3].tolist())
+    transform.SetMatrix(stored[:3, :3].ravel().tolist())
+    transform.SetTranslation(stored[:3, 3].tolist())
     with atomic_path(path) as tmp:
         sitk.WriteTransform(transform, str(tmp))
 
 
 def read_slicer_linear_transform(path: str | os.PathLike[str]) -> np.ndarray:
-    """Read a file written by :func:`write_slicer_linear_transform` (or by Slicer) back as ``AToB``."""
+    """Read a file written by :func:`write_slicer_linear_transform` back as ``AToImage`` (4x4, mm)."""
     try:
         transform = sitk.ReadTransform(str(path))
     except RuntimeError:
@@ -46,8 +58,8 @@ def read_slicer_linear_transform(path: str | os.PathLike[str]) -> np.ndarray:
             affine = sitk.AffineTransform(sitk.CompositeTransform(transform).GetNthTransform(0))
         except (RuntimeError, TypeError):
             raise EMRegError(f"{path}: not a linear transform") from None
-    b_to_a = np.eye(4)
-    b_to_a[:3, :3] = np.asarray(affine.GetMatrix()).reshape(3, 3)
+    stored = np.eye(4)
+    stored[:3, :3] = np.asarray(affine.GetMatrix()).reshape(3, 3)
     center = np.asarray(affine.GetCenter())
-    b_to_a[:3, 3] = np.asarray(affine.GetTranslation()) + center - b_to_a[:3, :3] @ center
-    return np.linalg.inv(b_to_a)
+    stored[:3, 3] = np.asarray(affine.GetTranslation()) + center - stored[:3, :3] @ center
+    return np.linalg.inv(LPS_TO_RAS @ stored)

@@ -113,17 +113,24 @@ def test_markups_round_trip_and_ras_input(tmp_path):
 
 
 @pytest.mark.parametrize("name", ["ReferenceToImage.h5", "t.tfm"])
-def test_itk_transform_round_trip_and_direction(tmp_path, name):
+def test_itk_transform_round_trip_and_how_slicer_loads_it(tmp_path, name):
     rng = np.random.default_rng(9)
     reference_to_image = tf.make_transform(tf.random_rotation(rng), [5, -7, 120])
     path = tmp_path / name
     write_slicer_linear_transform(path, reference_to_image)
     np.testing.assert_allclose(read_slicer_linear_transform(path), reference_to_image, atol=1e-9)
-    # ITK's file holds the resampling direction: it maps image points back into the Reference frame.
+    # The file holds ITK's resampling direction: image (LPS) -> Reference, x and y negated.
     stored = sitk.ReadTransform(str(path))
     point_reference = np.array([1.0, 2.0, 3.0])
     point_image = tf.apply_transform(reference_to_image, point_reference)
-    np.testing.assert_allclose(stored.TransformPoint(point_image.tolist()), point_reference, atol=1e-9)
+    np.testing.assert_allclose(stored.TransformPoint(point_image.tolist()), point_reference * [-1, -1, 1], atol=1e-9)
+    # 3D Slicer converts an ITK file T into the node's "to parent" F @ inv(T) @ F (LPS<->RAS on
+    # both sides): that must be ReferenceToRAS, which maps raw Reference coordinates into RAS.
+    matrix = np.eye(4)
+    matrix[:3, :3] = np.reshape(sitk.AffineTransform(stored).GetMatrix(), (3, 3))
+    matrix[:3, 3] = sitk.AffineTransform(stored).GetTranslation()
+    to_parent_ras = tf.LPS_TO_RAS @ np.linalg.inv(matrix) @ tf.LPS_TO_RAS
+    np.testing.assert_allclose(to_parent_ras, tf.LPS_TO_RAS @ reference_to_image, atol=1e-9)
 
 
 def _volume(size=(12, 10, 8)):
