@@ -194,9 +194,12 @@ def cmd_report(args: argparse.Namespace) -> int:
     from .report import write_report, write_reports_batch
 
     if args.batch:
-        folders = sorted(p for p in Path(args.batch).iterdir() if p.is_dir())
-        write_reports_batch(folders, jobs=args.jobs, progress=_progress(args))
-        print(f"{len(folders)} reports written under {args.batch}")
+        batch = Path(args.batch)
+        if not batch.is_dir():
+            raise EMRegError(f"{batch}: folder of run outputs not found")
+        folders = sorted(p for p in batch.iterdir() if p.is_dir())
+        pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args))
+        print(f"{len(pages)} reports written under {args.batch}")
         return 0
     if not args.out:
         raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
