@@ -262,14 +262,18 @@ def lps_to_ras(transform_lps: ArrayLike) -> Array:
     return LPS_TO_RAS @ np.asarray(transform_lps, dtype=float) @ LPS_TO_RAS
 
 
-def random_rotation(rng: np.random.Generator, max_angle_deg: float | None = None) -> Array:
-    """A random rotation; uniform over SO(3), or about a random axis by at most ``max_angle_deg``."""
+def random_rotation(
+    rng: np.random.Generator, max_angle_deg: float | None = None, min_angle_deg: float = 0.0
+) -> Array:
+    """A random rotation: uniform over SO(3), or about a random axis by an angle whose size lies
+    between ``min_angle_deg`` and ``max_angle_deg`` (either sign)."""
     if max_angle_deg is None:
         q = rng.normal(size=4)
         return quaternion_to_rotation(q / np.linalg.norm(q))
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)
-    angle = np.radians(rng.uniform(-max_angle_deg, max_angle_deg))
+    u = rng.uniform(-1.0, 1.0)
+    angle = np.radians(np.sign(u) * (min_angle_deg + abs(u) * (max_angle_deg - min_angle_deg)))
     return axis_angle_to_rotation(axis, angle)
 
 

@@ -55,7 +55,9 @@ def simulate_case(out_dir: Path, seed: int = 0, difficulty: str = "standard", sp
         phantom = _phantom(seed, opts, model)
         placement = _rng(seed, STREAM_PLACEMENT)
         frame_to_image = _frame_to_image(placement, phantom, opts)
-        direction = random_rotation(placement, opts.oblique_deg) if opts.oblique_deg > 0 else np.eye(3)
+        # at least half the requested obliqueness, so that no seed gets a grid that is nearly LPS by chance
+        direction = (random_rotation(placement, opts.oblique_deg, min_angle_deg=opts.oblique_deg / 2)
+                     if opts.oblique_deg > 0 else np.eye(3))
         if opts.flip:
             direction = direction @ np.diag([-1.0, 1.0, 1.0])
         if opts.direction is not None:
