@@ -95,7 +95,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def cmd_detect(args: argparse.Namespace) -> int:
     _need_stage("detection", "marker detection")
     from .detection import write_detection
-    from .io.image import find_ct
+    from .io.case import find_ct
 
     source = Path(args.ct)
     case_dir = source if source.is_dir() and find_ct(source) is not None else None

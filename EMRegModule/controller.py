@@ -14,9 +14,9 @@ the CT's LPS image space.
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import os
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -121,6 +121,7 @@ class EMRegController:
         """Read the CT (file or DICOM folder); drops detection and everything after it."""
         from .io.image import read_ct
 
+        _import_in_background("EMRegModule.detection")  # overlaps the import with the file read
         with self.progress.step("reading CT"):
             image = read_ct(path)
         self.set_image(image, str(path))
@@ -242,8 +243,19 @@ class EMRegController:
         return "; ".join(parts)
 
 
-def output_path(out_dir: str | os.PathLike[str], name: str) -> Path:
-    """``OUT/name``, creating OUT."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    return out / name
+def _import_in_background(module: str) -> None:
+    """Start importing a heavy module on a thread; a later ``import`` waits for it or finds it done.
+
+    SimpleITK's reader releases the GIL, so importing the detection stage (scipy, VTK) while a
+    large CT is read takes its ~0.5 s off the critical path. Import errors surface later, where
+    the module is really imported.
+    """
+    import importlib
+    import threading
+
+    def run() -> None:
+        with contextlib.suppress(Exception):
+            importlib.import_module(module)
+
+    threading.Thread(target=run, name=f"import {module}", daemon=True).start()
+

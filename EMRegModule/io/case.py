@@ -11,8 +11,9 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import EMRegError
-from .image import find_ct
 
+CT_FILE_NAMES = ("ct.nrrd", "ct.nii.gz", "ct.nii", "ct.mha", "ct.mhd")
+CT_FOLDER_NAME = "ct"
 DEFAULT_REFERENCE_SENSOR = 1
 DEFAULT_PROBE_SENSOR = 2
 
@@ -43,6 +44,17 @@ class Case:
         if not isinstance(value, dict):
             raise EMRegError(f"{self.folder / 'case.toml'}: [{name}] must be a table")
         return value
+
+
+def find_ct(case_dir: str | os.PathLike[str]) -> Path | None:
+    """The CT of a case folder by the spec's names (a file, or a ``ct/`` DICOM folder), or None."""
+    case_dir = Path(case_dir)
+    for name in CT_FILE_NAMES:
+        if (case_dir / name).is_file():
+            return case_dir / name
+    if (case_dir / CT_FOLDER_NAME).is_dir():
+        return case_dir / CT_FOLDER_NAME
+    return None
 
 
 def open_case(folder: str | os.PathLike[str]) -> Case:

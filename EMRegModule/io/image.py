@@ -14,25 +14,12 @@ import numpy as np
 import SimpleITK as sitk
 
 from ..errors import EMRegError
-
-CT_FILE_NAMES = ("ct.nrrd", "ct.nii.gz", "ct.nii", "ct.mha", "ct.mhd")
-CT_FOLDER_NAME = "ct"
+from .case import CT_FILE_NAMES, CT_FOLDER_NAME, find_ct  # noqa: F401  (re-exported: CT naming lives with the case)
 
 _SCALAR_TYPES = {
     sitk.sitkInt8, sitk.sitkUInt8, sitk.sitkInt16, sitk.sitkUInt16, sitk.sitkInt32,
     sitk.sitkUInt32, sitk.sitkInt64, sitk.sitkUInt64, sitk.sitkFloat32, sitk.sitkFloat64,
 }
-
-
-def find_ct(case_dir: str | os.PathLike[str]) -> Path | None:
-    """The CT of a case folder by the spec's names, or None."""
-    case_dir = Path(case_dir)
-    for name in CT_FILE_NAMES:
-        if (case_dir / name).is_file():
-            return case_dir / name
-    if (case_dir / CT_FOLDER_NAME).is_dir():
-        return case_dir / CT_FOLDER_NAME
-    return None
 
 
 def read_ct(path: str | os.PathLike[str]) -> sitk.Image:
