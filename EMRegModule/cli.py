@@ -333,7 +333,8 @@ def run_case(
         if stage_available("report"):
             from .report import write_report
 
-            summary.append(f"report: {write_report(out, case_dir=case.folder, progress=progress)}")
+            page = write_report(out, case_dir=case.folder, progress=progress, image=controller.image)
+            summary.append(f"report: {page}")
     except NoSafeAnswerError as exc:
         _remove_outputs(out, current)
         summary.append(f"{current}: refused: {exc}")

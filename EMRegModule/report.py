@@ -147,8 +147,11 @@ def _resolve_case_dir(out_dir: Path, case_dir: Path | None, run: dict | None, no
 
 
 def load_report_inputs(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
-                       read_image: bool = True) -> ReportInputs:
+                       read_image: bool = True, image=None) -> ReportInputs:
     """Gather what exists in OUT and the case folder. Unreadable files become notes, not errors.
+
+    ``image`` (a ``SimpleITK.Image``) is the case's CT when the caller already holds it in memory
+    (``emreg run``); otherwise the CT is read from the case folder when ``read_image``.
 
     Raises :class:`EMRegError` when OUT is missing or holds none of the run's outputs, or
     when an explicitly given ``case_dir`` does not exist.
@@ -202,7 +205,9 @@ def load_report_inputs(out_dir: str | os.PathLike[str], case_dir: str | os.PathL
         inputs.model = MarkerModel.from_settings(inputs.settings.get("marker"))
     except EMRegError as exc:
         notes.append(str(exc))
-    if read_image and inputs.ct_path is not None:
+    if image is not None:
+        inputs.image = image
+    elif read_image and inputs.ct_path is not None:
         from .io.image import read_ct
 
         try:
@@ -842,15 +847,16 @@ def _pair_rows(inputs: ReportInputs) -> list[MarkerRow]:
 
 
 def write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
-                 progress: Progress | None = None) -> Path:
+                 progress: Progress | None = None, image=None) -> Path:
     """Render ``OUT/report.html`` (and ``OUT/report_figures/*.png``) from what the run left in OUT.
 
     ``case_dir`` is the case folder (for the CT and targets); by default the one recorded in
-    ``OUT/run.json``. Returns the path of the page. Raises :class:`EMRegError` when OUT holds
+    ``OUT/run.json``. ``image``: the case's CT already in memory (``SimpleITK.Image``), which spares
+    reading it again. Returns the path of the page. Raises :class:`EMRegError` when OUT holds
     nothing to report.
     """
     progress = progress or QUIET
-    inputs = load_report_inputs(out_dir, case_dir)
+    inputs = load_report_inputs(out_dir, case_dir, image=image)
     try:
         rows = _pair_rows(inputs)
         points = calibration_points(inputs.frame_calibration)
