@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from .errors import EMRegError
+from .io.case import check_known_keys, setting_number
 
 #: A chi-distributed 3D distance with per-axis sigma s has median about 1.538 s.
 _MEDIAN_CHI3 = 1.5382
@@ -53,20 +54,14 @@ class DwellSettings:
         settings = dict(settings or {})
         known = {f.name for f in fields(cls)}
         if strict:
-            unknown = sorted(set(settings) - known - _OTHER_CALIBRATION_KEYS)
-            if unknown:
-                raise EMRegError(f"case.toml [{section}]: unknown key(s) {', '.join(unknown)}; "
-                                 f"known: {', '.join(sorted(known | _OTHER_CALIBRATION_KEYS))}")
+            check_known_keys(settings, section, known | _OTHER_CALIBRATION_KEYS)
         values: dict[str, Any] = {}
         for name in known & set(settings):
             value = settings[name]
             if name == "max_quality" and value is None:
                 continue
-            try:
-                number = float(value)
-            except (TypeError, ValueError):
-                raise EMRegError(f"case.toml [{section}]: {name} must be a number, got {value!r}") from None
-            if not np.isfinite(number) or number < 0 or (number == 0 and name != "max_quality"):
+            number = setting_number(section, name, value)
+            if number < 0 or (number == 0 and name != "max_quality"):
                 raise EMRegError(f"case.toml [{section}]: {name} must be a positive number, got {value!r}")
             values[name] = int(number) if name == "min_samples" else number
         return cls(**values)

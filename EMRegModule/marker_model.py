@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from .errors import EMRegError
+from .io.case import check_known_keys, setting_number
 
 
 @dataclass(frozen=True)
@@ -43,14 +44,8 @@ class MarkerModel:
     @classmethod
     def from_settings(cls, settings: dict[str, Any] | None) -> MarkerModel:
         """Build from a ``[marker]`` table (keys as the field names); unknown keys are an error."""
-        settings = dict(settings or {})
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(settings) - known)
-        if unknown:
-            raise EMRegError(
-                f"case.toml [marker]: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}"
-            )
-        return cls(**{k: float(v) for k, v in settings.items()})
+        table = check_known_keys(settings, "marker", (f.name for f in fields(cls)))
+        return cls(**{k: setting_number("marker", k, v) for k, v in table.items()})
 
     def to_dict(self) -> dict[str, float]:
         return asdict(self)

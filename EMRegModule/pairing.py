@@ -38,6 +38,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .errors import EMRegError, NoSafeAnswerError
+from .io.case import setting_number
 from .transforms import make_transform
 
 
@@ -70,11 +71,8 @@ class PairingSettings:
             if f.name not in settings:
                 continue
             value = settings[f.name]
-            try:
-                number = float(value)
-            except (TypeError, ValueError):
-                raise EMRegError(f"case.toml [registration]: {f.name} must be a number, got {value!r}") from None
-            if not np.isfinite(number) or number <= 0:
+            number = setting_number("registration", f.name, value)
+            if number <= 0:
                 raise EMRegError(f"case.toml [registration]: {f.name} must be positive, got {value!r}")
             values[f.name] = int(number) if f.type in ("int", int) else number
         return cls(**values)

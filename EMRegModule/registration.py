@@ -39,6 +39,7 @@ from scipy.optimize import minimize_scalar
 from .calibration import FrameCalibration
 from .errors import EMRegError, NoSafeAnswerError
 from .io.atomic import atomic_write_json, read_json
+from .io.case import check_known_keys, setting_number
 from .io.itk_transform import write_slicer_linear_transform
 from .marker_model import MarkerModel
 from .pairing import PairingSettings, pair_markers
@@ -66,13 +67,9 @@ class RegistrationSettings:
 
     @classmethod
     def from_settings(cls, settings: Mapping[str, Any] | None) -> RegistrationSettings:
-        settings = dict(settings or {})
         own = {f.name for f in fields(cls)} - {"pairing"}
         pairing_keys = {f.name for f in fields(PairingSettings)}
-        unknown = sorted(set(settings) - own - pairing_keys)
-        if unknown:
-            raise EMRegError(f"case.toml [registration]: unknown key(s) {', '.join(unknown)}; "
-                             f"known: {', '.join(sorted(own | pairing_keys))}")
+        settings = check_known_keys(settings, "registration", own | pairing_keys)
         values: dict[str, Any] = {}
         for name in own & set(settings):
             value = settings[name]
@@ -81,11 +78,8 @@ class RegistrationSettings:
                     raise EMRegError(f"case.toml [registration]: exclude_outliers must be true or false, got {value!r}")
                 values[name] = value
                 continue
-            try:
-                number = float(value)
-            except (TypeError, ValueError):
-                raise EMRegError(f"case.toml [registration]: {name} must be a number, got {value!r}") from None
-            if not np.isfinite(number) or number <= 0:
+            number = setting_number("registration", name, value)
+            if number <= 0:
                 raise EMRegError(f"case.toml [registration]: {name} must be a positive number, got {value!r}")
             values[name] = number
         pairing = PairingSettings.from_settings({k: v for k, v in settings.items() if k in pairing_keys})

@@ -30,6 +30,7 @@ from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
 from ..errors import EMRegError
+from ..io.case import check_known_keys, setting_number
 from ..marker_model import MarkerModel
 
 
@@ -62,18 +63,12 @@ def default_settings(model: MarkerModel) -> DetectionSettings:
 
 def settings_from_dict(values: dict[str, Any] | None, model: MarkerModel) -> DetectionSettings:
     """Defaults for ``model`` overridden by the ``[detection]`` table; unknown keys or bad values are errors."""
-    values = dict(values or {})
     known = {f.name: f for f in fields(DetectionSettings)}
-    unknown = sorted(set(values) - set(known))
-    if unknown:
-        raise EMRegError(
-            f"case.toml [detection]: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}"
-        )
+    table = check_known_keys(values, "detection", known)
     converted: dict[str, Any] = {}
-    for key, value in values.items():
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise EMRegError(f"case.toml [detection]: {key} must be a number, got {value!r}")
-        converted[key] = int(value) if known[key].type in (int, "int") else float(value)
+    for key, value in table.items():
+        number = setting_number("detection", key, value)
+        converted[key] = int(number) if known[key].type in (int, "int") else number
     settings = replace(default_settings(model), **converted)
     _check(settings)
     return settings

@@ -4,8 +4,10 @@
 
 from __future__ import annotations
 
+import math
 import os
 import tomllib
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -92,3 +94,22 @@ def read_case_settings(path: str | os.PathLike[str]) -> dict[str, Any]:
         if role in sensors and not (isinstance(sensors[role], int) and 1 <= sensors[role] <= 16):
             raise EMRegError(f"{path}: [sensors] {role} must be a port number (1..4), got {sensors[role]!r}")
     return settings
+
+
+def check_known_keys(table: Mapping[str, Any] | None, section: str, known: Iterable[str]) -> dict[str, Any]:
+    """A copy of a ``case.toml`` table; an unknown key (a typo) is an :class:`EMRegError` listing the known ones."""
+    table = dict(table or {})
+    known = set(known)
+    unknown = sorted(set(table) - known)
+    if unknown:
+        raise EMRegError(
+            f"case.toml [{section}]: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}"
+        )
+    return table
+
+
+def setting_number(section: str, name: str, value: Any) -> float:
+    """A ``case.toml`` value that must be a finite number (not a string, not a boolean)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise EMRegError(f"case.toml [{section}]: {name} must be a number, got {value!r}")
+    return float(value)

@@ -241,3 +241,15 @@ def test_atomic_files_get_the_usual_permissions(tmp_path):
     mask = os.umask(0)
     os.umask(mask)
     assert (tmp_path / "a.json").stat().st_mode & 0o777 == 0o666 & ~mask
+
+
+def test_settings_tables_refuse_typos_and_non_numbers():
+    from EMRegModule.io.case import check_known_keys, setting_number
+
+    assert check_known_keys({"a": 1}, "x", ["a", "b"]) == {"a": 1}
+    with pytest.raises(EMRegError, match=r"case.toml \[x\]: unknown key\(s\) c; known: a, b"):
+        check_known_keys({"c": 1}, "x", ["a", "b"])
+    assert setting_number("x", "a", 3) == 3.0
+    for bad in ("3", True, float("nan"), float("inf"), None):
+        with pytest.raises(EMRegError, match="a must be a number"):
+            setting_number("x", "a", bad)
