@@ -168,7 +168,26 @@ class _Announcer:
                                            device_name=self.device_name))
 
 
-class LiveNavigator:
+class _WatchedPublisher:
+    """What a publisher guarded by a :class:`Watchdog` shares: re-evaluation between samples.
+
+    Subclasses set ``watchdog``, ``announcer`` and ``_lock``.
+    """
+
+    watchdog: Watchdog
+    announcer: _Announcer
+    _lock: threading.Lock
+
+    def tick(self) -> Verdict:
+        """Re-evaluate without a new sample (staleness); returns the verdict."""
+        now = time.monotonic()
+        with self._lock:
+            verdict = self.watchdog.evaluate(now)
+            self.announcer.update(verdict, now)
+            return verdict
+
+
+class LiveNavigator(_WatchedPublisher):
     """Turns sensor samples into published ``ProbeToImage`` poses (see module docstring).
 
     Feed it with ``on_sample`` (any thread) and call ``tick()`` regularly (it notices staleness
@@ -231,16 +250,8 @@ class LiveNavigator:
                 self.writer.write_position(probe.time_s, probe_to_image[:3, 3], probe.label)
             self.published += 1
 
-    def tick(self) -> Verdict:
-        """Re-evaluate without a new sample (staleness); returns the verdict."""
-        now = time.monotonic()
-        with self._lock:
-            verdict = self.watchdog.evaluate(now)
-            self.announcer.update(verdict, now)
-            return verdict
 
-
-class TrackerPublisher:
+class TrackerPublisher(_WatchedPublisher):
     """``emreg serve``: every sensor sample as a TRANSFORM ``<Name>ToTracker`` (tracker frame, mm,
     sent as measured; a sensor without a usable pose - not attached, out of range - is not sent),
     plus a STATUS named ``Tracker`` from the watchdog. Names: the reference port
@@ -283,10 +294,3 @@ class TrackerPublisher:
                 sent_ns = self.server.send_transform(name, sample.transform(), self._stamp)
                 self.latencies.append((sample.frame, sample.received_ns, sent_ns))
                 self.published += 1
-
-    def tick(self) -> Verdict:
-        now = time.monotonic()
-        with self._lock:
-            verdict = self.watchdog.evaluate(now)
-            self.announcer.update(verdict, now)
-            return verdict
