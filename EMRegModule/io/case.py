@@ -91,7 +91,7 @@ def read_case_settings(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise EMRegError(f"{path}: malformed TOML ({exc})") from None
     sensors = settings.get("sensors", {})
     for role in ("reference", "probe"):
-        if role in sensors and not (isinstance(sensors[role], int) and 1 <= sensors[role] <= 16):
+        if role in sensors and not (isinstance(sensors[role], int) and 1 <= sensors[role] <= 4):
             raise EMRegError(f"{path}: [sensors] {role} must be a port number (1..4), got {sensors[role]!r}")
     return settings
 
