@@ -1,4 +1,4 @@
-"""Marker pose in image space: flying-edges surface, principal-axes start, edge points, VTK ICP.
+"""Marker pose in image space: skew-axis start, sub-voxel edge points, point-to-plane steps, VTK ICP.
 
 Frames: ``Marker`` is the CAD frame (origin bottom-face centre, +Y toward the narrow top),
 ``Image`` the CT's LPS physical space (mm). Poses are ``marker_to_image`` (4x4).
@@ -7,23 +7,27 @@ Steps, for one segmented blob:
 
 1. Start: centroid of the blob's voxels and the direction of their largest skewness (the
    marker is wide at the bottom and narrow at the top), which points +Y toward the narrow
-   top. Not the principal axes: the marker's second moments are nearly isotropic.
-2. Coarse fit: the blob's surface by ``vtkFlyingEdges3D``, aligned to the CAD surface with
-   ``vtkIterativeClosestPointTransform``.
-3. Sub-voxel fit: a single iso-level is biased where the marker meets plastic on one side and
+   top. Not the principal axes: the marker's second moments are nearly isotropic. The start
+   is within about a degree and 1 mm (the band threshold shrinks the blob more against air
+   than against plastic), well inside the edge search's +/- 2 mm.
+2. Sub-voxel fit: a single iso-level is biased where the marker meets plastic on one side and
    air on the other, so edge points are found per surface point instead: the intensity profile
    along the CAD normal is sampled (trilinear) and the edge is where it crosses half-way between
    its own inner (PVC) and outer (local background) plateaus, which is the true edge of a blurred
    step whatever the background. Since each edge point belongs to a known CAD point and
-   normal, a point-to-plane Gauss-Newton step moves the model onto them; profiles are sampled
-   again at the new pose until the step is below 0.02 mm (two or three steps: the method
-   converges quadratically).
-4. Final refinement: ``vtkIterativeClosestPointTransform`` of the edge points (outliers
+   normal, a point-to-plane Gauss-Newton step moves the model onto them (the first with every
+   edge, later ones with outliers trimmed); profiles are sampled again at the new pose until
+   the step is below 0.02 mm (three or four steps: the method converges quadratically).
+3. Final refinement: ``vtkIterativeClosestPointTransform`` of the edge points (outliers
    trimmed) onto the CAD surface, from that close start with a 1e-4 mm convergence criterion;
    the fit RMS is the distance of the edge points to the fitted surface.
 
-Cost: about 20 ms per marker (a few thousand profile samples, one ICP of ~250 landmarks and
-one of ~800 that starts converged).
+(An ICP of the blob's flying-edges surface between steps 1 and 2 used to bring the start
+closer; with the skew-axis start and an untrimmed first step it changed no result and cost
+half of the posing time.)
+
+Cost: about 10 ms per marker (a few thousand profile samples per step, one ICP of ~800 points
+that starts converged).
 """
 
 from __future__ import annotations
@@ -34,10 +38,9 @@ from functools import lru_cache
 
 import numpy as np
 from scipy import ndimage
-from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtkmodules.util.numpy_support import numpy_to_vtk
 from vtkmodules.vtkCommonCore import vtkPoints
-from vtkmodules.vtkCommonDataModel import vtkImageData, vtkIterativeClosestPointTransform, vtkPolyData
-from vtkmodules.vtkFiltersCore import vtkFlyingEdges3D
+from vtkmodules.vtkCommonDataModel import vtkIterativeClosestPointTransform, vtkPolyData
 
 from ..marker_model import MarkerModel
 from ..transforms import apply_rotation, apply_transform, axis_angle_to_rotation, invert_rigid, make_transform
@@ -179,26 +182,30 @@ def principal_start(points_image: np.ndarray, model: MarkerModel) -> np.ndarray:
     return make_transform(rotation, centroid - centroid_y * axis)
 
 
-def skew_axis(centred: np.ndarray, iterations: int = 50, tolerance: float = 1e-8) -> np.ndarray:
+def skew_axis(centred: np.ndarray, iterations: int = 100, tolerance: float = 1e-9) -> np.ndarray:
     """Unit direction ``u`` maximising the skewness ``E[(p.u)^3] / E[(p.u)^2]^1.5`` of centred points.
 
     Starts from the principal direction of largest absolute skewness (sign made positive) and
     climbs by the power iteration of the third-moment tensor, ``u <- E[(p.u)^2 p]``, keeping the
-    best direction seen (the iteration is not guaranteed monotone).
+    best direction seen (the iteration is not guaranteed monotone). The moments are computed
+    once; the iteration works on them alone.
     """
-    def skewness(u: np.ndarray) -> float:
-        along = centred @ u
-        return float(np.mean(along**3) / max(float(np.mean(along**2)), 1e-12) ** 1.5)
+    count = max(len(centred), 1)
+    second = centred.T @ centred / count
+    pairs = (centred[:, :, None] * centred[:, None, :]).reshape(len(centred), 9)
+    third = (pairs.T @ centred).reshape(3, 3, 3) / count
 
-    _, vectors = np.linalg.eigh(np.cov(centred.T))
+    def skewness(u: np.ndarray) -> float:
+        return float(np.einsum("ijk,i,j,k->", third, u, u, u) / max(float(u @ second @ u), 1e-12) ** 1.5)
+
+    _, vectors = np.linalg.eigh(second)
     values = [skewness(vectors[:, k]) for k in range(3)]
     k = int(np.argmax(np.abs(values)))
     best = vectors[:, k] * (1.0 if values[k] > 0 else -1.0)
     best_value = abs(values[k])
     u = best
     for _ in range(iterations):
-        along = centred @ u
-        step = (along**2) @ centred / len(centred)
+        step = np.einsum("ijk,j,k->i", third, u, u)
         norm = float(np.linalg.norm(step))
         if norm < 1e-12:
             break
@@ -210,25 +217,6 @@ def skew_axis(centred: np.ndarray, iterations: int = 50, tolerance: float = 1e-8
             break
         u = moved
     return best
-
-
-def blob_surface_points(mask_zyx: np.ndarray, local_to_image: np.ndarray, sigma_vox: float = 0.7) -> np.ndarray:
-    """Points of the blob's iso-surface (``vtkFlyingEdges3D`` on the smoothed mask at 0.5), image mm."""
-    field = ndimage.gaussian_filter(np.pad(mask_zyx.astype(np.float32), 2), sigma_vox)
-    image = vtkImageData()
-    image.SetDimensions(field.shape[2], field.shape[1], field.shape[0])
-    image.GetPointData().SetScalars(numpy_to_vtk(field.ravel(), deep=True))
-    surface = vtkFlyingEdges3D()
-    surface.SetInputData(image)
-    surface.SetValue(0, 0.5)
-    surface.ComputeNormalsOff()
-    surface.ComputeGradientsOff()
-    surface.ComputeScalarsOff()
-    surface.Update()
-    points = surface.GetOutput().GetPoints()
-    if points is None:
-        return np.empty((0, 3))
-    return apply_transform(local_to_image, vtk_to_numpy(points.GetData()).astype(float) - 2.0)
 
 
 def icp_to_model(points_marker: np.ndarray, model: MarkerModel, max_iterations: int = 40,
@@ -371,14 +359,11 @@ def fit_pose(mask_zyx: np.ndarray, mask_to_image: np.ndarray, values_zyx: np.nda
 
     ``mask_zyx`` is the segmented blob and ``values_zyx`` the raw intensities around it
     (float32, any resolution); ``*_to_image`` map their local (i, j, k) indices to LPS mm.
-    Steps: principal-axes start; ``vtkIterativeClosestPointTransform`` of the flying-edges
-    surface onto the CAD surface; edge points along the CAD normals with two point-to-plane
-    steps; a final ICP of the edge points onto the CAD surface from that close start.
+    Steps: skew-axis start; edge points along the CAD normals with point-to-plane steps
+    (usually three); a final ICP of the edge points onto the CAD surface from that close start.
     """
     voxels_ijk = np.argwhere(mask_zyx)[:, ::-1].astype(float)
-    start = principal_start(apply_transform(mask_to_image, voxels_ijk), model)
-    surface = blob_surface_points(mask_zyx, mask_to_image)
-    pose = refine_with(surface, start, model, max_iterations=40, max_landmarks=250, tolerance_mm=0.01)
+    pose = principal_start(apply_transform(mask_to_image, voxels_ijk), model)
     samples = edge_samples(model)
     image_to_local = np.linalg.inv(values_to_image)
 
@@ -387,11 +372,14 @@ def fit_pose(mask_zyx: np.ndarray, mask_to_image: np.ndarray, values_zyx: np.nda
                            min_inner_hu=min_inner_hu, image_to_local=image_to_local)
 
     hits = edges(pose)
-    for _ in range(4):
+    for step in range(6):
         if len(hits) < 30:
             return PoseFit(pose, float("inf"), 0.0, len(hits))
         previous = pose
-        pose = point_to_plane_step(hits, pose, _robust_keep(hits.offsets, trim_mm))
+        # the first step keeps every edge found: the start may sit ~1 mm off along the axis, and
+        # trimming around the median offset would then drop the end faces, the only ones that see it
+        keep = _robust_keep(hits.offsets, trim_mm) if step else np.ones(len(hits), dtype=bool)
+        pose = point_to_plane_step(hits, pose, keep)
         hits = edges(pose)
         moved = apply_transform(pose, samples.points[::25]) - apply_transform(previous, samples.points[::25])
         if np.max(np.linalg.norm(moved, axis=1)) < 0.02:  # Gauss-Newton: the next step would be ~1e-4 mm
