@@ -17,7 +17,9 @@ Steps, for one segmented blob:
    step whatever the background. Since each edge point belongs to a known CAD point and
    normal, a point-to-plane Gauss-Newton step moves the model onto them (the first with every
    edge, later ones with outliers trimmed); profiles are sampled again at the new pose until
-   the step is below 0.02 mm (three or four steps: the method converges quadratically).
+   the step is below 0.02 mm (three or four steps: the method converges quadratically; every
+   third profile while the steps exceed 0.3 mm, and the edges found before a step under
+   0.02 mm are kept rather than sampled again).
 3. Final refinement: ``vtkIterativeClosestPointTransform`` of the edge points (outliers
    trimmed) onto the CAD surface, from that close start with a 1e-4 mm convergence criterion;
    the fit RMS is the distance of the edge points to the fitted surface.
@@ -120,6 +122,13 @@ def edge_samples(model: MarkerModel, spacing_mm: float = 1.0, corner_margin_mm: 
     normals = np.concatenate([n for _, n, _ in parts])
     inner = np.concatenate([np.full(len(p), i) for p, _, i in parts])
     return EdgeSamples(points, normals, inner)
+
+
+@lru_cache(maxsize=8)
+def sparse_edge_samples(model: MarkerModel, every: int = 3) -> EdgeSamples:
+    """Every ``every``-th point of :func:`edge_samples` (for the first, large pose steps)."""
+    full = edge_samples(model)
+    return EdgeSamples(full.points[::every], full.normals[::every], full.inner_mm[::every])
 
 
 _PER_THREAD = threading.local()
@@ -365,26 +374,34 @@ def fit_pose(mask_zyx: np.ndarray, mask_to_image: np.ndarray, values_zyx: np.nda
     voxels_ijk = np.argwhere(mask_zyx)[:, ::-1].astype(float)
     pose = principal_start(apply_transform(mask_to_image, voxels_ijk), model)
     samples = edge_samples(model)
+    sparse = sparse_edge_samples(model)
     image_to_local = np.linalg.inv(values_to_image)
 
-    def edges(at: np.ndarray) -> EdgeHits:
-        return edge_points(values_zyx, values_to_image, at, samples, min_contrast_hu=min_contrast_hu,
+    def edges(at: np.ndarray, where: EdgeSamples) -> EdgeHits:
+        return edge_points(values_zyx, values_to_image, at, where, min_contrast_hu=min_contrast_hu,
                            min_inner_hu=min_inner_hu, image_to_local=image_to_local)
 
-    hits = edges(pose)
-    for step in range(6):
-        if len(hits) < 30:
+    # sparse profiles while the steps are large, every profile once they are small; the last
+    # step's edges are kept (a step under 0.02 mm leaves them where they are)
+    current = sparse
+    hits = edges(pose, current)
+    for step in range(8):
+        if len(hits) < 30 * len(current.points) / len(samples.points):
             return PoseFit(pose, float("inf"), 0.0, len(hits))
         previous = pose
         # the first step keeps every edge found: the start may sit ~1 mm off along the axis, and
         # trimming around the median offset would then drop the end faces, the only ones that see it
         keep = _robust_keep(hits.offsets, trim_mm) if step else np.ones(len(hits), dtype=bool)
         pose = point_to_plane_step(hits, pose, keep)
-        hits = edges(pose)
         moved = apply_transform(pose, samples.points[::25]) - apply_transform(previous, samples.points[::25])
-        if np.max(np.linalg.norm(moved, axis=1)) < 0.02:  # Gauss-Newton: the next step would be ~1e-4 mm
+        moved_mm = float(np.max(np.linalg.norm(moved, axis=1)))
+        if current is sparse:
+            if moved_mm < 0.3:
+                current = samples
+        elif moved_mm < 0.02:  # Gauss-Newton: the next step would be ~1e-4 mm
             break
-    if len(hits) < 30:
+        hits = edges(pose, current)
+    if len(hits) < 30 or current is sparse:
         return PoseFit(pose, float("inf"), 0.0, len(hits))
     keep = _robust_keep(hits.offsets, trim_mm)
     pose = refine_with(hits.points[keep], pose, model, max_iterations=20, max_landmarks=len(samples.points),
