@@ -14,7 +14,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..transforms import apply_transform
-from .segmentation import Blob, ball
+from .segmentation import Blob, ball, dilate_ball
 from .settings import DetectionSettings
 
 
@@ -38,7 +38,7 @@ def measure_blob(blob: Blob, settings: DetectionSettings) -> BlobMeasures:
     spacing_zyx = blob.spacing_zyx
     crop = _grown_box(blob.mask, np.ceil(2.0 / spacing_zyx).astype(int))
     mask, values, smoothed = blob.mask[crop], blob.values[crop], blob.smoothed[crop]
-    near = ndimage.binary_dilation(mask, structure=ball(1.5, spacing_zyx))
+    near = dilate_ball(mask, 1.5, spacing_zyx)
     core = ndimage.binary_erosion(mask, structure=ball(1.0, spacing_zyx))
     marker_hu = float(np.median(values[core] if np.count_nonzero(core) >= 20 else values[mask]))
     size = 2 * np.ceil(1.5 / spacing_zyx).astype(int) + 1

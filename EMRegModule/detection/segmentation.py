@@ -155,6 +155,36 @@ def ball(radius_mm: float, spacing_zyx: np.ndarray) -> np.ndarray:
     return element
 
 
+def dilate_ball(mask: np.ndarray, radius_mm: float, spacing_zyx: np.ndarray) -> np.ndarray:
+    """``binary_dilation(mask, ball(radius_mm, spacing_zyx))``, exactly, from separable box dilations.
+
+    The ball is the union of the boxes spanned by its maximal corners (it contains, with every
+    offset, all offsets of smaller absolute value), and a box dilation is three running maxima;
+    for the 1.5 mm ball on 0.6 mm voxels that is three boxes, about twice as fast.
+    """
+    element = ball(radius_mm, spacing_zyx)
+    source = mask.view(np.uint8)
+    out: np.ndarray | None = None
+    for half in _maximal_corners(element):
+        grown = source
+        for axis, h in enumerate(half):
+            if h:
+                grown = ndimage.maximum_filter1d(grown, 2 * h + 1, axis=axis, mode="constant", cval=0)
+        if out is None:
+            out = grown.copy() if grown is source else grown
+        else:
+            np.maximum(out, grown, out=out)
+    return out.view(bool)
+
+
+def _maximal_corners(element: np.ndarray) -> list[tuple[int, int, int]]:
+    """Half extents (z, y, x) of the boxes whose union is the symmetric, monotone ``element``."""
+    centre = np.array(element.shape) // 2
+    corners = {tuple(int(v) for v in c) for c in np.abs(np.argwhere(element) - centre)}
+    return sorted(c for c in corners if not any(o != c and all(a >= b for a, b in zip(o, c, strict=True))
+                                                for o in corners))
+
+
 def work_factors(spacing_zyx: np.ndarray) -> np.ndarray:
     """Block-averaging factors (z, y, x) that bring voxels up to about ``WORK_SPACING_MM``."""
     return np.maximum(1, np.floor(WORK_SPACING_MM / np.asarray(spacing_zyx) + 1e-6)).astype(int)

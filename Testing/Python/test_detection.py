@@ -286,3 +286,17 @@ def test_thick_slices_along_the_axis_do_not_confuse_the_start(spacing):
         fit = fit_pose(values > 600, index_to_image, values, index_to_image, model)
         assert np.linalg.norm(fit.origin - origin) < 0.3 and angle_between_deg(fit.axis, axis) < 1.5
         assert fit.fit_rms_mm < 0.15
+
+
+def test_ball_dilation_from_boxes_is_exact():
+    from scipy import ndimage
+
+    from EMRegModule.detection.segmentation import ball, dilate_ball
+
+    rng = np.random.default_rng(0)
+    for spacing in ((0.6, 0.6, 0.6), (1.25, 0.9, 0.9), (0.3, 0.3, 0.3), (2.0, 0.7, 0.7)):
+        for radius in (0.5, 1.5, 2.5):
+            mask = ndimage.gaussian_filter(rng.random((24, 25, 23)), 2) > 0.52
+            mask[0, 5, 5] = mask[-1, -1, -1] = True  # touching the border
+            expected = ndimage.binary_dilation(mask, ball(radius, np.array(spacing)))
+            np.testing.assert_array_equal(dilate_ball(mask, radius, np.array(spacing)), expected)
