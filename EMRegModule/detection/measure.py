@@ -14,7 +14,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..transforms import apply_transform
-from .segmentation import Blob, ball, dilate_ball
+from .segmentation import Blob, box_extreme, dilate_ball, erode_ball
 from .settings import DetectionSettings
 
 
@@ -39,10 +39,10 @@ def measure_blob(blob: Blob, settings: DetectionSettings) -> BlobMeasures:
     crop = _grown_box(blob.mask, np.ceil(2.0 / spacing_zyx).astype(int))
     mask, values, smoothed = blob.mask[crop], blob.values[crop], blob.smoothed[crop]
     near = dilate_ball(mask, 1.5, spacing_zyx)
-    core = ndimage.binary_erosion(mask, structure=ball(1.0, spacing_zyx))
+    core = erode_ball(mask, 1.0, spacing_zyx)
     marker_hu = float(np.median(values[core] if np.count_nonzero(core) >= 20 else values[mask]))
-    size = 2 * np.ceil(1.5 / spacing_zyx).astype(int) + 1
-    background = ndimage.minimum_filter(smoothed, size=tuple(size), mode="nearest")
+    half = tuple(int(h) for h in np.ceil(1.5 / spacing_zyx))
+    background = box_extreme(smoothed, half, np.minimum)  # ndimage.minimum_filter, mode "nearest"
     contrast = marker_hu - background
     flat = contrast < 200.0
     inside = near & np.where(flat, smoothed >= settings.low_hu, smoothed - background >= 0.5 * contrast)

@@ -156,25 +156,60 @@ def ball(radius_mm: float, spacing_zyx: np.ndarray) -> np.ndarray:
 
 
 def dilate_ball(mask: np.ndarray, radius_mm: float, spacing_zyx: np.ndarray) -> np.ndarray:
-    """``binary_dilation(mask, ball(radius_mm, spacing_zyx))``, exactly, from separable box dilations.
+    """``ndimage.binary_dilation(mask, ball(radius_mm, spacing_zyx))``, exactly, from box maxima.
 
-    The ball is the union of the boxes spanned by its maximal corners (it contains, with every
-    offset, all offsets of smaller absolute value), and a box dilation is three running maxima;
-    for the 1.5 mm ball on 0.6 mm voxels that is three boxes, about twice as fast.
+    A ball of voxel offsets contains, with every offset, all offsets of smaller absolute value,
+    so it is the union of the boxes spanned by its maximal corners: the dilation is the union
+    of box dilations, each a few shifted ORs per axis (several times faster than scipy's
+    generic binary morphology on these small arrays).
     """
-    element = ball(radius_mm, spacing_zyx)
-    source = mask.view(np.uint8)
-    out: np.ndarray | None = None
-    for half in _maximal_corners(element):
-        grown = source
-        for axis, h in enumerate(half):
-            if h:
-                grown = ndimage.maximum_filter1d(grown, 2 * h + 1, axis=axis, mode="constant", cval=0)
-        if out is None:
-            out = grown.copy() if grown is source else grown
-        else:
-            np.maximum(out, grown, out=out)
-    return out.view(bool)
+    boxes = _maximal_corners(ball(radius_mm, spacing_zyx))
+    out = box_extreme(mask, boxes[0], np.maximum)
+    for half in boxes[1:]:
+        np.logical_or(out, box_extreme(mask, half, np.maximum), out=out)
+    return out
+
+
+def erode_ball(mask: np.ndarray, radius_mm: float, spacing_zyx: np.ndarray) -> np.ndarray:
+    """``ndimage.binary_erosion(mask, ball(radius_mm, spacing_zyx))`` exactly (outside the array is False).
+
+    Erosion by a union of boxes is the intersection of the box erosions.
+    """
+    boxes = _maximal_corners(ball(radius_mm, spacing_zyx))
+    out = box_extreme(mask, boxes[0], np.minimum, border=False)
+    for half in boxes[1:]:
+        np.logical_and(out, box_extreme(mask, half, np.minimum, border=False), out=out)
+    return out
+
+
+def open_ball(mask: np.ndarray, radius_mm: float, spacing_zyx: np.ndarray) -> np.ndarray:
+    """``ndimage.binary_opening(mask, ball(radius_mm, spacing_zyx))`` exactly."""
+    return dilate_ball(erode_ball(mask, radius_mm, spacing_zyx), radius_mm, spacing_zyx)
+
+
+def box_extreme(values: np.ndarray, half_zyx: tuple[int, int, int], combine: np.ufunc,
+                border: bool | None = None) -> np.ndarray:
+    """Running ``combine`` (``np.maximum`` or ``np.minimum``) over a box of ``2 * half + 1`` voxels per axis.
+
+    ``border`` None ignores neighbours outside the array (as scipy's ``mode="nearest"`` does for
+    a minimum or maximum); a value makes them count as that value. Returns a new array.
+    """
+    out = values
+    for axis, half in enumerate(half_zyx):
+        if half == 0:
+            continue
+        source, out = out, out.copy()
+        for shift in range(1, half + 1):
+            ahead = tuple(slice(shift, None) if a == axis else slice(None) for a in range(values.ndim))
+            behind = tuple(slice(None, -shift) if a == axis else slice(None) for a in range(values.ndim))
+            combine(out[ahead], source[behind], out=out[ahead])
+            combine(out[behind], source[ahead], out=out[behind])
+        if border is not None:
+            edge = [slice(None)] * values.ndim
+            for part in (slice(0, half), slice(max(0, values.shape[axis] - half), None)):
+                edge[axis] = part
+                out[tuple(edge)] = combine(out[tuple(edge)], border)
+    return out.copy() if out is values else out
 
 
 def _maximal_corners(element: np.ndarray) -> list[tuple[int, int, int]]:
@@ -225,7 +260,7 @@ def blobs_in_region(volume_zyx: np.ndarray, region: Region, index_to_image: np.n
     smoothed = ndimage.gaussian_filter(values, sigma, mode="nearest") if settings.smoothing_sigma_mm > 0 else values
     mask = (smoothed >= settings.low_hu) & (smoothed < settings.high_hu)
     if settings.opening_radius_mm > 0:
-        mask = ndimage.binary_opening(mask, structure=ball(settings.opening_radius_mm, work_spacing))
+        mask = open_ball(mask, settings.opening_radius_mm, work_spacing)
     labels, count = ndimage.label(mask, structure=_CONNECTIVITY_26)
     if count == 0:
         return []

@@ -288,15 +288,23 @@ def test_thick_slices_along_the_axis_do_not_confuse_the_start(spacing):
         assert fit.fit_rms_mm < 0.15
 
 
-def test_ball_dilation_from_boxes_is_exact():
+def test_box_morphology_matches_scipy_exactly():
+    """The separable morphology of segmentation/measure gives scipy's masks and minima, borders included."""
     from scipy import ndimage
 
-    from EMRegModule.detection.segmentation import ball, dilate_ball
+    from EMRegModule.detection.segmentation import ball, box_extreme, dilate_ball, erode_ball, open_ball
 
     rng = np.random.default_rng(0)
     for spacing in ((0.6, 0.6, 0.6), (1.25, 0.9, 0.9), (0.3, 0.3, 0.3), (2.0, 0.7, 0.7)):
-        for radius in (0.5, 1.5, 2.5):
+        for radius in (0.5, 1.0, 1.5, 2.5):
             mask = ndimage.gaussian_filter(rng.random((24, 25, 23)), 2) > 0.52
             mask[0, 5, 5] = mask[-1, -1, -1] = True  # touching the border
-            expected = ndimage.binary_dilation(mask, ball(radius, np.array(spacing)))
-            np.testing.assert_array_equal(dilate_ball(mask, radius, np.array(spacing)), expected)
+            mask[:3, :3, :3] = True
+            element = ball(radius, np.array(spacing))
+            for ours, theirs in ((dilate_ball, ndimage.binary_dilation), (erode_ball, ndimage.binary_erosion),
+                                 (open_ball, ndimage.binary_opening)):
+                np.testing.assert_array_equal(ours(mask, radius, np.array(spacing)), theirs(mask, element))
+    values = rng.normal(size=(20, 21, 19)).astype(np.float32)
+    for size in ((5, 5, 5), (3, 5, 7), (1, 3, 3)):
+        np.testing.assert_array_equal(box_extreme(values, tuple(n // 2 for n in size), np.minimum),
+                                      ndimage.minimum_filter(values, size=size, mode="nearest"))
