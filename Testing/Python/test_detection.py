@@ -308,3 +308,14 @@ def test_box_morphology_matches_scipy_exactly():
     for size in ((5, 5, 5), (3, 5, 7), (1, 3, 3)):
         np.testing.assert_array_equal(box_extreme(values, tuple(n // 2 for n in size), np.minimum),
                                       ndimage.minimum_filter(values, size=size, mode="nearest"))
+
+
+@pytest.mark.parametrize("low, high", [(600, 1800), (600.5, 1800.5), (-40000, 100), (2000, 3000), (32000, 40000),
+                                       (100, 100)])
+def test_int16_band_test_is_exact_over_every_value(low, high):
+    from EMRegModule.detection.segmentation import _band_test
+
+    values = np.arange(-32768, 32768).astype(np.int16)
+    out = np.empty(values.shape, dtype=bool)
+    _band_test(values.dtype, low, high)(values, out)
+    np.testing.assert_array_equal(out, (values >= low) & (values < high))
