@@ -280,7 +280,7 @@ class EdgeHits:
 
 
 def edge_points(values_zyx: np.ndarray, local_to_image: np.ndarray, marker_to_image: np.ndarray,
-                samples: EdgeSamples, outer_mm: float = 2.0, step_mm: float = 0.1, min_contrast_hu: float = 300.0,
+                samples: EdgeSamples, outer_mm: float = 2.0, step_mm: float = 0.2, min_contrast_hu: float = 300.0,
                 min_inner_hu: float = 600.0, image_to_local: np.ndarray | None = None) -> EdgeHits:
     """Sub-voxel edges along the CAD normals of ``samples`` placed at ``marker_to_image`` (image mm).
 
