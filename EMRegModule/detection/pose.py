@@ -28,7 +28,7 @@ Steps, for one segmented blob:
 closer; with the skew-axis start and an untrimmed first step it changed no result and cost
 half of the posing time.)
 
-Cost: about 10 ms per marker (a few thousand profile samples per step, one ICP of ~800 points
+Cost: about 7 ms per marker (a few thousand profile samples per step, one ICP of ~800 points
 that starts converged).
 """
 
