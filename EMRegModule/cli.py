@@ -94,15 +94,16 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_detect(args: argparse.Namespace) -> int:
     _need_stage("detection", "marker detection")
-    from .detection import write_detection
     from .io.case import find_ct
 
     source = Path(args.ct)
     case_dir = source if source.is_dir() and find_ct(source) is not None else None
     ct_path = find_ct(source) if case_dir is not None else source
     controller = _controller(args, _settings(args, case_dir))
-    controller.load_ct(ct_path)
+    controller.load_ct(ct_path)  # imports the detection stage on a thread meanwhile
     result = controller.detect_markers()
+    from .detection import write_detection
+
     write_detection(result, Path(args.out))
     print(f"{len(result.markers)} markers detected, {len(result.rejected)} candidates rejected -> {args.out}")
     return 0
