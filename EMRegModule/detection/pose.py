@@ -1,16 +1,20 @@
-"""Marker pose in image space: skew-axis start, sub-voxel edge points, point-to-plane steps, VTK ICP.
+"""Marker pose in image space: PCA/skew-axis start, flying-edges reconstruction with VTK ICP,
+sub-voxel edge points, point-to-plane steps, final VTK ICP.
 
 Frames: ``Marker`` is the CAD frame (origin bottom-face centre, +Y toward the narrow top),
 ``Image`` the CT's LPS physical space (mm). Poses are ``marker_to_image`` (4x4).
 
 Steps, for one segmented blob:
 
-1. Start: centroid of the blob's voxels and the direction of their largest skewness (the
-   marker is wide at the bottom and narrow at the top), which points +Y toward the narrow
-   top. Not the principal axes: the marker's second moments are nearly isotropic. The start
-   is within about a degree and 1 mm (the band threshold shrinks the blob more against air
-   than against plastic), well inside the edge search's +/- 2 mm.
-2. Sub-voxel fit: a single iso-level is biased where the marker meets plastic on one side and
+1. Start: centroid of the blob's voxels and, from their principal axes, the direction of their
+   largest skewness (the marker is wide at the bottom and narrow at the top), which points +Y
+   toward the narrow top. The second moments alone cannot give the axis: the marker's principal
+   spreads differ by only 8 %, so thick slices or partial volume can swap them.
+2. Reconstruction: the blob's iso-surface by ``vtkFlyingEdges3D`` (150 of its points), aligned
+   to the CAD surface by a short ``vtkIterativeClosestPointTransform`` (at most 5 iterations,
+   0.05 mm criterion). Its iso-level is biased where PVC meets plastic, so this
+   only brings the start within a few tenths of a millimetre.
+3. Sub-voxel fit: a single iso-level is biased where the marker meets plastic on one side and
    air on the other, so edge points are found per surface point instead: the intensity profile
    along the CAD normal is sampled (trilinear) and the edge is where it crosses half-way between
    its own inner (PVC) and outer (local background) plateaus, which is the true edge of a blurred
@@ -20,16 +24,12 @@ Steps, for one segmented blob:
    the step is below 0.02 mm (three or four steps: the method converges quadratically; every
    third profile while the steps exceed 0.3 mm, and the edges found before a step under
    0.02 mm are kept rather than sampled again).
-3. Final refinement: ``vtkIterativeClosestPointTransform`` of the edge points (outliers
+4. Final refinement: ``vtkIterativeClosestPointTransform`` of the edge points (outliers
    trimmed) onto the CAD surface, from that close start with a 1e-4 mm convergence criterion;
    the fit RMS is the distance of the edge points to the fitted surface.
 
-(An ICP of the blob's flying-edges surface between steps 1 and 2 used to bring the start
-closer; with the skew-axis start and an untrimmed first step it changed no result and cost
-half of the posing time.)
-
-Cost: about 7 ms per marker (a few thousand profile samples per step, one ICP of ~800 points
-that starts converged).
+Cost: about 8 ms per marker (a few thousand profile samples per step, a short ICP of a few
+hundred reconstruction points, one ICP of ~800 edge points that starts converged).
 """
 
 from __future__ import annotations
@@ -40,9 +40,10 @@ from functools import lru_cache
 
 import numpy as np
 from scipy import ndimage
-from vtkmodules.util.numpy_support import numpy_to_vtk
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonCore import vtkPoints
-from vtkmodules.vtkCommonDataModel import vtkIterativeClosestPointTransform, vtkPolyData
+from vtkmodules.vtkCommonDataModel import vtkImageData, vtkIterativeClosestPointTransform, vtkPolyData
+from vtkmodules.vtkFiltersCore import vtkFlyingEdges3D
 
 from ..marker_model import MarkerModel
 from ..transforms import apply_rotation, apply_transform, axis_angle_to_rotation, invert_rigid, make_transform
@@ -228,6 +229,28 @@ def skew_axis(centred: np.ndarray, iterations: int = 100, tolerance: float = 1e-
     return best
 
 
+def blob_surface_points(mask_zyx: np.ndarray, local_to_image: np.ndarray, max_points: int = 150) -> np.ndarray:
+    """The blob's reconstruction: ``vtkFlyingEdges3D`` iso-surface of the mask at 0.5 (linear
+    interpolation between voxel centres), at most ``max_points`` of its points (evenly taken), image mm."""
+    field = np.pad(mask_zyx.astype(np.float32), 2)
+    image = vtkImageData()
+    image.SetDimensions(field.shape[2], field.shape[1], field.shape[0])
+    image.GetPointData().SetScalars(numpy_to_vtk(field.ravel(), deep=True))
+    surface = vtkFlyingEdges3D()
+    surface.SetInputData(image)
+    surface.SetValue(0, 0.5)
+    surface.ComputeNormalsOff()
+    surface.ComputeGradientsOff()
+    surface.ComputeScalarsOff()
+    surface.Update()
+    points = surface.GetOutput().GetPoints()
+    if points is None:
+        return np.empty((0, 3))
+    ijk = vtk_to_numpy(points.GetData()).astype(float) - 2.0
+    ijk = ijk[:: max(1, int(np.ceil(len(ijk) / max_points)))]
+    return apply_transform(local_to_image, ijk)
+
+
 def icp_to_model(points_marker: np.ndarray, model: MarkerModel, max_iterations: int = 40,
                  max_landmarks: int = 1500, tolerance_mm: float = 1e-3) -> np.ndarray:
     """Rigid ``vtkIterativeClosestPointTransform`` of points (near the marker frame) onto the CAD surface.
@@ -368,11 +391,18 @@ def fit_pose(mask_zyx: np.ndarray, mask_to_image: np.ndarray, values_zyx: np.nda
 
     ``mask_zyx`` is the segmented blob and ``values_zyx`` the raw intensities around it
     (float32, any resolution); ``*_to_image`` map their local (i, j, k) indices to LPS mm.
-    Steps: skew-axis start; edge points along the CAD normals with point-to-plane steps
-    (usually three); a final ICP of the edge points onto the CAD surface from that close start.
+    Steps: skew-axis start; ``vtkIterativeClosestPointTransform`` of the blob's flying-edges
+    reconstruction onto the CAD surface; edge points along the CAD normals with point-to-plane
+    steps (usually three); a final ICP of the edge points onto the CAD surface from that close start.
     """
     voxels_ijk = np.argwhere(mask_zyx)[:, ::-1].astype(float)
     pose = principal_start(apply_transform(mask_to_image, voxels_ijk), model)
+    # the blob's flying-edges reconstruction, brought onto the CAD surface by a short ICP: a start
+    # within a few tenths of a millimetre and degree for the edge steps (its iso-level is biased
+    # where PVC meets plastic, which the edge steps then remove)
+    surface = blob_surface_points(mask_zyx, mask_to_image)
+    if len(surface) >= 50:
+        pose = refine_with(surface, pose, model, max_iterations=5, max_landmarks=len(surface), tolerance_mm=0.05)
     samples = edge_samples(model)
     sparse = sparse_edge_samples(model)
     image_to_local = np.linalg.inv(values_to_image)
