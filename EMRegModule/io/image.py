@@ -15,6 +15,7 @@ import SimpleITK as sitk
 
 from ..errors import EMRegError
 from .case import CT_FILE_NAMES, CT_FOLDER_NAME, find_ct  # noqa: F401  (re-exported: CT naming lives with the case)
+from .fast_read import VolumeFill, start_fast_read
 
 _SCALAR_TYPES = {
     sitk.sitkInt8, sitk.sitkUInt8, sitk.sitkInt16, sitk.sitkUInt16, sitk.sitkInt32,
@@ -28,22 +29,38 @@ def read_ct(path: str | os.PathLike[str]) -> sitk.Image:
     Raises :class:`EMRegError` with a one-line message for a missing, empty, truncated
     or unreadable file, a non-scalar or non-3D image, or a folder without one series.
     """
+    return open_ct(path).result()
+
+
+def open_ct(path: str | os.PathLike[str]) -> VolumeFill:
+    """Start reading a CT as :func:`read_ct` does; the voxels may still be arriving when this returns.
+
+    Plain NRRD, MetaImage and NIfTI files take the fast path of :mod:`.fast_read` (the same
+    image as SimpleITK's, about twice as fast on compressed scans), read slice by slice on a
+    background thread; anything else is read by SimpleITK before this returns. The geometry is
+    checked (:func:`check_ct`) before returning; ``result()`` raises the read's own errors.
+    """
     path = Path(path)
     if not path.exists():
         raise EMRegError(f"{path}: CT not found")
     try:
         if path.is_dir():
-            image = _read_dicom_series(path)
+            fill = VolumeFill.complete(_read_dicom_series(path))
         else:
             if path.stat().st_size == 0:
                 raise EMRegError(f"{path}: CT file is empty")
-            image = sitk.ReadImage(str(path))
+            fill = start_fast_read(path) or VolumeFill.complete(sitk.ReadImage(str(path)))
+        image = fill.image
     except RuntimeError as exc:
         reason = str(exc).strip().splitlines()
         detail = next((line for line in reversed(reason) if line.strip()), "unreadable")
         raise EMRegError(f"{path}: cannot read CT ({detail.strip()[:200]})") from None
-    check_ct(image, path)
-    return image
+    try:
+        check_ct(image, path)
+    except EMRegError:
+        fill.cancel()
+        raise
+    return fill
 
 
 def _read_dicom_series(folder: Path) -> sitk.Image:
