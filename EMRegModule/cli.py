@@ -100,8 +100,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     case_dir = source if source.is_dir() and find_ct(source) is not None else None
     ct_path = find_ct(source) if case_dir is not None else source
     controller = _controller(args, _settings(args, case_dir))
-    controller.load_ct(ct_path)  # imports the detection stage on a thread meanwhile
-    result = controller.detect_markers()
+    result = controller.load_ct_and_detect(ct_path)  # detects on the slices read while the rest arrives
     from .detection import write_detection
 
     write_detection(result, Path(args.out))
@@ -276,8 +275,7 @@ def run_case(
         if stage_available("detection"):
             from .detection import write_detection
 
-            controller.load_ct(case.ct)
-            detection = controller.detect_markers()
+            detection = controller.load_ct_and_detect(case.ct)
             write_detection(detection, out)
             summary.append(f"detect: {len(detection.markers)} markers, {len(detection.rejected)} rejected")
         else:

@@ -23,7 +23,8 @@ and nothing is written. Registration needs three or more and checks that itself.
 from __future__ import annotations
 
 import os
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 import SimpleITK as sitk
@@ -36,15 +37,19 @@ from ..transforms import apply_transform
 from .measure import measure_blob, metal_distance_mm
 from .pose import fit_pose, model_moments
 from .result import DetectedMarker, DetectionResult, RejectedCandidate
-from .segmentation import Blob, Region, blobs_in_region, coarse_pass, region_around
+from .segmentation import Blob, CoarseScan, Region, TooLarge, blobs_in_region, region_around
 from .settings import DetectionSettings, settings_from_dict
 
 
 def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings: dict | None = None,
-                   progress: Progress | None = None) -> DetectionResult:
+                   progress: Progress | None = None,
+                   wait_for_slices: Callable[[int], None] | None = None) -> DetectionResult:
     """Markers in ``image`` (a scalar 3D CT in HU): origins (bottom-face centres) and +Y axes, LPS mm.
 
     ``settings`` is the ``[detection]`` table of ``case.toml`` (unknown keys are an error).
+    ``wait_for_slices(n)``, when given, blocks until slices ``0 .. n-1`` (numpy axis 0) of an
+    image still being read hold their values (:class:`~EMRegModule.io.fast_read.VolumeFill`):
+    detection then works on the slices already read while the rest arrives, with the same result.
     Raises :class:`NoSafeAnswerError` (exit 3) when fewer than ``min_markers`` markers are found.
     """
     model = model or MarkerModel()
@@ -54,30 +59,79 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
     volume = sitk.GetArrayViewFromImage(image)
     spacing_zyx = np.asarray(image.GetSpacing(), dtype=float)[::-1]
     index_to_image = index_to_physical_matrix(image)
-    markers: list[DetectedMarker] = []
-    rejected: list[RejectedCandidate] = []
-    with progress.step("finding candidates"):
-        coarse = coarse_pass(volume, spacing_zyx, model, options)
-    for centroid_zyx, volume_mm3, extent_mm in coarse.too_large:
-        centroid = apply_transform(index_to_image, centroid_zyx[::-1].astype(float))
-        rejected.append(RejectedCandidate(
-            centroid, volume_mm3, f"too large for a marker (about {volume_mm3:.0f} mm3, {extent_mm:.0f} mm long)",
-            "volume"))
-    outcomes: list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]] = []
+    slice_count = volume.shape[0]
+    scan = CoarseScan(volume, spacing_zyx, model, options)
+    guard = _guard_slices(model, options, spacing_zyx)
+    queued: list[Region] = []
+    too_large: list[TooLarge] = []
+    examined: list[tuple[Region, Future]] = []
 
-    def examine(region: Region) -> list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]]:
+    def examine(region: Region, metal_zyx: np.ndarray) -> list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]]:
         found = []
         for blob in blobs_in_region(volume, region, index_to_image, spacing_zyx, model, options):
             if blob.touches_region_edge:
                 blob = _regrown(volume, blob, index_to_image, spacing_zyx, model, options)
-            found.append((blob.centroid(), _classify(blob, coarse.metal_zyx, index_to_image, model, options)))
+            found.append((blob.centroid(), _classify(blob, metal_zyx, index_to_image, model, options)))
         return found
 
-    with progress.step("fitting markers", total=len(coarse.regions)) as step, \
-            ThreadPoolExecutor(max_workers=_workers(len(coarse.regions))) as pool:
-        for found in pool.map(examine, coarse.regions):  # regions in order: the result does not depend on timing
-            outcomes.extend(found)
-            step.advance()
+    def start_ready(pool: ThreadPoolExecutor, slices: int) -> None:
+        """Start the regions whose slices, and all a check of theirs may look at, are read."""
+        ready = [r for r in queued if slices >= slice_count or r.slices[0].stop + guard <= slices]
+        if ready:
+            metal_zyx = scan.metal_zyx  # complete within ``guard`` of the ready regions
+            examined.extend((region, pool.submit(examine, region, metal_zyx)) for region in ready)
+            queued[:] = [r for r in queued if not any(r is q for q in ready)]
+
+    with ThreadPoolExecutor(max_workers=_workers()) as pool:
+        streaming = wait_for_slices is not None
+        with progress.step("reading CT and finding candidates" if streaming else "finding candidates"):
+            step_slices = _STEP_ROWS * int(scan.strides[0]) if streaming else slice_count
+            for slices in range(step_slices, slice_count + step_slices, step_slices):
+                slices = min(slices, slice_count)
+                if streaming:
+                    wait_for_slices(slices)
+                regions, large = scan.advance(slices)
+                queued.extend(regions)
+                too_large.extend(large)
+                start_ready(pool, slices)
+        with progress.step("fitting markers", total=len(examined) + len(queued)) as step:
+            start_ready(pool, slice_count)
+            outcomes: list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]] = []
+            for _, future in sorted(examined, key=lambda item: _region_key(item[0])):  # the order of a whole read
+                outcomes.extend(future.result())
+                step.advance()
+    return _result(outcomes, too_large, index_to_image, options, image)
+
+
+_STEP_ROWS = 16
+"""Coarse rows sampled per step while the CT is being read."""
+
+
+def _guard_slices(model: MarkerModel, options: DetectionSettings, spacing_zyx: np.ndarray) -> int:
+    """Slices past a region's end that examining the region may look at.
+
+    A blob cut by its region is regrown (``_regrown``, at most twice) in its box grown by
+    ``ceil(height / spacing) + 1`` voxels, so the slices read, and the blob's centroid, stay
+    within twice that past the region; the metal check then looks ``metal_distance_mm`` plus
+    half the marker's diagonal around the centroid (a slice apart is at least a slice spacing apart).
+    """
+    slice_mm = float(spacing_zyx[0])
+    regrow = 2 * (int(np.ceil(model.height_mm / slice_mm)) + 1)
+    metal_mm = options.metal_distance_mm + 0.5 * float(np.hypot(model.height_mm, model.bottom_diameter_mm))
+    return regrow + int(np.ceil(metal_mm / slice_mm)) + 1
+
+
+def _region_key(region: Region) -> tuple[int, ...]:
+    return tuple(s.start for s in region.slices) + tuple(s.stop for s in region.slices)
+
+
+def _result(outcomes: list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]], too_large: list[TooLarge],
+            index_to_image: np.ndarray, options: DetectionSettings, image: sitk.Image) -> DetectionResult:
+    """Markers and rejected candidates, each blob once (overlapping regions can reach the same blob)."""
+    markers: list[DetectedMarker] = []
+    rejected = [RejectedCandidate(apply_transform(index_to_image, t.centroid_zyx[::-1].astype(float)), t.volume_mm3,
+                                  f"too large for a marker (about {t.volume_mm3:.0f} mm3, {t.extent_mm:.0f} mm long)",
+                                  "volume") for t in too_large]
     kept: list[np.ndarray] = []
     for key, outcome in sorted(outcomes, key=lambda item: not isinstance(item[1], DetectedMarker)):
         if any(np.linalg.norm(key - other) < 1.0 for other in kept):
@@ -93,9 +147,9 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
     return DetectionResult(markers, rejected, image_geometry(image))
 
 
-def _workers(tasks: int) -> int:
+def _workers() -> int:
     """Threads for the regions: the heavy parts (numpy, VTK, most of scipy.ndimage) release the GIL."""
-    return max(1, min(4, os.cpu_count() or 1, tasks))
+    return max(1, min(4, os.cpu_count() or 1))
 
 
 def _regrown(volume: np.ndarray, blob: Blob, index_to_image: np.ndarray, spacing_zyx: np.ndarray,

@@ -38,13 +38,12 @@ class Region:
 
 
 @dataclass
-class CoarseResult:
-    """What the coarse pass found: candidate regions, too-large blobs, metal sample positions (index zyx)."""
+class TooLarge:
+    """A coarse component too large for a marker: centroid (index zyx), volume (mm3), longest extent (mm)."""
 
-    regions: list[Region]
-    too_large: list[tuple[np.ndarray, float, float]]
-    metal_zyx: np.ndarray
-    strides_zyx: np.ndarray
+    centroid_zyx: np.ndarray
+    volume_mm3: float
+    extent_mm: float
 
 
 @dataclass
@@ -93,71 +92,112 @@ def coarse_strides(spacing_zyx: np.ndarray, step_mm: float) -> np.ndarray:
     return np.maximum(1, np.floor(step_mm / np.asarray(spacing_zyx) + 0.5)).astype(int)
 
 
-def coarse_pass(volume_zyx: np.ndarray, spacing_zyx: np.ndarray, model: MarkerModel,
-                settings: DetectionSettings) -> CoarseResult:
-    """Find candidate regions from a strided view of ``volume_zyx`` (touches ~1/stride^2 of the memory)."""
-    strides = coarse_strides(spacing_zyx, settings.coarse_step_mm)
-    band, metal_zyx = _coarse_band(volume_zyx, strides, settings)
-    labels, count = ndimage.label(band, structure=_CONNECTIVITY_26)
-    del band
-    shape = np.array(volume_zyx.shape)
-    sample_volume = float(np.prod(spacing_zyx * strides))
-    model_volume = model.volume_mm3
-    regions: list[Region] = []
-    too_large: list[tuple[np.ndarray, float, float]] = []
-    if count == 0:
-        return CoarseResult(regions, too_large, metal_zyx, strides)
-    boxes = ndimage.find_objects(labels)
-    max_extent_mm = 1.5 * np.hypot(model.height_mm, model.bottom_diameter_mm)
-    margin = strides + np.ceil(3.0 / np.asarray(spacing_zyx)).astype(int)
-    for label_value, box in enumerate(boxes, start=1):
-        if box is None or np.prod([s.stop - s.start for s in box]) * sample_volume < 0.3 * model_volume:
-            continue
-        members = np.argwhere(labels[box] == label_value)  # bincount would make an int64 copy of labels
-        volume = len(members) * sample_volume
-        if volume < 0.3 * model_volume:
-            continue  # specks: noise, thin partial-volume shells of bone
-        lo = np.array([s.start for s in box]) * strides
-        hi = (np.array([s.stop for s in box]) - 1) * strides + 1
-        extent_mm = (hi - lo) * np.asarray(spacing_zyx)
-        centroid = members.mean(axis=0) * strides + lo
-        if volume > 3.0 * model_volume or np.max(extent_mm) > max_extent_mm:
-            too_large.append((centroid, volume, float(np.max(extent_mm))))
-            continue
-        start = np.maximum(lo - margin, 0)
-        stop = np.minimum(hi + margin, shape)
-        regions.append(Region(tuple(slice(int(a), int(b)) for a, b in zip(start, stop, strict=True)),
-                              centroid, volume))
-    return CoarseResult(regions, too_large, metal_zyx, strides)
+class CoarseScan:
+    """The coarse candidate search, fed with the slices (numpy axis 0) as they are read.
 
-
-def _coarse_band(volume_zyx: np.ndarray, strides: np.ndarray, settings: DetectionSettings,
-                 slab: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """In-band mask of the strided samples, and the metal samples (index zyx), slab by slab (small temporaries).
-
-    Slabs go to two threads (numpy releases the GIL); int16 volumes are tested with a single
-    unsigned comparison (``low <= v < high`` is ``uint16(v - low) < high - low``, exact with
-    wrap-around since the map is a bijection of the 16-bit values).
+    ``advance(slices)`` samples the coarse rows that the first ``slices`` slices hold, labels
+    the in-band samples of the rows where a component may still be growing, and returns the
+    components that are now complete (they do not reach the newest row): each becomes a
+    full-resolution :class:`Region` or, when too large for a marker, a :class:`TooLarge`. Every
+    component is returned exactly once, and the same whether the volume arrives at once or in
+    many steps: a component that reaches the newest row is left for a later step, whose
+    labelling starts at the first row any such component occupies.
     """
-    sz, sy, sx = (int(v) for v in strides)
-    sample = volume_zyx[::sz, ::sy, ::sx]  # a view: nothing is copied
-    band = np.empty(sample.shape, dtype=bool)
-    in_band = _band_test(sample.dtype, settings.low_hu, settings.high_hu)
 
-    def one_slab(z0: int) -> np.ndarray | None:
-        block = sample[z0:z0 + slab]
-        in_band(block, band[z0:z0 + slab])
-        metal = block >= settings.metal_hu
-        if not metal.any():
+    def __init__(self, volume_zyx: np.ndarray, spacing_zyx: np.ndarray, model: MarkerModel,
+                 settings: DetectionSettings) -> None:
+        self.spacing_zyx = np.asarray(spacing_zyx, dtype=float)
+        self.strides = coarse_strides(self.spacing_zyx, settings.coarse_step_mm)
+        self.shape = np.array(volume_zyx.shape)
+        sz, sy, sx = (int(v) for v in self.strides)
+        self._sample = volume_zyx[::sz, ::sy, ::sx]  # a view: nothing is copied
+        self._band = np.zeros(self._sample.shape, dtype=bool)
+        self._in_band = _band_test(self._sample.dtype, settings.low_hu, settings.high_hu)
+        self._metal_hu = settings.metal_hu
+        self._metal: list[np.ndarray] = []
+        self._rows = 0  # coarse rows sampled so far
+        self._open_from = 0  # first row that a component still growing may occupy
+        self._sample_volume = float(np.prod(self.spacing_zyx * self.strides))
+        self._model_volume = model.volume_mm3
+        self._max_extent_mm = 1.5 * float(np.hypot(model.height_mm, model.bottom_diameter_mm))
+        self._margin = self.strides + np.ceil(3.0 / self.spacing_zyx).astype(int)
+
+    @property
+    def metal_zyx(self) -> np.ndarray:
+        """Metal samples (full-resolution index zyx) in the rows sampled so far."""
+        hits = np.concatenate(self._metal) if self._metal else np.empty((0, 3), dtype=int)
+        return hits * self.strides
+
+    def advance(self, slices: int) -> tuple[list[Region], list[TooLarge]]:
+        """Components completed by the first ``slices`` slices (all of them once ``slices`` is the last)."""
+        total_rows = self._sample.shape[0]
+        rows = min(total_rows, -(-int(slices) // int(self.strides[0])))
+        if rows <= self._rows:
+            return [], []
+        self._sample_rows(self._rows, rows)
+        previous, self._rows = self._rows, rows
+        last = rows == total_rows
+        offset = self._open_from
+        labels, count = ndimage.label(self._band[offset:rows], structure=_CONNECTIVITY_26)
+        open_from = rows
+        regions: list[Region] = []
+        too_large: list[TooLarge] = []
+        for label_value, box in enumerate(ndimage.find_objects(labels) if count else [], start=1):
+            if box is None:
+                continue
+            first, stop = box[0].start + offset, box[0].stop + offset
+            if stop == rows and not last:  # reaches the newest row: may grow into rows not read yet
+                open_from = min(open_from, first)
+                continue
+            if stop < previous:
+                continue  # complete in an earlier step already, and returned then
+            outcome = self._component(labels, label_value, box, offset)
+            if isinstance(outcome, Region):
+                regions.append(outcome)
+            elif outcome is not None:
+                too_large.append(outcome)
+        self._open_from = open_from
+        return regions, too_large
+
+    def _component(self, labels: np.ndarray, label_value: int, box: tuple[slice, ...],
+                   offset: int) -> Region | TooLarge | None:
+        if np.prod([s.stop - s.start for s in box]) * self._sample_volume < 0.3 * self._model_volume:
             return None
-        hits = np.argwhere(metal)
-        hits[:, 0] += z0
-        return hits
+        members = np.argwhere(labels[box] == label_value)  # bincount would make an int64 copy of labels
+        volume = len(members) * self._sample_volume
+        if volume < 0.3 * self._model_volume:
+            return None  # specks: noise, thin partial-volume shells of bone
+        lo = (np.array([s.start for s in box]) + [offset, 0, 0]) * self.strides
+        hi = (np.array([s.stop for s in box]) + [offset, 0, 0] - 1) * self.strides + 1
+        extent_mm = (hi - lo) * self.spacing_zyx
+        centroid = members.mean(axis=0) * self.strides + lo
+        if volume > 3.0 * self._model_volume or np.max(extent_mm) > self._max_extent_mm:
+            return TooLarge(centroid, volume, float(np.max(extent_mm)))
+        start = np.maximum(lo - self._margin, 0)
+        stop = np.minimum(hi + self._margin, self.shape)
+        return Region(tuple(slice(int(a), int(b)) for a, b in zip(start, stop, strict=True)), centroid, volume)
 
-    with ThreadPoolExecutor(max_workers=max(1, min(2, os.cpu_count() or 1))) as pool:
-        metal = [hits for hits in pool.map(one_slab, range(0, sample.shape[0], slab)) if hits is not None]
-    metal_zyx = (np.concatenate(metal) if metal else np.empty((0, 3), dtype=int)) * strides
-    return band, metal_zyx
+    def _sample_rows(self, start: int, stop: int, slab: int = 8) -> None:
+        """Band test and metal samples of coarse rows ``start .. stop-1``, slab by slab on two threads.
+
+        int16 volumes are tested with a single unsigned comparison (``low <= v < high`` is
+        ``uint16(v - low) < high - low``, exact with wrap-around: the map is a bijection of the
+        16-bit values). Slabs keep the temporaries small; numpy releases the GIL.
+        """
+
+        def one_slab(z0: int) -> np.ndarray | None:
+            z1 = min(z0 + slab, stop)
+            block = self._sample[z0:z1]
+            self._in_band(block, self._band[z0:z1])
+            metal = block >= self._metal_hu
+            if not metal.any():
+                return None
+            hits = np.argwhere(metal)
+            hits[:, 0] += z0
+            return hits
+
+        with ThreadPoolExecutor(max_workers=max(1, min(2, os.cpu_count() or 1))) as pool:
+            self._metal.extend(hits for hits in pool.map(one_slab, range(start, stop, slab)) if hits is not None)
 
 
 def _band_test(dtype: np.dtype, low: float, high: float):
