@@ -2,8 +2,10 @@
 
 Coarse-to-fine (see ``segmentation``): the volume is read through a zero-copy view, a strided
 pass finds candidate regions, and only those regions are processed at full resolution, on a
-few threads (the result does not depend on them). Every candidate of marker-like density and
-at least a third of a marker's volume ends either as a marker or in ``rejected`` with a reason (code in brackets):
+few threads (the result does not depend on them). Given ``wait_for_slices``, all of this runs
+while the CT is still being read, each region as soon as the slices it needs are in. Every
+candidate of marker-like density and at least a third of a marker's volume ends either as a
+marker or in ``rejected`` with a reason (code in brackets):
 
 - ``edge``: cut by the image's edge;
 - ``volume``: too large or too small for the marker model;
@@ -23,8 +25,9 @@ and nothing is written. Registration needs three or more and checks that itself.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
 
 import numpy as np
 import SimpleITK as sitk
@@ -82,7 +85,7 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
             examined.extend((region, pool.submit(examine, region, metal_zyx)) for region in ready)
             queued[:] = [r for r in queued if not any(r is q for q in ready)]
 
-    with ThreadPoolExecutor(max_workers=_workers()) as pool:
+    with ThreadPoolExecutor(max_workers=_workers()) as pool, _cancel_on_error(pool):
         streaming = wait_for_slices is not None
         with progress.step("reading CT and finding candidates" if streaming else "finding candidates"):
             step_slices = _STEP_ROWS * int(scan.strides[0]) if streaming else slice_count
@@ -106,17 +109,30 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
 _STEP_ROWS = 16
 """Coarse rows sampled per step while the CT is being read."""
 
+_REGROW_ROUNDS = 2
+"""Times a blob cut by its region is regrown in a larger one (``_regrown``; ``_guard_slices`` counts on it)."""
+
+
+@contextmanager
+def _cancel_on_error(pool: ThreadPoolExecutor) -> Iterator[None]:
+    """Drop the regions not started yet when detection fails (e.g. the CT turns out truncated)."""
+    try:
+        yield
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+
 
 def _guard_slices(model: MarkerModel, options: DetectionSettings, spacing_zyx: np.ndarray) -> int:
     """Slices past a region's end that examining the region may look at.
 
-    A blob cut by its region is regrown (``_regrown``, at most twice) in its box grown by
-    ``ceil(height / spacing) + 1`` voxels, so the slices read, and the blob's centroid, stay
-    within twice that past the region; the metal check then looks ``metal_distance_mm`` plus
+    A blob cut by its region is regrown (``_regrown``, at most ``_REGROW_ROUNDS`` times) in its
+    box grown by ``ceil(height / spacing) + 1`` voxels, so the slices read, and the blob's
+    centroid, stay within that many times this past the region; the metal check then looks ``metal_distance_mm`` plus
     half the marker's diagonal around the centroid (a slice apart is at least a slice spacing apart).
     """
     slice_mm = float(spacing_zyx[0])
-    regrow = 2 * (int(np.ceil(model.height_mm / slice_mm)) + 1)
+    regrow = _REGROW_ROUNDS * (int(np.ceil(model.height_mm / slice_mm)) + 1)
     metal_mm = options.metal_distance_mm + 0.5 * float(np.hypot(model.height_mm, model.bottom_diameter_mm))
     return regrow + int(np.ceil(metal_mm / slice_mm)) + 1
 
@@ -156,7 +172,7 @@ def _regrown(volume: np.ndarray, blob: Blob, index_to_image: np.ndarray, spacing
              model: MarkerModel, options: DetectionSettings) -> Blob:
     """The whole of a blob that its coarse region cut (e.g. a marker split in two by the coarse pass)."""
     reach = 1.5 * float(np.hypot(model.height_mm, model.bottom_diameter_mm))
-    for _ in range(2):
+    for _ in range(_REGROW_ROUNDS):
         extent = (blob.box_zyx[1] - blob.box_zyx[0]) * spacing_zyx
         if not blob.touches_region_edge or np.max(extent) > reach:
             return blob
