@@ -5,7 +5,8 @@ SimpleITK inflates gzip/zlib voxel data with plain zlib, which makes reading the
 spacing, direction cosines and pixel type are exactly those of ``sitk.ReadImage``), allocates
 the image, and the voxel bytes are inflated with ISA-L (``isal``, about 2.5x faster than zlib)
 straight into that image's buffer, a bounded chunk at a time: peak memory is the volume plus a
-few MB, with no second copy.
+few MB, with no second copy. This runs on a background thread that announces whole slices as
+they are filled (:class:`VolumeFill`), so that marker detection can work on them meanwhile.
 
 Only the plain layouts are taken: 3D, scalar, the voxels in the same file, raw or gzip/zlib,
 no intensity rescaling. Anything else (detached data, a NIfTI slope, NIfTI-2, a pixel type the
