@@ -17,6 +17,8 @@ from ..transforms import apply_transform
 from .segmentation import Blob, box_extreme, dilate_ball, erode_ball
 from .settings import DetectionSettings
 
+_FACE_NEIGHBOURS = ndimage.generate_binary_structure(3, 1)
+
 
 @dataclass
 class BlobMeasures:
@@ -38,7 +40,9 @@ def measure_blob(blob: Blob, settings: DetectionSettings) -> BlobMeasures:
     spacing_zyx = blob.spacing_zyx
     crop = _grown_box(blob.mask, np.ceil(2.0 / spacing_zyx).astype(int))
     mask, values, smoothed = blob.mask[crop], blob.values[crop], blob.smoothed[crop]
-    near = dilate_ball(mask, 1.5, spacing_zyx)
+    # every voxel within 1.5 mm, and every face neighbour: with slices thicker than 1.5 mm the
+    # partial-volume voxels of the outermost slices are candidates too
+    near = dilate_ball(mask, 1.5, spacing_zyx) | ndimage.binary_dilation(mask, _FACE_NEIGHBOURS)
     core = erode_ball(mask, 1.0, spacing_zyx)
     marker_hu = float(np.median(values[core] if np.count_nonzero(core) >= 20 else values[mask]))
     half = tuple(int(h) for h in np.ceil(1.5 / spacing_zyx))
@@ -54,7 +58,9 @@ def measure_blob(blob: Blob, settings: DetectionSettings) -> BlobMeasures:
     ijk = (np.argwhere(inside) + offset)[:, ::-1]
     points = apply_transform(blob.work_to_image, ijk) if len(ijk) else np.empty((0, 3))
     if len(points) >= 4:
-        spreads = np.sqrt(np.maximum(np.sort(np.linalg.eigvalsh(np.cov(points.T))), 0))
+        axes = blob.work_to_image[:3, :3]  # columns: one voxel step along i, j, k (mm)
+        voxel_moment = axes @ axes.T / 12.0  # each voxel's own second moment: a union of boxes, not of points
+        spreads = np.sqrt(np.maximum(np.sort(np.linalg.eigvalsh(np.cov(points.T) + voxel_moment)), 0))
         centroid = points.mean(axis=0)
     else:
         spreads = np.zeros(3)
