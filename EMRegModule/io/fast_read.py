@@ -170,12 +170,6 @@ def start_fast_read(path: Path) -> VolumeFill | None:
     return fill
 
 
-def read_fast(path: Path) -> sitk.Image | None:
-    """The image in ``path`` read on the fast path (waiting for it), or ``None`` as :func:`start_fast_read`."""
-    fill = start_fast_read(path)
-    return None if fill is None else fill.result()
-
-
 def _read_voxels(path: Path, info: sitk.ImageFileReader, storage: _Storage, fill: VolumeFill) -> None:
     """The reading thread: allocate the image, fill it, announce whole slices as they are done."""
     try:

@@ -9,10 +9,16 @@ import SimpleITK as sitk
 
 from EMRegModule import transforms as tf
 from EMRegModule.errors import EMRegError
-from EMRegModule.io.fast_read import read_fast
+from EMRegModule.io.fast_read import start_fast_read
 from EMRegModule.io.image import read_ct
 
 SIZE_IJK = (37, 29, 23)  # odd sizes: no axis can be swapped unnoticed
+
+
+def read_fast(path) -> sitk.Image | None:
+    """The image read on the fast path, or None when the fast path declines the file."""
+    fill = start_fast_read(path)
+    return None if fill is None else fill.result()
 
 
 def _oblique_image(dtype: str, seed: int = 0) -> sitk.Image:
