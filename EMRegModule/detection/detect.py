@@ -64,7 +64,7 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
     index_to_image = index_to_physical_matrix(image)
     slice_count = volume.shape[0]
     scan = CoarseScan(volume, spacing_zyx, model, options)
-    guard = _guard_slices(model, options, spacing_zyx)
+    guard = _guard_slices(model, options, index_to_image)
     queued: list[Region] = []
     too_large: list[TooLarge] = []
     examined: list[tuple[Region, Future]] = []
@@ -123,18 +123,22 @@ def _cancel_on_error(pool: ThreadPoolExecutor) -> Iterator[None]:
         raise
 
 
-def _guard_slices(model: MarkerModel, options: DetectionSettings, spacing_zyx: np.ndarray) -> int:
+def _guard_slices(model: MarkerModel, options: DetectionSettings, index_to_image: np.ndarray) -> int:
     """Slices past a region's end that examining the region may look at.
 
     A blob cut by its region is regrown (``_regrown``, at most ``_REGROW_ROUNDS`` times) in its
     box grown by ``ceil(height / spacing) + 1`` voxels, so the slices read, and the blob's
-    centroid, stay within that many times this past the region; the metal check then looks ``metal_distance_mm`` plus
-    half the marker's diagonal around the centroid (a slice apart is at least a slice spacing apart).
+    centroid, stay within that many times this past the region; the metal check then looks
+    ``metal_distance_mm`` plus half the marker's diagonal around the centroid. Slices ``n``
+    apart are at least ``n`` times the distance between slice planes apart (the slice spacing,
+    less on a sheared grid such as a tilted gantry's).
     """
-    slice_mm = float(spacing_zyx[0])
-    regrow = _REGROW_ROUNDS * (int(np.ceil(model.height_mm / slice_mm)) + 1)
+    step_i, step_j, step_k = index_to_image[:3, :3].T
+    normal = np.cross(step_i, step_j)
+    plane_mm = abs(float(normal @ step_k)) / float(np.linalg.norm(normal))
+    regrow = _REGROW_ROUNDS * (int(np.ceil(model.height_mm / float(np.linalg.norm(step_k)))) + 1)
     metal_mm = options.metal_distance_mm + 0.5 * float(np.hypot(model.height_mm, model.bottom_diameter_mm))
-    return regrow + int(np.ceil(metal_mm / slice_mm)) + 1
+    return regrow + int(np.ceil(metal_mm / plane_mm)) + 1
 
 
 def _region_key(region: Region) -> tuple[int, ...]:
