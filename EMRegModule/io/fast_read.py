@@ -183,7 +183,8 @@ def _read_voxels(path: Path, info: sitk.ImageFileReader, storage: _Storage, fill
             else:
                 stream.seek(0 if storage.whole_file else storage.data_offset)
                 skip = storage.data_offset if storage.whole_file else 0
-                filled = _fill(voxels, _inflated(stream, storage.compression == "gzip", path), skip, slices)
+                blocks = _inflated(stream, storage.compression == "gzip", path, skip + voxels.nbytes)
+                filled = _fill(voxels, blocks, skip, slices)
         if filled != voxels.nbytes:
             raise EMRegError(f"{path}: cannot read CT (file is truncated: {filled} of {voxels.nbytes} voxel bytes)")
         slices(filled)
@@ -252,7 +253,7 @@ def _writable_bytes(image: sitk.Image) -> np.ndarray:
     return np.frombuffer((ctypes.c_char * view.nbytes).from_address(address), dtype=np.uint8)
 
 
-def _inflated(stream: BinaryIO, gzip: bool, path: Path) -> Iterator[bytes]:
+def _inflated(stream: BinaryIO, gzip: bool, path: Path, expected: int) -> Iterator[bytes]:
     """The inflated rest of ``stream``, block by block (at most ``_MAX_OUT_BYTES`` each).
 
     The stream is inflated to its end, so that its checksums (gzip CRC-32, zlib Adler-32) are
@@ -275,8 +276,8 @@ def _inflated(stream: BinaryIO, gzip: bool, path: Path) -> Iterator[bytes]:
             elif inflater.needs_input:
                 pending = stream.read(_CHUNK_BYTES)
                 if not pending:
-                    raise EMRegError(f"{path}: cannot read CT (file is truncated: its compressed voxel data ends "
-                                     f"after {produced} bytes)")
+                    raise EMRegError(f"{path}: cannot read CT (file is truncated: its compressed data ends after "
+                                     f"{produced} of {expected} bytes)")
             else:
                 pending = b""
             block = inflater.decompress(pending, _MAX_OUT_BYTES)
