@@ -40,7 +40,7 @@ from ..transforms import apply_transform
 from .measure import measure_blob, metal_distance_mm
 from .pose import fit_pose, model_moments
 from .result import DetectedMarker, DetectionResult, RejectedCandidate
-from .segmentation import WORK_SPACING_MM, Blob, CoarseScan, Region, TooLarge, blobs_in_region, region_around
+from .segmentation import Blob, CoarseScan, Region, TooLarge, blobs_in_region, region_around
 from .settings import DetectionSettings, settings_from_dict
 
 
@@ -214,7 +214,8 @@ def _classify(blob: Blob, metal_zyx: np.ndarray, index_to_image: np.ndarray, mod
     if problem is None:
         fit = fit_pose(blob.mask, blob.work_to_image, blob.full_values, blob.full_to_image, model,
                        min_contrast_hu=0.5 * (measures.marker_hu - options.low_hu),
-                       min_inner_hu=options.low_hu, trim_mm=3 * options.max_fit_rms_mm)
+                       min_inner_hu=options.low_hu, trim_mm=3 * options.max_fit_rms_mm,
+                       good_rms_mm=strict * options.max_fit_rms_mm)
         if fit.fit_rms_mm > strict * options.max_fit_rms_mm:
             problem, code = f"the marker model does not fit (rms {fit.fit_rms_mm:.2f} mm)", "shape"
         elif fit.inlier_fraction < options.min_inlier_fraction:
@@ -230,16 +231,17 @@ def _size_and_shape_problem(volume: float, spreads: np.ndarray, model: MarkerMod
                             strict: float, largest_voxel_mm: float) -> tuple[str | None, str]:
     """Why a blob's volume or principal spreads rule out a marker, or None.
 
-    Voxels coarser than the 0.6 mm work grid blur the marker's narrow top and its pinhole and
-    quantise the spreads (measured on simulated scans: up to 0.95 mm off at 1.25 mm voxels, 1.2 mm
-    at 1.5 mm): each spread gets the voxel size beyond 0.6 mm as extra tolerance. The CAD fit
-    that follows still rejects what only looks like a marker.
+    Voxels blur the marker's narrow top and its pinhole and quantise the spreads, the more the
+    smaller the marker is against them (measured on simulated scans: 0.4 mm off for a 10 mm
+    marker at 0.6 mm voxels, 0.95 mm for the 16 mm one at 1.25 mm, 1.2 mm at 1.5 mm): each
+    spread gets 0.6 of the largest voxel side as extra tolerance. This is only a first sieve
+    (rods, plates, lumps); the CAD fit that follows rejects what merely looks like a marker.
     """
     ratio = volume / model.volume_mm3
     if abs(ratio - 1) > strict * options.volume_tolerance:
         return f"volume {volume:.0f} mm3 is {100 * ratio:.0f}% of the marker's {model.volume_mm3:.0f} mm3", "volume"
     model_spreads, _ = model_moments(model)
-    allowed = strict * (options.shape_tolerance * model_spreads + max(0.0, largest_voxel_mm - WORK_SPACING_MM))
+    allowed = strict * (options.shape_tolerance * model_spreads + 0.6 * largest_voxel_mm)
     if np.any(np.abs(spreads - model_spreads) > allowed):
         return ("principal spreads " + "/".join(f"{v:.1f}" for v in spreads) + " mm unlike the marker's "
                 + "/".join(f"{v:.1f}" for v in model_spreads) + " mm"), "shape"

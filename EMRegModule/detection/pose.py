@@ -35,8 +35,9 @@ hundred reconstruction points, one ICP of ~800 edge points that starts converged
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import lru_cache, partial
 
 import numpy as np
 from scipy import ndimage
@@ -182,7 +183,23 @@ def principal_start(points_image: np.ndarray, model: MarkerModel) -> np.ndarray:
     default design), so slice thickness or partial volume can swap them.
     """
     centroid = points_image.mean(axis=0)
-    axis = skew_axis(points_image - centroid)
+    return start_along(centroid, skew_axis(points_image - centroid), model)
+
+
+def other_starts(points_image: np.ndarray, model: MarkerModel, tried_axis: np.ndarray) -> list[np.ndarray]:
+    """Starts along the blob's principal axes, both ways, except near the axis already tried (either way).
+
+    For blobs whose narrow top the scan has blurred (voxels of a large fraction of the top's
+    diameter), where the skew axis can point across the marker.
+    """
+    centroid = points_image.mean(axis=0)
+    _, vectors = np.linalg.eigh(np.cov((points_image - centroid).T))
+    axes = [sign * vectors[:, k] for k in range(3) for sign in (1.0, -1.0)]
+    return [start_along(centroid, a, model) for a in axes if abs(float(a @ tried_axis)) < 0.9]
+
+
+def start_along(centroid: np.ndarray, axis: np.ndarray, model: MarkerModel) -> np.ndarray:
+    """``marker_to_image`` with +Y along ``axis`` and the model's centroid at ``centroid`` (any spin)."""
     helper = np.eye(3)[int(np.argmin(np.abs(axis)))]
     z = np.cross(helper, axis)
     z /= np.linalg.norm(z)
@@ -386,7 +403,7 @@ def surface_distances(points_image: np.ndarray, marker_to_image: np.ndarray, mod
 
 def fit_pose(mask_zyx: np.ndarray, mask_to_image: np.ndarray, values_zyx: np.ndarray, values_to_image: np.ndarray,
              model: MarkerModel, min_contrast_hu: float = 300.0, min_inner_hu: float = 600.0,
-             trim_mm: float = 1.0) -> PoseFit:
+             trim_mm: float = 1.0, good_rms_mm: float | None = None) -> PoseFit:
     """The pose of one blob (``marker_to_image``) and the fit's quality.
 
     ``mask_zyx`` is the segmented blob and ``values_zyx`` the raw intensities around it
@@ -394,23 +411,82 @@ def fit_pose(mask_zyx: np.ndarray, mask_to_image: np.ndarray, values_zyx: np.nda
     Steps: skew-axis start; ``vtkIterativeClosestPointTransform`` of the blob's flying-edges
     reconstruction onto the CAD surface; edge points along the CAD normals with point-to-plane
     steps (usually three); a final ICP of the edge points onto the CAD surface from that close start.
+
+    Given ``good_rms_mm``: on voxels coarse against the marker the skew axis can point across or
+    backwards. Edges alone cannot tell a marker from the same marker upside down once the scan
+    has blurred its narrow top (the wide part fits either way and the top then finds no edges,
+    so the RMS is as small), but the image can: the right pose has PVC inside all of its solid
+    (:func:`interior_level`). So a good fit whose turned-over pose (:func:`upside_down`) is
+    brighter inside is fitted again from there; a fit whose RMS exceeds ``good_rms_mm`` is
+    tried again from the reversed axis and the blob's principal axes both ways
+    (:func:`other_starts`); of the fits within ``good_rms_mm`` the brightest inside is kept.
     """
-    voxels_ijk = np.argwhere(mask_zyx)[:, ::-1].astype(float)
-    pose = principal_start(apply_transform(mask_to_image, voxels_ijk), model)
+    voxels_image = apply_transform(mask_to_image, np.argwhere(mask_zyx)[:, ::-1].astype(float))
+    start = principal_start(voxels_image, model)
     # the blob's flying-edges reconstruction, brought onto the CAD surface by a short ICP: a start
     # within a few tenths of a millimetre and degree for the edge steps (its iso-level is biased
     # where PVC meets plastic, which the edge steps then remove)
     surface = blob_surface_points(mask_zyx, mask_to_image)
-    if len(surface) >= 50:
-        pose = refine_with(surface, pose, model, max_iterations=5, max_landmarks=len(surface), tolerance_mm=0.05)
-    samples = edge_samples(model)
-    sparse = sparse_edge_samples(model)
     image_to_local = np.linalg.inv(values_to_image)
 
     def edges(at: np.ndarray, where: EdgeSamples) -> EdgeHits:
         return edge_points(values_zyx, values_to_image, at, where, min_contrast_hu=min_contrast_hu,
                            min_inner_hu=min_inner_hu, image_to_local=image_to_local)
 
+    def fit_from(pose: np.ndarray) -> PoseFit:
+        if len(surface) >= 50:
+            pose = refine_with(surface, pose, model, max_iterations=5, max_landmarks=len(surface), tolerance_mm=0.05)
+        return _edge_fit(pose, edges, model, trim_mm)
+
+    fit = fit_from(start)
+    if good_rms_mm is None:
+        return fit
+    level = partial(interior_level, values_zyx, image_to_local, model=model)
+    if fit.fit_rms_mm <= good_rms_mm:
+        turned = fit.marker_to_image @ upside_down(model)
+        if level(turned) <= level(fit.marker_to_image):
+            return fit
+        fits = [fit, fit_from(turned)]
+    else:
+        reversed_start = start_along(voxels_image.mean(axis=0), -start[:3, 1], model)
+        fits = [fit, *map(fit_from, [reversed_start, *other_starts(voxels_image, model, start[:3, 1])])]
+    good = [f for f in fits if f.fit_rms_mm <= good_rms_mm]
+    return max(good, key=lambda f: level(f.marker_to_image)) if good else fit
+
+
+def upside_down(model: MarkerModel) -> np.ndarray:
+    """Marker-frame 4x4 turning the marker over about the middle of its wide part (a half turn about X).
+
+    ``marker_to_image @ upside_down(model)`` keeps the wide cylinder where it is and points the
+    top the other way: the pose an edge fit can confuse with the right one.
+    """
+    turn = np.diag([1.0, -1.0, -1.0, 1.0])
+    turn[1, 3] = model.bottom_height_mm
+    return turn
+
+
+def interior_level(values_zyx: np.ndarray, image_to_local: np.ndarray, marker_to_image: np.ndarray, *,
+                   model: MarkerModel) -> float:
+    """Mean intensity (HU, linear interpolation) at points inside the solid at ``marker_to_image``."""
+    local = apply_transform(image_to_local @ marker_to_image, interior_points(model))
+    return float(np.mean(ndimage.map_coordinates(values_zyx, local[:, ::-1].T, order=1, mode="nearest")))
+
+
+@lru_cache(maxsize=8)
+def interior_points(model: MarkerModel, step_mm: float = 0.75, depth_mm: float = 0.5) -> np.ndarray:
+    """Points of a grid in the marker frame lying at least ``depth_mm`` inside the solid (pinhole excluded)."""
+    r = model.bottom_diameter_mm / 2
+    axes = [np.arange(-r, r + step_mm, step_mm), np.arange(0.0, model.height_mm + step_mm, step_mm),
+            np.arange(-r, r + step_mm, step_mm)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    return grid[model.signed_distance(grid) <= -depth_mm]
+
+
+def _edge_fit(pose: np.ndarray, edges: Callable[[np.ndarray, EdgeSamples], EdgeHits], model: MarkerModel,
+              trim_mm: float) -> PoseFit:
+    """Point-to-plane steps on edge points found along the CAD normals, then a final VTK ICP."""
+    samples = edge_samples(model)
+    sparse = sparse_edge_samples(model)
     # sparse profiles while the steps are large, every profile once they are small; the last
     # step's edges are kept (a step under 0.02 mm leaves them where they are)
     current = sparse

@@ -11,7 +11,7 @@ Every threshold can be overridden; none is tuned to one simulator:
 - ``volume_tolerance`` (0.25): a candidate's volume must lie within +/- this fraction of
   ``MarkerModel.volume_mm3``.
 - ``shape_tolerance`` (0.15): relative tolerance on each principal spread (square root of the
-  principal moments) against the model's; voxels coarser than 0.6 mm add their excess size (mm).
+  principal moments) against the model's, plus 0.6 of the largest voxel side (mm).
 - ``max_fit_rms_mm`` (0.35): largest RMS distance of the edge points to the fitted CAD surface.
 - ``min_inlier_fraction`` (0.8): share of edge points within ``3 * max_fit_rms_mm`` of the fitted surface.
 - ``bone_fraction`` (0.02): voxels above ``high_hu`` touching the blob, per blob voxel, above

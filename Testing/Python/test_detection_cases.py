@@ -85,15 +85,23 @@ def test_hard_case_accuracy_and_decoys(hard_case, hard_detection):
         assert np.min(np.linalg.norm(centroids - decoy["center"], axis=1)) < 8.0, decoy["kind"]
 
 
-@pytest.mark.parametrize(("spacing", "seed"), [((0.8, 0.8, 3.0), 31), ((1.25, 1.25, 1.25), 35)])
-def test_coarse_voxels_keep_every_marker(spacing, seed, tmp_path, capsys):
-    """Thick slices and coarse voxels blur the marker's narrow top: every marker is still found, none false.
+SMALL_MARKER = {"bottom_diameter_mm": 10.0, "bottom_height_mm": 6.0, "top_diameter_mm": 4.0, "top_height_mm": 7.0,
+                "pinhole_diameter_mm": 1.0, "pinhole_depth_mm": 5.0}
 
-    (Before the shape check allowed for the voxel size, these scans lost markers as "principal
-    spreads unlike the marker's".)
+
+@pytest.mark.parametrize(("spacing", "seed", "options"), [
+    ((0.8, 0.8, 3.0), 31, {}), ((1.25, 1.25, 1.25), 35, {}), (1.5, 52, {"noise_hu": 25.0}),
+    (0.6, 41, {"marker": SMALL_MARKER}), (1.0, 42, {"marker": SMALL_MARKER})])
+def test_coarse_voxels_and_small_markers_keep_every_marker(spacing, seed, options, tmp_path, capsys):
+    """Voxels coarse against the marker blur its narrow top: every marker is still found, none false.
+
+    Before, these scans lost markers: the shape sieve took the blurred spreads for another
+    shape, and where the skew axis pointed across or backwards the fit failed, or fitted the
+    marker upside down about as well as the right way up (seed 52 at 1.5 mm: RMS 0.096 mm
+    upside down, 0.109 mm right; only the brightness inside the fitted solid tells them apart).
     """
     case = tmp_path / "case"
-    simulate_case(case, seed=seed, spacing_mm=spacing, patient=False, **CI_CASE_OPTIONS)
+    simulate_case(case, seed=seed, spacing_mm=spacing, patient=False, **options, **CI_CASE_OPTIONS)
     code, _, _ = run_detect(case, tmp_path / "out", capsys)
     assert code == 0
     result = read_detection(tmp_path / "out")
