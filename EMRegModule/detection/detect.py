@@ -79,11 +79,14 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
 
     def start_ready(pool: ThreadPoolExecutor, slices: int) -> None:
         """Start the regions whose slices, and all a check of theirs may look at, are read."""
-        ready = [r for r in queued if slices >= slice_count or r.slices[0].stop + guard <= slices]
+        ready: list[Region] = []
+        waiting: list[Region] = []
+        for region in queued:
+            (ready if slices >= slice_count or region.slices[0].stop + guard <= slices else waiting).append(region)
         if ready:
             metal_zyx = scan.metal_zyx  # complete within ``guard`` of the ready regions
             examined.extend((region, pool.submit(examine, region, metal_zyx)) for region in ready)
-            queued[:] = [r for r in queued if not any(r is q for q in ready)]
+            queued[:] = waiting
 
     with ThreadPoolExecutor(max_workers=_workers()) as pool, _cancel_on_error(pool):
         streaming = wait_for_slices is not None

@@ -187,15 +187,16 @@ def principal_start(points_image: np.ndarray, model: MarkerModel) -> np.ndarray:
 
 
 def other_starts(points_image: np.ndarray, model: MarkerModel, tried_axis: np.ndarray) -> list[np.ndarray]:
-    """Starts along the blob's principal axes, both ways, except near the axis already tried (either way).
+    """Starts along the reversed ``tried_axis``, then the blob's principal axes both ways (those not near it).
 
     For blobs whose narrow top the scan has blurred (voxels of a large fraction of the top's
-    diameter), where the skew axis can point across the marker.
+    diameter), where the skew axis can point across or backwards.
     """
     centroid = points_image.mean(axis=0)
     _, vectors = np.linalg.eigh(np.cov((points_image - centroid).T))
     axes = [sign * vectors[:, k] for k in range(3) for sign in (1.0, -1.0)]
-    return [start_along(centroid, a, model) for a in axes if abs(float(a @ tried_axis)) < 0.9]
+    axes = [-tried_axis, *(a for a in axes if abs(float(a @ tried_axis)) < 0.9)]
+    return [start_along(centroid, a, model) for a in axes]
 
 
 def start_along(centroid: np.ndarray, axis: np.ndarray, model: MarkerModel) -> np.ndarray:
@@ -418,8 +419,8 @@ def fit_pose(mask_zyx: np.ndarray, mask_to_image: np.ndarray, values_zyx: np.nda
     so the RMS is as small), but the image can: the right pose has PVC inside all of its solid
     (:func:`interior_level`). So a good fit whose turned-over pose (:func:`upside_down`) is
     brighter inside is fitted again from there; a fit whose RMS exceeds ``good_rms_mm`` is
-    tried again from the reversed axis and the blob's principal axes both ways
-    (:func:`other_starts`); of the fits within ``good_rms_mm`` the brightest inside is kept.
+    tried again from the reversed axis and the blob's principal axes (:func:`other_starts`);
+    of the fits within ``good_rms_mm`` the brightest inside is kept.
     """
     voxels_image = apply_transform(mask_to_image, np.argwhere(mask_zyx)[:, ::-1].astype(float))
     start = principal_start(voxels_image, model)
@@ -448,8 +449,7 @@ def fit_pose(mask_zyx: np.ndarray, mask_to_image: np.ndarray, values_zyx: np.nda
             return fit
         fits = [fit, fit_from(turned)]
     else:
-        reversed_start = start_along(voxels_image.mean(axis=0), -start[:3, 1], model)
-        fits = [fit, *map(fit_from, [reversed_start, *other_starts(voxels_image, model, start[:3, 1])])]
+        fits = [fit, *map(fit_from, other_starts(voxels_image, model, start[:3, 1]))]
     good = [f for f in fits if f.fit_rms_mm <= good_rms_mm]
     return max(good, key=lambda f: level(f.marker_to_image)) if good else fit
 
