@@ -59,7 +59,13 @@ def stage_warnings(inputs: ReportInputs) -> list[ReportWarning]:
     if inputs.registration is not None:
         texts += inputs.registration.warnings
     texts += [str(w) for w in (inputs.evaluation or {}).get("warnings", []) or []]
-    return [ReportWarning("warning", str(text)) for text in texts]
+    found = [ReportWarning("warning", str(text)) for text in texts]
+    axis = inputs.registration.probe_axis if inputs.registration is not None else None
+    if axis:
+        found.append(ReportWarning("note", f"probe orientation: {axis.get('note') or axis.get('detected')} "
+                                           f"(probe_axis setting {axis.get('setting')}, detected "
+                                           f"{axis.get('detected')}, pairing by {axis.get('pairing')})"))
+    return found
 
 
 def outlier_warnings(registration: RegistrationResult, rows: list[MarkerRow],
