@@ -361,6 +361,11 @@ def collect_warnings(inputs: ReportInputs, rows: list[MarkerRow], points: dict[s
     for document in (inputs.markers, inputs.frame_calibration, registration, inputs.evaluation):
         for text in (document or {}).get("warnings", []) or []:
             found.append(ReportWarning("warning", str(text)))
+    if registration is not None and isinstance(registration.get("probe_axis"), dict):
+        axis = registration["probe_axis"]
+        found.append(ReportWarning("note", f"probe orientation: {axis.get('note') or axis.get('detected')} "
+                                           f"(probe_axis setting {axis.get('setting')}, detected "
+                                           f"{axis.get('detected')}, pairing by {axis.get('pairing')})"))
     if registration is not None:
         # A registration written by EMReg lists its own outliers and l warnings; check a bare spec file here.
         own_checks = "warnings" not in registration
