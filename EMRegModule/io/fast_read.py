@@ -87,6 +87,7 @@ class VolumeFill:
         self._finished = False
         self._cancelled = False
         self._condition = threading.Condition()
+        self.series: dict | None = None  # a DICOM folder: the series read and the others (``dicom_series``)
 
     @classmethod
     def complete(cls, image: sitk.Image) -> VolumeFill:
