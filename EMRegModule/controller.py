@@ -146,8 +146,12 @@ class EMRegController:
             result = detect_markers(fill.image, self.marker_model, self.settings.get("detection"), self.progress,
                                     wait_for_slices=fill.wait_for_slices)
             image = fill.result()  # the checksum is verified only at the end
-        except BaseException:
+        except BaseException as exc:
             fill.cancel()
+            if isinstance(exc, EMRegError):
+                read_error = fill.read_error()  # a bad file explains a failed detection: report the file
+                if isinstance(read_error, EMRegError) and read_error is not exc:
+                    raise read_error from None
             raise
         self.set_image(image, str(path))
         self.ct_series = result.ct_series = fill.series
@@ -172,9 +176,9 @@ class EMRegController:
 
     def set_image(self, image: sitk.Image, source: str = "CT") -> None:
         """Use an image already in memory (e.g. a Slicer volume node converted to SimpleITK)."""
-        from .io.image import check_ct
+        from .io.ct_checks import check_ct_image
 
-        check_ct(image, source)
+        check_ct_image(image, source)  # geometry and voxel values (NaN / inf refused)
         self.image = image
         self.image_source = source
         self.ct_series = None
