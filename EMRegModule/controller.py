@@ -143,8 +143,12 @@ class EMRegController:
             result = detect_markers(fill.image, self.marker_model, self.settings.get("detection"), self.progress,
                                     wait_for_slices=fill.wait_for_slices)
             image = fill.result()  # the checksum is verified only at the end
-        except BaseException:
+        except BaseException as exc:
             fill.cancel()
+            if isinstance(exc, EMRegError):
+                read_error = fill.read_error()  # a bad file explains a failed detection: report the file
+                if isinstance(read_error, EMRegError) and read_error is not exc:
+                    raise read_error from None
             raise
         self.set_image(image, str(path))
         self.set_detection(result)
@@ -152,9 +156,9 @@ class EMRegController:
 
     def set_image(self, image: sitk.Image, source: str = "CT") -> None:
         """Use an image already in memory (e.g. a Slicer volume node converted to SimpleITK)."""
-        from .io.image import check_ct
+        from .io.ct_checks import check_ct_image
 
-        check_ct(image, source)
+        check_ct_image(image, source)  # geometry and voxel values (NaN / inf refused)
         self.image = image
         self.image_source = source
         self._invalidate(detection=True)
@@ -205,7 +209,7 @@ class EMRegController:
         with self.progress.step("calibrating frame"):
             result = calibrate_frame(
                 self.calibration_recording, self.reference_sensor, self.probe_sensor,
-                self.settings.get("calibration"),
+                self.settings.get("calibration"), probe_axis=self.probe_axis or "auto",
             )
         self.set_frame_calibration(result)
         return result
@@ -226,7 +230,7 @@ class EMRegController:
         with self.progress.step("pairing and registering"):
             result = register(
                 self.detection, self.frame_calibration, self.marker_model,
-                self.settings.get("registration"), targets_image=targets_image,
+                self.settings.get("registration"), targets_image=targets_image, probe_axis=self.probe_axis,
             )
         self.registration = result
         self.navigation = None
@@ -247,6 +251,15 @@ class EMRegController:
         )
         self.navigation = result
         return result
+
+    @property
+    def probe_axis(self) -> str | None:
+        """``[sensors] probe_axis`` when set (None: ``auto`` for a calibration, the calibration's own
+        setting for a registration)."""
+        from .probe_axis import check_probe_axis
+
+        value = self.settings.get("sensors", {}).get("probe_axis")
+        return None if value is None else check_probe_axis(value)
 
     @property
     def reference_to_image(self) -> np.ndarray:

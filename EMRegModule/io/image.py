@@ -15,12 +15,8 @@ import SimpleITK as sitk
 
 from ..errors import EMRegError
 from .case import CT_FILE_NAMES, CT_FOLDER_NAME, find_ct  # noqa: F401  (re-exported: CT naming lives with the case)
-from .fast_read import VolumeFill, start_fast_read
-
-_SCALAR_TYPES = {
-    sitk.sitkInt8, sitk.sitkUInt8, sitk.sitkInt16, sitk.sitkUInt16, sitk.sitkInt32,
-    sitk.sitkUInt32, sitk.sitkInt64, sitk.sitkUInt64, sitk.sitkFloat32, sitk.sitkFloat64,
-}
+from .ct_checks import check_ct_geometry, check_ct_image
+from .fast_read import VolumeFill, check_data_length, start_fast_read
 
 
 def read_ct(path: str | os.PathLike[str]) -> sitk.Image:
@@ -49,14 +45,20 @@ def open_ct(path: str | os.PathLike[str]) -> VolumeFill:
         else:
             if path.stat().st_size == 0:
                 raise EMRegError(f"{path}: CT file is empty")
-            fill = start_fast_read(path) or VolumeFill.complete(sitk.ReadImage(str(path)))
+            fill = start_fast_read(path)
+            if fill is None:
+                check_data_length(path)  # SimpleITK reads what the header asks for and ignores the rest
+                fill = VolumeFill.complete(sitk.ReadImage(str(path)))
         image = fill.image
     except RuntimeError as exc:
         reason = str(exc).strip().splitlines()
         detail = next((line for line in reversed(reason) if line.strip()), "unreadable")
         raise EMRegError(f"{path}: cannot read CT ({detail.strip()[:200]})") from None
     try:
-        check_ct(image, path)
+        if fill.is_complete:
+            check_ct_image(image, path)  # geometry and voxel values of an image read in full
+        else:
+            check_ct(image, path)  # the fast path counts non-finite voxels as they arrive
     except EMRegError:
         fill.cancel()
         raise
@@ -76,17 +78,13 @@ def _read_dicom_series(folder: Path) -> sitk.Image:
 
 
 def check_ct(image: sitk.Image, source: str | os.PathLike[str] = "CT") -> None:
-    """Refuse images EMReg cannot use: not 3D, not scalar, unsupported pixel type, degenerate."""
-    if image.GetDimension() != 3:
-        raise EMRegError(f"{source}: CT must be a 3D volume, got a {image.GetDimension()}D image")
-    if image.GetNumberOfComponentsPerPixel() != 1 or image.GetPixelID() not in _SCALAR_TYPES:
-        raise EMRegError(
-            f"{source}: CT must hold scalar intensities (HU), got pixel type {image.GetPixelIDTypeAsString()}"
-        )
-    if min(image.GetSize()) < 2:
-        raise EMRegError(f"{source}: CT has a degenerate size {image.GetSize()}")
-    if min(image.GetSpacing()) <= 0:
-        raise EMRegError(f"{source}: CT has a non-positive spacing {image.GetSpacing()}")
+    """Refuse images EMReg cannot use: not 3D, not scalar, unsupported pixel type, degenerate, sheared.
+
+    The geometry checks of :func:`EMRegModule.io.ct_checks.check_ct_geometry` (safe on an image
+    whose voxels are still arriving); :func:`EMRegModule.io.ct_checks.check_ct_image` adds the
+    voxel-value check for an image read in full.
+    """
+    check_ct_geometry(image, source)
 
 
 def image_geometry(image: sitk.Image) -> dict[str, Any]:
