@@ -82,6 +82,7 @@ DEPENDENCIES = {
     "numpy": ("numpy", "everything"),
     "scipy": ("scipy", "detection, calibration, registration"),
     "SimpleITK": ("SimpleITK", "reading the CT and detection"),
+    "pydicom": ("pydicom", "reading DICOM CT series"),
     "vtk": ("vtk", "marker models and detection"),
     "pyvista": ("pyvista", "the verification report"),
     "cv2": ("opencv-python-headless", "the verification report"),
