@@ -321,6 +321,9 @@ def test_driver_reads_every_tool_with_states_and_5dof(tmp_path):
         assert np.array_equal(np.float32(s.position_mm), np.float32(p))
         assert _same_quaternion(s.extra["quaternion"], np.float32(q), 1e-7)
         assert s.extra["dof"] == (5 if s.sensor == 3 else 6)
+        # a 5-DOF sensor's coil axis (NDI +Z) is EMReg's probe axis (+X)
+        axis = s.rotation[:, 0] if s.sensor == 3 else s.rotation[:, 2]
+        assert np.abs(axis - quaternion_to_rotation(q)[:, 2]).max() < 1e-6
     late = {s.sensor: s.status for s in samples[-4:]}
     assert late == {1: STATUS_OK, 2: STATUS_OUT_OF_RANGE, 3: STATUS_OUT_OF_RANGE, 4: STATUS_NOT_ATTACHED}
     # frames of the last four samples: one frame, all tools; poses only where the status is ok
