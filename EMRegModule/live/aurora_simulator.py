@@ -204,6 +204,7 @@ class AuroraSimulator:
         self._manual: dict[str, set[int]] = {k: set() for k in AuroraFaults.KINDS}
         self._stall_until_ns = 0
         self._corrupt_next = 0
+        self._drop_next = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
@@ -259,6 +260,10 @@ class AuroraSimulator:
     def corrupt_next_replies(self, n: int = 1) -> None:
         """Send the next ``n`` BX/TX replies with a wrong CRC."""
         self._corrupt_next += n
+
+    def drop_byte_of_next_reply(self) -> None:
+        """Lose one byte (in the middle) of the next BX/TX reply on the line."""
+        self._drop_next = True
 
     def start(self) -> AuroraSimulator:
         self._thread = threading.Thread(target=self.run, name="aurora-simulator", daemon=True)
@@ -655,6 +660,10 @@ class AuroraSimulator:
             self._corrupt_next = max(0, self._corrupt_next - 1)
             emitted.corrupted = True
             data = _break_crc(data, binary=name == "BX")
+        if self._drop_next:
+            self._drop_next = False
+            emitted.corrupted = True
+            data = data[:len(data) // 2] + data[len(data) // 2 + 1:]
         if self.keep_log:
             self.log.append(emitted)
         self._send(data, frame=emitted, command_bytes=n)

@@ -377,6 +377,27 @@ def test_watchdog_with_the_aurora_stops_and_resumes(tmp_path):
     assert reasons.count("ok") >= 6
 
 
+def test_driver_survives_a_dropped_byte_without_a_wrong_pose(tmp_path):
+    with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof"), link=tmp_path / "aurora", keep_log=True) as sim:
+        driver = AuroraDriver(str(tmp_path / "aurora")).open()
+        samples = []
+        try:
+            driver.start(samples.append)
+            _wait(lambda: driver.stats.frames >= 5)
+            sim.drop_byte_of_next_reply()
+            # ndicapi waits for the rest of the reply (its 5 s read timeout), then rejects it
+            _wait(lambda: driver.stats.timeouts + driver.stats.crc_errors >= 1)
+            mark = driver.stats.frames
+            _wait(lambda: driver.stats.frames >= mark + 5)
+        finally:
+            driver.close()
+    assert driver.stats.timeouts + driver.stats.crc_errors == 1 == sum(f.corrupted for f in sim.log)
+    for s in samples:
+        q, p = sim.truth_for_frame(s.sensor, s.frame)
+        assert np.array_equal(np.float32(s.position_mm), np.float32(p)) and s.status == STATUS_OK
+    assert len(samples) >= 20
+
+
 def test_driver_names_the_port_of_a_tool_without_srom(tmp_path):
     with AuroraSimulator(tools=parse_tools("1:6dof,3:nosrom"), link=tmp_path / "aurora"):
         with pytest.raises(EMRegError, match=r"port 3 .*no SROM"):
