@@ -1,10 +1,15 @@
 """An NDI Aurora on a pseudo-terminal: it answers NDI's serial command API byte for byte.
 
 Like :mod:`.tracker_simulator` (the trakSTAR), it serves the master side of a pty and a client opens
-the slave path (``/dev/pts/N`` or the ``--link`` symlink) exactly as it would open ``/dev/ttyUSB0``;
-ndicapi's ``ndiSerialOpen`` takes any path (it is a plain ``open(2)`` + termios), so ndicapi,
-scikit-surgerynditracker and EMReg's driver all connect to it unchanged. What it emulates (formats
-and constants in :mod:`.ndi_protocol`, with their sources):
+the slave path (``/dev/pts/N`` or the ``--link`` symlink) exactly as it would open ``/dev/ttyUSB0``.
+How ndicapi opens ports: ``ndiSerialOpen`` / ``ndiSerialProbe`` / ``ndiOpenSerial`` take any path
+(``open(2)`` with O_NOCTTY, an advisory ``F_SETLK`` lock, termios), so a pty path or a symlink to it
+works as given; only ndicapi's own enumeration (``ndiSerialDeviceName(i)``: on Linux the fixed names
+``/dev/ttyS0``, ``/dev/ttyS1``, ``/dev/ttyUSB0`` .. ``/dev/ttyUSB5``) and scikit-surgerynditracker's
+auto-probe (pyserial's ``list_ports.comports()``, which lists no ptys) cannot find it - so clients are
+given the path: ``aurora://PATH`` for EMReg, ``{"serial port": PATH}`` for scikit-surgerynditracker,
+``ndiProbe(PATH)`` / ``ndiOpen(PATH)`` for ndicapi. What it emulates (formats and constants in
+:mod:`.ndi_protocol`, with their sources):
 
 - commands ``INIT``, ``COMM`` (baud change after the OKAY, as ndicapi expects), ``VER`` (0..5; 3 is
   ``ERROR23`` as on a real Aurora), ``GETINFO`` (``ERROR01``: this firmware has none, so ndicapi's
