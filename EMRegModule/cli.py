@@ -158,14 +158,16 @@ def cmd_navigate(args: argparse.Namespace) -> int:
         raise EMRegError("navigate: --out DIR is needed to write navigation.csv from a replay")
     _need_stage("navigation", "navigation")
     from .navigation import write_navigation_csv
-    from .registration import read_registration
+    from .registration import max_fre_from_settings, read_registration
 
-    controller = _controller(args, _settings(args))
-    controller.set_registration(read_registration(args.registration))
+    settings = _settings(args)
+    controller = _controller(args, settings)
+    controller.set_registration(read_registration(args.registration, max_fre_from_settings(settings)))
     from .io.tracking_csv import read_tracking_csv
 
     recording = read_tracking_csv(args.source[len("replay:"):])
     result = controller.navigate_recording(recording)
+    _warn("navigate", recording.warnings)
     write_navigation_csv(result, Path(args.out) / "navigation.csv")
     print(f"{len(result)} probe samples mapped into image space -> {args.out}")
     return 0
@@ -175,16 +177,23 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     _need_stage("evaluation", "evaluation")
     from .evaluation import evaluate_case, write_evaluation
     from .io.case import open_case
-    from .registration import read_registration
+    from .registration import max_fre_from_settings, read_registration
 
     case = open_case(args.case)
+    if case.navigation is None and case.board is None:
+        raise EMRegError(f"{case.folder}: nothing to evaluate: no navigation recording (navigation.csv) and no "
+                         "board recording (board.csv) in the case folder")
+    if case.navigation is not None and case.targets is None and case.board is None:
+        raise EMRegError(f"{case.folder}: nothing to evaluate: a navigation recording but no targets.mrk.json "
+                         "(and no board.csv)")
     if args.settings:
         case.settings = _settings(args)
     controller = _controller(args, case.settings)
-    controller.set_registration(read_registration(args.registration))
+    controller.set_registration(read_registration(args.registration, max_fre_from_settings(case.settings)))
     result = evaluate_case(case, controller.reference_to_image, controller.reference_sensor,
                            controller.probe_sensor)
     write_evaluation(result, Path(args.out) / "evaluation.json")
+    _warn("evaluate", result.get("warnings", []))
     print(f"evaluation -> {Path(args.out) / 'evaluation.json'}")
     return 0
 
@@ -311,7 +320,9 @@ def run_case(
             from .io.tracking_csv import read_tracking_csv
             from .navigation import write_navigation_csv
 
-            navigation = controller.navigate_recording(read_tracking_csv(case.navigation))
+            navigation_recording = read_tracking_csv(case.navigation)
+            navigation = controller.navigate_recording(navigation_recording)
+            _warn("run", navigation_recording.warnings)
             write_navigation_csv(navigation, out / "navigation.csv")
             summary.append(f"navigate: {len(navigation)} probe samples")
         current = "evaluate"

@@ -95,6 +95,21 @@ def _read_optional_json(path: Path, what: str, notes: list[str]) -> dict | None:
     return document
 
 
+def _max_fre_for_report(out: Path, case_dir: str | os.PathLike[str] | None) -> float | None:
+    """``[registration] max_fre_mm`` of the case's settings when the case is known, else the default."""
+    try:
+        run = read_json(out / "run.json", "run record") if (out / "run.json").is_file() else {}
+        folder = Path(case_dir) if case_dir is not None else (Path(run["case"]) if run.get("case") else None)
+        if folder is None or not (folder / "case.toml").is_file():
+            return None
+        from .io.case import read_case_settings
+        from .registration import max_fre_from_settings
+
+        return max_fre_from_settings(read_case_settings(folder / "case.toml"))
+    except (EMRegError, KeyError, TypeError, AttributeError):
+        return None
+
+
 def _validate_with_stage_reader(path: Path, module: str, reader: str, notes: list[str]) -> bool:
     """Check a stage output with its own module's reader when that module exists in this build."""
     import importlib
@@ -172,6 +187,11 @@ def load_report_inputs(out_dir: str | os.PathLike[str], case_dir: str | os.PathL
         ("registration.json", "registration", "registration file", "registration", "read_registration"),
         ("evaluation.json", "evaluation", "evaluation file", None, None),
     ):
+        if name == "registration.json" and (out / name).exists():
+            # A registration that cannot be trusted is never drawn as if it were: refuse the report.
+            from .registration import read_registration
+
+            read_registration(out / name, _max_fre_for_report(out, case_dir))
         document = _read_optional_json(out / name, what, notes)
         if document is not None and module is not None \
                 and not _validate_with_stage_reader(out / name, module, reader, notes):

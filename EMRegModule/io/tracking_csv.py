@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EMRegError
-from ..tracking import TrackingRecording
+from ..tracking import TrackingRecording, split_time_segments
 from ..transforms import angles_to_rotation, quaternion_to_rotation, rotation_to_angles, rotation_to_quaternion
 from .atomic import atomic_path
 
@@ -79,10 +79,11 @@ def parse_tracking_csv(text: str, source: str = "recording") -> TrackingRecordin
         if np.any(norms < 1e-6):
             raise EMRegError(f"{source}: a quaternion of zero length")
         rotation = quaternion_to_rotation(data[:, 5:9])
+    segment, warnings = split_time_segments(data[:, 0], sensor.astype(int), source, first_line=2)
     return TrackingRecording(
         time_s=data[:, 0], sensor=sensor.astype(int), position_mm=data[:, 2:5], rotation=rotation,
         quality=quality, label=labels, source=source,
-        orientation_format=orientation,
+        orientation_format=orientation, segment=segment, warnings=warnings,
     )
 
 
