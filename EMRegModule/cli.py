@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -63,6 +64,41 @@ def _settings(args: argparse.Namespace, case_dir: Path | None = None) -> dict:
     return {}
 
 
+def _out_folder(out: str | Path | None, create: bool = True) -> Path | None:
+    """Check an output folder before any work: a folder (made if missing) that EMReg can write into.
+
+    Refused with one line (exit 2): OUT is a file, a broken symbolic link or a loop, cannot be
+    made, or cannot be written (permissions, read-only file system).
+    """
+    if out is None:
+        return None
+    path = Path(out)
+    try:
+        if path.is_symlink() and not path.exists():
+            raise EMRegError(f"{path}: output folder is a broken symbolic link (or a symbolic-link loop)")
+        if path.exists() and not path.is_dir():
+            raise EMRegError(f"{path}: output folder is a file; give a folder for --out")
+        if not create and not path.is_dir():
+            return path
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except EMRegError:
+        raise
+    except OSError as exc:
+        raise EMRegError(f"{path}: cannot write to the output folder ({exc.strerror or exc})") from None
+    return path
+
+
+def _out_file(out: str | Path) -> Path:
+    """Check an output file's place before any work: not a folder, its folder writable (one line, exit 2)."""
+    path = Path(out)
+    if path.is_dir():
+        raise EMRegError(f"{path}: is a folder; give a file name for --out")
+    _out_folder(path.parent if str(path.parent) else Path("."))
+    return path
+
+
 def _warn(command: str, warnings: Sequence[str]) -> None:
     """Print a stage's warnings (also kept in its JSON output), one line each, on stderr."""
     for warning in warnings:
@@ -82,6 +118,7 @@ def _controller(args: argparse.Namespace, settings: dict):
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     _need_stage("simulation", "the case simulator")
+    _out_folder(args.out)
     from .simulation import simulate_case
 
     simulate_case(
@@ -96,6 +133,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     _need_stage("detection", "marker detection")
     from .io.case import find_ct
 
+    _out_folder(args.out)
     source = Path(args.ct)
     case_dir = source if source.is_dir() and find_ct(source) is not None else None
     ct_path = find_ct(source) if case_dir is not None else source
@@ -112,6 +150,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     _need_stage("calibration", "frame calibration")
     from .calibration import write_frame_calibration
 
+    _out_folder(args.out)
     controller = _controller(args, _settings(args))
     controller.load_calibration_recording(args.recording)
     result = controller.calibrate_frame()
@@ -127,6 +166,7 @@ def cmd_register(args: argparse.Namespace) -> int:
     from .detection import read_detection
     from .registration import write_registration
 
+    _out_folder(args.out)
     controller = _controller(args, _settings(args))
     controller.set_detection(read_detection(args.markers))
     controller.set_frame_calibration(read_frame_calibration(args.calibration))
@@ -148,6 +188,7 @@ def cmd_register(args: argparse.Namespace) -> int:
 
 
 def cmd_navigate(args: argparse.Namespace) -> int:
+    _out_folder(args.out)
     live = args.igtl_port is not None or not args.source.startswith("replay:")
     if live:
         _need_stage("live", "live navigation (tracker / OpenIGTLink)")
@@ -180,6 +221,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from .registration import max_fre_from_settings, read_registration
 
     case = open_case(args.case)
+    _out_folder(args.out)
     if case.navigation is None and case.board is None:
         raise EMRegError(f"{case.folder}: nothing to evaluate: no navigation recording (navigation.csv) and no "
                          "board recording (board.csv) in the case folder")
@@ -212,6 +254,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         return 0
     if not args.out:
         raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
+    _out_folder(args.out, create=False)  # the run's folder: the report is written into it
     case = Path(args.case) if args.case else None
     path = write_report(Path(args.out), case_dir=case, progress=_progress(args))
     print(f"report -> {path}")
@@ -219,6 +262,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    _out_folder(args.out)
     summary = run_case(Path(args.case), Path(args.out), _progress(args), reference_sensor=args.reference_sensor,
                        probe_sensor=args.probe_sensor, settings_path=args.settings)
     for line in summary:
@@ -230,7 +274,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     _need_stage("simulation", "the case simulator")
     from .simulation import simulate_case
 
-    out = Path(args.out)
+    out = _out_folder(args.out)
     case_dir = out / "case"
     progress = _progress(args)
     start = time.perf_counter()
@@ -465,6 +509,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"emreg {args.command}: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:  # a file-system failure no specific check foresaw: still one line, exit 2
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        print(f"emreg {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 if __name__ == "__main__":

@@ -211,6 +211,9 @@ def run_record(args: argparse.Namespace) -> int:
     from .writers import RecordingWriter
 
     reference, probe = _sensor_ports(args)
+    from ..cli import _out_file
+
+    _out_file(args.out)
     source = open_source(args.device, reference, probe, fast=args.fast, loop=args.loop)
     writer = RecordingWriter(args.out)
     count = [0]

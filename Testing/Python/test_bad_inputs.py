@@ -10,6 +10,7 @@ CSV fields and lines.
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -371,3 +372,132 @@ def test_segments_are_never_matched_across_a_reset():
     ref_idx, probe_idx = match_moments(reference, probe)
     assert len(probe_idx) == 100
     assert np.all(reference.segment[ref_idx] == probe.segment[probe_idx])
+
+
+# --- output paths and odd input paths: exit 2, one line, never a traceback ------------------------
+
+
+def _unwritable_folder(tmp_path):
+    """A folder this process cannot write into (as root, permissions do not stop it: /sys does)."""
+    if os.geteuid() != 0:
+        folder = tmp_path / "locked"
+        folder.mkdir()
+        folder.chmod(0o555)
+        return folder
+    return "/sys/kernel"
+
+
+def _out_cases(tmp_path):
+    (tmp_path / "a_file").write_text("not a folder")
+    os.symlink(tmp_path / "loop_b", tmp_path / "loop_a")
+    os.symlink(tmp_path / "loop_a", tmp_path / "loop_b")
+    return {
+        "file": (tmp_path / "a_file", "is a file"),
+        "symlink loop": (tmp_path / "loop_a", "symbolic"),
+        "unwritable": (_unwritable_folder(tmp_path), "cannot write"),
+        "cannot be made": ("/proc/emreg/out", "cannot write"),
+    }
+
+
+@pytest.mark.parametrize("case", ["file", "symlink loop", "unwritable", "cannot be made"])
+def test_bad_output_folders_are_one_line_exit_2(tmp_path, capsys, case):
+    out, needle = _out_cases(tmp_path)[case]
+    calibration = _calibration_csv(tmp_path)
+    registration = _registration(tmp_path / "registration.json")
+    consumers = _consumers(tmp_path, registration)
+    sitk.WriteImage(_ct(), str(tmp_path / "ct.nrrd"))
+    for argv in (
+        ["detect", tmp_path / "ct.nrrd", "--out", out, "--quiet"],
+        ["calibrate", calibration, "--out", out],
+        ["register", "--markers", tmp_path / "m.json", "--calibration", tmp_path / "c.json", "--out", out],
+        consumers["navigate"][:-1] + [out],
+        consumers["evaluate"][:-1] + [out],
+        ["run", tmp_path, "--out", out, "--quiet"],
+        ["simulate", out, "--quiet"],
+        ["record", "--device", f"replay:{calibration}", "--out", f"{out}/rec.csv", "--fast", "--quiet"],
+    ):
+        _refused(capsys, argv, str(out))
+
+
+def test_record_into_a_folder_name_is_refused(tmp_path, capsys):
+    calibration = _calibration_csv(tmp_path)
+    _refused(capsys, ["record", "--device", f"replay:{calibration}", "--out", tmp_path, "--fast", "--quiet"],
+             "is a folder")
+
+
+def test_read_only_output_folder_is_one_line_exit_2(tmp_path, capsys, monkeypatch):
+    """A read-only file system (EROFS) cannot be made here without privileges: the error is injected where
+    the folder is probed, the first write of every command."""
+    import errno
+    import tempfile
+
+    def read_only(*args, **kwargs):
+        raise OSError(errno.EROFS, os.strerror(errno.EROFS))
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", read_only)
+    _refused(capsys, ["calibrate", _calibration_csv(tmp_path), "--out", tmp_path / "out"], "Read-only file system")
+
+
+@pytest.mark.parametrize("source", ["replay:", "replay:{folder}", "replay:{missing}"])
+@pytest.mark.parametrize("live", [False, True])
+def test_replay_of_nothing_or_a_folder_is_refused(tmp_path, capsys, source, live):
+    registration = _registration(tmp_path / "registration.json")
+    source = source.format(folder=tmp_path, missing=tmp_path / "none.csv")
+    argv = ["navigate", "--registration", registration, "--source", source]
+    argv += ["--igtl-port", "0", "--fast", "--quiet"] if live else ["--out", tmp_path / "nav"]
+    _refused(capsys, argv)
+
+
+def test_calibrate_a_folder_is_refused(tmp_path, capsys):
+    _refused(capsys, ["calibrate", tmp_path, "--out", tmp_path / "out"], "is a folder")
+
+
+# --- oversized CSV fields and lines: bounded before allocation ----------------------------------
+
+
+def _row(label="", time_s=0.0):
+    return f"{time_s:.4f},1,1,2,3,0,0,0,0,{label}\n"
+
+
+@pytest.mark.parametrize("kind,needle", [
+    ("quoted field over 128 KB", "longer than 65536 bytes"),
+    ("quoted field of 5 KB", "at most 4096 characters"),
+    ("unquoted 1 MB label", "longer than 65536 bytes"),
+    ("unquoted 5 KB label", "at most 4096 characters"),
+    ("1 MB header", "line 1"),
+])
+def test_oversized_csv_fields_are_refused(tmp_path, capsys, kind, needle):
+    path = tmp_path / "rec.csv"
+    if kind == "quoted field over 128 KB":
+        path.write_text(HEADER + _row('"' + "x" * 140_000 + '"'))
+    elif kind == "quoted field of 5 KB":
+        path.write_text(HEADER + _row('"' + "x" * 5000 + '"'))
+    elif kind == "unquoted 1 MB label":
+        path.write_text(HEADER + _row("x" * (1 << 20)))
+    elif kind == "unquoted 5 KB label":
+        path.write_text(HEADER + _row("x" * 5000) + _row(time_s=0.1))
+    else:
+        path.write_text("y" * (1 << 20) + "\n" + _row())
+    _refused(capsys, ["calibrate", path, "--out", tmp_path / "out"], needle)
+
+
+def test_a_2_gb_line_is_refused_without_reading_it(tmp_path, capsys):
+    """A sparse file: 2 GB of one line costs no disk, and the reader stops after 64 KB of it."""
+    path = tmp_path / "huge.csv"
+    with path.open("wb") as stream:
+        stream.write(HEADER.encode() + b"0.0,1,1,2,3,0,0,0,0,")
+        stream.seek((2 << 30) + 10)
+        stream.write(b"\n")
+    assert path.stat().st_size > 2 << 30
+    _refused(capsys, ["calibrate", path, "--out", tmp_path / "out"], "line 2 is longer than 65536 bytes")
+    _refused(capsys, ["navigate", "--registration", _registration(tmp_path / "registration.json"),
+                      "--source", f"replay:{path}", "--out", tmp_path / "nav"], "longer than 65536 bytes")
+
+
+def test_field_limits_keep_normal_labels(tmp_path):
+    from EMRegModule.io.tracking_csv import read_tracking_csv
+
+    long_label = "M" * 1000
+    (tmp_path / "rec.csv").write_text(HEADER + _row(long_label) + _row('"a, quoted label"', 0.1))
+    recording = read_tracking_csv(tmp_path / "rec.csv")
+    assert list(recording.label) == [long_label, "a, quoted label"]
