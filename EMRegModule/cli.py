@@ -121,9 +121,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     _out_folder(args.out)
     from .simulation import simulate_case
 
+    options = {"probe_axis": args.probe_axis} if args.probe_axis else {}
     simulate_case(
         Path(args.out), seed=args.seed, difficulty=args.difficulty, spacing_mm=args.spacing,
-        progress=_progress(args),
+        progress=_progress(args), **options,
     )
     print(f"simulated case written to {args.out}")
     return 0
@@ -427,6 +428,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--difficulty", choices=("standard", "hard"), default="standard")
     p.add_argument("--spacing", type=float, default=None, metavar="MM", help="CT voxel size in mm")
+    p.add_argument("--probe-axis", choices=("+x_in", "+x_out", "none"), default=None,
+                   help="probe convention of the recordings: +X into the hole (default), out of it, or "
+                        "position only")
 
     p = add("detect", cmd_detect, "find the markers in a CT: OUT/markers.json and markers.mrk.json")
     p.add_argument("ct", metavar="CT_OR_CASE", help="a CT file, a DICOM folder, or a case folder")

@@ -212,7 +212,7 @@ class EMRegController:
         with self.progress.step("calibrating frame"):
             result = calibrate_frame(
                 self.calibration_recording, self.reference_sensor, self.probe_sensor,
-                self.settings.get("calibration"),
+                self.settings.get("calibration"), probe_axis=self.probe_axis or "auto",
             )
         self.set_frame_calibration(result)
         return result
@@ -233,7 +233,7 @@ class EMRegController:
         with self.progress.step("pairing and registering"):
             result = register(
                 self.detection, self.frame_calibration, self.marker_model,
-                self.settings.get("registration"), targets_image=targets_image,
+                self.settings.get("registration"), targets_image=targets_image, probe_axis=self.probe_axis,
             )
         self.registration = result
         self.navigation = None
@@ -254,6 +254,15 @@ class EMRegController:
         )
         self.navigation = result
         return result
+
+    @property
+    def probe_axis(self) -> str | None:
+        """``[sensors] probe_axis`` when set (None: ``auto`` for a calibration, the calibration's own
+        setting for a registration)."""
+        from .probe_axis import check_probe_axis
+
+        value = self.settings.get("sensors", {}).get("probe_axis")
+        return None if value is None else check_probe_axis(value)
 
     @property
     def reference_to_image(self) -> np.ndarray:

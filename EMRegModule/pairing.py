@@ -161,10 +161,15 @@ def pair_markers(
     directions_reference: np.ndarray | None,
     l_range_mm: tuple[float, float],
     settings: PairingSettings | Mapping[str, Any] | None = None,
+    unsigned_directions: bool = False,
 ) -> PairingResult:
     """Pair image markers (origins (M, 3) and unit +Y axes (M, 3), image space, mm) with
     calibration points (pinhole sensor points (N, 3) and unit directions (N, 3) or NaN, in
     the Reference frame) for a sensor offset l in ``l_range_mm`` = (a, b).
+
+    ``unsigned_directions``: the directions are known only up to one common sign (the probe's
+    axis convention is not known): a mapped direction may lie along the marker axis or
+    against it. The pairwise angle constraints are unchanged (invariant under a common sign).
 
     Raises :class:`NoSafeAnswerError` when fewer than ``min_pairs`` pairs are found or when
     two different pairings explain the data about equally well (symmetric layout).
@@ -172,6 +177,7 @@ def pair_markers(
     if not isinstance(settings, PairingSettings):
         settings = PairingSettings.from_settings(settings)
     problem = _Problem(origins_image, axes_image, points_reference, directions_reference, l_range_mm, settings)
+    problem.unsigned = bool(unsigned_directions)
     return problem.solve()
 
 
@@ -203,6 +209,7 @@ class _Problem:
         self.cos_tight = np.cos(np.radians(min(self.tol_angle, 45.0)))
         self.l_grid = np.linspace(self.a, self.b, max(2, int(np.ceil((self.b - self.a) / 0.5)) + 1))
         self.hypotheses = 0
+        self.unsigned = False  # directions known up to a common sign: compare |cos|
         self._tree: cKDTree | None = None
 
     # --- invariants ----------------------------------------------------------------------
@@ -315,6 +322,8 @@ class _Problem:
         distance = np.sqrt(np.maximum(rel2 - 2.0 * clipped * along + clipped**2, 0.0))
         directions = np.einsum("tij,nj->tni", transforms[:, :3, :3], self.directions)
         cos = directions @ self.axes.T
+        if self.unsigned:
+            cos = np.abs(cos)
         return distance, np.where(np.isnan(cos), 1.0, cos)
 
     def _loose_assignments(self, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -337,6 +346,8 @@ class _Problem:
         along = np.clip(np.sum(rel * self.axes[safe], axis=2), self.a, self.b)
         distance = np.linalg.norm(rel - along[..., None] * self.axes[safe], axis=2)
         cos = np.sum(directions.reshape(-1, 1, 3) * self.axes[safe], axis=2)
+        if self.unsigned:
+            cos = np.abs(cos)
         ok = found & (distance <= self.tol_loose) & ((cos >= self.cos_loose) | np.isnan(cos))
         distance = np.where(ok, distance, np.inf)
         best = np.argmin(distance, axis=1)
@@ -359,7 +370,7 @@ class _Problem:
                 pinholes = self.origins + l_value * self.axes
                 distance = np.linalg.norm(mapped[:, None] - pinholes[None], axis=2)
                 cos = (self.directions @ transform[:3, :3].T) @ self.axes.T
-                cos = np.where(np.isnan(cos), 1.0, cos)
+                cos = np.where(np.isnan(cos), 1.0, np.abs(cos) if self.unsigned else cos)
                 tolerance = self.tol_point if iteration >= 3 else max(self.tol_point, self.tol_loose / 2)
                 min_cos = self.cos_tight
             assignment = _mutual_nearest(np.where(cos >= min_cos, distance, np.inf), tolerance)

@@ -42,7 +42,7 @@ from .io.atomic import atomic_write_json, read_json
 from .io.case import check_known_keys, setting_number
 from .io.itk_transform import write_slicer_linear_transform
 from .marker_model import MarkerModel
-from .pairing import PairingSettings, pair_markers
+from .pairing import PairingSettings
 from .transforms import apply_transform, fit_rigid, is_rigid, predicted_tre, residuals
 
 #: Name of the ITK transform file written beside ``registration.json``.
@@ -113,6 +113,7 @@ class RegistrationResult:
     predicted_tre_mm: np.ndarray | None = None
     warnings: list[str] = field(default_factory=list)
     pairing: dict[str, Any] = field(default_factory=dict)
+    probe_axis: dict[str, Any] = field(default_factory=dict)
 
     @property
     def outliers(self) -> list[str]:
@@ -140,6 +141,7 @@ class RegistrationResult:
                           "fre_mm": [round(float(v), 5) for v in self.fre_curve[1]]},
             "warnings": list(self.warnings),
             "pairing": self.pairing,
+            "probe_axis": self.probe_axis,
         }
         if self.targets_image is not None and self.predicted_tre_mm is not None:
             document["targets_image"] = np.asarray(self.targets_image).tolist()
@@ -179,6 +181,7 @@ class RegistrationResult:
                 predicted_tre_mm=None if tre is None else np.asarray(tre, dtype=float),
                 warnings=[str(w) for w in document.get("warnings", [])],
                 pairing=dict(document.get("pairing", {})),
+                probe_axis=dict(document.get("probe_axis") or {}),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise EMRegError(f"{source}: not a registration file ({exc!s:.100})") from None
@@ -281,8 +284,13 @@ def register(
     model: MarkerModel,
     settings: Mapping[str, Any] | None = None,
     targets_image: np.ndarray | None = None,
+    probe_axis: str | None = None,
 ) -> RegistrationResult:
     """Pair, solve the sensor offset l and fit ``ReferenceToImage`` (Reference -> CT LPS, mm).
+
+    ``probe_axis``: ``[sensors] probe_axis`` (None: the setting the calibration was made with);
+    the probe directions help the pairing when they fit, and never make it refuse
+    (:func:`EMRegModule.probe_axis.pair_with_probe_axis`).
 
     ``detection``: a DetectionResult (markers with ``id``, ``origin``, ``axis`` in image space);
     ``frame_calibration``: pinhole points in the Reference frame; ``model``: gives l's range
@@ -303,15 +311,21 @@ def register(
         l_range = (config.sensor_offset_l_mm, config.sensor_offset_l_mm)
     else:
         l_range = (model.pinhole_bottom_mm, model.pinhole_top_mm)
-    pairing = pair_markers(origins, axes, points, directions, l_range, config.pairing)
+    from .probe_axis import pair_with_probe_axis
+
+    stored = frame_calibration.direction_convention
+    pairing, axis_report = pair_with_probe_axis(
+        origins, axes, points, directions, l_range, config.pairing,
+        setting=frame_calibration.probe_axis if probe_axis is None else probe_axis,
+        stored_convention=stored if stored in ("+x_in", "+x_out") else "+x_in")
     image_index = np.array([j for j, _ in pairing.pairs])
     cal_index = np.array([i for _, i in pairing.pairs])
-    warnings: list[str] = []
+    warnings: list[str] = list(axis_report.warnings)
 
     solution = solve_sensor_offset(points[cal_index], origins[image_index], axes[image_index], l_range)
     pair_residuals = residuals(solution.reference_to_image, points[cal_index],
                                origins[image_index] + solution.l_mm * axes[image_index])
-    outlier = _flag_outliers(pair_residuals, config)
+    outlier = flag_outliers(pair_residuals, config)
     used = np.ones(len(cal_index), dtype=bool)
     if config.exclude_outliers and np.any(outlier) and np.count_nonzero(~outlier) >= config.pairing.min_pairs:
         used = ~outlier
@@ -382,10 +396,11 @@ def register(
                  "ambiguity_margin": config.pairing.ambiguity_margin,
                  "point_tolerance_mm": round(config.pairing.point_tolerance_mm, 3),
                  "distance_tolerance_mm": round(config.pairing.distance_tolerance_mm, 3)},
+        probe_axis=axis_report.to_json(),
     )
 
 
-def _flag_outliers(pair_residuals: np.ndarray, config: RegistrationSettings) -> np.ndarray:
+def flag_outliers(pair_residuals: np.ndarray, config: RegistrationSettings) -> np.ndarray:
     """Residuals above ``outlier_factor`` x the robust RMS residual and above ``outlier_min_mm``."""
     if len(pair_residuals) < 4:
         return np.zeros(len(pair_residuals), dtype=bool)

@@ -3,6 +3,9 @@
 Orientation is either the trakSTAR angles (azimuth, elevation, roll in degrees,
 ``R = Rz @ Ry @ Rx``) or a unit quaternion ``qw,qx,qy,qz``. ``quality`` may be empty,
 ``label`` may be absent or empty. Poses are ``SensorToTracker``.
+
+A row whose orientation fields are all empty is a position-only sample (a probe reported
+without angles): its rotation is NaN. A partly empty orientation is an error.
 """
 
 from __future__ import annotations
@@ -119,11 +122,13 @@ def parse_tracking_csv(text: str, source: str = "recording") -> TrackingRecordin
     parsed = _parse_fast(body, len(header), numeric_idx, quality_idx, label_idx)
     if parsed is None:
         parsed = _parse_checked(reader, header, numeric_idx, quality_idx, label_idx, source)
-    data, quality, labels = parsed
+    data, quality, labels, position_only = parsed
     if len(data) == 0:
         raise EMRegError(f"{source}: tracking recording has a header but no samples")
-    if not np.all(np.isfinite(data)):
-        bad = int(np.nonzero(~np.all(np.isfinite(data), axis=1))[0][0]) + 2
+    finite = np.isfinite(data)
+    finite[position_only, 5:] = True  # empty orientation fields: position only
+    if not np.all(finite):
+        bad = int(np.nonzero(~np.all(finite, axis=1))[0][0]) + 2
         raise EMRegError(f"{source}: line {bad} holds a non-finite number")
     sensor = data[:, 1]
     if np.any(sensor != np.round(sensor)) or np.any(sensor < 1):
@@ -132,9 +137,12 @@ def parse_tracking_csv(text: str, source: str = "recording") -> TrackingRecordin
         rotation = angles_to_rotation(data[:, 5], data[:, 6], data[:, 7])
     else:
         norms = np.linalg.norm(data[:, 5:9], axis=1)
-        if np.any(norms < 1e-6):
+        if np.any(norms[~position_only] < 1e-6):
             raise EMRegError(f"{source}: a quaternion of zero length")
-        rotation = quaternion_to_rotation(data[:, 5:9])
+        quaternions = data[:, 5:9].copy()
+        quaternions[position_only] = [1.0, 0.0, 0.0, 0.0]
+        rotation = quaternion_to_rotation(quaternions)
+    rotation[position_only] = np.nan
     segment, warnings = split_time_segments(data[:, 0], sensor.astype(int), source, first_line=2)
     return TrackingRecording(
         time_s=data[:, 0], sensor=sensor.astype(int), position_mm=data[:, 2:5], rotation=rotation,
@@ -153,7 +161,7 @@ def _parse_fast(
     if lines and max(map(len, lines)) > _FAST_LINE_CHARS:
         return None  # a long field: the checked parser bounds it (numpy would size every row by it)
     if not lines:
-        return np.zeros((0, len(numeric_idx))), np.zeros(0), np.zeros(0, dtype=object)
+        return np.zeros((0, len(numeric_idx))), np.zeros(0), np.zeros(0, dtype=object), np.zeros(0, dtype=bool)
     if body.count(",") != len(lines) * (n_columns - 1):  # some row has a field too many or too few
         return None
     try:
@@ -171,37 +179,47 @@ def _parse_fast(
             labels = np.full(len(lines), "")
     except ValueError:
         return None
-    return data, quality, labels.astype(object)
+    return data, quality, labels.astype(object), np.zeros(len(data), dtype=bool)
 
 
 def _parse_checked(
     reader, header: list[str], numeric_idx: list[int], quality_idx: int | None, label_idx: int | None, source: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Row-by-row parse that names the first bad line."""
+    """Row-by-row parse that names the first bad line; empty orientation fields mean position only."""
     values: list[list[float]] = []
+    position_only: list[bool] = []
+    orientation_idx = numeric_idx[5:]
     quality: list[float] = []
     labels: list[str] = []
     previous_limit = csv.field_size_limit(MAX_FIELD_CHARS)
     try:
-        _read_rows(reader, header, numeric_idx, quality_idx, label_idx, source, values, quality, labels)
+        _read_rows(reader, header, numeric_idx, quality_idx, label_idx, source, values, quality, labels,
+                   position_only, orientation_idx)
     except csv.Error as exc:
         raise EMRegError(f"{source}: line {reader.line_num}: malformed CSV ({str(exc)[:80]}; fields are at most "
                          f"{MAX_FIELD_CHARS} characters)") from None
     finally:
         csv.field_size_limit(previous_limit)
     return (np.asarray(values, dtype=float).reshape(-1, len(numeric_idx)), np.asarray(quality, dtype=float),
-            np.asarray(labels, dtype=object))
+            np.asarray(labels, dtype=object), np.asarray(position_only, dtype=bool))
 
 
 def _read_rows(reader, header: list[str], numeric_idx: list[int], quality_idx: int | None, label_idx: int | None,
-               source: str, values: list[list[float]], quality: list[float], labels: list[str]) -> None:
+               source: str, values: list[list[float]], quality: list[float], labels: list[str],
+               position_only: list[bool], orientation_idx: list[int]) -> None:
     for line_no, row in enumerate(reader, start=2):
         if not row or all(not cell.strip() for cell in row):
             continue
         if len(row) < len(header) - (1 if label_idx == len(header) - 1 else 0):
             raise EMRegError(f"{source}: line {line_no} has {len(row)} fields, the header has {len(header)}")
+        empty = [i >= len(row) or not row[i].strip() for i in orientation_idx]
+        if any(empty) and not all(empty):
+            raise EMRegError(f"{source}: line {line_no} has some orientation fields empty and others not "
+                             "(leave all of them empty for a position-only sample)")
+        position_only.append(all(empty))
         try:
-            values.append([float(row[i]) for i in numeric_idx])
+            values.append([float(row[i]) if not (all(empty) and i in orientation_idx) else np.nan
+                           for i in numeric_idx])
             q = row[quality_idx].strip() if quality_idx is not None and quality_idx < len(row) else ""
             quality.append(float(q) if q else np.nan)
         except (ValueError, IndexError):
@@ -227,7 +245,7 @@ def format_tracking_csv(recording: TrackingRecording, orientation: str | None = 
         writer.writerow([
             f"{recording.time_s[i]:.4f}", int(recording.sensor[i]),
             *(f"{v:.4f}" for v in recording.position_mm[i]),
-            *(f"{v:.6f}" for v in orient[i]),
+            *(f"{v:.6f}" if np.isfinite(v) else "" for v in orient[i]),
             "" if np.isnan(q) else f"{q:g}",
             recording.label[i] or "",
         ])
