@@ -99,6 +99,14 @@ def _out_file(out: str | Path) -> Path:
     return path
 
 
+def _with_series(settings: dict, args: argparse.Namespace) -> dict:
+    """``--series UID|NUMBER`` overrides ``[ct] series`` of case.toml."""
+    if getattr(args, "series", None):
+        settings = dict(settings)
+        settings["ct"] = {**(settings.get("ct") or {}), "series": args.series}
+    return settings
+
+
 def _warn(command: str, warnings: Sequence[str]) -> None:
     """Print a stage's warnings (also kept in its JSON output), one line each, on stderr."""
     for warning in warnings:
@@ -138,7 +146,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     source = Path(args.ct)
     case_dir = source if source.is_dir() and find_ct(source) is not None else None
     ct_path = find_ct(source) if case_dir is not None else source
-    controller = _controller(args, _settings(args, case_dir))
+    controller = _controller(args, _with_series(_settings(args, case_dir), args))
     result = controller.load_ct_and_detect(ct_path)  # detects on the slices read while the rest arrives
     from .detection import write_detection
 
@@ -265,7 +273,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     _out_folder(args.out)
     summary = run_case(Path(args.case), Path(args.out), _progress(args), reference_sensor=args.reference_sensor,
-                       probe_sensor=args.probe_sensor, settings_path=args.settings)
+                       probe_sensor=args.probe_sensor, settings_path=args.settings, series=args.series)
     for line in summary:
         print(line)
     return 0
@@ -298,7 +306,7 @@ def _remove_outputs(out: Path, from_stage: str) -> None:
 
 def run_case(
     case_dir: Path, out: Path, progress: Progress, reference_sensor: int | None = None,
-    probe_sensor: int | None = None, settings_path: str | None = None,
+    probe_sensor: int | None = None, settings_path: str | None = None, series: str | None = None,
 ) -> list[str]:
     """Run every available stage on a case folder through the controller; returns summary lines.
 
@@ -314,6 +322,8 @@ def run_case(
     case = open_case(case_dir)
     if settings_path:
         case.settings = read_case_settings(settings_path)
+    if series:
+        case.settings = {**case.settings, "ct": {**(case.settings.get("ct") or {}), "series": series}}
     if case.ct is None:
         raise EMRegError(f"{case_dir}: no CT found (ct.nrrd, ct.nii.gz, ct.mha or a ct/ DICOM folder)")
     controller = EMRegController.for_case(case, progress)
@@ -330,6 +340,8 @@ def run_case(
             from .detection import write_detection
 
             detection = controller.load_ct_and_detect(case.ct)
+            if detection.ct_series is not None:
+                run_record["ct_series"] = detection.ct_series
             write_detection(detection, out)
             summary.append(f"detect: {len(detection.markers)} markers, {len(detection.rejected)} rejected")
         else:
@@ -409,6 +421,12 @@ def _add_sensor_options(parser: argparse.ArgumentParser) -> None:
                         help="port of the probe sensor (default 2 or case.toml [sensors])")
 
 
+def _add_series_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--series", default=None, metavar="UID|NUMBER",
+                        help="the DICOM series to use (Series Instance UID or series number; default: the CT "
+                             "volume best for detection)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``emreg`` argument parser with every subcommand."""
     parser = _Parser(prog="emreg", description="Automatic patient-to-image registration for EM navigation.")
@@ -435,6 +453,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("detect", cmd_detect, "find the markers in a CT: OUT/markers.json and markers.mrk.json")
     p.add_argument("ct", metavar="CT_OR_CASE", help="a CT file, a DICOM folder, or a case folder")
     p.add_argument("--out", required=True, metavar="OUT")
+    _add_series_option(p)
 
     p = add("calibrate", cmd_calibrate, "frame calibration from a tracking recording: OUT/frame_calibration.json")
     p.add_argument("recording", metavar="RECORDING")
@@ -474,6 +493,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("run", cmd_run, "run every stage on a case folder")
     p.add_argument("case", metavar="CASE")
     p.add_argument("--out", required=True, metavar="OUT")
+    _add_series_option(p)
     _add_sensor_options(p)
 
     p = add("demo", cmd_demo, "simulate the built-in sample case and run it")

@@ -41,8 +41,9 @@ from .samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE, Sensor
 
 SampleCallback = Callable[[SensorSample], None]
 
-#: Pause between two polls that returned the same frame number (choice: a quarter of a 40 Hz period).
-IDLE_POLL_S = 0.006
+#: Pause after a poll that returned a frame number already seen (choice: short, so that a poll starts in
+#: every measuring period even when the host is busy; the line itself paces the polls, ~10 ms each).
+IDLE_POLL_S = 0.001
 #: BX/TX reply option: transforms + out-of-volume ones too ([CAPI] 0x0001 | 0x0800; what [SKS] sends).
 REPLY_OPTION = ndi.REPLY_TRANSFORMS | ndi.REPLY_NOT_NORMALLY_REPORTED
 
