@@ -46,12 +46,18 @@ ENV = dict(os.environ, PYTHONUNBUFFERED="1")
 
 
 def _recording(n_frames: int = 120, rate_hz: float = 40.0, seed: int = 3) -> TrackingRecording:
-    """Reference on port 1 (still), probe on port 2 (random poses), in the Tracker frame."""
+    """Reference on port 1 (still), probe on port 2 moving as a hand would (60 mm/s, turning 120 deg/s
+    about a tilted axis: every quaternion sign pattern within 3 s), in the Tracker frame."""
     rng = np.random.default_rng(seed)
     reference = make_transform(random_rotation(rng, 30), [250.0, 30.0, -80.0])
+    axis = np.array([0.3, -0.5, 0.81]) / np.linalg.norm([0.3, -0.5, 0.81])
+    start = random_rotation(rng, 180)
     t, sensors, positions, rotations = [], [], [], []
     for i in range(n_frames):
-        probe = make_transform(random_rotation(rng, 180), reference[:3, 3] + rng.uniform(-80, 80, 3))
+        s = i / rate_hz
+        turn = quaternion_to_rotation(np.r_[np.cos(np.radians(60 * s)), np.sin(np.radians(60 * s)) * axis])
+        path = 60.0 * np.array([np.cos(s), np.sin(s), 0.3 * np.sin(2 * s)])
+        probe = make_transform(turn @ start, reference[:3, 3] + path)
         for sensor, pose in ((1, reference), (2, probe)):
             t.append(i / rate_hz)
             sensors.append(sensor)
