@@ -397,6 +397,13 @@ class AuroraSource(SampleSource):
                             f"{'BX' if self.driver.use_bx else 'TX'}; {tools})")
         self._watch: threading.Thread | None = None
 
+    def link_counts(self) -> tuple[int, int]:
+        """Cumulative (accepted, rejected) samples of the serial link, for the tracker-agnostic link-quality
+        monitor: every tool's sample of an accepted new frame, and one lost sample per tool for every reply
+        ndicapi rejected (bad CRC, timeout, error)."""
+        st, tools = self.driver.stats, len(self.driver.tools)
+        return st.frames * tools, st.rejected * tools
+
     def start(self, callback: SampleCallback) -> None:
         self.driver.start(callback)
         self._watch = threading.Thread(target=self._watch_errors, name="aurora-watch", daemon=True)
