@@ -65,6 +65,7 @@ class EMRegController:
         sensors = self.settings.get("sensors", {})
         self.reference_sensor: int = int(sensors.get("reference", DEFAULT_REFERENCE_SENSOR))
         self.probe_sensor: int = int(sensors.get("probe", DEFAULT_PROBE_SENSOR))
+        _check_two_ports(self.reference_sensor, self.probe_sensor)
         self.image: sitk.Image | None = None
         self.image_source: str | None = None
         self.ct_series: dict[str, Any] | None = None  # a DICOM CT: the series used and the others
@@ -198,6 +199,8 @@ class EMRegController:
 
     def set_sensors(self, reference_sensor: int | None = None, probe_sensor: int | None = None) -> None:
         """Change the sensor ports; a change drops the frame calibration and what follows."""
+        _check_two_ports(self.reference_sensor if reference_sensor is None else int(reference_sensor),
+                         self.probe_sensor if probe_sensor is None else int(probe_sensor))
         changed = False
         if reference_sensor is not None and reference_sensor != self.reference_sensor:
             self.reference_sensor, changed = int(reference_sensor), True
@@ -299,6 +302,13 @@ class EMRegController:
         if self.registration is not None:
             parts.append(f"FRE {self.registration.fre_mm:.2f} mm, l = {self.registration.sensor_offset_l_mm:.2f} mm")
         return "; ".join(parts)
+
+
+def _check_two_ports(reference_sensor: int, probe_sensor: int) -> None:
+    """The reference and the probe must be two different ports (one line, exit 2)."""
+    if reference_sensor == probe_sensor:
+        raise EMRegError(f"the reference and the probe sensor are both port {reference_sensor}; give two different "
+                         "ports (--reference-sensor / --probe-sensor or case.toml [sensors] reference / probe)")
 
 
 def _import_in_background(module: str) -> None:
