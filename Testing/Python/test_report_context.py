@@ -8,11 +8,11 @@ import io
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from fixtures import samples
 
 from EMRegModule.io.image import open_ct, write_image
 from EMRegModule.marker_model import MarkerModel
 from EMRegModule.progress import Progress
-from EMRegModule.rendering import samples
 from EMRegModule.rendering.context import BinnedCT, binned_ct, context_surface, otsu_threshold
 from EMRegModule.rendering.slices import CTSampler, SliceMarker, StreamingMarkerViews, sample_marker_views
 from EMRegModule.report import batch
