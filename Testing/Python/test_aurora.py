@@ -369,7 +369,9 @@ def test_watchdog_with_the_aurora_stops_and_resumes(tmp_path):
                 assert nav.published == during, kind  # nothing published meanwhile
                 sim.set_state(kind, sensor, False)
                 assert wait_for("ok"), kind
-                time.sleep(0.2)
+                deadline = time.monotonic() + 30  # wait on the count: a loaded machine only takes longer
+                while nav.published <= during and time.monotonic() < deadline:
+                    time.sleep(0.005)
                 assert nav.published > during, kind  # publishing again
             sim.stall(1.0)
             assert wait_for("stale")
