@@ -23,13 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from .dwell import DwellSettings, find_dwells, group_by_place, robust_mean, robust_mean_direction
+from .dwell import find_dwells, group_by_place, robust_mean, robust_mean_direction
 from .errors import EMRegError
 from .io.atomic import atomic_write_json, read_json
+from .settings import CalibrationSettings
 from .tracking import TrackingRecording, probe_in_reference
-
-#: Visits of one pinhole whose averages differ by more than this (mm) earn a warning.
-DEFAULT_REVISIT_TOLERANCE_MM = 1.0
 
 
 @dataclass
@@ -141,16 +139,16 @@ def calibrate_frame(
     recording: TrackingRecording,
     reference_sensor: int = 1,
     probe_sensor: int = 2,
-    settings: Mapping[str, Any] | None = None,
+    settings: CalibrationSettings | None = None,
 ) -> FrameCalibration:
     """One point per marker pinhole, in the Reference frame (mm), from a calibration recording.
 
-    ``settings``: the ``case.toml`` ``[calibration]`` table (see :class:`EMRegModule.dwell.DwellSettings`
-    and ``revisit_tolerance_mm``). Unlabelled dwells are named ``P01, P02, ...`` in time order
-    of their first visit. Raises :class:`EMRegError` when no dwell is found.
+    ``settings``: the ``[calibration]`` table (dwell keys and ``revisit_tolerance_mm``). Unlabelled
+    dwells are named ``P01, P02, ...`` in time order of their first visit. Raises
+    :class:`EMRegError` when no dwell is found.
     """
-    dwell_settings = DwellSettings.from_settings(settings, "calibration", strict=True)
-    revisit_tolerance = float(dict(settings or {}).get("revisit_tolerance_mm", DEFAULT_REVISIT_TOLERANCE_MM))
+    dwell_settings = settings or CalibrationSettings()
+    revisit_tolerance = dwell_settings.revisit_tolerance_mm
     samples = probe_in_reference(recording, reference_sensor, probe_sensor)
     position = samples.position_mm
     out_of_hole = -samples.direction

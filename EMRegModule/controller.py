@@ -17,20 +17,22 @@ from __future__ import annotations
 import contextlib
 import enum
 import os
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import EMRegError
-from .io.case import DEFAULT_PROBE_SENSOR, DEFAULT_REFERENCE_SENSOR, Case
+from .io.case import Case
 from .marker_model import MarkerModel
 from .progress import QUIET, Progress
+from .settings import Settings
 
 if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only when used
     import SimpleITK as sitk
 
     from .calibration import FrameCalibration
     from .detection import DetectionResult
+    from .evaluation import Evaluation
     from .navigation import NavigationResult
     from .registration import RegistrationResult
     from .tracking import TrackingRecording
@@ -54,17 +56,18 @@ class WorkflowError(EMRegError):
 class EMRegController:
     """Sequences the EMReg workflow; usable without any GUI.
 
-    ``settings`` is the parsed ``case.toml`` (sections ``sensors``, ``marker``,
-    ``detection``, ``calibration``, ``registration``, ``board``...).
+    ``settings`` is the typed, checked ``case.toml`` (:class:`~EMRegModule.settings.Settings`;
+    defaults when None); each stage gets its own table.
     """
 
-    def __init__(self, settings: dict[str, Any] | None = None, progress: Progress | None = None) -> None:
-        self.settings: dict[str, Any] = dict(settings or {})
+    def __init__(self, settings: Settings | None = None, progress: Progress | None = None) -> None:
+        if settings is not None and not isinstance(settings, Settings):
+            raise TypeError("EMRegController takes a Settings object (EMRegModule.settings.load_settings)")
+        self.settings: Settings = settings or Settings()
         self.progress = progress or QUIET
-        self.marker_model = MarkerModel.from_settings(self.settings.get("marker"))
-        sensors = self.settings.get("sensors", {})
-        self.reference_sensor: int = int(sensors.get("reference", DEFAULT_REFERENCE_SENSOR))
-        self.probe_sensor: int = int(sensors.get("probe", DEFAULT_PROBE_SENSOR))
+        self.marker_model: MarkerModel = self.settings.marker
+        self.reference_sensor: int = self.settings.sensors.reference
+        self.probe_sensor: int = self.settings.sensors.probe
         self.image: sitk.Image | None = None
         self.image_source: str | None = None
         self.calibration_recording: TrackingRecording | None = None
@@ -140,7 +143,7 @@ class EMRegController:
         from .detection import detect_markers
 
         try:
-            result = detect_markers(fill.image, self.marker_model, self.settings.get("detection"), self.progress,
+            result = detect_markers(fill.image, self.marker_model, self.settings.detection, self.progress,
                                     wait_for_slices=fill.wait_for_slices)
             image = fill.result()  # the checksum is verified only at the end
         except BaseException:
@@ -172,13 +175,12 @@ class EMRegController:
         self._invalidate(frame_calibration=True)
 
     def set_sensors(self, reference_sensor: int | None = None, probe_sensor: int | None = None) -> None:
-        """Change the sensor ports; a change drops the frame calibration and what follows."""
-        changed = False
-        if reference_sensor is not None and reference_sensor != self.reference_sensor:
-            self.reference_sensor, changed = int(reference_sensor), True
-        if probe_sensor is not None and probe_sensor != self.probe_sensor:
-            self.probe_sensor, changed = int(probe_sensor), True
-        if changed:
+        """Change the sensor ports (checked as ``[sensors]``: 1..4, two different ports); a change drops
+        the frame calibration and what follows."""
+        current = self.settings.with_sensors(self.reference_sensor, self.probe_sensor)
+        sensors = current.with_sensors(reference_sensor, probe_sensor).sensors
+        if (sensors.reference, sensors.probe) != (self.reference_sensor, self.probe_sensor):
+            self.reference_sensor, self.probe_sensor = sensors.reference, sensors.probe
             self._invalidate(frame_calibration=True)
 
     # --- stages -----------------------------------------------------------------------------
@@ -188,7 +190,7 @@ class EMRegController:
         self._require(image=self.image)
         from .detection import detect_markers
 
-        result = detect_markers(self.image, self.marker_model, self.settings.get("detection"), self.progress)
+        result = detect_markers(self.image, self.marker_model, self.settings.detection, self.progress)
         self.set_detection(result)
         return result
 
@@ -205,7 +207,7 @@ class EMRegController:
         with self.progress.step("calibrating frame"):
             result = calibrate_frame(
                 self.calibration_recording, self.reference_sensor, self.probe_sensor,
-                self.settings.get("calibration"),
+                self.settings.calibration,
             )
         self.set_frame_calibration(result)
         return result
@@ -226,7 +228,7 @@ class EMRegController:
         with self.progress.step("pairing and registering"):
             result = register(
                 self.detection, self.frame_calibration, self.marker_model,
-                self.settings.get("registration"), targets_image=targets_image,
+                self.settings.registration, targets_image=targets_image,
             )
         self.registration = result
         self.navigation = None
@@ -247,6 +249,19 @@ class EMRegController:
         )
         self.navigation = result
         return result
+
+    def evaluate(self, navigation: TrackingRecording | None = None,
+                 targets: tuple[list[str], np.ndarray] | None = None,
+                 board: TrackingRecording | None = None) -> Evaluation:
+        """TRE at ``targets`` (labels, (K, 3) LPS mm) from a navigation recording, and the board table
+        from a board recording, with the current registration (``[evaluation]``, ``[board]`` settings)."""
+        self._require(registration=self.registration)
+        from .evaluation import evaluate
+
+        with self.progress.step("evaluating"):
+            return evaluate(self.registration.reference_to_image, self.reference_sensor, self.probe_sensor,
+                            self.settings.evaluation, navigation=navigation, targets=targets, board=board,
+                            nominal_edges_mm=self.settings.board.edges_mm)
 
     @property
     def reference_to_image(self) -> np.ndarray:

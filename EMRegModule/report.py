@@ -34,6 +34,7 @@ from .errors import EMRegError
 from .io.atomic import atomic_write_text, read_json
 from .marker_model import MarkerModel
 from .progress import QUIET, Progress
+from .settings import Settings
 from .transforms import apply_transform, fit_rigid, fre, make_transform, rotation_from_y_axis
 
 if TYPE_CHECKING:
@@ -76,7 +77,7 @@ class ReportInputs:
     ct_path: Path | None = None
     targets_labels: list[str] | None = None
     targets_positions: np.ndarray | None = None
-    settings: dict = field(default_factory=dict)
+    settings: Settings = field(default_factory=Settings)
     model: MarkerModel = field(default_factory=MarkerModel)
     notes: list[str] = field(default_factory=list)  # inputs that could not be read
 
@@ -201,10 +202,7 @@ def load_report_inputs(out_dir: str | os.PathLike[str], case_dir: str | os.PathL
                     inputs.targets_labels, inputs.targets_positions = read_markups(case.targets)
                 except EMRegError as exc:
                     notes.append(str(exc))
-    try:
-        inputs.model = MarkerModel.from_settings(inputs.settings.get("marker"))
-    except EMRegError as exc:
-        notes.append(str(exc))
+    inputs.model = inputs.settings.marker
     if image is not None:
         inputs.image = image
     elif read_image and inputs.ct_path is not None:
@@ -490,7 +488,7 @@ def render_figures(inputs: ReportInputs, rows: list[MarkerRow], points: dict[str
 
             surface = None
             if inputs.image is not None:
-                surface, _ = ct_context_surface(inputs.image, inputs.settings.get("report", {}).get("iso_value"))
+                surface, _ = ct_context_surface(inputs.image, inputs.settings.report.iso_value)
             scene = _scene_for(inputs, rows, points, surface)
             caption = ("Fitted marker models coloured by registration residual (grey: unpaired), the reference "
                        "sensor with its axes (red X, green Y, blue Z), calibration points mapped into the CT "
@@ -798,7 +796,7 @@ def build_html(inputs: ReportInputs, rows: list[MarkerRow], points: dict[str, di
     parts.append("<h2>Board phantom</h2>")
     board = evaluation.get("board")
     if board and board.get("edges"):
-        nominal = list((inputs.settings.get("board") or {}).get("edges_mm") or [])
+        nominal = list(inputs.settings.board.edges_mm or [])
         board_rows = []
         for i, (name, edge) in enumerate(board["edges"].items()):
             reference = _maybe_float(edge.get("nominal_mm", edge.get("reference_mm")))

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EMRegError
-from ..io.case import DEFAULT_PROBE_SENSOR, DEFAULT_REFERENCE_SENSOR
+from ..settings import load_settings
 from ..transforms import is_rigid
 from . import trakstar_protocol as tp
 from .igtl_server import DEFAULT_PORT
@@ -29,17 +29,9 @@ from .igtl_server import DEFAULT_PORT
 
 
 def _sensor_ports(args: argparse.Namespace) -> tuple[int, int]:
-    settings: dict = {}
-    if getattr(args, "settings", None):
-        from ..io.case import read_case_settings
-
-        settings = read_case_settings(args.settings)
-    sensors = settings.get("sensors", {})
-    reference = args.reference_sensor or int(sensors.get("reference", DEFAULT_REFERENCE_SENSOR))
-    probe = args.probe_sensor or int(sensors.get("probe", DEFAULT_PROBE_SENSOR))
-    if reference == probe:
-        raise EMRegError(f"--reference-sensor and --probe-sensor are both port {reference}; give two different ports")
-    return reference, probe
+    settings = load_settings(getattr(args, "settings", None), required=True)
+    sensors = settings.with_sensors(args.reference_sensor, args.probe_sensor).sensors
+    return sensors.reference, sensors.probe
 
 
 def load_reference_to_image(path: str) -> np.ndarray:
