@@ -65,6 +65,13 @@ def _settings(args: argparse.Namespace, case_dir: Path | None = None) -> Setting
     return load_settings(None)
 
 
+def _with_series(settings: Settings, args: argparse.Namespace) -> Settings:
+    """``--series UID|NUMBER`` overrides ``[ct] series`` of case.toml."""
+    from .settings import with_series
+
+    return with_series(settings, getattr(args, "series", None))
+
+
 def _warn(command: str, warnings: Sequence[str]) -> None:
     """Print a stage's warnings (also kept in its JSON output), one line each, on stderr."""
     for warning in warnings:
@@ -86,9 +93,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     _need_stage("simulation", "the case simulator")
     from .simulation import simulate_case
 
+    options = {"probe_axis": args.probe_axis} if args.probe_axis else {}
     simulate_case(
         Path(args.out), seed=args.seed, difficulty=args.difficulty, spacing_mm=args.spacing,
-        progress=_progress(args),
+        progress=_progress(args), **options,
     )
     print(f"simulated case written to {args.out}")
     return 0
@@ -101,7 +109,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     source = Path(args.ct)
     case_dir = source if source.is_dir() and find_ct(source) is not None else None
     ct_path = find_ct(source) if case_dir is not None else source
-    controller = _controller(args, _settings(args, case_dir))
+    controller = _controller(args, _with_series(_settings(args, case_dir), args))
     result = controller.load_ct_and_detect(ct_path)  # detects on the slices read while the rest arrives
     from .detection import write_detection
 
@@ -212,7 +220,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     summary = run_case(Path(args.case), Path(args.out), _progress(args), reference_sensor=args.reference_sensor,
-                       probe_sensor=args.probe_sensor, settings_path=args.settings)
+                       probe_sensor=args.probe_sensor, settings_path=args.settings, series=args.series)
     for line in summary:
         print(line)
     return 0
@@ -245,7 +253,7 @@ def _remove_outputs(out: Path, from_stage: str) -> None:
 
 def run_case(
     case_dir: Path, out: Path, progress: Progress, reference_sensor: int | None = None,
-    probe_sensor: int | None = None, settings_path: str | None = None,
+    probe_sensor: int | None = None, settings_path: str | None = None, series: str | None = None,
 ) -> list[str]:
     """Run every available stage on a case folder through the controller; returns summary lines.
 
@@ -257,11 +265,12 @@ def run_case(
     from .controller import EMRegController
     from .io.atomic import atomic_write_json
     from .io.case import open_case
-    from .settings import load_settings
+    from .settings import load_settings, with_series
 
     case = open_case(case_dir)
     if settings_path:
         case.settings = load_settings(settings_path, required=True)
+    case.settings = with_series(case.settings, series)
     if case.ct is None:
         raise EMRegError(f"{case_dir}: no CT found (ct.nrrd, ct.nii.gz, ct.mha or a ct/ DICOM folder)")
     controller = EMRegController.for_case(case, progress)
@@ -278,6 +287,8 @@ def run_case(
             from .detection import write_detection
 
             detection = controller.load_ct_and_detect(case.ct)
+            if detection.ct_series is not None:
+                run_record["ct_series"] = detection.ct_series
             write_detection(detection, out)
             summary.append(f"detect: {len(detection.markers)} markers, {len(detection.rejected)} rejected")
         else:
@@ -350,6 +361,12 @@ def _add_sensor_options(parser: argparse.ArgumentParser) -> None:
                         help="port of the probe sensor (default 2 or case.toml [sensors])")
 
 
+def _add_series_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--series", default=None, metavar="UID|NUMBER",
+                        help="the DICOM series to use (Series Instance UID or series number; default: the CT "
+                             "volume best for detection)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``emreg`` argument parser with every subcommand."""
     parser = _Parser(prog="emreg", description="Automatic patient-to-image registration for EM navigation.")
@@ -369,10 +386,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--difficulty", choices=("standard", "hard"), default="standard")
     p.add_argument("--spacing", type=float, default=None, metavar="MM", help="CT voxel size in mm")
+    p.add_argument("--probe-axis", choices=("+x_in", "+x_out", "none"), default=None,
+                   help="probe convention of the recordings: +X into the hole (default), out of it, or "
+                        "position only")
 
     p = add("detect", cmd_detect, "find the markers in a CT: OUT/markers.json and markers.mrk.json")
     p.add_argument("ct", metavar="CT_OR_CASE", help="a CT file, a DICOM folder, or a case folder")
     p.add_argument("--out", required=True, metavar="OUT")
+    _add_series_option(p)
 
     p = add("calibrate", cmd_calibrate, "frame calibration from a tracking recording: OUT/frame_calibration.json")
     p.add_argument("recording", metavar="RECORDING")
@@ -412,6 +433,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("run", cmd_run, "run every stage on a case folder")
     p.add_argument("case", metavar="CASE")
     p.add_argument("--out", required=True, metavar="OUT")
+    _add_series_option(p)
     _add_sensor_options(p)
 
     p = add("demo", cmd_demo, "simulate the built-in sample case and run it")

@@ -17,7 +17,7 @@ from __future__ import annotations
 import contextlib
 import enum
 import os
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -70,6 +70,7 @@ class EMRegController:
         self.probe_sensor: int = self.settings.sensors.probe
         self.image: sitk.Image | None = None
         self.image_source: str | None = None
+        self.ct_series: dict[str, Any] | None = None  # a DICOM CT: the series used and the others
         self.calibration_recording: TrackingRecording | None = None
         self.detection: DetectionResult | None = None
         self.frame_calibration: FrameCalibration | None = None
@@ -122,12 +123,14 @@ class EMRegController:
 
     def load_ct(self, path: str | os.PathLike[str]) -> sitk.Image:
         """Read the CT (file or DICOM folder); drops detection and everything after it."""
-        from .io.image import read_ct
+        from .io.image import open_ct
 
         _import_in_background("EMRegModule.detection")  # overlaps the import with the file read
         with self.progress.step("reading CT"):
-            image = read_ct(path)
+            fill = open_ct(path, self.ct_series_choice)
+            image = fill.result()
         self.set_image(image, str(path))
+        self.ct_series = fill.series
         return image
 
     def load_ct_and_detect(self, path: str | os.PathLike[str]) -> DetectionResult:
@@ -139,27 +142,39 @@ class EMRegController:
 
         _import_in_background("EMRegModule.detection")  # overlaps the import with the start of the read
         with self.progress.step("opening CT"):
-            fill = open_ct(path)
+            fill = open_ct(path, self.ct_series_choice)
         from .detection import detect_markers
 
         try:
             result = detect_markers(fill.image, self.marker_model, self.settings.detection, self.progress,
                                     wait_for_slices=fill.wait_for_slices)
             image = fill.result()  # the checksum is verified only at the end
-        except BaseException:
+        except BaseException as exc:
             fill.cancel()
+            if isinstance(exc, EMRegError):
+                read_error = fill.read_error()  # a bad file explains a failed detection: report the file
+                if isinstance(read_error, EMRegError) and read_error is not exc:
+                    raise read_error from None
             raise
         self.set_image(image, str(path))
+        self.ct_series = result.ct_series = fill.series
         self.set_detection(result)
         return result
 
+    @property
+    def ct_series_choice(self) -> str | None:
+        """``[ct] series`` (a Series Instance UID or a series number) forcing the DICOM series, or None."""
+        value = self.settings.ct.series
+        return None if value is None else str(value)
+
     def set_image(self, image: sitk.Image, source: str = "CT") -> None:
         """Use an image already in memory (e.g. a Slicer volume node converted to SimpleITK)."""
-        from .io.image import check_ct
+        from .io.ct_checks import check_ct_image
 
-        check_ct(image, source)
+        check_ct_image(image, source)  # geometry and voxel values (NaN / inf refused)
         self.image = image
         self.image_source = source
+        self.ct_series = None
         self._invalidate(detection=True)
 
     def load_calibration_recording(self, path: str | os.PathLike[str]) -> TrackingRecording:
@@ -191,6 +206,7 @@ class EMRegController:
         from .detection import detect_markers
 
         result = detect_markers(self.image, self.marker_model, self.settings.detection, self.progress)
+        result.ct_series = self.ct_series
         self.set_detection(result)
         return result
 
@@ -207,7 +223,7 @@ class EMRegController:
         with self.progress.step("calibrating frame"):
             result = calibrate_frame(
                 self.calibration_recording, self.reference_sensor, self.probe_sensor,
-                self.settings.calibration,
+                self.settings.calibration, probe_axis=self.probe_axis or "auto",
             )
         self.set_frame_calibration(result)
         return result
@@ -228,7 +244,7 @@ class EMRegController:
         with self.progress.step("pairing and registering"):
             result = register(
                 self.detection, self.frame_calibration, self.marker_model,
-                self.settings.registration, targets_image=targets_image,
+                self.settings.registration, targets_image=targets_image, probe_axis=self.probe_axis,
             )
         self.registration = result
         self.navigation = None
@@ -262,6 +278,12 @@ class EMRegController:
             return evaluate(self.registration.reference_to_image, self.reference_sensor, self.probe_sensor,
                             self.settings.evaluation, navigation=navigation, targets=targets, board=board,
                             nominal_edges_mm=self.settings.board.edges_mm)
+
+    @property
+    def probe_axis(self) -> str | None:
+        """``[sensors] probe_axis`` when set (None: ``auto`` for a calibration, the calibration's own
+        setting for a registration)."""
+        return self.settings.sensors.probe_axis
 
     @property
     def reference_to_image(self) -> np.ndarray:

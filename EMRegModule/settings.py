@@ -24,21 +24,31 @@ from typing import Any, ClassVar
 
 from .errors import EMRegError
 from .marker_model import MarkerModel
-from .tables import SettingError, fraction, non_negative, parse_table, port, positive
+from .tables import SettingError, fraction, non_negative, one_of, parse_table, port, positive
 
 # --- [sensors] ---------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
 class SensorSettings:
-    """``[sensors]``: the tracker ports of the reference sensor (Model 800) and of the probe (Model 90)."""
+    """``[sensors]``: the tracker ports of the reference sensor (Model 800) and of the probe (Model 90);
+    ``probe_axis`` (``auto``, ``+x_in``, ``+x_out``, ``none``; None: ``auto`` for a calibration, the
+    calibration's own for a registration; see :mod:`EMRegModule.probe_axis`); the transform names of
+    the two sensors in a PLUS sequence file (None: ``ReferenceToTracker``, ``ProbeToTracker``)."""
 
     reference: int = port(1)
     probe: int = port(2)
+    probe_axis: str | None = one_of(None, "auto", "+x_in", "+x_out", "none")
+    reference_transform: str | None = None
+    probe_transform: str | None = None
 
     def validate(self) -> None:
         if self.reference == self.probe:
             raise SettingError(f"reference and probe are both port {self.reference}; give two different ports")
+        for key in ("reference_transform", "probe_transform"):
+            value = getattr(self, key)
+            if value is not None and not value.strip().isidentifier():
+                raise SettingError(f"must be a transform name such as 'ProbeToTracker', got {value!r}", key)
 
 
 # --- [detection] -------------------------------------------------------------------------------
@@ -310,6 +320,13 @@ class Settings:
         """sha256 of :meth:`to_json` in canonical form: equal digests, equal settings."""
         text = json.dumps(self.to_json(), sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def with_series(settings: Settings, series: str | int | None) -> Settings:
+    """``settings`` with ``[ct] series`` overridden (``--series UID|NUMBER``); unchanged when ``series`` is None."""
+    if series is None:
+        return settings
+    return replace(settings, ct=parse_table(CTSettings, {"series": series}, "ct", "--series", base=settings.ct))
 
 
 _TABLE_CLASSES: dict[str, type] = {

@@ -147,6 +147,10 @@ def probe_in_reference(
             f"{recording.source}: no probe sample has a reference sample at the same time (within 1 ms)"
         )
     reference_to_tracker = reference.transforms()[ref_idx]
+    if not np.all(np.isfinite(reference_to_tracker)):
+        raise EMRegError(f"{recording.source}: the reference sensor (port {reference_port}) has samples without "
+                         "an orientation; every sample is expressed in the Reference frame, which needs "
+                         "the reference sensor's full pose")
     probe_to_tracker = probe.transforms()[probe_idx]
     tracker_to_reference = invert_rigid_batch(reference_to_tracker)
     probe_to_reference = tracker_to_reference @ probe_to_tracker

@@ -3,6 +3,9 @@
 Orientation is either the trakSTAR angles (azimuth, elevation, roll in degrees,
 ``R = Rz @ Ry @ Rx``) or a unit quaternion ``qw,qx,qy,qz``. ``quality`` may be empty,
 ``label`` may be absent or empty. Poses are ``SensorToTracker``.
+
+A row whose orientation fields are all empty is a position-only sample (a probe reported
+without angles): its rotation is NaN. A partly empty orientation is an error.
 """
 
 from __future__ import annotations
@@ -63,11 +66,13 @@ def parse_tracking_csv(text: str, source: str = "recording") -> TrackingRecordin
     parsed = _parse_fast(body, len(header), numeric_idx, quality_idx, label_idx)
     if parsed is None:
         parsed = _parse_checked(reader, header, numeric_idx, quality_idx, label_idx, source)
-    data, quality, labels = parsed
+    data, quality, labels, position_only = parsed
     if len(data) == 0:
         raise EMRegError(f"{source}: tracking recording has a header but no samples")
-    if not np.all(np.isfinite(data)):
-        bad = int(np.nonzero(~np.all(np.isfinite(data), axis=1))[0][0]) + 2
+    finite = np.isfinite(data)
+    finite[position_only, 5:] = True  # empty orientation fields: position only
+    if not np.all(finite):
+        bad = int(np.nonzero(~np.all(finite, axis=1))[0][0]) + 2
         raise EMRegError(f"{source}: line {bad} holds a non-finite number")
     sensor = data[:, 1]
     if np.any(sensor != np.round(sensor)) or np.any(sensor < 1):
@@ -76,9 +81,12 @@ def parse_tracking_csv(text: str, source: str = "recording") -> TrackingRecordin
         rotation = angles_to_rotation(data[:, 5], data[:, 6], data[:, 7])
     else:
         norms = np.linalg.norm(data[:, 5:9], axis=1)
-        if np.any(norms < 1e-6):
+        if np.any(norms[~position_only] < 1e-6):
             raise EMRegError(f"{source}: a quaternion of zero length")
-        rotation = quaternion_to_rotation(data[:, 5:9])
+        quaternions = data[:, 5:9].copy()
+        quaternions[position_only] = [1.0, 0.0, 0.0, 0.0]
+        rotation = quaternion_to_rotation(quaternions)
+    rotation[position_only] = np.nan
     return TrackingRecording(
         time_s=data[:, 0], sensor=sensor.astype(int), position_mm=data[:, 2:5], rotation=rotation,
         quality=quality, label=labels, source=source,
@@ -94,7 +102,7 @@ def _parse_fast(
         return None
     lines = [line for line in body.splitlines() if line.strip(" ,\r")]
     if not lines:
-        return np.zeros((0, len(numeric_idx))), np.zeros(0), np.zeros(0, dtype=object)
+        return np.zeros((0, len(numeric_idx))), np.zeros(0), np.zeros(0, dtype=object), np.zeros(0, dtype=bool)
     if body.count(",") != len(lines) * (n_columns - 1):  # some row has a field too many or too few
         return None
     try:
@@ -112,14 +120,16 @@ def _parse_fast(
             labels = np.full(len(lines), "")
     except ValueError:
         return None
-    return data, quality, labels.astype(object)
+    return data, quality, labels.astype(object), np.zeros(len(data), dtype=bool)
 
 
 def _parse_checked(
     reader, header: list[str], numeric_idx: list[int], quality_idx: int | None, label_idx: int | None, source: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Row-by-row parse that names the first bad line."""
+    """Row-by-row parse that names the first bad line; empty orientation fields mean position only."""
     values: list[list[float]] = []
+    position_only: list[bool] = []
+    orientation_idx = numeric_idx[5:]
     quality: list[float] = []
     labels: list[str] = []
     for line_no, row in enumerate(reader, start=2):
@@ -127,8 +137,14 @@ def _parse_checked(
             continue
         if len(row) < len(header) - (1 if label_idx == len(header) - 1 else 0):
             raise EMRegError(f"{source}: line {line_no} has {len(row)} fields, the header has {len(header)}")
+        empty = [i >= len(row) or not row[i].strip() for i in orientation_idx]
+        if any(empty) and not all(empty):
+            raise EMRegError(f"{source}: line {line_no} has some orientation fields empty and others not "
+                             "(leave all of them empty for a position-only sample)")
+        position_only.append(all(empty))
         try:
-            values.append([float(row[i]) for i in numeric_idx])
+            values.append([float(row[i]) if not (all(empty) and i in orientation_idx) else np.nan
+                           for i in numeric_idx])
             q = row[quality_idx].strip() if quality_idx is not None and quality_idx < len(row) else ""
             quality.append(float(q) if q else np.nan)
         except (ValueError, IndexError):
@@ -137,7 +153,7 @@ def _parse_checked(
             ) from None
         labels.append(row[label_idx].strip() if label_idx is not None and label_idx < len(row) else "")
     return (np.asarray(values, dtype=float).reshape(-1, len(numeric_idx)), np.asarray(quality, dtype=float),
-            np.asarray(labels, dtype=object))
+            np.asarray(labels, dtype=object), np.asarray(position_only, dtype=bool))
 
 
 def format_tracking_csv(recording: TrackingRecording, orientation: str | None = None) -> str:
@@ -156,7 +172,7 @@ def format_tracking_csv(recording: TrackingRecording, orientation: str | None = 
         writer.writerow([
             f"{recording.time_s[i]:.4f}", int(recording.sensor[i]),
             *(f"{v:.4f}" for v in recording.position_mm[i]),
-            *(f"{v:.6f}" for v in orient[i]),
+            *(f"{v:.6f}" if np.isfinite(v) else "" for v in orient[i]),
             "" if np.isnan(q) else f"{q:g}",
             recording.label[i] or "",
         ])
