@@ -230,7 +230,8 @@ def calibrate_frame(
             start_s=float(min(dwells[m].start_s for m in members)),
             end_s=float(max(dwells[m].end_s for m in members)), warning=warning,
         ))
-    warnings = [f"{p.label}: {p.warning}" for p in points if p.warning]
+    warnings = list(recording.warnings)  # time resets / gaps found on reading (kept, as separate segments)
+    warnings += [f"{p.label}: {p.warning}" for p in points if p.warning]
     warnings += _close_point_warnings(points, 2.0 * dwell_settings.merge_radius_mm)
     has_direction = any(np.all(np.isfinite(p.direction)) for p in points)
     return FrameCalibration(points, int(reference_sensor), int(probe_sensor), labelled, recording.source, warnings,

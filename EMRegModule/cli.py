@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -65,6 +66,41 @@ def _settings(args: argparse.Namespace, case_dir: Path | None = None) -> Setting
     return load_settings(None)
 
 
+def _out_folder(out: str | Path | None, create: bool = True) -> Path | None:
+    """Check an output folder before any work: a folder (made if missing) that EMReg can write into.
+
+    Refused with one line (exit 2): OUT is a file, a broken symbolic link or a loop, cannot be
+    made, or cannot be written (permissions, read-only file system).
+    """
+    if out is None:
+        return None
+    path = Path(out)
+    try:
+        if path.is_symlink() and not path.exists():
+            raise EMRegError(f"{path}: output folder is a broken symbolic link (or a symbolic-link loop)")
+        if path.exists() and not path.is_dir():
+            raise EMRegError(f"{path}: output folder is a file; give a folder for --out")
+        if not create and not path.is_dir():
+            return path
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except EMRegError:
+        raise
+    except OSError as exc:
+        raise EMRegError(f"{path}: cannot write to the output folder ({exc.strerror or exc})") from None
+    return path
+
+
+def _out_file(out: str | Path) -> Path:
+    """Check an output file's place before any work: not a folder, its folder writable (one line, exit 2)."""
+    path = Path(out)
+    if path.is_dir():
+        raise EMRegError(f"{path}: is a folder; give a file name for --out")
+    _out_folder(path.parent if str(path.parent) else Path("."))
+    return path
+
+
 def _with_series(settings: Settings, args: argparse.Namespace) -> Settings:
     """``--series UID|NUMBER`` overrides ``[ct] series`` of case.toml."""
     from .settings import with_series
@@ -91,6 +127,7 @@ def _controller(args: argparse.Namespace, settings: Settings):
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     _need_stage("simulation", "the case simulator")
+    _out_folder(args.out)
     from .simulation import simulate_case
 
     options = {"probe_axis": args.probe_axis} if args.probe_axis else {}
@@ -106,6 +143,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     _need_stage("detection", "marker detection")
     from .io.case import find_ct
 
+    _out_folder(args.out)
     source = Path(args.ct)
     case_dir = source if source.is_dir() and find_ct(source) is not None else None
     ct_path = find_ct(source) if case_dir is not None else source
@@ -122,6 +160,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     _need_stage("calibration", "frame calibration")
     from .calibration import write_frame_calibration
 
+    _out_folder(args.out)
     controller = _controller(args, _settings(args))
     controller.load_calibration_recording(args.recording)
     result = controller.calibrate_frame()
@@ -137,6 +176,7 @@ def cmd_register(args: argparse.Namespace) -> int:
     from .detection import read_detection
     from .registration import write_registration
 
+    _out_folder(args.out)
     controller = _controller(args, _settings(args))
     controller.set_detection(read_detection(args.markers))
     controller.set_frame_calibration(read_frame_calibration(args.calibration))
@@ -158,6 +198,7 @@ def cmd_register(args: argparse.Namespace) -> int:
 
 
 def cmd_navigate(args: argparse.Namespace) -> int:
+    _out_folder(args.out)
     live = args.igtl_port is not None or not args.source.startswith("replay:")
     if live:
         _need_stage("live", "live navigation (tracker / OpenIGTLink)")
@@ -168,14 +209,16 @@ def cmd_navigate(args: argparse.Namespace) -> int:
         raise EMRegError("navigate: --out DIR is needed to write navigation.csv from a replay")
     _need_stage("navigation", "navigation")
     from .navigation import write_navigation_csv
-    from .registration import read_registration
+    from .registration import max_fre_from_settings, read_registration
 
-    controller = _controller(args, _settings(args))
-    controller.set_registration(read_registration(args.registration))
+    settings = _settings(args)
+    controller = _controller(args, settings)
+    controller.set_registration(read_registration(args.registration, max_fre_from_settings(settings)))
     from .io.tracking_csv import read_tracking_csv
 
     recording = read_tracking_csv(args.source[len("replay:"):])
     result = controller.navigate_recording(recording)
+    _warn("navigate", recording.warnings)
     write_navigation_csv(result, Path(args.out) / "navigation.csv")
     print(f"{len(result)} probe samples mapped into image space -> {args.out}")
     return 0
@@ -185,15 +228,23 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     _need_stage("evaluation", "evaluation")
     from .evaluation import write_evaluation
     from .io.case import open_case
-    from .registration import read_registration
+    from .registration import max_fre_from_settings, read_registration
 
     case = open_case(args.case)
+    _out_folder(args.out)
+    if case.navigation is None and case.board is None:
+        raise EMRegError(f"{case.folder}: nothing to evaluate: no navigation recording (navigation.csv) and no "
+                         "board recording (board.csv) in the case folder")
+    if case.navigation is not None and case.targets is None and case.board is None:
+        raise EMRegError(f"{case.folder}: nothing to evaluate: a navigation recording but no targets.mrk.json "
+                         "(and no board.csv)")
     if args.settings:
         case.settings = _settings(args)
     controller = _controller(args, case.settings)
-    controller.set_registration(read_registration(args.registration))
+    controller.set_registration(read_registration(args.registration, max_fre_from_settings(case.settings)))
     result = controller.evaluate(case.read_recording("navigation"), case.read_targets(), case.read_recording("board"))
     write_evaluation(result, Path(args.out) / "evaluation.json")
+    _warn("evaluate", result.warnings)
     print(f"evaluation -> {Path(args.out) / 'evaluation.json'}")
     return 0
 
@@ -212,6 +263,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         return 0
     if not args.out:
         raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
+    _out_folder(args.out, create=False)  # the run's folder: the report is written into it
     case = Path(args.case) if args.case else None
     path = write_report(Path(args.out), case_dir=case, progress=_progress(args))
     print(f"report -> {path}")
@@ -219,6 +271,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    _out_folder(args.out)
     summary = run_case(Path(args.case), Path(args.out), _progress(args), reference_sensor=args.reference_sensor,
                        probe_sensor=args.probe_sensor, settings_path=args.settings, series=args.series)
     for line in summary:
@@ -230,7 +283,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     _need_stage("simulation", "the case simulator")
     from .simulation import simulate_case
 
-    out = Path(args.out)
+    out = _out_folder(args.out)
     case_dir = out / "case"
     progress = _progress(args)
     start = time.perf_counter()
@@ -324,7 +377,9 @@ def run_case(
             from .io.tracking_csv import read_tracking_csv
             from .navigation import write_navigation_csv
 
-            navigation = controller.navigate_recording(read_tracking_csv(case.navigation))
+            navigation_recording = read_tracking_csv(case.navigation)
+            navigation = controller.navigate_recording(navigation_recording)
+            _warn("run", navigation_recording.warnings)
             write_navigation_csv(navigation, out / "navigation.csv")
             summary.append(f"navigate: {len(navigation)} probe samples")
         current = "evaluate"
@@ -473,6 +528,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"emreg {args.command}: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:  # a file-system failure no specific check foresaw: still one line, exit 2
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        print(f"emreg {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 if __name__ == "__main__":

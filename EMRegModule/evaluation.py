@@ -203,6 +203,7 @@ class Evaluation:
 
     tre: TargetEvaluation | None = None
     board: BoardEvaluation | None = None
+    warnings: list[str] = field(default_factory=list)
     extra: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
@@ -212,6 +213,8 @@ class Evaluation:
             document["tre"] = self.tre.to_json()
         if self.board is not None:
             document["board"] = self.board.to_json()
+        if self.warnings:
+            document["warnings"] = list(self.warnings)
         document.update(self.extra)
         return document
 
@@ -223,7 +226,8 @@ class Evaluation:
             board = document.get("board")
             return cls(None if tre is None else TargetEvaluation.from_json(tre),
                        None if board is None else BoardEvaluation.from_json(board),
-                       {k: v for k, v in document.items() if k not in ("tre", "board")})
+                       [str(w) for w in document.get("warnings", [])],
+                       {k: v for k, v in document.items() if k not in ("tre", "board", "warnings")})
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise EMRegError(f"{source}: not an evaluation file ({exc!s:.100})") from None
 
@@ -260,8 +264,10 @@ def evaluate(
         labels, positions = targets
         result.tre = evaluate_targets(navigation, labels, positions, reference_to_image, reference_sensor,
                                       probe_sensor, settings, settings.max_target_distance_mm)
+        result.warnings += navigation.warnings
     if board is not None:
         result.board = evaluate_board(board, reference_sensor, probe_sensor, nominal_edges_mm, settings)
+        result.warnings += board.warnings  # time resets / gaps found in the recordings (kept as segments)
     return result
 
 

@@ -42,11 +42,15 @@ from .io.atomic import atomic_write_json, read_json
 from .io.itk_transform import write_slicer_linear_transform
 from .marker_model import MarkerModel
 from .sensor_offset import solve_sensor_offset
-from .settings import RegistrationSettings
+from .settings import RegistrationSettings, Settings
 from .transforms import apply_transform, is_rigid, predicted_tre, residuals
 
 #: Name of the ITK transform file written beside ``registration.json``.
 TRANSFORM_FILE = "ReferenceToImage.h5"
+
+#: Largest deviation accepted in a stored ``ReferenceToImage``: |R R^T - I| entries, |det R - 1| and the
+#: last row against 0 0 0 1 (files written by EMReg are rigid to 1e-12).
+RIGID_TOLERANCE = 1e-4
 
 #: Median of a chi-squared variable with 3 degrees of freedom (robust RMS of 3D residuals).
 _CHI2_3_MEDIAN = 2.3660
@@ -114,8 +118,14 @@ class RegistrationResult:
     def from_json(cls, document: Mapping[str, Any], source: str = "registration") -> RegistrationResult:
         try:
             matrix = np.asarray(document["ReferenceToImage"], dtype=float)
-            if matrix.shape != (4, 4) or not is_rigid(matrix, 1e-4):
-                raise EMRegError(f"{source}: ReferenceToImage must be a rigid 4x4 matrix")
+            if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
+                raise EMRegError(f"{source}: ReferenceToImage must be a 4x4 matrix of finite numbers")
+            if not is_rigid(matrix, RIGID_TOLERANCE):
+                raise EMRegError(f"{source}: ReferenceToImage is not rigid (rotation not orthonormal with "
+                                 f"determinant +1, or last row not 0 0 0 1, within {RIGID_TOLERANCE:g})")
+            for key in ("sensor_offset_l_mm", "fre_mm"):
+                if not np.isfinite(float(document[key])):
+                    raise EMRegError(f"{source}: {key} is not a finite number")
             curve = document.get("fre_curve") or {}
             targets = document.get("targets_image")
             tre = document.get("predicted_tre_mm")
@@ -200,6 +210,10 @@ def register(
     points = frame_calibration.positions
     directions = frame_calibration.directions
     if config.sensor_offset_l_mm is not None:
+        if not model.pinhole_bottom_mm <= config.sensor_offset_l_mm <= model.pinhole_top_mm:
+            raise EMRegError(f"case.toml [registration] sensor_offset_l_mm = {config.sensor_offset_l_mm:g} lies "
+                             f"outside the marker's pinhole {model.pinhole_bottom_mm:g}..{model.pinhole_top_mm:g} mm: "
+                             "the probe sensor cannot sit there")
         l_range = (config.sensor_offset_l_mm, config.sensor_offset_l_mm)
     else:
         l_range = (model.pinhole_bottom_mm, model.pinhole_top_mm)
@@ -238,9 +252,7 @@ def register(
             f"([registration] max_fre_mm); check the calibration recording and the detected markers"
         )
     fixed = config.sensor_offset_l_mm is not None
-    if fixed and not model.pinhole_bottom_mm <= config.sensor_offset_l_mm <= model.pinhole_top_mm:
-        warnings.append(f"the given sensor offset l = {config.sensor_offset_l_mm:g} mm lies outside the pinhole "
-                        f"[{model.pinhole_bottom_mm:g}, {model.pinhole_top_mm:g}] mm")
+
     if not fixed:
         a, b = l_range
         if solution.l_std_mm > config.max_l_std_mm:
@@ -318,9 +330,26 @@ def write_registration(result: RegistrationResult, out_dir: str | os.PathLike[st
     atomic_write_json(out / "registration.json", result.to_json())
 
 
-def read_registration(path: str | os.PathLike[str]) -> RegistrationResult:
-    """Read ``registration.json`` (a folder holding one is accepted too)."""
+def read_registration(path: str | os.PathLike[str], max_fre_mm: float | None = None) -> RegistrationResult:
+    """Read ``registration.json`` (a folder holding one is accepted too) and check it can be trusted.
+
+    Every consumer (navigate, evaluate, report, live navigation, the Slicer Logic) reads through
+    here: the numbers must be finite, ``ReferenceToImage`` rigid within :data:`RIGID_TOLERANCE`,
+    and ``fre_mm`` at most ``max_fre_mm`` (default: the ``[registration] max_fre_mm`` default,
+    2 mm). A malformed file raises :class:`EMRegError` (exit 2); an FRE above the limit raises
+    :class:`NoSafeAnswerError` (exit 3), as ``emreg register`` does.
+    """
     path = Path(path)
     if path.is_dir():
         path = path / "registration.json"
-    return RegistrationResult.from_json(read_json(path, "registration JSON"), str(path))
+    result = RegistrationResult.from_json(read_json(path, "registration JSON"), str(path))
+    limit = RegistrationSettings().max_fre_mm if max_fre_mm is None else float(max_fre_mm)
+    if result.fre_mm > limit:
+        raise NoSafeAnswerError(f"{path}: registration FRE {result.fre_mm:.2f} mm is above the limit of {limit:g} mm "
+                                "([registration] max_fre_mm): not used")
+    return result
+
+
+def max_fre_from_settings(settings: Settings | None) -> float:
+    """The FRE limit (mm) of the settings (``[registration] max_fre_mm``; the default without settings)."""
+    return (settings or Settings()).registration.max_fre_mm

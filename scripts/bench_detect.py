@@ -41,7 +41,13 @@ from scipy import ndimage, special
 
 ROOT = Path(__file__).resolve().parents[1]
 PYTHON = sys.executable
+sys.path.insert(0, str(ROOT / "Testing" / "Python"))
 
+from fixtures.phantom import marker_object  # noqa: E402
+
+from EMRegModule.marker_model import MarkerModel  # noqa: E402
+from EMRegModule.simulation.ct import Grid, Layer, paint_layers  # noqa: E402
+from EMRegModule.simulation.shapes import CylinderY, Difference, Posed  # noqa: E402
 
 # --- running a measured child process -----------------------------------------------------------
 
@@ -78,9 +84,6 @@ def large_case(folder: Path, spacing: float, seed: int, size_mm=(360.0, 360.0, 2
     """A large CT written slab by slab (see module docstring), with ``truth.json`` of its markers."""
     if (folder / "truth.json").is_file():
         return folder
-    from EMRegModule.detection.phantom import marker_object
-    from EMRegModule.marker_model import MarkerModel
-
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     model = MarkerModel()
@@ -178,30 +181,19 @@ def _marker_patch(model, obj, spacing: float, sigma: float, contrast_bottom: flo
     The bottom cylinder displaces plastic (it fills its slot), the top cylinder air; both
     contributions are linear, so blurring them separately is the blurred composite.
     """
-    from EMRegModule.detection.phantom import sampled_occupancy
-    from EMRegModule.transforms import invert_rigid
-
     half = 16.0
     centre = obj.object_to_image[:3, 3] + obj.object_to_image[:3, 1] * model.height_mm / 2
     lo_index = np.floor((centre - half) / spacing).astype(int)
     n = int(np.ceil(2 * half / spacing))
-    ii, jj, kk = (np.arange(a, a + n) for a in lo_index)
-    index_to_marker = invert_rigid(obj.object_to_image) @ np.diag([spacing, spacing, spacing, 1.0])
-    h_b, r_b, r_t = model.bottom_height_mm, model.bottom_diameter_mm / 2, model.top_diameter_mm / 2
-    r_hole, hole_y = model.pinhole_diameter_mm / 2, model.pinhole_bottom_mm
-
-    def bottom(p: np.ndarray) -> np.ndarray:
-        return (p[..., 1] >= 0) & (p[..., 1] <= h_b) & (p[..., 0] ** 2 + p[..., 2] ** 2 <= r_b**2)
-
-    def top(p: np.ndarray) -> np.ndarray:
-        radial2 = p[..., 0] ** 2 + p[..., 2] ** 2
-        hole = (p[..., 1] > hole_y) & (radial2 < r_hole**2)
-        return (p[..., 1] > h_b) & (p[..., 1] <= model.height_mm) & (radial2 <= r_t**2) & ~hole
-
+    grid = Grid((n, n, n), np.full(3, spacing), lo_index * spacing, np.eye(3))
+    h_b, height = model.bottom_height_mm, model.height_mm
+    bottom = CylinderY(model.bottom_diameter_mm / 2, 0.0, h_b)
+    top = Difference(CylinderY(model.top_diameter_mm / 2, h_b, height),
+                     [CylinderY(model.pinhole_diameter_mm / 2, model.pinhole_bottom_mm, height + 1.0)])
     patch = np.zeros((n, n, n), dtype=np.float32)  # indexed (k, j, i)
-    for inside, contrast in ((bottom, contrast_bottom), (top, contrast_top)):
-        obj.inside = inside
-        occupancy = sampled_occupancy(obj, index_to_marker, ii, jj, kk, 5)
+    for solid, contrast in ((bottom, contrast_bottom), (top, contrast_top)):
+        occupancy = np.zeros((n, n, n), dtype=np.float32)  # painting 1 over 0 leaves the fill fraction
+        paint_layers(occupancy, grid, np.eye(4), [Layer("marker part", Posed(solid, obj.object_to_image), 1.0, 5)])
         patch += contrast * ndimage.gaussian_filter(occupancy, sigma / spacing)
     return lo_index, patch
 

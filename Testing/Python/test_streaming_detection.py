@@ -12,11 +12,11 @@ import gzip
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from fixtures import phantom as ph
 
 from EMRegModule.controller import EMRegController
 from EMRegModule.detection import detect as detect_module
 from EMRegModule.detection import detect_markers
-from EMRegModule.detection import phantom as ph
 from EMRegModule.detection.segmentation import CoarseScan
 from EMRegModule.detection.settings import DetectionSettings, settings_from_dict
 from EMRegModule.errors import EMRegError
