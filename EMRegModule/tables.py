@@ -40,7 +40,7 @@ _RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "positive": (lambda v: v > 0, "must be a positive number"),
     "non_negative": (lambda v: v >= 0, "must not be negative"),
     "fraction": (lambda v: 0 < v <= 1, "must lie in (0, 1]"),
-    "port": (lambda v: 1 <= v <= 4, "must be a port number (1..4)"),
+    "port": (lambda v: 1 <= v <= 255, "must be a port number (1 or more: 1..4 on a trakSTAR)"),
 }
 
 
@@ -60,7 +60,8 @@ def fraction(default: Any) -> Any:
 
 
 def port(default: int) -> Any:
-    """A tracker port number (1..4)."""
+    """A tracker port number (1..4 on a trakSTAR, more on an Aurora; whether the recording holds it is
+    checked where the recording is read)."""
     return field(default=default, metadata={"range": "port"})
 
 

@@ -226,7 +226,7 @@ def test_case_folder_discovery_and_settings(tmp_path):
     (tmp_path / "case.toml").write_text("[sensors]\nreference = 'one'\n")
     with pytest.raises(EMRegError, match=r"\[sensors\] reference must be a whole number, got 'one'"):
         open_case(tmp_path)
-    (tmp_path / "case.toml").write_text("[sensors]\nreference = 5\n")
+    (tmp_path / "case.toml").write_text("[sensors]\nreference = 0\n")
     with pytest.raises(EMRegError, match="port number"):
         open_case(tmp_path)
 
