@@ -404,6 +404,27 @@ def test_driver_survives_a_dropped_byte_without_a_wrong_pose(tmp_path):
     assert len(samples) >= 20
 
 
+def test_driver_on_a_noisy_line_starts_and_never_makes_a_wrong_pose(tmp_path):
+    from EMRegModule.live.aurora_simulator import AuroraFaults
+
+    # 0.2 % of the bytes with a flipped bit: about one reply in six is damaged, start-up replies included
+    with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof"), link=tmp_path / "aurora", seed=11,
+                         faults=AuroraFaults(flip=0.002)) as sim:
+        driver = AuroraDriver(str(tmp_path / "aurora")).open()
+        samples = []
+        try:
+            driver.start(samples.append)
+            _wait(lambda: driver.stats.frames >= 80)
+        finally:
+            driver.close()
+    assert driver.stats.crc_errors + driver.stats.timeouts >= 5
+    assert len(samples) >= 160
+    for s in samples:
+        q, p = sim.truth_for_frame(s.sensor, s.frame)
+        assert np.array_equal(np.float32(s.position_mm), np.float32(p))
+        assert _same_quaternion(s.extra["quaternion"], np.float32(q), 1e-7)
+
+
 def test_driver_names_the_port_of_a_tool_without_srom(tmp_path):
     with AuroraSimulator(tools=parse_tools("1:6dof,3:nosrom"), link=tmp_path / "aurora"):
         with pytest.raises(EMRegError, match=r"port 3 .*no SROM"):
