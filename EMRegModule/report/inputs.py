@@ -81,20 +81,21 @@ def has_report_inputs(folder: str | os.PathLike[str]) -> bool:
 
 def read_navigation_csv(path: Path) -> tuple[np.ndarray, list[str]]:
     """Probe positions (N, 3, image LPS mm) and labels of an ``OUT/navigation.csv``."""
-    positions: list[list[float]] = []
-    labels: list[str] = []
+    with path.open(newline="", encoding="utf-8") as f:
+        reader = csv.reader(f)
+        header = [name.strip() for name in next(reader, [])]
+        missing = {"x_mm", "y_mm", "z_mm"} - set(header)
+        if missing:
+            raise EMRegError(f"{path}: navigation CSV lacks column(s) {', '.join(sorted(missing))}")
+        rows = [row for row in reader if row]
+    columns = [header.index(name) for name in ("x_mm", "y_mm", "z_mm")]
+    label = header.index("label") if "label" in header else None
     try:
-        with path.open(newline="", encoding="utf-8") as f:
-            reader = csv.DictReader(f)
-            missing = {"x_mm", "y_mm", "z_mm"} - set(reader.fieldnames or [])
-            if missing:
-                raise EMRegError(f"{path}: navigation CSV lacks column(s) {', '.join(sorted(missing))}")
-            for row in reader:
-                positions.append([float(row["x_mm"]), float(row["y_mm"]), float(row["z_mm"])])
-                labels.append((row.get("label") or "").strip())
-    except (ValueError, TypeError):
+        positions = np.array([[row[i] for i in columns] for row in rows], dtype=float).reshape(-1, 3)
+    except (ValueError, IndexError):
         raise EMRegError(f"{path}: navigation CSV holds a non-numeric position") from None
-    return np.asarray(positions, dtype=float).reshape(-1, 3), labels
+    labels = [row[label].strip() if label is not None and label < len(row) else "" for row in rows]
+    return positions, labels
 
 
 def _read_optional(path: Path, read: Callable[[Path], Any], notes: list[str]) -> Any:
