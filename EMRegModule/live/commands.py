@@ -280,11 +280,10 @@ def run_record(args: argparse.Namespace) -> int:
             if guard is not None:
                 admitted = guard.admit(sample)
                 state = guard.state()
-                if state.ok == paused[0]:  # the link went bad or came back
-                    paused[0] = not state.ok
-                    if state.judged >= guard.monitor.min_records:
-                        _say(args, f"[emreg] record: {'not recording' if paused[0] else 'recording again'}: "
-                                   f"{state.message}")
+                alarm = guard.monitor.alarm
+                if alarm != paused[0]:  # the link went bad or came back
+                    paused[0] = alarm
+                    _say(args, f"[emreg] record: {'not recording' if alarm else 'recording again'}: {state.message}")
                 if not (admitted and state.ok):
                     return
             if writer.write_sample(sample):
@@ -455,7 +454,7 @@ def _reconnect(args: argparse.Namespace, reference: int, probe: int, stop: _Stop
         attempts += 1
         try:
             source = open_source(args.source, reference, probe, fast=args.fast, loop=args.loop)
-        except EMRegError:
+        except Exception:  # noqa: BLE001 - any failure to open or configure it: not back yet
             continue
         _say(args, f"[emreg] tracker back after {attempts} attempt(s): {source.description}")
         return source

@@ -10,7 +10,9 @@ a stalled client would stall the tracker loop. This server keeps pyigtl for the 
   socket becomes writable;
 - a queued message older than ``STALE_AFTER_S`` is replaced by a newer one of the same type and device
   name (a newer TRANSFORM ``ProbeToImage`` supersedes it), so a client that stops reading gets the
-  latest pose when it reads again, not a backlog (apart from what its own socket buffers already hold).
+  latest pose when it reads again, not a backlog - once the kernel's socket buffers are full. What those
+  buffers took before (the client's receive buffer grows by autotuning; ``send_buffer_bytes`` bounds the
+  server's side) still arrives first: only the client can shed that (read everything, keep the newest).
   Beyond that, a client whose queue exceeds ``max_pending_bytes``
   loses its oldest whole queued messages - it is never allowed to block anyone;
 - clients that disconnect are dropped; what they send is read and ignored;
@@ -59,9 +61,14 @@ class _Client:
 class IGTLServer:
     """OpenIGTLink TCP server: ``send(message)`` to every connected client."""
 
-    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, max_pending_bytes: int = 1 << 20) -> None:
+    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, max_pending_bytes: int = 1 << 20,
+                 stale_after_s: float | None = None, send_buffer_bytes: int | None = None) -> None:
         self.host = host
         self.max_pending_bytes = max_pending_bytes
+        #: queued messages older than this are superseded by newer ones of the same type and device name
+        self.stale_after_s = STALE_AFTER_S if stale_after_s is None else stale_after_s
+        #: the kernel send buffer of each client socket (None: the system's, autotuned)
+        self.send_buffer_bytes = send_buffer_bytes
         self._listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
@@ -173,15 +180,16 @@ class IGTLServer:
             client.partial = n > 0
             return True
         now = time.monotonic()
-        if key and client.times and client.times[0] < now - STALE_AFTER_S:  # the client is behind: latest only
+        stale = now - self.stale_after_s
+        if key and client.times and client.times[0] < stale:  # the client is behind: latest only
             start = 1 if client.partial else 0
             for index in range(len(client.keys) - 1, start - 1, -1):
-                if client.keys[index] == key and client.times[index] < now - STALE_AFTER_S:
-                    stale = client.pending[index]
+                if client.keys[index] == key and client.times[index] < stale:
+                    superseded = client.pending[index]
                     del client.pending[index]
                     del client.keys[index]
                     del client.times[index]
-                    client.pending_bytes -= len(stale)
+                    client.pending_bytes -= len(superseded)
                     client.dropped_messages += 1
         client.pending.append(data)
         client.keys.append(key)
@@ -278,6 +286,9 @@ class IGTLServer:
             sock.setblocking(False)
             with contextlib.suppress(OSError):
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            if self.send_buffer_bytes:
+                with contextlib.suppress(OSError):
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.send_buffer_bytes)
             client = _Client(sock, address)
             with self._lock:
                 self._clients.append(client)
