@@ -38,6 +38,13 @@ def summary_section(data: ReportData, figures: dict[str, Figure]) -> str:
         rows.append(("CT", f"{' x '.join(str(s) for s in geometry['size'])} voxels of "
                            f"{' x '.join(f'{s:.3g}' for s in geometry['spacing'])} mm"
                            + (f" ({esc(inputs.ct_path.name)})" if inputs.ct_path is not None else "")))
+    series = inputs.detection.ct_series if inputs.detection is not None else None
+    if series:
+        others = series.get("others") or []
+        rows.append(("CT series", esc(f"{series.get('series_number')} '{series.get('description', '')}' "
+                                      f"({series.get('series_instance_uid')}), {series.get('slices')} slices "
+                                      f"{series.get('slice_spacing_mm')} mm apart; {len(others)} other series "
+                                      f"not used")))
     if inputs.detection is not None:
         rows.append(("markers detected", f"{len(data.rows)} ({len(inputs.detection.rejected)} candidates rejected)"))
     if inputs.frame_calibration is not None:
@@ -184,7 +191,7 @@ def board_section(data: ReportData, figures: dict[str, Figure]) -> str:
     if not board or not board.get("edges"):
         return "<h2>Board phantom</h2>\n" + note(
             "Not shown: no board table in evaluation.json (needs board.csv in the case).")
-    nominal = list(data.inputs.section("board").get("edges_mm") or [])
+    nominal = list(data.inputs.settings.board.edges_mm or [])
     rows = [_board_row(i, name, edge, nominal) for i, (name, edge) in enumerate(board["edges"].items())]
     return "\n".join([
         "<h2>Board phantom</h2>",

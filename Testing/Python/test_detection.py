@@ -1,4 +1,4 @@
-"""Marker detection on small synthetic scenes (EMRegModule.detection.phantom): accuracy, rejections, I/O, memory.
+"""Marker detection on small synthetic scenes (Testing/Python/fixtures/phantom.py): accuracy, rejections, I/O, memory.
 
 The scenes are painted with sub-voxel partial volume, blurred and noised, with markers
 standing on a POM plate (plastic below, air around), lying on their side on it, and tilted
@@ -14,6 +14,7 @@ import tracemalloc
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from fixtures import phantom as ph
 
 from EMRegModule.detection import (
     DetectionResult,
@@ -22,7 +23,6 @@ from EMRegModule.detection import (
     settings_from_dict,
     write_detection,
 )
-from EMRegModule.detection import phantom as ph
 from EMRegModule.detection.pose import edge_samples, fit_pose, surface_distances
 from EMRegModule.errors import EMRegError, NoSafeAnswerError
 from EMRegModule.io.markups import read_markups
@@ -183,7 +183,7 @@ def test_empty_ct_has_no_safe_answer():
     image = ph.render(geometry, [plate], noise_hu=20.0)
     with pytest.raises(NoSafeAnswerError, match="0 marker"):
         detect_markers(image, MarkerModel())
-    assert detect_markers(image, MarkerModel(), {"min_markers": 0}).markers == []
+    assert detect_markers(image, MarkerModel(), settings_from_dict({"min_markers": 0}, MarkerModel())).markers == []
 
 
 def test_settings_are_checked_and_overridable():
@@ -201,7 +201,8 @@ def test_settings_are_checked_and_overridable():
 
 def test_a_band_that_misses_the_markers_finds_nothing(standard_scene):
     with pytest.raises(NoSafeAnswerError, match="high_hu 900"):
-        detect_markers(standard_scene.image, standard_scene.model, {"high_hu": 900})
+        detect_markers(standard_scene.image, standard_scene.model,
+                       settings_from_dict({"high_hu": 900}, standard_scene.model))
 
 
 def test_files_round_trip(tmp_path, standard_scene, standard_result):
