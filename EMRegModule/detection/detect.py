@@ -42,25 +42,25 @@ from .measure import measure_blob, metal_distance_mm
 from .pose import fit_pose, model_moments
 from .result import DetectedMarker, DetectionResult, RejectedCandidate
 from .segmentation import Blob, CoarseScan, Region, TooLarge, blobs_in_region, region_around, with_fragments
-from .settings import DetectionSettings, settings_from_dict
+from .settings import DetectionSettings, default_settings
 
 _Outcome = tuple[np.ndarray, DetectedMarker | RejectedCandidate]
 """A blob's centroid (LPS mm) and what became of it."""
 
 
-def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings: dict | None = None,
+def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings: DetectionSettings | None = None,
                    progress: Progress | None = None,
                    wait_for_slices: Callable[[int], None] | None = None) -> DetectionResult:
     """Markers in ``image`` (a scalar 3D CT in HU): origins (bottom-face centres) and +Y axes, LPS mm.
 
-    ``settings`` is the ``[detection]`` table of ``case.toml`` (unknown keys are an error).
+    ``settings`` is the ``[detection]`` table (None: the defaults for ``model``).
     ``wait_for_slices(n)``, when given, blocks until slices ``0 .. n-1`` (numpy axis 0) of an
     image still being read hold their values (:class:`~EMRegModule.io.fast_read.VolumeFill`):
     detection then works on the slices already read while the rest arrives, with the same result.
     Raises :class:`NoSafeAnswerError` (exit 3) when fewer than ``min_markers`` markers are found.
     """
     model = model or MarkerModel()
-    options = settings_from_dict(settings, model)
+    options = settings or default_settings(model)
     progress = progress or QUIET
     check_ct(image)
     volume = sitk.GetArrayViewFromImage(image)
@@ -125,7 +125,8 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
         return outcomes, too_large
 
     outcomes, too_large = one_pass(options, wait_for_slices)
-    explicit = bool({"low_hu", "high_hu"} & set(settings or {}))
+    defaults = DetectionSettings()
+    explicit = not options.estimate_band or (options.low_hu, options.high_hu) != (defaults.low_hu, defaults.high_hu)
     band = {"low_hu": options.low_hu, "high_hu": options.high_hu,
             "source": "case.toml [detection]" if explicit else "default"}
     estimate = _marker_hu_estimate(outcomes, model, options)
