@@ -183,7 +183,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     controller = _controller(args, case.settings)
     controller.set_registration(read_registration(args.registration))
     result = evaluate_case(case, controller.reference_to_image, controller.reference_sensor,
-                           controller.probe_sensor)
+                           controller.probe_sensor, controller.error_model)
     write_evaluation(result, Path(args.out) / "evaluation.json")
     print(f"evaluation -> {Path(args.out) / 'evaluation.json'}")
     return 0
@@ -320,7 +320,7 @@ def run_case(
             from .evaluation import evaluate_case, write_evaluation
 
             evaluation = evaluate_case(case, controller.reference_to_image, controller.reference_sensor,
-                                       controller.probe_sensor)
+                                       controller.probe_sensor, controller.error_model)
             write_evaluation(evaluation, out / "evaluation.json")
             if "tre" in evaluation:
                 summary.append(f"evaluate: TRE {evaluation['tre']['mean_mm']:.2f} "

@@ -31,6 +31,7 @@ if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only wh
 
     from .calibration import FrameCalibration
     from .detection import DetectionResult
+    from .error_model import ErrorModel
     from .navigation import NavigationResult
     from .registration import RegistrationResult
     from .tracking import TrackingRecording
@@ -253,6 +254,18 @@ class EMRegController:
         """The current ``ReferenceToImage`` (4x4, mm); a :class:`WorkflowError` before registration."""
         self._require(registration=self.registration)
         return self.registration.reference_to_image
+
+    @property
+    def error_model(self) -> ErrorModel | None:
+        """The end-to-end error model of the current registration (``[evaluation]`` priors), or None."""
+        if self.registration is None or self.registration.error is None:
+            return None
+        from .error_model import ErrorModel
+
+        section = self.settings.get("evaluation", {})
+        return ErrorModel.with_priors(self.registration.reference_to_image, self.registration.error,
+                                      section.get("reference_error_mm"), section.get("reference_error_deg"),
+                                      section.get("placement_error_mm", 0.0))
 
     def describe(self) -> str:
         """A one-line summary of the state for logs and the Slicer module's status label."""

@@ -12,9 +12,9 @@ space (CT LPS, mm), is modelled as the sum of independent, zero-mean, first-orde
    isotropic formula is the special case of equal isotropic errors and fixed l.
 2. **Tracking at the target.** The probe's error at navigation time: the tracker's per-dwell error
    of the same probe on the same tracker, which the calibration residuals reveal (estimated from
-   the exact expected residual sum of squares of the fit, :func:`estimate_isotropic_fle`), plus,
-   when a navigation recording is evaluated, the error of each dwell's mean from its own samples
-   (hand tremor and jitter; measured, with the samples' autocorrelation).
+   the exact expected residual sum of squares of the fit, :func:`estimate_isotropic_fle`); when a
+   navigation recording with repeated dwells at the targets is evaluated, measured directly from
+   their scatter (:func:`repeated_dwell_ms`: tracker, hand tremor and jitter at navigation time).
 3. **Reference sensor.** The reference sensor's own 6-DOF pose error: once during calibration
    (common to every calibration point, so the fit absorbs it and the whole registration moves with
    it; it never shows in the FRE) and once more during navigation. At a point with lever arm ``x``
@@ -162,29 +162,22 @@ def pose_error_covariance(lever_arms_mm: np.ndarray, position_sigma_mm: float,
     return position_sigma_mm**2 * np.eye(3) + rotation_sigma_rad**2 * cross @ np.swapaxes(cross, -1, -2)
 
 
-def dwell_mean_variance(samples_mm: np.ndarray) -> float:
-    """Mean-square 3D error (mm^2) of the mean of one dwell's samples (S, 3), autocorrelation included.
+def repeated_dwell_ms(dwell_means_by_target: dict[str, np.ndarray]) -> tuple[float, int] | None:
+    """Mean-square 3D error (mm^2) of one dwell, measured from repeated dwells at the same targets.
 
-    Trackers filter their output and hands tremble slowly, so consecutive samples are correlated:
-    the samples are taken as an AR(1) series whose lag-1 correlation is estimated (with the usual
-    first-order bias correction ``(1 + 3 rho) / S``) and the exact finite-length variance of the mean
-    of such a series is used. When the correlation time approaches the dwell's length the mean's
-    error cannot be assessed from the dwell itself and this underestimates it (by half at a
-    correlation time of a third of the dwell).
+    ``dwell_means_by_target``: per target the (n, 3) means of its dwells (image space, mm). The
+    scatter of a target's dwells about their own mean is the probe's per-dwell error at navigation
+    time (tracker, tremor, jitter), whatever the registration's error (common to them); pooled
+    over targets with ``n - 1`` degrees of freedom each. Returns (mean square, dwells' degrees of
+    freedom), or None when no target was visited twice.
     """
-    samples = np.asarray(samples_mm, dtype=float).reshape(-1, 3)
-    n = len(samples)
-    if n < 2:
-        return float("inf")
-    centred = samples - samples.mean(axis=0)
-    total = float(np.sum(centred**2))
-    if total == 0.0:
-        return 0.0
-    rho = float(np.sum(centred[1:] * centred[:-1])) / total
-    rho = min(max(rho + (1 + 3 * rho) / n, 0.0), 0.999)
-    lags = np.arange(1, n)
-    factor = (1 + 2 * float(np.sum((1 - lags / n) * rho**lags))) / n
-    return total / (n - 1) * min(factor, 1.0)
+    squares, dof = 0.0, 0
+    for means in dwell_means_by_target.values():
+        means = np.asarray(means, dtype=float).reshape(-1, 3)
+        if len(means) > 1:
+            squares += float(np.sum((means - means.mean(axis=0)) ** 2))
+            dof += len(means) - 1
+    return (squares / dof, dof) if dof else None
 
 
 @dataclass(frozen=True)
@@ -207,59 +200,97 @@ class ErrorBudget:
 
 
 @dataclass(frozen=True)
-class ErrorModel:
-    """Everything needed to predict the end-to-end TRE at any image point (see the module docstring).
+class RegistrationError:
+    """What a registration knows of its own error: the fit's covariance and the probe's per-dwell error.
 
-    ``reference_to_image``: the registration (Reference -> CT LPS, mm); ``registration``: its
-    covariance; ``probe_sigma_mm``: the probe's per-axis per-dwell tracker error (mm);
-    ``reference_position_sigma_mm`` / ``reference_rotation_sigma_rad``: the reference sensor's
-    per-axis pose error; ``placement_rms_mm``: 3D RMS placement error of the probe on a target.
+    ``covariance``: first-order covariance of the fitted ``ReferenceToImage`` (and l);
+    ``probe_sigma_mm``: per-axis localisation error of one calibration dwell that the residuals
+    reveal (mm). Stored in ``registration.json`` under ``error_model``.
     """
 
-    reference_to_image: np.ndarray
-    registration: RegistrationCovariance
+    covariance: RegistrationCovariance
     probe_sigma_mm: float
-    reference_position_sigma_mm: float
-    reference_rotation_sigma_rad: float
-    placement_rms_mm: float = 0.0
 
-    def budget(self, points_image: np.ndarray, dwell_mean_ms: float | np.ndarray = 0.0) -> ErrorBudget:
-        """The error budget at image points (K, 3) (LPS, mm); ``dwell_mean_ms``: measured dwell-mean error (mm^2)."""
-        points = np.asarray(points_image, dtype=float).reshape(-1, 3)
-        registration = np.trace(self.registration.at(points), axis1=-2, axis2=-1)
-        lever_arms = apply_transform(invert_rigid(self.reference_to_image), points)
-        reference_one_pose = np.trace(pose_error_covariance(
-            lever_arms, self.reference_position_sigma_mm, self.reference_rotation_sigma_rad), axis1=-2, axis2=-1)
-        tracking = np.full(len(points), 3 * self.probe_sigma_mm**2) + np.asarray(dwell_mean_ms, dtype=float)
-        return ErrorBudget(registration_ms=registration, tracking_ms=tracking,
-                           reference_ms=2 * reference_one_pose,
-                           placement_ms=np.full(len(points), self.placement_rms_mm**2))
+    def to_json(self) -> dict:
+        def number(value: float) -> float | None:
+            return float(value) if np.isfinite(value) else None
+
+        return {"parameter_covariance": [[number(v) for v in row] for row in self.covariance.parameters],
+                "parameters": "rotation about centre_image (rad, 3), translation (mm, 3)"
+                              + (", l (mm)" if len(self.covariance.parameters) > 6 else ""),
+                "centre_image": [float(v) for v in self.covariance.centre_image],
+                "probe_sigma_mm": number(self.probe_sigma_mm)}
+
+    @classmethod
+    def from_json(cls, document: dict) -> RegistrationError:
+        """Inverse of :meth:`to_json` (null entries are infinite: an undetermined configuration)."""
+        parameters = np.array([[np.inf if v is None else float(v) for v in row]
+                               for row in document["parameter_covariance"]], dtype=float)
+        if parameters.ndim != 2 or parameters.shape[0] != parameters.shape[1] or parameters.shape[0] not in (6, 7):
+            raise ValueError("parameter_covariance must be a 6x6 or 7x7 matrix")
+        sigma = document.get("probe_sigma_mm")
+        return cls(RegistrationCovariance(parameters, np.asarray(document["centre_image"], dtype=float).reshape(3)),
+                   float("inf") if sigma is None else float(sigma))
 
 
-def build_error_model(reference_to_image: np.ndarray, points_reference: np.ndarray, origins_image: np.ndarray,
-                      axes_image: np.ndarray, l_mm: float, l_solved: bool, residuals_mm: np.ndarray,
-                      image_sigma_mm: np.ndarray | None = None, reference_error_mm: float | None = None,
-                      reference_error_deg: float | None = None, placement_error_mm: float = 0.0) -> ErrorModel:
-    """An :class:`ErrorModel` from a registration's paired points (those used in the fit).
+def registration_error(points_reference: np.ndarray, origins_image: np.ndarray, axes_image: np.ndarray,
+                       l_mm: float, l_solved: bool, residuals_mm: np.ndarray,
+                       image_sigma_mm: np.ndarray | None = None) -> RegistrationError:
+    """The :class:`RegistrationError` of a fit from the paired points it used.
 
     ``points_reference`` (N, 3): calibration points (Reference, mm); ``origins_image`` and
     ``axes_image`` (N, 3): their markers (CT LPS); ``residuals_mm`` (N,): the fit's residuals;
     ``image_sigma_mm`` (N,): per-axis localisation sigma of each marker point in the CT when known
     (it is then kept out of the probe's error, which is the rest of what the residuals show).
-    ``reference_error_mm`` / ``reference_error_deg``: the reference sensor's per-axis pose error;
-    None takes a quarter of the probe's per-dwell error and the rotation that moves a point 100 mm
-    away by as much (a larger 6-DOF sensor, resting; an assumption, see the module docstring).
     """
     fiducials = np.asarray(origins_image, dtype=float) + l_mm * np.asarray(axes_image, dtype=float)
     axes = np.asarray(axes_image, dtype=float) if l_solved else None
     n = len(fiducials)
     image_var = np.zeros(n) if image_sigma_mm is None else np.square(np.asarray(image_sigma_mm, dtype=float))
-    known = image_var[:, None, None] * np.eye(3)
-    probe_sigma = estimate_isotropic_fle(residuals_mm, fiducials, axes, known)
+    probe_sigma = estimate_isotropic_fle(residuals_mm, fiducials, axes, image_var[:, None, None] * np.eye(3))
     covariances = (probe_sigma**2 + image_var)[:, None, None] * np.eye(3)
-    registration = registration_covariance(fiducials, covariances, axes)
-    if reference_error_mm is None:
-        reference_error_mm = 0.25 * probe_sigma
-    rotation_rad = np.radians(reference_error_deg) if reference_error_deg is not None else reference_error_mm / 100.0
-    return ErrorModel(np.asarray(reference_to_image, dtype=float), registration, probe_sigma,
-                      float(reference_error_mm), float(rotation_rad), float(placement_error_mm))
+    return RegistrationError(registration_covariance(fiducials, covariances, axes), probe_sigma)
+
+
+@dataclass(frozen=True)
+class ErrorModel:
+    """Everything needed to predict the end-to-end TRE at any image point (see the module docstring).
+
+    ``reference_to_image``: the registration (Reference -> CT LPS, mm); ``registration``: its own
+    error; ``reference_position_sigma_mm`` / ``reference_rotation_sigma_rad``: the reference
+    sensor's per-axis pose error; ``placement_rms_mm``: 3D RMS placement error of the probe on a target.
+    """
+
+    reference_to_image: np.ndarray
+    registration: RegistrationError
+    reference_position_sigma_mm: float
+    reference_rotation_sigma_rad: float
+    placement_rms_mm: float = 0.0
+
+    @classmethod
+    def with_priors(cls, reference_to_image: np.ndarray, registration: RegistrationError,
+                    reference_error_mm: float | None = None, reference_error_deg: float | None = None,
+                    placement_error_mm: float = 0.0) -> ErrorModel:
+        """The model with the reference sensor's pose error given, or by default a quarter of the probe's
+        per-dwell error and the rotation that moves a point 100 mm away by as much (a larger 6-DOF
+        sensor at rest; an assumption, see the module docstring)."""
+        position = 0.25 * registration.probe_sigma_mm if reference_error_mm is None else float(reference_error_mm)
+        rotation = position / 100.0 if reference_error_deg is None else float(np.radians(reference_error_deg))
+        return cls(np.asarray(reference_to_image, dtype=float), registration, position, rotation,
+                   float(placement_error_mm))
+
+    def budget(self, points_image: np.ndarray, tracking_ms: float | None = None) -> ErrorBudget:
+        """The error budget at image points (K, 3) (LPS, mm).
+
+        ``tracking_ms``: the probe's mean-square 3D error per dwell when measured at navigation time
+        (:func:`repeated_dwell_ms`); otherwise the calibration's per-dwell error is used.
+        """
+        points = np.asarray(points_image, dtype=float).reshape(-1, 3)
+        registration = np.trace(self.registration.covariance.at(points), axis1=-2, axis2=-1)
+        lever_arms = apply_transform(invert_rigid(self.reference_to_image), points)
+        reference_one_pose = np.trace(pose_error_covariance(
+            lever_arms, self.reference_position_sigma_mm, self.reference_rotation_sigma_rad), axis1=-2, axis2=-1)
+        probe_ms = 3 * self.registration.probe_sigma_mm**2 if tracking_ms is None else tracking_ms
+        return ErrorBudget(registration_ms=registration, tracking_ms=np.full(len(points), probe_ms),
+                           reference_ms=2 * reference_one_pose,
+                           placement_ms=np.full(len(points), self.placement_rms_mm**2))

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from .dwell import Dwell, DwellSettings, find_dwells, group_by_place, robust_mean
+from .error_model import ErrorModel, repeated_dwell_ms
 from .errors import EMRegError
 from .io.atomic import atomic_write_json
 from .io.case import Case
@@ -37,7 +38,7 @@ DEFAULT_STILL_RADIUS_MM = 1.0
 
 
 def evaluate_case(case: Case, reference_to_image: np.ndarray, reference_sensor: int = 1,
-                  probe_sensor: int = 2) -> dict[str, Any]:
+                  probe_sensor: int = 2, error_model: ErrorModel | None = None) -> dict[str, Any]:
     """The ``evaluation.json`` content for a case folder: ``tre`` when the case has a navigation
     recording and targets, ``board`` when it has a board recording (see module docstring).
 
@@ -58,7 +59,7 @@ def evaluate_case(case: Case, reference_to_image: np.ndarray, reference_sensor: 
         recording = read_tracking_csv(case.navigation)
         result["tre"] = evaluate_targets(
             recording, labels, positions, reference_to_image, reference_sensor, probe_sensor, dwell_settings,
-            float(section.get("max_target_distance_mm", DEFAULT_MAX_TARGET_DISTANCE_MM)),
+            float(section.get("max_target_distance_mm", DEFAULT_MAX_TARGET_DISTANCE_MM)), error_model,
         )
     if case.board is not None:
         nominal = case.section("board").get("edges_mm")
@@ -84,8 +85,15 @@ def evaluate_targets(
     probe_sensor: int = 2,
     settings: DwellSettings | None = None,
     max_target_distance_mm: float = DEFAULT_MAX_TARGET_DISTANCE_MM,
+    error_model: ErrorModel | None = None,
 ) -> dict[str, Any]:
-    """TRE per target over its dwells and overall (mm). ``targets_image`` (K, 3) LPS mm."""
+    """TRE per target over its dwells and overall (mm). ``targets_image`` (K, 3) LPS mm.
+
+    With ``error_model`` (the registration's), each target and the whole also get the predicted
+    end-to-end RMS TRE beside the measured one, and the error budget per target
+    (:mod:`EMRegModule.error_model`); the tracking term is then measured from the scatter of
+    repeated dwells at the same target when there are any.
+    """
     from .navigation import navigate_recording
 
     targets_image = np.asarray(targets_image, dtype=float).reshape(-1, 3)
@@ -122,9 +130,42 @@ def evaluate_targets(
         raise EMRegError(f"{recording.source}: no probe dwell at any target was found; "
                          "check the navigation recording's labels and the targets file")
     targets = {label: _stats(values) for label, values in per_target.items() if values}
-    return {"mean_mm": round(float(errors.mean()), 4), "std_mm": round(_std(errors), 4), "n": len(errors),
-            "max_mm": round(float(errors.max()), 4), "targets": targets, "dwells": details,
-            "unmatched_dwells": unmatched, "labelled": bool(dwells and dwells[0].label)}
+    result = {"mean_mm": round(float(errors.mean()), 4), "std_mm": round(_std(errors), 4), "n": len(errors),
+              "rms_mm": round(float(np.sqrt(np.mean(errors**2))), 4),
+              "max_mm": round(float(errors.max()), 4), "targets": targets, "dwells": details,
+              "unmatched_dwells": unmatched, "labelled": bool(dwells and dwells[0].label)}
+    if error_model is not None:
+        _add_prediction(result, details, target_labels, targets_image, error_model)
+    return result
+
+
+def _add_prediction(result: dict[str, Any], details: list[dict[str, Any]], target_labels: Sequence[str],
+                    targets_image: np.ndarray, error_model: ErrorModel) -> None:
+    """Predicted RMS TRE (overall and per target) and the per-target error budget, beside the measured RMS."""
+    means: dict[str, list] = {}
+    for dwell in details:
+        means.setdefault(dwell["target"], []).append(dwell["position"])
+    repeated = repeated_dwell_ms(means)
+    budget = error_model.budget(targets_image, None if repeated is None else repeated[0])
+    predicted = budget.rms_mm
+    terms = budget.term_rms_mm()
+    weights = np.zeros(len(target_labels))
+    for k, label in enumerate(target_labels):
+        entry = result["targets"].get(str(label))
+        if entry is None:
+            continue
+        errors = np.array([d["error_mm"] for d in details if d["target"] == str(label)])
+        weights[k] = len(errors)
+        entry["rms_mm"] = round(float(np.sqrt(np.mean(errors**2))), 4)
+        entry["predicted_rms_mm"] = _round_or_none(predicted[k])
+        entry["budget_rms_mm"] = {name: _round_or_none(values[k]) for name, values in terms.items()}
+    result["predicted_rms_mm"] = _round_or_none(np.sqrt(np.sum(weights * predicted**2) / np.sum(weights)))
+    result["tracking_error_source"] = "repeated dwells at the targets" if repeated is not None else "calibration"
+
+
+def _round_or_none(value: float) -> float | None:
+    """A prediction for JSON: rounded, or None (null) when the configuration does not determine it."""
+    return round(float(value), 4) if np.isfinite(value) else None
 
 
 # --- board phantom ---------------------------------------------------------------------------

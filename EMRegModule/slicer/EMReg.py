@@ -370,7 +370,8 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         if self.case is None or (self.case.navigation is None and self.case.board is None):
             return None
         self.evaluation = evaluate_case(self.case, self.controller.reference_to_image,
-                                        self.controller.reference_sensor, self.controller.probe_sensor)
+                                        self.controller.reference_sensor, self.controller.probe_sensor,
+                                        self.controller.error_model)
         write_evaluation(self.evaluation, self._output("evaluation.json"))
         return self.evaluation
 

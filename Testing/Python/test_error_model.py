@@ -7,11 +7,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from EMRegModule.error_model import (
-    build_error_model,
-    dwell_mean_variance,
+    ErrorModel,
+    RegistrationError,
     estimate_isotropic_fle,
     pose_error_covariance,
     registration_covariance,
+    registration_error,
+    repeated_dwell_ms,
 )
 from EMRegModule.registration import solve_sensor_offset
 from EMRegModule.transforms import apply_transform, fit_rigid, invert_rigid, make_transform
@@ -108,33 +110,32 @@ def test_degenerate_configurations_give_an_infinite_prediction_never_a_small_num
     assert np.isinf(estimate_isotropic_fle(np.zeros(2), three[:2], parallel_axes[:2]))
 
 
-def test_dwell_mean_variance_accounts_for_correlated_samples():
+def test_repeated_dwell_scatter_measures_the_per_dwell_error_whatever_the_common_offset():
     rng = np.random.default_rng(8)
-    rho, n, sigma = 0.9, 200, 0.1
-    means, predicted = [], []
-    for _ in range(300):
-        white = rng.normal(0.0, sigma * np.sqrt(1 - rho**2), size=(n, 3))
-        samples = np.zeros((n, 3))
-        samples[0] = rng.normal(0.0, sigma, 3)
-        for i in range(1, n):
-            samples[i] = rho * samples[i - 1] + white[i]
-        means.append(samples.mean(axis=0))
-        predicted.append(dwell_mean_variance(samples))
-    measured = float(np.mean(np.sum(np.square(means), axis=1)))
-    assert np.mean(predicted) == pytest.approx(measured, rel=0.2)
-    # the naive i.i.d. formula would be about (1 - rho) / (1 + rho) = 19x too small
-    assert np.mean(predicted) > 5 * 3 * sigma**2 / n
+    sigma = 0.3
+    estimates = []
+    for _ in range(200):
+        means = {f"T{k}": np.array([40.0 * k, 0.0, 5.0]) + rng.normal(0, 2.0, 3)  # a common offset per target
+                 + rng.normal(0.0, sigma, size=(15, 3)) for k in range(6)}
+        ms, dof = repeated_dwell_ms(means)
+        assert dof == 6 * 14
+        estimates.append(ms)
+    assert np.mean(estimates) == pytest.approx(3 * sigma**2, rel=0.03)
+    assert repeated_dwell_ms({"T1": np.zeros((1, 3))}) is None
 
 
 def test_end_to_end_budget_adds_tracking_reference_and_registration():
     rng = np.random.default_rng(2)
     origins, axes, reference_to_image, l_true, points_reference = _frame(rng, 12)
     residuals = rng.normal(0.0, 0.2, size=12)
-    model = build_error_model(reference_to_image, points_reference, origins, axes, l_true, True, residuals,
-                              reference_error_mm=0.1, reference_error_deg=0.05, placement_error_mm=0.3)
+    error = registration_error(points_reference, origins, axes, l_true, True, residuals)
+    assert RegistrationError.from_json(error.to_json()).covariance.parameters == pytest.approx(
+        error.covariance.parameters)
+    model = ErrorModel.with_priors(reference_to_image, error, reference_error_mm=0.1, reference_error_deg=0.05,
+                                   placement_error_mm=0.3)
     targets = np.array([[0.0, 0.0, 0.0], [300.0, 0.0, 0.0]])
     budget = model.budget(targets)
-    assert np.allclose(budget.tracking_ms, 3 * model.probe_sigma_mm**2)
+    assert np.allclose(budget.tracking_ms, 3 * error.probe_sigma_mm**2)
     assert np.allclose(budget.placement_ms, 0.09)
     # the reference term grows with the lever arm from the reference sensor
     arms = np.linalg.norm(apply_transform(invert_rigid(reference_to_image), targets), axis=1)
