@@ -21,7 +21,7 @@ from .progress import Progress
 STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
     "detect": ("markers.json", "markers.mrk.json"),
     "calibrate": ("frame_calibration.json",),
-    "register": ("registration.json", "ReferenceToImage.h5"),
+    "register": ("registration.json", "ReferenceToImage.h5", "tre_map.nrrd"),
     "navigate": ("navigation.csv",),
     "evaluate": ("evaluation.json",),
     "report": ("report.html",),
@@ -315,6 +315,7 @@ def run_case(
             write_navigation_csv(navigation, out / "navigation.csv")
             summary.append(f"navigate: {len(navigation)} probe samples")
         current = "evaluate"
+        evaluation = None
         if controller.registration is not None and stage_available("evaluation") \
                 and (case.navigation is not None or case.board is not None):
             from .evaluation import evaluate_case, write_evaluation
@@ -328,6 +329,12 @@ def run_case(
             if "board" in evaluation:
                 summary.append("evaluate: board edges " + ", ".join(
                     f"{k} {v['mean_mm']:.2f}" for k, v in evaluation["board"]["edges"].items()))
+        if controller.error_model is not None:
+            from .tre_map import write_tre_map
+
+            tracking_rms = evaluation.get("tre", {}).get("tracking_rms_mm") if evaluation else None
+            write_tre_map(out / "tre_map.nrrd", controller.error_model, controller.detection.image,
+                          None if tracking_rms is None else tracking_rms**2)
         current = "report"
         if stage_available("report"):
             from .report import write_report

@@ -161,6 +161,7 @@ def _add_prediction(result: dict[str, Any], details: list[dict[str, Any]], targe
         entry["budget_rms_mm"] = {name: _round_or_none(values[k]) for name, values in terms.items()}
     result["predicted_rms_mm"] = _round_or_none(np.sqrt(np.sum(weights * predicted**2) / np.sum(weights)))
     result["tracking_error_source"] = "repeated dwells at the targets" if repeated is not None else "calibration"
+    result["tracking_rms_mm"] = _round_or_none(np.sqrt(budget.tracking_ms[0]))
 
 
 def _round_or_none(value: float) -> float | None:

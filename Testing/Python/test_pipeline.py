@@ -161,3 +161,28 @@ def test_predicted_end_to_end_tre_matches_the_measured_one(run):
     for target in tre["targets"].values():
         budget = target["budget_rms_mm"]
         assert np.sqrt(sum(v**2 for v in budget.values())) == pytest.approx(target["predicted_rms_mm"], abs=2e-4)
+
+
+def test_tre_map_covers_the_ct_and_agrees_with_the_targets_predictions(run):
+    """``tre_map.nrrd``: float32 mm in the CT's LPS space; its value at each target is the target's
+    predicted RMS TRE (within 10 %, the grid being coarse)."""
+    import SimpleITK as sitk
+    from scipy.ndimage import map_coordinates
+
+    case, out, truth = run
+    tre_map = sitk.ReadImage(str(out / "tre_map.nrrd"))
+    assert tre_map.GetPixelID() == sitk.sitkFloat32
+    image = _load(out, "markers.json")["image"]
+    assert np.allclose(tre_map.GetDirection(), image["direction"]) and np.allclose(tre_map.GetOrigin(), image["origin"])
+    far_corner = np.asarray(image["origin"]) + np.reshape(image["direction"], (3, 3)) @ (
+        (np.asarray(image["size"]) - 1) * np.asarray(image["spacing"]))
+    assert np.all(np.asarray(tre_map.TransformPhysicalPointToContinuousIndex(far_corner.tolist()))
+                  <= np.asarray(tre_map.GetSize()) - 1 + 1e-6)
+    values = sitk.GetArrayFromImage(tre_map)  # (k, j, i)
+    assert np.all(np.isfinite(values)) and values.min() > 0
+    targets = _load(out, "evaluation.json")["tre"]["targets"]
+    labels = [t["label"] for t in truth["targets"]]
+    for label, position in zip(labels, (t["position"] for t in truth["targets"]), strict=True):
+        index = tre_map.TransformPhysicalPointToContinuousIndex([float(v) for v in position])
+        at_target = map_coordinates(values, [[index[2]], [index[1]], [index[0]]], order=1)[0]
+        assert at_target == pytest.approx(targets[label]["predicted_rms_mm"], rel=0.10)
