@@ -55,7 +55,8 @@ class CalibrationPoint:
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "label": self.label, "position": [float(v) for v in self.position],
-            "direction": [float(v) for v in self.direction], "samples": int(self.samples),
+            "direction": [float(v) for v in self.direction] if np.all(np.isfinite(self.direction)) else None,
+            "samples": int(self.samples),
             "std_mm": round(float(self.std_mm), 4), "visits": int(self.visits),
             "direction_std_deg": round(float(self.direction_std_deg), 3),
             "start_s": float(self.start_s), "end_s": float(self.end_s),
@@ -75,6 +76,10 @@ class FrameCalibration:
     labelled: bool = True
     source: str = ""
     warnings: list[str] = field(default_factory=list)
+    #: ``[sensors] probe_axis`` the calibration was made with, and the convention of ``direction``
+    #: (``+x_in`` / ``+x_out``; ``none`` when no point has a direction).
+    probe_axis: str = "auto"
+    direction_convention: str = "+x_in"
 
     @property
     def labels(self) -> list[str]:
@@ -96,7 +101,21 @@ class FrameCalibration:
             "reference_sensor": int(self.reference_sensor), "probe_sensor": int(self.probe_sensor),
             "points": [p.to_json() for p in self.points],
             "labelled": bool(self.labelled), "source": self.source, "warnings": list(self.warnings),
+            "probe_axis": self.probe_axis_json(),
         }
+
+    def probe_axis_json(self) -> dict[str, Any]:
+        """How the directions were made (the registration decides the sign under ``auto``)."""
+        with_direction = int(np.count_nonzero(np.all(np.isfinite(self.directions), axis=1)))
+        if with_direction == 0:
+            note = "no probe orientation used (position-only probe rows or probe_axis = none)"
+        elif self.probe_axis == "auto":
+            note = ("directions stored assuming +X points into the pinhole; the registration checks the sign "
+                    "against the CT's marker axes")
+        else:
+            note = f"directions stored for probe_axis = {self.probe_axis}"
+        return {"setting": self.probe_axis, "direction_convention": self.direction_convention,
+                "points_with_direction": with_direction, "note": note}
 
     @classmethod
     def from_json(cls, document: Mapping[str, Any], source: str = "frame calibration") -> FrameCalibration:
@@ -126,9 +145,16 @@ class FrameCalibration:
             labels = [p.label for p in points]
             if len(set(labels)) != len(labels):
                 raise EMRegError(f"{source}: point labels must be unique")
+            axis = document.get("probe_axis") or {}
+            from .probe_axis import check_probe_axis
+
+            setting = check_probe_axis(axis.get("setting", "auto"), source)
+            convention = str(axis.get("direction_convention", "+x_in"))
+            if convention not in ("+x_in", "+x_out", "none"):
+                raise EMRegError(f"{source}: probe_axis direction_convention must be +x_in, +x_out or none")
             return cls(points, int(document.get("reference_sensor", 1)), int(document.get("probe_sensor", 2)),
                        bool(document.get("labelled", True)), str(document.get("source", "")),
-                       [str(w) for w in document.get("warnings", [])])
+                       [str(w) for w in document.get("warnings", [])], setting, convention)
         except (KeyError, TypeError, ValueError) as exc:
             raise EMRegError(f"{source}: not a frame calibration file ({exc!s:.100})") from None
 
@@ -142,8 +168,12 @@ def calibrate_frame(
     reference_sensor: int = 1,
     probe_sensor: int = 2,
     settings: Mapping[str, Any] | None = None,
+    probe_axis: str = "auto",
 ) -> FrameCalibration:
     """One point per marker pinhole, in the Reference frame (mm), from a calibration recording.
+
+    ``probe_axis``: ``[sensors] probe_axis`` (see :mod:`EMRegModule.probe_axis`); probe rows
+    without angles (position only) give points without a direction.
 
     ``settings``: the ``case.toml`` ``[calibration]`` table (see :class:`EMRegModule.dwell.DwellSettings`
     and ``revisit_tolerance_mm``). Unlabelled dwells are named ``P01, P02, ...`` in time order
@@ -151,9 +181,13 @@ def calibrate_frame(
     """
     dwell_settings = DwellSettings.from_settings(settings, "calibration", strict=True)
     revisit_tolerance = float(dict(settings or {}).get("revisit_tolerance_mm", DEFAULT_REVISIT_TOLERANCE_MM))
+    from .probe_axis import ASSUMED_CONVENTION, check_probe_axis, marker_directions
+
+    probe_axis = check_probe_axis(probe_axis)
+    convention = ASSUMED_CONVENTION if probe_axis == "auto" else probe_axis
     samples = probe_in_reference(recording, reference_sensor, probe_sensor)
     position = samples.position_mm
-    out_of_hole = -samples.direction
+    out_of_hole = marker_directions(samples.direction, convention)
     dwells = find_dwells(samples.time_s, position, samples.label, samples.quality, dwell_settings)
     if not dwells:
         raise EMRegError(
@@ -181,7 +215,10 @@ def calibrate_frame(
         pooled = np.concatenate([inlier_index[m] for m in members])
         average = robust_mean(position[pooled])
         used = pooled[average.inliers]
-        direction, direction_std = robust_mean_direction(out_of_hole[used])
+        if np.all(np.isfinite(out_of_hole[used])):
+            direction, direction_std = robust_mean_direction(out_of_hole[used])
+        else:  # position-only probe rows (or no convention): no direction
+            direction, direction_std = np.full(3, np.nan), float("nan")
         warning = ""
         if len(members) > 1:
             visit_centres = centres_array[members]
@@ -195,9 +232,12 @@ def calibrate_frame(
             start_s=float(min(dwells[m].start_s for m in members)),
             end_s=float(max(dwells[m].end_s for m in members)), warning=warning,
         ))
-    warnings = [f"{p.label}: {p.warning}" for p in points if p.warning]
+    warnings = list(recording.warnings)  # time resets / gaps found on reading (kept, as separate segments)
+    warnings += [f"{p.label}: {p.warning}" for p in points if p.warning]
     warnings += _close_point_warnings(points, 2.0 * dwell_settings.merge_radius_mm)
-    return FrameCalibration(points, int(reference_sensor), int(probe_sensor), labelled, recording.source, warnings)
+    has_direction = any(np.all(np.isfinite(p.direction)) for p in points)
+    return FrameCalibration(points, int(reference_sensor), int(probe_sensor), labelled, recording.source, warnings,
+                            probe_axis, convention if has_direction else "none")
 
 
 def _close_point_warnings(points: list[CalibrationPoint], radius_mm: float) -> list[str]:

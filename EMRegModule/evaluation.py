@@ -54,9 +54,11 @@ def evaluate_case(case: Case, reference_to_image: np.ndarray, reference_sensor: 
     # stillness radius by default (targets and holes are tens of mm apart).
     dwell_settings = DwellSettings.from_settings({"still_radius_mm": DEFAULT_STILL_RADIUS_MM, **section}, "evaluation")
     result: dict[str, Any] = {}
+    warnings: list[str] = []
     if case.navigation is not None and case.targets is not None:
         labels, positions = read_markups(case.targets)
         recording = read_tracking_csv(case.navigation)
+        warnings += recording.warnings
         result["tre"] = evaluate_targets(
             recording, labels, positions, reference_to_image, reference_sensor, probe_sensor, dwell_settings,
             float(section.get("max_target_distance_mm", DEFAULT_MAX_TARGET_DISTANCE_MM)), error_model,
@@ -68,8 +70,11 @@ def evaluate_case(case: Case, reference_to_image: np.ndarray, reference_sensor: 
                 nominal = [float(v) for v in nominal]
             except (TypeError, ValueError):
                 raise EMRegError(f"{case.folder / 'case.toml'}: [board] edges_mm must be a list of numbers") from None
-        result["board"] = evaluate_board(read_tracking_csv(case.board), reference_sensor, probe_sensor, nominal,
-                                         dwell_settings)
+        board = read_tracking_csv(case.board)
+        result["board"] = evaluate_board(board, reference_sensor, probe_sensor, nominal, dwell_settings)
+        warnings += board.warnings
+    if warnings:
+        result["warnings"] = warnings  # time resets / gaps found in the recordings (kept as segments)
     return result
 
 

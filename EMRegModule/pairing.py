@@ -39,7 +39,7 @@ from scipy.spatial import cKDTree
 
 from .errors import EMRegError, NoSafeAnswerError
 from .io.case import setting_number
-from .transforms import make_transform
+from .sensor_offset import fre_curve
 
 
 @dataclass(frozen=True)
@@ -161,10 +161,15 @@ def pair_markers(
     directions_reference: np.ndarray | None,
     l_range_mm: tuple[float, float],
     settings: PairingSettings | Mapping[str, Any] | None = None,
+    unsigned_directions: bool = False,
 ) -> PairingResult:
     """Pair image markers (origins (M, 3) and unit +Y axes (M, 3), image space, mm) with
     calibration points (pinhole sensor points (N, 3) and unit directions (N, 3) or NaN, in
     the Reference frame) for a sensor offset l in ``l_range_mm`` = (a, b).
+
+    ``unsigned_directions``: the directions are known only up to one common sign (the probe's
+    axis convention is not known): a mapped direction may lie along the marker axis or
+    against it. The pairwise angle constraints are unchanged (invariant under a common sign).
 
     Raises :class:`NoSafeAnswerError` when fewer than ``min_pairs`` pairs are found or when
     two different pairings explain the data about equally well (symmetric layout).
@@ -172,6 +177,7 @@ def pair_markers(
     if not isinstance(settings, PairingSettings):
         settings = PairingSettings.from_settings(settings)
     problem = _Problem(origins_image, axes_image, points_reference, directions_reference, l_range_mm, settings)
+    problem.unsigned = bool(unsigned_directions)
     return problem.solve()
 
 
@@ -203,6 +209,7 @@ class _Problem:
         self.cos_tight = np.cos(np.radians(min(self.tol_angle, 45.0)))
         self.l_grid = np.linspace(self.a, self.b, max(2, int(np.ceil((self.b - self.a) / 0.5)) + 1))
         self.hypotheses = 0
+        self.unsigned = False  # directions known up to a common sign: compare |cos|
         self._tree: cKDTree | None = None
 
     # --- invariants ----------------------------------------------------------------------
@@ -285,19 +292,10 @@ class _Problem:
     # --- hypotheses ----------------------------------------------------------------------
 
     def _triangle_transforms(self, tri, triples: np.ndarray) -> np.ndarray:
-        """ReferenceToImage (T, 4, 4) per image triangle, l chosen on the grid by fit residual."""
-        p = self.points[list(tri)]  # (3, 3)
-        q = self.origins[triples][:, None] + self.l_grid[None, :, None, None] * self.axes[triples][:, None]  # (T,L,3,3)
-        rotation, translation = _kabsch_batch(np.broadcast_to(p, q.shape), q)
-        mapped = np.einsum("tlij,nj->tlni", rotation, p) + translation[:, :, None]
-        error = np.sum((mapped - q) ** 2, axis=(2, 3))
-        best = np.argmin(error, axis=1)
-        pick = np.arange(len(triples))
-        transforms = np.zeros((len(triples), 4, 4))
-        transforms[:, :3, :3] = rotation[pick, best]
-        transforms[:, :3, 3] = translation[pick, best]
-        transforms[:, 3, 3] = 1.0
-        return transforms
+        """ReferenceToImage (T, 4, 4) per image triangle, l chosen on the grid by fit residual (FRE(l))."""
+        curve = fre_curve(self.l_grid, self.points[list(tri)], self.origins[triples], self.axes[triples])
+        best = np.argmin(curve.sse_mm2, axis=1)
+        return curve.reference_to_image[np.arange(len(triples)), best]
 
     def _segment_distances(self, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distances (T, N, M) of mapped calibration points from the image pinhole segments,
@@ -315,6 +313,8 @@ class _Problem:
         distance = np.sqrt(np.maximum(rel2 - 2.0 * clipped * along + clipped**2, 0.0))
         directions = np.einsum("tij,nj->tni", transforms[:, :3, :3], self.directions)
         cos = directions @ self.axes.T
+        if self.unsigned:
+            cos = np.abs(cos)
         return distance, np.where(np.isnan(cos), 1.0, cos)
 
     def _loose_assignments(self, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -337,6 +337,8 @@ class _Problem:
         along = np.clip(np.sum(rel * self.axes[safe], axis=2), self.a, self.b)
         distance = np.linalg.norm(rel - along[..., None] * self.axes[safe], axis=2)
         cos = np.sum(directions.reshape(-1, 1, 3) * self.axes[safe], axis=2)
+        if self.unsigned:
+            cos = np.abs(cos)
         ok = found & (distance <= self.tol_loose) & ((cos >= self.cos_loose) | np.isnan(cos))
         distance = np.where(ok, distance, np.inf)
         best = np.argmin(distance, axis=1)
@@ -359,7 +361,7 @@ class _Problem:
                 pinholes = self.origins + l_value * self.axes
                 distance = np.linalg.norm(mapped[:, None] - pinholes[None], axis=2)
                 cos = (self.directions @ transform[:3, :3].T) @ self.axes.T
-                cos = np.where(np.isnan(cos), 1.0, cos)
+                cos = np.where(np.isnan(cos), 1.0, np.abs(cos) if self.unsigned else cos)
                 tolerance = self.tol_point if iteration >= 3 else max(self.tol_point, self.tol_loose / 2)
                 min_cos = self.cos_tight
             assignment = _mutual_nearest(np.where(cos >= min_cos, distance, np.inf), tolerance)
@@ -522,35 +524,11 @@ def _triangle_heights(triangles: np.ndarray) -> np.ndarray:
     return np.divide(twice_area, longest, out=np.zeros_like(longest), where=longest > 0)
 
 
-def _kabsch_batch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rotations (..., 3, 3) and translations (..., 3) mapping point sets a onto b
-    (..., n, 3), vectorised over the leading axes (reflection-safe)."""
-    ca = a.mean(axis=-2)
-    cb = b.mean(axis=-2)
-    h = np.einsum("...ni,...nj->...ij", a - ca[..., None, :], b - cb[..., None, :])
-    u, _, vt = np.linalg.svd(h)
-    v = np.swapaxes(vt, -1, -2)
-    ut = np.swapaxes(u, -1, -2)
-    sign = np.sign(np.linalg.det(v @ ut))
-    sign[sign == 0] = 1.0
-    v = v.copy()
-    v[..., :, 2] *= sign[..., None]
-    rotation = v @ ut
-    translation = cb - np.einsum("...ij,...j->...i", rotation, ca)
-    return rotation, translation
-
-
 def _fit_with_offset(points: np.ndarray, origins: np.ndarray, axes: np.ndarray,
                      l_grid: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
-    """Rigid fit of points onto ``origins + l * axes`` with l minimising the residual on the
-    grid, then refined by a parabola through the grid minimum. Returns (transform, l, residuals)."""
-    def fit(l_values: np.ndarray):
-        q = origins[None] + l_values[:, None, None] * axes[None]
-        rotation, translation = _kabsch_batch(np.broadcast_to(points, q.shape), q)
-        mapped = np.einsum("lij,nj->lni", rotation, points) + translation[:, None]
-        return rotation, translation, np.sum((mapped - q) ** 2, axis=(1, 2)), mapped, q
-
-    _, _, sse, _, _ = fit(l_grid)
+    """Rigid fit of points onto ``origins + l * axes`` with l minimising FRE(l) on the grid, then
+    refined by a parabola through the grid minimum. Returns (transform, l, residuals)."""
+    sse = fre_curve(l_grid, points, origins, axes).sse_mm2
     k = int(np.argmin(sse))
     l_best = float(l_grid[k])
     if 0 < k < len(l_grid) - 1:
@@ -559,9 +537,8 @@ def _fit_with_offset(points: np.ndarray, origins: np.ndarray, axes: np.ndarray,
         if denominator > 1e-12:
             step = l_grid[k + 1] - l_grid[k]
             l_best = float(np.clip(l_grid[k] + 0.5 * step * (y0 - y2) / denominator, l_grid[k - 1], l_grid[k + 1]))
-    rotation, translation, _, mapped, q = fit(np.array([l_best]))
-    residuals = np.linalg.norm(mapped[0] - q[0], axis=1)
-    return make_transform(rotation[0], translation[0]), l_best, residuals
+    at_best = fre_curve([l_best], points, origins, axes)
+    return at_best.reference_to_image[0], l_best, at_best.residuals_mm[0]
 
 
 def _mutual_nearest(distance: np.ndarray, tolerance: float) -> dict[int, int]:

@@ -93,6 +93,14 @@ def read_case_settings(path: str | os.PathLike[str]) -> dict[str, Any]:
     for role in ("reference", "probe"):
         if role in sensors and not (isinstance(sensors[role], int) and 1 <= sensors[role] <= 4):
             raise EMRegError(f"{path}: [sensors] {role} must be a port number (1..4), got {sensors[role]!r}")
+    if "probe_axis" in sensors:
+        from ..probe_axis import check_probe_axis
+
+        check_probe_axis(sensors["probe_axis"], f"{path}: [sensors]")
+    for key in ("reference_transform", "probe_transform"):
+        if key in sensors and not (isinstance(sensors[key], str) and sensors[key].strip().isidentifier()):
+            raise EMRegError(f"{path}: [sensors] {key} must be a transform name such as 'ProbeToTracker', "
+                             f"got {sensors[key]!r}")
     return settings
 
 

@@ -27,6 +27,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from ..errors import EMRegError
+from .ct_checks import NonFiniteCounter
 
 try:  # a declared dependency; without it SimpleITK reads the file (slower, same result)
     from isal import igzip_lib
@@ -87,6 +88,8 @@ class VolumeFill:
         self._finished = False
         self._cancelled = False
         self._condition = threading.Condition()
+        self.series: dict | None = None  # a DICOM folder: the series read and the others (``dicom_series``)
+        self.is_complete = False  # True when made by ``complete`` (read in full before it existed)
 
     @classmethod
     def complete(cls, image: sitk.Image) -> VolumeFill:
@@ -94,6 +97,7 @@ class VolumeFill:
         size = image.GetSize()
         fill = cls(size[2] if len(size) > 2 else 1)  # a 2D image is refused by ``check_ct`` later
         fill._image, fill._ready, fill._finished = image, fill.slice_count, True
+        fill.is_complete = True
         return fill
 
     @property
@@ -117,6 +121,13 @@ class VolumeFill:
             self._condition.wait_for(lambda: self._finished)
             self._raise_error()
             return self._image
+
+    def read_error(self) -> BaseException | None:
+        """Wait for the read to end; its own error (not a cancellation), or ``None``."""
+        with self._condition:
+            self._condition.wait_for(lambda: self._finished)
+            error = self._error
+        return None if isinstance(error, _CancelledReadError) else error
 
     def cancel(self) -> None:
         """Stop reading (the image is then incomplete and must not be used)."""
@@ -180,16 +191,22 @@ def _read_voxels(path: Path, info: sitk.ImageFileReader, storage: _Storage, fill
             if storage.compression == "raw":
                 stream.seek(storage.data_offset)
                 filled = _read_raw(stream, voxels, slices)
+                if filled == voxels.nbytes and stream.read(1):
+                    extra = path.stat().st_size - storage.data_offset - voxels.nbytes
+                    raise EMRegError(_too_much_data(path, info, voxels.nbytes, extra))
             else:
                 stream.seek(0 if storage.whole_file else storage.data_offset)
                 skip = storage.data_offset if storage.whole_file else 0
                 blocks = _inflated(stream, storage.compression == "gzip", path, skip + voxels.nbytes)
-                filled = _fill(voxels, blocks, skip, slices)
+                filled, extra = _fill(voxels, blocks, skip, slices)
+                if extra:
+                    raise EMRegError(_too_much_data(path, info, voxels.nbytes, extra))
         if filled != voxels.nbytes:
             raise EMRegError(f"{path}: cannot read CT (file is truncated: {filled} of {voxels.nbytes} voxel bytes)")
         slices(filled)
+        slices.non_finite.check(path)
     except _CancelledError:
-        fill._finish(EMRegError(f"{path}: reading the CT was cancelled"))
+        fill._finish(_CancelledReadError(f"{path}: reading the CT was cancelled"))
     except BaseException as exc:  # handed to the waiting thread
         fill._finish(exc)
     else:
@@ -200,6 +217,15 @@ class _CancelledError(Exception):
     pass
 
 
+class _CancelledReadError(EMRegError):
+    """The read was cancelled by its user (detection failed first)."""
+
+
+def _too_much_data(path: Path, info: sitk.ImageFileReader, expected: int, extra: int) -> str:
+    return (f"{path}: cannot read CT (the file holds {extra} voxel bytes more than its header's size "
+            f"{list(info.GetSize())} needs ({expected} bytes): the header does not describe the data)")
+
+
 class _SliceAnnouncer:
     """Called with the bytes filled so far: swaps the byte order of newly whole slices, announces them."""
 
@@ -207,6 +233,9 @@ class _SliceAnnouncer:
         self.voxels, self.dtype, self.fill = voxels, dtype, fill
         self.slice_bytes = voxels.nbytes // max(1, fill.slice_count)
         self.done = 0
+        self.non_finite = NonFiniteCounter()
+        self.native = dtype.newbyteorder("=")
+        self.check_finite = self.native.kind == "f"
 
     def __call__(self, filled: int) -> None:
         if self.fill._cancelled:
@@ -214,11 +243,14 @@ class _SliceAnnouncer:
         whole = filled // self.slice_bytes if self.slice_bytes else self.fill.slice_count
         if whole <= self.done:
             return
+        part = self.voxels[self.done * self.slice_bytes:whole * self.slice_bytes]
         if not self.dtype.isnative:
-            part = self.voxels[self.done * self.slice_bytes:whole * self.slice_bytes]
-            part.view(self.dtype.newbyteorder("=")).byteswap(inplace=True)
+            part.view(self.native).byteswap(inplace=True)
+        if self.check_finite:
+            self.non_finite.add(part.view(self.native))
         self.done = whole
-        self.fill._set_ready(whole)
+        if not self.non_finite.count:  # slices after a non-finite voxel are not handed to detection
+            self.fill._set_ready(whole)
 
 
 def _read_raw(stream: BinaryIO, out: np.ndarray, announce: Callable[[int], None]) -> int:
@@ -287,10 +319,12 @@ def _inflated(stream: BinaryIO, gzip: bool, path: Path, expected: int) -> Iterat
         raise EMRegError(f"{path}: cannot read CT (voxel data is corrupt: {exc})") from None
 
 
-def _fill(out: np.ndarray, blocks: Iterable[bytes], skip: int, announce: Callable[[int], None]) -> int:
-    """Copy ``blocks`` into ``out`` after dropping their first ``skip`` bytes; the bytes written.
+def _fill(out: np.ndarray, blocks: Iterable[bytes], skip: int,
+          announce: Callable[[int], None]) -> tuple[int, int]:
+    """Copy ``blocks`` into ``out`` after dropping their first ``skip`` bytes.
 
-    ``announce`` gets the bytes written so far after each block.
+    Returns the bytes written and the bytes left over after ``out`` was full (the data is longer
+    than the header says). ``announce`` gets the bytes written so far after each block.
     """
     position = -skip  # where the next block starts in ``out``
     for block in blocks:
@@ -299,7 +333,7 @@ def _fill(out: np.ndarray, blocks: Iterable[bytes], skip: int, announce: Callabl
             out[position + lo:position + hi] = np.frombuffer(block, dtype=np.uint8)[lo:hi]
         position += len(block)
         announce(min(max(position, 0), out.nbytes))
-    return min(max(position, 0), out.nbytes)
+    return min(max(position, 0), out.nbytes), max(0, position - out.nbytes)
 
 
 # --- headers --------------------------------------------------------------------------------------
@@ -311,8 +345,10 @@ def _header_lines(stream: BinaryIO, limit: int = 1 << 16) -> tuple[list[str], in
     lines, offset = [], 0
     while True:
         end = head.find(b"\n", offset)
-        if end < 0:
-            return None
+        if end < 0 and len(head) < limit and offset < len(head):
+            end = len(head)  # a detached header (``.nhdr``, ``.mhd``) may end without a newline
+        elif end < 0:
+            return (lines, offset) if len(head) < limit and lines else None
         raw = head[offset:end]
         offset = end + 1
         try:
@@ -326,7 +362,8 @@ def _header_lines(stream: BinaryIO, limit: int = 1 << 16) -> tuple[list[str], in
             return lines, offset
 
 
-def _nrrd_storage(stream: BinaryIO) -> _Storage | None:
+def _nrrd_fields(stream: BinaryIO) -> tuple[dict[str, str], int] | None:
+    """The NRRD header's fields (lower-case keys) and the data offset, or ``None`` when not plain NRRD."""
     parsed = _header_lines(stream)
     if parsed is None or not parsed[0] or not parsed[0][0].startswith("NRRD000"):
         return None
@@ -339,6 +376,14 @@ def _nrrd_storage(stream: BinaryIO) -> _Storage | None:
         if not sep:
             return None
         fields[key.strip().lower()] = value.strip()
+    return fields, offset
+
+
+def _nrrd_storage(stream: BinaryIO) -> _Storage | None:
+    parsed = _nrrd_fields(stream)
+    if parsed is None:
+        return None
+    fields, offset = parsed
     if {"data file", "datafile", "line skip", "lineskip", "byte skip", "byteskip"} & set(fields):
         return None  # detached or offset data: SimpleITK handles those
     dtype_name = _NRRD_TYPES.get(fields.get("type", ""))
@@ -348,7 +393,8 @@ def _nrrd_storage(stream: BinaryIO) -> _Storage | None:
     return _Storage(_ordered(dtype_name, fields.get("endian", "little") == "big"), offset, compression)
 
 
-def _mha_storage(stream: BinaryIO) -> _Storage | None:
+def _mha_fields(stream: BinaryIO) -> tuple[dict[str, str], int] | None:
+    """The MetaImage header's fields and the data offset (after ``ElementDataFile``), or ``None``."""
     parsed = _header_lines(stream)
     if parsed is None:
         return None
@@ -359,6 +405,14 @@ def _mha_storage(stream: BinaryIO) -> _Storage | None:
         if not sep:
             return None
         fields[key.strip()] = value.strip()
+    return fields, offset
+
+
+def _mha_storage(stream: BinaryIO) -> _Storage | None:
+    parsed = _mha_fields(stream)
+    if parsed is None:
+        return None
+    fields, offset = parsed
     if fields.get("ElementDataFile") != "LOCAL" or fields.get("BinaryData", "True") != "True":
         return None
     dtype_name = _MET_TYPES.get(fields.get("ElementType", ""))
@@ -400,3 +454,94 @@ def _ordered(dtype_name: str, big_endian: bool) -> np.dtype:
 
 _KINDS = {"nrrd": ".nrrd", "mha": ".mha", "nifti": (".nii", ".nii.gz")}
 _STORAGE_READERS = {"nrrd": _nrrd_storage, "mha": _mha_storage, "nifti": _nifti_storage}
+
+
+# --- the data length against the header, for files SimpleITK reads ---------------------------------
+
+
+def check_data_length(path: Path) -> None:
+    """Refuse an NRRD / MetaImage whose voxel data is longer or shorter than its header's sizes say.
+
+    SimpleITK reads as many bytes as the header asks for and ignores the rest, so a header whose
+    ``sizes`` / ``DimSize`` is smaller than the data silently drops slices. Checked for the layouts
+    SimpleITK reads when the fast path does not (detached data files, no ``isal``): raw or
+    gzip/zlib data in one file, attached or detached. Other layouts are left to SimpleITK.
+    """
+    name = path.name.lower()
+    if name.endswith((".nrrd", ".nhdr")):
+        kind = "nrrd"
+    elif name.endswith((".mha", ".mhd")):
+        kind = "mha"
+    else:
+        return
+    info = sitk.ImageFileReader()
+    info.SetFileName(str(path))
+    try:
+        info.ReadImageInformation()
+    except RuntimeError:
+        return  # SimpleITK's full read reports the problem
+    dtype_name = next((k for k, v in _SITK_TYPES.items() if v == info.GetPixelID()), None)
+    if dtype_name is None:
+        return
+    expected = int(np.prod(info.GetSize(), dtype=np.int64)) * info.GetNumberOfComponents() \
+        * np.dtype(dtype_name).itemsize
+    with path.open("rb") as stream:
+        parsed = (_nrrd_fields if kind == "nrrd" else _mha_fields)(stream)
+    if parsed is None:
+        return
+    fields, offset = parsed
+    if kind == "nrrd":
+        if {"line skip", "lineskip", "byte skip", "byteskip"} & set(fields):
+            return
+        detached = fields.get("data file", fields.get("datafile"))
+        compression = {"raw": "raw", "gzip": "gzip", "gz": "gzip"}.get(fields.get("encoding", ""))
+    else:
+        if "HeaderSize" in fields or fields.get("BinaryData", "True") != "True":
+            return
+        detached = fields.get("ElementDataFile")
+        detached = None if detached == "LOCAL" else detached
+        compression = "zlib" if fields.get("CompressedData", "False") == "True" else "raw"
+    if compression is None:
+        return
+    if detached is not None:
+        if " " in detached.strip() or "%" in detached or detached.upper().startswith("LIST"):
+            return  # a file list or pattern: SimpleITK's business
+        data_path, offset = path.parent / detached, 0
+        if not data_path.is_file():
+            return
+    else:
+        data_path = path
+    available = _data_bytes(data_path, offset, compression)
+    if available is None or available == expected:
+        return
+    if available > expected:
+        raise EMRegError(f"{path}: cannot read CT (the file holds {available - expected} voxel bytes more than its "
+                         f"header's size {list(info.GetSize())} needs ({expected} bytes): the header does not "
+                         f"describe the data)")
+    raise EMRegError(f"{path}: cannot read CT (file is truncated: {available} of {expected} voxel bytes)")
+
+
+def _data_bytes(path: Path, offset: int, compression: str) -> int | None:
+    """The voxel bytes stored from ``offset`` (inflated when compressed), or ``None`` when undecidable."""
+    import zlib
+
+    if compression == "raw":
+        return path.stat().st_size - offset
+    total = 0
+    with path.open("rb") as stream:
+        stream.seek(offset)
+        inflater = zlib.decompressobj(47)  # gzip or zlib, detected from the stream
+        try:
+            while True:
+                chunk = inflater.unconsumed_tail or stream.read(_CHUNK_BYTES)
+                if not chunk:
+                    return total
+                total += len(inflater.decompress(chunk, _MAX_OUT_BYTES))
+                if inflater.eof:
+                    rest = inflater.unused_data + stream.read(_CHUNK_BYTES)
+                    if not rest:
+                        return total
+                    inflater = zlib.decompressobj(47)  # another gzip member
+                    total += len(inflater.decompress(rest, _MAX_OUT_BYTES))
+        except zlib.error:
+            return None  # corrupt: SimpleITK's read reports it

@@ -15,29 +15,27 @@ import SimpleITK as sitk
 
 from ..errors import EMRegError
 from .case import CT_FILE_NAMES, CT_FOLDER_NAME, find_ct  # noqa: F401  (re-exported: CT naming lives with the case)
-from .fast_read import VolumeFill, start_fast_read
-
-_SCALAR_TYPES = {
-    sitk.sitkInt8, sitk.sitkUInt8, sitk.sitkInt16, sitk.sitkUInt16, sitk.sitkInt32,
-    sitk.sitkUInt32, sitk.sitkInt64, sitk.sitkUInt64, sitk.sitkFloat32, sitk.sitkFloat64,
-}
+from .ct_checks import check_ct_geometry, check_ct_image
+from .fast_read import VolumeFill, check_data_length, start_fast_read
 
 
-def read_ct(path: str | os.PathLike[str]) -> sitk.Image:
-    """Read a scalar 3D CT from a file or a folder holding one DICOM series.
+def read_ct(path: str | os.PathLike[str], series: str | int | None = None) -> sitk.Image:
+    """Read a scalar 3D CT from a file or a DICOM folder (its best CT series, or ``series``: UID or number).
 
     Raises :class:`EMRegError` with a one-line message for a missing, empty, truncated
-    or unreadable file, a non-scalar or non-3D image, or a folder without one series.
+    or unreadable file, a non-scalar or non-3D image, or a folder without a usable CT series.
     """
-    return open_ct(path).result()
+    return open_ct(path, series).result()
 
 
-def open_ct(path: str | os.PathLike[str]) -> VolumeFill:
+def open_ct(path: str | os.PathLike[str], series: str | int | None = None) -> VolumeFill:
     """Start reading a CT as :func:`read_ct` does; the voxels may still be arriving when this returns.
 
     Plain NRRD, MetaImage and NIfTI files take the fast path of :mod:`.fast_read` (the same
     image as SimpleITK's, 1.2-1.4x faster on compressed scans), read slice by slice on a
-    background thread; anything else is read by SimpleITK before this returns. The geometry is
+    background thread; a DICOM folder is decoded slice by slice on a thread pool
+    (:mod:`.dicom_series`, which also chooses the series: ``fill.series`` names it); anything
+    else is read by SimpleITK before this returns. The geometry is
     checked (:func:`check_ct`) before returning; ``result()`` raises the read's own errors.
     """
     path = Path(path)
@@ -45,48 +43,40 @@ def open_ct(path: str | os.PathLike[str]) -> VolumeFill:
         raise EMRegError(f"{path}: CT not found")
     try:
         if path.is_dir():
-            fill = VolumeFill.complete(_read_dicom_series(path))
+            from .dicom_series import open_dicom_series
+
+            fill, _ = open_dicom_series(path, series)
         else:
             if path.stat().st_size == 0:
                 raise EMRegError(f"{path}: CT file is empty")
-            fill = start_fast_read(path) or VolumeFill.complete(sitk.ReadImage(str(path)))
+            fill = start_fast_read(path)
+            if fill is None:
+                check_data_length(path)  # SimpleITK reads what the header asks for and ignores the rest
+                fill = VolumeFill.complete(sitk.ReadImage(str(path)))
         image = fill.image
     except RuntimeError as exc:
         reason = str(exc).strip().splitlines()
         detail = next((line for line in reversed(reason) if line.strip()), "unreadable")
         raise EMRegError(f"{path}: cannot read CT ({detail.strip()[:200]})") from None
     try:
-        check_ct(image, path)
+        if fill.is_complete:
+            check_ct_image(image, path)  # geometry and voxel values of an image read in full
+        else:
+            check_ct(image, path)  # the fast path counts non-finite voxels as they arrive
     except EMRegError:
         fill.cancel()
         raise
     return fill
 
 
-def _read_dicom_series(folder: Path) -> sitk.Image:
-    series_ids = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder)) or []
-    if not series_ids:
-        raise EMRegError(f"{folder}: no DICOM series found in the CT folder")
-    if len(series_ids) > 1:
-        raise EMRegError(f"{folder}: {len(series_ids)} DICOM series found; keep exactly one in the CT folder")
-    files = sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), series_ids[0])
-    reader = sitk.ImageSeriesReader()
-    reader.SetFileNames(files)
-    return reader.Execute()
-
-
 def check_ct(image: sitk.Image, source: str | os.PathLike[str] = "CT") -> None:
-    """Refuse images EMReg cannot use: not 3D, not scalar, unsupported pixel type, degenerate."""
-    if image.GetDimension() != 3:
-        raise EMRegError(f"{source}: CT must be a 3D volume, got a {image.GetDimension()}D image")
-    if image.GetNumberOfComponentsPerPixel() != 1 or image.GetPixelID() not in _SCALAR_TYPES:
-        raise EMRegError(
-            f"{source}: CT must hold scalar intensities (HU), got pixel type {image.GetPixelIDTypeAsString()}"
-        )
-    if min(image.GetSize()) < 2:
-        raise EMRegError(f"{source}: CT has a degenerate size {image.GetSize()}")
-    if min(image.GetSpacing()) <= 0:
-        raise EMRegError(f"{source}: CT has a non-positive spacing {image.GetSpacing()}")
+    """Refuse images EMReg cannot use: not 3D, not scalar, unsupported pixel type, degenerate, sheared.
+
+    The geometry checks of :func:`EMRegModule.io.ct_checks.check_ct_geometry` (safe on an image
+    whose voxels are still arriving); :func:`EMRegModule.io.ct_checks.check_ct_image` adds the
+    voxel-value check for an image read in full.
+    """
+    check_ct_geometry(image, source)
 
 
 def image_geometry(image: sitk.Image) -> dict[str, Any]:

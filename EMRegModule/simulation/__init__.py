@@ -6,7 +6,7 @@ writes a case folder per the spec (``ct.nrrd`` or ``ct/``, ``calibration.csv``,
 Options are the fields of :class:`SimulationOptions`.
 """
 
-from .case import board_holes, load_truth, simulate_case
+from .case import board_holes, load_truth, simulate_case, simulate_recordings
 from .options import SimulationOptions, resolve_options
 
-__all__ = ["SimulationOptions", "board_holes", "load_truth", "resolve_options", "simulate_case"]
+__all__ = ["SimulationOptions", "board_holes", "load_truth", "resolve_options", "simulate_case", "simulate_recordings"]

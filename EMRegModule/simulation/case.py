@@ -23,7 +23,7 @@ from . import ct
 from .frame import REFERENCE_SENSOR_DIAMETER_MM, REFERENCE_SENSOR_LENGTH_MM, Phantom, build_phantom
 from .options import SimulationOptions, resolve_options
 from .shapes import pose
-from .tracking import NoiseModel, Visit, probe_rotation_into, simulate_session
+from .tracking import NoiseModel, Visit, apply_probe_convention, probe_rotation_into, simulate_session
 
 # independent random streams, so that e.g. a new spacing does not change the recordings
 STREAM_LAYOUT, STREAM_PLACEMENT, STREAM_NOISE, STREAM_STREAKS = 1, 2, 3, 4
@@ -70,16 +70,7 @@ def simulate_case(out_dir: Path, seed: int = 0, difficulty: str = "standard", sp
     del image
 
     with progress.step("simulate: tracking recordings"):
-        l_mm = opts.sensor_offset_l_mm
-        if l_mm is None:
-            l_mm = float(_rng(seed, STREAM_OFFSET).uniform(model.pinhole_bottom_mm + 1, model.pinhole_top_mm - 1))
-        calibration = _calibration(seed, opts, phantom, l_mm)
-        navigation = _navigation(seed, opts, phantom, frame_to_image)
-        board = _board(seed, opts, phantom)
-        _write_recording(calibration.pop("recording"), out_dir / "calibration.csv")
-        _write_recording(navigation.pop("recording"), out_dir / "navigation.csv")
-        _write_recording(board.pop("recording"), out_dir / "board.csv",
-                         orientation="quaternion" if opts.board_quaternions else "angles")
+        l_mm, calibration, navigation, board = _write_recordings(out_dir, seed, opts, phantom, model)
         targets_image = navigation["targets_image"]
         if len(targets_image):
             write_markups(out_dir / "targets.mrk.json", [f"T{i + 1}" for i in range(len(targets_image))],
@@ -94,6 +85,32 @@ def simulate_case(out_dir: Path, seed: int = 0, difficulty: str = "standard", sp
     progress.message(f"[emreg] simulated {difficulty} case (seed {seed}) in {time.perf_counter() - start:.1f}s "
                      f"-> {out_dir}")
     return truth
+
+
+def simulate_recordings(out_dir: Path, seed: int = 0, difficulty: str = "standard", **options: Any) -> None:
+    """Write only the tracking recordings (``calibration.csv``, ``navigation.csv``, ``board.csv``) of the
+    case ``simulate_case`` makes with the same seed, difficulty and options: the same recordings,
+    e.g. in another probe convention (``probe_axis``), beside an existing case's CT and truth."""
+    opts = resolve_options(difficulty, None, options)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    model = MarkerModel.from_settings(opts.marker)
+    _write_recordings(out_dir, seed, opts, _phantom(seed, opts, model), model)
+
+
+def _write_recordings(out_dir: Path, seed: int, opts: SimulationOptions, phantom: Phantom,
+                      model: MarkerModel) -> tuple[float, dict, dict, dict]:
+    l_mm = opts.sensor_offset_l_mm
+    if l_mm is None:
+        l_mm = float(_rng(seed, STREAM_OFFSET).uniform(model.pinhole_bottom_mm + 1, model.pinhole_top_mm - 1))
+    calibration = _calibration(seed, opts, phantom, l_mm)
+    navigation = _navigation(seed, opts, phantom, _frame_to_image(_rng(seed, STREAM_PLACEMENT), phantom, opts))
+    board = _board(seed, opts, phantom)
+    _write_recording(calibration.pop("recording"), out_dir / "calibration.csv", probe_axis=opts.probe_axis)
+    _write_recording(navigation.pop("recording"), out_dir / "navigation.csv", probe_axis=opts.probe_axis)
+    _write_recording(board.pop("recording"), out_dir / "board.csv",
+                     orientation="quaternion" if opts.board_quaternions else "angles", probe_axis=opts.probe_axis)
+    return l_mm, calibration, navigation, board
 
 
 def load_truth(case_dir: str | Path) -> dict:
@@ -188,12 +205,13 @@ def _remove_stale_cts(out_dir: Path, keep: str) -> None:
 # --- tracking ---------------------------------------------------------------------------------
 
 
-def _write_recording(recording, path: Path, orientation: str | None = None) -> None:
-    """Write a recording, or remove a stale file when there is nothing to record."""
+def _write_recording(recording, path: Path, orientation: str | None = None, probe_axis: str = "+x_in") -> None:
+    """Write a recording (probe rows in the given convention), or remove a stale file when there is
+    nothing to record."""
     if recording is None:
         path.unlink(missing_ok=True)
     else:
-        write_tracking_csv(recording, path, orientation=orientation)
+        write_tracking_csv(apply_probe_convention(recording, probe_axis), path, orientation=orientation)
 
 
 def _frame_to_tracker(rng: np.random.Generator, size: np.ndarray, yaw_deg: float, offset: np.ndarray) -> np.ndarray:
@@ -366,6 +384,7 @@ def _truth(seed: int, difficulty: str, opts: SimulationOptions, model: MarkerMod
                   "ReferenceToFrame": phantom.reference_to_frame,
                   "bed": {"radius_mm": phantom.geometry.bed_radius, "axis_z_mm": phantom.geometry.bed_axis_z}},
         "calibration": {"labelled": opts.calibration_labels, "bumps": calibration["bumps"],
+                        "probe_axis": opts.probe_axis,
                         "dwells": _dwell_list(calibration["dwells"], calibration["reference_to_tracker"])},
         "navigation": {"ReferenceToTracker": navigation["reference_to_tracker"],
                        "dwells": _dwell_list(navigation["dwells"])},

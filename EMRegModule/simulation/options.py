@@ -48,6 +48,7 @@ class SimulationOptions:
     board_rounds: int = 60
     board_edges_mm: tuple[float, float, float, float] = (75.3, 60.4, 75.5, 60.4)
     board_quaternions: bool = False  # write board.csv with qw,qx,qy,qz columns
+    probe_axis: str = "+x_in"  # probe convention in the recordings: "+x_in", "+x_out" or "none" (position only)
 
     def check(self) -> None:
         """Refuse impossible values with an :class:`EMRegError` naming the option."""
@@ -71,6 +72,8 @@ class SimulationOptions:
         if self.noise_hu < 0 or self.psf_fwhm_mm < 0 or self.tracker_noise_scale < 0 or self.bad_sample_rate < 0:
             raise EMRegError("simulate: noise_hu, psf_fwhm_mm, tracker_noise_scale and bad_sample_rate must not be "
                              "negative")
+        if self.probe_axis not in ("+x_in", "+x_out", "none"):
+            raise EMRegError(f"simulate: probe_axis must be '+x_in', '+x_out' or 'none', got {self.probe_axis!r}")
         if len(self.board_edges_mm) != 4:
             raise EMRegError("simulate: board_edges_mm needs four edge lengths")
         for name in ("n_decoys", "n_bumps", "n_targets", "navigation_rounds", "board_rounds"):

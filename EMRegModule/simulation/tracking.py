@@ -233,6 +233,32 @@ def simulate_session(rng: np.random.Generator, visits: list[Visit], body_to_trac
     return recording, dwells, visit_body_to_tracker
 
 
+#: Probe conventions the simulator can write (see :mod:`EMRegModule.probe_axis`).
+PROBE_CONVENTIONS = ("+x_in", "+x_out", "none")
+
+
+def apply_probe_convention(recording: TrackingRecording, convention: str,
+                           probe_port: int = PROBE_PORT) -> TrackingRecording:
+    """The recording as a probe of another convention reports it (the sensor centre unchanged).
+
+    ``+x_in``: unchanged (+X into the hole, tip first); ``+x_out``: the sensor turned end for
+    end in its holder (180 degrees about its Z axis: +X points out of the hole);
+    ``none``: the probe rows carry a position only (no angles).
+    """
+    if convention not in PROBE_CONVENTIONS:
+        raise ValueError(f"probe convention must be one of {PROBE_CONVENTIONS}, got {convention!r}")
+    if convention == "+x_in":
+        return recording
+    rotation = recording.rotation.copy()
+    probe = recording.sensor == probe_port
+    if convention == "+x_out":
+        rotation[probe] = rotation[probe] @ np.diag([-1.0, -1.0, 1.0])
+    else:
+        rotation[probe] = np.nan
+    return TrackingRecording(recording.time_s, recording.sensor, recording.position_mm, rotation,
+                             recording.quality, recording.label, recording.source, recording.orientation_format)
+
+
 def _rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(rotvec).as_matrix()
 

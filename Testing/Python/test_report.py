@@ -1,6 +1,6 @@
 """The verification report: content, missing inputs, warnings, determinism, atomicity, batch, browser.
 
-Most tests use a small sample run (EMRegModule.rendering.samples.write_sample_run: a painted CT,
+Most tests use a small sample run (fixtures.samples.write_sample_run: a painted CT,
 spec-format outputs) so they do not depend on the detection pipeline; the end-to-end test runs
 ``emreg run`` on the simulated standard case when the simulator's fixture exists.
 """
@@ -18,12 +18,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from fixtures.samples import write_sample_run
 
 from EMRegModule.cli import main
 from EMRegModule.errors import EMRegError
 from EMRegModule.progress import Progress
-from EMRegModule.rendering.samples import write_sample_run
-from EMRegModule.report import FIGURE_DIR, fre_curve, load_report_inputs, write_report, write_reports_batch
+from EMRegModule.report import FIGURE_DIR, write_report, write_reports_batch
 
 CHROMIUM_CANDIDATES = ("/usr/bin/chromium", "/usr/bin/chromium-browser", "/usr/bin/google-chrome")
 ALL_FIGURES = ("scene_oblique", "scene_top", "marker_slices", "residuals", "fre_curve", "tre_targets")
@@ -115,17 +115,6 @@ def test_slices_show_the_fitted_outline_on_the_ct(sample_run):
     assert bright.sum() > 10000
 
 
-def test_fre_curve_is_lowest_at_the_solved_offset(sample_run):
-    root, truth, _ = sample_run
-    inputs = load_report_inputs(root / "out", read_image=False)
-    from EMRegModule.report import _pair_rows, calibration_points
-
-    curve = fre_curve(_pair_rows(inputs), calibration_points(inputs.frame_calibration), (11.0, 18.5), 751)
-    l_values, values = curve
-    assert abs(l_values[np.argmin(values)] - truth["solved_l_mm"]) < 0.011
-    assert abs(values.min() - truth["fre_mm"]) < 1e-6
-
-
 def test_report_is_deterministic(sample_run, tmp_path):
     root, _, first = sample_run
     out = _copy_run(sample_run, tmp_path)
@@ -200,7 +189,7 @@ def test_interrupted_report_keeps_the_previous_page(tmp_path, sample_run, monkey
     def broken(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr("EMRegModule.report.build_html", broken)
+    monkeypatch.setattr("EMRegModule.report.sections.build_html", broken)
     with pytest.raises(KeyboardInterrupt):
         write_report(out)
     assert (out / "report.html").read_bytes() == before
