@@ -43,14 +43,9 @@ from .io.atomic import atomic_write_json, read_json
 from .io.case import check_known_keys, setting_number
 from .io.itk_transform import write_slicer_linear_transform
 from .marker_model import MarkerModel
-<<<<<<< HEAD
-from .pairing import PairingSettings, pair_markers
-from .transforms import apply_transform, fit_rigid, is_rigid, residuals
-=======
 from .pairing import PairingSettings
 from .sensor_offset import solve_sensor_offset
-from .transforms import apply_transform, is_rigid, predicted_tre, residuals
->>>>>>> main
+from .transforms import apply_transform, is_rigid, residuals
 
 #: Name of the ITK transform file written beside ``registration.json``.
 TRANSFORM_FILE = "ReferenceToImage.h5"

@@ -146,7 +146,6 @@ def test_board_edges_match_the_truth(run):
         assert edges[name]["n"] == len(truth["board"]["dwells"]) // 4
 
 
-<<<<<<< HEAD
 def test_predicted_end_to_end_tre_matches_the_measured_one(run):
     """Issue 15's goal on each CI case: predicted RMS TRE within 0.8-1.25x of the measured one overall
     and within 0.65-1.5x per target; the registration's own prediction alone falls far short."""
@@ -187,7 +186,8 @@ def test_tre_map_covers_the_ct_and_agrees_with_the_targets_predictions(run):
         index = tre_map.TransformPhysicalPointToContinuousIndex([float(v) for v in position])
         at_target = map_coordinates(values, [[index[2]], [index[1]], [index[0]]], order=1)[0]
         assert at_target == pytest.approx(targets[label]["predicted_rms_mm"], rel=0.10)
-=======
+
+
 def test_run_names_the_dicom_series_it_used(hard_run):
     """The hard case's CT is a DICOM folder: run.json and markers.json name the series (issue 13)."""
     hard_case, out, _ = hard_run
@@ -197,4 +197,3 @@ def test_run_names_the_dicom_series_it_used(hard_run):
     assert used["slices"] == _load(out, "markers.json")["image"]["size"][2] == len(list((hard_case / "ct").iterdir()))
     assert used["slice_spacing_mm"] == pytest.approx(0.8, abs=1e-3) and used["series_instance_uid"]
     assert used["series_instance_uid"] in (out / "report.html").read_text(encoding="utf-8")  # named in the summary
->>>>>>> main
