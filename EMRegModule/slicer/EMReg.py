@@ -11,6 +11,12 @@ Layout (Slicer's scripted-module template): ``EMReg`` (module description), ``EM
 :class:`EMRegModule.controller.EMRegController`, plus the MRML nodes that show its results)
 and ``EMRegTest`` (drives the Logic end to end on a simulated case).
 
+The Logic needs only MRML nodes and ``slicer.util``: inside Slicer they are the application's;
+outside it (the tests) the ``slicer-core`` wheel provides them without Qt, and the scripted-module
+bases Slicer's application would provide are replaced by minimal ones (see the imports). The nodes
+are made by ``EMRegModule/io/slicer_scene.py``, which also writes the ``EMReg.mrb`` bundle of
+``emreg run``. Supported: 3D Slicer 5.10 and later (Python 3.12; EMReg needs 3.11).
+
 Coordinates: EMReg works in the CT's LPS space, Slicer in RAS. Markers and targets are
 converted point by point (x, y negated). ``ReferenceToImage`` becomes the linear transform
 node ``ReferenceToImage`` whose matrix is ``LPS_TO_RAS @ ReferenceToImage``: a node placed
