@@ -13,10 +13,14 @@ import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from . import __version__
 from .errors import EXIT_BAD_INPUT, EMRegError, NoSafeAnswerError, StageNotAvailableError
 from .progress import Progress
+
+if TYPE_CHECKING:
+    from .settings import Settings
 
 #: Output files of each stage in OUT, in workflow order (used to clear stale results).
 STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
@@ -51,17 +55,15 @@ def _progress(args: argparse.Namespace) -> Progress:
     return Progress(enabled=not getattr(args, "quiet", False))
 
 
-def _settings(args: argparse.Namespace, case_dir: Path | None = None) -> dict:
-    from .io.case import read_case_settings
+def _settings(args: argparse.Namespace, case_dir: Path | None = None) -> Settings:
+    """``--settings FILE``, else the case folder's ``case.toml``, else the defaults (typed, checked)."""
+    from .settings import load_settings
 
     if getattr(args, "settings", None):
-        path = Path(args.settings)
-        if not path.is_file():
-            raise EMRegError(f"{path}: settings file not found")
-        return read_case_settings(path)
+        return load_settings(args.settings, required=True)
     if case_dir is not None:
-        return read_case_settings(case_dir / "case.toml")
-    return {}
+        return load_settings(case_dir / "case.toml")
+    return load_settings(None)
 
 
 def _out_folder(out: str | Path | None, create: bool = True) -> Path | None:
@@ -99,12 +101,11 @@ def _out_file(out: str | Path) -> Path:
     return path
 
 
-def _with_series(settings: dict, args: argparse.Namespace) -> dict:
+def _with_series(settings: Settings, args: argparse.Namespace) -> Settings:
     """``--series UID|NUMBER`` overrides ``[ct] series`` of case.toml."""
-    if getattr(args, "series", None):
-        settings = dict(settings)
-        settings["ct"] = {**(settings.get("ct") or {}), "series": args.series}
-    return settings
+    from .settings import with_series
+
+    return with_series(settings, getattr(args, "series", None))
 
 
 def _warn(command: str, warnings: Sequence[str]) -> None:
@@ -113,7 +114,7 @@ def _warn(command: str, warnings: Sequence[str]) -> None:
         print(f"emreg {command}: warning: {warning}", file=sys.stderr)
 
 
-def _controller(args: argparse.Namespace, settings: dict):
+def _controller(args: argparse.Namespace, settings: Settings):
     from .controller import EMRegController
 
     controller = EMRegController(settings, _progress(args))
@@ -225,7 +226,7 @@ def cmd_navigate(args: argparse.Namespace) -> int:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     _need_stage("evaluation", "evaluation")
-    from .evaluation import evaluate_case, write_evaluation
+    from .evaluation import write_evaluation
     from .io.case import open_case
     from .registration import max_fre_from_settings, read_registration
 
@@ -241,10 +242,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         case.settings = _settings(args)
     controller = _controller(args, case.settings)
     controller.set_registration(read_registration(args.registration, max_fre_from_settings(case.settings)))
-    result = evaluate_case(case, controller.reference_to_image, controller.reference_sensor,
-                           controller.probe_sensor, controller.error_model)
+    result = controller.evaluate(case.read_recording("navigation"), case.read_targets(), case.read_recording("board"))
     write_evaluation(result, Path(args.out) / "evaluation.json")
-    _warn("evaluate", result.get("warnings", []))
+    _warn("evaluate", result.warnings)
     print(f"evaluation -> {Path(args.out) / 'evaluation.json'}")
     return 0
 
@@ -346,13 +346,13 @@ def run_case(
     """
     from .controller import EMRegController
     from .io.atomic import atomic_write_json
-    from .io.case import open_case, read_case_settings
+    from .io.case import open_case
+    from .settings import load_settings, with_series
 
     case = open_case(case_dir)
     if settings_path:
-        case.settings = read_case_settings(settings_path)
-    if series:
-        case.settings = {**case.settings, "ct": {**(case.settings.get("ct") or {}), "series": series}}
+        case.settings = load_settings(settings_path, required=True)
+    case.settings = with_series(case.settings, series)
     if case.ct is None:
         raise EMRegError(f"{case_dir}: no CT found (ct.nrrd, ct.nii.gz, ct.mha or a ct/ DICOM folder)")
     controller = EMRegController.for_case(case, progress)
@@ -415,21 +415,16 @@ def run_case(
         evaluation = None
         if controller.registration is not None and stage_available("evaluation") \
                 and (case.navigation is not None or case.board is not None):
-            from .evaluation import evaluate_case, write_evaluation
+            from .evaluation import write_evaluation
 
-            evaluation = evaluate_case(case, controller.reference_to_image, controller.reference_sensor,
-                                       controller.probe_sensor, controller.error_model)
+            evaluation = controller.evaluate(case.read_recording("navigation"), case.read_targets(),
+                                             case.read_recording("board"))
             write_evaluation(evaluation, out / "evaluation.json")
-            if "tre" in evaluation:
-                summary.append(f"evaluate: TRE {evaluation['tre']['mean_mm']:.2f} "
-                               f"+/- {evaluation['tre']['std_mm']:.2f} mm")
-            if "board" in evaluation:
-                summary.append("evaluate: board edges " + ", ".join(
-                    f"{k} {v['mean_mm']:.2f}" for k, v in evaluation["board"]["edges"].items()))
+            summary.extend(evaluation.summary())
         if controller.error_model is not None:
             from .tre_map import write_tre_map
 
-            tracking_rms = evaluation.get("tre", {}).get("tracking_rms_mm") if evaluation else None
+            tracking_rms = evaluation.tre.tracking_rms_mm if evaluation and evaluation.tre else None
             write_tre_map(out / "tre_map.nrrd", controller.error_model, controller.detection.image,
                           None if tracking_rms is None else tracking_rms**2)
         current = "report"

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EMRegError
-from ..io.case import DEFAULT_PROBE_SENSOR, DEFAULT_REFERENCE_SENSOR
+from ..settings import load_settings
 from ..transforms import is_rigid
 from . import trakstar_protocol as tp
 from .igtl_server import DEFAULT_PORT
@@ -31,17 +31,9 @@ from .igtl_server import DEFAULT_PORT
 
 
 def _sensor_ports(args: argparse.Namespace) -> tuple[int, int]:
-    settings: dict = {}
-    if getattr(args, "settings", None):
-        from ..io.case import read_case_settings
-
-        settings = read_case_settings(args.settings)
-    sensors = settings.get("sensors", {})
-    reference = args.reference_sensor or int(sensors.get("reference", DEFAULT_REFERENCE_SENSOR))
-    probe = args.probe_sensor or int(sensors.get("probe", DEFAULT_PROBE_SENSOR))
-    if reference == probe:
-        raise EMRegError(f"--reference-sensor and --probe-sensor are both port {reference}; give two different ports")
-    return reference, probe
+    settings = load_settings(getattr(args, "settings", None), required=True)
+    sensors = settings.with_sensors(args.reference_sensor, args.probe_sensor).sensors
+    return sensors.reference, sensors.probe
 
 
 def load_reference_to_image(path: str, settings_path: str | None = None) -> np.ndarray:
@@ -53,11 +45,7 @@ def load_reference_to_image(path: str, settings_path: str | None = None) -> np.n
     if importlib.util.find_spec("EMRegModule.registration") is not None:
         from ..registration import max_fre_from_settings, read_registration
 
-        settings: dict = {}
-        if settings_path:
-            from ..io.case import read_case_settings
-
-            settings = read_case_settings(settings_path)
+        settings = load_settings(settings_path, required=True)
         matrix = np.asarray(read_registration(path, max_fre_from_settings(settings)).reference_to_image, dtype=float)
     else:  # pragma: no cover - only before the registration stage exists
         from ..io.atomic import read_json

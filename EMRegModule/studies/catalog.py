@@ -16,7 +16,6 @@ import numpy as np
 from ..error_model import ErrorModel
 from ..evaluation import evaluate_board, evaluate_targets
 from ..io.case import open_case
-from ..io.tracking_csv import read_tracking_csv
 from ..rendering.plots import bar_chart, line_chart
 from .frame import Frame, calibrate_and_register, noise_model, simulate_navigation, with_noise
 
@@ -91,7 +90,8 @@ def _calibration_summary(rows: list[dict]) -> Summary:
 def _board_rows(frame: Frame, params: dict, rng: np.random.Generator) -> list[dict]:
     case = open_case(frame.case_dir)
     nominal = [float(v) for v in frame.truth["board"]["edges_mm"]]
-    result = evaluate_board(read_tracking_csv(case.board), case.reference_sensor, case.probe_sensor, nominal)
+    result = evaluate_board(case.read_recording("board"), case.reference_sensor, case.probe_sensor,
+                            nominal).to_json()
     return [{"edge": name, "mean_mm": e["mean_mm"], "std_mm": e["std_mm"], "nominal_mm": e["nominal_mm"],
              "abs_error_mean_mm": e["abs_error_mean_mm"], "abs_error_std_mm": e["abs_error_std_mm"]}
             for name, e in result["edges"].items()]
@@ -127,7 +127,7 @@ def _navigation_rows(frame: Frame, params: dict, rng: np.random.Generator) -> li
     model = ErrorModel.with_priors(session.registration.reference_to_image, session.registration.error)
     recording = simulate_navigation(frame, rng, rounds=params.get("placements", 15), noise=noise)
     result = evaluate_targets(recording, frame.target_labels, frame.targets_image,
-                              session.registration.reference_to_image, error_model=model)
+                              session.registration.reference_to_image, error_model=model).to_json()
     calibration_only = model.budget(frame.targets_image).rms_mm
     rows = []
     for k, label in enumerate(frame.target_labels):
