@@ -261,7 +261,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args))
         print(f"{len(pages)} reports written under {args.batch}")
         for folder in folders:
-            print(slicer_bundle(folder))
+            print(slicer_bundle(folder, progress=_progress(args)))
         return 0
     if not args.out:
         raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
@@ -269,11 +269,11 @@ def cmd_report(args: argparse.Namespace) -> int:
     case = Path(args.case) if args.case else None
     path = write_report(Path(args.out), case_dir=case, progress=_progress(args))
     print(f"report -> {path}")
-    print(slicer_bundle(Path(args.out), case))
+    print(slicer_bundle(Path(args.out), case, progress=_progress(args)))
     return 0
 
 
-def slicer_bundle(out: Path, case_dir: Path | None = None, image=None) -> str:
+def slicer_bundle(out: Path, case_dir: Path | None = None, image=None, progress: Progress | None = None) -> str:
     """Write ``OUT/EMReg.mrb`` (3D Slicer scene bundle) from the outputs in OUT; one summary line.
 
     Optional: without slicer-core, or when the bundle cannot be written (disk full, no
@@ -281,7 +281,8 @@ def slicer_bundle(out: Path, case_dir: Path | None = None, image=None) -> str:
     """
     from .io.slicer_scene import write_run_bundle
 
-    path, message = write_run_bundle(out, case_dir, image)
+    with (progress or Progress(enabled=False)).step("writing the 3D Slicer scene bundle"):
+        path, message = write_run_bundle(out, case_dir, image)
     if path is None:
         _warn("bundle", [message])
     return f"bundle: {message}"
@@ -438,7 +439,7 @@ def run_case(
         summary.append(f"{current}: refused: {exc}")
         atomic_write_json(out / "run.json", run_record)
         raise
-    summary.append(slicer_bundle(out, case.folder, controller.image))
+    summary.append(slicer_bundle(out, case.folder, controller.image, progress))
     atomic_write_json(out / "run.json", run_record)
     return summary
 
