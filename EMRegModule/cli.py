@@ -521,7 +521,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("out", nargs="?", metavar="OUT")
     p.add_argument("--case", metavar="CASE", help="the case folder (for the CT), when not recorded in OUT")
     p.add_argument("--batch", metavar="DIR", help="render a report in every output folder under DIR")
-    p.add_argument("--jobs", type=int, default=1)
+    p.add_argument("--jobs", type=int, default=1,
+                   help="reports rendered at a time with --batch (lowered to what the available memory holds)")
 
     p = add("run", cmd_run, "run every stage on a case folder")
     p.add_argument("case", metavar="CASE")
