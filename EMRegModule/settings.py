@@ -158,10 +158,18 @@ class EvaluationSettings(DwellSettings):
     """``[evaluation]``: the dwell keys (hand-held touches at targets shake more than a probe resting in
     a pinhole: ``still_radius_mm`` defaults to 1 mm here; targets and holes are tens of mm apart), and
     ``max_target_distance_mm`` (15): an unlabelled dwell farther than this from every target is not
-    counted for TRE."""
+    counted for TRE.
+
+    The error model's priors (:mod:`EMRegModule.error_model`): ``reference_error_mm`` and
+    ``reference_error_deg``, the reference sensor's per-axis pose error (default: a quarter of the
+    probe's measured per-dwell error, and the rotation that moves a point 100 mm away by as much);
+    ``placement_error_mm`` (0), the 3D RMS error of putting the probe on a target."""
 
     still_radius_mm: float = positive(1.0)
     max_target_distance_mm: float = positive(15.0)
+    reference_error_mm: float | None = non_negative(None)
+    reference_error_deg: float | None = non_negative(None)
+    placement_error_mm: float = non_negative(0.0)
 
 
 # --- [registration] ----------------------------------------------------------------------------
