@@ -13,16 +13,20 @@ import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from . import __version__
 from .errors import EXIT_BAD_INPUT, EMRegError, NoSafeAnswerError, StageNotAvailableError
 from .progress import Progress
 
+if TYPE_CHECKING:
+    from .settings import Settings
+
 #: Output files of each stage in OUT, in workflow order (used to clear stale results).
 STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
     "detect": ("markers.json", "markers.mrk.json"),
     "calibrate": ("frame_calibration.json",),
-    "register": ("registration.json", "ReferenceToImage.h5"),
+    "register": ("registration.json", "ReferenceToImage.h5", "tre_map.nrrd"),
     "navigate": ("navigation.csv",),
     "evaluate": ("evaluation.json",),
     "report": ("report.html", "EMReg.mrb"),
@@ -51,17 +55,15 @@ def _progress(args: argparse.Namespace) -> Progress:
     return Progress(enabled=not getattr(args, "quiet", False))
 
 
-def _settings(args: argparse.Namespace, case_dir: Path | None = None) -> dict:
-    from .io.case import read_case_settings
+def _settings(args: argparse.Namespace, case_dir: Path | None = None) -> Settings:
+    """``--settings FILE``, else the case folder's ``case.toml``, else the defaults (typed, checked)."""
+    from .settings import load_settings
 
     if getattr(args, "settings", None):
-        path = Path(args.settings)
-        if not path.is_file():
-            raise EMRegError(f"{path}: settings file not found")
-        return read_case_settings(path)
+        return load_settings(args.settings, required=True)
     if case_dir is not None:
-        return read_case_settings(case_dir / "case.toml")
-    return {}
+        return load_settings(case_dir / "case.toml")
+    return load_settings(None)
 
 
 def _out_folder(out: str | Path | None, create: bool = True) -> Path | None:
@@ -99,12 +101,11 @@ def _out_file(out: str | Path) -> Path:
     return path
 
 
-def _with_series(settings: dict, args: argparse.Namespace) -> dict:
+def _with_series(settings: Settings, args: argparse.Namespace) -> Settings:
     """``--series UID|NUMBER`` overrides ``[ct] series`` of case.toml."""
-    if getattr(args, "series", None):
-        settings = dict(settings)
-        settings["ct"] = {**(settings.get("ct") or {}), "series": args.series}
-    return settings
+    from .settings import with_series
+
+    return with_series(settings, getattr(args, "series", None))
 
 
 def _warn(command: str, warnings: Sequence[str]) -> None:
@@ -113,7 +114,7 @@ def _warn(command: str, warnings: Sequence[str]) -> None:
         print(f"emreg {command}: warning: {warning}", file=sys.stderr)
 
 
-def _controller(args: argparse.Namespace, settings: dict):
+def _controller(args: argparse.Namespace, settings: Settings):
     from .controller import EMRegController
 
     controller = EMRegController(settings, _progress(args))
@@ -225,7 +226,7 @@ def cmd_navigate(args: argparse.Namespace) -> int:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     _need_stage("evaluation", "evaluation")
-    from .evaluation import evaluate_case, write_evaluation
+    from .evaluation import write_evaluation
     from .io.case import open_case
     from .registration import max_fre_from_settings, read_registration
 
@@ -241,10 +242,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         case.settings = _settings(args)
     controller = _controller(args, case.settings)
     controller.set_registration(read_registration(args.registration, max_fre_from_settings(case.settings)))
-    result = evaluate_case(case, controller.reference_to_image, controller.reference_sensor,
-                           controller.probe_sensor)
+    result = controller.evaluate(case.read_recording("navigation"), case.read_targets(), case.read_recording("board"))
     write_evaluation(result, Path(args.out) / "evaluation.json")
-    _warn("evaluate", result.get("warnings", []))
+    _warn("evaluate", result.warnings)
     print(f"evaluation -> {Path(args.out) / 'evaluation.json'}")
     return 0
 
@@ -261,7 +261,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args))
         print(f"{len(pages)} reports written under {args.batch}")
         for folder in folders:
-            print(slicer_bundle(folder))
+            print(slicer_bundle(folder, progress=_progress(args)))
         return 0
     if not args.out:
         raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
@@ -269,11 +269,11 @@ def cmd_report(args: argparse.Namespace) -> int:
     case = Path(args.case) if args.case else None
     path = write_report(Path(args.out), case_dir=case, progress=_progress(args))
     print(f"report -> {path}")
-    print(slicer_bundle(Path(args.out), case))
+    print(slicer_bundle(Path(args.out), case, progress=_progress(args)))
     return 0
 
 
-def slicer_bundle(out: Path, case_dir: Path | None = None, image=None) -> str:
+def slicer_bundle(out: Path, case_dir: Path | None = None, image=None, progress: Progress | None = None) -> str:
     """Write ``OUT/EMReg.mrb`` (3D Slicer scene bundle) from the outputs in OUT; one summary line.
 
     Optional: without slicer-core, or when the bundle cannot be written (disk full, no
@@ -281,7 +281,8 @@ def slicer_bundle(out: Path, case_dir: Path | None = None, image=None) -> str:
     """
     from .io.slicer_scene import write_run_bundle
 
-    path, message = write_run_bundle(out, case_dir, image)
+    with (progress or Progress(enabled=False)).step("writing the 3D Slicer scene bundle"):
+        path, message = write_run_bundle(out, case_dir, image)
     if path is None:
         _warn("bundle", [message])
     return f"bundle: {message}"
@@ -313,6 +314,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_study(args: argparse.Namespace) -> int:
+    from .studies import STUDIES, format_table, run_study
+
+    summary = run_study(args.name, Path(args.out), quick=args.quick, scheduler=args.scheduler, workers=args.workers,
+                        case_dir=Path(args.case) if args.case else None,
+                        work=Path(args.work) if args.work else None, seed=args.seed, progress=_progress(args))
+    print(f"{STUDIES[args.name].title}\n")
+    print(format_table(summary))
+    print(f"\n-> {Path(args.out) / args.name}.json, .csv, .png")
+    return 0
+
+
 def _remove_outputs(out: Path, from_stage: str) -> None:
     """Delete the outputs of ``from_stage`` and every later stage (stale after a refusal)."""
     stages = list(STAGE_OUTPUTS)
@@ -334,13 +347,13 @@ def run_case(
     """
     from .controller import EMRegController
     from .io.atomic import atomic_write_json
-    from .io.case import open_case, read_case_settings
+    from .io.case import open_case
+    from .settings import load_settings, with_series
 
     case = open_case(case_dir)
     if settings_path:
-        case.settings = read_case_settings(settings_path)
-    if series:
-        case.settings = {**case.settings, "ct": {**(case.settings.get("ct") or {}), "series": series}}
+        case.settings = load_settings(settings_path, required=True)
+    case.settings = with_series(case.settings, series)
     if case.ct is None:
         raise EMRegError(f"{case_dir}: no CT found (ct.nrrd, ct.nii.gz, ct.mha or a ct/ DICOM folder)")
     controller = EMRegController.for_case(case, progress)
@@ -400,19 +413,21 @@ def run_case(
             write_navigation_csv(navigation, out / "navigation.csv")
             summary.append(f"navigate: {len(navigation)} probe samples")
         current = "evaluate"
+        evaluation = None
         if controller.registration is not None and stage_available("evaluation") \
                 and (case.navigation is not None or case.board is not None):
-            from .evaluation import evaluate_case, write_evaluation
+            from .evaluation import write_evaluation
 
-            evaluation = evaluate_case(case, controller.reference_to_image, controller.reference_sensor,
-                                       controller.probe_sensor)
+            evaluation = controller.evaluate(case.read_recording("navigation"), case.read_targets(),
+                                             case.read_recording("board"))
             write_evaluation(evaluation, out / "evaluation.json")
-            if "tre" in evaluation:
-                summary.append(f"evaluate: TRE {evaluation['tre']['mean_mm']:.2f} "
-                               f"+/- {evaluation['tre']['std_mm']:.2f} mm")
-            if "board" in evaluation:
-                summary.append("evaluate: board edges " + ", ".join(
-                    f"{k} {v['mean_mm']:.2f}" for k, v in evaluation["board"]["edges"].items()))
+            summary.extend(evaluation.summary())
+        if controller.error_model is not None:
+            from .tre_map import write_tre_map
+
+            tracking_rms = evaluation.tre.tracking_rms_mm if evaluation and evaluation.tre else None
+            write_tre_map(out / "tre_map.nrrd", controller.error_model, controller.detection.image,
+                          None if tracking_rms is None else tracking_rms**2)
         current = "report"
         if stage_available("report"):
             from .report import write_report
@@ -424,7 +439,7 @@ def run_case(
         summary.append(f"{current}: refused: {exc}")
         atomic_write_json(out / "run.json", run_record)
         raise
-    summary.append(slicer_bundle(out, case.folder, controller.image))
+    summary.append(slicer_bundle(out, case.folder, controller.image, progress))
     atomic_write_json(out / "run.json", run_record)
     return summary
 
@@ -506,7 +521,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("out", nargs="?", metavar="OUT")
     p.add_argument("--case", metavar="CASE", help="the case folder (for the CT), when not recorded in OUT")
     p.add_argument("--batch", metavar="DIR", help="render a report in every output folder under DIR")
-    p.add_argument("--jobs", type=int, default=1)
+    p.add_argument("--jobs", type=int, default=1,
+                   help="reports rendered at a time with --batch (lowered to what the available memory holds)")
 
     p = add("run", cmd_run, "run every stage on a case folder")
     p.add_argument("case", metavar="CASE")
@@ -518,6 +534,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="demo-output", metavar="DIR")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--spacing", type=float, default=None, metavar="MM")
+
+    p = add("study", cmd_study, "an accuracy study on simulated data, run on Dask: OUT/NAME.json, .csv, .png")
+    p.add_argument("name", metavar="NAME", help="calibration, board, tre, noise, markers or prediction")
+    p.add_argument("--out", required=True, metavar="DIR")
+    p.add_argument("--quick", action="store_true", help="a small frame and few sessions (a smoke-sized run)")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="an existing Dask scheduler (default: a local one)")
+    p.add_argument("--workers", type=int, default=None, metavar="N", help="local worker processes (default 2)")
+    p.add_argument("--case", metavar="CASE", help="a simulated case folder with truth.json (default: simulate one)")
+    p.add_argument("--work", metavar="DIR", help="where the simulated case and its detection are kept (OUT/work)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the simulated case")
 
     if stage_available("live"):
         from .live import commands as live

@@ -13,6 +13,9 @@
   the mean and the mean +- std of the per-round errors (the paper's Table 1 layout).
 
 Standard deviations are sample standard deviations (ddof = 1; 0 for a single value).
+The stages take recordings and targets already read and return typed results
+(:class:`Evaluation`, :class:`TargetEvaluation`, :class:`BoardEvaluation`) that hold full-precision
+values; ``to_json`` rounds (4 decimals) only when ``evaluation.json`` is written.
 """
 
 from __future__ import annotations
@@ -20,60 +23,305 @@ from __future__ import annotations
 import os
 import re
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from .dwell import Dwell, DwellSettings, find_dwells, group_by_place, robust_mean
+from .dwell import Dwell, find_dwells, group_by_place, robust_mean
+from .error_model import ErrorModel, repeated_dwell_ms
 from .errors import EMRegError
-from .io.atomic import atomic_write_json
-from .io.case import Case
+from .io.atomic import atomic_write_json, read_json
+from .navigation import navigate_recording
+from .settings import DwellSettings, EvaluationSettings
 from .tracking import TrackingRecording, probe_in_reference
 
-#: Dwells farther than this from every target (mm) are not counted for TRE (unlabelled recordings).
-DEFAULT_MAX_TARGET_DISTANCE_MM = 15.0
-#: Stillness radius (mm) for finding dwells in navigation and board recordings without labels.
-DEFAULT_STILL_RADIUS_MM = 1.0
+#: The name of the evaluation file in an output folder.
+EVALUATION_JSON = "evaluation.json"
 
 
-def evaluate_case(case: Case, reference_to_image: np.ndarray, reference_sensor: int = 1,
-                  probe_sensor: int = 2) -> dict[str, Any]:
-    """The ``evaluation.json`` content for a case folder: ``tre`` when the case has a navigation
-    recording and targets, ``board`` when it has a board recording (see module docstring).
+# --- typed results ---------------------------------------------------------------------------
 
-    ``reference_to_image``: Reference -> CT LPS (mm). Settings: ``case.toml`` ``[evaluation]``
-    (dwell keys as in ``[calibration]``, ``still_radius_mm`` defaulting to 1 mm here, and
-    ``max_target_distance_mm``) and ``[board] edges_mm``.
+
+@dataclass
+class Stats:
+    """Mean, sample std (ddof 1; 0 for one value) and count of a set of lengths or errors (mm); None when empty."""
+
+    mean_mm: float | None
+    std_mm: float | None
+    n: int
+
+    @classmethod
+    def of(cls, values: Sequence[float] | np.ndarray) -> Stats:
+        values = np.asarray(values, dtype=float)
+        if len(values) == 0:
+            return cls(None, None, 0)
+        return cls(float(values.mean()), _std(values), int(len(values)))
+
+    def to_json(self) -> dict[str, Any]:
+        return {"mean_mm": _round(self.mean_mm), "std_mm": _round(self.std_mm), "n": int(self.n)}
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any]) -> Stats:
+        return cls(_maybe_float(document.get("mean_mm")), _maybe_float(document.get("std_mm")), int(document["n"]))
+
+
+@dataclass
+class TargetDwell:
+    """One dwell at a target: its error (mm), time span (s), samples, and mean probe position (LPS mm)."""
+
+    target: str
+    error_mm: float
+    start_s: float
+    end_s: float
+    samples: int
+    position: np.ndarray
+
+    def to_json(self) -> dict[str, Any]:
+        return {"target": self.target, "error_mm": round(self.error_mm, 4), "start_s": round(self.start_s, 4),
+                "end_s": round(self.end_s, 4), "samples": int(self.samples),
+                "position": [round(float(v), 4) for v in self.position]}
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any]) -> TargetDwell:
+        return cls(str(document["target"]), float(document["error_mm"]), float(document["start_s"]),
+                   float(document["end_s"]), int(document["samples"]), np.asarray(document["position"], dtype=float))
+
+
+@dataclass
+class TargetPrediction:
+    """The end-to-end RMS TRE predicted at one target (mm) and its budget: each term's own RMS (mm),
+    adding in quadrature (registration, tracking, reference, placement; :mod:`EMRegModule.error_model`)."""
+
+    predicted_rms_mm: float
+    budget_rms_mm: dict[str, float]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"predicted_rms_mm": _round(_finite_or_none(self.predicted_rms_mm)),
+                "budget_rms_mm": {k: _round(_finite_or_none(v)) for k, v in self.budget_rms_mm.items()}}
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any]) -> TargetPrediction:
+        def number(value: Any) -> float:
+            return float("inf") if value is None else float(value)
+
+        return cls(number(document["predicted_rms_mm"]),
+                   {str(k): number(v) for k, v in document.get("budget_rms_mm", {}).items()})
+
+
+@dataclass
+class TargetEvaluation:
+    """TRE: one error per dwell at a target (``dwells``), statistics per target, dwells matched to no target.
+
+    ``predictions``: per target the predicted end-to-end RMS TRE and its budget, when the evaluation
+    had the registration's error model; ``tracking_rms_mm`` and ``tracking_source``: the probe's
+    per-dwell error the predictions used and where it came from.
     """
-    from .io.markups import read_markups
-    from .io.tracking_csv import read_tracking_csv
 
-    section = case.section("evaluation")
-    # Hand-held touches at targets shake more than a probe resting in a pinhole: a wider
-    # stillness radius by default (targets and holes are tens of mm apart).
-    dwell_settings = DwellSettings.from_settings({"still_radius_mm": DEFAULT_STILL_RADIUS_MM, **section}, "evaluation")
-    result: dict[str, Any] = {}
-    warnings: list[str] = []
-    if case.navigation is not None and case.targets is not None:
-        labels, positions = read_markups(case.targets)
-        recording = read_tracking_csv(case.navigation)
-        warnings += recording.warnings
-        result["tre"] = evaluate_targets(
-            recording, labels, positions, reference_to_image, reference_sensor, probe_sensor, dwell_settings,
-            float(section.get("max_target_distance_mm", DEFAULT_MAX_TARGET_DISTANCE_MM)),
-        )
-    if case.board is not None:
-        nominal = case.section("board").get("edges_mm")
-        if nominal is not None:
-            try:
-                nominal = [float(v) for v in nominal]
-            except (TypeError, ValueError):
-                raise EMRegError(f"{case.folder / 'case.toml'}: [board] edges_mm must be a list of numbers") from None
-        board = read_tracking_csv(case.board)
-        result["board"] = evaluate_board(board, reference_sensor, probe_sensor, nominal, dwell_settings)
-        warnings += board.warnings
-    if warnings:
-        result["warnings"] = warnings  # time resets / gaps found in the recordings (kept as segments)
+    dwells: list[TargetDwell]
+    targets: dict[str, Stats]
+    unmatched_dwells: int = 0
+    labelled: bool = False
+    predictions: dict[str, TargetPrediction] = field(default_factory=dict)
+    tracking_rms_mm: float | None = None
+    tracking_source: str | None = None
+
+    @property
+    def errors_mm(self) -> np.ndarray:
+        return np.array([d.error_mm for d in self.dwells], dtype=float)
+
+    @property
+    def mean_mm(self) -> float:
+        return float(self.errors_mm.mean())
+
+    @property
+    def std_mm(self) -> float:
+        return _std(self.errors_mm)
+
+    @property
+    def predicted_rms_mm(self) -> float | None:
+        """The predicted RMS TRE over all dwells (each target weighted by its dwells), or None."""
+        if not self.predictions:
+            return None
+        counts = {label: stats.n for label, stats in self.targets.items()}
+        squares = sum(counts[k] * p.predicted_rms_mm**2 for k, p in self.predictions.items())
+        return float(np.sqrt(squares / sum(counts[k] for k in self.predictions)))
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``tre`` block. Its overall figures are over the dwell errors as written (4 decimals), so the
+        file is self-consistent: the ``dwells`` listed give back ``mean_mm``, ``std_mm``, ``rms_mm`` and ``max_mm``."""
+        dwells = [d.to_json() for d in self.dwells]
+        errors = np.array([d["error_mm"] for d in dwells])
+        targets = {}
+        for label, stats in self.targets.items():
+            mine = np.array([d["error_mm"] for d in dwells if d["target"] == label])
+            targets[label] = {**stats.to_json(), "rms_mm": _rms(mine)}
+            if label in self.predictions:
+                targets[label].update(self.predictions[label].to_json())
+        document = {"mean_mm": round(float(errors.mean()), 4), "std_mm": round(_std(errors), 4), "n": len(errors),
+                    "max_mm": round(float(errors.max()), 4), "rms_mm": _rms(errors), "targets": targets,
+                    "dwells": dwells, "unmatched_dwells": int(self.unmatched_dwells), "labelled": bool(self.labelled)}
+        if self.predictions:
+            document.update(predicted_rms_mm=_round(_finite_or_none(self.predicted_rms_mm)),
+                            tracking_rms_mm=_round(self.tracking_rms_mm), tracking_source=self.tracking_source)
+        return document
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any]) -> TargetEvaluation:
+        targets = document.get("targets", {})
+        return cls([TargetDwell.from_json(d) for d in document.get("dwells", [])],
+                   {str(k): Stats.from_json(v) for k, v in targets.items()},
+                   int(document.get("unmatched_dwells", 0)), bool(document.get("labelled", False)),
+                   {str(k): TargetPrediction.from_json(v) for k, v in targets.items() if "predicted_rms_mm" in v},
+                   _maybe_float(document.get("tracking_rms_mm")), document.get("tracking_source"))
+
+
+@dataclass
+class BoardEdge:
+    """One board edge between two holes: its length statistics over the rounds (mm) and, with a nominal
+    length, the error of the mean and the mean +- std of the per-round errors (mm and percent)."""
+
+    holes: tuple[str, str]
+    length: Stats
+    nominal_mm: float | None = None
+    abs_error_mm: float | None = None
+    rel_error_percent: float | None = None
+    abs_error_mean_mm: float | None = None
+    abs_error_std_mm: float | None = None
+    rel_error_mean_percent: float | None = None
+    rel_error_std_percent: float | None = None
+
+    _ERROR_KEYS = ("abs_error_mm", "rel_error_percent", "abs_error_mean_mm", "abs_error_std_mm",
+                   "rel_error_mean_percent", "rel_error_std_percent")
+
+    @classmethod
+    def measure(cls, holes: tuple[str, str], lengths: Sequence[float], nominal_mm: float | None) -> BoardEdge:
+        edge = cls(holes, Stats.of(lengths))
+        if nominal_mm is not None and len(lengths):
+            length = np.asarray(lengths, dtype=float)
+            error = np.abs(length - nominal_mm)
+            mean_error = abs(float(length.mean()) - nominal_mm)
+            edge.nominal_mm = nominal_mm
+            edge.abs_error_mm, edge.rel_error_percent = mean_error, 100 * mean_error / nominal_mm
+            edge.abs_error_mean_mm, edge.abs_error_std_mm = float(error.mean()), _std(error)
+            edge.rel_error_mean_percent = float(100 * (error / nominal_mm).mean())
+            edge.rel_error_std_percent = 100 * _std(error / nominal_mm)
+        return edge
+
+    def to_json(self) -> dict[str, Any]:
+        document = {**self.length.to_json(), "holes": list(self.holes)}
+        if self.nominal_mm is not None:
+            document["nominal_mm"] = self.nominal_mm
+            document.update({key: _round(getattr(self, key)) for key in self._ERROR_KEYS})
+        return document
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any]) -> BoardEdge:
+        a, b = document["holes"]
+        return cls((str(a), str(b)), Stats.from_json(document), _maybe_float(document.get("nominal_mm")),
+                   **{key: _maybe_float(document.get(key)) for key in cls._ERROR_KEYS})
+
+
+@dataclass
+class BoardEvaluation:
+    """The board-phantom table: edges L1..Ln, rounds and dwells counted, the frame the hole positions
+    (``holes``, mm) are in, and whether the recording was labelled."""
+
+    edges: dict[str, BoardEdge]
+    rounds: int
+    dwells: int
+    frame: str
+    holes: dict[str, np.ndarray]
+    labelled: bool
+
+    def to_json(self) -> dict[str, Any]:
+        return {"edges": {k: v.to_json() for k, v in self.edges.items()}, "rounds": int(self.rounds),
+                "dwells": int(self.dwells), "frame": self.frame,
+                "holes": {k: [round(float(v), 4) for v in p] for k, p in self.holes.items()},
+                "labelled": bool(self.labelled)}
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any]) -> BoardEvaluation:
+        return cls({str(k): BoardEdge.from_json(v) for k, v in document["edges"].items()}, int(document["rounds"]),
+                   int(document["dwells"]), str(document["frame"]),
+                   {str(k): np.asarray(v, dtype=float) for k, v in document.get("holes", {}).items()},
+                   bool(document.get("labelled", False)))
+
+
+@dataclass
+class Evaluation:
+    """What ``emreg evaluate`` found: ``tre`` (navigation recording and targets), ``board`` (board
+    recording); either is None when its inputs are absent. ``extra`` keeps keys added by others."""
+
+    tre: TargetEvaluation | None = None
+    board: BoardEvaluation | None = None
+    warnings: list[str] = field(default_factory=list)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``evaluation.json`` document (spec keys; values rounded to 4 decimals)."""
+        document: dict[str, Any] = {}
+        if self.tre is not None:
+            document["tre"] = self.tre.to_json()
+        if self.board is not None:
+            document["board"] = self.board.to_json()
+        if self.warnings:
+            document["warnings"] = list(self.warnings)
+        document.update(self.extra)
+        return document
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any], source: str = EVALUATION_JSON) -> Evaluation:
+        """Parse an ``evaluation.json`` document; :class:`EMRegError` naming ``source`` if malformed."""
+        try:
+            tre = document.get("tre")
+            board = document.get("board")
+            return cls(None if tre is None else TargetEvaluation.from_json(tre),
+                       None if board is None else BoardEvaluation.from_json(board),
+                       [str(w) for w in document.get("warnings", [])],
+                       {k: v for k, v in document.items() if k not in ("tre", "board", "warnings")})
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise EMRegError(f"{source}: not an evaluation file ({exc!s:.100})") from None
+
+    def summary(self) -> list[str]:
+        """One line per part, for the terminal and ``run.json``."""
+        lines = []
+        if self.tre is not None:
+            tre = self.tre.to_json()
+            lines.append(f"evaluate: TRE {tre['mean_mm']:.2f} +/- {tre['std_mm']:.2f} mm")
+        if self.board is not None:
+            edges = self.board.to_json()["edges"]
+            lines.append("evaluate: board edges " + ", ".join(f"{k} {v['mean_mm']:.2f}" for k, v in edges.items()))
+        return lines
+
+
+def evaluate(
+    reference_to_image: np.ndarray,
+    reference_sensor: int,
+    probe_sensor: int,
+    settings: EvaluationSettings | None = None,
+    navigation: TrackingRecording | None = None,
+    targets: tuple[Sequence[str], np.ndarray] | None = None,
+    board: TrackingRecording | None = None,
+    nominal_edges_mm: Sequence[float] | None = None,
+    error_model: ErrorModel | None = None,
+) -> Evaluation:
+    """TRE when a navigation recording and targets (labels, (K, 3) LPS mm) are given, the board table
+    when a board recording is; ``reference_to_image``: Reference -> CT LPS (mm).
+
+    ``settings``: the ``[evaluation]`` table; ``nominal_edges_mm``: ``[board] edges_mm``;
+    ``error_model``: the registration's, for the predicted TRE beside the measured one.
+    """
+    settings = settings or EvaluationSettings()
+    result = Evaluation()
+    if navigation is not None and targets is not None:
+        labels, positions = targets
+        result.tre = evaluate_targets(navigation, labels, positions, reference_to_image, reference_sensor,
+                                      probe_sensor, settings, settings.max_target_distance_mm, error_model)
+        result.warnings += navigation.warnings
+    if board is not None:
+        result.board = evaluate_board(board, reference_sensor, probe_sensor, nominal_edges_mm, settings)
+        result.warnings += board.warnings  # time resets / gaps found in the recordings (kept as segments)
     return result
 
 
@@ -88,11 +336,18 @@ def evaluate_targets(
     reference_sensor: int = 1,
     probe_sensor: int = 2,
     settings: DwellSettings | None = None,
-    max_target_distance_mm: float = DEFAULT_MAX_TARGET_DISTANCE_MM,
-) -> dict[str, Any]:
-    """TRE per target over its dwells and overall (mm). ``targets_image`` (K, 3) LPS mm."""
-    from .navigation import navigate_recording
+    max_target_distance_mm: float | None = None,
+    error_model: ErrorModel | None = None,
+) -> TargetEvaluation:
+    """TRE per target over its dwells and overall (mm). ``targets_image`` (K, 3) LPS mm.
 
+    ``max_target_distance_mm``: an unlabelled dwell farther from every target is not counted
+    (default: the ``[evaluation]`` default). With ``error_model`` (the registration's), each target
+    also gets the predicted end-to-end RMS TRE and its budget; the tracking term is then measured
+    from the scatter of repeated dwells at the same target when there are any.
+    """
+    if max_target_distance_mm is None:
+        max_target_distance_mm = EvaluationSettings().max_target_distance_mm
     targets_image = np.asarray(targets_image, dtype=float).reshape(-1, 3)
     if len(targets_image) == 0:
         raise EMRegError("evaluation: the targets file holds no target points")
@@ -101,7 +356,7 @@ def evaluate_targets(
     dwells = find_dwells(navigation.time_s, position, navigation.label, navigation.quality, settings)
     index_of = {str(label): k for k, label in enumerate(target_labels)}
     per_target: dict[str, list[float]] = {str(label): [] for label in target_labels}
-    details = []
+    found: list[TargetDwell] = []
     unmatched = 0
     for dwell in dwells:
         mean = robust_mean(position[dwell.indices]).mean
@@ -119,17 +374,32 @@ def evaluate_targets(
         error = float(np.linalg.norm(mean - targets_image[k]))
         label = str(target_labels[k])
         per_target[label].append(error)
-        details.append({"target": label, "error_mm": round(error, 4), "start_s": round(dwell.start_s, 4),
-                        "end_s": round(dwell.end_s, 4), "samples": len(dwell),
-                        "position": [round(float(v), 4) for v in mean]})
-    errors = np.array([d["error_mm"] for d in details])
-    if len(errors) == 0:
+        found.append(TargetDwell(label, error, float(dwell.start_s), float(dwell.end_s), len(dwell), mean))
+    if not found:
         raise EMRegError(f"{recording.source}: no probe dwell at any target was found; "
                          "check the navigation recording's labels and the targets file")
-    targets = {label: _stats(values) for label, values in per_target.items() if values}
-    return {"mean_mm": round(float(errors.mean()), 4), "std_mm": round(_std(errors), 4), "n": len(errors),
-            "max_mm": round(float(errors.max()), 4), "targets": targets, "dwells": details,
-            "unmatched_dwells": unmatched, "labelled": bool(dwells and dwells[0].label)}
+    targets = {label: Stats.of(values) for label, values in per_target.items() if values}
+    result = TargetEvaluation(found, targets, unmatched, bool(dwells and dwells[0].label))
+    if error_model is not None:
+        _predict(result, target_labels, targets_image, error_model)
+    return result
+
+
+def _predict(result: TargetEvaluation, target_labels: Sequence[str], targets_image: np.ndarray,
+             error_model: ErrorModel) -> None:
+    """Fill ``result.predictions``: the error model's budget at each visited target."""
+    means: dict[str, list[np.ndarray]] = {}
+    for dwell in result.dwells:
+        means.setdefault(dwell.target, []).append(dwell.position)
+    repeated = repeated_dwell_ms({k: np.array(v) for k, v in means.items()})
+    budget = error_model.budget(targets_image, None if repeated is None else repeated[0])
+    terms = budget.term_rms_mm()
+    for k, label in enumerate(map(str, target_labels)):
+        if label in result.targets:
+            result.predictions[label] = TargetPrediction(float(budget.rms_mm[k]),
+                                                         {name: float(v[k]) for name, v in terms.items()})
+    result.tracking_rms_mm = float(np.sqrt(budget.tracking_ms[0]))
+    result.tracking_source = "repeated dwells at the targets" if repeated is not None else "calibration"
 
 
 # --- board phantom ---------------------------------------------------------------------------
@@ -141,7 +411,7 @@ def evaluate_board(
     probe_sensor: int = 2,
     nominal_edges_mm: Sequence[float] | None = None,
     settings: DwellSettings | None = None,
-) -> dict[str, Any]:
+) -> BoardEvaluation:
     """Board-phantom edge lengths from a recording of the probe in each corner hole in turn
     (positions in the Reference frame; in the Tracker frame if the recording has no reference)."""
     settings = settings or DwellSettings()
@@ -162,36 +432,20 @@ def evaluate_board(
     if n_holes < 3:
         raise EMRegError(f"{recording.source}: the board recording visits {n_holes} hole(s); at least 3 needed")
     rounds = _rounds(hole_of_dwell)
-    edges: dict[str, Any] = {}
-    nominal = None if nominal_edges_mm is None else list(nominal_edges_mm)
+    nominal = None if nominal_edges_mm is None else [float(v) for v in nominal_edges_mm]
     if nominal is not None and len(nominal) != n_holes:
         raise EMRegError(f"case.toml [board] edges_mm has {len(nominal)} values but the board recording "
                          f"visits {n_holes} holes")
+    edges: dict[str, BoardEdge] = {}
     for k in range(n_holes):
         h1, h2 = k, (k + 1) % n_holes
-        lengths = []
-        for round_dwells in rounds:
-            if h1 in round_dwells and h2 in round_dwells:
-                lengths.append(float(np.linalg.norm(centres[round_dwells[h1]] - centres[round_dwells[h2]])))
-        entry = _stats(lengths)
-        entry["holes"] = [hole_names[h1], hole_names[h2]]
-        if nominal is not None and lengths:
-            length = np.asarray(lengths)
-            error = np.abs(length - nominal[k])
-            entry.update({
-                "nominal_mm": nominal[k],
-                "abs_error_mm": round(abs(float(length.mean()) - nominal[k]), 4),
-                "rel_error_percent": round(100 * abs(float(length.mean()) - nominal[k]) / nominal[k], 4),
-                "abs_error_mean_mm": round(float(error.mean()), 4), "abs_error_std_mm": round(_std(error), 4),
-                "rel_error_mean_percent": round(float(100 * (error / nominal[k]).mean()), 4),
-                "rel_error_std_percent": round(100 * _std(error / nominal[k]), 4),
-            })
-        edges[f"L{k + 1}"] = entry
-    holes = {name: [round(float(v), 4) for v in robust_mean(
-        np.concatenate([position[dwells[d].indices] for d in np.nonzero(hole_of_dwell == h)[0]])).mean]
-        for h, name in enumerate(hole_names)}
-    return {"edges": edges, "rounds": len(rounds), "dwells": len(dwells), "frame": frame, "holes": holes,
-            "labelled": bool(dwells[0].label)}
+        lengths = [float(np.linalg.norm(centres[r[h1]] - centres[r[h2]])) for r in rounds if h1 in r and h2 in r]
+        edges[f"L{k + 1}"] = BoardEdge.measure((hole_names[h1], hole_names[h2]), lengths,
+                                               None if nominal is None else nominal[k])
+    holes = {name: robust_mean(np.concatenate([position[dwells[d].indices]
+                                               for d in np.nonzero(hole_of_dwell == h)[0]])).mean
+             for h, name in enumerate(hole_names)}
+    return BoardEvaluation(edges, len(rounds), len(dwells), frame, holes, bool(dwells[0].label))
 
 
 def _board_holes(dwells: list[Dwell], centres: np.ndarray, settings: DwellSettings) -> tuple[np.ndarray, list[str]]:
@@ -226,13 +480,31 @@ def _std(values: Sequence[float] | np.ndarray) -> float:
     return float(values.std(ddof=1)) if len(values) > 1 else 0.0
 
 
-def _stats(values: Sequence[float]) -> dict[str, Any]:
-    values = np.asarray(values, dtype=float)
-    if len(values) == 0:
-        return {"mean_mm": None, "std_mm": None, "n": 0}
-    return {"mean_mm": round(float(values.mean()), 4), "std_mm": round(_std(values), 4), "n": int(len(values))}
+def _round(value: float | None, digits: int = 4) -> float | None:
+    return None if value is None else round(float(value), digits)
 
 
-def write_evaluation(result: Mapping[str, Any], path: str | os.PathLike[str]) -> None:
+def _rms(errors: np.ndarray) -> float:
+    return round(float(np.sqrt(np.mean(np.square(errors)))), 4)
+
+
+def _finite_or_none(value: float | None) -> float | None:
+    """A prediction for JSON: None (null) when the configuration does not determine it (infinite)."""
+    return None if value is None or not np.isfinite(value) else float(value)
+
+
+def _maybe_float(value: Any) -> float | None:
+    return None if value is None else float(value)
+
+
+def write_evaluation(result: Evaluation, path: str | os.PathLike[str]) -> None:
     """Write ``evaluation.json`` atomically."""
-    atomic_write_json(path, dict(result))
+    atomic_write_json(path, result.to_json())
+
+
+def read_evaluation(path: str | os.PathLike[str]) -> Evaluation:
+    """Read an ``evaluation.json``; a missing or malformed file is an :class:`EMRegError`."""
+    document = read_json(path, "evaluation JSON")
+    if not isinstance(document, dict):
+        raise EMRegError(f"{path}: not an evaluation file (not a JSON object)")
+    return Evaluation.from_json(document, str(path))

@@ -105,7 +105,7 @@ def prepare_context_surface(data: ReportData) -> None:
         data.inputs.notes.append(str(exc))
         data.inputs.ct, data.marker_views = None, None
         return
-    iso_value = finite_or_none(data.inputs.section("report").get("iso_value"))
+    iso_value = data.inputs.settings.report.iso_value
     data.surface = context_surface(binned, iso_value)
 
 
