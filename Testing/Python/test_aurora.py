@@ -330,6 +330,8 @@ def test_driver_reads_every_tool_with_states_and_5dof(tmp_path):
         # a 5-DOF sensor's coil axis (NDI +Z) is EMReg's probe axis (+X)
         axis = s.rotation[:, 0] if s.sensor == 3 else s.rotation[:, 2]
         assert np.abs(axis - quaternion_to_rotation(q)[:, 2]).max() < 1e-6
+    # sample times are the device's: frame numbers at 40 Hz, never the jittery moment a poll was answered
+    assert all(s.time_s == (s.frame - samples[0].frame) / 40.0 for s in samples)
     late = {s.sensor: s.status for s in samples[-4:]}
     assert late == {1: STATUS_OK, 2: STATUS_OUT_OF_RANGE, 3: STATUS_OUT_OF_RANGE, 4: STATUS_NOT_ATTACHED}
     # frames of the last four samples: one frame, all tools; poses only where the status is ok
@@ -339,6 +341,7 @@ def test_driver_reads_every_tool_with_states_and_5dof(tmp_path):
 
 def test_watchdog_with_the_aurora_stops_and_resumes(tmp_path):
     from EMRegModule.live.igtl_server import IGTLServer
+    from EMRegModule.live.link_quality import guard_for
     from EMRegModule.live.navigator import LiveNavigator
     from EMRegModule.live.sources import open_source
 
@@ -346,8 +349,9 @@ def test_watchdog_with_the_aurora_stops_and_resumes(tmp_path):
         source = open_source(f"aurora://{tmp_path / 'aurora'}?rate=40")
         server = IGTLServer("127.0.0.1", 0)
         # 8 periods (200 ms): a loaded test machine must not look like a stale tracker; the RMS error in mm
+        # with the tracker-agnostic link guard, as live navigation runs it: a clean Aurora line must pass it
         nav = LiveNavigator(np.eye(4), 1, 2, server, None, source.period_s, stale_periods=8, max_quality=1.0,
-                            out=None)
+                            out=None, link=guard_for(source))
         try:
             source.start(nav.on_sample)
 
@@ -380,6 +384,7 @@ def test_watchdog_with_the_aurora_stops_and_resumes(tmp_path):
             source.stop()
             server.close()
     reasons = [v.reason for v in nav.announcer.changes]
+    assert "link" not in reasons  # never judged corrupt on a clean line
     for reason in ("reference_missing", "out_of_range", "bad_quality", "stale"):
         assert reason in reasons
     assert reasons.count("ok") >= 6
