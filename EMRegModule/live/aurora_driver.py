@@ -424,6 +424,10 @@ class AuroraSource(SampleSource):
     5-DOF sensors), ``rate`` (the Aurora's measuring rate in Hz for the watchdog; default: estimated).
     """
 
+    #: Worst acceptable RMS error (mm) when ``--max-quality`` is not given (choice: a clean Aurora solution
+    #: reports a few hundredths to tenths of a millimetre; the simulator's distortion fault reports 2.5).
+    default_max_quality = 1.0
+
     def __init__(self, url) -> None:
         super().__init__()
         options = url.options

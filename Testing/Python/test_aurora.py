@@ -522,3 +522,16 @@ def test_cli_record_and_live_navigate_from_the_aurora(tmp_path, replay):
         probe = make_transform(quaternion_to_rotation(q2), p2)
         expected.append((reference_to_image @ invert_rigid(ref) @ probe)[:3, 3])
     assert np.linalg.norm(np.array(expected) - lps, axis=1).min() < 1e-2
+
+
+def test_quality_limit_defaults_to_the_sources_scale():
+    import argparse
+
+    from EMRegModule.live.aurora_driver import AuroraSource
+    from EMRegModule.live.commands import _max_quality
+
+    aurora = argparse.Namespace(max_quality=None, source_max_quality=AuroraSource.default_max_quality)
+    assert _max_quality(aurora) == 1.0  # the Aurora's RMS error, mm
+    assert _max_quality(argparse.Namespace(max_quality=None, source_max_quality=None)) == 20.0  # trakSTAR METAL
+    assert _max_quality(argparse.Namespace(max_quality=-1, source_max_quality=1.0)) is None
+    assert _max_quality(argparse.Namespace(max_quality=0.5, source_max_quality=1.0)) == 0.5
