@@ -255,3 +255,15 @@ def test_uncompressed_slices_are_read_directly_and_match_gdcm(tmp_path, monkeypa
     np.testing.assert_array_equal(_voxels(image), _voxels(_series_reader(files)).astype(float))
     monkeypatch.setattr(dicom_series, "_read_uncompressed", lambda h, out: False)  # GDCM for every slice
     np.testing.assert_array_equal(_voxels(read_ct(tmp_path)), _voxels(image))
+
+
+def test_detection_while_decoding_gives_the_markers_of_the_whole_image(hard_case, hard_export):
+    """Detection on slices as they are decoded (thread pool) equals detection on the image read whole."""
+    from EMRegModule.controller import EMRegController
+    from EMRegModule.detection import detect_markers
+
+    streamed = EMRegController().load_ct_and_detect(hard_export)
+    whole = detect_markers(read_ct(hard_case / "ct"))
+    assert len(streamed.markers) == len(whole.markers) > 0
+    np.testing.assert_array_equal(streamed.origins, whole.origins)
+    np.testing.assert_array_equal(streamed.axes, whole.axes)
