@@ -190,9 +190,12 @@ def calibrate_frame(
     out_of_hole = marker_directions(samples.direction, convention)
     dwells = find_dwells(samples.time_s, position, samples.label, samples.quality, dwell_settings)
     if not dwells:
+        from .dwell import describe_still_periods
+
         raise EMRegError(
             f"{recording.source}: no dwell found (the probe never stayed still in a pinhole for "
-            f"{dwell_settings.min_duration_s:g} s); check the sensor ports or [calibration] min_duration_s"
+            f"{dwell_settings.min_duration_s:g} s; check the sensor ports): "
+            + describe_still_periods(samples.time_s, position, samples.quality, dwell_settings, section="calibration")
         )
     labelled = bool(dwells[0].label)
     inlier_index = []
@@ -232,7 +235,8 @@ def calibrate_frame(
             start_s=float(min(dwells[m].start_s for m in members)),
             end_s=float(max(dwells[m].end_s for m in members)), warning=warning,
         ))
-    warnings = [f"{p.label}: {p.warning}" for p in points if p.warning]
+    warnings = [f"{recording.source}: {note}" for note in recording.notes]
+    warnings += [f"{p.label}: {p.warning}" for p in points if p.warning]
     warnings += _close_point_warnings(points, 2.0 * dwell_settings.merge_radius_mm)
     has_direction = any(np.all(np.isfinite(p.direction)) for p in points)
     return FrameCalibration(points, int(reference_sensor), int(probe_sensor), labelled, recording.source, warnings,

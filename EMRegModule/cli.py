@@ -163,9 +163,10 @@ def cmd_navigate(args: argparse.Namespace) -> int:
 
     controller = _controller(args, _settings(args))
     controller.set_registration(read_registration(args.registration))
-    from .io.tracking_csv import read_tracking_csv
+    from .io.recording import read_recording
 
-    recording = read_tracking_csv(args.source[len("replay:"):])
+    recording = read_recording(args.source[len("replay:"):], controller.settings, controller.reference_sensor,
+                               controller.probe_sensor)
     result = controller.navigate_recording(recording)
     write_navigation_csv(result, Path(args.out) / "navigation.csv")
     print(f"{len(result)} probe samples mapped into image space -> {args.out}")
@@ -187,6 +188,46 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                            controller.probe_sensor)
     write_evaluation(result, Path(args.out) / "evaluation.json")
     print(f"evaluation -> {Path(args.out) / 'evaluation.json'}")
+    return 0
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    from .io.recording import write_recording
+    from .io.sequence_metafile import is_sequence_file, read_sequence_frames, recording_from_frames
+    from .io.tracking_csv import read_tracking_csv
+
+    settings = _settings(args)
+    sensors = settings.get("sensors", {})
+    reference = args.reference_sensor or int(sensors.get("reference", 1))
+    probe = args.probe_sensor or int(sensors.get("probe", 2))
+    names = {"reference_transform": str(sensors.get("reference_transform", "ReferenceToTracker")),
+             "probe_transform": str(sensors.get("probe_transform", "ProbeToTracker"))}
+    source, target = Path(args.input), Path(args.output)
+    if source.resolve() == target.resolve():
+        raise EMRegError(f"convert: {target} is the input file; give another output name")
+    if is_sequence_file(source):
+        frames = read_sequence_frames(source)
+        ports = {names["reference_transform"]: reference, names["probe_transform"]: probe}
+        missing = [n for n in ports if n not in frames.matrices]
+        if missing:
+            raise EMRegError(f"{source}: no {' or '.join(n + 'Transform' for n in missing)} in the file; it holds "
+                             f"{', '.join(n + 'Transform' for n in frames.names)}; name them with [sensors] "
+                             "reference_transform / probe_transform (--settings case.toml)")
+        free = (p for p in range(1, 100) if p not in ports.values())
+        for name in frames.names:  # every other transform of the file keeps its own port
+            if name not in ports:
+                port = name[len("Sensor"):-len("ToTracker")] if name.startswith("Sensor") else ""
+                ports[name] = int(port) if port.isdigit() and int(port) not in ports.values() else next(free)
+        recording = recording_from_frames(frames, ports)
+        others = {n: p for n, p in ports.items() if n not in names.values()}
+    else:
+        recording, others = read_tracking_csv(source), {}
+    write_recording(recording, target, {"sensors": {**sensors, **names}}, reference, probe,
+                    orientation="quaternion" if args.quaternion else None)
+    _warn("convert", recording.notes)
+    extra = ("; other transforms as sensor ports " + ", ".join(f"{n} = {p}" for n, p in others.items())
+             if others else "")
+    print(f"{len(recording)} sensor samples converted -> {target}{extra}")
     return 0
 
 
@@ -253,6 +294,9 @@ def run_case(
     report finds the CT through it).
     A stage that refuses (no safe answer) removes its own and all later outputs from OUT,
     so no stale result of an earlier run can be mistaken for this one's, then re-raises.
+    Once the registration stands, an optional recording that cannot be used (navigation, TRE
+    targets, board) does not fail the run: the part is "not evaluated" with its reason in
+    ``run.json`` (``not_evaluated``), ``evaluation.json`` and the report, and on stderr.
     """
     from .controller import EMRegController
     from .io.atomic import atomic_write_json
@@ -270,6 +314,8 @@ def run_case(
     run_record = {"case": str(case.folder.resolve()), "ct": str(case.ct.resolve()), "emreg_version": __version__,
                   "reference_sensor": controller.reference_sensor, "probe_sensor": controller.probe_sensor,
                   "summary": summary}
+    not_made: dict[str, str] = {}
+    run_record["not_evaluated"] = not_made
     atomic_write_json(out / "run.json", run_record)
     current = "detect"
     try:
@@ -309,19 +355,33 @@ def run_case(
         current = "navigate"
         if controller.registration is not None and case.navigation is not None \
                 and stage_available("navigation"):
-            from .io.tracking_csv import read_tracking_csv
+            from .io.recording import read_recording
             from .navigation import write_navigation_csv
 
-            navigation = controller.navigate_recording(read_tracking_csv(case.navigation))
-            write_navigation_csv(navigation, out / "navigation.csv")
-            summary.append(f"navigate: {len(navigation)} probe samples")
+            try:
+                navigation = controller.navigate_recording(read_recording(
+                    case.navigation, controller.settings, controller.reference_sensor, controller.probe_sensor))
+            except NoSafeAnswerError:
+                raise
+            except EMRegError as exc:  # the registration stands; an unusable navigation recording is reported
+                not_made["navigation"] = str(exc)
+                print(f"emreg run: warning: navigation not made: {exc}", file=sys.stderr)
+                summary.append(f"navigate: not made: {exc}")
+            else:
+                write_navigation_csv(navigation, out / "navigation.csv")
+                summary.append(f"navigate: {len(navigation)} probe samples")
         current = "evaluate"
         if controller.registration is not None and stage_available("evaluation") \
                 and (case.navigation is not None or case.board is not None):
             from .evaluation import evaluate_case, write_evaluation
 
             evaluation = evaluate_case(case, controller.reference_to_image, controller.reference_sensor,
-                                       controller.probe_sensor)
+                                       controller.probe_sensor, tolerant=True)
+            for part, reason in evaluation.get("not_evaluated", {}).items():
+                not_made[part] = reason
+                what = "TRE" if part == "tre" else part
+                print(f"emreg run: warning: {what} not evaluated: {reason}", file=sys.stderr)
+                summary.append(f"evaluate: {what} not evaluated: {reason}")
             write_evaluation(evaluation, out / "evaluation.json")
             if "tre" in evaluation:
                 summary.append(f"evaluate: TRE {evaluation['tre']['mean_mm']:.2f} "
@@ -408,6 +468,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("case", metavar="CASE")
     p.add_argument("--registration", required=True, metavar="registration.json")
     p.add_argument("--out", required=True, metavar="OUT")
+    _add_sensor_options(p)
+
+    p = add("convert", cmd_convert, "convert a tracking recording between CSV and a PLUS sequence metafile "
+            "(.seq.mha, .mha, .seq.nrrd)")
+    p.add_argument("input", metavar="IN")
+    p.add_argument("output", metavar="OUT")
+    p.add_argument("--quaternion", action="store_true", help="write CSV orientations as qw,qx,qy,qz")
     _add_sensor_options(p)
 
     p = add("report", cmd_report, "render the verification report: OUT/report.html")

@@ -165,9 +165,9 @@ class EMRegController:
 
     def load_calibration_recording(self, path: str | os.PathLike[str]) -> TrackingRecording:
         """Read the frame-calibration recording; drops the frame calibration and what follows."""
-        from .io.tracking_csv import read_tracking_csv
+        from .io.recording import read_recording
 
-        recording = read_tracking_csv(path)
+        recording = read_recording(path, self.settings, self.reference_sensor, self.probe_sensor)
         self.set_calibration_recording(recording)
         return recording
 

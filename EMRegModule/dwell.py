@@ -36,7 +36,9 @@ class DwellSettings:
     samples) at the same place are one dwell. ``merge_radius_mm``: dwells closer than this are
     at the same hole (revisits). ``max_quality``: samples whose tracker quality number exceeds it
     are ignored (None: an automatic limit from the recording's own quality distribution).
-    ``min_samples``: fewer good samples than this make no dwell.
+    ``min_samples``: fewer good samples than this make no dwell. ``max_drift_mm``: a still
+    period whose first and last quarters (medians) lie farther apart than this is slow motion,
+    not a dwell (None: twice ``still_radius_mm``).
     """
 
     min_duration_s: float = 0.5
@@ -46,6 +48,11 @@ class DwellSettings:
     merge_radius_mm: float = 3.0
     max_quality: float | None = None
     min_samples: int = 5
+    max_drift_mm: float | None = None
+
+    @property
+    def drift_limit_mm(self) -> float:
+        return 2.0 * self.still_radius_mm if self.max_drift_mm is None else float(self.max_drift_mm)
 
     @classmethod
     def from_settings(cls, settings: Mapping[str, Any] | None, section: str = "calibration",
@@ -58,7 +65,7 @@ class DwellSettings:
         values: dict[str, Any] = {}
         for name in known & set(settings):
             value = settings[name]
-            if name == "max_quality" and value is None:
+            if name in ("max_quality", "max_drift_mm") and value is None:
                 continue
             number = setting_number(section, name, value)
             if number < 0 or (number == 0 and name != "max_quality"):
@@ -253,9 +260,59 @@ def still_periods(time_s: np.ndarray, position_mm: np.ndarray, valid: np.ndarray
     for s, e in periods:
         if e - s < settings.min_samples or t[e - 1] - t[s] < settings.min_duration_s:
             continue
+        if _drift(p[s:e]) > settings.drift_limit_mm:
+            continue
         members = index[s:e]
         dwells.append(Dwell(members, "", float(t[s]), float(t[e - 1])))
     return dwells
+
+
+def _drift(points: np.ndarray) -> float:
+    """Distance (mm) between the medians of the first and the last quarter of a still period:
+    near zero for a probe held still (even hand-held), the distance travelled for slow motion."""
+    quarter = max(1, len(points) // 4)
+    return float(np.linalg.norm(np.median(points[:quarter], axis=0) - np.median(points[-quarter:], axis=0)))
+
+
+def describe_still_periods(time_s: np.ndarray, position_mm: np.ndarray, quality: np.ndarray | None = None,
+                           settings: DwellSettings | None = None, places: np.ndarray | None = None,
+                           place_name: str = "target", section: str = "evaluation", limit: int = 5) -> str:
+    """What a dwell search that found nothing did find, for the error message: the still periods
+    of any length (durations, drift, distance to the nearest of ``places`` (K, 3) in the same
+    frame) and which ``[section]`` setting would accept them.
+    """
+    settings = settings or DwellSettings()
+    time_s = np.asarray(time_s, dtype=float)
+    position_mm = np.asarray(position_mm, dtype=float).reshape(-1, 3)
+    valid = np.all(np.isfinite(position_mm), axis=1) & np.isfinite(time_s)
+    if quality is not None:
+        valid &= good_quality_mask(quality, settings.max_quality)
+    loose = DwellSettings(**{**{f.name: getattr(settings, f.name) for f in fields(DwellSettings)},
+                             "min_duration_s": 1e-9, "min_samples": 3, "max_drift_mm": np.inf})
+    periods = still_periods(time_s, position_mm, valid, loose)
+    rule = (f"a dwell must last {settings.min_duration_s:g} s ([{section}] min_duration_s) with the probe within "
+            f"{settings.still_radius_mm:g} mm ([{section}] still_radius_mm) and drifting less than "
+            f"{settings.drift_limit_mm:g} mm")
+    if not periods:
+        return (f"the probe was never still ({int(np.count_nonzero(valid))} usable samples over "
+                f"{float(np.ptp(time_s[valid])) if np.any(valid) else 0.0:.1f} s); {rule}; "
+                f"raise [{section}] still_radius_mm if the probe was hand-held")
+    periods = sorted(periods, key=lambda d: -d.duration_s)
+    parts = []
+    for dwell in periods[:limit]:
+        points = position_mm[dwell.indices]
+        text = f"{dwell.duration_s:.2f} s (drift {_drift(points):.1f} mm"
+        if places is not None and len(places):
+            distance = float(np.min(np.linalg.norm(np.asarray(places, dtype=float) - np.median(points, axis=0),
+                                                   axis=1)))
+            text += f", {distance:.1f} mm from the nearest {place_name}"
+        parts.append(text + ")")
+    more = f" and {len(periods) - limit} shorter" if len(periods) > limit else ""
+    longest = periods[0].duration_s
+    hint = (f"lower [{section}] min_duration_s (e.g. to {max(0.05, np.floor(longest * 20) / 20 - 0.05):.2f})"
+            if longest < settings.min_duration_s else
+            f"raise [{section}] still_radius_mm or max_drift_mm")
+    return (f"{len(periods)} still period(s) found: {', '.join(parts)}{more}; {rule}; {hint}")
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from .dwell import Dwell, DwellSettings, find_dwells, group_by_place, robust_mean
-from .errors import EMRegError
+from .errors import EMRegError, NoSafeAnswerError
 from .io.atomic import atomic_write_json
 from .io.case import Case
 from .tracking import TrackingRecording, probe_in_reference
@@ -34,41 +34,79 @@ from .tracking import TrackingRecording, probe_in_reference
 DEFAULT_MAX_TARGET_DISTANCE_MM = 15.0
 #: Stillness radius (mm) for finding dwells in navigation and board recordings without labels.
 DEFAULT_STILL_RADIUS_MM = 1.0
+#: Shortest unlabelled dwell (s) in navigation and board recordings: a hand-held probe held still
+#: for 0.4 s is a dwell (with room for the stillness window's edges); transit motion is not
+#: (it drifts more than twice the stillness radius, see :class:`EMRegModule.dwell.DwellSettings`).
+DEFAULT_MIN_DURATION_S = 0.3
+
+
+def evaluation_dwell_settings(section: Mapping[str, Any] | None) -> DwellSettings:
+    """Dwell settings of ``case.toml`` ``[evaluation]`` over the evaluation defaults (hand-held probe)."""
+    section = {k: v for k, v in dict(section or {}).items() if k != "max_target_distance_mm"}
+    return DwellSettings.from_settings({"still_radius_mm": DEFAULT_STILL_RADIUS_MM,
+                                        "min_duration_s": DEFAULT_MIN_DURATION_S, **section}, "evaluation")
 
 
 def evaluate_case(case: Case, reference_to_image: np.ndarray, reference_sensor: int = 1,
-                  probe_sensor: int = 2) -> dict[str, Any]:
+                  probe_sensor: int = 2, tolerant: bool = False) -> dict[str, Any]:
     """The ``evaluation.json`` content for a case folder: ``tre`` when the case has a navigation
     recording and targets, ``board`` when it has a board recording (see module docstring).
 
     ``reference_to_image``: Reference -> CT LPS (mm). Settings: ``case.toml`` ``[evaluation]``
     (dwell keys as in ``[calibration]``, ``still_radius_mm`` defaulting to 1 mm here, and
     ``max_target_distance_mm``) and ``[board] edges_mm``.
+
+    ``tolerant`` (``emreg run``): a part that cannot be evaluated (no dwell found, a bad
+    recording) is left out and named with its reason under ``not_evaluated`` and in ``warnings``
+    instead of raising; ``emreg evaluate`` raises.
     """
     from .io.markups import read_markups
-    from .io.tracking_csv import read_tracking_csv
+    from .io.recording import read_recording
 
     section = case.section("evaluation")
     # Hand-held touches at targets shake more than a probe resting in a pinhole: a wider
-    # stillness radius by default (targets and holes are tens of mm apart).
-    dwell_settings = DwellSettings.from_settings({"still_radius_mm": DEFAULT_STILL_RADIUS_MM, **section}, "evaluation")
+    # stillness radius and a shorter dwell by default (targets and holes are tens of mm apart).
+    dwell_settings = evaluation_dwell_settings(section)
     result: dict[str, Any] = {}
+    not_evaluated: dict[str, str] = {}
+
+    def part(name: str, compute) -> None:
+        try:
+            result[name] = compute()
+        except NoSafeAnswerError:
+            raise
+        except EMRegError as exc:
+            if not tolerant:
+                raise
+            not_evaluated[name] = str(exc)
+
     if case.navigation is not None and case.targets is not None:
-        labels, positions = read_markups(case.targets)
-        recording = read_tracking_csv(case.navigation)
-        result["tre"] = evaluate_targets(
-            recording, labels, positions, reference_to_image, reference_sensor, probe_sensor, dwell_settings,
-            float(section.get("max_target_distance_mm", DEFAULT_MAX_TARGET_DISTANCE_MM)),
-        )
+        def tre() -> dict[str, Any]:
+            labels, positions = read_markups(case.targets)
+            recording = read_recording(case.navigation, case.settings)
+            return evaluate_targets(
+                recording, labels, positions, reference_to_image, reference_sensor, probe_sensor, dwell_settings,
+                float(section.get("max_target_distance_mm", DEFAULT_MAX_TARGET_DISTANCE_MM)),
+            )
+
+        part("tre", tre)
     if case.board is not None:
-        nominal = case.section("board").get("edges_mm")
-        if nominal is not None:
-            try:
-                nominal = [float(v) for v in nominal]
-            except (TypeError, ValueError):
-                raise EMRegError(f"{case.folder / 'case.toml'}: [board] edges_mm must be a list of numbers") from None
-        result["board"] = evaluate_board(read_tracking_csv(case.board), reference_sensor, probe_sensor, nominal,
-                                         dwell_settings)
+        def board() -> dict[str, Any]:
+            nominal = case.section("board").get("edges_mm")
+            if nominal is not None:
+                try:
+                    nominal = [float(v) for v in nominal]
+                except (TypeError, ValueError):
+                    raise EMRegError(f"{case.folder / 'case.toml'}: [board] edges_mm must be a list of "
+                                     "numbers") from None
+            return evaluate_board(read_recording(case.board, case.settings), reference_sensor, probe_sensor,
+                                  nominal, dwell_settings)
+
+        part("board", board)
+    if not_evaluated:
+        result["not_evaluated"] = not_evaluated
+        result["warnings"] = [f"{'TRE' if name == 'tre' else name} not evaluated: {reason}"
+                              for name, reason in not_evaluated.items()]
     return result
 
 
@@ -119,8 +157,18 @@ def evaluate_targets(
                         "position": [round(float(v), 4) for v in mean]})
     errors = np.array([d["error_mm"] for d in details])
     if len(errors) == 0:
-        raise EMRegError(f"{recording.source}: no probe dwell at any target was found; "
-                         "check the navigation recording's labels and the targets file")
+        from .dwell import describe_still_periods
+
+        if dwells and dwells[0].label:
+            seen = ", ".join(sorted({d.label for d in dwells})[:6])
+            found = (f"{len(dwells)} labelled dwell(s), none with a target's label "
+                     f"({seen} vs {', '.join(map(str, target_labels[:6]))})")
+        else:
+            found = (f"{len(dwells)} dwell(s), none within {max_target_distance_mm:g} mm of a target "
+                     "([evaluation] max_target_distance_mm)" if dwells else
+                     describe_still_periods(navigation.time_s, position, navigation.quality, settings,
+                                            targets_image, "target"))
+        raise EMRegError(f"{recording.source}: no probe dwell at any target was found: {found}")
     targets = {label: _stats(values) for label, values in per_target.items() if values}
     return {"mean_mm": round(float(errors.mean()), 4), "std_mm": round(_std(errors), 4), "n": len(errors),
             "max_mm": round(float(errors.max()), 4), "targets": targets, "dwells": details,
@@ -150,7 +198,10 @@ def evaluate_board(
         frame = "Tracker"
     dwells = find_dwells(time_s, position, labels, quality, settings)
     if not dwells:
-        raise EMRegError(f"{recording.source}: no probe dwell found in the board recording")
+        from .dwell import describe_still_periods
+
+        raise EMRegError(f"{recording.source}: no probe dwell found in the board recording: "
+                         + describe_still_periods(time_s, position, quality, settings, section="evaluation"))
     centres = np.array([robust_mean(position[d.indices]).mean for d in dwells])
     hole_of_dwell, hole_names = _board_holes(dwells, centres, settings)
     n_holes = len(hole_names)

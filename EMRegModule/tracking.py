@@ -38,6 +38,7 @@ class TrackingRecording:
     label: np.ndarray
     source: str = "recording"
     orientation_format: str = field(default="angles")  # "angles" or "quaternion" (as read / to write)
+    notes: list[str] = field(default_factory=list)  # what reading dropped (e.g. frames with an INVALID status)
 
     def __post_init__(self) -> None:
         n = len(self.time_s)
@@ -60,7 +61,7 @@ class TrackingRecording:
         """The rows where ``mask`` (boolean or index array) holds."""
         return TrackingRecording(
             self.time_s[mask], self.sensor[mask], self.position_mm[mask], self.rotation[mask],
-            self.quality[mask], self.label[mask], self.source, self.orientation_format,
+            self.quality[mask], self.label[mask], self.source, self.orientation_format, list(self.notes),
         )
 
     def for_sensor(self, port: int, role: str = "sensor") -> TrackingRecording:

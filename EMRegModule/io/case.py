@@ -1,5 +1,6 @@
 """Case folders (spec: ``ct.*`` or ``ct/``, ``calibration.csv``, ``navigation.csv``,
-``targets.mrk.json``, ``board.csv``, ``case.toml``) and their settings.
+``targets.mrk.json``, ``board.csv``, ``case.toml``) and their settings. The recordings may also
+be PLUS sequence metafiles (``calibration.seq.mha`` ...; :mod:`EMRegModule.io.recording`).
 """
 
 from __future__ import annotations
@@ -68,13 +69,15 @@ def open_case(folder: str | os.PathLike[str]) -> Case:
     def optional(name: str) -> Path | None:
         return folder / name if (folder / name).is_file() else None
 
+    from .recording import find_recording
+
     return Case(
         folder=folder,
         ct=find_ct(folder),
-        calibration=optional("calibration.csv"),
-        navigation=optional("navigation.csv"),
+        calibration=find_recording(folder, "calibration"),
+        navigation=find_recording(folder, "navigation"),
         targets=optional("targets.mrk.json"),
-        board=optional("board.csv"),
+        board=find_recording(folder, "board"),
         settings=read_case_settings(folder / "case.toml"),
     )
 

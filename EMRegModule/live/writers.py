@@ -83,6 +83,32 @@ class RecordingWriter(StreamingCSV):
         return True
 
 
+class SequenceRecordingWriter(RecordingWriter):
+    """A PLUS sequence metafile (``.seq.mha``) recorded live: the samples stream into a sidecar CSV
+    (``<path>.partial.csv``, flushed like every live file, so a crash keeps them), converted into the
+    sequence metafile atomically at :meth:`close` (its header needs the frame count), then removed."""
+
+    def __init__(self, path: str | os.PathLike[str], flush_interval_s: float = 1.0,
+                 reference_port: int = 1, probe_port: int = 2) -> None:
+        self.target = Path(path)
+        self.reference_port, self.probe_port = reference_port, probe_port
+        super().__init__(self.target.with_name(self.target.name + ".partial.csv"), flush_interval_s)
+
+    def close(self) -> None:
+        with self._lock:
+            was_open = not self._file.closed
+        super().close()
+        if not was_open or not self.path.exists():
+            return
+        from ..io.sequence_metafile import write_sequence_metafile
+        from ..io.tracking_csv import read_tracking_csv
+
+        if self.rows:
+            write_sequence_metafile(read_tracking_csv(self.path), self.target, reference_port=self.reference_port,
+                                    probe_port=self.probe_port)
+        self.path.unlink()
+
+
 class NavigationWriter(StreamingCSV):
     """``navigation.csv`` (``time_s,x_mm,y_mm,z_mm,label``): the probe position in LPS image space."""
 

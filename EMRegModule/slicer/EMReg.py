@@ -350,12 +350,12 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         """Replay the case's navigation recording (paper Eq. 12); writes ``navigation.csv`` and
         ``evaluation.json``; shows the probe path."""
         from EMRegModule.errors import EMRegError
-        from EMRegModule.io.tracking_csv import read_tracking_csv
+        from EMRegModule.io.recording import read_recording
         from EMRegModule.navigation import write_navigation_csv
 
         if self.case is None or self.case.navigation is None:
             raise EMRegError("the case has no navigation.csv to replay")
-        result = self.controller.navigate_recording(read_tracking_csv(self.case.navigation))
+        result = self.controller.navigate_recording(read_recording(self.case.navigation, self.case.settings))
         write_navigation_csv(result, self._output("navigation.csv"))
         positions = result.position_mm
         step = max(1, len(positions) // 500)
