@@ -19,9 +19,12 @@ class Progress:
         self.enabled = enabled
         self.interactive = bool(getattr(self.stream, "isatty", lambda: False)())
 
-    def step(self, name: str, total: int | None = None) -> _Step:
-        """Start a named step of ``total`` units (None: unknown length)."""
-        return _Step(self, name, total)
+    def step(self, name: str, total: int | None = None, per_minute: str | None = None) -> _Step:
+        """Start a named step of ``total`` units (None: unknown length).
+
+        ``per_minute`` names the units (e.g. "cases") to show the throughput in units per minute.
+        """
+        return _Step(self, name, total, per_minute)
 
     def message(self, text: str) -> None:
         """One line of information."""
@@ -30,8 +33,9 @@ class Progress:
 
 
 class _Step:
-    def __init__(self, progress: Progress, name: str, total: int | None) -> None:
+    def __init__(self, progress: Progress, name: str, total: int | None, per_minute: str | None = None) -> None:
         self.progress = progress
+        self.per_minute = per_minute
         self.name = name
         self.total = total
         self.done = 0
@@ -62,6 +66,7 @@ class _Step:
             text = f"\r[emreg] {self.name:<22} [{bar}] {self.done}/{self.total} {elapsed:6.1f}s"
         else:
             text = f"\r[emreg] {self.name:<22} {elapsed:6.1f}s"
+        text += self._rate(elapsed)
         self.progress.stream.write(text + ("\n" if final else ""))
         self.progress.stream.flush()
 
@@ -69,8 +74,14 @@ class _Step:
         if self.progress.interactive:
             self._draw(final=True)
         elif self.progress.enabled and exc_type is None:
-            print(f"[emreg] {self.name} done in {time.perf_counter() - self.start:.1f}s",
-                  file=self.progress.stream, flush=True)
+            elapsed = time.perf_counter() - self.start
+            print(f"[emreg] {self.name} done in {elapsed:.1f}s{self._rate(elapsed)}", file=self.progress.stream,
+                  flush=True)
+
+    def _rate(self, elapsed: float) -> str:
+        if not self.per_minute or not self.done or elapsed <= 0:
+            return ""
+        return f", {60.0 * self.done / elapsed:.1f} {self.per_minute}/min"
 
 
 QUIET = Progress(enabled=False)

@@ -311,7 +311,7 @@ def register(
     solution = solve_sensor_offset(points[cal_index], origins[image_index], axes[image_index], l_range)
     pair_residuals = residuals(solution.reference_to_image, points[cal_index],
                                origins[image_index] + solution.l_mm * axes[image_index])
-    outlier = _flag_outliers(pair_residuals, config)
+    outlier = flag_outliers(pair_residuals, config)
     used = np.ones(len(cal_index), dtype=bool)
     if config.exclude_outliers and np.any(outlier) and np.count_nonzero(~outlier) >= config.pairing.min_pairs:
         used = ~outlier
@@ -388,7 +388,7 @@ def register(
     )
 
 
-def _flag_outliers(pair_residuals: np.ndarray, config: RegistrationSettings) -> np.ndarray:
+def flag_outliers(pair_residuals: np.ndarray, config: RegistrationSettings) -> np.ndarray:
     """Residuals above ``outlier_factor`` x the robust RMS residual and above ``outlier_min_mm``."""
     if len(pair_residuals) < 4:
         return np.zeros(len(pair_residuals), dtype=bool)

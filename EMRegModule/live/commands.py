@@ -122,6 +122,9 @@ def _say(args: argparse.Namespace, text: str) -> None:
 
 
 def _report_framing(args: argparse.Namespace, source) -> None:
+    if hasattr(source, "framing_summary"):  # the Aurora's own counters
+        _say(args, source.framing_summary())
+        return
     driver = getattr(source, "driver", None)
     if driver is not None:
         st = driver.stats
@@ -134,6 +137,16 @@ def _report_framing(args: argparse.Namespace, source) -> None:
 
 
 def add_sim_tracker_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", choices=("trakstar", "aurora"), default="trakstar",
+                        help="trakstar (Flock-of-Birds binary RS-232) or aurora (NDI serial API: BX/TX, CRC16)")
+    parser.add_argument("--tools", default=None, metavar="1:6dof,2:5dof,...",
+                        help="aurora: tools on ports 1-4 (6dof, 5dof, 5dof2 = two on a splitter, nosrom, none); "
+                             "default: a 6-DOF tool on every port the scene has")
+    parser.add_argument("--rate", type=float, default=None, metavar="HZ",
+                        help="aurora: measuring rate (default 40 Hz; a replay: its recording's rate)")
+    parser.add_argument("--freeze-tag", default=None, metavar="TAG",
+                        help="aurora: firmware tag VER reports (default 'AURORA Rev 013'; 'AURORA Rev 008' makes "
+                             "scikit-surgerynditracker use TX)")
     parser.add_argument("--replay", metavar="FILE.csv", help="replay this tracking recording (default: built-in scene)")
     parser.add_argument("--fast", action="store_true", help="STREAM as fast as the baud rate allows")
     parser.add_argument("--baud", type=int, default=tp.DEFAULT_BAUD, help="line speed to emulate (default 115200)")
@@ -150,6 +163,8 @@ def add_sim_tracker_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_sim_tracker(args: argparse.Namespace) -> int:
+    if args.model == "aurora":
+        return _run_aurora_simulator(args)
     from .tracker_simulator import BuiltinScene, FaultPlan, ReplayScene, TrackerSimulator
     from .trakstar_driver import sensors_from_list
 
@@ -184,12 +199,50 @@ def run_sim_tracker(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_aurora_simulator(args: argparse.Namespace) -> int:
+    from . import ndi_protocol as ndi
+    from .aurora_simulator import AuroraFaults, AuroraSimulator, parse_tools
+    from .tracker_simulator import BuiltinScene, ReplayScene
+
+    scene = BuiltinScene(args.seed)
+    if args.replay:
+        from ..io.tracking_csv import read_tracking_csv
+
+        scene = ReplayScene(read_tracking_csv(args.replay))
+    sim = AuroraSimulator(scene, tools=parse_tools(args.tools) if args.tools else None, rate_hz=args.rate,
+                          faults=AuroraFaults.parse(args.fault), seed=args.seed, link=args.link,
+                          duration_s=args.duration, freeze_tag=args.freeze_tag or ndi.DEFAULT_FREEZE_TAG,
+                          keep_log=bool(args.emit_log))
+    link = f" (link {args.link})" if args.link else ""
+    tools = ", ".join(f"port {t.port}{'/' + str(t.channel) if t.channel else ''}: {t.dof}-DOF"
+                      + ("" if t.srom else " without SROM") for t in sim.tools)
+    print(f"Aurora simulator on {sim.path}{link}: connect with aurora://{sim.path}?baud=115200 "
+          f"({sim.rate_hz:g} Hz; {tools})", flush=True)
+    with _StopFlag() as stop:
+        watcher = threading.Thread(target=lambda: (stop.event.wait(), sim._stop.set()), daemon=True)
+        watcher.start()
+        try:
+            sim.run()
+        finally:
+            stop.event.set()
+            sim.close()
+    if args.emit_log:
+        from ..io.atomic import atomic_write_text
+
+        lines = ["frame,command,emit_ns,corrupted"]
+        lines += [f"{f.frame},{f.command},{f.emit_ns},{int(f.corrupted)}" for f in sim.log if f.emit_ns]
+        atomic_write_text(args.emit_log, "\n".join(lines) + "\n")
+    _say(args, f"simulator stopped after {sim.frames_sent} BX/TX replies")
+    return 0
+
+
 # --- emreg record ---------------------------------------------------------------------------
 
 
 def add_record_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", required=True, metavar="URL",
-                        help="trakstar:///dev/ttyUSB0?baud=115200, igtl://HOST:PORT or replay:FILE.csv")
+                        help="trakstar:///dev/ttyUSB0?baud=115200, aurora:///dev/ttyUSB0, igtl://HOST:PORT or "
+                             "replay:FILE.csv")
     parser.add_argument("--out", required=True, metavar="rec.csv",
                         help="tracking CSV to write (flushed every second), or a PLUS sequence metafile "
                              "rec.seq.mha (written at the end; samples kept meanwhile in rec.seq.mha.partial.csv)")
@@ -233,7 +286,8 @@ def run_record(args: argparse.Namespace) -> int:
 
 def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", required=True, metavar="URL",
-                        help="trakstar:///dev/ttyUSB0?baud=115200, igtl://HOST:PORT or replay:FILE.csv")
+                        help="trakstar:///dev/ttyUSB0?baud=115200, aurora:///dev/ttyUSB0, igtl://HOST:PORT or "
+                             "replay:FILE.csv")
     parser.add_argument("--igtl-port", type=int, default=DEFAULT_PORT, metavar="PORT",
                         help=f"OpenIGTLink port (default {DEFAULT_PORT})")
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")

@@ -5,6 +5,11 @@
   (record format, default ``POSITION/ANGLES``, ``_`` for ``/``), ``rate`` (measurement rate, Hz),
   ``metal`` (1/0: quality byte, default 1), ``scale`` (36 or 72 inches), ``gap_ms`` (max silence
   inside a record, default 50).
+- ``aurora:///dev/ttyUSB0?baud=115200``: an NDI Aurora (or ``emreg sim-tracker --model aurora``) through
+  ndicapi. Options: ``baud`` (set with COMM after the 9600-baud start; default 115200), ``reply``
+  (``auto``: BX unless the firmware needs TX; ``bx``, ``tx``), ``five_dof`` (sensors with 5-DOF
+  sensors, e.g. ``2``), ``rate`` (Hz, for the watchdog; default estimated). A tool's sensor number is
+  its port 1..4 (+4 for channel 1 of a splitter).
 - ``igtl://HOST:PORT``: another EMReg (``emreg serve``) or PLUS server; options ``reference`` and
   ``probe``: the TRANSFORM device names to consume (default ``ReferenceToTracker``,
   ``ProbeToTracker``).
@@ -17,14 +22,15 @@ from dataclasses import dataclass, field
 from urllib.parse import parse_qs, urlsplit
 
 from ..errors import EMRegError
+from . import ndi_protocol as ndi
 from . import trakstar_protocol as tp
 
-SCHEMES = ("trakstar", "igtl", "replay")
+SCHEMES = ("trakstar", "aurora", "igtl", "replay")
 
 
 @dataclass
 class DeviceURL:
-    """A parsed device URL: ``kind`` is ``trakstar``, ``igtl`` or ``replay``."""
+    """A parsed device URL: ``kind`` is ``trakstar``, ``aurora``, ``igtl`` or ``replay``."""
 
     kind: str
     path: str = ""
@@ -35,7 +41,7 @@ class DeviceURL:
 
     @property
     def baud(self) -> int:
-        return int(self.options.get("baud", tp.DEFAULT_BAUD))
+        return int(self.options.get("baud", ndi.DEFAULT_BAUD if self.kind == "aurora" else tp.DEFAULT_BAUD))
 
 
 def parse_device_url(text: str) -> DeviceURL:
@@ -44,8 +50,8 @@ def parse_device_url(text: str) -> DeviceURL:
     scheme, sep, rest = text.partition(":")
     scheme = scheme.lower()
     if not sep or scheme not in SCHEMES:
-        raise EMRegError(f"device {text!r}: use trakstar:///dev/ttyUSB0?baud=115200, igtl://HOST:PORT "
-                         "or replay:FILE.csv")
+        raise EMRegError(f"device {text!r}: use trakstar:///dev/ttyUSB0?baud=115200, aurora:///dev/ttyUSB0, "
+                         "igtl://HOST:PORT or replay:FILE.csv")
     if scheme == "replay":
         path = rest[2:] if rest.startswith("//") else rest
         if not path:
@@ -53,6 +59,22 @@ def parse_device_url(text: str) -> DeviceURL:
         return DeviceURL("replay", path=path, text=text)
     parts = urlsplit(text)
     options = {k: v[-1] for k, v in parse_qs(parts.query).items()}
+    if scheme == "aurora":
+        path = parts.path or parts.netloc
+        if parts.netloc and parts.path:
+            path = "/" + parts.netloc + parts.path
+        if not path:
+            raise EMRegError(f"device {text!r}: aurora: needs a serial device, e.g. aurora:///dev/ttyUSB0")
+        url = DeviceURL("aurora", path=path, options=options, text=text)
+        try:
+            baud = url.baud
+        except ValueError:
+            raise EMRegError(f"device {text!r}: baud must be a number") from None
+        if baud not in ndi.BAUD_RATES:
+            raise EMRegError(f"device {text!r}: baud={baud}; use {', '.join(map(str, ndi.BAUD_RATES))}")
+        if options.get("reply", "auto") not in ("auto", "bx", "tx"):
+            raise EMRegError(f"device {text!r}: reply must be auto, bx or tx")
+        return url
     if scheme == "trakstar":
         path = parts.path or parts.netloc
         if parts.netloc and parts.path:  # trakstar://dev/ttyUSB0 (two slashes): netloc holds the first part

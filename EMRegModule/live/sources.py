@@ -1,5 +1,6 @@
-"""Live sample sources behind the device URLs: the trakSTAR driver, a replayed recording, an
-OpenIGTLink server. Each calls ``callback(sample)`` from its own thread for every sensor sample.
+"""Live sample sources behind the device URLs: the trakSTAR driver, the Aurora driver
+(:mod:`.aurora_driver`), a replayed recording, an OpenIGTLink server. Each calls ``callback(sample)``
+from its own thread for every sensor sample.
 """
 
 from __future__ import annotations
@@ -216,6 +217,10 @@ def open_source(url: str | DeviceURL, reference_sensor: int = 1, probe_sensor: i
     parsed = parse_device_url(url) if isinstance(url, str) else url
     if parsed.kind == "trakstar":
         return TrakstarSource(parsed)
+    if parsed.kind == "aurora":
+        from .aurora_driver import AuroraSource
+
+        return AuroraSource(parsed)
     if parsed.kind == "replay":
         return ReplaySource(parsed.path, fast=fast, loop=loop)
     if parsed.kind == "igtl":

@@ -21,6 +21,7 @@ import numpy as np
 from ..marker_model import MarkerModel
 from ..transforms import apply_transform
 from .colors import CALIBRATION, DEFAULT_COLORMAP, GREY, NAVIGATION, SENSOR, TARGET, colormap_table, residual_range
+from .context import MAX_CONTEXT_VOXELS, binned_ct, context_surface
 
 if TYPE_CHECKING:
     import SimpleITK as sitk
@@ -35,9 +36,6 @@ VIEWS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] 
 
 #: trakSTAR Model 800 sensor housing (mm), long axis along the sensor's +X.
 REFERENCE_SENSOR_SIZE_MM = (19.8, 7.9, 7.9)
-
-#: Largest number of CT voxels contoured for the context surface (the CT is binned down to it).
-MAX_CONTEXT_VOXELS = 3_000_000
 
 
 @dataclass
@@ -99,31 +97,13 @@ def marker_mesh(model: MarkerModel, marker_to_image: np.ndarray, resolution: int
 def ct_context_surface(image: sitk.Image, iso_value: float | None = None, max_voxels: int = MAX_CONTEXT_VOXELS):
     """Iso-surface (``pyvista.PolyData``, LPS mm) of a CT binned to at most ``max_voxels`` voxels.
 
-    Contouring runs in index space and the points are mapped to physical space with the
-    image's own origin, spacing and direction, so oblique and flipped CTs come out right.
-    ``iso_value`` defaults to Otsu's threshold (air versus everything else). Returns
-    ``(surface, iso_value)``.
+    Thin sheets (metal streaks) and small disconnected pieces are left out
+    (:func:`EMRegModule.rendering.context.context_surface`); ``iso_value`` defaults to Otsu's
+    threshold (air versus everything else). Oblique and flipped CTs come out right (physical
+    space). Returns ``(surface, iso_value)``.
     """
-    import pyvista as pv
-    import SimpleITK as sitk
-
-    from ..io.image import index_to_physical_matrix
-
-    size = np.asarray(image.GetSize(), dtype=float)
-    factor = max(1, int(np.ceil((np.prod(size) / max_voxels) ** (1.0 / 3.0))))
-    binned = sitk.BinShrink(sitk.Cast(image, sitk.sitkFloat32), [factor] * 3) if factor > 1 \
-        else sitk.Cast(image, sitk.sitkFloat32)
-    if iso_value is None:
-        otsu = sitk.OtsuThresholdImageFilter()
-        otsu.Execute(binned)
-        iso_value = float(otsu.GetThreshold())
-    array = sitk.GetArrayViewFromImage(binned)
-    grid = pv.ImageData(dimensions=binned.GetSize())
-    grid.point_data["ct"] = np.ascontiguousarray(array).ravel()
-    surface = grid.contour([iso_value], scalars="ct", method="flying_edges")
-    if surface.n_points:
-        surface.points = apply_transform(index_to_physical_matrix(binned), np.asarray(surface.points, dtype=float))
-    return surface, float(iso_value)
+    shown = context_surface(binned_ct(image, max_voxels), iso_value)
+    return shown.surface, shown.iso_value
 
 
 def _lookup_table(colormap: str, clim: tuple[float, float]):
@@ -162,112 +142,147 @@ def render_frame_scene(
     ``view`` picks a direction from :data:`VIEWS`; the camera then frames the markers
     (``focus="markers"``) or everything (``focus="all"``). ``camera`` overrides both.
     """
+    return render_frame_views(scene, window_size, (view,), camera, focus)[0]
+
+
+def render_frame_views(
+    scene: FrameScene, window_size: tuple[int, int] = (960, 720), views: tuple[str, ...] = ("oblique",),
+    camera: Camera | None = None, focus: str = "markers",
+) -> list[np.ndarray]:
+    """Render the scene once per view of ``views`` (RGB ``uint8`` images), building it only once."""
     import pyvista as pv
 
-    if view not in VIEWS:
-        raise ValueError(f"unknown view {view!r}; known: {', '.join(VIEWS)}")
+    unknown = [view for view in views if view not in VIEWS]
+    if unknown:
+        raise ValueError(f"unknown view {unknown[0]!r}; known: {', '.join(VIEWS)}")
     prepare_offscreen()
     plotter = pv.Plotter(off_screen=True, window_size=list(window_size), lighting="light kit")
     try:
         plotter.disable_anti_aliasing()
         plotter.set_background("white")
-        meshes_for_bounds = []
-        points_for_bounds: list[np.ndarray] = []
-
-        surface = scene.context_surface
-        if surface is None and scene.ct is not None:
-            surface, _ = ct_context_surface(scene.ct, scene.iso_value)
-        if surface is not None:
-            if surface.n_points:
-                plotter.add_mesh(surface, color=(0.93, 0.91, 0.86), opacity=0.22, smooth_shading=False,
-                                 name="ct_surface")
-                if focus == "all":
-                    meshes_for_bounds.append(surface)
-
-        residuals = np.array([m.residual_mm for m in scene.markers if m.residual_mm is not None], dtype=float)
-        clim = scene.residual_range or residual_range(residuals)
-        lut = _lookup_table(scene.colormap, clim)
-        scalar_mapper = None
-        for i, marker in enumerate(scene.markers):
-            mesh = marker_mesh(scene.model, marker.marker_to_image)
-            meshes_for_bounds.append(mesh)
-            if marker.residual_mm is None:
-                plotter.add_mesh(mesh, color=np.asarray(GREY) / 255.0, smooth_shading=True, split_sharp_edges=True,
-                                 name=f"marker_{i}")
+        meshes_for_bounds, points_for_bounds = _add_scene(plotter, scene, window_size, focus)
+        images = []
+        for view in views:
+            if camera is not None:
+                _set_camera(plotter, camera)
             else:
-                mesh.point_data["residual_mm"] = np.full(mesh.n_points, float(marker.residual_mm))
-                actor = plotter.add_mesh(mesh, scalars="residual_mm", cmap=lut, clim=clim, smooth_shading=True,
-                                         split_sharp_edges=True, show_scalar_bar=False, name=f"marker_{i}")
-                scalar_mapper = actor.mapper
-        if scalar_mapper is not None and scene.show_scalar_bar:
-            steps = int(round((clim[1] - clim[0]) / 0.5))
-            n_labels = steps + 1 if steps <= 6 else 5
-            font_scale = min(1.0, window_size[0] / 960.0)
-            plotter.add_scalar_bar(title="residual (mm)", mapper=scalar_mapper, n_labels=n_labels, fmt="%.1f",
-                                   color="black", vertical=True, position_x=0.84, position_y=0.25, width=0.07,
-                                   height=0.5, title_font_size=max(9, int(round(14 * font_scale))),
-                                   label_font_size=max(8, int(round(12 * font_scale))))
-
-        if scene.reference_to_image is not None:
-            _add_reference_sensor(plotter, np.asarray(scene.reference_to_image, dtype=float))
-            points_for_bounds.append(np.asarray(scene.reference_to_image, dtype=float)[None, :3, 3])
-
-        for points, color, radius, name in (
-            (scene.calibration_points, CALIBRATION, 0.9, "calibration_points"),
-            (scene.sensor_points, SENSOR, 0.6, "sensor_points"),
-            (scene.targets, TARGET, 1.5, "targets"),
-        ):
-            if points is not None and len(points):
-                points = np.asarray(points, dtype=float).reshape(-1, 3)
-                glyphs = pv.PolyData(points).glyph(geom=pv.Sphere(radius=radius, theta_resolution=16,
-                                                                  phi_resolution=16), scale=False, orient=False)
-                plotter.add_mesh(glyphs, color=np.asarray(color) / 255.0, smooth_shading=True, name=name)
-                points_for_bounds.append(points)
-
-        if scene.navigation_path is not None and len(scene.navigation_path) > 1:
-            path = np.asarray(scene.navigation_path, dtype=float).reshape(-1, 3)
-            plotter.add_mesh(pv.lines_from_points(path), color=np.asarray(NAVIGATION) / 255.0, line_width=2,
-                             name="navigation")
-
-        if scene.show_labels:
-            label_points, labels = [], []
-            for marker in scene.markers:
-                top = apply_transform(marker.marker_to_image, [0.0, scene.model.height_mm + 2.0, 0.0])
-                label_points.append(top)
-                labels.append(marker.label)
-            if scene.targets is not None and scene.target_labels:
-                label_points.extend(np.asarray(scene.targets, dtype=float).reshape(-1, 3))
-                labels.extend(scene.target_labels)
-            if labels:
-                plotter.add_point_labels(np.asarray(label_points), labels, font_size=11, bold=False,
-                                         text_color="black", shape_color="white", shape_opacity=0.7,
-                                         show_points=False, always_visible=True, margin=2, name="labels")
-
-        if scene.title:
-            plotter.add_text(scene.title, position="upper_left", font_size=10, color="black", name="title")
-
-        if camera is not None:
-            plotter.camera.position = camera.position
-            plotter.camera.focal_point = camera.focal_point
-            plotter.camera.up = camera.view_up
-            plotter.camera.view_angle = camera.view_angle_deg
-            plotter.renderer.ResetCameraClippingRange()
-        else:
-            bounds = _scene_bounds(meshes_for_bounds, points_for_bounds)
-            direction, up = VIEWS[view]
-            direction = np.asarray(direction, dtype=float) / np.linalg.norm(direction)
-            centre = bounds.reshape(3, 2).mean(axis=1)
-            plotter.camera.focal_point = tuple(centre)
-            plotter.camera.position = tuple(centre + direction * 1000.0)
-            plotter.camera.up = up
-            plotter.camera.view_angle = 30.0
-            plotter.renderer.ResetCamera(*bounds)
-            plotter.camera.zoom(1.15)
-            plotter.renderer.ResetCameraClippingRange()
-        image = plotter.screenshot(return_img=True)
+                _frame_camera(plotter, _scene_bounds(meshes_for_bounds, points_for_bounds), view)
+            image = plotter.screenshot(return_img=True)
+            images.append(np.ascontiguousarray(np.asarray(image)[:, :, :3], dtype=np.uint8))
     finally:
         plotter.close()
-    return np.ascontiguousarray(np.asarray(image)[:, :, :3], dtype=np.uint8)
+    return images
+
+
+def _add_scene(plotter, scene: FrameScene, window_size: tuple[int, int], focus: str) -> tuple[list, list]:
+    """Every actor of the scene; returns the meshes and point sets the camera should frame."""
+    meshes_for_bounds: list = []
+    points_for_bounds: list[np.ndarray] = []
+    surface = scene.context_surface
+    if surface is None and scene.ct is not None:
+        surface, _ = ct_context_surface(scene.ct, scene.iso_value)
+    if surface is not None and surface.n_points:
+        plotter.add_mesh(surface, color=(0.93, 0.91, 0.86), opacity=0.22, smooth_shading=False, name="ct_surface")
+        if focus == "all":
+            meshes_for_bounds.append(surface)
+    meshes_for_bounds += _add_markers(plotter, scene, window_size)
+    if scene.reference_to_image is not None:
+        _add_reference_sensor(plotter, np.asarray(scene.reference_to_image, dtype=float))
+        points_for_bounds.append(np.asarray(scene.reference_to_image, dtype=float)[None, :3, 3])
+    points_for_bounds += _add_points(plotter, scene)
+    if scene.show_labels:
+        _add_labels(plotter, scene)
+    if scene.title:
+        plotter.add_text(scene.title, position="upper_left", font_size=10, color="black", name="title")
+    return meshes_for_bounds, points_for_bounds
+
+
+def _add_markers(plotter, scene: FrameScene, window_size: tuple[int, int]) -> list:
+    """The marker models coloured by residual (grey: unpaired) and the residual colour bar."""
+    residuals = np.array([m.residual_mm for m in scene.markers if m.residual_mm is not None], dtype=float)
+    clim = scene.residual_range or residual_range(residuals)
+    lut = _lookup_table(scene.colormap, clim)
+    scalar_mapper = None
+    meshes = []
+    for i, marker in enumerate(scene.markers):
+        mesh = marker_mesh(scene.model, marker.marker_to_image)
+        meshes.append(mesh)
+        if marker.residual_mm is None:
+            plotter.add_mesh(mesh, color=np.asarray(GREY) / 255.0, smooth_shading=True, split_sharp_edges=True,
+                             name=f"marker_{i}")
+        else:
+            mesh.point_data["residual_mm"] = np.full(mesh.n_points, float(marker.residual_mm))
+            actor = plotter.add_mesh(mesh, scalars="residual_mm", cmap=lut, clim=clim, smooth_shading=True,
+                                     split_sharp_edges=True, show_scalar_bar=False, name=f"marker_{i}")
+            scalar_mapper = actor.mapper
+    if scalar_mapper is not None and scene.show_scalar_bar:
+        steps = int(round((clim[1] - clim[0]) / 0.5))
+        n_labels = steps + 1 if steps <= 6 else 5
+        font_scale = min(1.0, window_size[0] / 960.0)
+        plotter.add_scalar_bar(title="residual (mm)", mapper=scalar_mapper, n_labels=n_labels, fmt="%.1f",
+                               color="black", vertical=True, position_x=0.84, position_y=0.25, width=0.07,
+                               height=0.5, title_font_size=max(9, int(round(14 * font_scale))),
+                               label_font_size=max(8, int(round(12 * font_scale))))
+    return meshes
+
+
+def _add_points(plotter, scene: FrameScene) -> list[np.ndarray]:
+    """Calibration points, sensor points and targets as spheres, and the navigated path as a line."""
+    import pyvista as pv
+
+    shown = []
+    for points, color, radius, name in (
+        (scene.calibration_points, CALIBRATION, 0.9, "calibration_points"),
+        (scene.sensor_points, SENSOR, 0.6, "sensor_points"),
+        (scene.targets, TARGET, 1.5, "targets"),
+    ):
+        if points is not None and len(points):
+            points = np.asarray(points, dtype=float).reshape(-1, 3)
+            glyphs = pv.PolyData(points).glyph(geom=pv.Sphere(radius=radius, theta_resolution=16,
+                                                              phi_resolution=16), scale=False, orient=False)
+            plotter.add_mesh(glyphs, color=np.asarray(color) / 255.0, smooth_shading=True, name=name)
+            shown.append(points)
+    if scene.navigation_path is not None and len(scene.navigation_path) > 1:
+        path = np.asarray(scene.navigation_path, dtype=float).reshape(-1, 3)
+        plotter.add_mesh(pv.lines_from_points(path), color=np.asarray(NAVIGATION) / 255.0, line_width=2,
+                         name="navigation")
+    return shown
+
+
+def _add_labels(plotter, scene: FrameScene) -> None:
+    label_points, labels = [], []
+    for marker in scene.markers:
+        label_points.append(apply_transform(marker.marker_to_image, [0.0, scene.model.height_mm + 2.0, 0.0]))
+        labels.append(marker.label)
+    if scene.targets is not None and scene.target_labels:
+        label_points.extend(np.asarray(scene.targets, dtype=float).reshape(-1, 3))
+        labels.extend(scene.target_labels)
+    if labels:
+        plotter.add_point_labels(np.asarray(label_points), labels, font_size=11, bold=False, text_color="black",
+                                 shape_color="white", shape_opacity=0.7, show_points=False, always_visible=True,
+                                 margin=2, name="labels")
+
+
+def _set_camera(plotter, camera: Camera) -> None:
+    plotter.camera.position = camera.position
+    plotter.camera.focal_point = camera.focal_point
+    plotter.camera.up = camera.view_up
+    plotter.camera.view_angle = camera.view_angle_deg
+    plotter.renderer.ResetCameraClippingRange()
+
+
+def _frame_camera(plotter, bounds: np.ndarray, view: str) -> None:
+    """Look from the ``view`` direction at the centre of ``bounds`` and fit them in the window."""
+    direction, up = VIEWS[view]
+    direction = np.asarray(direction, dtype=float) / np.linalg.norm(direction)
+    centre = bounds.reshape(3, 2).mean(axis=1)
+    plotter.camera.focal_point = tuple(centre)
+    plotter.camera.position = tuple(centre + direction * 1000.0)
+    plotter.camera.up = up
+    plotter.camera.view_angle = 30.0
+    plotter.renderer.ResetCamera(*bounds)
+    plotter.camera.zoom(1.15)
+    plotter.renderer.ResetCameraClippingRange()
 
 
 def _add_reference_sensor(plotter, reference_to_image: np.ndarray) -> None:

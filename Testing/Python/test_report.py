@@ -118,9 +118,10 @@ def test_slices_show_the_fitted_outline_on_the_ct(sample_run):
 def test_fre_curve_is_lowest_at_the_solved_offset(sample_run):
     root, truth, _ = sample_run
     inputs = load_report_inputs(root / "out", read_image=False)
-    from EMRegModule.report import _pair_rows, calibration_points
+    from EMRegModule.report import calibration_points, marker_rows
 
-    curve = fre_curve(_pair_rows(inputs), calibration_points(inputs.frame_calibration), (11.0, 18.5), 751)
+    rows = marker_rows(inputs.detection, inputs.registration)
+    curve = fre_curve(rows, calibration_points(inputs.frame_calibration), (11.0, 18.5), 751)
     l_values, values = curve
     assert abs(l_values[np.argmin(values)] - truth["solved_l_mm"]) < 0.011
     assert abs(values.min() - truth["fre_mm"]) < 1e-6
@@ -200,7 +201,7 @@ def test_interrupted_report_keeps_the_previous_page(tmp_path, sample_run, monkey
     def broken(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr("EMRegModule.report.build_html", broken)
+    monkeypatch.setattr("EMRegModule.report.sections.build_html", broken)
     with pytest.raises(KeyboardInterrupt):
         write_report(out)
     assert (out / "report.html").read_bytes() == before

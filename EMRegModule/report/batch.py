@@ -1,0 +1,135 @@
+"""Reports for many runs: ``emreg report --batch DIR --jobs N``, within the machine's memory.
+
+Each report holds its case's CT in memory once (plus the rendering libraries), so the number of
+reports rendered at the same time is limited by an estimate per case: the CT's voxel bytes
+(from its header, no voxels read) times :data:`CT_MEMORY_FACTOR` plus :data:`LIBRARY_BYTES`,
+against the memory the system says is available. The limit is said on the terminal, and the
+progress bar shows the throughput in cases per minute.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+from ..errors import EMRegError
+from ..progress import QUIET, Progress
+from .inputs import has_report_inputs
+
+#: Peak memory of one report over its CT's bytes (the CT once, its binned copy, the slices).
+CT_MEMORY_FACTOR = 1.1
+#: Memory of one report process besides its CT: Python, VTK/pyvista, OpenCV, SciPy, the scene.
+LIBRARY_BYTES = 450e6
+#: Share of the available memory the batch may plan to use.
+MEMORY_SHARE = 0.85
+
+
+def available_memory_bytes() -> float | None:
+    """``MemAvailable`` of ``/proc/meminfo`` (bytes), or None where the system does not say."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024.0
+    except OSError:
+        return None
+    return None
+
+
+def ct_bytes_of_run(folder: Path) -> float:
+    """Voxel bytes of the CT a run's report will read (from the CT's header), 0 when unknown."""
+    import SimpleITK as sitk
+
+    from ..io.atomic import read_json
+    from ..io.case import find_ct
+
+    try:
+        run = read_json(folder / "run.json", "run record")
+        ct = Path(run["ct"]) if run.get("ct") else find_ct(run["case"])
+        if ct is None or ct.is_dir():  # a DICOM series: no single header to ask
+            return 0.0
+        reader = sitk.ImageFileReader()
+        reader.SetFileName(str(ct))
+        reader.ReadImageInformation()
+    except (EMRegError, OSError, KeyError, TypeError, RuntimeError):
+        return 0.0
+    size = 1.0
+    for n in reader.GetSize():
+        size *= n
+    pixel = sitk.Image([1] * reader.GetDimension(), reader.GetPixelID(), reader.GetNumberOfComponents())
+    return size * pixel.GetNumberOfComponentsPerPixel() * pixel.GetSizeOfPixelComponent()
+
+
+def memory_limited_jobs(folders: Sequence[str], jobs: int, progress: Progress = QUIET) -> int:
+    """``jobs`` lowered so that the largest cases, rendered together, fit in the available memory."""
+    if jobs <= 1 or len(folders) <= 1:
+        return max(1, min(jobs, len(folders)))
+    jobs = min(jobs, len(folders))
+    available = available_memory_bytes()
+    per_case = sorted((CT_MEMORY_FACTOR * ct_bytes_of_run(Path(f)) + LIBRARY_BYTES for f in folders), reverse=True)
+    if available is None:
+        return jobs
+    budget = MEMORY_SHARE * available
+    fitting = max(1, next((n - 1 for n in range(1, jobs + 1) if sum(per_case[:n]) > budget), jobs))
+    if fitting < jobs:
+        progress.message(f"[emreg] report: {fitting} of the {jobs} jobs asked at a time: up to "
+                         f"{per_case[0] / 1e9:.1f} GB per case, {available / 1e9:.1f} GB available")
+    else:
+        progress.message(f"[emreg] report: {jobs} jobs (estimated {sum(per_case[:jobs]) / 1e9:.1f} GB of "
+                         f"{available / 1e9:.1f} GB available)")
+    return fitting
+
+
+def _batch_worker(folder: str) -> tuple[str, str | None, str | None]:
+    from .writer import write_report
+
+    try:
+        return folder, str(write_report(Path(folder))), None
+    except EMRegError as exc:
+        return folder, None, str(exc)
+    except Exception as exc:  # noqa: BLE001 - one broken folder must not stop the batch; reported below
+        return folder, None, f"{type(exc).__name__}: {exc}"
+
+
+def write_reports_batch(folders: Sequence[str | os.PathLike[str]], jobs: int = 1,
+                        progress: Progress | None = None) -> list[Path]:
+    """Render a report in every output folder, up to ``jobs`` processes at a time, with a progress bar.
+
+    Folders without any run output are skipped (with a message); ``jobs`` is lowered to what the
+    available memory holds (:func:`memory_limited_jobs`). Each report finds its CT through its
+    ``run.json``. Returns the written pages in the order of ``folders``; when a folder fails the
+    others are still rendered, then :class:`EMRegError` lists the failures.
+    """
+    progress = progress or QUIET
+    if jobs < 1:
+        raise EMRegError(f"report --jobs must be at least 1, got {jobs}")
+    selected = []
+    for folder in folders:
+        if has_report_inputs(folder):
+            selected.append(str(folder))
+        else:
+            progress.message(f"[emreg] report: skipping {folder} (no run outputs in it)")
+    jobs = memory_limited_jobs(selected, jobs, progress)
+    results: dict[str, tuple[str | None, str | None]] = {}
+    with progress.step("reports", total=len(selected), per_minute="cases") as step:
+        if jobs == 1:
+            for folder in selected:
+                _, path, error = _batch_worker(folder)
+                results[folder] = (path, error)
+                step.advance()
+        else:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            context = multiprocessing.get_context("spawn")  # VTK/EGL state must not be forked
+            with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
+                futures = [pool.submit(_batch_worker, folder) for folder in selected]
+                for future in as_completed(futures):
+                    folder, path, error = future.result()
+                    results[folder] = (path, error)
+                    step.advance()
+    failures = [f"{folder}: {error}" for folder in selected for path, error in [results[folder]] if error]
+    if failures:
+        raise EMRegError(f"{len(failures)} of {len(selected)} reports failed: " + "; ".join(failures))
+    return [Path(results[folder][0]) for folder in selected]

@@ -1,0 +1,255 @@
+"""The report's figures: one function per figure, listed in :data:`FIGURES` in the page's order.
+
+Each entry says whether the figure can be drawn from what the run left (``available``) and
+whether it needs the CT's voxels (``needs_ct``): figures that do not are rendered first, while
+the CT is still being read. The CT is used twice, without any full-size copy: block-averaged
+for the 3D view's context surface (:mod:`EMRegModule.rendering.context`, following the read),
+and sampled on small planes around each marker for the slices.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..calibration import CalibrationPoint
+from ..errors import EMRegError
+from ..progress import QUIET, Progress
+from ..rendering.colors import GREY, colorize, residual_range
+from ..rendering.context import ContextSurface, binned_ct, context_surface
+from ..rendering.images import encode_png
+from ..rendering.plots import bar_chart, line_chart
+from ..transforms import apply_transform
+from .checks import ReportWarning
+from .derived import MarkerRow, calibration_points_in_image, finite_or_none, predicted_tre_by_target
+from .inputs import ReportInputs
+
+#: Navigated probe positions drawn in the 3D view at most (a longer path is thinned evenly).
+MAX_PATH_POINTS = 2000
+
+
+@dataclass
+class Figure:
+    """A rendered figure: file name stem, title, caption and PNG bytes."""
+
+    name: str
+    title: str
+    caption: str
+    png: bytes
+
+
+@dataclass
+class ReportData:
+    """Everything the figures and the page draw on, derived once from the inputs."""
+
+    inputs: ReportInputs
+    rows: list[MarkerRow]
+    points: dict[str, CalibrationPoint]
+    curve: tuple[np.ndarray, np.ndarray] | None = None
+    curve_stored: bool = False
+    warnings: list[ReportWarning] = field(default_factory=list)
+    surface: ContextSurface | None = None
+
+    @property
+    def l_mm(self) -> float | None:
+        """The registration's sensor offset (mm), or None without a registration."""
+        return None if self.inputs.registration is None else finite_or_none(self.inputs.registration.sensor_offset_l_mm)
+
+
+# --- the 3D view -------------------------------------------------------------------------------
+
+
+def _frame_scene(data: ReportData):
+    from ..rendering.scene3d import FrameScene, SceneMarker
+
+    inputs, registration = data.inputs, data.inputs.registration
+    sensor_points = None
+    if data.l_mm is not None:
+        paired = [r.sensor_point(data.l_mm) for r in data.rows if r.residual_mm is not None]
+        sensor_points = np.stack(paired) if paired else None
+    navigation = inputs.navigation_positions
+    if navigation is not None and len(navigation) > MAX_PATH_POINTS:
+        navigation = navigation[:: int(np.ceil(len(navigation) / MAX_PATH_POINTS))]
+    return FrameScene(
+        model=inputs.model,
+        markers=[SceneMarker(r.id, r.marker_to_image, r.residual_mm) for r in data.rows],
+        context_surface=data.surface.surface if data.surface is not None else None,
+        reference_to_image=registration.reference_to_image if registration is not None else None,
+        calibration_points=calibration_points_in_image(inputs, data.points),
+        sensor_points=sensor_points,
+        targets=inputs.targets_positions,
+        target_labels=inputs.targets_labels,
+        navigation_path=navigation,
+    )
+
+
+def prepare_context_surface(data: ReportData) -> None:
+    """Bin the CT (following its read) and contour it for the 3D view; a CT that fails to read becomes a note."""
+    if data.inputs.ct is None or data.surface is not None:
+        return
+    try:
+        binned = binned_ct(data.inputs.ct)
+    except EMRegError as exc:
+        data.inputs.notes.append(str(exc))
+        data.inputs.ct = None
+        return
+    iso_value = finite_or_none(data.inputs.section("report").get("iso_value"))
+    data.surface = context_surface(binned, iso_value)
+
+
+def render_scenes(data: ReportData) -> list[Figure]:
+    """The 3D view of the frame from two directions (one scene, two cameras)."""
+    from ..rendering.scene3d import render_frame_views
+
+    caption = ("Fitted marker models coloured by registration residual (grey: unpaired), the reference sensor with "
+               "its axes (red X, green Y, blue Z), calibration points mapped into the CT (magenta), sensor points at "
+               "the solved l (yellow), targets (red) and the navigated probe path (cyan)"
+               + (". " + data.surface.description() if data.surface is not None else "."))
+    images = render_frame_views(_frame_scene(data), (960, 720), ("oblique", "top"))
+    return [Figure("scene_oblique", "3D view of the frame", caption, encode_png(images[0])),
+            Figure("scene_top", "3D view from above", caption, encode_png(images[1]))]
+
+
+# --- CT slices ------------------------------------------------------------------------------------
+
+
+def render_marker_slices(data: ReportData) -> list[Figure]:
+    """Two planes along each marker's axis and one across its base, with the fitted outline."""
+    from ..rendering.slices import SliceMarker, marker_slices_mosaic
+
+    registration = data.inputs.registration
+    slice_markers = []
+    for r in data.rows:
+        caption, calibration_point = r.id, None
+        if r.calibration_label is not None:
+            caption += f" -> {r.calibration_label}"
+            if r.residual_mm is not None:
+                caption += f"  {r.residual_mm:.2f} mm"
+            if registration is not None and r.calibration_label in data.points:
+                calibration_point = apply_transform(registration.reference_to_image,
+                                                    data.points[r.calibration_label].position)
+        elif registration is not None:
+            caption += "  (unpaired)"
+        slice_markers.append(SliceMarker(
+            r.id, r.marker_to_image, caption, paired=r.calibration_label is not None or registration is None,
+            sensor_point=r.sensor_point(data.l_mm) if data.l_mm is not None else None,
+            calibration_point=calibration_point))
+    try:
+        image = data.inputs.image
+    except EMRegError as exc:
+        data.inputs.notes.append(str(exc))
+        data.inputs.ct = None
+        return []
+    mosaic = marker_slices_mosaic(image, slice_markers, data.inputs.model)
+    return [Figure("marker_slices", "CT slices through each marker",
+                   "Per marker: two planes through the marker axis (XY, ZY) and a cross-section of its base (XZ), "
+                   "with the fitted model outline (green: paired, orange: unpaired), the sensor point at the solved "
+                   "l (yellow dot) and the calibration point mapped by ReferenceToImage (magenta cross). "
+                   "0.2 mm per pixel.", encode_png(mosaic))]
+
+
+# --- plots ----------------------------------------------------------------------------------------
+
+
+def render_residuals(data: ReportData) -> list[Figure]:
+    """The registration residual of each pair, coloured as in the 3D view, with the FRE."""
+    registration = data.inputs.registration
+    paired = [r for r in data.rows if r.residual_mm is not None]
+    if paired:
+        labels, values = [r.id for r in paired], [float(r.residual_mm) for r in paired]
+    else:  # pairs name markers this report does not know: plot from the pairs alone
+        labels = [f"{p['image_marker']}" for p in registration.pairs]
+        values = [float(p["residual_mm"]) for p in registration.pairs]
+    low, high = residual_range(np.asarray(values))
+    colors = [tuple(int(c) for c in colorize([v], low, high)[0]) for v in values]
+    fre_mm = finite_or_none(registration.fre_mm)
+    lines = [(fre_mm, f"FRE {fre_mm:.2f} mm")] if fre_mm is not None else []
+    chart = bar_chart(labels, values, title="Registration residual per marker", y_label="residual (mm)",
+                      colors=colors or [GREY], reference_lines=lines)
+    return [Figure("residuals", "Residual per marker",
+                   "Distance between each calibration point mapped into the CT and its marker's sensor point at the "
+                   "solved l; the dashed line is the FRE (RMS).", encode_png(chart))]
+
+
+def render_fre_curve(data: ReportData) -> list[Figure]:
+    """FRE(l) over the pinhole range (paper Eq. 10) with the chosen l marked."""
+    l_values, values = data.curve
+    l_mm = data.l_mm
+    label = ""
+    if l_mm is not None:
+        label = f"chosen l = {l_mm:.2f} mm, FRE {float(np.interp(l_mm, l_values, values)):.2f} mm"
+    chart = line_chart(l_values, values, "FRE(l) over the pinhole range", "sensor offset l (mm)", "FRE (mm)",
+                       marker_x=l_mm, marker_label=label)
+    source = "as the registration computed it" if data.curve_stored else "recomputed here from the reported pairs"
+    return [Figure("fre_curve", "FRE as a function of the sensor offset l",
+                   f"Paper Eq. 10, {source}: for each l in the pinhole range the rigid fit of the calibration points "
+                   "to the sensor points at l; the dot marks the l the registration chose.", encode_png(chart))]
+
+
+def render_tre_targets(data: ReportData) -> list[Figure]:
+    """Measured TRE per target (mean and spread) with the predicted TRE when the registration has one."""
+    tre = data.inputs.evaluation["tre"]
+    targets = tre["targets"]
+    labels = list(targets)
+    means = [float(targets[t].get("mean_mm", np.nan)) for t in labels]
+    stds = [float(targets[t].get("std_mm") or 0.0) for t in labels]
+    mean = finite_or_none(tre.get("mean_mm"))
+    lines = [(mean, f"mean {mean:.2f} mm")] if mean is not None else []
+    predicted = predicted_tre_by_target(data.inputs)
+    overlay = [predicted.get(t, np.nan) for t in labels] if predicted else None
+    chart = bar_chart(labels, means, errors=stds, title="Target registration error", y_label="TRE (mm)",
+                      reference_lines=lines, overlay=overlay,
+                      overlay_label="predicted from FLE (Fitzpatrick)" if overlay else "")
+    return [Figure("tre_targets", "TRE per target",
+                   "Mean and standard deviation over the dwells at each target"
+                   + (", with the RMS TRE predicted from the fiducial configuration and FLE (red)" if overlay else "")
+                   + " (paper: 1.38 +/- 0.32 mm over 6 targets x 15 placements).", encode_png(chart))]
+
+
+# --- the registry ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FigureSpec:
+    """How to make one or more figures: their names, when they can be drawn, whether they read the CT."""
+
+    names: tuple[str, ...]
+    available: Callable[[ReportData], bool]
+    render: Callable[[ReportData], list[Figure]]
+    needs_ct: bool = False
+
+
+def _has_scene(data: ReportData) -> bool:  # calibration points alone have no place in the image
+    return bool(data.rows) or bool(data.points and data.inputs.registration is not None)
+
+
+FIGURES: tuple[FigureSpec, ...] = (
+    FigureSpec(("scene_oblique", "scene_top"), _has_scene, render_scenes, needs_ct=True),
+    FigureSpec(("marker_slices",), lambda d: bool(d.rows) and d.inputs.ct is not None, render_marker_slices,
+               needs_ct=True),
+    FigureSpec(("residuals",), lambda d: d.inputs.registration is not None and bool(d.inputs.registration.pairs),
+               render_residuals),
+    FigureSpec(("fre_curve",), lambda d: d.curve is not None, render_fre_curve),
+    FigureSpec(("tre_targets",), lambda d: bool(((d.inputs.evaluation or {}).get("tre") or {}).get("targets")),
+               render_tre_targets),
+)
+
+#: Every figure name, in the page's order.
+FIGURE_NAMES = tuple(name for spec in FIGURES for name in spec.names)
+
+
+def render_figures(data: ReportData, progress: Progress = QUIET) -> list[Figure]:
+    """Render every figure whose inputs exist; those without the CT first (while it is read). Page order."""
+    planned = [spec for spec in FIGURES if spec.available(data)]
+    rendered: dict[str, list[Figure]] = {}
+    with progress.step("rendering report", total=sum(len(spec.names) for spec in planned)) as step:
+        for spec in sorted(planned, key=lambda s: s.needs_ct):
+            if spec.needs_ct:
+                prepare_context_surface(data)
+                if spec.render is not render_scenes and data.inputs.ct is None:
+                    continue
+            rendered[spec.names[0]] = spec.render(data)
+            step.advance(len(rendered[spec.names[0]]))
+    return [figure for spec in planned for figure in rendered.get(spec.names[0], [])]

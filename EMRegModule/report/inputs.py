@@ -1,0 +1,205 @@
+"""What a report is made of: the typed outputs of a run, read back by the stages' own readers.
+
+Each stage output in OUT is read with the reader of the stage that writes it
+(:func:`~EMRegModule.detection.read_detection`, :func:`~EMRegModule.calibration.read_frame_calibration`,
+:func:`~EMRegModule.registration.read_registration`), and the report keeps the typed objects
+they return. A file that is missing is None; one that a reader turns down is None with a note
+(shown as a warning), never a crash. The CT starts being read as soon as it is known
+(:func:`EMRegModule.io.image.open_ct`, on a background thread) so that the rest of the report
+is prepared while its voxels arrive.
+
+Frames: positions are image space (CT LPS, mm) unless they say Reference.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..calibration import FrameCalibration, read_frame_calibration
+from ..detection.result import DetectionResult, read_detection
+from ..errors import EMRegError
+from ..io.atomic import read_json
+from ..io.case import open_case
+from ..io.markups import read_markups
+from ..marker_model import MarkerModel
+from ..registration import RegistrationResult, read_registration
+
+if TYPE_CHECKING:
+    import SimpleITK as sitk
+
+    from ..io.fast_read import VolumeFill
+
+INPUT_NAMES = ("markers.json", "frame_calibration.json", "registration.json", "navigation.csv", "evaluation.json",
+               "run.json")
+
+
+@dataclass
+class ReportInputs:
+    """Everything found for one report; None where absent. Positions in image space (LPS mm).
+
+    ``ct`` is the case's CT, possibly still being read (``ct.result()`` waits for it);
+    ``settings`` the case's ``case.toml`` tables; ``notes`` the inputs that could not be read.
+    """
+
+    out_dir: Path
+    case_dir: Path | None = None
+    run: dict | None = None
+    detection: DetectionResult | None = None
+    frame_calibration: FrameCalibration | None = None
+    registration: RegistrationResult | None = None
+    evaluation: dict | None = None
+    navigation_positions: np.ndarray | None = None
+    navigation_labels: list[str] | None = None
+    ct: VolumeFill | None = None
+    ct_path: Path | None = None
+    targets_labels: list[str] | None = None
+    targets_positions: np.ndarray | None = None
+    settings: dict = field(default_factory=dict)
+    model: MarkerModel = field(default_factory=MarkerModel)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def image(self) -> sitk.Image | None:
+        """The whole CT (waits for its read to finish), or None without one."""
+        return None if self.ct is None else self.ct.result()
+
+    def section(self, name: str) -> dict[str, Any]:
+        """One ``case.toml`` table of the case (empty when absent or not a table)."""
+        table = self.settings.get(name)
+        return table if isinstance(table, dict) else {}
+
+
+def has_report_inputs(folder: str | os.PathLike[str]) -> bool:
+    """True when a folder holds at least one output of a run (something to report)."""
+    folder = Path(folder)
+    return folder.is_dir() and any((folder / name).is_file() for name in INPUT_NAMES)
+
+
+def read_navigation_csv(path: Path) -> tuple[np.ndarray, list[str]]:
+    """Probe positions (N, 3, image LPS mm) and labels of an ``OUT/navigation.csv``."""
+    positions: list[list[float]] = []
+    labels: list[str] = []
+    try:
+        with path.open(newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            missing = {"x_mm", "y_mm", "z_mm"} - set(reader.fieldnames or [])
+            if missing:
+                raise EMRegError(f"{path}: navigation CSV lacks column(s) {', '.join(sorted(missing))}")
+            for row in reader:
+                positions.append([float(row["x_mm"]), float(row["y_mm"]), float(row["z_mm"])])
+                labels.append((row.get("label") or "").strip())
+    except (ValueError, TypeError):
+        raise EMRegError(f"{path}: navigation CSV holds a non-numeric position") from None
+    return np.asarray(positions, dtype=float).reshape(-1, 3), labels
+
+
+def _read_optional(path: Path, read: Callable[[Path], Any], notes: list[str]) -> Any:
+    """``read(path)`` when the file exists; its :class:`EMRegError` becomes a note."""
+    if not path.is_file():
+        return None
+    try:
+        return read(path)
+    except EMRegError as exc:
+        notes.append(str(exc))
+        return None
+
+
+def _read_json_object(what: str) -> Callable[[Path], dict]:
+    def read(path: Path) -> dict:
+        document = read_json(path, what)
+        if not isinstance(document, dict):
+            raise EMRegError(f"{path}: not a {what} (expected a JSON object)")
+        return document
+
+    return read
+
+
+def _resolve_case_dir(out_dir: Path, case_dir: Path | None, run: dict | None, notes: list[str]) -> Path | None:
+    if case_dir is not None:
+        case_dir = Path(case_dir)
+        if not case_dir.is_dir():
+            raise EMRegError(f"{case_dir}: case folder not found (give the folder of the CT with --case)")
+        return case_dir
+    recorded = (run or {}).get("case")
+    if not recorded:
+        return None
+    for candidate in (Path(recorded), out_dir / recorded):
+        if candidate.is_dir():
+            return candidate
+    notes.append(f"{out_dir / 'run.json'}: the recorded case folder {recorded} is not there any more; "
+                 "give it with --case to see the CT")
+    return None
+
+
+def _read_case(inputs: ReportInputs) -> None:
+    """Settings, CT path, targets and marker model of the case folder (problems become notes)."""
+    try:
+        case = open_case(inputs.case_dir)
+    except EMRegError as exc:
+        inputs.notes.append(str(exc))
+        return
+    inputs.settings = case.settings
+    inputs.ct_path = case.ct
+    if case.targets is not None:
+        try:
+            inputs.targets_labels, inputs.targets_positions = read_markups(case.targets)
+        except EMRegError as exc:
+            inputs.notes.append(str(exc))
+
+
+def _start_ct(inputs: ReportInputs, image: sitk.Image | None, read_image: bool) -> None:
+    from ..io.fast_read import VolumeFill
+    from ..io.image import open_ct
+
+    if image is not None:
+        inputs.ct = VolumeFill.complete(image)
+    elif read_image and inputs.ct_path is not None:
+        try:
+            inputs.ct = open_ct(inputs.ct_path)
+        except EMRegError as exc:
+            inputs.notes.append(str(exc))
+
+
+def load_report_inputs(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
+                       read_image: bool = True, image: sitk.Image | None = None) -> ReportInputs:
+    """Gather what exists in OUT and the case folder. Unreadable files become notes, not errors.
+
+    ``image`` (a ``SimpleITK.Image``) is the case's CT when the caller already holds it in memory
+    (``emreg run``); otherwise, when ``read_image``, the CT starts being read from the case folder
+    in the background (``inputs.image`` waits for it).
+
+    Raises :class:`EMRegError` when OUT is missing or holds none of the run's outputs, or
+    when an explicitly given ``case_dir`` does not exist.
+    """
+    out = Path(out_dir)
+    if not out.is_dir():
+        raise EMRegError(f"{out}: output folder not found")
+    if not has_report_inputs(out):
+        raise EMRegError(f"{out}: nothing to report (none of {', '.join(INPUT_NAMES)}); run emreg run CASE --out "
+                         f"{out} first")
+    inputs = ReportInputs(out_dir=out)
+    notes = inputs.notes
+    inputs.run = _read_optional(out / "run.json", _read_json_object("run record"), notes)
+    inputs.case_dir = _resolve_case_dir(out, Path(case_dir) if case_dir is not None else None, inputs.run, notes)
+    if inputs.case_dir is not None:
+        _read_case(inputs)
+    _start_ct(inputs, image, read_image)
+    inputs.detection = _read_optional(out / "markers.json", read_detection, notes)
+    inputs.frame_calibration = _read_optional(out / "frame_calibration.json", read_frame_calibration, notes)
+    inputs.registration = _read_optional(out / "registration.json", read_registration, notes)
+    inputs.evaluation = _read_optional(out / "evaluation.json", _read_json_object("evaluation file"), notes)
+    navigation = _read_optional(out / "navigation.csv", read_navigation_csv, notes)
+    if navigation is not None:
+        inputs.navigation_positions, inputs.navigation_labels = navigation
+    try:
+        inputs.model = MarkerModel.from_settings(inputs.settings.get("marker"))
+    except EMRegError as exc:
+        notes.append(str(exc))
+    return inputs

@@ -1,0 +1,65 @@
+"""``write_report``: read a run's outputs, check them, render the figures, write the page atomically.
+
+The CT starts being read first (in the background); the figures that do not need it are
+rendered meanwhile; the 3D view's context surface is binned from the CT as its slices arrive.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from ..errors import EMRegError
+from ..io.atomic import atomic_write_bytes, atomic_write_text
+from ..progress import QUIET, Progress
+from . import sections
+from .checks import collect_warnings
+from .derived import calibration_points, marker_rows, report_fre_curve
+from .figures import FIGURE_NAMES, ReportData, render_figures
+from .inputs import load_report_inputs
+
+if TYPE_CHECKING:
+    import SimpleITK as sitk
+
+REPORT_NAME = "report.html"
+FIGURE_DIR = "report_figures"
+
+
+def write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
+                 progress: Progress | None = None, image: sitk.Image | None = None) -> Path:
+    """Render ``OUT/report.html`` (and ``OUT/report_figures/*.png``) from what the run left in OUT.
+
+    ``case_dir`` is the case folder (for the CT and targets); by default the one recorded in
+    ``OUT/run.json``. ``image``: the case's CT already in memory (``SimpleITK.Image``), which spares
+    reading it again. Returns the path of the page. Raises :class:`EMRegError` when OUT holds
+    nothing to report.
+    """
+    progress = progress or QUIET
+    inputs = load_report_inputs(out_dir, case_dir, image=image)
+    try:
+        rows = marker_rows(inputs.detection, inputs.registration)
+        points = calibration_points(inputs.frame_calibration)
+        curve, stored = report_fre_curve(inputs, rows, points)
+    except (KeyError, TypeError, ValueError, ZeroDivisionError) as exc:
+        if inputs.ct is not None:
+            inputs.ct.cancel()
+        raise EMRegError(f"{inputs.out_dir}: an output file does not follow the spec ({exc!s:.120})") from None
+    data = ReportData(inputs, rows, points, curve, stored)
+    try:
+        figures = render_figures(data, progress)
+    except BaseException:
+        if inputs.ct is not None:
+            inputs.ct.cancel()
+        raise
+    data.warnings = collect_warnings(inputs, rows, curve)  # after the figures: a CT that failed to read is a note
+    figure_dir = inputs.out_dir / FIGURE_DIR
+    for figure in figures:
+        atomic_write_bytes(figure_dir / f"{figure.name}.png", figure.png)
+    produced = {f.name for f in figures}
+    for name in FIGURE_NAMES:  # figures of an earlier run that this one did not produce are stale
+        if name not in produced:
+            (figure_dir / f"{name}.png").unlink(missing_ok=True)
+    path = inputs.out_dir / REPORT_NAME
+    atomic_write_text(path, sections.build_html(data, figures))
+    return path
