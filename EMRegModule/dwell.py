@@ -23,6 +23,8 @@ from .io.case import check_known_keys, setting_number
 
 #: A chi-distributed 3D distance with per-axis sigma s has median about 1.538 s.
 _MEDIAN_CHI3 = 1.5382
+#: A still period's ends are trimmed to the samples within this many ``still_radius_mm`` of its median.
+TRIM_FACTOR = 1.5
 
 
 @dataclass(frozen=True)
@@ -258,6 +260,13 @@ def still_periods(time_s: np.ndarray, position_mm: np.ndarray, valid: np.ndarray
         periods.append((s, e))
     dwells = []
     for s, e in periods:
+        # The window's verdict spills half a window into the slow ends of the approach and the
+        # departure: trim the ends to the samples near the period's median before measuring it.
+        near = np.flatnonzero(np.linalg.norm(p[s:e] - np.median(p[s:e], axis=0), axis=1)
+                              <= TRIM_FACTOR * settings.still_radius_mm)
+        if len(near) == 0:
+            continue
+        s, e = s + int(near[0]), s + int(near[-1]) + 1
         if e - s < settings.min_samples or t[e - 1] - t[s] < settings.min_duration_s:
             continue
         if _drift(p[s:e]) > settings.drift_limit_mm:

@@ -35,9 +35,10 @@ DEFAULT_MAX_TARGET_DISTANCE_MM = 15.0
 #: Stillness radius (mm) for finding dwells in navigation and board recordings without labels.
 DEFAULT_STILL_RADIUS_MM = 1.0
 #: Shortest unlabelled dwell (s) in navigation and board recordings: a hand-held probe held still
-#: for 0.4 s is a dwell (with room for the stillness window's edges); transit motion is not
-#: (it drifts more than twice the stillness radius, see :class:`EMRegModule.dwell.DwellSettings`).
-DEFAULT_MIN_DURATION_S = 0.3
+#: for 0.4 s at 80 Hz (32 samples, 0.39 s from first to last) is a dwell; a mid-air hesitation of
+#: up to 0.3 s is not, nor is transit motion (it drifts more than twice the stillness radius, see
+#: :class:`EMRegModule.dwell.DwellSettings`).
+DEFAULT_MIN_DURATION_S = 0.35
 
 
 def evaluation_dwell_settings(section: Mapping[str, Any] | None) -> DwellSettings:
