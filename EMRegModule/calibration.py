@@ -235,7 +235,7 @@ def calibrate_frame(
             start_s=float(min(dwells[m].start_s for m in members)),
             end_s=float(max(dwells[m].end_s for m in members)), warning=warning,
         ))
-    warnings = [f"{recording.source}: {note}" for note in recording.notes]
+    warnings = list(recording.warnings)  # time resets / gaps found on reading (kept, as separate segments)
     warnings += [f"{p.label}: {p.warning}" for p in points if p.warning]
     warnings += _close_point_warnings(points, 2.0 * dwell_settings.merge_radius_mm)
     has_direction = any(np.all(np.isfinite(p.direction)) for p in points)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -63,6 +64,49 @@ def _settings(args: argparse.Namespace, case_dir: Path | None = None) -> dict:
     return {}
 
 
+def _out_folder(out: str | Path | None, create: bool = True) -> Path | None:
+    """Check an output folder before any work: a folder (made if missing) that EMReg can write into.
+
+    Refused with one line (exit 2): OUT is a file, a broken symbolic link or a loop, cannot be
+    made, or cannot be written (permissions, read-only file system).
+    """
+    if out is None:
+        return None
+    path = Path(out)
+    try:
+        if path.is_symlink() and not path.exists():
+            raise EMRegError(f"{path}: output folder is a broken symbolic link (or a symbolic-link loop)")
+        if path.exists() and not path.is_dir():
+            raise EMRegError(f"{path}: output folder is a file; give a folder for --out")
+        if not create and not path.is_dir():
+            return path
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except EMRegError:
+        raise
+    except OSError as exc:
+        raise EMRegError(f"{path}: cannot write to the output folder ({exc.strerror or exc})") from None
+    return path
+
+
+def _out_file(out: str | Path) -> Path:
+    """Check an output file's place before any work: not a folder, its folder writable (one line, exit 2)."""
+    path = Path(out)
+    if path.is_dir():
+        raise EMRegError(f"{path}: is a folder; give a file name for --out")
+    _out_folder(path.parent if str(path.parent) else Path("."))
+    return path
+
+
+def _with_series(settings: dict, args: argparse.Namespace) -> dict:
+    """``--series UID|NUMBER`` overrides ``[ct] series`` of case.toml."""
+    if getattr(args, "series", None):
+        settings = dict(settings)
+        settings["ct"] = {**(settings.get("ct") or {}), "series": args.series}
+    return settings
+
+
 def _warn(command: str, warnings: Sequence[str]) -> None:
     """Print a stage's warnings (also kept in its JSON output), one line each, on stderr."""
     for warning in warnings:
@@ -82,6 +126,7 @@ def _controller(args: argparse.Namespace, settings: dict):
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     _need_stage("simulation", "the case simulator")
+    _out_folder(args.out)
     from .simulation import simulate_case
 
     options = {"probe_axis": args.probe_axis} if args.probe_axis else {}
@@ -97,10 +142,11 @@ def cmd_detect(args: argparse.Namespace) -> int:
     _need_stage("detection", "marker detection")
     from .io.case import find_ct
 
+    _out_folder(args.out)
     source = Path(args.ct)
     case_dir = source if source.is_dir() and find_ct(source) is not None else None
     ct_path = find_ct(source) if case_dir is not None else source
-    controller = _controller(args, _settings(args, case_dir))
+    controller = _controller(args, _with_series(_settings(args, case_dir), args))
     result = controller.load_ct_and_detect(ct_path)  # detects on the slices read while the rest arrives
     from .detection import write_detection
 
@@ -113,6 +159,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     _need_stage("calibration", "frame calibration")
     from .calibration import write_frame_calibration
 
+    _out_folder(args.out)
     controller = _controller(args, _settings(args))
     controller.load_calibration_recording(args.recording)
     result = controller.calibrate_frame()
@@ -128,6 +175,7 @@ def cmd_register(args: argparse.Namespace) -> int:
     from .detection import read_detection
     from .registration import write_registration
 
+    _out_folder(args.out)
     controller = _controller(args, _settings(args))
     controller.set_detection(read_detection(args.markers))
     controller.set_frame_calibration(read_frame_calibration(args.calibration))
@@ -149,6 +197,7 @@ def cmd_register(args: argparse.Namespace) -> int:
 
 
 def cmd_navigate(args: argparse.Namespace) -> int:
+    _out_folder(args.out)
     live = args.igtl_port is not None or not args.source.startswith("replay:")
     if live:
         _need_stage("live", "live navigation (tracker / OpenIGTLink)")
@@ -159,15 +208,17 @@ def cmd_navigate(args: argparse.Namespace) -> int:
         raise EMRegError("navigate: --out DIR is needed to write navigation.csv from a replay")
     _need_stage("navigation", "navigation")
     from .navigation import write_navigation_csv
-    from .registration import read_registration
+    from .registration import max_fre_from_settings, read_registration
 
-    controller = _controller(args, _settings(args))
-    controller.set_registration(read_registration(args.registration))
+    settings = _settings(args)
+    controller = _controller(args, settings)
+    controller.set_registration(read_registration(args.registration, max_fre_from_settings(settings)))
     from .io.recording import read_recording
 
     recording = read_recording(args.source[len("replay:"):], controller.settings, controller.reference_sensor,
                                controller.probe_sensor)
     result = controller.navigate_recording(recording)
+    _warn("navigate", recording.warnings)
     write_navigation_csv(result, Path(args.out) / "navigation.csv")
     print(f"{len(result)} probe samples mapped into image space -> {args.out}")
     return 0
@@ -177,16 +228,24 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     _need_stage("evaluation", "evaluation")
     from .evaluation import evaluate_case, write_evaluation
     from .io.case import open_case
-    from .registration import read_registration
+    from .registration import max_fre_from_settings, read_registration
 
     case = open_case(args.case)
+    _out_folder(args.out)
+    if case.navigation is None and case.board is None:
+        raise EMRegError(f"{case.folder}: nothing to evaluate: no navigation recording (navigation.csv) and no "
+                         "board recording (board.csv) in the case folder")
+    if case.navigation is not None and case.targets is None and case.board is None:
+        raise EMRegError(f"{case.folder}: nothing to evaluate: a navigation recording but no targets.mrk.json "
+                         "(and no board.csv)")
     if args.settings:
         case.settings = _settings(args)
     controller = _controller(args, case.settings)
-    controller.set_registration(read_registration(args.registration))
+    controller.set_registration(read_registration(args.registration, max_fre_from_settings(case.settings)))
     result = evaluate_case(case, controller.reference_to_image, controller.reference_sensor,
                            controller.probe_sensor)
     write_evaluation(result, Path(args.out) / "evaluation.json")
+    _warn("evaluate", result.get("warnings", []))
     print(f"evaluation -> {Path(args.out) / 'evaluation.json'}")
     return 0
 
@@ -224,7 +283,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
         recording, others = read_tracking_csv(source), {}
     write_recording(recording, target, {"sensors": {**sensors, **names}}, reference, probe,
                     orientation="quaternion" if args.quaternion else None)
-    _warn("convert", recording.notes)
+    _warn("convert", recording.warnings)
     extra = ("; other transforms as sensor ports " + ", ".join(f"{n} = {p}" for n, p in others.items())
              if others else "")
     print(f"{len(recording)} sensor samples converted -> {target}{extra}")
@@ -245,6 +304,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         return 0
     if not args.out:
         raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
+    _out_folder(args.out, create=False)  # the run's folder: the report is written into it
     case = Path(args.case) if args.case else None
     path = write_report(Path(args.out), case_dir=case, progress=_progress(args))
     print(f"report -> {path}")
@@ -252,8 +312,9 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    _out_folder(args.out)
     summary = run_case(Path(args.case), Path(args.out), _progress(args), reference_sensor=args.reference_sensor,
-                       probe_sensor=args.probe_sensor, settings_path=args.settings)
+                       probe_sensor=args.probe_sensor, settings_path=args.settings, series=args.series)
     for line in summary:
         print(line)
     return 0
@@ -263,7 +324,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     _need_stage("simulation", "the case simulator")
     from .simulation import simulate_case
 
-    out = Path(args.out)
+    out = _out_folder(args.out)
     case_dir = out / "case"
     progress = _progress(args)
     start = time.perf_counter()
@@ -286,7 +347,7 @@ def _remove_outputs(out: Path, from_stage: str) -> None:
 
 def run_case(
     case_dir: Path, out: Path, progress: Progress, reference_sensor: int | None = None,
-    probe_sensor: int | None = None, settings_path: str | None = None,
+    probe_sensor: int | None = None, settings_path: str | None = None, series: str | None = None,
 ) -> list[str]:
     """Run every available stage on a case folder through the controller; returns summary lines.
 
@@ -305,6 +366,8 @@ def run_case(
     case = open_case(case_dir)
     if settings_path:
         case.settings = read_case_settings(settings_path)
+    if series:
+        case.settings = {**case.settings, "ct": {**(case.settings.get("ct") or {}), "series": series}}
     if case.ct is None:
         raise EMRegError(f"{case_dir}: no CT found (ct.nrrd, ct.nii.gz, ct.mha or a ct/ DICOM folder)")
     controller = EMRegController.for_case(case, progress)
@@ -323,6 +386,8 @@ def run_case(
             from .detection import write_detection
 
             detection = controller.load_ct_and_detect(case.ct)
+            if detection.ct_series is not None:
+                run_record["ct_series"] = detection.ct_series
             write_detection(detection, out)
             summary.append(f"detect: {len(detection.markers)} markers, {len(detection.rejected)} rejected")
         else:
@@ -359,8 +424,9 @@ def run_case(
             from .navigation import write_navigation_csv
 
             try:
-                navigation = controller.navigate_recording(read_recording(
-                    case.navigation, controller.settings, controller.reference_sensor, controller.probe_sensor))
+                navigation_recording = read_recording(case.navigation, controller.settings,
+                                                      controller.reference_sensor, controller.probe_sensor)
+                navigation = controller.navigate_recording(navigation_recording)
             except NoSafeAnswerError:
                 raise
             except EMRegError as exc:  # the registration stands; an unusable navigation recording is reported
@@ -368,6 +434,7 @@ def run_case(
                 print(f"emreg run: warning: navigation not made: {exc}", file=sys.stderr)
                 summary.append(f"navigate: not made: {exc}")
             else:
+                _warn("run", navigation_recording.warnings)
                 write_navigation_csv(navigation, out / "navigation.csv")
                 summary.append(f"navigate: {len(navigation)} probe samples")
         current = "evaluate"
@@ -414,6 +481,12 @@ def _add_sensor_options(parser: argparse.ArgumentParser) -> None:
                         help="port of the probe sensor (default 2 or case.toml [sensors])")
 
 
+def _add_series_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--series", default=None, metavar="UID|NUMBER",
+                        help="the DICOM series to use (Series Instance UID or series number; default: the CT "
+                             "volume best for detection)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``emreg`` argument parser with every subcommand."""
     parser = _Parser(prog="emreg", description="Automatic patient-to-image registration for EM navigation.")
@@ -440,6 +513,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("detect", cmd_detect, "find the markers in a CT: OUT/markers.json and markers.mrk.json")
     p.add_argument("ct", metavar="CT_OR_CASE", help="a CT file, a DICOM folder, or a case folder")
     p.add_argument("--out", required=True, metavar="OUT")
+    _add_series_option(p)
 
     p = add("calibrate", cmd_calibrate, "frame calibration from a tracking recording: OUT/frame_calibration.json")
     p.add_argument("recording", metavar="RECORDING")
@@ -486,6 +560,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("run", cmd_run, "run every stage on a case folder")
     p.add_argument("case", metavar="CASE")
     p.add_argument("--out", required=True, metavar="OUT")
+    _add_series_option(p)
     _add_sensor_options(p)
 
     p = add("demo", cmd_demo, "simulate the built-in sample case and run it")
@@ -525,6 +600,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"emreg {args.command}: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:  # a file-system failure no specific check foresaw: still one line, exit 2
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        print(f"emreg {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 if __name__ == "__main__":

@@ -65,8 +65,10 @@ class EMRegController:
         sensors = self.settings.get("sensors", {})
         self.reference_sensor: int = int(sensors.get("reference", DEFAULT_REFERENCE_SENSOR))
         self.probe_sensor: int = int(sensors.get("probe", DEFAULT_PROBE_SENSOR))
+        _check_two_ports(self.reference_sensor, self.probe_sensor)
         self.image: sitk.Image | None = None
         self.image_source: str | None = None
+        self.ct_series: dict[str, Any] | None = None  # a DICOM CT: the series used and the others
         self.calibration_recording: TrackingRecording | None = None
         self.detection: DetectionResult | None = None
         self.frame_calibration: FrameCalibration | None = None
@@ -119,12 +121,14 @@ class EMRegController:
 
     def load_ct(self, path: str | os.PathLike[str]) -> sitk.Image:
         """Read the CT (file or DICOM folder); drops detection and everything after it."""
-        from .io.image import read_ct
+        from .io.image import open_ct
 
         _import_in_background("EMRegModule.detection")  # overlaps the import with the file read
         with self.progress.step("reading CT"):
-            image = read_ct(path)
+            fill = open_ct(path, self.ct_series_choice)
+            image = fill.result()
         self.set_image(image, str(path))
+        self.ct_series = fill.series
         return image
 
     def load_ct_and_detect(self, path: str | os.PathLike[str]) -> DetectionResult:
@@ -136,7 +140,7 @@ class EMRegController:
 
         _import_in_background("EMRegModule.detection")  # overlaps the import with the start of the read
         with self.progress.step("opening CT"):
-            fill = open_ct(path)
+            fill = open_ct(path, self.ct_series_choice)
         from .detection import detect_markers
 
         try:
@@ -151,8 +155,25 @@ class EMRegController:
                     raise read_error from None
             raise
         self.set_image(image, str(path))
+        self.ct_series = result.ct_series = fill.series
         self.set_detection(result)
         return result
+
+    @property
+    def ct_series_choice(self) -> str | None:
+        """``[ct] series`` (a Series Instance UID or a series number) forcing the DICOM series, or None."""
+        from .io.case import check_known_keys
+
+        table = self.settings.get("ct") or {}
+        if not isinstance(table, dict):
+            raise EMRegError("case.toml [ct] must be a table")
+        value = check_known_keys(table, "ct", {"series"}).get("series")
+        if value is None or isinstance(value, bool) or not isinstance(value, (str, int)):
+            if value is not None:
+                raise EMRegError(f"case.toml [ct]: series must be a Series Instance UID or a series number, "
+                                 f"got {value!r}")
+            return None
+        return str(value)
 
     def set_image(self, image: sitk.Image, source: str = "CT") -> None:
         """Use an image already in memory (e.g. a Slicer volume node converted to SimpleITK)."""
@@ -161,6 +182,7 @@ class EMRegController:
         check_ct_image(image, source)  # geometry and voxel values (NaN / inf refused)
         self.image = image
         self.image_source = source
+        self.ct_series = None
         self._invalidate(detection=True)
 
     def load_calibration_recording(self, path: str | os.PathLike[str]) -> TrackingRecording:
@@ -177,6 +199,8 @@ class EMRegController:
 
     def set_sensors(self, reference_sensor: int | None = None, probe_sensor: int | None = None) -> None:
         """Change the sensor ports; a change drops the frame calibration and what follows."""
+        _check_two_ports(self.reference_sensor if reference_sensor is None else int(reference_sensor),
+                         self.probe_sensor if probe_sensor is None else int(probe_sensor))
         changed = False
         if reference_sensor is not None and reference_sensor != self.reference_sensor:
             self.reference_sensor, changed = int(reference_sensor), True
@@ -193,6 +217,7 @@ class EMRegController:
         from .detection import detect_markers
 
         result = detect_markers(self.image, self.marker_model, self.settings.get("detection"), self.progress)
+        result.ct_series = self.ct_series
         self.set_detection(result)
         return result
 
@@ -277,6 +302,13 @@ class EMRegController:
         if self.registration is not None:
             parts.append(f"FRE {self.registration.fre_mm:.2f} mm, l = {self.registration.sensor_offset_l_mm:.2f} mm")
         return "; ".join(parts)
+
+
+def _check_two_ports(reference_sensor: int, probe_sensor: int) -> None:
+    """The reference and the probe must be two different ports (one line, exit 2)."""
+    if reference_sensor == probe_sensor:
+        raise EMRegError(f"the reference and the probe sensor are both port {reference_sensor}; give two different "
+                         "ports (--reference-sensor / --probe-sensor or case.toml [sensors] reference / probe)")
 
 
 def _import_in_background(module: str) -> None:

@@ -70,6 +70,7 @@ def evaluate_case(case: Case, reference_to_image: np.ndarray, reference_sensor: 
     dwell_settings = evaluation_dwell_settings(section)
     result: dict[str, Any] = {}
     not_evaluated: dict[str, str] = {}
+    warnings: list[str] = []  # time resets / gaps / invalid frames found in the recordings
 
     def part(name: str, compute) -> None:
         try:
@@ -84,7 +85,8 @@ def evaluate_case(case: Case, reference_to_image: np.ndarray, reference_sensor: 
     if case.navigation is not None and case.targets is not None:
         def tre() -> dict[str, Any]:
             labels, positions = read_markups(case.targets)
-            recording = read_recording(case.navigation, case.settings)
+            recording = read_recording(case.navigation, case.settings, reference_sensor, probe_sensor)
+            warnings.extend(recording.warnings)
             return evaluate_targets(
                 recording, labels, positions, reference_to_image, reference_sensor, probe_sensor, dwell_settings,
                 float(section.get("max_target_distance_mm", DEFAULT_MAX_TARGET_DISTANCE_MM)),
@@ -100,14 +102,17 @@ def evaluate_case(case: Case, reference_to_image: np.ndarray, reference_sensor: 
                 except (TypeError, ValueError):
                     raise EMRegError(f"{case.folder / 'case.toml'}: [board] edges_mm must be a list of "
                                      "numbers") from None
-            return evaluate_board(read_recording(case.board, case.settings), reference_sensor, probe_sensor,
-                                  nominal, dwell_settings)
+            recording = read_recording(case.board, case.settings, reference_sensor, probe_sensor)
+            warnings.extend(recording.warnings)
+            return evaluate_board(recording, reference_sensor, probe_sensor, nominal, dwell_settings)
 
         part("board", board)
     if not_evaluated:
         result["not_evaluated"] = not_evaluated
-        result["warnings"] = [f"{'TRE' if name == 'tre' else name} not evaluated: {reason}"
-                              for name, reason in not_evaluated.items()]
+        warnings += [f"{'TRE' if name == 'tre' else name} not evaluated: {reason}"
+                     for name, reason in not_evaluated.items()]
+    if warnings:
+        result["warnings"] = warnings
     return result
 
 

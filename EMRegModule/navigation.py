@@ -12,9 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import EMRegError
 from .io.atomic import atomic_path
-from .tracking import TrackingRecording, invert_rigid_batch, match_moments
+from .tracking import TrackingRecording, invert_rigid_batch, sensor_pair
 
 NAVIGATION_HEADER = "time_s,x_mm,y_mm,z_mm,label"
 
@@ -65,11 +64,7 @@ def navigate_recording(recording: TrackingRecording, reference_to_image: np.ndar
     Moments are paired as in :func:`EMRegModule.tracking.probe_in_reference`.
     """
     reference_to_image = np.asarray(reference_to_image, dtype=float)
-    reference = recording.for_sensor(reference_sensor, "reference")
-    probe = recording.for_sensor(probe_sensor, "probe")
-    ref_idx, probe_idx = match_moments(reference, probe)
-    if len(probe_idx) == 0:
-        raise EMRegError(f"{recording.source}: no probe sample has a reference sample at the same time (within 1 ms)")
+    reference, probe, ref_idx, probe_idx = sensor_pair(recording, reference_sensor, probe_sensor)
     tracker_to_image = reference_to_image[:3, :3] @ np.swapaxes(reference.rotation[ref_idx], 1, 2)
     mapped = np.zeros((len(probe_idx), 4, 4))
     mapped[:, :3, :3] = tracker_to_image @ probe.rotation[probe_idx]

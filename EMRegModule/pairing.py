@@ -39,7 +39,7 @@ from scipy.spatial import cKDTree
 
 from .errors import EMRegError, NoSafeAnswerError
 from .io.case import setting_number
-from .transforms import make_transform
+from .sensor_offset import fre_curve
 
 
 @dataclass(frozen=True)
@@ -292,19 +292,10 @@ class _Problem:
     # --- hypotheses ----------------------------------------------------------------------
 
     def _triangle_transforms(self, tri, triples: np.ndarray) -> np.ndarray:
-        """ReferenceToImage (T, 4, 4) per image triangle, l chosen on the grid by fit residual."""
-        p = self.points[list(tri)]  # (3, 3)
-        q = self.origins[triples][:, None] + self.l_grid[None, :, None, None] * self.axes[triples][:, None]  # (T,L,3,3)
-        rotation, translation = _kabsch_batch(np.broadcast_to(p, q.shape), q)
-        mapped = np.einsum("tlij,nj->tlni", rotation, p) + translation[:, :, None]
-        error = np.sum((mapped - q) ** 2, axis=(2, 3))
-        best = np.argmin(error, axis=1)
-        pick = np.arange(len(triples))
-        transforms = np.zeros((len(triples), 4, 4))
-        transforms[:, :3, :3] = rotation[pick, best]
-        transforms[:, :3, 3] = translation[pick, best]
-        transforms[:, 3, 3] = 1.0
-        return transforms
+        """ReferenceToImage (T, 4, 4) per image triangle, l chosen on the grid by fit residual (FRE(l))."""
+        curve = fre_curve(self.l_grid, self.points[list(tri)], self.origins[triples], self.axes[triples])
+        best = np.argmin(curve.sse_mm2, axis=1)
+        return curve.reference_to_image[np.arange(len(triples)), best]
 
     def _segment_distances(self, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distances (T, N, M) of mapped calibration points from the image pinhole segments,
@@ -533,35 +524,11 @@ def _triangle_heights(triangles: np.ndarray) -> np.ndarray:
     return np.divide(twice_area, longest, out=np.zeros_like(longest), where=longest > 0)
 
 
-def _kabsch_batch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rotations (..., 3, 3) and translations (..., 3) mapping point sets a onto b
-    (..., n, 3), vectorised over the leading axes (reflection-safe)."""
-    ca = a.mean(axis=-2)
-    cb = b.mean(axis=-2)
-    h = np.einsum("...ni,...nj->...ij", a - ca[..., None, :], b - cb[..., None, :])
-    u, _, vt = np.linalg.svd(h)
-    v = np.swapaxes(vt, -1, -2)
-    ut = np.swapaxes(u, -1, -2)
-    sign = np.sign(np.linalg.det(v @ ut))
-    sign[sign == 0] = 1.0
-    v = v.copy()
-    v[..., :, 2] *= sign[..., None]
-    rotation = v @ ut
-    translation = cb - np.einsum("...ij,...j->...i", rotation, ca)
-    return rotation, translation
-
-
 def _fit_with_offset(points: np.ndarray, origins: np.ndarray, axes: np.ndarray,
                      l_grid: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
-    """Rigid fit of points onto ``origins + l * axes`` with l minimising the residual on the
-    grid, then refined by a parabola through the grid minimum. Returns (transform, l, residuals)."""
-    def fit(l_values: np.ndarray):
-        q = origins[None] + l_values[:, None, None] * axes[None]
-        rotation, translation = _kabsch_batch(np.broadcast_to(points, q.shape), q)
-        mapped = np.einsum("lij,nj->lni", rotation, points) + translation[:, None]
-        return rotation, translation, np.sum((mapped - q) ** 2, axis=(1, 2)), mapped, q
-
-    _, _, sse, _, _ = fit(l_grid)
+    """Rigid fit of points onto ``origins + l * axes`` with l minimising FRE(l) on the grid, then
+    refined by a parabola through the grid minimum. Returns (transform, l, residuals)."""
+    sse = fre_curve(l_grid, points, origins, axes).sse_mm2
     k = int(np.argmin(sse))
     l_best = float(l_grid[k])
     if 0 < k < len(l_grid) - 1:
@@ -570,9 +537,8 @@ def _fit_with_offset(points: np.ndarray, origins: np.ndarray, axes: np.ndarray,
         if denominator > 1e-12:
             step = l_grid[k + 1] - l_grid[k]
             l_best = float(np.clip(l_grid[k] + 0.5 * step * (y0 - y2) / denominator, l_grid[k - 1], l_grid[k + 1]))
-    rotation, translation, _, mapped, q = fit(np.array([l_best]))
-    residuals = np.linalg.norm(mapped[0] - q[0], axis=1)
-    return make_transform(rotation[0], translation[0]), l_best, residuals
+    at_best = fre_curve([l_best], points, origins, axes)
+    return at_best.reference_to_image[0], l_best, at_best.residuals_mm[0]
 
 
 def _mutual_nearest(distance: np.ndarray, tolerance: float) -> dict[int, int]:

@@ -6,8 +6,9 @@ and the calibrated pinhole points (Reference frame), :func:`register`
 1. pairs them automatically (:mod:`EMRegModule.pairing`; refuses when ambiguous);
 2. solves the probe sensor's depth l in [a, b] by minimising FRE(l) (paper Eq. 10): the
    image pinhole points are ``q_j(l) = origin_j + l * axis_j`` and for each l the least-squares
-   rigid fit (:func:`EMRegModule.transforms.fit_rigid`) of the calibration points onto them
-   gives FRE(l); a 0.1 mm grid then a bounded scalar minimisation find the minimum;
+   rigid fit of the calibration points onto them gives FRE(l)
+   (:func:`EMRegModule.sensor_offset.fre_curve`); a 0.1 mm grid then a bounded scalar
+   minimisation find the minimum (:func:`EMRegModule.sensor_offset.solve_sensor_offset`);
 3. reports how well l is determined: its standard error from the curvature of the residual
    sum of squares at the minimum, ``std(l) = sqrt(2 sigma^2 / SSE''(l))`` with sigma^2 the
    per-coordinate noise variance estimated from the residuals. When the marker axes are
@@ -34,7 +35,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from .calibration import FrameCalibration
 from .errors import EMRegError, NoSafeAnswerError
@@ -43,10 +43,15 @@ from .io.case import check_known_keys, setting_number
 from .io.itk_transform import write_slicer_linear_transform
 from .marker_model import MarkerModel
 from .pairing import PairingSettings
-from .transforms import apply_transform, fit_rigid, is_rigid, predicted_tre, residuals
+from .sensor_offset import solve_sensor_offset
+from .transforms import apply_transform, is_rigid, predicted_tre, residuals
 
 #: Name of the ITK transform file written beside ``registration.json``.
 TRANSFORM_FILE = "ReferenceToImage.h5"
+
+#: Largest deviation accepted in a stored ``ReferenceToImage``: |R R^T - I| entries, |det R - 1| and the
+#: last row against 0 0 0 1 (files written by EMReg are rigid to 1e-12).
+RIGID_TOLERANCE = 1e-4
 
 #: Median of a chi-squared variable with 3 degrees of freedom (robust RMS of 3D residuals).
 _CHI2_3_MEDIAN = 2.3660
@@ -148,8 +153,14 @@ class RegistrationResult:
     def from_json(cls, document: Mapping[str, Any], source: str = "registration") -> RegistrationResult:
         try:
             matrix = np.asarray(document["ReferenceToImage"], dtype=float)
-            if matrix.shape != (4, 4) or not is_rigid(matrix, 1e-4):
-                raise EMRegError(f"{source}: ReferenceToImage must be a rigid 4x4 matrix")
+            if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
+                raise EMRegError(f"{source}: ReferenceToImage must be a 4x4 matrix of finite numbers")
+            if not is_rigid(matrix, RIGID_TOLERANCE):
+                raise EMRegError(f"{source}: ReferenceToImage is not rigid (rotation not orthonormal with "
+                                 f"determinant +1, or last row not 0 0 0 1, within {RIGID_TOLERANCE:g})")
+            for key in ("sensor_offset_l_mm", "fre_mm"):
+                if not np.isfinite(float(document[key])):
+                    raise EMRegError(f"{source}: {key} is not a finite number")
             curve = document.get("fre_curve") or {}
             targets = document.get("targets_image")
             tre = document.get("predicted_tre_mm")
@@ -205,66 +216,6 @@ def _image_markers(detection: Any) -> tuple[list[str], np.ndarray, np.ndarray]:
     return ids, origins_array, axes_array / norms[:, None]
 
 
-# --- sensor offset ---------------------------------------------------------------------------
-
-
-def fre_at_offset(l_mm: float, points_reference: np.ndarray, origins_image: np.ndarray,
-                  axes_image: np.ndarray) -> tuple[float, np.ndarray]:
-    """FRE (mm, paper Eq. 10) and the fitted ``ReferenceToImage`` for a sensor offset l (mm):
-    calibration points (N, 3, Reference) fitted onto ``origins + l * axes`` (N, 3, image)."""
-    pinholes = origins_image + l_mm * axes_image
-    reference_to_image = fit_rigid(points_reference, pinholes)
-    return float(np.sqrt(np.mean(residuals(reference_to_image, points_reference, pinholes) ** 2))), reference_to_image
-
-
-@dataclass
-class OffsetSolution:
-    """The l minimising FRE(l) in [a, b], its standard error (mm) and FRE(l) samples."""
-
-    l_mm: float
-    l_std_mm: float
-    fre_mm: float
-    reference_to_image: np.ndarray
-    curve_l_mm: np.ndarray
-    curve_fre_mm: np.ndarray
-
-
-def solve_sensor_offset(points_reference: np.ndarray, origins_image: np.ndarray, axes_image: np.ndarray,
-                        l_range_mm: tuple[float, float], grid_step_mm: float = 0.1) -> OffsetSolution:
-    """Minimise FRE(l) over l in ``l_range_mm`` (grid, then bounded Brent around the best node)."""
-    a, b = float(l_range_mm[0]), float(l_range_mm[1])
-    n = len(points_reference)
-
-    def sse(l_value: float) -> float:
-        return n * fre_at_offset(l_value, points_reference, origins_image, axes_image)[0] ** 2
-
-    if b - a < 1e-9:
-        fre_value, transform = fre_at_offset(a, points_reference, origins_image, axes_image)
-        return OffsetSolution(a, 0.0, fre_value, transform, np.array([a]), np.array([fre_value]))
-    grid = np.linspace(a, b, max(3, int(round((b - a) / grid_step_mm)) + 1))
-    grid_sse = np.array([sse(v) for v in grid])
-    k = int(np.argmin(grid_sse))
-    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
-    found = minimize_scalar(sse, bounds=(lo, hi), method="bounded", options={"xatol": 1e-5})
-    l_best = float(found.x) if found.fun <= grid_sse[k] else float(grid[k])
-    fre_value, transform = fre_at_offset(l_best, points_reference, origins_image, axes_image)
-    # Curvature of SSE(l) at the minimum (central difference, one-sided at a bound).
-    h = 0.05
-    if l_best - h < a:
-        c = sse(l_best) - 2 * sse(l_best + h) + sse(l_best + 2 * h)
-    elif l_best + h > b:
-        c = sse(l_best) - 2 * sse(l_best - h) + sse(l_best - 2 * h)
-    else:
-        c = sse(l_best - h) - 2 * sse(l_best) + sse(l_best + h)
-    curvature = c / h**2
-    dof = 3 * n - 7
-    sigma2 = (n * fre_value**2) / dof if dof > 0 else float("nan")
-    l_std = float(np.sqrt(2 * sigma2 / curvature)) if curvature > 1e-12 and np.isfinite(sigma2) else float("inf")
-    curve_l = np.linspace(a, b, max(2, int(round((b - a) / 0.25)) + 1))
-    curve_fre = np.sqrt(np.interp(curve_l, grid, grid_sse) / n)
-    return OffsetSolution(l_best, l_std, fre_value, transform, curve_l, curve_fre)
-
-
 # --- registration ----------------------------------------------------------------------------
 
 
@@ -294,6 +245,10 @@ def register(
     points = frame_calibration.positions
     directions = frame_calibration.directions
     if config.sensor_offset_l_mm is not None:
+        if not model.pinhole_bottom_mm <= config.sensor_offset_l_mm <= model.pinhole_top_mm:
+            raise EMRegError(f"case.toml [registration] sensor_offset_l_mm = {config.sensor_offset_l_mm:g} lies "
+                             f"outside the marker's pinhole {model.pinhole_bottom_mm:g}..{model.pinhole_top_mm:g} mm: "
+                             "the probe sensor cannot sit there")
         l_range = (config.sensor_offset_l_mm, config.sensor_offset_l_mm)
     else:
         l_range = (model.pinhole_bottom_mm, model.pinhole_top_mm)
@@ -332,9 +287,7 @@ def register(
             f"([registration] max_fre_mm); check the calibration recording and the detected markers"
         )
     fixed = config.sensor_offset_l_mm is not None
-    if fixed and not model.pinhole_bottom_mm <= config.sensor_offset_l_mm <= model.pinhole_top_mm:
-        warnings.append(f"the given sensor offset l = {config.sensor_offset_l_mm:g} mm lies outside the pinhole "
-                        f"[{model.pinhole_bottom_mm:g}, {model.pinhole_top_mm:g}] mm")
+
     if not fixed:
         a, b = l_range
         if solution.l_std_mm > config.max_l_std_mm:
@@ -412,9 +365,26 @@ def write_registration(result: RegistrationResult, out_dir: str | os.PathLike[st
     atomic_write_json(out / "registration.json", result.to_json())
 
 
-def read_registration(path: str | os.PathLike[str]) -> RegistrationResult:
-    """Read ``registration.json`` (a folder holding one is accepted too)."""
+def read_registration(path: str | os.PathLike[str], max_fre_mm: float | None = None) -> RegistrationResult:
+    """Read ``registration.json`` (a folder holding one is accepted too) and check it can be trusted.
+
+    Every consumer (navigate, evaluate, report, live navigation, the Slicer Logic) reads through
+    here: the numbers must be finite, ``ReferenceToImage`` rigid within :data:`RIGID_TOLERANCE`,
+    and ``fre_mm`` at most ``max_fre_mm`` (default: the ``[registration] max_fre_mm`` default,
+    2 mm). A malformed file raises :class:`EMRegError` (exit 2); an FRE above the limit raises
+    :class:`NoSafeAnswerError` (exit 3), as ``emreg register`` does.
+    """
     path = Path(path)
     if path.is_dir():
         path = path / "registration.json"
-    return RegistrationResult.from_json(read_json(path, "registration JSON"), str(path))
+    result = RegistrationResult.from_json(read_json(path, "registration JSON"), str(path))
+    limit = RegistrationSettings().max_fre_mm if max_fre_mm is None else float(max_fre_mm)
+    if result.fre_mm > limit:
+        raise NoSafeAnswerError(f"{path}: registration FRE {result.fre_mm:.2f} mm is above the limit of {limit:g} mm "
+                                "([registration] max_fre_mm): not used")
+    return result
+
+
+def max_fre_from_settings(settings: Mapping[str, Any] | None) -> float:
+    """The FRE limit (mm) of a parsed ``case.toml`` (its ``[registration]`` table), for consumers."""
+    return RegistrationSettings.from_settings(dict(settings or {}).get("registration")).max_fre_mm

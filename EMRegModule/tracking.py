@@ -20,6 +20,22 @@ from .transforms import invert_rigid
 #: Reference and probe rows of one moment share ``time_s`` within this tolerance (spec).
 SAME_MOMENT_S = 1e-3
 
+#: A recording with nothing recorded for longer than this (s) is split there into segments (with a warning).
+MAX_GAP_S = 2.0
+
+#: Consecutive segments are this far apart (s) on a recording's timeline (more than any dwell gap).
+SEGMENT_SEPARATION_S = 2.0
+
+#: The probe must move at least this far (mm, spread about its median) relative to the reference over a
+#: recording; a probe that never moves relative to the reference is a port mistake (or a second sensor on
+#: the frame).
+MIN_PROBE_SPREAD_MM = 2.0
+
+#: Ports look swapped when the "reference" spreads in the Tracker frame more than this factor times the
+#: "probe" and by more than ``SWAP_MIN_SPREAD_MM``.
+SWAP_SPREAD_FACTOR = 3.0
+SWAP_MIN_SPREAD_MM = 10.0
+
 
 @dataclass
 class TrackingRecording:
@@ -38,10 +54,14 @@ class TrackingRecording:
     label: np.ndarray
     source: str = "recording"
     orientation_format: str = field(default="angles")  # "angles" or "quaternion" (as read / to write)
-    notes: list[str] = field(default_factory=list)  # what reading dropped (e.g. frames with an INVALID status)
+    #: (N,) time segment of each row (0, 1, ...): a time reset or a long gap starts a new one
+    segment: np.ndarray | None = None
+    #: what reading found and kept (time resets, gaps), one line each
+    warnings: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         n = len(self.time_s)
+        self.segment = np.zeros(n, dtype=int) if self.segment is None else np.asarray(self.segment, dtype=int)
         self.time_s = np.asarray(self.time_s, dtype=float)
         self.sensor = np.asarray(self.sensor, dtype=int)
         self.position_mm = np.asarray(self.position_mm, dtype=float).reshape(n, 3)
@@ -61,8 +81,26 @@ class TrackingRecording:
         """The rows where ``mask`` (boolean or index array) holds."""
         return TrackingRecording(
             self.time_s[mask], self.sensor[mask], self.position_mm[mask], self.rotation[mask],
-            self.quality[mask], self.label[mask], self.source, self.orientation_format, list(self.notes),
+            self.quality[mask], self.label[mask], self.source, self.orientation_format, self.segment[mask],
+            list(self.warnings),
         )
+
+    @property
+    def timeline_s(self) -> np.ndarray:
+        """Times (s) made increasing across segments: segment k is moved to start
+        ``SEGMENT_SEPARATION_S`` after segment k-1 ends when it would not (a time reset); within a
+        segment the times are the recorded ones shifted by one constant."""
+        if len(self) == 0 or not np.any(self.segment):
+            return self.time_s
+        timeline = self.time_s.astype(float).copy()
+        end = None
+        for k in np.unique(self.segment):
+            rows = self.segment == k
+            start = float(np.min(self.time_s[rows]))
+            if end is not None and start < end + SEGMENT_SEPARATION_S:
+                timeline[rows] += end + SEGMENT_SEPARATION_S - start
+            end = float(np.max(timeline[rows]))
+        return timeline
 
     def for_sensor(self, port: int, role: str = "sensor") -> TrackingRecording:
         """Rows of one sensor port, in time order; :class:`EMRegError` if the port has none."""
@@ -73,7 +111,7 @@ class TrackingRecording:
                 f"(ports present: {self.sensors}); set the port with --{role}-sensor or in case.toml [sensors]"
             )
         rows = self.select(mask)
-        order = np.argsort(rows.time_s, kind="stable")
+        order = np.argsort(rows.timeline_s, kind="stable")
         return rows.select(order)
 
     def transforms(self) -> np.ndarray:
@@ -123,30 +161,27 @@ def match_moments(
     """
     if len(reference) == 0 or len(probe) == 0:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
-    right = np.searchsorted(reference.time_s, probe.time_s)
+    reference_time, probe_time = reference.timeline_s, probe.timeline_s
+    right = np.searchsorted(reference_time, probe_time)
     right = np.clip(right, 0, len(reference) - 1)
     left = np.clip(right - 1, 0, len(reference) - 1)
-    pick_left = np.abs(reference.time_s[left] - probe.time_s) <= np.abs(reference.time_s[right] - probe.time_s)
+    pick_left = np.abs(reference_time[left] - probe_time) <= np.abs(reference_time[right] - probe_time)
     nearest = np.where(pick_left, left, right)
-    ok = np.abs(reference.time_s[nearest] - probe.time_s) <= tolerance_s
+    ok = (np.abs(reference_time[nearest] - probe_time) <= tolerance_s) & (reference.segment[nearest] == probe.segment)
     return nearest[ok], np.nonzero(ok)[0]
 
 
 def probe_in_reference(
-    recording: TrackingRecording, reference_port: int = 1, probe_port: int = 2
+    recording: TrackingRecording, reference_port: int = 1, probe_port: int = 2, check_ports: bool = True
 ) -> ProbeInReference:
     """Express every probe sample in the Reference frame at its own moment (paper Eq. 3-5).
 
     ``ProbeToReference = inv(ReferenceToTracker) @ ProbeToTracker``. Raises
-    :class:`EMRegError` when a sensor is missing or no moment has both sensors.
+    :class:`EMRegError` when a sensor is missing or no moment has both sensors, and for the port
+    mistakes of :func:`sensor_pair` (unless ``check_ports`` is false: a synthetic recording whose
+    probe is rigidly fixed to the reference).
     """
-    reference = recording.for_sensor(reference_port, "reference")
-    probe = recording.for_sensor(probe_port, "probe")
-    ref_idx, probe_idx = match_moments(reference, probe)
-    if len(probe_idx) == 0:
-        raise EMRegError(
-            f"{recording.source}: no probe sample has a reference sample at the same time (within 1 ms)"
-        )
+    reference, probe, ref_idx, probe_idx = sensor_pair(recording, reference_port, probe_port, check_ports)
     reference_to_tracker = reference.transforms()[ref_idx]
     if not np.all(np.isfinite(reference_to_tracker)):
         raise EMRegError(f"{recording.source}: the reference sensor (port {reference_port}) has samples without "
@@ -157,8 +192,117 @@ def probe_in_reference(
     probe_to_reference = tracker_to_reference @ probe_to_tracker
     quality = np.fmax(reference.quality[ref_idx], probe.quality[probe_idx])
     return ProbeInReference(
-        probe.time_s[probe_idx], probe_to_reference, reference_to_tracker, quality, probe.label[probe_idx]
+        probe.timeline_s[probe_idx], probe_to_reference, reference_to_tracker, quality, probe.label[probe_idx]
     )
+
+
+def sensor_pair(recording: TrackingRecording, reference_port: int, probe_port: int, check_roles: bool = True
+                ) -> tuple[TrackingRecording, TrackingRecording, np.ndarray, np.ndarray]:
+    """The reference and probe rows (time-sorted) and their same-moment index pairs, with the ports checked.
+
+    Refused with :class:`EMRegError` (one line, exit 2): the same port for both, a port absent from
+    the recording, no common moment, a probe that never moves relative to the reference
+    (``MIN_PROBE_SPREAD_MM``), and a "reference" that moves far more than the "probe" in the
+    Tracker frame (swapped ports, ``SWAP_SPREAD_FACTOR``).
+    """
+    if int(reference_port) == int(probe_port):
+        raise EMRegError(f"{recording.source}: the reference and the probe sensor are both port {reference_port}; "
+                         "give two different ports (--reference-sensor / --probe-sensor or case.toml [sensors])")
+    reference = recording.for_sensor(reference_port, "reference")
+    probe = recording.for_sensor(probe_port, "probe")
+    ref_idx, probe_idx = match_moments(reference, probe)
+    if len(probe_idx) == 0:
+        raise EMRegError(
+            f"{recording.source}: no probe sample has a reference sample at the same time (within 1 ms)"
+        )
+    if check_roles:
+        _check_roles(recording.source, reference, probe, ref_idx, probe_idx, reference_port, probe_port)
+    return reference, probe, ref_idx, probe_idx
+
+
+def _spread_mm(points: np.ndarray) -> float:
+    """95th percentile distance (mm) of points from their median: how far a sensor travels, robustly."""
+    if len(points) == 0:
+        return 0.0
+    return float(np.percentile(np.linalg.norm(points - np.median(points, axis=0), axis=1), 95))
+
+
+def _check_roles(source: str, reference: TrackingRecording, probe: TrackingRecording, ref_idx: np.ndarray,
+                 probe_idx: np.ndarray, reference_port: int, probe_port: int) -> None:
+    reference_position = reference.position_mm[ref_idx]
+    probe_position = probe.position_mm[probe_idx]
+    rotation_t = np.swapaxes(reference.rotation[ref_idx], 1, 2)
+    relative = np.einsum("nij,nj->ni", rotation_t, probe_position - reference_position)
+    relative_spread = _spread_mm(relative)
+    if relative_spread < MIN_PROBE_SPREAD_MM:
+        raise EMRegError(
+            f"{source}: the probe (port {probe_port}) never moves relative to the reference (port {reference_port}): "
+            f"spread {relative_spread:.2f} mm < {MIN_PROBE_SPREAD_MM:g} mm; check the sensor ports"
+        )
+    reference_spread, probe_spread = _spread_mm(reference_position), _spread_mm(probe_position)
+    if reference_spread > SWAP_MIN_SPREAD_MM and reference_spread > SWAP_SPREAD_FACTOR * probe_spread:
+        raise EMRegError(
+            f"{source}: the reference sensor (port {reference_port}) moves {reference_spread:.0f} mm in the tracker "
+            f"frame, the probe (port {probe_port}) only {probe_spread:.0f} mm: the ports look swapped; check "
+            "--reference-sensor / --probe-sensor or case.toml [sensors]"
+        )
+
+
+def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "recording",
+                        first_line: int = 2) -> tuple[np.ndarray, list[str]]:
+    """Segments of a recording in file order, and the warnings that say where and why it was split.
+
+    A new segment starts where a sensor's time goes back (a clock reset: the rows after it are
+    kept, not merged with the earlier ones by time) and where nothing was recorded for more than
+    ``MAX_GAP_S``. Within a segment each sensor's time must increase; a repeated or decreasing time
+    that is not a reset of the whole recording is an :class:`EMRegError` naming the line
+    (``first_line`` is the file line of row 0).
+    """
+    time_s = np.asarray(time_s, dtype=float)
+    sensor = np.asarray(sensor, dtype=int)
+    n = len(time_s)
+    segment = np.zeros(n, dtype=int)
+    warnings: list[str] = []
+    if n == 0:
+        return segment, warnings
+    order = np.lexsort((np.arange(n), sensor))  # by sensor, file order within
+    same = sensor[order][1:] == sensor[order][:-1]
+    if np.any(same & (np.diff(time_s[order]) < 0)):
+        current, last = 0, {}
+        for i, (t, s) in enumerate(zip(time_s.tolist(), sensor.tolist(), strict=True)):
+            if s in last and t < last[s]:
+                current += 1
+                warnings.append(f"{source}: time goes back from {last[s]:.3f} s to {t:.3f} s at line {i + first_line} "
+                                "(a clock reset): the rows after it are a separate time segment")
+                last = {}
+            last[s] = t
+            segment[i] = current
+    # long gaps (nothing from any sensor) split a segment too
+    for k in range(int(segment.max()) + 1):
+        rows = np.nonzero(segment == k)[0]
+        times = np.unique(time_s[rows])
+        gaps = np.nonzero(np.diff(times) > MAX_GAP_S)[0]
+        if len(gaps) == 0:
+            continue
+        for g in gaps:
+            warnings.append(f"{source}: nothing recorded for {times[g + 1] - times[g]:.1f} s after {times[g]:.3f} s "
+                            f"(more than {MAX_GAP_S:g} s): the rows after it are a separate time segment")
+        segment[rows] = segment[rows] * (n + 1) + np.searchsorted(times[gaps], time_s[rows], side="left")
+    if warnings:
+        segment = np.unique(segment, return_inverse=True)[1].reshape(n)
+        # keep the segments in file order of first appearance
+        first = {int(v): i for i, v in reversed(list(enumerate(segment.tolist())))}
+        rank = {v: r for r, v in enumerate(sorted(first, key=first.get))}
+        segment = np.array([rank[int(v)] for v in segment.tolist()], dtype=int)
+    # within a segment, each sensor's time must increase
+    order = np.lexsort((np.arange(n), segment, sensor))
+    same = (sensor[order][1:] == sensor[order][:-1]) & (segment[order][1:] == segment[order][:-1])
+    bad = np.nonzero(same & (np.diff(time_s[order]) <= 0))[0]
+    if len(bad):
+        row = int(order[bad[0] + 1])
+        raise EMRegError(f"{source}: line {row + first_line}: time {time_s[row]:.4f} s of sensor {sensor[row]} "
+                         "does not increase (each sensor's time must increase within a recording)")
+    return segment, warnings
 
 
 def invert_rigid_batch(a_to_b: np.ndarray) -> np.ndarray:

@@ -177,13 +177,47 @@ def rotation_to_quaternion(rotation: ArrayLike) -> Array:
 # --- rigid fitting and errors ------------------------------------------------------------
 
 
+def fit_rigid_batch(
+    points_a: ArrayLike, points_b: ArrayLike, weights: ArrayLike | None = None
+) -> tuple[Array, Array]:
+    """Least-squares rigid fits (Arun / Umeyama, no scale) mapping paired points A onto B, batched.
+
+    ``points_a`` and ``points_b``: (..., N, 3), frames A and B (mm), broadcast against each other;
+    ``weights`` (..., N): non-negative per-pair weights (None: all equal). Returns rotations
+    (..., 3, 3) and translations (..., 3) with ``p_B = R @ p_A + t``. Reflection-safe (the
+    determinant of every rotation is +1). Inputs are not checked (see :func:`fit_rigid`); fewer
+    than 3 non-collinear pairs give one of the many minimisers.
+    """
+    points_a, points_b = np.broadcast_arrays(np.asarray(points_a, dtype=float), np.asarray(points_b, dtype=float))
+    if weights is None:
+        centroid_a = points_a.mean(axis=-2)
+        centroid_b = points_b.mean(axis=-2)
+        weighted_b = points_b - centroid_b[..., None, :]
+    else:
+        w = np.broadcast_to(np.asarray(weights, dtype=float), points_a.shape[:-1])
+        w = w / w.sum(axis=-1, keepdims=True)
+        centroid_a = np.einsum("...n,...ni->...i", w, points_a)
+        centroid_b = np.einsum("...n,...ni->...i", w, points_b)
+        weighted_b = (points_b - centroid_b[..., None, :]) * w[..., None]
+    covariance = np.einsum("...ni,...nj->...ij", points_a - centroid_a[..., None, :], weighted_b)
+    u, _, vt = np.linalg.svd(covariance)
+    v = np.swapaxes(vt, -1, -2)
+    u_t = np.swapaxes(u, -1, -2)
+    sign = np.sign(np.linalg.det(v @ u_t))
+    correction = np.ones(np.shape(sign) + (3,))
+    correction[..., 2] = np.where(sign == 0, 1.0, sign)
+    rotation = (v * correction[..., None, :]) @ u_t
+    translation = centroid_b - np.einsum("...ij,...j->...i", rotation, centroid_a)
+    return rotation, translation
+
+
 def fit_rigid(
     points_a: ArrayLike, points_b: ArrayLike, weights: ArrayLike | None = None
 ) -> Array:
-    """Least-squares rigid ``AToB`` mapping paired points A onto B (Arun / Umeyama, no scale).
+    """Least-squares rigid ``AToB`` (4x4) mapping paired points A (N, 3) onto B (N, 3), mm.
 
-    Reflection-safe (the determinant of the rotation is forced to +1). ``weights`` (N,)
-    are non-negative per-pair weights. Needs at least 3 non-collinear pairs.
+    One fit of :func:`fit_rigid_batch` with its inputs checked: reflection-safe, ``weights`` (N,)
+    non-negative per-pair weights with a positive sum; needs at least 3 non-collinear pairs.
     """
     points_a = np.asarray(points_a, dtype=float)
     points_b = np.asarray(points_b, dtype=float)
@@ -191,17 +225,12 @@ def fit_rigid(
         raise ValueError(f"fit_rigid needs two N x 3 arrays of equal shape, got {points_a.shape} and {points_b.shape}")
     if points_a.shape[0] < 3:
         raise ValueError(f"fit_rigid needs at least 3 point pairs, got {points_a.shape[0]}")
-    w = np.ones(len(points_a)) if weights is None else np.asarray(weights, dtype=float)
-    if w.shape != (len(points_a),) or np.any(w < 0) or w.sum() <= 0:
-        raise ValueError("weights must be N non-negative numbers with a positive sum")
-    w = w / w.sum()
-    centroid_a = w @ points_a
-    centroid_b = w @ points_b
-    covariance = (points_a - centroid_a).T @ ((points_b - centroid_b) * w[:, None])
-    u, _, vt = np.linalg.svd(covariance)
-    correction = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T)) or 1.0])
-    rotation = vt.T @ correction @ u.T
-    return make_transform(rotation, centroid_b - rotation @ centroid_a)
+    if weights is not None:
+        weights = np.asarray(weights, dtype=float)
+        if weights.shape != (len(points_a),) or np.any(weights < 0) or weights.sum() <= 0:
+            raise ValueError("weights must be N non-negative numbers with a positive sum")
+    rotation, translation = fit_rigid_batch(points_a, points_b, weights)
+    return make_transform(rotation, translation)
 
 
 def residuals(a_to_b: ArrayLike, points_a: ArrayLike, points_b: ArrayLike) -> Array:

@@ -12,7 +12,18 @@
    pyserial and sends each raw record on a socket as soon as its bytes are in (no framing checks,
    no decoding, no OpenIGTLink).
 
-Run: ``.venv/bin/python scripts/bench_tracker.py [--seconds 4]``. Loopback only; stops by itself.
+The NDI Aurora (``--model aurora`` or ``both``, the default) on the same terms:
+
+4. Rate: ``emreg sim-tracker --model aurora`` (own process) measures at its configured rate (40 Hz)
+   with two 6-DOF tools; EMReg's driver (ndicapi) polls BX at 115200 baud; frames per second
+   delivered and frame numbers skipped (no loss = none skipped, no reply rejected).
+5. Latency: from the last byte of the BX reply that first carried a frame (the simulator's
+   ``--emit-log``) to the ``ProbeToImage`` message handed to TCP.
+6. Baseline: a plain pyserial loop that sends the same ``BX:0801`` command, reads the reply by its
+   length header and sends the raw bytes on a socket (no CRC check, no decoding, no OpenIGTLink).
+
+Run: ``.venv/bin/python scripts/bench_tracker.py [--seconds 4] [--model trakstar|aurora|both]``.
+Loopback only; stops by itself.
 """
 
 from __future__ import annotations
@@ -32,11 +43,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from EMRegModule.live import ndi_protocol as ndi  # noqa: E402
 from EMRegModule.live import trakstar_protocol as tp  # noqa: E402
 from EMRegModule.live.device_url import parse_device_url  # noqa: E402
 from EMRegModule.live.igtl_server import IGTLServer  # noqa: E402
 from EMRegModule.live.navigator import LiveNavigator  # noqa: E402
-from EMRegModule.live.sources import TrakstarSource  # noqa: E402
+from EMRegModule.live.sources import TrakstarSource, open_source  # noqa: E402
 
 DRAIN = """
 import socket, sys
@@ -172,8 +184,18 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=4.0, help="length of each measuring phase")
     parser.add_argument("--igtl-port", type=int, default=0)
+    parser.add_argument("--model", choices=("trakstar", "aurora", "both"), default="both")
     args = parser.parse_args()
+    if args.model in ("trakstar", "both"):
+        print("=== trakSTAR ===")
+        bench_trakstar(args)
+    if args.model in ("aurora", "both"):
+        print("\n=== NDI Aurora ===")
+        bench_aurora(args)
+    return 0
 
+
+def bench_trakstar(args: argparse.Namespace) -> None:
     fmt = tp.get_format("POSITION/ANGLES")
     record_bytes = tp.record_length(fmt, metal=True, group=True)
     theoretical_hz = tp.max_stream_rate_hz(fmt, 4, 115200, metal=True, group=True)
@@ -235,7 +257,127 @@ def main() -> int:
     loss_free = stats.rejected == 0 and stats.stray_bytes == 0 and lost == 0 and len(matched) == sent_in_window
     print(f"\nno loss at the line-limited rate: {'yes' if loss_free else 'NO'}; "
           f"latency goal met: {'yes' if om < 2 and op < 5 else 'NO'}")
-    return 0
+
+
+# --- the Aurora --------------------------------------------------------------------------------------------
+
+AURORA_RATE_HZ = 40.0
+AURORA_HANDLES = (0x0A, 0x0B)
+
+
+def read_aurora_log(path: Path) -> list[tuple[int, int, bool]]:
+    """(frame, emit ns of the reply's last byte, corrupted) of every BX/TX reply the simulator sent."""
+    with open(path, newline="") as f:
+        return [(int(r["frame"]), int(r["emit_ns"]), r["corrupted"] == "1") for r in csv.DictReader(f)]
+
+
+def run_emreg_aurora(path: str, seconds: float, port: int) -> dict:
+    """EMReg's live path for the Aurora: ndicapi driver -> navigator -> OpenIGTLink -> one TCP client."""
+    source = open_source(f"aurora://{path}?baud=115200&rate={AURORA_RATE_HZ:g}")
+    server = IGTLServer("127.0.0.1", port)
+    drain = start_drain(server.port)
+    server.wait_for_clients(1, 5.0)
+    navigator = LiveNavigator(np.eye(4), 1, 2, server, None, period_s=1 / AURORA_RATE_HZ, out=None,
+                              max_quality=None)
+    start = time.monotonic()
+    source.start(navigator.on_sample)
+    time.sleep(seconds)
+    elapsed = time.monotonic() - start
+    stats = source.driver.stats
+    source.stop()
+    server.close()
+    drain.wait(timeout=10)
+    return {"elapsed": elapsed, "stats": stats, "latencies": list(navigator.latencies),
+            "published": navigator.published, "withheld": navigator.withheld}
+
+
+def run_baseline_aurora(path: str, seconds: float) -> dict:
+    """A plain loop on the same simulator: pyserial writes BX:0801, reads the reply by its length, sends it."""
+    import serial
+
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(1)
+    drain = start_drain(listener.getsockname()[1])
+    conn, _ = listener.accept()
+    conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    ser = serial.Serial(path, 9600, timeout=1.0)
+
+    def ask(text: str) -> bytes:
+        ser.write(ndi.frame_command(text))
+        return ser.read_until(b"\r")
+
+    ask("INIT:")
+    ask("COMM:50000")
+    time.sleep(0.1)
+    ser.baudrate = 115200
+    for h in AURORA_HANDLES:
+        ask(f"PINIT:{h:02X}")
+        ask(f"PENA:{h:02X}D")
+    ask("TSTART:")
+    bx = ndi.frame_command("BX:0801")
+    sent: list[int] = []
+    start_ns = time.monotonic_ns()
+    stop = time.monotonic() + seconds
+    while time.monotonic() < stop:
+        ser.write(bx)
+        header = ser.read(4)
+        length = int.from_bytes(header[2:4], "little")
+        reply = header + ser.read(length + 4)
+        conn.sendall(reply)
+        sent.append(time.monotonic_ns())
+    ser.baudrate = 115200
+    ask("TSTOP:")
+    ser.close()
+    conn.close()
+    listener.close()
+    drain.wait(timeout=10)
+    return {"sent": sent, "start_ns": start_ns}
+
+
+def bench_aurora(args: argparse.Namespace) -> None:
+    reply_bytes = len(ndi.bx_reply([ndi.ToolReport(h, "valid", np.array([1.0, 0, 0, 0]), np.zeros(3))
+                                    for h in AURORA_HANDLES]))
+    line_s = (reply_bytes + len(ndi.frame_command("BX:0801"))) * 10 / 115200
+    print(f"2 tools, BX:0801 at 115200 baud: {reply_bytes}-byte reply, {1e3 * line_s:.2f} ms of line time per poll "
+          f"-> at most {1 / line_s:.0f} polls/s; measuring rate {AURORA_RATE_HZ:g} Hz")
+    with tempfile.TemporaryDirectory() as tmp:
+        link = Path(tmp) / "aurora"
+        emit_log = Path(tmp) / "emit.csv"
+        sim = subprocess.Popen([sys.executable, "-m", "EMRegModule", "sim-tracker", "--model", "aurora", "--tools",
+                                "1:6dof,2:6dof", "--rate", str(AURORA_RATE_HZ), "--link", str(link), "--emit-log",
+                                str(emit_log), "--duration", str(4 * args.seconds + 20), "--quiet"],
+                               stdout=subprocess.PIPE, text=True, cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+        sim.stdout.readline()
+        ours = run_emreg_aurora(str(link), args.seconds, args.igtl_port)
+        time.sleep(0.3)
+        base = run_baseline_aurora(str(link), args.seconds)
+        sim.terminate()
+        sim.wait(timeout=20)
+        log = read_aurora_log(emit_log)
+
+    st = ours["stats"]
+    fps = st.frames / ours["elapsed"]
+    print(f"\nEMReg driver (ndicapi): {st.frames} frames in {ours['elapsed']:.2f} s = {fps:.1f} frames/s "
+          f"({100 * fps / AURORA_RATE_HZ:.1f}% of {AURORA_RATE_HZ:g} Hz); {st.polls} polls, {st.repeated} repeated "
+          f"frame numbers, {st.missed_frames} frame numbers skipped, {st.rejected} replies rejected; "
+          f"{ours['published']} ProbeToImage published, {ours['withheld']} withheld")
+    first_emit: dict[int, int] = {}
+    for frame, emit_ns, corrupted in log:
+        if not corrupted and emit_ns and frame not in first_emit:
+            first_emit.setdefault(frame, emit_ns)
+    ours_ms = np.array([(sent - first_emit[f]) / 1e6 for f, _, sent in ours["latencies"] if f in first_emit])
+    base_emits = [e for _, e, _ in log if e >= base["start_ns"]]
+    base_ms = np.array([(t - e) / 1e6 for t, e in zip(base["sent"], base_emits, strict=False)])
+    om, op = percentiles(ours_ms)
+    bm, bp = percentiles(base_ms)
+    print(f"\nlatency, last byte of the BX reply -> message handed to TCP (n = {len(ours_ms)}):")
+    print(f"  EMReg (ndicapi CRC + parse, decode, watchdog, Eq. 12, OpenIGTLink TRANSFORM): median {om:.3f} ms, "
+          f"p99 {op:.3f} ms")
+    print(f"  baseline (raw pty read + socket send, n = {len(base_ms)}): median {bm:.3f} ms, p99 {bp:.3f} ms")
+    print(f"  added by EMReg over the baseline: median {om - bm:+.3f} ms, p99 {op - bp:+.3f} ms")
+    loss_free = st.missed_frames == 0 and st.rejected == 0
+    print(f"\nno loss at {AURORA_RATE_HZ:g} Hz: {'yes' if loss_free else 'NO'}")
 
 
 if __name__ == "__main__":

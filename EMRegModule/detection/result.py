@@ -80,6 +80,7 @@ class DetectionResult:
     markers: list[DetectedMarker]
     rejected: list[RejectedCandidate] = field(default_factory=list)
     image: dict[str, Any] = field(default_factory=dict)
+    ct_series: dict[str, Any] | None = None  # a DICOM CT: the series used and the others (``io.dicom_series``)
 
     def __len__(self) -> int:
         return len(self.markers)
@@ -102,9 +103,12 @@ class DetectionResult:
 
     def to_json(self) -> dict[str, Any]:
         """The ``markers.json`` document (spec)."""
-        return {"coordinate_system": "LPS", "image": self.image,
-                "markers": [m.to_json() for m in self.markers],
-                "rejected": [r.to_json() for r in self.rejected]}
+        document = {"coordinate_system": "LPS", "image": self.image,
+                    "markers": [m.to_json() for m in self.markers],
+                    "rejected": [r.to_json() for r in self.rejected]}
+        if self.ct_series is not None:
+            document["ct_series"] = self.ct_series
+        return document
 
     @classmethod
     def from_json(cls, document: dict[str, Any], source: str = "markers.json") -> DetectionResult:
@@ -133,7 +137,8 @@ class DetectionResult:
         ids = [m.id for m in markers]
         if len(set(ids)) != len(ids):
             raise EMRegError(f"{source}: marker ids must be unique")
-        return cls(markers, rejected, dict(document.get("image", {})))
+        series = document.get("ct_series")
+        return cls(markers, rejected, dict(document.get("image", {})), series if isinstance(series, dict) else None)
 
 
 def write_detection(result: DetectionResult, out_dir: str | os.PathLike[str]) -> None:

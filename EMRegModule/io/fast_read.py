@@ -88,6 +88,7 @@ class VolumeFill:
         self._finished = False
         self._cancelled = False
         self._condition = threading.Condition()
+        self.series: dict | None = None  # a DICOM folder: the series read and the others (``dicom_series``)
         self.is_complete = False  # True when made by ``complete`` (read in full before it existed)
 
     @classmethod

@@ -19,21 +19,23 @@ from .ct_checks import check_ct_geometry, check_ct_image
 from .fast_read import VolumeFill, check_data_length, start_fast_read
 
 
-def read_ct(path: str | os.PathLike[str]) -> sitk.Image:
-    """Read a scalar 3D CT from a file or a folder holding one DICOM series.
+def read_ct(path: str | os.PathLike[str], series: str | int | None = None) -> sitk.Image:
+    """Read a scalar 3D CT from a file or a DICOM folder (its best CT series, or ``series``: UID or number).
 
     Raises :class:`EMRegError` with a one-line message for a missing, empty, truncated
-    or unreadable file, a non-scalar or non-3D image, or a folder without one series.
+    or unreadable file, a non-scalar or non-3D image, or a folder without a usable CT series.
     """
-    return open_ct(path).result()
+    return open_ct(path, series).result()
 
 
-def open_ct(path: str | os.PathLike[str]) -> VolumeFill:
+def open_ct(path: str | os.PathLike[str], series: str | int | None = None) -> VolumeFill:
     """Start reading a CT as :func:`read_ct` does; the voxels may still be arriving when this returns.
 
     Plain NRRD, MetaImage and NIfTI files take the fast path of :mod:`.fast_read` (the same
     image as SimpleITK's, 1.2-1.4x faster on compressed scans), read slice by slice on a
-    background thread; anything else is read by SimpleITK before this returns. The geometry is
+    background thread; a DICOM folder is decoded slice by slice on a thread pool
+    (:mod:`.dicom_series`, which also chooses the series: ``fill.series`` names it); anything
+    else is read by SimpleITK before this returns. The geometry is
     checked (:func:`check_ct`) before returning; ``result()`` raises the read's own errors.
     """
     path = Path(path)
@@ -41,7 +43,9 @@ def open_ct(path: str | os.PathLike[str]) -> VolumeFill:
         raise EMRegError(f"{path}: CT not found")
     try:
         if path.is_dir():
-            fill = VolumeFill.complete(_read_dicom_series(path))
+            from .dicom_series import open_dicom_series
+
+            fill, _ = open_dicom_series(path, series)
         else:
             if path.stat().st_size == 0:
                 raise EMRegError(f"{path}: CT file is empty")
@@ -63,18 +67,6 @@ def open_ct(path: str | os.PathLike[str]) -> VolumeFill:
         fill.cancel()
         raise
     return fill
-
-
-def _read_dicom_series(folder: Path) -> sitk.Image:
-    series_ids = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder)) or []
-    if not series_ids:
-        raise EMRegError(f"{folder}: no DICOM series found in the CT folder")
-    if len(series_ids) > 1:
-        raise EMRegError(f"{folder}: {len(series_ids)} DICOM series found; keep exactly one in the CT folder")
-    files = sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), series_ids[0])
-    reader = sitk.ImageSeriesReader()
-    reader.SetFileNames(files)
-    return reader.Execute()
 
 
 def check_ct(image: sitk.Image, source: str | os.PathLike[str] = "CT") -> None:

@@ -1,7 +1,8 @@
 """3D Slicer markups JSON (point lists) read/write.
 
 Written files are in LPS (``coordinateSystem: "LPS"``), which Slicer 5 reads directly;
-files in RAS are converted to LPS on reading.
+files in RAS are converted to LPS on reading, and ``coordinateUnits`` other than ``mm`` ("m", "cm",
+"um") are scaled to millimetres; an unknown unit is an error.
 """
 
 from __future__ import annotations
@@ -18,6 +19,11 @@ MARKUPS_SCHEMA = (
     "https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/Markups/Resources/Schema/"
     "markups-schema-v1.0.3.json#"
 )
+
+
+#: Slicer markups ``coordinateUnits`` EMReg reads, and the factor to millimetres (Slicer writes "mm";
+#: the schema allows any unit string, "m" is what some exporters write).
+UNIT_TO_MM = {"mm": 1.0, "m": 1000.0, "cm": 10.0, "um": 0.001}
 
 
 def markups_document(labels: Sequence[str], positions_lps: np.ndarray, name: str = "F") -> dict:
@@ -59,6 +65,10 @@ def read_markups(path: str | os.PathLike[str]) -> tuple[list[str], np.ndarray]:
             if system not in ("LPS", "RAS"):
                 raise EMRegError(f"{path}: unknown coordinateSystem {system!r}")
             flip = np.array([-1.0, -1.0, 1.0]) if system == "RAS" else np.ones(3)
+            units = str(markup.get("coordinateUnits", "mm"))
+            if units not in UNIT_TO_MM:
+                raise EMRegError(f"{path}: unknown coordinateUnits {units!r} (EMReg reads {', '.join(UNIT_TO_MM)})")
+            flip = flip * UNIT_TO_MM[units]
             for i, point in enumerate(markup.get("controlPoints", [])):
                 if point.get("positionStatus", "defined") != "defined":
                     continue

@@ -11,7 +11,7 @@ tracking-only file, ``DimSize = 0 0 N``), one group of fields per frame::
 
 Every transform name of the file is read (3D Slicer's own reader keeps only the first), and the
 status is honoured: a frame whose status is not ``OK`` gives no pose for that transform; such
-frames are dropped and counted (``TrackingRecording.notes``). The NRRD variant with
+frames are dropped and counted (``TrackingRecording.warnings``). The NRRD variant with
 ``key:=value`` fields (PLUS ``.igs.nrrd``) is read too; 3D Slicer writes ``.seq.nrrd`` with the
 MetaIO text above, which is what :func:`write_sequence_metafile` writes for that suffix.
 
@@ -223,7 +223,7 @@ def read_sequence_metafile(
 ) -> TrackingRecording:
     """A tracking recording from a sequence metafile: the reference and probe transforms
     (``<Name>Transform`` without the suffix, e.g. ``ProbeToTracker``) become rows of the given
-    ports; frames whose status is not OK are dropped and counted in ``notes``. No labels."""
+    ports; frames whose status is not OK are dropped and counted in ``warnings``. No labels."""
     frames = read_sequence_frames(path)
     missing = [n for n in (reference_transform, probe_transform) if n not in frames.matrices]
     if missing:
@@ -238,7 +238,7 @@ def read_sequence_metafile(
 def recording_from_frames(frames: SequenceFrames, ports: dict[str, int]) -> TrackingRecording:
     """Rows (sensor = the port of each transform name in ``ports``) of the frames' valid poses."""
     time_parts, sensor_parts, matrix_parts, quality_parts, only_parts = [], [], [], [], []
-    notes = []
+    notes = []  # one line each, naming the file
     for name, port in ports.items():
         ok = frames.valid[name]
         time_parts.append(frames.time_s[ok])
@@ -248,8 +248,8 @@ def recording_from_frames(frames: SequenceFrames, ports: dict[str, int]) -> Trac
         only_parts.append(frames.position_only[name][ok])
         dropped = len(ok) - int(np.count_nonzero(ok))
         if dropped:
-            notes.append(f"{dropped} of {len(ok)} frames of {name} have a status other than OK (no valid pose): "
-                         "dropped")
+            notes.append(f"{frames.source}: {dropped} of {len(ok)} frames of {name} have a status other than OK "
+                         "(no valid pose): dropped")
     time_s = np.concatenate(time_parts)
     sensor = np.concatenate(sensor_parts)
     matrices = np.concatenate(matrix_parts)
@@ -261,7 +261,7 @@ def recording_from_frames(frames: SequenceFrames, ports: dict[str, int]) -> Trac
     rotation = matrices[sort, :3, :3].copy()
     rotation[position_only[sort]] = np.nan
     return TrackingRecording(time_s[sort], sensor[sort], matrices[sort, :3, 3], rotation, quality[sort],
-                             np.full(len(sort), "", dtype=object), source=frames.source, notes=notes)
+                             np.full(len(sort), "", dtype=object), source=frames.source, warnings=notes)
 
 
 def _frames_of(recording: TrackingRecording) -> tuple[np.ndarray, np.ndarray]:

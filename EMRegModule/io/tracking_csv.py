@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EMRegError
-from ..tracking import TrackingRecording
+from ..tracking import TrackingRecording, split_time_segments
 from ..transforms import angles_to_rotation, quaternion_to_rotation, rotation_to_angles, rotation_to_quaternion
 from .atomic import atomic_path
 
@@ -29,16 +29,70 @@ HEADER_ANGLES = ("time_s", "sensor", *POSITION_COLUMNS, *ANGLE_COLUMNS, "quality
 HEADER_QUATERNION = ("time_s", "sensor", *POSITION_COLUMNS, *QUATERNION_COLUMNS, "quality", "label")
 
 
+#: Longest line (bytes) of a tracking CSV: a row of numbers and a label takes under 300; a longer line is
+#: refused while reading, before it is held in memory (a 2 GB line never is).
+MAX_LINE_BYTES = 1 << 16
+
+#: Longest field (characters, e.g. a label): refused before any array is sized by it.
+MAX_FIELD_CHARS = 4096
+
+#: Lines longer than this (characters) send the body to the row-by-row parser (no fixed-width arrays).
+_FAST_LINE_CHARS = 512
+
+_READ_CHUNK = 1 << 20
+
+
 def read_tracking_csv(path: str | os.PathLike[str]) -> TrackingRecording:
     """Read a tracking recording; a malformed file raises :class:`EMRegError` naming file and line."""
+    if str(path).strip() == "":
+        raise EMRegError("tracking recording: no file given")
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8-sig")
+        if path.is_dir():
+            raise EMRegError(f"{path}: is a folder, not a tracking recording (give the .csv file)")
+        data = _read_bounded_lines(path)
+        text = data.decode("utf-8-sig")
     except FileNotFoundError:
         raise EMRegError(f"{path}: tracking recording not found") from None
     except UnicodeDecodeError:
         raise EMRegError(f"{path}: not a text CSV file") from None
+    except OSError as exc:
+        raise EMRegError(f"{path}: cannot read the tracking recording ({exc.strerror or exc})") from None
     return parse_tracking_csv(text, source=str(path))
+
+
+def _read_bounded_lines(path: Path) -> bytes:
+    """The file's bytes, read in chunks; a line longer than ``MAX_LINE_BYTES`` stops the read with an error."""
+    chunks: list[bytes] = []
+    line_length, line_no = 0, 1
+    with path.open("rb") as stream:
+        while True:
+            chunk = stream.read(_READ_CHUNK)
+            if not chunk:
+                return b"".join(chunks)
+            last = chunk.rfind(b"\n")
+            if last < 0:
+                line_length += len(chunk)
+            else:
+                first = chunk.find(b"\n")
+                longest_inside = max((len(part) for part in chunk[first + 1:last].split(b"\n")), default=0) \
+                    if first != last else 0
+                if line_length + first > MAX_LINE_BYTES:
+                    _too_long(path, line_no)
+                if longest_inside > MAX_LINE_BYTES:
+                    parts = chunk[first + 1:last].split(b"\n")
+                    offset = next(k for k, part in enumerate(parts) if len(part) > MAX_LINE_BYTES)
+                    _too_long(path, line_no + 1 + offset)
+                line_no += chunk.count(b"\n")
+                line_length = len(chunk) - last - 1
+            if line_length > MAX_LINE_BYTES:
+                _too_long(path, line_no)
+            chunks.append(chunk)
+
+
+def _too_long(path: Path, line_no: int) -> None:
+    raise EMRegError(f"{path}: line {line_no} is longer than {MAX_LINE_BYTES} bytes: not a tracking recording "
+                     "(rows of numbers and a short label)")
 
 
 def parse_tracking_csv(text: str, source: str = "recording") -> TrackingRecording:
@@ -48,6 +102,8 @@ def parse_tracking_csv(text: str, source: str = "recording") -> TrackingRecordin
         header = [h.strip() for h in next(reader)]
     except StopIteration:
         raise EMRegError(f"{source}: empty tracking recording (no header row)") from None
+    except csv.Error as exc:
+        raise EMRegError(f"{source}: line 1: malformed CSV header ({str(exc)[:80]})") from None
     columns = {name: i for i, name in enumerate(header)}
     missing = [c for c in ("time_s", "sensor", *POSITION_COLUMNS) if c not in columns]
     if all(c in columns for c in ANGLE_COLUMNS):
@@ -87,10 +143,11 @@ def parse_tracking_csv(text: str, source: str = "recording") -> TrackingRecordin
         quaternions[position_only] = [1.0, 0.0, 0.0, 0.0]
         rotation = quaternion_to_rotation(quaternions)
     rotation[position_only] = np.nan
+    segment, warnings = split_time_segments(data[:, 0], sensor.astype(int), source, first_line=2)
     return TrackingRecording(
         time_s=data[:, 0], sensor=sensor.astype(int), position_mm=data[:, 2:5], rotation=rotation,
         quality=quality, label=labels, source=source,
-        orientation_format=orientation,
+        orientation_format=orientation, segment=segment, warnings=warnings,
     )
 
 
@@ -101,6 +158,8 @@ def _parse_fast(
     if '"' in body:
         return None
     lines = [line for line in body.splitlines() if line.strip(" ,\r")]
+    if lines and max(map(len, lines)) > _FAST_LINE_CHARS:
+        return None  # a long field: the checked parser bounds it (numpy would size every row by it)
     if not lines:
         return np.zeros((0, len(numeric_idx))), np.zeros(0), np.zeros(0, dtype=object), np.zeros(0, dtype=bool)
     if body.count(",") != len(lines) * (n_columns - 1):  # some row has a field too many or too few
@@ -132,6 +191,22 @@ def _parse_checked(
     orientation_idx = numeric_idx[5:]
     quality: list[float] = []
     labels: list[str] = []
+    previous_limit = csv.field_size_limit(MAX_FIELD_CHARS)
+    try:
+        _read_rows(reader, header, numeric_idx, quality_idx, label_idx, source, values, quality, labels,
+                   position_only, orientation_idx)
+    except csv.Error as exc:
+        raise EMRegError(f"{source}: line {reader.line_num}: malformed CSV ({str(exc)[:80]}; fields are at most "
+                         f"{MAX_FIELD_CHARS} characters)") from None
+    finally:
+        csv.field_size_limit(previous_limit)
+    return (np.asarray(values, dtype=float).reshape(-1, len(numeric_idx)), np.asarray(quality, dtype=float),
+            np.asarray(labels, dtype=object), np.asarray(position_only, dtype=bool))
+
+
+def _read_rows(reader, header: list[str], numeric_idx: list[int], quality_idx: int | None, label_idx: int | None,
+               source: str, values: list[list[float]], quality: list[float], labels: list[str],
+               position_only: list[bool], orientation_idx: list[int]) -> None:
     for line_no, row in enumerate(reader, start=2):
         if not row or all(not cell.strip() for cell in row):
             continue
@@ -152,8 +227,6 @@ def _parse_checked(
                 f"{source}: line {line_no} has a non-numeric value where a number is expected"
             ) from None
         labels.append(row[label_idx].strip() if label_idx is not None and label_idx < len(row) else "")
-    return (np.asarray(values, dtype=float).reshape(-1, len(numeric_idx)), np.asarray(quality, dtype=float),
-            np.asarray(labels, dtype=object), np.asarray(position_only, dtype=bool))
 
 
 def format_tracking_csv(recording: TrackingRecording, orientation: str | None = None) -> str:

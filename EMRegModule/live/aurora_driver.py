@@ -41,8 +41,15 @@ from .samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE, Sensor
 
 SampleCallback = Callable[[SensorSample], None]
 
-#: Pause between two polls that returned the same frame number (choice: a quarter of a 40 Hz period).
-IDLE_POLL_S = 0.006
+#: Pause after a poll that returned a frame number already seen (choice: short, so that a poll starts in
+#: every measuring period even when the host is busy; the line itself paces the polls, ~10 ms each).
+IDLE_POLL_S = 0.001
+#: Rotation from EMReg's 5-DOF sensor frame to NDI's: a 5-DOF sensor measures only its coil axis, which
+#: NDI reports as the sensor's +Z (choice: taken as the coil axis); EMReg's probe axis is the sensor's +X
+#: (``probe_axis.py``: ``+x_in`` / ``+x_out``, the trakSTAR Model 90's), so 5-DOF poses are turned by this
+#: fixed cyclic permutation (+X -> NDI +Z, det +1) and the coil axis is the probe axis. Roll stays
+#: meaningless; nothing in calibration or pairing uses it.
+FIVE_DOF_X_TO_NDI = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
 #: BX/TX reply option: transforms + out-of-volume ones too ([CAPI] 0x0001 | 0x0800; what [SKS] sends).
 REPLY_OPTION = ndi.REPLY_TRANSFORMS | ndi.REPLY_NOT_NORMALLY_REPORTED
 
@@ -119,7 +126,7 @@ class AuroraDriver:
 
     ``reply``: ``auto`` (BX unless the firmware is one scikit-surgerynditracker knows needs TX),
     ``bx`` or ``tx``. ``five_dof``: sensor numbers of 5-DOF sensors (their roll is meaningless;
-    samples carry ``extra["dof"] = 5``).
+    samples carry ``extra["dof"] = 5`` and the coil axis as the rotation's +X, see ``FIVE_DOF_X_TO_NDI``).
     """
 
     def __init__(self, port: str, baud: int = ndi.DEFAULT_BAUD, reply: str = "auto",
@@ -341,6 +348,8 @@ class AuroraDriver:
             quaternion = np.asarray(values[:4], dtype=float)
             position, rotation, error = np.asarray(values[4:7], dtype=float), quaternion_to_rotation(quaternion), \
                 float(values[7])
+            if tool.dof == 5:
+                rotation = rotation @ FIVE_DOF_X_TO_NDI
         else:
             quaternion, position, rotation, error = None, nan3, np.full((3, 3), np.nan), float("nan")
         sample = SensorSample(tool.sensor, (t_ns - t0_ns) / 1e9, position, rotation, error, status, frame=frame,

@@ -68,8 +68,9 @@ DISTORTED_ERROR = 2.5
 #: Termios speed constants -> baud (what the host set on its end of the line).
 _TERMIOS_BAUD = {getattr(termios, f"B{b}"): b for b in (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400)}
 _PKT_FLUSHREAD, _PKT_FLUSHWRITE = 0x01, 0x02  # TIOCPKT control bits (linux/tty.h)
-#: Replies are written in pieces of this much line time, at least CHUNK_MIN_BYTES each (choice).
-CHUNK_NS = 2_000_000
+#: Replies are written in pieces of this much line time, at least CHUNK_MIN_BYTES each (choice: well under
+#: the 0.1 s ndicapi waits for the next byte while probing; a BX reply at 115200 baud is one piece).
+CHUNK_NS = 20_000_000
 CHUNK_MIN_BYTES = 8
 
 
@@ -414,7 +415,7 @@ class AuroraSimulator:
         self._line_free_ns = int(start + len(data) * self.byte_ns)
         data = self._line_faults(data)
         # bytes reach the host as they cross the line (ndicapi's reads time out after 0.1 s of silence
-        # while probing, so a long reply must not arrive in one piece at its end): chunks of 2 ms, at
+        # while probing, so a long reply must not arrive in one piece at its end): chunks of 20 ms, at
         # least 8 bytes (so a BX header arrives whole)
         step = max(CHUNK_MIN_BYTES, int(CHUNK_NS / self.byte_ns))
         for i in range(0, max(len(data), 1), step):

@@ -42,18 +42,27 @@ def _sensor_ports(args: argparse.Namespace) -> tuple[int, int]:
     return reference, probe
 
 
-def load_reference_to_image(path: str) -> np.ndarray:
-    """``ReferenceToImage`` (4x4, mm, LPS) from ``registration.json`` (via the registration module)."""
-    if importlib.util.find_spec("EMRegModule.registration") is not None:
-        from ..registration import read_registration
+def load_reference_to_image(path: str, settings_path: str | None = None) -> np.ndarray:
+    """``ReferenceToImage`` (4x4, mm, LPS) from ``registration.json`` (via the registration module).
 
-        matrix = np.asarray(read_registration(path).reference_to_image, dtype=float)
+    The file is checked as every consumer checks it (finite, rigid, FRE within ``max_fre_mm`` of
+    the settings file when given).
+    """
+    if importlib.util.find_spec("EMRegModule.registration") is not None:
+        from ..registration import max_fre_from_settings, read_registration
+
+        settings: dict = {}
+        if settings_path:
+            from ..io.case import read_case_settings
+
+            settings = read_case_settings(settings_path)
+        matrix = np.asarray(read_registration(path, max_fre_from_settings(settings)).reference_to_image, dtype=float)
     else:  # pragma: no cover - only before the registration stage exists
         from ..io.atomic import read_json
 
         data = read_json(Path(path), "registration JSON")
         matrix = np.asarray(data.get("ReferenceToImage"), dtype=float)
-    if matrix.shape != (4, 4) or not is_rigid(matrix, 1e-4):
+    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)) or not is_rigid(matrix, 1e-4):
         raise EMRegError(f"{path}: ReferenceToImage is not a rigid 4x4 transform")
     return matrix
 
@@ -258,6 +267,9 @@ def run_record(args: argparse.Namespace) -> int:
     from .writers import RecordingWriter, SequenceRecordingWriter
 
     reference, probe = _sensor_ports(args)
+    from ..cli import _out_file
+
+    _out_file(args.out)
     source = open_source(args.device, reference, probe, fast=args.fast, loop=args.loop)
     writer = (SequenceRecordingWriter(args.out, reference_port=reference, probe_port=probe)
               if is_sequence_file(args.out) else RecordingWriter(args.out))
@@ -349,7 +361,7 @@ def run_live_navigate(args: argparse.Namespace) -> int:
 
     if args.igtl_port is None and not args.out:
         raise EMRegError("navigate: a live source needs --igtl-port PORT (publish) and/or --out DIR (record)")
-    reference_to_image = load_reference_to_image(args.registration)
+    reference_to_image = load_reference_to_image(args.registration, getattr(args, "settings", None))
     reference, probe = _sensor_ports(args)
     source = open_source(args.source, reference, probe, fast=args.fast, loop=args.loop)
     server = writer = None

@@ -96,20 +96,30 @@ def binned_ct(source: sitk.Image | VolumeFill, max_voxels: int = MAX_CONTEXT_VOX
     """
     import SimpleITK as sitk
 
-    fill = source if hasattr(source, "wait_for_slices") else None
-    image = fill.image if fill is not None else source
+    fill = source if hasattr(source, "wait_for_slices") and not source.is_complete else None
+    image = source.image if hasattr(source, "wait_for_slices") else source
     array = sitk.GetArrayViewFromImage(image)  # (k, j, i); voxels may still be arriving
     factor = bin_factor(image.GetSize(), max_voxels)
     nk, nj, ni = (s // factor for s in array.shape)
     values = np.empty((nk, nj, ni), dtype=np.float32)
-    integer = np.issubdtype(array.dtype, np.integer) and array.dtype.itemsize <= 2
-    accumulator = np.empty((nj * factor, ni * factor), dtype=np.int32 if integer else np.float64)
-    columns = np.empty((nj * factor, ni), dtype=accumulator.dtype)
-    for k in range(nk):
-        if fill is not None:
-            fill.wait_for_slices((k + 1) * factor)
-        _bin_block(array[k * factor:(k + 1) * factor, :nj * factor, :ni * factor], factor, accumulator, columns,
-                   values[k])
+
+    def bin_blocks(blocks: range) -> None:
+        integer = np.issubdtype(array.dtype, np.integer) and array.dtype.itemsize <= 2
+        accumulator = np.empty((nj * factor, ni * factor), dtype=np.int32 if integer else np.float64)
+        columns = np.empty((nj * factor, ni), dtype=accumulator.dtype)
+        for k in blocks:
+            if fill is not None:
+                fill.wait_for_slices((k + 1) * factor)
+            _bin_block(array[k * factor:(k + 1) * factor, :nj * factor, :ni * factor], factor, accumulator,
+                       columns, values[k])
+
+    if fill is None and nk > 1:  # all voxels there: two threads (numpy lets go of the GIL)
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(2) as pool:
+            list(pool.map(bin_blocks, (range(0, nk // 2), range(nk // 2, nk))))
+    else:
+        bin_blocks(range(nk))
     if fill is not None:
         fill.result()  # a read that failed after the last binned slice must not go unnoticed
     index_to_image = index_to_physical_matrix(image) @ np.diag([factor, factor, factor, 1.0])

@@ -12,6 +12,9 @@ import numpy as np
 from ..errors import EMRegError
 from ..io.atomic import atomic_write_bytes
 
+#: zlib level of the PNGs: 3 encodes twice as fast as 6 for files about 15 % larger (same pixels).
+PNG_COMPRESSION = 3
+
 
 def _check_rgb(image: np.ndarray) -> np.ndarray:
     image = np.asarray(image)
@@ -22,7 +25,7 @@ def _check_rgb(image: np.ndarray) -> np.ndarray:
 
 def encode_png(image_rgb: np.ndarray) -> bytes:
     """PNG bytes of an RGB image (deterministic: fixed compression, no metadata)."""
-    ok, buffer = cv2.imencode(".png", _check_rgb(image_rgb)[:, :, ::-1], [cv2.IMWRITE_PNG_COMPRESSION, 6])
+    ok, buffer = cv2.imencode(".png", _check_rgb(image_rgb)[:, :, ::-1], [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
     if not ok:
         raise RuntimeError("PNG encoding failed")
     return buffer.tobytes()

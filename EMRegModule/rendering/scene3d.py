@@ -150,28 +150,71 @@ def render_frame_views(
     camera: Camera | None = None, focus: str = "markers",
 ) -> list[np.ndarray]:
     """Render the scene once per view of ``views`` (RGB ``uint8`` images), building it only once."""
-    import pyvista as pv
-
-    unknown = [view for view in views if view not in VIEWS]
-    if unknown:
-        raise ValueError(f"unknown view {unknown[0]!r}; known: {', '.join(VIEWS)}")
-    prepare_offscreen()
-    plotter = pv.Plotter(off_screen=True, window_size=list(window_size), lighting="light kit")
+    renderer = FrameSceneRenderer(scene, window_size, focus)
     try:
-        plotter.disable_anti_aliasing()
-        plotter.set_background("white")
-        meshes_for_bounds, points_for_bounds = _add_scene(plotter, scene, window_size, focus)
+        return renderer.screenshots(views, camera)
+    finally:
+        renderer.close()
+
+
+class FrameSceneRenderer:
+    """An offscreen plotter holding a built scene: build it early, add the CT surface late, then take views.
+
+    Building the scene and drawing it once (:meth:`warm_up`: OpenGL context, shaders, marker
+    meshes) can happen while the CT is still being read; :meth:`set_context_surface` then adds
+    the surface made from it, and :meth:`screenshots` renders the views. The images are those
+    of :func:`render_frame_views` on the finished scene.
+    """
+
+    def __init__(self, scene: FrameScene, window_size: tuple[int, int] = (960, 720), focus: str = "markers") -> None:
+        import pyvista as pv
+
+        prepare_offscreen()
+        self.window_size = window_size
+        self.focus = focus
+        self.plotter = pv.Plotter(off_screen=True, window_size=list(window_size), lighting="light kit")
+        try:
+            self.plotter.disable_anti_aliasing()
+            self.plotter.set_background("white")
+            self.meshes_for_bounds, self.points_for_bounds = _add_scene(self.plotter, scene, window_size, focus)
+        except BaseException:
+            self.plotter.close()
+            raise
+
+    def warm_up(self) -> None:
+        """Draw once (discarded) so that the views later cost only their own rendering."""
+        _frame_camera(self.plotter, _scene_bounds(self.meshes_for_bounds, self.points_for_bounds), "oblique")
+        self.plotter.render()
+
+    def set_context_surface(self, surface) -> None:
+        """Add the CT context surface (``pyvista.PolyData``, LPS mm; None or empty: nothing)."""
+        if _add_context_surface(self.plotter, surface) and self.focus == "all":
+            self.meshes_for_bounds.append(surface)
+
+    def screenshots(self, views: tuple[str, ...], camera: Camera | None = None) -> list[np.ndarray]:
+        """One RGB ``uint8`` image per view of :data:`VIEWS` (or one with the explicit ``camera``)."""
+        unknown = [view for view in views if view not in VIEWS]
+        if unknown:
+            raise ValueError(f"unknown view {unknown[0]!r}; known: {', '.join(VIEWS)}")
         images = []
         for view in views:
             if camera is not None:
-                _set_camera(plotter, camera)
+                _set_camera(self.plotter, camera)
             else:
-                _frame_camera(plotter, _scene_bounds(meshes_for_bounds, points_for_bounds), view)
-            image = plotter.screenshot(return_img=True)
+                _frame_camera(self.plotter, _scene_bounds(self.meshes_for_bounds, self.points_for_bounds), view)
+            image = self.plotter.screenshot(return_img=True)
             images.append(np.ascontiguousarray(np.asarray(image)[:, :, :3], dtype=np.uint8))
-    finally:
-        plotter.close()
-    return images
+        return images
+
+    def close(self) -> None:
+        self.plotter.close()
+
+
+def _add_context_surface(plotter, surface) -> bool:
+    if surface is None or not surface.n_points:
+        return False
+    plotter.add_mesh(surface, color=(0.93, 0.91, 0.86), opacity=0.22, smooth_shading=False, name="ct_surface")
+    return True
 
 
 def _add_scene(plotter, scene: FrameScene, window_size: tuple[int, int], focus: str) -> tuple[list, list]:
@@ -181,10 +224,8 @@ def _add_scene(plotter, scene: FrameScene, window_size: tuple[int, int], focus: 
     surface = scene.context_surface
     if surface is None and scene.ct is not None:
         surface, _ = ct_context_surface(scene.ct, scene.iso_value)
-    if surface is not None and surface.n_points:
-        plotter.add_mesh(surface, color=(0.93, 0.91, 0.86), opacity=0.22, smooth_shading=False, name="ct_surface")
-        if focus == "all":
-            meshes_for_bounds.append(surface)
+    if _add_context_surface(plotter, surface) and focus == "all":
+        meshes_for_bounds.append(surface)
     meshes_for_bounds += _add_markers(plotter, scene, window_size)
     if scene.reference_to_image is not None:
         _add_reference_sensor(plotter, np.asarray(scene.reference_to_image, dtype=float))

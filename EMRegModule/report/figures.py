@@ -1,8 +1,9 @@
 """The report's figures: one function per figure, listed in :data:`FIGURES` in the page's order.
 
-Each entry says whether the figure can be drawn from what the run left (``available``) and
-whether it needs the CT's voxels (``needs_ct``): figures that do not are rendered first, while
-the CT is still being read. The CT is used twice, without any full-size copy: block-averaged
+Each entry says whether the figure can be drawn from what the run left (``available``), whether
+it uses the CT's voxels (``uses_ct``; ``needs_ct``: left out without them) and what of it can be
+prepared without them (``prepare``): the other figures and those preparations are done first,
+while the CT is still being read. The CT is used twice, without any full-size copy: block-averaged
 for the 3D view's context surface (:mod:`EMRegModule.rendering.context`, following the read),
 and sampled on small planes around each marker for the slices.
 """
@@ -51,6 +52,7 @@ class ReportData:
     curve_stored: bool = False
     warnings: list[ReportWarning] = field(default_factory=list)
     surface: ContextSurface | None = None
+    scene_renderer: object | None = None  # a FrameSceneRenderer built before the CT is read
 
     @property
     def l_mm(self) -> float | None:
@@ -99,15 +101,30 @@ def prepare_context_surface(data: ReportData) -> None:
     data.surface = context_surface(binned, iso_value)
 
 
-def render_scenes(data: ReportData) -> list[Figure]:
-    """The 3D view of the frame from two directions (one scene, two cameras)."""
-    from ..rendering.scene3d import render_frame_views
+def prepare_scenes(data: ReportData) -> None:
+    """Build the 3D scene and draw it once, without the CT surface (this can go on while the CT is read)."""
+    from ..rendering.scene3d import FrameSceneRenderer
 
+    data.scene_renderer = FrameSceneRenderer(_frame_scene(data), (960, 720))
+    data.scene_renderer.warm_up()
+
+
+def render_scenes(data: ReportData) -> list[Figure]:
+    """The 3D view of the frame from two directions (one scene, two cameras), inside the CT surface."""
+    if data.scene_renderer is None:
+        prepare_scenes(data)
+    renderer, data.scene_renderer = data.scene_renderer, None
+    try:
+        prepare_context_surface(data)
+        if data.surface is not None:
+            renderer.set_context_surface(data.surface.surface)
+        images = renderer.screenshots(("oblique", "top"))
+    finally:
+        renderer.close()
     caption = ("Fitted marker models coloured by registration residual (grey: unpaired), the reference sensor with "
                "its axes (red X, green Y, blue Z), calibration points mapped into the CT (magenta), sensor points at "
                "the solved l (yellow), targets (red) and the navigated probe path (cyan)"
                + (". " + data.surface.description() if data.surface is not None else "."))
-    images = render_frame_views(_frame_scene(data), (960, 720), ("oblique", "top"))
     return [Figure("scene_oblique", "3D view of the frame", caption, encode_png(images[0])),
             Figure("scene_top", "3D view from above", caption, encode_png(images[1]))]
 
@@ -213,12 +230,14 @@ def render_tre_targets(data: ReportData) -> list[Figure]:
 
 @dataclass(frozen=True)
 class FigureSpec:
-    """How to make one or more figures: their names, when they can be drawn, whether they read the CT."""
+    """How to make one or more figures: their names, when they can be drawn, what they need of the CT."""
 
     names: tuple[str, ...]
     available: Callable[[ReportData], bool]
     render: Callable[[ReportData], list[Figure]]
-    needs_ct: bool = False
+    uses_ct: bool = False  # drawn after the others, once the CT is read (or known to be absent)
+    needs_ct: bool = False  # left out without a CT
+    prepare: Callable[[ReportData], None] | None = None  # the work that can be done before the CT is read
 
 
 def _has_scene(data: ReportData) -> bool:  # calibration points alone have no place in the image
@@ -226,9 +245,10 @@ def _has_scene(data: ReportData) -> bool:  # calibration points alone have no pl
 
 
 FIGURES: tuple[FigureSpec, ...] = (
-    FigureSpec(("scene_oblique", "scene_top"), _has_scene, render_scenes, needs_ct=True),
+    FigureSpec(("scene_oblique", "scene_top"), _has_scene, render_scenes, uses_ct=True,
+               prepare=prepare_scenes),
     FigureSpec(("marker_slices",), lambda d: bool(d.rows) and d.inputs.ct is not None, render_marker_slices,
-               needs_ct=True),
+               uses_ct=True, needs_ct=True),
     FigureSpec(("residuals",), lambda d: d.inputs.registration is not None and bool(d.inputs.registration.pairs),
                render_residuals),
     FigureSpec(("fre_curve",), lambda d: d.curve is not None, render_fre_curve),
@@ -241,15 +261,24 @@ FIGURE_NAMES = tuple(name for spec in FIGURES for name in spec.names)
 
 
 def render_figures(data: ReportData, progress: Progress = QUIET) -> list[Figure]:
-    """Render every figure whose inputs exist; those without the CT first (while it is read). Page order."""
+    """Render every figure whose inputs exist, in page order.
+
+    While the CT is read: the figures that do not need it, and the preparation of those that
+    do; then the CT's figures. A CT that fails to read leaves its slices out (with a note).
+    """
     planned = [spec for spec in FIGURES if spec.available(data)]
     rendered: dict[str, list[Figure]] = {}
     with progress.step("rendering report", total=sum(len(spec.names) for spec in planned)) as step:
-        for spec in sorted(planned, key=lambda s: s.needs_ct):
-            if spec.needs_ct:
-                prepare_context_surface(data)
-                if spec.render is not render_scenes and data.inputs.ct is None:
+        try:
+            for spec in planned:
+                if spec.prepare is not None:
+                    spec.prepare(data)
+            for spec in sorted(planned, key=lambda s: s.uses_ct):
+                if spec.needs_ct and data.inputs.ct is None:
                     continue
-            rendered[spec.names[0]] = spec.render(data)
-            step.advance(len(rendered[spec.names[0]]))
+                rendered[spec.names[0]] = spec.render(data)
+                step.advance(len(rendered[spec.names[0]]))
+        finally:
+            if data.scene_renderer is not None:
+                data.scene_renderer.close()
     return [figure for spec in planned for figure in rendered.get(spec.names[0], [])]

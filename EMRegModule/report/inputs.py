@@ -111,6 +111,16 @@ def _read_optional(path: Path, read: Callable[[Path], Any], notes: list[str]) ->
         return None
 
 
+def _max_fre_mm(settings: dict | None) -> float | None:
+    """The case's ``[registration] max_fre_mm`` (None: the default, also when the settings are unusable)."""
+    from ..registration import max_fre_from_settings
+
+    try:
+        return max_fre_from_settings(settings)
+    except EMRegError:
+        return None
+
+
 def _read_json_object(what: str) -> Callable[[Path], dict]:
     def read(path: Path) -> dict:
         document = read_json(path, what)
@@ -190,10 +200,13 @@ def load_report_inputs(out_dir: str | os.PathLike[str], case_dir: str | os.PathL
     inputs.case_dir = _resolve_case_dir(out, Path(case_dir) if case_dir is not None else None, inputs.run, notes)
     if inputs.case_dir is not None:
         _read_case(inputs)
+    if (out / "registration.json").exists():
+        # A registration that cannot be trusted (corrupt, non-finite, not rigid, FRE above the limit) is
+        # never drawn as if it were: the report is refused (exit 2, or 3 for the FRE), not annotated.
+        inputs.registration = read_registration(out / "registration.json", _max_fre_mm(inputs.settings))
     _start_ct(inputs, image, read_image)
     inputs.detection = _read_optional(out / "markers.json", read_detection, notes)
     inputs.frame_calibration = _read_optional(out / "frame_calibration.json", read_frame_calibration, notes)
-    inputs.registration = _read_optional(out / "registration.json", read_registration, notes)
     inputs.evaluation = _read_optional(out / "evaluation.json", _read_json_object("evaluation file"), notes)
     navigation = _read_optional(out / "navigation.csv", read_navigation_csv, notes)
     if navigation is not None:

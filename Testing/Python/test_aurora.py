@@ -321,11 +321,60 @@ def test_driver_reads_every_tool_with_states_and_5dof(tmp_path):
         assert np.array_equal(np.float32(s.position_mm), np.float32(p))
         assert _same_quaternion(s.extra["quaternion"], np.float32(q), 1e-7)
         assert s.extra["dof"] == (5 if s.sensor == 3 else 6)
+        # a 5-DOF sensor's coil axis (NDI +Z) is EMReg's probe axis (+X)
+        axis = s.rotation[:, 0] if s.sensor == 3 else s.rotation[:, 2]
+        assert np.abs(axis - quaternion_to_rotation(q)[:, 2]).max() < 1e-6
     late = {s.sensor: s.status for s in samples[-4:]}
     assert late == {1: STATUS_OK, 2: STATUS_OUT_OF_RANGE, 3: STATUS_OUT_OF_RANGE, 4: STATUS_NOT_ATTACHED}
     # frames of the last four samples: one frame, all tools; poses only where the status is ok
     assert len({s.frame for s in samples[-4:]}) == 1
     assert all(np.isnan(s.position_mm).all() for s in samples[-4:] if s.sensor in (2, 4))
+
+
+def test_watchdog_with_the_aurora_stops_and_resumes(tmp_path):
+    from EMRegModule.live.igtl_server import IGTLServer
+    from EMRegModule.live.navigator import LiveNavigator
+    from EMRegModule.live.sources import open_source
+
+    with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof"), link=tmp_path / "aurora", seed=6) as sim:
+        source = open_source(f"aurora://{tmp_path / 'aurora'}?rate=40")
+        server = IGTLServer("127.0.0.1", 0)
+        # 8 periods (200 ms): a loaded test machine must not look like a stale tracker; the RMS error in mm
+        nav = LiveNavigator(np.eye(4), 1, 2, server, None, source.period_s, stale_periods=8, max_quality=1.0,
+                            out=None)
+        try:
+            source.start(nav.on_sample)
+
+            def wait_for(reason: str, timeout: float = 5.0) -> bool:
+                end = time.monotonic() + timeout
+                while time.monotonic() < end:
+                    if nav.tick().reason == reason:
+                        return True
+                    time.sleep(0.005)
+                return False
+
+            assert wait_for("ok")
+            for kind, sensor, reason in (("unplug", 1, "reference_missing"), ("missing", 2, "out_of_range"),
+                                         ("out-of-range", 2, "out_of_range"), ("distort", 1, "bad_quality")):
+                sim.set_state(kind, sensor)
+                assert wait_for(reason), kind
+                during = nav.published
+                time.sleep(0.15)
+                assert nav.published == during, kind  # nothing published meanwhile
+                sim.set_state(kind, sensor, False)
+                assert wait_for("ok"), kind
+                time.sleep(0.2)
+                assert nav.published > during, kind  # publishing again
+            sim.stall(1.0)
+            assert wait_for("stale")
+            assert wait_for("ok")
+        finally:
+            source.stop()
+            server.close()
+    reasons = [v.reason for v in nav.announcer.changes]
+    for reason in ("reference_missing", "out_of_range", "bad_quality", "stale"):
+        assert reason in reasons
+    assert reasons.count("ok") >= 6
 
 
 def test_driver_names_the_port_of_a_tool_without_srom(tmp_path):

@@ -144,3 +144,13 @@ def test_board_edges_match_the_truth(run):
     for k, name in enumerate(("L1", "L2", "L3", "L4")):
         assert abs(edges[name]["mean_mm"] - truth["board"]["edges_mm"][k]) < 0.2
         assert edges[name]["n"] == len(truth["board"]["dwells"]) // 4
+
+
+def test_run_names_the_dicom_series_it_used(hard_run):
+    """The hard case's CT is a DICOM folder: run.json and markers.json name the series (issue 13)."""
+    hard_case, out, _ = hard_run
+    used = _load(out, "run.json")["ct_series"]
+    assert used == _load(out, "markers.json")["ct_series"]
+    assert used["modality"] == "CT" and used["others"] == []
+    assert used["slices"] == _load(out, "markers.json")["image"]["size"][2] == len(list((hard_case / "ct").iterdir()))
+    assert used["slice_spacing_mm"] == pytest.approx(0.8, abs=1e-3) and used["series_instance_uid"]

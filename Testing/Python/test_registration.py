@@ -17,9 +17,9 @@ from EMRegModule.registration import (
     RegistrationSettings,
     read_registration,
     register,
-    solve_sensor_offset,
     write_registration,
 )
+from EMRegModule.sensor_offset import solve_sensor_offset
 from EMRegModule.transforms import apply_transform, invert_rigid
 
 MODEL = MarkerModel()

@@ -157,9 +157,11 @@ def test_invalid_frames_are_dropped_and_counted(tmp_path):
     frames = [_frame_text(i) for i in range(6)]
     frames[2] = _frame_text(2, matrix="nan 7 7 7 7 7 7 7 7 7 7 7 0 0 0 0", status="INVALID")
     frames[4] = _frame_text(4, matrix="0 0 0 9e9 0 0 0 9e9 0 0 0 9e9 0 0 0 1", status="OUT_OF_VIEW")
-    recording = read_sequence_metafile(_file(tmp_path, frames))
+    path = _file(tmp_path, frames)
+    recording = read_sequence_metafile(path)
     assert np.count_nonzero(recording.sensor == 2) == 4 and np.count_nonzero(recording.sensor == 1) == 6
-    assert recording.notes == ["2 of 6 frames of ProbeToTracker have a status other than OK (no valid pose): dropped"]
+    assert recording.warnings == [f"{path}: 2 of 6 frames of ProbeToTracker have a status other than OK "
+                                  "(no valid pose): dropped"]
 
 
 BAD_FILES = {

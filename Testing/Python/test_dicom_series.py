@@ -1,0 +1,234 @@
+"""DICOM exports as hospitals give them: several series, DICOMDIR, transfer syntaxes, rescales, broken files.
+
+The series are written by SimpleITK's GDCM writer and re-encoded by GDCM's and dcmtk's own
+tools (``gdcmconv``, ``dcmconv``; ``scripts/setup`` installs them); voxels are checked against
+the values written and against ``SimpleITK.ImageSeriesReader``.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pydicom
+import pytest
+import SimpleITK as sitk
+from conftest import load_truth
+from dicom_files import TRANSFER_SYNTAXES, convert, make_volume, tools_available, transfer_syntax_uid, uid, write_series
+
+from EMRegModule.cli import main
+from EMRegModule.detection import read_detection
+from EMRegModule.errors import EMRegError
+from EMRegModule.io.dicom_series import choose_series, open_dicom_series, scan_series
+from EMRegModule.io.image import read_ct
+
+
+def _voxels(image: sitk.Image) -> np.ndarray:
+    return sitk.GetArrayFromImage(image)
+
+
+def _series_reader(files: list[Path]) -> sitk.Image:
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames([str(f) for f in files])
+    return reader.Execute()
+
+
+def _export(folder: Path) -> dict[str, str]:
+    """A scanner export: a 0.8 mm volume, a 2.4 mm reconstruction, a scout, an MR series, junk; their UIDs."""
+    volume = make_volume()
+    write_series(volume, folder / "S1", uid(10), number=2, description="thin 0.8")
+    thick = volume[:, :, ::3]
+    write_series(thick, folder / "S2", uid(20), number=3, description="thick 2.4")
+    write_series(volume[:, :, :3], folder / "SCOUT", uid(30), number=1, description="topogram",
+                 image_type="ORIGINAL\\PRIMARY\\LOCALIZER")
+    write_series(volume, folder / "MR", uid(40), number=4, description="t1", modality="MR")
+    (folder / "README.txt").write_text("export of the CT scanner\n")
+    return {"volume": uid(10), "thick": uid(20), "scout": uid(30), "mr": uid(40)}
+
+
+def test_the_volume_best_for_detection_is_chosen_and_the_others_listed(tmp_path):
+    uids = _export(tmp_path)
+    fill, record = open_dicom_series(tmp_path)
+    image = fill.result()
+    assert record["series_instance_uid"] == uids["volume"]
+    assert record["series_number"] == 2 and record["description"] == "thin 0.8"
+    assert record["slice_spacing_mm"] == pytest.approx(0.8) and record["slices"] == 12
+    others = {o["series_instance_uid"]: o for o in record["others"]}
+    assert set(others) == {uids["thick"], uids["scout"], uids["mr"]}
+    assert "not_used_because" not in others[uids["thick"]]  # a volume, just coarser
+    assert "localizer" in others[uids["scout"]]["not_used_because"]
+    assert "MR" in others[uids["mr"]]["not_used_because"]
+    expected = make_volume()
+    reference = _series_reader(sorted((tmp_path / "S1").glob("*.dcm")))
+    np.testing.assert_array_equal(_voxels(image), _voxels(expected))
+    np.testing.assert_array_equal(_voxels(image), _voxels(reference))
+    np.testing.assert_allclose(image.GetOrigin(), reference.GetOrigin(), atol=1e-5)
+    np.testing.assert_allclose(image.GetSpacing(), reference.GetSpacing(), atol=1e-6)
+    np.testing.assert_allclose(image.GetDirection(), reference.GetDirection(), atol=1e-6)
+    np.testing.assert_allclose(image.GetOrigin(), expected.GetOrigin(), atol=1e-5)
+
+
+def test_a_series_is_forced_by_number_or_uid(tmp_path):
+    uids = _export(tmp_path)
+    fill, record = open_dicom_series(tmp_path, series="3")
+    assert record["series_instance_uid"] == uids["thick"] and fill.result().GetSize()[2] == 4
+    _, record = open_dicom_series(tmp_path, series=uids["thick"])
+    assert record["slice_spacing_mm"] == pytest.approx(2.4)
+    with pytest.raises(EMRegError, match="no DICOM series '9'.*available"):
+        open_dicom_series(tmp_path, series="9")
+    with pytest.raises(EMRegError, match="localizer"):
+        open_dicom_series(tmp_path, series="1")
+
+
+def test_equally_good_series_of_different_geometry_are_an_error_never_a_guess(tmp_path):
+    volume = make_volume()
+    write_series(volume, tmp_path / "A", uid(1), number=5, description="head")
+    shifted = sitk.Image(volume)
+    shifted.SetOrigin((0.0, 0.0, 50.0))
+    write_series(shifted, tmp_path / "B", uid(2), number=6, description="neck")
+    with pytest.raises(EMRegError, match="2 equally good CT series of different geometry") as info:
+        open_dicom_series(tmp_path)
+    assert "\n" not in str(info.value) and "series 5" in str(info.value) and "series 6" in str(info.value)
+    # two kernels of one reconstruction (same geometry): either serves, the first by number is taken
+    shutil.rmtree(tmp_path / "B")
+    write_series(volume, tmp_path / "B", uid(3), number=7, description="bone kernel")
+    assert choose_series(scan_series(tmp_path), tmp_path).uid == uid(1)
+
+
+def test_cli_refuses_a_folder_without_ct_volume_in_one_line(tmp_path, capsys):
+    volume = make_volume()
+    write_series(volume[:, :, :2], tmp_path / "ct" / "a", uid(1), image_type="ORIGINAL\\PRIMARY\\LOCALIZER")
+    write_series(volume, tmp_path / "ct" / "b", uid(2), modality="MR")
+    assert main(["detect", str(tmp_path / "ct"), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no CT volume among 2 DICOM series" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "out" / "markers.json").exists()
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "notes.txt").write_text("nothing here")
+    assert main(["detect", str(tmp_path / "empty"), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    assert "no DICOM image series" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("defect", ["gap", "duplicate", "tilt"])
+def test_missing_duplicate_or_sheared_slices_are_refused_naming_the_files(tmp_path, defect):
+    volume = make_volume(spacing=(0.5, 0.5, 1.0))
+    direction = np.asarray(volume.GetDirection()).reshape(3, 3)
+    positions = [np.asarray(volume.TransformIndexToPhysicalPoint((0, 0, k))) for k in range(12)]
+    if defect == "tilt":  # a 15 degree gantry tilt: each slice slides along the column direction
+        positions = [p + np.tan(np.radians(15)) * k * 1.0 * direction[:, 1] for k, p in enumerate(positions)]
+    files = write_series(volume, tmp_path, uid(1), positions=positions)
+    if defect == "gap":
+        files[6].unlink()
+    if defect == "duplicate":
+        dataset = pydicom.dcmread(files[4])
+        dataset.SOPInstanceUID = uid(1, 99)
+        dataset.save_as(tmp_path / "copy.dcm")
+    with pytest.raises(EMRegError) as info:
+        read_ct(tmp_path)
+    message = str(info.value)
+    assert "\n" not in message
+    if defect == "gap":
+        assert "IM00006.dcm and IM00008.dcm" in message and "missing slice" in message
+    elif defect == "duplicate":
+        assert "duplicate slice position" in message and "IM00005.dcm" in message and "copy.dcm" in message
+    else:
+        assert "gantry tilt of 15.0 deg" in message
+
+
+def test_rescale_per_slice_and_unsigned_pixels_give_the_stored_hu(tmp_path):
+    stored = make_volume(pixel=sitk.sitkUInt16, seed=3)  # 0 .. 3000 stored, unsigned, 12 bits
+    rescale = [(1.0, -1024.0) if k % 2 else (2.0, -2048.0) for k in range(stored.GetSize()[2])]
+    files = write_series(stored, tmp_path, uid(5), rescale=rescale, bits_stored=12)
+    image = read_ct(tmp_path)
+    values = _voxels(stored).astype(float)
+    slopes, intercepts = (np.array(v)[:, None, None] for v in zip(*rescale, strict=True))
+    np.testing.assert_array_equal(_voxels(image), values * slopes + intercepts)
+    assert image.GetPixelID() == sitk.sitkInt16  # -2048 .. 6142 fits: integral rescales need no float copy
+    np.testing.assert_array_equal(_voxels(image), _voxels(_series_reader(files)).astype(float))
+    fractional = [(0.5, -1000.5)] * len(files)
+    for path, (slope, intercept) in zip(files, fractional, strict=True):
+        dataset = pydicom.dcmread(path)
+        dataset.RescaleSlope, dataset.RescaleIntercept = str(slope), str(intercept)
+        dataset.save_as(path)
+    image = read_ct(tmp_path)
+    assert image.GetPixelID() == sitk.sitkFloat32
+    np.testing.assert_allclose(_voxels(image), values * 0.5 - 1000.5, atol=1e-3)
+
+
+def test_dicomdir_export_is_read_and_a_missing_file_named(tmp_path):
+    from pydicom.fileset import FileSet
+
+    source = tmp_path / "source"
+    files = write_series(make_volume(), source, uid(7), number=2)
+    write_series(make_volume()[:, :, :2], source, uid(8), number=1, prefix="SC",
+                 image_type="ORIGINAL\\PRIMARY\\LOCALIZER")
+    fileset = FileSet()
+    for path in sorted(source.glob("*.dcm")):
+        fileset.add(pydicom.dcmread(path))
+    export = tmp_path / "export"
+    fileset.write(export)  # DICOMDIR + files named by pydicom (no extensions, in subfolders)
+    assert (export / "DICOMDIR").is_file()
+    image = read_ct(export)
+    np.testing.assert_array_equal(_voxels(image), _voxels(_series_reader(files)))
+    victim = next(p for p in sorted(export.rglob("*")) if p.is_file() and p.name != "DICOMDIR")
+    victim.unlink()
+    with pytest.raises(EMRegError, match="DICOMDIR: refers to a missing file") as info:
+        read_ct(export)
+    assert victim.name in str(info.value)
+
+
+def test_one_unreadable_slice_is_named_and_nothing_is_written(tmp_path, capsys):
+    files = write_series(make_volume(), tmp_path / "ct", uid(9))
+    data = files[5].read_bytes()
+    files[5].write_bytes(data[: len(data) - 1500])  # pixel data cut short
+    assert main(["detect", str(tmp_path / "ct"), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and files[5].name in err, err
+    assert not (tmp_path / "out" / "markers.json").exists()
+
+
+@pytest.mark.skipif(bool(tools_available()), reason=f"DICOM tools missing: {tools_available()} (scripts/setup)")
+@pytest.mark.parametrize("syntax", sorted(TRANSFER_SYNTAXES))
+def test_every_transfer_syntax_hospitals_use(tmp_path, syntax):
+    volume = make_volume(seed=4, smooth=True)
+    files = write_series(volume, tmp_path, uid(11))
+    plain_uid = transfer_syntax_uid(files[0])
+    convert(files, syntax)
+    assert transfer_syntax_uid(files[0]) != plain_uid  # the tool really re-encoded the files
+    image = read_ct(tmp_path)
+    expected = _voxels(volume)
+    _, lossless = TRANSFER_SYNTAXES[syntax]
+    if lossless:
+        np.testing.assert_array_equal(_voxels(image), expected)
+    else:
+        error = np.abs(_voxels(image).astype(float) - expected)
+        assert 0 < error.mean() < 0.01 * np.ptp(expected), (error.mean(), np.ptp(expected))  # lossy, close
+    np.testing.assert_array_equal(_voxels(image), _voxels(_series_reader(files)))
+
+
+@pytest.fixture(scope="module")
+def hard_export(hard_case, tmp_path_factory):
+    """The hard case's series in a scanner-like export beside a thick reconstruction and a scout."""
+    export = tmp_path_factory.mktemp("hard_export")
+    shutil.copytree(hard_case / "ct", export / "DICOM" / "SER001")
+    thin = read_ct(hard_case / "ct")
+    write_series(sitk.Cast(thin[:, :, ::4], sitk.sitkInt16), export / "DICOM" / "SER002", uid(21), number=3,
+                 description="thick 3.2 mm")
+    write_series(sitk.Cast(thin[:, :, 100:103], sitk.sitkInt16), export / "DICOM" / "SER000", uid(22), number=1,
+                 description="topogram", image_type="ORIGINAL\\PRIMARY\\LOCALIZER")
+    return export
+
+
+def test_detect_on_a_multi_series_export_uses_the_thin_volume_and_says_so(hard_case, hard_export, tmp_path):
+    from test_detection_cases import errors_against_truth
+
+    assert main(["detect", str(hard_export), "--out", str(tmp_path), "--quiet"]) == 0
+    document = json.loads((tmp_path / "markers.json").read_text())
+    series_uid = pydicom.dcmread(next((hard_case / "ct").iterdir()), stop_before_pixels=True).SeriesInstanceUID
+    assert document["ct_series"]["series_instance_uid"] == series_uid
+    assert document["ct_series"]["slice_spacing_mm"] == pytest.approx(0.8, abs=1e-3)
+    assert {o["series_instance_uid"] for o in document["ct_series"]["others"]} == {uid(21), uid(22)}
+    origin_errors, _, false, missed = errors_against_truth(read_detection(tmp_path), load_truth(hard_case))
+    assert not false and not missed and np.median(origin_errors) < 0.25
