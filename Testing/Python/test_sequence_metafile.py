@@ -224,4 +224,11 @@ def test_record_writes_a_sequence_metafile_slicer_loads(tmp_path):
     assert set(recording.sensors) == {1, 2}
     times, matrices, _ = _slicer_read(out)
     reference = recording.select(recording.sensor == 1)
-    assert len(times) == len(reference) and np.allclose(matrices, reference.transforms(), atol=1e-9)
+    # Slicer's sequence node treats index values within 1 ms as one item (it keeps one of two frames
+    # recorded 1-2 ms apart); every frame it keeps is ours, to the last digit
+    close = int(np.count_nonzero(np.diff(reference.time_s) < 0.002))
+    assert len(reference) - close <= len(times) <= len(reference)
+    ours = reference.transforms()
+    for time_s, matrix in zip(times, matrices, strict=True):
+        k = np.flatnonzero(np.abs(reference.time_s - time_s) <= 0.0015)
+        assert any(np.allclose(matrix, ours[i], atol=1e-9) for i in k)
