@@ -69,7 +69,7 @@ def runs(standard_case, tmp_path_factory):
 
 
 def _json(path: Path) -> dict:
-    return json.loads(path.read_text())
+    return json.loads(path.read_text(encoding="utf-8"))
 
 
 def _navigation(path: Path) -> dict[float, np.ndarray]:
@@ -136,7 +136,7 @@ def test_a_run_finishes_when_the_navigation_recording_cannot_be_evaluated(standa
     assert evaluation["not_evaluated"]["tre"] == run["not_evaluated"]["tre"]
     for name in ("registration.json", "navigation.csv", "report.html"):
         assert (out / name).is_file()
-    assert "TRE not evaluated" in (out / "report.html").read_text()
+    assert "TRE not evaluated" in (out / "report.html").read_text(encoding="utf-8")
     # emreg evaluate on its own keeps its exit code
     code = main(["evaluate", str(case), "--registration", str(out / "registration.json"),
                  "--out", str(tmp_path / "eval"), "--quiet"])
