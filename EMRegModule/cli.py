@@ -25,7 +25,7 @@ STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
     "register": ("registration.json", "ReferenceToImage.h5"),
     "navigate": ("navigation.csv",),
     "evaluate": ("evaluation.json",),
-    "report": ("report.html",),
+    "report": ("report.html", "EMReg.mrb"),
 }
 
 
@@ -301,6 +301,8 @@ def cmd_report(args: argparse.Namespace) -> int:
         folders = sorted(p for p in batch.iterdir() if p.is_dir())
         pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args))
         print(f"{len(pages)} reports written under {args.batch}")
+        for folder in folders:
+            print(slicer_bundle(folder))
         return 0
     if not args.out:
         raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
@@ -308,7 +310,22 @@ def cmd_report(args: argparse.Namespace) -> int:
     case = Path(args.case) if args.case else None
     path = write_report(Path(args.out), case_dir=case, progress=_progress(args))
     print(f"report -> {path}")
+    print(slicer_bundle(Path(args.out), case))
     return 0
+
+
+def slicer_bundle(out: Path, case_dir: Path | None = None, image=None) -> str:
+    """Write ``OUT/EMReg.mrb`` (3D Slicer scene bundle) from the outputs in OUT; one summary line.
+
+    Optional: without slicer-core, or when the bundle cannot be written (disk full, no
+    permission), the rest of the outputs stand, a warning says why and the exit code is unchanged.
+    """
+    from .io.slicer_scene import write_run_bundle
+
+    path, message = write_run_bundle(out, case_dir, image)
+    if path is None:
+        _warn("bundle", [message])
+    return f"bundle: {message}"
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -467,6 +484,7 @@ def run_case(
         summary.append(f"{current}: refused: {exc}")
         atomic_write_json(out / "run.json", run_record)
         raise
+    summary.append(slicer_bundle(out, case.folder, controller.image))
     atomic_write_json(out / "run.json", run_record)
     return summary
 

@@ -20,7 +20,14 @@ Cases: ``--spacing 0.6`` (default) simulates the full frame with ``emreg simulat
 markers in slots on its faces, bone rods, white noise, written slab by slab as a
 gzip-compressed NRRD like the simulator's (never holding the volume in memory).
 
-Usage: ``.venv/bin/python scripts/bench_detect.py [--spacing 0.6|0.3] [--work DIR] [--skip-baseline]``
+``--dicom`` (issue 13) measures instead ``emreg detect`` on the hard case's DICOM series at
+0.5 x 0.5 x 0.8 mm (the full frame, ``emreg simulate --difficulty hard``), uncompressed and
+re-encoded as JPEG lossless by GDCM's ``gdcmconv``, against ``SimpleITK.ImageSeriesReader``
+reading the same series (``GetGDCMSeriesFileNames`` + ``Execute``), each in its own process:
+goals a/c <= 1.2 uncompressed and <= 1.0 for JPEG lossless; same markers from both folders.
+Run it under ``flock /work/heavy.lock`` (about 1.5 GB).
+
+Usage: ``.venv/bin/python scripts/bench_detect.py [--spacing 0.6|0.3] [--work DIR] [--skip-baseline] [--dicom]``
 """
 
 from __future__ import annotations
@@ -41,7 +48,13 @@ from scipy import ndimage, special
 
 ROOT = Path(__file__).resolve().parents[1]
 PYTHON = sys.executable
+sys.path.insert(0, str(ROOT / "Testing" / "Python"))
 
+from fixtures.phantom import marker_object  # noqa: E402
+
+from EMRegModule.marker_model import MarkerModel  # noqa: E402
+from EMRegModule.simulation.ct import Grid, Layer, paint_layers  # noqa: E402
+from EMRegModule.simulation.shapes import CylinderY, Difference, Posed  # noqa: E402
 
 # --- running a measured child process -----------------------------------------------------------
 
@@ -78,9 +91,6 @@ def large_case(folder: Path, spacing: float, seed: int, size_mm=(360.0, 360.0, 2
     """A large CT written slab by slab (see module docstring), with ``truth.json`` of its markers."""
     if (folder / "truth.json").is_file():
         return folder
-    from EMRegModule.detection.phantom import marker_object
-    from EMRegModule.marker_model import MarkerModel
-
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     model = MarkerModel()
@@ -178,30 +188,19 @@ def _marker_patch(model, obj, spacing: float, sigma: float, contrast_bottom: flo
     The bottom cylinder displaces plastic (it fills its slot), the top cylinder air; both
     contributions are linear, so blurring them separately is the blurred composite.
     """
-    from EMRegModule.detection.phantom import sampled_occupancy
-    from EMRegModule.transforms import invert_rigid
-
     half = 16.0
     centre = obj.object_to_image[:3, 3] + obj.object_to_image[:3, 1] * model.height_mm / 2
     lo_index = np.floor((centre - half) / spacing).astype(int)
     n = int(np.ceil(2 * half / spacing))
-    ii, jj, kk = (np.arange(a, a + n) for a in lo_index)
-    index_to_marker = invert_rigid(obj.object_to_image) @ np.diag([spacing, spacing, spacing, 1.0])
-    h_b, r_b, r_t = model.bottom_height_mm, model.bottom_diameter_mm / 2, model.top_diameter_mm / 2
-    r_hole, hole_y = model.pinhole_diameter_mm / 2, model.pinhole_bottom_mm
-
-    def bottom(p: np.ndarray) -> np.ndarray:
-        return (p[..., 1] >= 0) & (p[..., 1] <= h_b) & (p[..., 0] ** 2 + p[..., 2] ** 2 <= r_b**2)
-
-    def top(p: np.ndarray) -> np.ndarray:
-        radial2 = p[..., 0] ** 2 + p[..., 2] ** 2
-        hole = (p[..., 1] > hole_y) & (radial2 < r_hole**2)
-        return (p[..., 1] > h_b) & (p[..., 1] <= model.height_mm) & (radial2 <= r_t**2) & ~hole
-
+    grid = Grid((n, n, n), np.full(3, spacing), lo_index * spacing, np.eye(3))
+    h_b, height = model.bottom_height_mm, model.height_mm
+    bottom = CylinderY(model.bottom_diameter_mm / 2, 0.0, h_b)
+    top = Difference(CylinderY(model.top_diameter_mm / 2, h_b, height),
+                     [CylinderY(model.pinhole_diameter_mm / 2, model.pinhole_bottom_mm, height + 1.0)])
     patch = np.zeros((n, n, n), dtype=np.float32)  # indexed (k, j, i)
-    for inside, contrast in ((bottom, contrast_bottom), (top, contrast_top)):
-        obj.inside = inside
-        occupancy = sampled_occupancy(obj, index_to_marker, ii, jj, kk, 5)
+    for solid, contrast in ((bottom, contrast_bottom), (top, contrast_top)):
+        occupancy = np.zeros((n, n, n), dtype=np.float32)  # painting 1 over 0 leaves the fill fraction
+        paint_layers(occupancy, grid, np.eye(4), [Layer("marker part", Posed(solid, obj.object_to_image), 1.0, 5)])
         patch += contrast * ndimage.gaussian_filter(occupancy, sigma / spacing)
     return lo_index, patch
 
@@ -211,6 +210,18 @@ def _marker_patch(model, obj, spacing: float, sigma: float, contrast_bottom: flo
 READ_ONLY = """
 import sys, time, SimpleITK as sitk
 t = time.perf_counter(); image = sitk.ReadImage(sys.argv[1]); t = time.perf_counter() - t
+n = image.GetNumberOfPixels()
+print(f"read {t:.4f} size {n} bytes {n * image.GetSizeOfPixelComponent()}")
+"""
+
+DICOM_READ_ONLY = """
+import sys, time, SimpleITK as sitk
+t = time.perf_counter()
+files = sitk.ImageSeriesReader.GetGDCMSeriesFileNames(sys.argv[1])
+reader = sitk.ImageSeriesReader()
+reader.SetFileNames(files)
+image = reader.Execute()
+t = time.perf_counter() - t
 n = image.GetNumberOfPixels()
 print(f"read {t:.4f} size {n} bytes {n * image.GetSizeOfPixelComponent()}")
 """
@@ -286,6 +297,57 @@ def accuracy(markers_json: Path, truth_json: Path) -> str:
             f"max {errors.max():.3f} mm; axis error median {np.median(angles):.2f} max {angles.max():.2f} deg")
 
 
+def jpeg_lossless_copy(source: Path, target: Path) -> Path:
+    """``source``'s DICOM files re-encoded as JPEG lossless by ``gdcmconv`` (reused when already there)."""
+    if (target / ".complete").is_file():
+        return target
+    target.mkdir(parents=True, exist_ok=True)
+    print(f"re-encoding {source} as JPEG lossless into {target} ...", flush=True)
+    for path in sorted(source.iterdir()):
+        subprocess.run(["gdcmconv", "--jpeg", str(path), str(target / path.name)], check=True)
+    (target / ".complete").write_text("")
+    return target
+
+
+def dicom_main(args: argparse.Namespace) -> None:
+    """``emreg detect`` on DICOM series against ``SimpleITK.ImageSeriesReader`` (see module docstring)."""
+    work = Path(args.work)
+    case = work / "hard-dicom"
+    if not (case / "truth.json").is_file():
+        print(f"simulating the hard full frame (DICOM, 0.5 x 0.5 x 0.8 mm) into {case} ...", flush=True)
+        subprocess.run([PYTHON, "-m", "EMRegModule", "simulate", str(case), "--seed", str(args.seed), "--difficulty",
+                        "hard", "--quiet"], check=True)
+    folders = {"uncompressed": case / "ct", "JPEG lossless": jpeg_lossless_copy(case / "ct", work / "hard-dicom-jpl")}
+    results = {}
+    for name, folder in folders.items():
+        run_child([PYTHON, "-c", DICOM_READ_ONLY, str(folder)])  # warm the page cache
+        reads = [run_child([PYTHON, "-c", DICOM_READ_ONLY, str(folder)]) for _ in range(args.repeat)]
+        t_read = float(np.median([float(re.search(r"read (\S+)", r[2]).group(1)) for r in reads]))
+        t_read_process = float(np.median([r[0] for r in reads]))
+        out_dir = work / f"out-dicom-{name.split()[0].lower()}"
+        detects = [run_child([PYTHON, "-m", "EMRegModule", "detect", str(folder), "--out", str(out_dir)])
+                   for _ in range(args.repeat)]
+        for _, _, _, err, code in detects:
+            if code != 0:
+                sys.exit(f"emreg detect failed ({code}): {err.strip()}")
+        t_detect, peak, _, err, _ = sorted(detects, key=lambda r: r[0])[len(detects) // 2]
+        steps = dict(re.findall(r"\[emreg\] (.+?) done in (\S+)s", err))
+        results[name] = json.loads((out_dir / "markers.json").read_text())
+        goal = 1.2 if name == "uncompressed" else 1.0
+        print(f"\nDICOM {name}: {folder} ({len(list(folder.glob('*.dcm')))} files)")
+        print(f"  (a) emreg detect, end to end (median of {args.repeat})     {t_detect:8.2f} s   peak RSS "
+              f"{peak / 1e9:5.2f} GB")
+        print("      its steps: " + ", ".join(f"{k} {float(v):.2f} s" for k, v in steps.items()))
+        print(f"  (c) SimpleITK ImageSeriesReader (file names + Execute)  {t_read:8.2f} s   "
+              f"(its whole process {t_read_process:.2f} s)")
+        print(f"  a/c = {t_detect / t_read:.2f} (goal <= {goal}); a / c's whole process = "
+              f"{t_detect / t_read_process:.2f}")
+        print(f"  accuracy: {accuracy(out_dir / 'markers.json', case / 'truth.json')}")
+    origins = [np.array([m["origin"] for m in document["markers"]]) for document in results.values()]
+    same = origins[0].shape == origins[1].shape and np.allclose(origins[0], origins[1], atol=1e-6)
+    print(f"\nsame markers from both folders: {'yes' if same else 'NO'}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--spacing", type=float, default=0.6, help="voxel size (mm): 0.6 simulated, 0.3 generated")
@@ -293,7 +355,11 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--skip-baseline", action="store_true", help="skip (b), the SimpleITK pipeline")
     parser.add_argument("--repeat", type=int, default=3, help="runs of (a) and (c); their medians are reported")
+    parser.add_argument("--dicom", action="store_true", help="DICOM series (uncompressed, JPEG lossless) instead")
     args = parser.parse_args()
+    if args.dicom:
+        dicom_main(args)
+        return
     work = Path(args.work)
     if args.spacing >= 0.5:
         case = simulated_case(work / f"sim-{args.spacing:g}", args.spacing, args.seed)

@@ -16,8 +16,10 @@ navigator (``--source igtl://HOST:18944``) or PLUS-style clients; ``emreg record
 rec.csv`` records the spec's tracking CSV.
 
 Modules: :mod:`.trakstar_protocol` (bytes and words, with their sources), :mod:`.trakstar_driver`
-(pyserial client), :mod:`.tracker_simulator` (a trakSTAR on a pseudo-terminal), :mod:`.device_url`
-(``trakstar://``, ``igtl://``, ``replay:``), :mod:`.sources` (sample sources behind those URLs),
+(pyserial client), :mod:`.tracker_simulator` (a trakSTAR on a pseudo-terminal), :mod:`.ndi_protocol`
+(NDI's serial API: CRC16, BX/TX/PHSR/PHINF formats, with their sources), :mod:`.aurora_driver` (the
+Aurora on ndicapi), :mod:`.aurora_simulator` (an Aurora on a pseudo-terminal), :mod:`.device_url`
+(``trakstar://``, ``aurora://``, ``igtl://``, ``replay:``), :mod:`.sources` (sample sources behind those URLs),
 :mod:`.igtl_status` (OpenIGTLink STATUS on pyigtl's message base class), :mod:`.igtl_server` /
 :mod:`.igtl_client` (TCP), :mod:`.navigator` (live loop and watchdog), :mod:`.writers` (CSV files
 flushed every second), :mod:`.commands` (the ``emreg record / sim-tracker / serve`` commands and

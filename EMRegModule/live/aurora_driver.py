@@ -50,6 +50,18 @@ IDLE_POLL_S = 0.001
 #: fixed cyclic permutation (+X -> NDI +Z, det +1) and the coil axis is the probe axis. Roll stays
 #: meaningless; nothing in calibration or pairing uses it.
 FIVE_DOF_X_TO_NDI = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+#: Start-up attempts when the line garbles a reply (choice): each attempt starts again from the probe,
+#: whose break resets a device a garbled COMM may have left at another speed.
+OPEN_ATTEMPTS = 3
+#: ndicapi codes of a damaged line rather than a device's answer ([CAPI] ndicapi.h: bad CRC, write
+#: error, read error, timeout).
+LINE_ERRORS = (ndi.NDI_BAD_CRC, ndi.NDI_TIMEOUT, ndi.NDI_WRITE_ERROR, ndi.NDI_READ_ERROR)
+#: Times a start-up command is sent when the line damages its reply (choice).
+COMMAND_ATTEMPTS = 3
+#: ndiSerialProbe results that mean a device answered but the reply was damaged ([CAPI] ndicapi.h:
+#: NDI_PROBE_FAIL, NDI_BAD_REPLY, NDI_NO_FEATURES_FIRMWARE, NDI_COMMAND_VER_FAILED); a timeout (nothing
+#: answered) or an open error is not retried.
+PROBE_GARBLED = (0x0107, 0x0201, 0x0202, 0x0203)
 #: BX/TX reply option: transforms + out-of-volume ones too ([CAPI] 0x0001 | 0x0800; what [SKS] sends).
 REPLY_OPTION = ndi.REPLY_TRANSFORMS | ndi.REPLY_NOT_NORMALLY_REPORTED
 
@@ -90,6 +102,10 @@ class NdicapiLibrary:
 
     def error_string(self, code: int) -> str:
         return self.lib.ndiErrorString(code).decode("latin-1")
+
+
+class _LineError(EMRegError):
+    """A reply damaged on the line (ndicapi: bad CRC, timeout, read/write error)."""
 
 
 @dataclass
@@ -152,11 +168,17 @@ class AuroraDriver:
 
     # -- commands -------------------------------------------------------------------------------------
     def command(self, text: str) -> str:
-        """Send one command through ndicapi; its reply without CRC, or EMRegError with ndicapi's error."""
-        reply, code = self._command(text)
+        """Send one command through ndicapi; its reply without CRC, or EMRegError with ndicapi's error.
+        A reply the line damaged is asked for again (``COMMAND_ATTEMPTS``), except after COMM, whose
+        damaged OKAY may already have changed the device's speed (the start-up then begins anew)."""
+        for _ in range(1 if text.startswith("COMM") else COMMAND_ATTEMPTS):
+            reply, code = self._command(text)
+            if code not in LINE_ERRORS:
+                break
         if code:
-            raise EMRegError(f"Aurora on {self.port}: {text} failed: {self.api.error_string(code)} "
-                             f"(ndicapi error {code:#04x})")
+            error = _LineError if code in LINE_ERRORS else EMRegError
+            raise error(f"Aurora on {self.port}: {text} failed: {self.api.error_string(code)} "
+                        f"(ndicapi error {code:#04x})")
         return reply
 
     def _command(self, text: str) -> tuple[str, int]:
@@ -169,11 +191,24 @@ class AuroraDriver:
 
     # -- start-up ---------------------------------------------------------------------------------------
     def open(self) -> AuroraDriver:
-        """Probe, open, INIT, COMM to ``baud``, VER; then initialise and enable every tool."""
+        """Probe, open, INIT, COMM to ``baud``, VER; then initialise and enable every tool. A reply the
+        line garbled (bad CRC, timeout) restarts the sequence, up to ``OPEN_ATTEMPTS`` times."""
+        for attempt in range(1, OPEN_ATTEMPTS + 1):
+            try:
+                return self._open_once()
+            except _LineError as exc:
+                if attempt == OPEN_ATTEMPTS:
+                    raise EMRegError(f"{exc} ({attempt} attempts; the serial line garbles replies - check the "
+                                     "cable and the baud rate)") from None
+        raise AssertionError("unreachable")
+
+    def _open_once(self) -> AuroraDriver:
         lib = self.api.lib
         code = lib.ndiSerialProbe(self.port.encode(), False)
         if code != ndi.NDI_OKAY:
-            raise EMRegError(f"Aurora on {self.port}: no NDI device answered ({self.api.error_string(code)}); "
+            # something answered, but garbled (a bad reply to INIT, GETINFO or VER): try again
+            error = _LineError if code in PROBE_GARBLED else EMRegError
+            raise error(f"Aurora on {self.port}: no NDI device answered ({self.api.error_string(code)}); "
                              "check the path, power, cable and permissions (dialout group)")
         pol = lib.ndiOpenSerial(self.port.encode())
         if not pol:
@@ -218,7 +253,13 @@ class AuroraDriver:
                 break
             for handle in waiting:
                 info[handle] = self._tool_info(handle)
-                reply, code = self._command(f"PINIT:{handle:02X}")
+                for _ in range(COMMAND_ATTEMPTS):
+                    reply, code = self._command(f"PINIT:{handle:02X}")
+                    if code not in LINE_ERRORS:
+                        break
+                if code in LINE_ERRORS:
+                    raise _LineError(f"Aurora on {self.port}: PINIT:{handle:02X} failed: "
+                                     f"{self.api.error_string(code)}")
                 if code:
                     port, channel, _ = info[handle]
                     where = f"port {port}" + (f" channel {channel}" if channel else "")
@@ -396,6 +437,13 @@ class AuroraSource(SampleSource):
         self.description = (f"Aurora on {url.path} at {url.baud} baud ({self.driver.freeze_tag or 'firmware ?'}, "
                             f"{'BX' if self.driver.use_bx else 'TX'}; {tools})")
         self._watch: threading.Thread | None = None
+
+    def link_counts(self) -> tuple[int, int]:
+        """Cumulative (accepted, rejected) samples of the serial link, for the tracker-agnostic link-quality
+        monitor: every tool's sample of an accepted new frame, and one lost sample per tool for every reply
+        ndicapi rejected (bad CRC, timeout, error)."""
+        st, tools = self.driver.stats, len(self.driver.tools)
+        return st.frames * tools, st.rejected * tools
 
     def start(self, callback: SampleCallback) -> None:
         self.driver.start(callback)

@@ -1,10 +1,15 @@
 """An NDI Aurora on a pseudo-terminal: it answers NDI's serial command API byte for byte.
 
 Like :mod:`.tracker_simulator` (the trakSTAR), it serves the master side of a pty and a client opens
-the slave path (``/dev/pts/N`` or the ``--link`` symlink) exactly as it would open ``/dev/ttyUSB0``;
-ndicapi's ``ndiSerialOpen`` takes any path (it is a plain ``open(2)`` + termios), so ndicapi,
-scikit-surgerynditracker and EMReg's driver all connect to it unchanged. What it emulates (formats
-and constants in :mod:`.ndi_protocol`, with their sources):
+the slave path (``/dev/pts/N`` or the ``--link`` symlink) exactly as it would open ``/dev/ttyUSB0``.
+How ndicapi opens ports: ``ndiSerialOpen`` / ``ndiSerialProbe`` / ``ndiOpenSerial`` take any path
+(``open(2)`` with O_NOCTTY, an advisory ``F_SETLK`` lock, termios), so a pty path or a symlink to it
+works as given; only ndicapi's own enumeration (``ndiSerialDeviceName(i)``: on Linux the fixed names
+``/dev/ttyS0``, ``/dev/ttyS1``, ``/dev/ttyUSB0`` .. ``/dev/ttyUSB5``) and scikit-surgerynditracker's
+auto-probe (pyserial's ``list_ports.comports()``, which lists no ptys) cannot find it - so clients are
+given the path: ``aurora://PATH`` for EMReg, ``{"serial port": PATH}`` for scikit-surgerynditracker,
+``ndiProbe(PATH)`` / ``ndiOpen(PATH)`` for ndicapi. What it emulates (formats and constants in
+:mod:`.ndi_protocol`, with their sources):
 
 - commands ``INIT``, ``COMM`` (baud change after the OKAY, as ndicapi expects), ``VER`` (0..5; 3 is
   ``ERROR23`` as on a real Aurora), ``GETINFO`` (``ERROR01``: this firmware has none, so ndicapi's
@@ -204,6 +209,7 @@ class AuroraSimulator:
         self._manual: dict[str, set[int]] = {k: set() for k in AuroraFaults.KINDS}
         self._stall_until_ns = 0
         self._corrupt_next = 0
+        self._drop_next = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
@@ -259,6 +265,10 @@ class AuroraSimulator:
     def corrupt_next_replies(self, n: int = 1) -> None:
         """Send the next ``n`` BX/TX replies with a wrong CRC."""
         self._corrupt_next += n
+
+    def drop_byte_of_next_reply(self) -> None:
+        """Lose one byte (in the middle) of the next BX/TX reply on the line."""
+        self._drop_next = True
 
     def start(self) -> AuroraSimulator:
         self._thread = threading.Thread(target=self.run, name="aurora-simulator", daemon=True)
@@ -655,6 +665,10 @@ class AuroraSimulator:
             self._corrupt_next = max(0, self._corrupt_next - 1)
             emitted.corrupted = True
             data = _break_crc(data, binary=name == "BX")
+        if self._drop_next:
+            self._drop_next = False
+            emitted.corrupted = True
+            data = data[:len(data) // 2] + data[len(data) // 2 + 1:]
         if self.keep_log:
             self.log.append(emitted)
         self._send(data, frame=emitted, command_bytes=n)

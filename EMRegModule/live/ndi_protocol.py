@@ -132,6 +132,8 @@ ERROR_HANDLE_NOT_ALLOC = 0x2B
 NDI_OKAY = 0x00
 NDI_BAD_CRC = 0x0100
 NDI_TIMEOUT = 0x0103
+NDI_WRITE_ERROR = 0x0104
+NDI_READ_ERROR = 0x0105
 
 # --- port handles ------------------------------------------------------------------------------------
 

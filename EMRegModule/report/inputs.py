@@ -171,8 +171,10 @@ def _start_ct(inputs: ReportInputs, image: sitk.Image | None, read_image: bool) 
     if image is not None:
         inputs.ct = VolumeFill.complete(image)
     elif read_image and inputs.ct_path is not None:
+        used = (inputs.run or {}).get("ct_series") or {}  # a DICOM folder: the series the run detected in
+        series = used.get("series_instance_uid") or (inputs.settings.get("ct") or {}).get("series")
         try:
-            inputs.ct = open_ct(inputs.ct_path)
+            inputs.ct = open_ct(inputs.ct_path, series)
         except EMRegError as exc:
             inputs.notes.append(str(exc))
 

@@ -38,6 +38,13 @@ def summary_section(data: ReportData, figures: dict[str, Figure]) -> str:
         rows.append(("CT", f"{' x '.join(str(s) for s in geometry['size'])} voxels of "
                            f"{' x '.join(f'{s:.3g}' for s in geometry['spacing'])} mm"
                            + (f" ({esc(inputs.ct_path.name)})" if inputs.ct_path is not None else "")))
+    series = inputs.detection.ct_series if inputs.detection is not None else None
+    if series:
+        others = series.get("others") or []
+        rows.append(("CT series", esc(f"{series.get('series_number')} '{series.get('description', '')}' "
+                                      f"({series.get('series_instance_uid')}), {series.get('slices')} slices "
+                                      f"{series.get('slice_spacing_mm')} mm apart; {len(others)} other series "
+                                      f"not used")))
     if inputs.detection is not None:
         rows.append(("markers detected", f"{len(data.rows)} ({len(inputs.detection.rejected)} candidates rejected)"))
     if inputs.frame_calibration is not None:

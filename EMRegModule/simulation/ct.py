@@ -8,7 +8,8 @@ truth is physical, so it does not depend on how voxels are indexed.
 Method, in float32 throughout:
 
 1. Painter's algorithm: air (-1000 HU), then each :class:`Layer` in turn,
-   ``v <- v + f (HU - v)`` where ``f`` is the voxel's fill fraction. Work is done in
+   ``v <- v + f (HU - v)`` where ``f`` is the voxel's fill fraction (or ``v + f (HU + 1000)``
+   for a layer that displaces air, see :class:`Layer`). Work is done in
    bricks of 16^3 voxels: a conservative SDF at brick centres skips bricks wholly outside
    and fills bricks wholly inside, so only bricks crossing a surface are evaluated voxel
    by voxel. Large smooth solids use an analytic partial-volume ramp
@@ -20,6 +21,9 @@ Method, in float32 throughout:
 3. Streaks around metal (bright and dark lines through the metal in the axial planes of
    the scanner, i.e. planes of constant LPS z) are added, then values are clipped to
    [-1024, 3071] and rounded to int16.
+
+:func:`paint_layers` is EMReg's one partial-volume painter: the test fixtures
+(``Testing/Python/fixtures``) and the detection benchmark paint their small scenes with it too.
 """
 
 from __future__ import annotations
@@ -88,16 +92,20 @@ def grid_around(points_image: np.ndarray, spacing: np.ndarray, direction: np.nda
 
 @dataclass
 class Layer:
-    """One solid of uniform density: painted over what lies beneath it.
+    """One solid of uniform density.
 
     ``supersample`` 0 uses the analytic partial-volume ramp; n > 0 averages n^3 exact
-    membership tests in each voxel near the surface.
+    membership tests in each voxel near the surface. ``over`` True paints the solid over what
+    lies beneath it (``v <- v + f (HU - v)``); False makes it displace air
+    (``v <- v + f (HU - AIR)``), right for solids that touch without overlapping (no dark film of
+    air at the contact).
     """
 
     name: str
     shape: Shape
     hu: float
     supersample: int = 0
+    over: bool = True
 
 
 def paint_layers(volume: np.ndarray, grid: Grid, image_to_frame: np.ndarray, layers: list[Layer],
@@ -144,11 +152,14 @@ def _paint(volume: np.ndarray, grid: Grid, index_to_frame: np.ndarray, layer: La
                 i1, j1, k1 = min(i0 + BRICK, stop[0]), min(j0 + BRICK, stop[1]), min(k0 + BRICK, stop[2])
                 view = volume[k0:k1, j0:j1, i0:i1]
                 if d < -margin:
-                    view[...] = hu
+                    if layer.over:
+                        view[...] = hu
+                    else:
+                        view += hu - F32(AIR_HU)
                     continue
                 fraction = _brick_fraction(layer, a, b, (i0, i1), (j0, j1), (k0, k1), ramp, voxel_half_diag)
                 if fraction is not None:
-                    view += fraction * (hu - view)
+                    view += fraction * ((hu - view) if layer.over else (hu - F32(AIR_HU)))
 
 
 def _brick_fraction(layer: Layer, a: np.ndarray, b: np.ndarray, irange, jrange, krange, ramp: float,

@@ -11,6 +11,12 @@ Layout (Slicer's scripted-module template): ``EMReg`` (module description), ``EM
 :class:`EMRegModule.controller.EMRegController`, plus the MRML nodes that show its results)
 and ``EMRegTest`` (drives the Logic end to end on a simulated case).
 
+The Logic needs only MRML nodes and ``slicer.util``: inside Slicer they are the application's;
+outside it (the tests) the ``slicer-core`` wheel provides them without Qt, and the scripted-module
+bases Slicer's application would provide are replaced by minimal ones (see the imports). The nodes
+are made by ``EMRegModule/io/slicer_scene.py``, which also writes the ``EMReg.mrb`` bundle of
+``emreg run``. Supported: 3D Slicer 5.10 and later (Python 3.12; EMReg needs 3.11).
+
 Coordinates: EMReg works in the CT's LPS space, Slicer in RAS. Markers and targets are
 converted point by point (x, y negated). ``ReferenceToImage`` becomes the linear transform
 node ``ReferenceToImage`` whose matrix is ``LPS_TO_RAS @ ReferenceToImage``: a node placed
@@ -23,18 +29,54 @@ import importlib.util
 import logging
 import os
 import sys
+import unittest
 from pathlib import Path
 
-import qt
 import slicer
-import vtk
-from slicer.ScriptedLoadableModule import (
-    ScriptedLoadableModule,
-    ScriptedLoadableModuleLogic,
-    ScriptedLoadableModuleTest,
-    ScriptedLoadableModuleWidget,
-)
 from slicer.util import VTKObservationMixin
+
+try:  # the 3D Slicer application (Qt)
+    import qt
+except ImportError:  # slicer-core (pip) or plain Python: MRML and slicer.util only; the Widget cannot run
+    qt = None
+
+try:
+    from slicer.ScriptedLoadableModule import (
+        ScriptedLoadableModule,
+        ScriptedLoadableModuleLogic,
+        ScriptedLoadableModuleTest,
+        ScriptedLoadableModuleWidget,
+    )
+except ImportError:
+    # Outside the Slicer application. The slicer-core wheel has Slicer's MRML, storage nodes, module logics and
+    # slicer.util, but not Slicer's Python package for scripted modules (it needs Qt and the application). So that
+    # the Logic and the self-test run on slicer-core's MRML (in CI), their bases are replaced here by the parts of
+    # Slicer's bases they use; the module description and the Widget need the application and refuse to start.
+
+    class ScriptedLoadableModuleLogic:
+        """Outside Slicer: what Slicer's base does in its constructor (the module name, singleton parameter
+        node); its parameter-node helpers are not provided (EMRegLogic does not use them)."""
+
+        def __init__(self, parent=None):
+            self.moduleName = type(self).__name__[: -len("Logic")]
+            self.isSingletonParameterNode = True
+
+    class ScriptedLoadableModuleTest(unittest.TestCase):
+        """Outside Slicer: a unittest.TestCase whose delayDisplay logs (no message box)."""
+
+        def delayDisplay(self, message, requestedDelay=None, msec=None):
+            logging.info("EMReg test: %s", message)
+
+    class _NeedsSlicerApplication:
+        def __init__(self, *args, **kwargs):
+            raise RuntimeError(f"{type(self).__name__} needs the 3D Slicer application (Qt); outside it use "
+                               "EMRegLogic (MRML only) or the 'emreg' command")
+
+    class ScriptedLoadableModule(_NeedsSlicerApplication):
+        pass
+
+    class ScriptedLoadableModuleWidget(_NeedsSlicerApplication):
+        pass
 
 MODULE_DIR = Path(__file__).resolve().parent
 REPOSITORY_ROOT = MODULE_DIR.parents[1]
@@ -46,15 +88,20 @@ DEPENDENCIES = {
     "numpy": ("numpy", "everything"),
     "scipy": ("scipy", "detection, calibration, registration"),
     "SimpleITK": ("SimpleITK", "reading the CT and detection"),
+    "pydicom": ("pydicom", "reading DICOM CT series"),
     "vtk": ("vtk", "marker models and detection"),
     "pyvista": ("pyvista", "the verification report"),
     "cv2": ("opencv-python-headless", "the verification report"),
     "pyigtl": ("pyigtl", "live navigation from the command line"),
 }
 #: Without these the workflow cannot run at all; the others only disable one feature.
-ESSENTIAL = ("numpy", "scipy", "SimpleITK", "vtk")
+ESSENTIAL = ("python", "numpy", "scipy", "SimpleITK", "vtk")
 
 LPS_TO_RAS_DIAGONAL = (-1.0, -1.0, 1.0)
+
+#: EMReg's package needs Python 3.11 (tomllib, zip(strict=...)): 3D Slicer 5.10 and later (Python 3.12);
+#: Slicer 5.8 and older ship Python 3.9. This file itself stays Python 3.9 so old Slicers can say so.
+MINIMUM_PYTHON = (3, 11)
 
 
 def ensureEMRegImportable():
@@ -62,6 +109,10 @@ def ensureEMRegImportable():
 
     Returns a list of ``(import name, pip name, what needs it)`` for every package that is absent.
     """
+    if sys.version_info < MINIMUM_PYTHON:
+        logging.error("EMReg needs 3D Slicer 5.10 or later (Python %d.%d or newer); this Slicer runs Python %d.%d",
+                      *MINIMUM_PYTHON, *sys.version_info[:2])
+        return [("python", "3D Slicer 5.10 or later", "everything")]
     root = str(REPOSITORY_ROOT)
     if root not in sys.path:
         sys.path.insert(0, root)
@@ -135,7 +186,11 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         uiWidget.setMRMLScene(slicer.mrmlScene)
 
         missing = ensureEMRegImportable()
-        if missing:
+        if any(module == "python" for module, _, _ in missing):
+            self.ui.dependenciesLabel.text = (f"EMReg needs 3D Slicer 5.10 or later (Python "
+                                              f"{MINIMUM_PYTHON[0]}.{MINIMUM_PYTHON[1]}+); this Slicer runs "
+                                              f"Python {sys.version_info[0]}.{sys.version_info[1]}.")
+        elif missing:
             self.ui.dependenciesLabel.text = "Missing Python packages: " + ", ".join(
                 f"{module} (slicer.util.pip_install('{pip}'), for {needed})" for module, pip, needed in missing)
         else:
@@ -248,7 +303,12 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
     ``self.controller`` is an :class:`EMRegModule.controller.EMRegController`; every step is one
     of its methods, then the result is written to the output folder (the same files as
-    ``emreg run``) and shown in the scene. Usable without the panel (Python console, tests).
+    ``emreg run``) and shown in the scene. Usable without the panel (Python console, tests) and
+    without Qt: it needs only MRML nodes and ``slicer.util`` (3D Slicer's, or the slicer-core
+    wheel's). The nodes are made by :mod:`EMRegModule.io.slicer_scene`, the same code that writes
+    the scene bundle ``EMReg.mrb`` of ``emreg run``, so both show the same nodes.
+
+    ``scene``: the MRML scene to show the results in (default ``slicer.mrmlScene``).
     """
 
     VOLUME_NODE_NAME = "EMReg CT"
@@ -257,20 +317,27 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     TARGETS_NODE_NAME = "EMReg targets"
     PATH_NODE_NAME = "EMReg probe path"
     TRANSFORM_NODE_NAME = "ReferenceToImage"
+    PROBE_NODE_NAME = "ProbeToReference"
     CONNECTOR_NODE_NAME = "EMReg OpenIGTLink"
 
-    def __init__(self, settings=None):
+    def __init__(self, settings=None, scene=None):
         ScriptedLoadableModuleLogic.__init__(self)
         ensureEMRegImportable()
         from EMRegModule.controller import EMRegController
 
+        self._scene = scene
         self.controller = EMRegController(settings)
         self.case = None
         self.outputDirectory = None
         self.reportPath = None
         self.evaluation = None
+        self.probeToReference = None
         self.connectorNode = None
         self.nodes = {}
+
+    @property
+    def scene(self):
+        return self._scene if self._scene is not None else slicer.mrmlScene
 
     # --- inputs -------------------------------------------------------------------------------------
 
@@ -294,21 +361,19 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         self.outputDirectory.mkdir(parents=True, exist_ok=True)
         self.reportPath = None
         self.evaluation = None
+        self.probeToReference = None
         self.controller.load_ct(case.ct)
         if case.calibration is not None:
             self.controller.load_calibration_recording(case.calibration)
         self.showVolume()
-        if case.targets is not None:
-            from EMRegModule.io.markups import read_markups
-
-            labels, positions = read_markups(case.targets)
-            self.showPoints(self.TARGETS_NODE_NAME, labels, positions, color=(0.9, 0.1, 0.1))
+        self.showResults()
         logging.info("EMReg: case %s loaded; %s", case.folder, self.controller.describe())
         return case
 
     def setSensors(self, referenceSensor, probeSensor):
         """Sensor ports (1..4); a change drops the frame calibration and what follows."""
         self.controller.set_sensors(int(referenceSensor), int(probeSensor))
+        self.showResults()
 
     # --- stages -------------------------------------------------------------------------------------
 
@@ -318,8 +383,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
         result = self.controller.calibrate_frame()
         write_frame_calibration(result, self._output("frame_calibration.json"))
-        self.showPoints(self.CALIBRATION_NODE_NAME, result.labels, result.positions, color=(0.9, 0.2, 0.9),
-                        lps=False)
+        self.showResults()
         return result
 
     def detectMarkers(self):
@@ -328,8 +392,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
         result = self.controller.detect_markers()
         write_detection(result, self.outputDirectory or self._output(""))
-        self.showPoints(self.MARKERS_NODE_NAME, [m.id for m in result.markers],
-                        [m.origin for m in result.markers], color=(0.2, 0.8, 0.3))
+        self.showResults()
         return result
 
     def register(self):
@@ -343,24 +406,29 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
             targets = read_markups(self.case.targets)[1]
         result = self.controller.register(targets)
         write_registration(result, self.outputDirectory or self._output(""))
-        self.showReferenceToImage(result.reference_to_image)
+        self.showResults()
         return result
 
     def navigateRecording(self):
         """Replay the case's navigation recording (paper Eq. 12); writes ``navigation.csv`` and
-        ``evaluation.json``; shows the probe path."""
+        ``evaluation.json``; shows the probe path and the last probe pose (``ProbeToReference``,
+        under ``ReferenceToImage``)."""
         from EMRegModule.errors import EMRegError
         from EMRegModule.io.recording import read_recording
         from EMRegModule.navigation import write_navigation_csv
+        from EMRegModule.tracking import probe_in_reference
 
         if self.case is None or self.case.navigation is None:
             raise EMRegError("the case has no navigation.csv to replay")
-        result = self.controller.navigate_recording(read_recording(self.case.navigation, self.case.settings))
+        recording = read_recording(self.case.navigation, self.case.settings, self.controller.reference_sensor,
+                                   self.controller.probe_sensor)
+        result = self.controller.navigate_recording(recording)
         write_navigation_csv(result, self._output("navigation.csv"))
-        positions = result.position_mm
-        step = max(1, len(positions) // 500)
-        self.showPath(positions[::step])
+        # the last probe pose straight from the recording (Reference frame); Slicer composes it with ReferenceToRAS
+        inReference = probe_in_reference(recording, self.controller.reference_sensor, self.controller.probe_sensor)
+        self.probeToReference = inReference.probe_to_reference[-1]
         self.evaluate()
+        self.showResults()
         return result
 
     def evaluate(self):
@@ -396,6 +464,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
             self.writeReport()
         else:
             logging.warning("EMReg: the report needs pyvista and opencv-python-headless; skipped")
+        self.showResults()
 
     # --- live navigation ----------------------------------------------------------------------------
 
@@ -405,7 +474,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         from EMRegModule.errors import EMRegError
 
         try:
-            connector = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLIGTLConnectorNode", self.CONNECTOR_NODE_NAME)
+            connector = self.scene.AddNewNodeByClass("vtkMRMLIGTLConnectorNode", self.CONNECTOR_NODE_NAME)
         except Exception:  # noqa: BLE001 - Slicer raises a plain error for an unknown node class
             connector = None
         if connector is None:
@@ -413,7 +482,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
                              "(Extensions Manager) for live navigation")
         connector.SetTypeClient(str(host), int(port))
         if connector.Start() != 1:
-            slicer.mrmlScene.RemoveNode(connector)
+            self.scene.RemoveNode(connector)
             raise EMRegError(f"cannot connect to OpenIGTLink at {host}:{port}: start 'emreg navigate --igtl-port "
                              f"{port}' first")
         self.connectorNode = connector
@@ -424,7 +493,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     def stopLiveNavigation(self):
         if self.connectorNode is not None:
             self.connectorNode.Stop()
-            slicer.mrmlScene.RemoveNode(self.connectorNode)
+            self.scene.RemoveNode(self.connectorNode)
             self.connectorNode = None
 
     # --- MRML nodes ---------------------------------------------------------------------------------
@@ -433,13 +502,6 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         """Drop references to nodes (the scene is closing)."""
         self.nodes = {}
         self.connectorNode = None
-
-    def _node(self, className, name):
-        node = self.nodes.get(name)
-        if node is None or slicer.mrmlScene.GetNodeByID(node.GetID()) is None:
-            node = slicer.mrmlScene.AddNewNodeByClass(className, name)
-            self.nodes[name] = node
-        return node
 
     def _output(self, name):
         from EMRegModule.errors import EMRegError
@@ -450,53 +512,50 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         return self.outputDirectory / name
 
     def showVolume(self):
-        """The controller's CT as a scalar volume node (sitkUtils converts LPS to RAS)."""
-        import sitkUtils
+        """The controller's CT as a scalar volume node (IJK-to-RAS from the image's LPS geometry)."""
+        from EMRegModule.io import slicer_scene
 
-        node = self.nodes.get(self.VOLUME_NODE_NAME)
-        node = sitkUtils.PushVolumeToSlicer(self.controller.image, targetNode=node, name=self.VOLUME_NODE_NAME)
+        node = slicer_scene.show_volume(self.scene, self.controller.image, self.VOLUME_NODE_NAME,
+                                        node=self.nodes.get(self.VOLUME_NODE_NAME))
         self.nodes[self.VOLUME_NODE_NAME] = node
-        slicer.util.setSliceViewerLayers(background=node, fit=True)
+        if hasattr(slicer, "app"):  # slice views exist only in the application
+            slicer.util.setSliceViewerLayers(background=node, fit=True)
         return node
 
-    def showPoints(self, name, labels, positions, color=(1.0, 1.0, 0.0), lps=True):
-        """A markups point list; ``positions`` (N, 3) LPS image space (``lps=True``) or Reference frame
-        (placed under the ``ReferenceToImage`` transform node)."""
-        node = self._node("vtkMRMLMarkupsFiducialNode", name)
-        node.RemoveAllControlPoints()
-        for label, position in zip(labels, positions):  # noqa: B905 - Slicer 5.6 ships Python 3.9 (no strict=)
-            point = lpsToRas(position) if lps else [float(v) for v in position]
-            node.AddControlPoint(vtk.vtkVector3d(*point), str(label))
-        node.SetLocked(True)
-        display = node.GetDisplayNode()
-        if display is not None:
-            display.SetSelectedColor(*color)
-        if not lps:
-            transform = self.nodes.get(self.TRANSFORM_NODE_NAME)
-            node.SetAndObserveTransformNodeID(transform.GetID() if transform is not None else None)
-        return node
-
-    def showPath(self, positionsLps):
-        """The navigated probe path (image space) as a markups curve."""
-        node = self._node("vtkMRMLMarkupsCurveNode", self.PATH_NODE_NAME)
-        node.RemoveAllControlPoints()
-        for position in positionsLps:
-            node.AddControlPoint(vtk.vtkVector3d(*lpsToRas(position)), "")
-        node.SetLocked(True)
-        return node
-
-    def showReferenceToImage(self, referenceToImage):
-        """``ReferenceToImage`` as a linear transform node, matrix ``LPS_TO_RAS @ ReferenceToImage``;
-        the calibration points node goes under it."""
+    def resultsContent(self):
+        """What the scene shows, from the controller's results (as the bundle does from the output files)."""
         import numpy as np
 
-        referenceToRas = np.diag([*LPS_TO_RAS_DIAGONAL, 1.0]) @ np.asarray(referenceToImage, dtype=float)
-        node = self._node("vtkMRMLLinearTransformNode", self.TRANSFORM_NODE_NAME)
-        slicer.util.updateTransformMatrixFromArray(node, referenceToRas)
-        calibration = self.nodes.get(self.CALIBRATION_NODE_NAME)
-        if calibration is not None:
-            calibration.SetAndObserveTransformNodeID(node.GetID())
-        return node
+        from EMRegModule.io.slicer_scene import RunScene
+
+        controller = self.controller
+        content = RunScene()
+        if controller.detection is not None:
+            markers = controller.detection.markers
+            content.marker_ids = [m.id for m in markers]
+            content.marker_origins = np.array([m.origin for m in markers], dtype=float).reshape(-1, 3)
+            content.marker_axes = np.array([m.axis for m in markers], dtype=float).reshape(-1, 3)
+        if controller.frame_calibration is not None:
+            content.calibration_labels = list(controller.frame_calibration.labels)
+            content.calibration_points = controller.frame_calibration.positions
+        if controller.registration is not None:
+            content.registration = controller.registration.to_json()
+            if controller.navigation is not None:
+                content.path = controller.navigation.position_mm
+                content.probe_to_reference = self.probeToReference
+        if self.case is not None and self.case.targets is not None:
+            from EMRegModule.io.markups import read_markups
+
+            labels, positions = read_markups(self.case.targets)
+            content.target_labels, content.targets = list(labels), np.asarray(positions, dtype=float)
+        return content
+
+    def showResults(self):
+        """Show (or update) every result node: markers, calibration points under ``ReferenceToImage``,
+        pinhole points, residual spheres, targets, probe path and pose; nodes of dropped results go."""
+        from EMRegModule.io import slicer_scene
+
+        return slicer_scene.build_run_scene(self.scene, self.resultsContent(), self.nodes)
 
     def resultsText(self):
         """A few lines of figures for the panel."""
@@ -523,7 +582,8 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
 class EMRegTest(ScriptedLoadableModuleTest):
     """End-to-end self-test: simulate a small case, run the Logic through every step, check the result
-    against the simulator's ground truth and the MRML nodes it made.
+    against the simulator's ground truth and the MRML nodes it made (positions read back from MRML in
+    world coordinates, i.e. through the transform hierarchy).
 
     Set ``EMREG_TEST_CASE`` (environment) or ``EMRegTest.caseDirectory`` to reuse a case folder.
     """
@@ -580,16 +640,27 @@ class EMRegTest(ScriptedLoadableModuleTest):
             np.linalg.inv(true_reference_to_image), markers)) - markers
         self.assertLess(float(np.max(np.linalg.norm(error, axis=1))), 1.0)
 
-        # MRML: markers in RAS, the transform node in RAS
+        # MRML: markers in RAS, the transform node = ReferenceToRAS
         markersNode = slicer.mrmlScene.GetFirstNodeByName(EMRegLogic.MARKERS_NODE_NAME)
         self.assertEqual(markersNode.GetNumberOfControlPoints(), len(detection.markers))
-        first = [0.0, 0.0, 0.0]
-        markersNode.GetNthControlPointPosition(0, first)
-        self.assertTrue(np.allclose(first, lpsToRas(detection.markers[0].origin), atol=1e-6))
+        markersRas = slicer.util.arrayFromMarkupsControlPoints(markersNode, world=True)
+        self.assertTrue(np.allclose(markersRas, [lpsToRas(m.origin) for m in detection.markers], atol=1e-6))
         transformNode = slicer.mrmlScene.GetFirstNodeByName(EMRegLogic.TRANSFORM_NODE_NAME)
-        matrix = slicer.util.arrayFromTransformMatrix(transformNode)
+        matrix = slicer.util.arrayFromTransformMatrix(transformNode, toWorld=True)
         expected = np.diag([-1.0, -1.0, 1.0, 1.0]) @ registration.reference_to_image
         self.assertTrue(np.allclose(matrix, expected, atol=1e-9))
+
+        # calibration points under ReferenceToImage land on their markers' pinhole points (world = RAS)
+        calibrationNode = slicer.mrmlScene.GetFirstNodeByName(EMRegLogic.CALIBRATION_NODE_NAME)
+        self.assertEqual(calibrationNode.GetTransformNodeID(), transformNode.GetID())
+        calibrationRas = slicer.util.arrayFromMarkupsControlPoints(calibrationNode, world=True)
+        labels = [calibrationNode.GetNthControlPointLabel(i) for i in range(calibrationNode.GetNumberOfControlPoints())]
+        byId = {m.id: m for m in detection.markers}
+        for pair in registration.pairs:
+            marker = byId[pair["image_marker"]]
+            pinholeRas = lpsToRas(marker.origin + registration.sensor_offset_l_mm * marker.axis)
+            landed = calibrationRas[labels.index(pair["calibration_point"])]
+            self.assertAlmostEqual(float(np.linalg.norm(landed - pinholeRas)), pair["residual_mm"], delta=1e-6)
 
         self.delayDisplay("Navigating and writing the report")
         if logic.case.navigation is not None:
@@ -597,6 +668,11 @@ class EMRegTest(ScriptedLoadableModuleTest):
             self.assertGreater(len(navigation), 0)
             if logic.evaluation and "tre" in logic.evaluation:
                 self.assertLess(logic.evaluation["tre"]["mean_mm"], 2.0)
+            # the last probe pose, under ReferenceToImage, lands where navigation says (RAS)
+            probeNode = slicer.mrmlScene.GetFirstNodeByName(EMRegLogic.PROBE_NODE_NAME)
+            self.assertEqual(probeNode.GetTransformNodeID(), transformNode.GetID())
+            probeToRas = slicer.util.arrayFromTransformMatrix(probeNode, toWorld=True)
+            self.assertTrue(np.allclose(probeToRas[:3, 3], lpsToRas(navigation.position_mm[-1]), atol=1e-6))
         report = logic.writeReport()
         self.assertTrue(Path(report).is_file())
         for name in ("markers.json", "frame_calibration.json", "registration.json", "ReferenceToImage.h5"):

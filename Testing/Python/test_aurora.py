@@ -46,12 +46,18 @@ ENV = dict(os.environ, PYTHONUNBUFFERED="1")
 
 
 def _recording(n_frames: int = 120, rate_hz: float = 40.0, seed: int = 3) -> TrackingRecording:
-    """Reference on port 1 (still), probe on port 2 (random poses), in the Tracker frame."""
+    """Reference on port 1 (still), probe on port 2 moving as a hand would (60 mm/s, turning 120 deg/s
+    about a tilted axis: every quaternion sign pattern within 3 s), in the Tracker frame."""
     rng = np.random.default_rng(seed)
     reference = make_transform(random_rotation(rng, 30), [250.0, 30.0, -80.0])
+    axis = np.array([0.3, -0.5, 0.81]) / np.linalg.norm([0.3, -0.5, 0.81])
+    start = random_rotation(rng, 180)
     t, sensors, positions, rotations = [], [], [], []
     for i in range(n_frames):
-        probe = make_transform(random_rotation(rng, 180), reference[:3, 3] + rng.uniform(-80, 80, 3))
+        s = i / rate_hz
+        turn = quaternion_to_rotation(np.r_[np.cos(np.radians(60 * s)), np.sin(np.radians(60 * s)) * axis])
+        path = 60.0 * np.array([np.cos(s), np.sin(s), 0.3 * np.sin(2 * s)])
+        probe = make_transform(turn @ start, reference[:3, 3] + path)
         for sensor, pose in ((1, reference), (2, probe)):
             t.append(i / rate_hz)
             sensors.append(sensor)
@@ -375,6 +381,48 @@ def test_watchdog_with_the_aurora_stops_and_resumes(tmp_path):
     for reason in ("reference_missing", "out_of_range", "bad_quality", "stale"):
         assert reason in reasons
     assert reasons.count("ok") >= 6
+
+
+def test_driver_survives_a_dropped_byte_without_a_wrong_pose(tmp_path):
+    with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof"), link=tmp_path / "aurora", keep_log=True) as sim:
+        driver = AuroraDriver(str(tmp_path / "aurora")).open()
+        samples = []
+        try:
+            driver.start(samples.append)
+            _wait(lambda: driver.stats.frames >= 5)
+            sim.drop_byte_of_next_reply()
+            # ndicapi waits for the rest of the reply (its 5 s read timeout), then rejects it
+            _wait(lambda: driver.stats.timeouts + driver.stats.crc_errors >= 1)
+            mark = driver.stats.frames
+            _wait(lambda: driver.stats.frames >= mark + 5)
+        finally:
+            driver.close()
+    assert driver.stats.timeouts + driver.stats.crc_errors == 1 == sum(f.corrupted for f in sim.log)
+    for s in samples:
+        q, p = sim.truth_for_frame(s.sensor, s.frame)
+        assert np.array_equal(np.float32(s.position_mm), np.float32(p)) and s.status == STATUS_OK
+    assert len(samples) >= 20
+
+
+def test_driver_on_a_noisy_line_starts_and_never_makes_a_wrong_pose(tmp_path):
+    from EMRegModule.live.aurora_simulator import AuroraFaults
+
+    # 0.2 % of the bytes with a flipped bit: about one reply in six is damaged, start-up replies included
+    with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof"), link=tmp_path / "aurora", seed=11,
+                         faults=AuroraFaults(flip=0.002)) as sim:
+        driver = AuroraDriver(str(tmp_path / "aurora")).open()
+        samples = []
+        try:
+            driver.start(samples.append)
+            _wait(lambda: driver.stats.frames >= 80)
+        finally:
+            driver.close()
+    assert driver.stats.crc_errors + driver.stats.timeouts >= 5
+    assert len(samples) >= 160
+    for s in samples:
+        q, p = sim.truth_for_frame(s.sensor, s.frame)
+        assert np.array_equal(np.float32(s.position_mm), np.float32(p))
+        assert _same_quaternion(s.extra["quaternion"], np.float32(q), 1e-7)
 
 
 def test_driver_names_the_port_of_a_tool_without_srom(tmp_path):

@@ -1,4 +1,4 @@
-"""Marker detection on small synthetic scenes (EMRegModule.detection.phantom): accuracy, rejections, I/O, memory.
+"""Marker detection on small synthetic scenes (Testing/Python/fixtures/phantom.py): accuracy, rejections, I/O, memory.
 
 The scenes are painted with sub-voxel partial volume, blurred and noised, with markers
 standing on a POM plate (plastic below, air around), lying on their side on it, and tilted
@@ -14,6 +14,7 @@ import tracemalloc
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from fixtures import phantom as ph
 
 from EMRegModule.detection import (
     DetectionResult,
@@ -22,7 +23,6 @@ from EMRegModule.detection import (
     settings_from_dict,
     write_detection,
 )
-from EMRegModule.detection import phantom as ph
 from EMRegModule.detection.pose import edge_samples, fit_pose, surface_distances
 from EMRegModule.errors import EMRegError, NoSafeAnswerError
 from EMRegModule.io.markups import read_markups

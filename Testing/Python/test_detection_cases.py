@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 from conftest import CI_CASE_OPTIONS, load_truth
+from fixtures import phantom as ph
 
 from EMRegModule.cli import main
 from EMRegModule.detection import DetectionResult, read_detection
-from EMRegModule.detection import phantom as ph
 from EMRegModule.io.markups import read_markups
 from EMRegModule.simulation import simulate_case
 from EMRegModule.transforms import angle_between_deg

@@ -1,6 +1,6 @@
 """Golden-image regression tests of the report's renderers.
 
-Each test renders a small fixed scene (EMRegModule.rendering.samples) and compares it with
+Each test renders a small fixed scene (Testing/Python/fixtures/samples.py) and compares it with
 ``Testing/Baseline/<name>.png`` using VTK's ``vtkImageDifference`` (shift tolerance off). On a
 failure the rendered image and the difference image are written next to the failure
 (``<failure dir>/<name>.actual.png`` and ``<name>.diff.png``; by default the pytest temp dir).
@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fixtures import samples
 
-from EMRegModule.rendering import samples
 from EMRegModule.rendering.compare import REGENERATE_ENV, check_against_baseline, compare_images, regenerate_requested
 from EMRegModule.rendering.images import read_png
 

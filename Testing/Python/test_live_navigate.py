@@ -230,7 +230,10 @@ def test_serve_to_igtl_source_navigation_chain():
             assert consumer.receiver.connected.wait(5) and received.connected.wait(5)
             assert server.wait_for_clients(1) and downstream.wait_for_clients(1)
             source.start(tee)
-            time.sleep(1.0)
+            deadline = time.monotonic() + 30  # wait on counts, not for a time: a loaded machine only takes longer
+            while (navigator.published < 40 or sum(m.message_type == "TRANSFORM" for m in poses) < 40) \
+                    and time.monotonic() < deadline:
+                time.sleep(0.01)
         finally:
             source.stop()
             consumer.stop()
@@ -260,6 +263,14 @@ def test_watchdog_with_the_simulator_stops_and_resumes():
         try:
             source.start(nav.on_sample)
 
+            def wait_for_count(condition, timeout: float = 30.0) -> bool:
+                end = time.monotonic() + timeout
+                while not condition():
+                    if time.monotonic() > end:
+                        return False
+                    time.sleep(0.005)
+                return True
+
             def wait_for(reason: str, timeout: float = 2.0) -> bool:
                 end = time.monotonic() + timeout
                 while time.monotonic() < end:
@@ -279,8 +290,7 @@ def test_watchdog_with_the_simulator_stops_and_resumes():
             assert nav.published == during  # nothing published while the reference is missing
             sim.set_unplugged(1, False)
             assert wait_for("ok")
-            time.sleep(0.1)
-            assert nav.published > during
+            assert wait_for_count(lambda: nav.published > during)  # publishing again
             sim.stall(0.6)
             assert wait_for("stale")
             assert wait_for("ok")

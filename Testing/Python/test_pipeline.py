@@ -154,3 +154,4 @@ def test_run_names_the_dicom_series_it_used(hard_run):
     assert used["modality"] == "CT" and used["others"] == []
     assert used["slices"] == _load(out, "markers.json")["image"]["size"][2] == len(list((hard_case / "ct").iterdir()))
     assert used["slice_spacing_mm"] == pytest.approx(0.8, abs=1e-3) and used["series_instance_uid"]
+    assert used["series_instance_uid"] in (out / "report.html").read_text(encoding="utf-8")  # named in the summary

@@ -1,14 +1,16 @@
-"""The 3D Slicer module (EMRegModule/slicer/EMReg.py) without 3D Slicer.
+"""The 3D Slicer module (EMRegModule/slicer/EMReg.py) on 3D Slicer's own MRML, without the application.
 
-Slicer cannot run here, so the module is checked three ways:
-- structure: its four classes and their Slicer bases, parsed from the source (ast); the folder
-  Slicer scans holds only the module file; the icon;
-- the .ui file: valid Qt Designer XML whose widgets include every ``self.ui.<name>`` the code uses,
-  with custom widgets declared;
-- behaviour: the Widget, Logic and Test code paths run against the real controller and a real
-  simulated case, with small fakes of ``slicer``, ``qt``, ``ctk`` and ``sitkUtils`` that follow
-  Slicer's API names (``AddNewNodeByClass``, ``AddControlPoint(vtkVector3d, label)``,
-  ``updateTransformMatrixFromArray``...). ``vtk`` is the real one.
+The ``slicer-core`` wheel (installed by scripts/setup) is 3D Slicer's MRML, storage nodes, module
+logics and ``slicer.util`` without Qt. So:
+- the Logic and the module's own self-test run on a real ``vtkMRMLScene`` (application, Markups,
+  Transforms, Volumes and Sequences logics) and their nodes are checked numerically, through
+  Slicer's transform hierarchy (``world=True``);
+- every file EMReg writes for Slicer (``markers.mrk.json``, ``ReferenceToImage.h5``, ``EMReg.mrb``) is
+  read back with Slicer's storage nodes / scene reader and compared with the JSON outputs;
+- stand-ins remain only for what needs Qt and the application: the panel's widgets (built from the
+  .ui file), ``slicer.ScriptedLoadableModule`` (Qt-based bases of the Module and Widget),
+  ``slicer.util.loadUI`` / ``childWidgetVariables`` / ``tryWithErrorDisplay`` and ``qt`` (icon, URL);
+- structure and source compatibility are checked from the source (ast).
 
 Inside Slicer, run the module's own self-test from the Python console:
 ``slicer.util.selectModule("EMReg"); slicer.selfTests["EMReg"]()`` (or the module's "Reload and Test").
@@ -20,6 +22,7 @@ import ast
 import contextlib
 import importlib.util
 import logging
+import os
 import sys
 import types
 import unittest
@@ -107,7 +110,7 @@ def test_icon_is_a_png():
     assert icon is not None and icon.shape[:2] == (128, 128)
 
 
-# --- fakes of Slicer's Python API (names as in Slicer) --------------------------------------------
+# --- stand-ins for Qt only (names as in Slicer): the panel's widgets -------------------------------
 
 
 class FakeSignalWidget:
@@ -221,242 +224,9 @@ def fake_load_ui(path: str):
     return top
 
 
-class FakeDisplayNode:
-    def __init__(self) -> None:
-        self.selectedColor = None
-
-    def SetSelectedColor(self, r, g, b) -> None:
-        self.selectedColor = (r, g, b)
 
 
-class FakeNode:
-    """A vtkMRMLNode: ID, name, parent transform."""
-
-    def __init__(self, className: str, node_id: str, name: str) -> None:
-        self.className = className
-        self._id = node_id
-        self._name = name
-        self._transform_id = None
-        self._display = FakeDisplayNode()
-
-    def GetID(self):
-        return self._id
-
-    def GetName(self):
-        return self._name
-
-    def GetClassName(self):
-        return self.className
-
-    def GetDisplayNode(self):
-        return self._display
-
-    def SetAndObserveTransformNodeID(self, node_id) -> None:
-        self._transform_id = node_id
-
-    def GetTransformNodeID(self):
-        return self._transform_id
-
-
-class FakeMarkupsNode(FakeNode):
-    def __init__(self, *args) -> None:
-        super().__init__(*args)
-        self.points: list[tuple[list[float], str]] = []
-        self.locked = False
-
-    def AddControlPoint(self, point, label: str = "") -> int:
-        xyz = [point.GetX(), point.GetY(), point.GetZ()] if hasattr(point, "GetX") else [float(v) for v in point]
-        self.points.append((xyz, label))
-        return len(self.points) - 1
-
-    def RemoveAllControlPoints(self) -> None:
-        self.points = []
-
-    def GetNumberOfControlPoints(self) -> int:
-        return len(self.points)
-
-    def GetNthControlPointPosition(self, index: int, out) -> None:
-        out[:] = self.points[index][0]
-
-    def GetNthControlPointLabel(self, index: int) -> str:
-        return self.points[index][1]
-
-    def SetLocked(self, locked) -> None:
-        self.locked = bool(locked)
-
-
-class FakeLinearTransformNode(FakeNode):
-    def __init__(self, *args) -> None:
-        super().__init__(*args)
-        import vtk
-
-        self.matrix = vtk.vtkMatrix4x4()
-
-    def SetMatrixTransformToParent(self, matrix) -> None:
-        self.matrix.DeepCopy(matrix)
-
-    def GetMatrixTransformToParent(self, out) -> None:
-        out.DeepCopy(self.matrix)
-
-
-class FakeVolumeNode(FakeNode):
-    image = None
-
-
-class FakeConnectorNode(FakeNode):
-    def __init__(self, *args) -> None:
-        super().__init__(*args)
-        self.client = None
-        self.started = False
-
-    def SetTypeClient(self, host: str, port: int) -> None:
-        self.client = (host, port)
-
-    def Start(self) -> int:
-        self.started = True
-        return 1
-
-    def Stop(self) -> None:
-        self.started = False
-
-
-NODE_CLASSES = {
-    "vtkMRMLMarkupsFiducialNode": FakeMarkupsNode,
-    "vtkMRMLMarkupsCurveNode": FakeMarkupsNode,
-    "vtkMRMLLinearTransformNode": FakeLinearTransformNode,
-    "vtkMRMLScalarVolumeNode": FakeVolumeNode,
-}
-
-
-class FakeScene:
-    """``slicer.mrmlScene``: AddNewNodeByClass, GetNodeByID, GetFirstNodeByName, RemoveNode, Clear."""
-
-    StartCloseEvent = 66000
-
-    def __init__(self, with_openigtlink: bool = True) -> None:
-        self.nodes: list[FakeNode] = []
-        self.count = 0
-        self.with_openigtlink = with_openigtlink
-
-    def AddNewNodeByClass(self, className: str, name: str = ""):
-        classes = dict(NODE_CLASSES)
-        if self.with_openigtlink:
-            classes["vtkMRMLIGTLConnectorNode"] = FakeConnectorNode
-        if className not in classes:
-            raise ValueError(f"AddNewNodeByClass: unknown node class {className}")  # as Slicer does
-        self.count += 1
-        node = classes[className](className, f"{className}{self.count}", name or className)
-        self.nodes.append(node)
-        return node
-
-    def GetNodeByID(self, node_id):
-        return next((n for n in self.nodes if n.GetID() == node_id), None)
-
-    def GetFirstNodeByName(self, name):
-        return next((n for n in self.nodes if n.GetName() == name), None)
-
-    def GetNodesByClass(self, className):
-        return [n for n in self.nodes if n.className == className]
-
-    def RemoveNode(self, node) -> None:
-        self.nodes = [n for n in self.nodes if n is not node]
-
-    def Clear(self, removeViews: int = 0) -> None:
-        self.nodes = []
-
-
-class FakeSlicer:
-    """Installs fake ``slicer``, ``slicer.util``, ``slicer.ScriptedLoadableModule``, ``qt``, ``ctk``, ``sitkUtils``."""
-
-    def __init__(self, monkeypatch, with_openigtlink: bool = True) -> None:
-        self.scene = FakeScene(with_openigtlink)
-        self.errors: list[str] = []
-        self.opened_urls: list[str] = []
-        self.layers = None
-        slicer = types.ModuleType("slicer")
-        slicer.mrmlScene = self.scene
-        slicer.selfTests = {}
-        util = types.ModuleType("slicer.util")
-        util.loadUI = fake_load_ui
-        util.childWidgetVariables = lambda widget: types.SimpleNamespace(**widget.children)
-        util.tryWithErrorDisplay = self._try_with_error_display
-        util.errorDisplay = lambda message, **kwargs: self.errors.append(message)
-        util.delayDisplay = lambda message, msec=None: logging.info("delayDisplay: %s", message)
-        util.setSliceViewerLayers = self._set_slice_viewer_layers
-        util.updateTransformMatrixFromArray = _update_transform_matrix_from_array
-        util.arrayFromTransformMatrix = _array_from_transform_matrix
-        util.VTKObservationMixin = FakeVTKObservationMixin
-        slicer.util = util
-        scripted = types.ModuleType("slicer.ScriptedLoadableModule")
-        for cls in (FakeScriptedLoadableModule, FakeScriptedLoadableModuleWidget, FakeScriptedLoadableModuleLogic,
-                    FakeScriptedLoadableModuleTest):
-            setattr(scripted, cls.__name__[len("Fake"):], cls)
-        slicer.ScriptedLoadableModule = scripted
-        qt = types.ModuleType("qt")
-        qt.QIcon = lambda path: ("QIcon", path)
-        qt.QUrl = types.SimpleNamespace(fromLocalFile=lambda path: f"file://{path}")
-        qt.QDesktopServices = types.SimpleNamespace(openUrl=self.opened_urls.append)
-        sitk_utils = types.ModuleType("sitkUtils")
-        sitk_utils.PushVolumeToSlicer = self._push_volume
-        for name, module in (("slicer", slicer), ("slicer.util", util), ("slicer.ScriptedLoadableModule", scripted),
-                             ("qt", qt), ("ctk", types.ModuleType("ctk")), ("sitkUtils", sitk_utils)):
-            monkeypatch.setitem(sys.modules, name, module)
-        monkeypatch.delitem(sys.modules, "EMReg", raising=False)
-        monkeypatch.setattr(sys, "path", list(sys.path))  # the module inserts the repository root itself
-        self.monkeypatch = monkeypatch
-        self.slicer = slicer
-
-    @contextlib.contextmanager
-    def _try_with_error_display(self, message=None, show=True, waitCursor=False):
-        try:
-            yield
-        except Exception as exc:
-            self.errors.append(f"{message} {exc}")
-            raise
-
-    def _set_slice_viewer_layers(self, background=None, fit=False, **kwargs):
-        self.layers = (background, fit)
-
-    def _push_volume(self, sitkimage, targetNode=None, name=None, className="vtkMRMLScalarVolumeNode"):
-        node = targetNode or self.scene.AddNewNodeByClass(className, name)
-        node.image = sitkimage
-        return node
-
-    def load_module(self):
-        spec = importlib.util.spec_from_file_location("EMReg", MODULE_FILE)
-        module = importlib.util.module_from_spec(spec)
-        self.monkeypatch.setitem(sys.modules, "EMReg", module)
-        spec.loader.exec_module(module)
-        return module
-
-
-def _update_transform_matrix_from_array(node, narray) -> None:
-    import vtk
-
-    matrix = vtk.vtkMatrix4x4()
-    for i in range(4):
-        for j in range(4):
-            matrix.SetElement(i, j, float(narray[i][j]))
-    node.SetMatrixTransformToParent(matrix)
-
-
-def _array_from_transform_matrix(node, toWorld=False) -> np.ndarray:
-    import vtk
-
-    matrix = vtk.vtkMatrix4x4()
-    node.GetMatrixTransformToParent(matrix)
-    return np.array([[matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
-
-
-class FakeVTKObservationMixin:
-    def __init__(self) -> None:
-        self.Observations = []
-
-    def addObserver(self, obj, event, method, group="none", priority=0.0) -> None:
-        self.Observations.append((obj, event, method))
-
-    def removeObservers(self, method=None) -> None:
-        self.Observations = []
+# --- Slicer's MRML (slicer-core), with the Qt parts stood in ---------------------------------------
 
 
 class FakeLayout:
@@ -468,7 +238,11 @@ class FakeLayout:
 
 
 class FakeScriptedLoadableModule:
+    """Stand-in for Slicer's Qt-based module base: the parent is a qSlicerScriptedLoadableModule."""
+
     def __init__(self, parent) -> None:
+        import slicer
+
         self.parent = parent
         self.moduleName = type(self).__name__
         parent.title = ""
@@ -477,7 +251,7 @@ class FakeScriptedLoadableModule:
         parent.contributors = []
         parent.helpText = ""
         parent.acknowledgementText = ""
-        sys.modules["slicer"].selfTests[self.moduleName] = self.runTest
+        slicer.selfTests[self.moduleName] = self.runTest
 
     def runTest(self, msec=100, **kwargs) -> None:
         module = sys.modules[type(self).__module__]
@@ -487,6 +261,8 @@ class FakeScriptedLoadableModule:
 
 
 class FakeScriptedLoadableModuleWidget:
+    """Stand-in for Slicer's widget base (a Qt layout)."""
+
     def __init__(self, parent=None) -> None:
         self.moduleName = type(self).__name__[: -len("Widget")]
         self.parent = parent or types.SimpleNamespace()
@@ -502,34 +278,134 @@ class FakeScriptedLoadableModuleLogic:
 
 
 class FakeScriptedLoadableModuleTest(unittest.TestCase):
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
-
     def delayDisplay(self, message, requestedDelay=None, msec=None) -> None:
-        sys.modules["slicer"].util.delayDisplay(message, msec)
+        logging.info("delayDisplay: %s", message)
 
 
-# --- behaviour -------------------------------------------------------------------------------------
+class SlicerHarness:
+    """A real MRML scene as ``slicer.mrmlScene`` (slicer-core); with ``application=True`` also stand-ins for
+    the Qt parts of Slicer (``qt``, ``slicer.ScriptedLoadableModule``, the Qt helpers of ``slicer.util``)."""
+
+    def __init__(self, monkeypatch, application: bool) -> None:
+        import slicer
+        import slicer.util
+
+        from EMRegModule.io.slicer_scene import SlicerScene
+
+        self.mrml = SlicerScene()
+        self.scene = self.mrml.scene
+        self.errors: list[str] = []
+        self.opened_urls: list[str] = []
+        monkeypatch.setattr(slicer, "mrmlScene", self.scene, raising=False)
+        monkeypatch.setattr(slicer, "selfTests", {}, raising=False)
+        if application:
+            qt = types.ModuleType("qt")
+            qt.QIcon = lambda path: ("QIcon", path)
+            qt.QUrl = types.SimpleNamespace(fromLocalFile=lambda path: f"file://{path}")
+            qt.QDesktopServices = types.SimpleNamespace(openUrl=self.opened_urls.append)
+            scripted = types.ModuleType("slicer.ScriptedLoadableModule")
+            for cls in (FakeScriptedLoadableModule, FakeScriptedLoadableModuleWidget,
+                        FakeScriptedLoadableModuleLogic, FakeScriptedLoadableModuleTest):
+                setattr(scripted, cls.__name__[len("Fake"):], cls)
+            monkeypatch.setitem(sys.modules, "qt", qt)
+            monkeypatch.setitem(sys.modules, "slicer.ScriptedLoadableModule", scripted)
+            monkeypatch.setattr(slicer.util, "loadUI", fake_load_ui)
+            monkeypatch.setattr(slicer.util, "childWidgetVariables",
+                                lambda widget: types.SimpleNamespace(**widget.children))
+            monkeypatch.setattr(slicer.util, "tryWithErrorDisplay", self._try_with_error_display)
+        else:  # plain Python with slicer-core: no qt, no ScriptedLoadableModule
+            monkeypatch.setitem(sys.modules, "qt", None)
+            monkeypatch.setitem(sys.modules, "slicer.ScriptedLoadableModule", None)
+        monkeypatch.delitem(sys.modules, "EMReg", raising=False)
+        monkeypatch.setattr(sys, "path", list(sys.path))  # the module inserts the repository root itself
+        self.monkeypatch = monkeypatch
+
+    @contextlib.contextmanager
+    def _try_with_error_display(self, message=None, show=True, waitCursor=False):
+        try:
+            yield
+        except Exception as exc:
+            self.errors.append(f"{message} {exc}")
+            raise
+
+    def load_module(self):
+        spec = importlib.util.spec_from_file_location("EMReg", MODULE_FILE)
+        module = importlib.util.module_from_spec(spec)
+        self.monkeypatch.setitem(sys.modules, "EMReg", module)
+        spec.loader.exec_module(module)
+        return module
 
 
 @pytest.fixture
-def fake_slicer(monkeypatch):
-    return FakeSlicer(monkeypatch)
+def slicer_app(monkeypatch):
+    """Slicer's MRML plus stand-ins for its Qt parts (for the Module and the Widget)."""
+    return SlicerHarness(monkeypatch, application=True)
 
 
-def test_module_description_icon_and_self_test_registration(fake_slicer):
-    module = fake_slicer.load_module()
+@pytest.fixture
+def slicer_core(monkeypatch):
+    """Slicer's MRML only, as the slicer-core wheel gives it: no Qt, no ScriptedLoadableModule."""
+    return SlicerHarness(monkeypatch, application=False)
+
+
+def _world_points(node) -> np.ndarray:
+    import slicer.util
+
+    return slicer.util.arrayFromMarkupsControlPoints(node, world=True)
+
+
+def _labels(node) -> list[str]:
+    return [node.GetNthControlPointLabel(i) for i in range(node.GetNumberOfControlPoints())]
+
+
+def _ras(points_lps) -> np.ndarray:
+    return np.asarray(points_lps, dtype=float).reshape(-1, 3) * np.array([-1.0, -1.0, 1.0])
+
+
+def _navigation_csv(path: Path) -> np.ndarray:
+    import csv
+
+    with path.open(newline="") as handle:
+        return np.array([[float(r["x_mm"]), float(r["y_mm"]), float(r["z_mm"])] for r in csv.DictReader(handle)])
+
+
+def _check_volume_matches_ct(volume_node, ct_path: Path) -> None:
+    """IJK-to-RAS and voxels of a volume node against the CT read by SimpleITK (LPS)."""
+    import SimpleITK as sitk
+    import slicer.util
+    import vtk
+
+    from EMRegModule.io.image import index_to_physical_matrix, read_ct
+
+    image = read_ct(ct_path)
+    matrix = vtk.vtkMatrix4x4()
+    volume_node.GetIJKToRASMatrix(matrix)
+    ijk_to_ras = slicer.util.arrayFromVTKMatrix(matrix)
+    np.testing.assert_allclose(ijk_to_ras, np.diag([-1.0, -1.0, 1.0, 1.0]) @ index_to_physical_matrix(image),
+                               atol=1e-6)
+    voxels = slicer.util.arrayFromVolume(volume_node)
+    assert voxels.shape == sitk.GetArrayViewFromImage(image).shape
+    assert np.array_equal(voxels, sitk.GetArrayViewFromImage(image))
+
+
+# --- the module's classes in (stood-in) Slicer -------------------------------------------------------
+
+
+def test_module_description_icon_and_self_test_registration(slicer_app):
+    module = slicer_app.load_module()
     parent = types.SimpleNamespace()
     description = module.EMReg(parent)
+    import slicer
+
     assert parent.title == "EMReg" and parent.categories == ["IGT"]
     assert parent.icon == ("QIcon", str(ICON_FILE))
-    assert "EMReg" in fake_slicer.slicer.selfTests
+    assert "EMReg" in slicer.selfTests
     assert description.missingDependencies == []
     assert str(ROOT) in sys.path
 
 
-def test_missing_dependency_is_named_in_the_log_and_the_panel(fake_slicer, monkeypatch, caplog):
-    module = fake_slicer.load_module()
+def test_missing_dependency_is_named_in_the_log_and_the_panel(slicer_app, monkeypatch, caplog):
+    module = slicer_app.load_module()
     real_find_spec = importlib.util.find_spec
     monkeypatch.setattr(module.importlib.util, "find_spec",
                         lambda name, *args: None if name in ("scipy", "pyvista") else real_find_spec(name, *args))
@@ -544,91 +420,423 @@ def test_missing_dependency_is_named_in_the_log_and_the_panel(fake_slicer, monke
     assert widget.ui.workflowCollapsibleButton.enabled is False and widget.logic is None
 
 
-def test_self_test_runs_the_logic_end_to_end(fake_slicer, standard_case):
-    """The module's own ScriptedLoadableModuleTest, on the simulated standard case, through the real controller."""
-    module = fake_slicer.load_module()
-    module.EMRegTest.caseDirectory = str(standard_case)
-    try:
-        module.EMReg(types.SimpleNamespace())
-        fake_slicer.slicer.selfTests["EMReg"]()
-    finally:
-        module.EMRegTest.caseDirectory = None
-    scene = fake_slicer.scene
-    names = {n.GetName() for n in scene.nodes}
-    assert {"EMReg CT", "EMReg markers", "EMReg calibration points", "ReferenceToImage", "EMReg targets",
-            "EMReg probe path"} <= names
-    calibration = scene.GetFirstNodeByName("EMReg calibration points")
-    transform = scene.GetFirstNodeByName("ReferenceToImage")
-    assert calibration.GetTransformNodeID() == transform.GetID()  # Reference coordinates under ReferenceToImage
+def test_old_slicer_python_is_refused_with_the_supported_versions(slicer_app, monkeypatch, caplog):
+    module = slicer_app.load_module()
+    monkeypatch.setattr(module.sys, "version_info", (3, 9, 10, "final", 0))
+    with caplog.at_level(logging.ERROR):
+        missing = module.ensureEMRegImportable()
+    assert missing and missing[0][0] == "python"
+    assert "3D Slicer 5.10 or later" in caplog.text and "Python 3.9" in caplog.text
+    widget = module.EMRegWidget(parent=types.SimpleNamespace())
+    widget.setup()
+    assert "3D Slicer 5.10 or later" in widget.ui.dependenciesLabel.text and widget.logic is None
 
 
-def test_widget_wires_the_buttons_to_the_controller(fake_slicer, standard_case, tmp_path):
-    from EMRegModule.simulation import load_truth
-    from EMRegModule.transforms import LPS_TO_RAS, apply_transform
-
-    module = fake_slicer.load_module()
+def test_widget_wires_the_buttons_to_the_logic_on_real_mrml(slicer_app, standard_case, tmp_path):
+    module = slicer_app.load_module()
     widget = module.EMRegWidget(parent=types.SimpleNamespace())
     widget.setup()
     ui = widget.ui
     assert not ui.calibrateButton.enabled and not ui.detectButton.enabled and not ui.registerButton.enabled
     with pytest.raises(Exception, match="choose a case folder"):
         ui.loadCaseButton.click()
-    assert fake_slicer.errors and "Loading the case failed." in fake_slicer.errors[-1]
+    assert slicer_app.errors and "Loading the case failed." in slicer_app.errors[-1]
 
     ui.caseDirectoryPathLineEdit.currentPath = str(standard_case)
     ui.outputDirectoryPathLineEdit.currentPath = str(tmp_path / "out")
     ui.loadCaseButton.click()
     assert widget.logic.controller.image is not None
-    assert fake_slicer.layers[0] is fake_slicer.scene.GetFirstNodeByName("EMReg CT")
+    assert slicer_app.scene.GetFirstNodeByName("EMReg CT").IsA("vtkMRMLScalarVolumeNode")
     assert ui.calibrateButton.enabled and ui.detectButton.enabled and not ui.registerButton.enabled
     assert (ui.referenceSensorSpinBox.value, ui.probeSensorSpinBox.value) == (1, 2)  # from case.toml
-
-    ui.probeSensorSpinBox.setValue(3)  # a port change drops the calibration, like in the controller
-    assert widget.logic.controller.probe_sensor == 3
-    ui.probeSensorSpinBox.setValue(2)
 
     ui.calibrateButton.click()
     ui.detectButton.click()
     assert ui.registerButton.enabled
     ui.registerButton.click()
-    controller = widget.logic.controller
     assert "paired and registered" in ui.statusLabel.text and "FRE" in ui.resultsLabel.text
+    assert slicer_app.scene.GetFirstNodeByName("ReferenceToImage") is not None
 
-    # MRML content: markers in RAS, ReferenceToImage as LPS_TO_RAS @ ReferenceToImage
-    markers = fake_slicer.scene.GetFirstNodeByName("EMReg markers")
-    assert markers.GetNumberOfControlPoints() == len(controller.detection.markers)
-    for (xyz, label), marker in zip(markers.points, controller.detection.markers, strict=True):
-        assert label == marker.id
-        assert np.allclose(xyz, marker.origin * np.array([-1.0, -1.0, 1.0]))
-    matrix = _array_from_transform_matrix(fake_slicer.scene.GetFirstNodeByName("ReferenceToImage"))
-    assert np.allclose(matrix, LPS_TO_RAS @ controller.reference_to_image)
-    # a calibration point (Reference frame) under the transform lands on its marker's sensor point (RAS)
-    truth = load_truth(standard_case)
-    calibration = fake_slicer.scene.GetFirstNodeByName("EMReg calibration points")
-    point_ras = apply_transform(matrix, calibration.points[0][0])
-    true_point = apply_transform(np.asarray(truth["ReferenceToImage"]), calibration.points[0][0])
-    assert np.linalg.norm(point_ras - true_point * np.array([-1.0, -1.0, 1.0])) < 1.0
-
+    ui.probeSensorSpinBox.setValue(3)  # a port change drops the calibration and the registration, and their nodes
+    assert widget.logic.controller.probe_sensor == 3
+    assert slicer_app.scene.GetFirstNodeByName("ReferenceToImage") is None
+    assert slicer_app.scene.GetFirstNodeByName("EMReg calibration points") is None
+    assert slicer_app.scene.GetFirstNodeByName("EMReg markers") is not None  # detection stands
+    ui.probeSensorSpinBox.setValue(2)
+    ui.calibrateButton.click()
+    ui.registerButton.click()
     ui.navigateButton.click()
     assert "TRE" in ui.resultsLabel.text
     assert (tmp_path / "out" / "navigation.csv").is_file() and (tmp_path / "out" / "evaluation.json").is_file()
     assert ui.reportButton.enabled
 
-    ui.connectButton.click()  # live navigation: an OpenIGTLinkIF client to emreg navigate --igtl-port
-    connector = widget.logic.connectorNode
-    assert connector.client == ("localhost", 18944) and connector.started and ui.connectButton.text == "Disconnect"
-    ui.connectButton.click()
-    assert widget.logic.connectorNode is None and not connector.started
+    # live navigation needs the SlicerOpenIGTLink extension's connector node, which core Slicer has not
+    with pytest.raises(Exception, match="SlicerOpenIGTLink extension"):
+        ui.connectButton.click()
+    assert widget.logic.connectorNode is None and ui.connectButton.text == "Connect"
 
     widget.onSceneStartClose(None, None)
     widget.cleanup()
 
 
-def test_live_navigation_without_openigtlinkif_says_what_to_install(monkeypatch):
-    fake = FakeSlicer(monkeypatch, with_openigtlink=False)
-    module = fake.load_module()
+# --- the Logic and the self-test on slicer-core's MRML, no Qt ----------------------------------------
+
+
+def test_module_imports_without_qt_and_says_what_needs_the_application(slicer_core):
+    module = slicer_core.load_module()
+    assert module.qt is None
+    logic = module.EMRegLogic()
+    assert logic.moduleName == "EMReg" and logic.scene is slicer_core.scene
+    with pytest.raises(RuntimeError, match="needs the 3D Slicer application"):
+        module.EMRegWidget()
+    with pytest.raises(RuntimeError, match="needs the 3D Slicer application"):
+        module.EMReg(types.SimpleNamespace())
+
+
+def test_self_test_runs_on_slicer_core_mrml(slicer_core, standard_case):
+    """The module's own ScriptedLoadableModuleTest (simulated standard case, real controller, real MRML)."""
+    module = slicer_core.load_module()
+    module.EMRegTest.caseDirectory = str(standard_case)
+    try:
+        result = unittest.TextTestRunner(stream=open(os.devnull, "w"), verbosity=0).run(  # noqa: SIM115
+            module.EMRegTest("test_EMReg_simulated_case"))
+    finally:
+        module.EMRegTest.caseDirectory = None
+    assert result.wasSuccessful(), [str(e) for _, e in result.failures + result.errors]
+    names = {slicer_core.scene.GetNthNode(i).GetName() for i in range(slicer_core.scene.GetNumberOfNodes())}
+    assert {"EMReg CT", "EMReg markers", "EMReg calibration points", "ReferenceToImage", "EMReg targets",
+            "EMReg probe path", "ProbeToReference", "EMReg pinhole points", "EMReg marker residuals"} <= names
+
+
+def test_logic_end_to_end_on_a_real_mrml_scene(slicer_core, standard_case, tmp_path):
+    """Every node the Logic makes, read back from Slicer's MRML and compared with EMReg's own outputs."""
+    import json
+
+    import slicer.util
+
+    module = slicer_core.load_module()
+    scene = slicer_core.scene
+    logic = module.EMRegLogic()
+    out = tmp_path / "out"
+    logic.loadCase(str(standard_case), str(out))
+    _check_volume_matches_ct(scene.GetFirstNodeByName("EMReg CT"), standard_case / "ct.nrrd")
+    targets = json.loads((standard_case / "targets.mrk.json").read_text())
+    assert targets["markups"][0]["coordinateSystem"] == "LPS"
+    target_points = targets["markups"][0]["controlPoints"]
+    target_node = scene.GetFirstNodeByName("EMReg targets")
+    assert _labels(target_node) == [p["label"] for p in target_points]
+    np.testing.assert_allclose(_world_points(target_node), _ras([p["position"] for p in target_points]), atol=1e-9)
+
+    logic.calibrateFrame()
+    logic.detectMarkers()
+    logic.register()
+    logic.navigateRecording()
+    markers = json.loads((out / "markers.json").read_text())["markers"]
+    registration = json.loads((out / "registration.json").read_text())
+    calibration = json.loads((out / "frame_calibration.json").read_text())["points"]
+
+    markers_node = scene.GetFirstNodeByName("EMReg markers")
+    assert _labels(markers_node) == [m["id"] for m in markers]
+    np.testing.assert_allclose(_world_points(markers_node), _ras([m["origin"] for m in markers]), atol=1e-4)
+    pairs = {p["image_marker"]: p for p in registration["pairs"]}
+    for index, marker in enumerate(markers):
+        description = markers_node.GetNthControlPointDescription(index)
+        if marker["id"] in pairs:
+            assert f"calibration point {pairs[marker['id']]['calibration_point']}" in description
+        else:
+            assert "unpaired" in description
+
+    transform = scene.GetFirstNodeByName("ReferenceToImage")
+    reference_to_ras = slicer.util.arrayFromTransformMatrix(transform, toWorld=True)
+    np.testing.assert_allclose(reference_to_ras, np.diag([-1.0, -1.0, 1.0, 1.0]) @ registration["ReferenceToImage"],
+                               atol=1e-9)
+    # calibration points (Reference frame) under ReferenceToImage land on their markers' pinhole points
+    calibration_node = scene.GetFirstNodeByName("EMReg calibration points")
+    assert calibration_node.GetTransformNodeID() == transform.GetID()
+    np.testing.assert_allclose(slicer.util.arrayFromMarkupsControlPoints(calibration_node),
+                               [p["position"] for p in calibration], atol=1e-9)  # stored as they are
+    landed = dict(zip(_labels(calibration_node), _world_points(calibration_node), strict=True))
+    by_id = {m["id"]: m for m in markers}
+    l_mm = registration["sensor_offset_l_mm"]
+    assert len(pairs) >= 10
+    for marker_id, pair in pairs.items():
+        marker = by_id[marker_id]
+        pinhole_ras = _ras(np.add(marker["origin"], l_mm * np.asarray(marker["axis"])))[0]
+        distance = np.linalg.norm(landed[pair["calibration_point"]] - pinhole_ras)
+        assert distance == pytest.approx(pair["residual_mm"], abs=1e-4)
+        assert distance < 1.0
+
+    # the navigated probe pose (ProbeToReference from the recording) under ReferenceToImage lands where
+    # navigation.csv says, and so does a point placed at the probe's origin under it
+    navigation = _navigation_csv(out / "navigation.csv")
+    probe = scene.GetFirstNodeByName("ProbeToReference")
+    assert probe.GetTransformNodeID() == transform.GetID()
+    np.testing.assert_allclose(slicer.util.arrayFromTransformMatrix(probe, toWorld=True)[:3, 3],
+                               _ras(navigation[-1])[0], atol=1e-3)  # navigation.csv holds 4 decimals
+    tip = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "probe origin")
+    tip.AddControlPoint(0.0, 0.0, 0.0)
+    tip.SetAndObserveTransformNodeID(probe.GetID())
+    np.testing.assert_allclose(_world_points(tip)[0], _ras(navigation[-1])[0], atol=1e-3)
+    path = scene.GetFirstNodeByName("EMReg probe path")
+    assert path.IsA("vtkMRMLMarkupsCurveNode") and 2 <= path.GetNumberOfControlPoints() <= 1000
+    np.testing.assert_allclose(_world_points(path)[0], _ras(navigation[0])[0], atol=1e-3)
+
+
+def test_files_for_slicer_read_by_slicers_storage_nodes(slicer_core, standard_case, tmp_path):
+    """markers.mrk.json and ReferenceToImage.h5 as Slicer's own readers see them."""
+    import json
+
+    import slicer
+    import slicer.util
+
+    from EMRegModule.cli import main
+
+    out = tmp_path / "out"
+    assert main(["detect", str(standard_case), "--out", str(out), "--quiet"]) == 0
+    assert main(["calibrate", str(standard_case / "calibration.csv"), "--out", str(out), "--quiet"]) == 0
+    assert main(["register", "--markers", str(out / "markers.json"), "--calibration",
+                 str(out / "frame_calibration.json"), "--out", str(out), "--quiet"]) == 0
+    scene = slicer_core.scene
+    markers = json.loads((out / "markers.json").read_text())["markers"]
+    node = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "read")
+    storage = scene.AddNewNodeByClass("vtkMRMLMarkupsJsonStorageNode")
+    storage.SetFileName(str(out / "markers.mrk.json"))
+    assert storage.ReadData(node) == 1
+    assert _labels(node) == [m["id"] for m in markers]
+    np.testing.assert_allclose(_world_points(node), _ras([m["origin"] for m in markers]), atol=1e-4)
+
+    registration = json.loads((out / "registration.json").read_text())
+    transform = scene.AddNewNodeByClass("vtkMRMLLinearTransformNode", "read")
+    storage = scene.AddNewNodeByClass("vtkMRMLTransformStorageNode")
+    storage.SetFileName(str(out / "ReferenceToImage.h5"))
+    assert storage.ReadData(transform) == 1
+    assert transform.IsLinear()
+    np.testing.assert_allclose(slicer.util.arrayFromTransformMatrix(transform),
+                               np.diag([-1.0, -1.0, 1.0, 1.0]) @ registration["ReferenceToImage"], atol=1e-6)
+
+
+def test_live_navigation_without_openigtlinkif_says_what_to_install(slicer_core):
+    module = slicer_core.load_module()
     logic = module.EMRegLogic()
     from EMRegModule.errors import EMRegError
 
     with pytest.raises(EMRegError, match="SlicerOpenIGTLink extension"):
         logic.startLiveNavigation("localhost", 18944)
+
+
+# --- the scene bundle OUT/EMReg.mrb, imported with Slicer's reader ----------------------------------
+
+
+@pytest.fixture(scope="module")
+def run_output(standard_case, tmp_path_factory):
+    """``emreg run`` on the standard case (its summary lines and OUT)."""
+    import io
+    from contextlib import redirect_stdout
+
+    from EMRegModule.cli import main
+
+    out = tmp_path_factory.mktemp("slicer_run") / "out"
+    stdout = io.StringIO()
+    with redirect_stdout(stdout):
+        assert main(["run", str(standard_case), "--out", str(out), "--quiet"]) == 0
+    return stdout.getvalue(), out
+
+
+def _import_bundle(path: Path):
+    from EMRegModule.io.slicer_scene import SlicerScene
+
+    mrml = SlicerScene()
+    mrml.read_bundle(path)
+    return mrml
+
+
+def test_run_writes_a_bundle_that_slicer_imports_matching_the_outputs(run_output, standard_case):
+    import json
+    import zipfile
+
+    import slicer.util
+
+    summary, out = run_output
+    bundle = out / "EMReg.mrb"
+    assert f"bundle: {bundle}" in summary
+    with zipfile.ZipFile(bundle) as archive:  # a Slicer bundle: one folder with the .mrml scene and Data/
+        names = archive.namelist()
+    assert "EMReg/EMReg.mrml" in names and any(n.startswith("EMReg/Data/") and n.endswith(".h5") for n in names)
+    mrml = _import_bundle(bundle)
+
+    _check_volume_matches_ct(mrml.node("EMReg CT"), standard_case / "ct.nrrd")
+
+    registration = json.loads((out / "registration.json").read_text())
+    transform = mrml.node("ReferenceToImage")
+    assert transform.GetTransformNodeID() is None
+    np.testing.assert_allclose(slicer.util.arrayFromTransformMatrix(transform, toWorld=True),
+                               np.diag([-1.0, -1.0, 1.0, 1.0]) @ registration["ReferenceToImage"], atol=1e-4)
+
+    markers = json.loads((out / "markers.json").read_text())["markers"]
+    markers_node = mrml.node("EMReg markers")
+    assert _labels(markers_node) == [m["id"] for m in markers]
+    np.testing.assert_allclose(_world_points(markers_node), _ras([m["origin"] for m in markers]), atol=1e-4)
+    pairs = {p["image_marker"]: p for p in registration["pairs"]}
+    for index, marker in enumerate(markers):
+        text = markers_node.GetNthControlPointDescription(index)
+        if marker["id"] in pairs:
+            assert f"calibration point {pairs[marker['id']]['calibration_point']}" in text
+            assert f"residual {pairs[marker['id']]['residual_mm']:.2f} mm" in text
+        else:
+            assert "unpaired" in text
+
+    calibration_node = mrml.node("EMReg calibration points")
+    assert calibration_node.GetTransformNodeID() == transform.GetID()
+    landed = dict(zip(_labels(calibration_node), _world_points(calibration_node), strict=True))
+    by_id = {m["id"]: m for m in markers}
+    l_mm = registration["sensor_offset_l_mm"]
+    pinholes = mrml.node("EMReg pinhole points")
+    pinholes_ras = dict(zip(_labels(pinholes), _world_points(pinholes), strict=True))
+    assert sorted(pinholes_ras) == sorted(pairs)
+    for marker_id, pair in pairs.items():
+        pinhole = _ras(np.add(by_id[marker_id]["origin"], l_mm * np.asarray(by_id[marker_id]["axis"])))[0]
+        np.testing.assert_allclose(pinholes_ras[marker_id], pinhole, atol=1e-4)
+        assert np.linalg.norm(landed[pair["calibration_point"]] - pinhole) == pytest.approx(pair["residual_mm"],
+                                                                                          abs=1e-4)
+
+    residuals = mrml.node("EMReg marker residuals")
+    values = residuals.GetPolyData().GetPointData().GetArray("residual_mm")
+    assert values is not None and values.GetRange()[1] == pytest.approx(max(p["residual_mm"] for p in pairs.values()),
+                                                                         abs=1e-4)
+    assert residuals.GetDisplayNode().GetScalarVisibility()
+
+    targets = json.loads((standard_case / "targets.mrk.json").read_text())["markups"][0]["controlPoints"]
+    targets_node = mrml.node("EMReg targets")
+    assert _labels(targets_node) == [t["label"] for t in targets]
+    np.testing.assert_allclose(_world_points(targets_node), _ras([t["position"] for t in targets]), atol=1e-4)
+
+    navigation = _navigation_csv(out / "navigation.csv")
+    path = _world_points(mrml.node("EMReg probe path"))
+    step = int(np.ceil(len(navigation) / 1000))
+    np.testing.assert_allclose(path, _ras(navigation[::step]), atol=1e-4)
+
+
+def test_report_batch_writes_one_bundle_per_case_and_an_unwritable_one_breaks_nothing(run_output, tmp_path, capsys):
+    import json
+    import shutil
+
+    import slicer.util
+
+    from EMRegModule.cli import main
+
+    _, out = run_output
+    batch = tmp_path / "batch"
+    for name in ("a", "b"):
+        shutil.copytree(out, batch / name, ignore=shutil.ignore_patterns("EMReg.mrb", "report.html"))
+    (batch / "b" / "EMReg.mrb").mkdir()  # cannot be replaced by a file: the bundle cannot be written
+    assert main(["report", "--batch", str(batch), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert f"bundle: {batch / 'a' / 'EMReg.mrb'}" in captured.out
+    assert "emreg bundle: warning: no EMReg.mrb written" in captured.err and str(batch / "b") in captured.err
+    for name in ("a", "b"):
+        assert (batch / name / "report.html").is_file()
+        assert json.loads((batch / name / "registration.json").read_text()) == json.loads(
+            (out / "registration.json").read_text())
+    assert (batch / "b" / "EMReg.mrb").is_dir() and not any(p.name.startswith(".EMReg") for p in
+                                                             (batch / "b").iterdir())
+    mrml = _import_bundle(batch / "a" / "EMReg.mrb")
+    registration = json.loads((out / "registration.json").read_text())
+    np.testing.assert_allclose(slicer.util.arrayFromTransformMatrix(mrml.node("ReferenceToImage")),
+                               np.diag([-1.0, -1.0, 1.0, 1.0]) @ registration["ReferenceToImage"], atol=1e-4)
+
+
+def test_without_slicer_core_the_report_succeeds_and_says_why_no_bundle(run_output, tmp_path, monkeypatch, capsys):
+    import shutil
+
+    from EMRegModule.cli import main
+
+    _, out = run_output
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy, ignore=shutil.ignore_patterns("report.html"))
+    assert (copy / "EMReg.mrb").is_file()  # an earlier bundle: gone once it cannot be renewed
+    monkeypatch.setitem(sys.modules, "slicer", None)  # import slicer -> ImportError, as without the wheel
+    assert main(["report", str(copy), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "no EMReg.mrb written" in captured.err and "pip install 'emreg[slicer]'" in captured.err
+    assert (copy / "report.html").is_file() and not (copy / "EMReg.mrb").exists()
+
+
+# --- source compatibility with 3D Slicer's Python ---------------------------------------------------
+
+#: Standard-library modules removed in Python 3.12 and 3.13 (3D Slicer 5.10 runs 3.12; later releases newer).
+REMOVED_STDLIB = {"distutils", "imp", "asynchat", "asyncore", "smtpd", "aifc", "audioop", "cgi", "cgitb", "chunk",
+                  "crypt", "imghdr", "mailcap", "msilib", "nis", "nntplib", "ossaudiodev", "pipes", "sndhdr", "spwd",
+                  "sunau", "telnetlib", "uu", "xdrlib", "lib2to3"}
+#: Provided by 3D Slicer itself (its Python packages and modules).
+SLICER_PROVIDED = {"slicer", "qt", "ctk", "vtk", "vtkmodules", "numpy", "SimpleITK", "sitkUtils"}
+#: Imported only behind a fallback (EMRegModule/io/fast_read.py: without isal SimpleITK reads the CT).
+OPTIONAL_WITH_FALLBACK = {"isal"}
+
+
+def _module_file(name: str) -> Path | None:
+    parts = name.split(".")
+    if parts[0] != "EMRegModule":
+        return None
+    base = ROOT.joinpath(*parts)
+    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _imports(path: Path) -> set[str]:
+    """Absolute names of every module a file imports (top level and inside functions)."""
+    package = ".".join(path.relative_to(ROOT).parent.parts)  # the package the file belongs to
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                module = ".".join(base + ([node.module] if node.module else []))
+            else:
+                module = node.module
+            names.add(module)
+            names.update(f"{module}.{alias.name}" for alias in node.names)  # submodules imported by name
+    return names
+
+
+def _modules_the_slicer_module_loads() -> tuple[set[Path], set[str]]:
+    """Every EMRegModule file reachable from EMReg.py through its imports, and the outside top-level names."""
+    files, outside, queue = set(), set(), [MODULE_FILE]
+    while queue:
+        path = queue.pop()
+        if path in files:
+            continue
+        files.add(path)
+        for name in _imports(path):
+            if name.split(".")[0] == "EMRegModule":
+                target = _module_file(name)
+                if target is not None:
+                    queue.append(target)
+                parent = _module_file(name.rsplit(".", 1)[0]) if "." in name else None
+                if parent is not None:  # "from .pkg import x" runs pkg/__init__.py
+                    queue.append(parent)
+            else:
+                outside.add(name.split(".")[0])
+    return files, outside
+
+
+def test_everything_the_slicer_module_imports_runs_on_slicers_python():
+    """EMReg needs Python 3.11 (tomllib, zip(strict=...)): 3D Slicer 5.10 or later (Python 3.12). Every file
+    the module loads parses as 3.11, uses no standard module removed in 3.12/3.13, and every outside package
+    is either shipped with Slicer or named by the module when missing (with its pip name)."""
+    module = ast.parse(MODULE_FILE.read_text(encoding="utf-8"))
+    declared = next(ast.literal_eval(node.value) for node in module.body if isinstance(node, ast.Assign)
+                    and any(getattr(t, "id", "") == "DEPENDENCIES" for t in node.targets))
+    minimum = next(ast.literal_eval(node.value) for node in module.body if isinstance(node, ast.Assign)
+                   and any(getattr(t, "id", "") == "MINIMUM_PYTHON" for t in node.targets))
+    assert minimum == (3, 11)
+    files, outside = _modules_the_slicer_module_loads()
+    assert len(files) > 30  # the controller, every stage, io, rendering, report...
+    for path in files:
+        ast.parse(path.read_text(encoding="utf-8"), feature_version=minimum)
+    assert not outside & REMOVED_STDLIB
+    third_party = {name for name in outside if name not in sys.stdlib_module_names} - SLICER_PROVIDED
+    assert third_party <= set(declared) | OPTIONAL_WITH_FALLBACK, third_party - set(declared)

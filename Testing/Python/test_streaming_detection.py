@@ -12,16 +12,15 @@ import gzip
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from fixtures import phantom as ph
 
 from EMRegModule.controller import EMRegController
 from EMRegModule.detection import detect as detect_module
 from EMRegModule.detection import detect_markers
-from EMRegModule.detection import phantom as ph
 from EMRegModule.detection.segmentation import CoarseScan
 from EMRegModule.detection.settings import DetectionSettings, settings_from_dict
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.fast_read import _writable_bytes, start_fast_read
-from EMRegModule.io.image import find_ct, read_ct
 from EMRegModule.marker_model import MarkerModel
 
 
@@ -148,11 +147,14 @@ def test_fill_announces_slices_and_reports_bad_data(tmp_path):
         fill.result()
 
 
-def test_controller_is_unchanged_when_the_read_fails_late(standard_case, tmp_path):
+def test_controller_is_unchanged_when_the_read_fails_late(tmp_path):
     """Every voxel arrives and detection finishes, but the gzip checksum at the end is wrong."""
-    image = read_ct(find_ct(standard_case))
+    scene = ph.scene(decoys=False, metal=False, cut_marker=False, seed=6)  # 0.6 mm, 167 x 167 x 110 voxels
     path = tmp_path / "ct.nrrd"
-    data = _gzip_nrrd(path, sitk.GetArrayViewFromImage(image))
+    data = _gzip_nrrd(path, sitk.GetArrayViewFromImage(scene.image))
+    intact = EMRegController()
+    intact.load_ct_and_detect(path)
+    assert len(intact.detection.markers) == len(scene.markers)  # the intact file: detection runs to the end
     path.write_bytes(data[:-8] + bytes(b ^ 0xFF for b in data[-8:-4]) + data[-4:])
     controller = EMRegController()
     with pytest.raises(EMRegError, match="corrupt"):

@@ -1,0 +1,487 @@
+"""3D Slicer scenes of EMReg's results, built with Slicer's own MRML (``slicer`` package).
+
+Inside 3D Slicer ``slicer`` is the application's; outside it, the optional ``slicer-core``
+wheel (``pip install 'emreg[slicer]'``) provides the same MRML nodes, storage nodes, module
+logics and ``slicer.util`` array helpers, without Qt. This module uses nothing else, so the
+3D Slicer module's Logic (``EMRegModule/slicer/EMReg.py``) and the scene bundle
+``OUT/EMReg.mrb`` written by ``emreg run`` / ``emreg report`` show the same nodes.
+
+Frames: EMReg's image space is the CT's LPS space; Slicer's world is RAS. Points of image
+space are flipped (x, y negated). ``ReferenceToImage`` becomes the linear transform node
+``ReferenceToImage`` holding ``ReferenceToRAS = LPS_TO_RAS @ ReferenceToImage``; nodes in the
+Reference frame (calibration points, the probe pose ``ProbeToReference``) are placed under it
+with their coordinates unchanged, as PLUS and SlicerIGT do for tracker-side frames.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import os
+import shutil
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import EMRegError
+
+#: File name of the scene bundle in an output folder.
+BUNDLE_FILE = "EMReg.mrb"
+#: How to get Slicer's MRML outside 3D Slicer.
+INSTALL_HINT = "install the optional dependency with: pip install 'emreg[slicer]' (the slicer-core wheel)"
+
+LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+# Node names (the Slicer module's Logic and the bundle use the same ones).
+VOLUME_NODE_NAME = "EMReg CT"
+MARKERS_NODE_NAME = "EMReg markers"
+PINHOLES_NODE_NAME = "EMReg pinhole points"
+CALIBRATION_NODE_NAME = "EMReg calibration points"
+TARGETS_NODE_NAME = "EMReg targets"
+PATH_NODE_NAME = "EMReg probe path"
+RESIDUALS_NODE_NAME = "EMReg marker residuals"
+TRANSFORM_NODE_NAME = "ReferenceToImage"
+PROBE_NODE_NAME = "ProbeToReference"
+
+#: Most control points of the probe path curve (the recording is subsampled evenly).
+MAX_PATH_POINTS = 1000
+
+
+def slicer_mrml_missing() -> str | None:
+    """Why Slicer's MRML cannot be used here (``None`` when it can)."""
+    try:
+        import slicer
+    except ImportError as exc:
+        return f"3D Slicer's MRML (the slicer-core wheel) is not installed ({exc}); {INSTALL_HINT}"
+    if not hasattr(slicer, "vtkMRMLScene") or not hasattr(slicer, "vtkSlicerMarkupsLogic"):
+        return f"the 'slicer' package found has no MRML classes; {INSTALL_HINT}"
+    return None
+
+
+def lps_to_ras_points(points_lps: Any) -> np.ndarray:
+    """(N, 3) points from LPS to RAS (the same flip maps RAS back to LPS)."""
+    points = np.array(points_lps, dtype=float).reshape(-1, 3)
+    points[:, :2] *= -1.0
+    return points
+
+
+class SlicerScene:
+    """A ``vtkMRMLScene`` with the module logics 3D Slicer's application registers for it.
+
+    Application logic (colours), Markups, Transforms, Volumes and Sequences logics (their node
+    classes, storage nodes and readers), and the remote-I/O logic that ``ReadFromMRB`` needs
+    for its cache. ``scene`` is the ``vtkMRMLScene``; keep this object alive while using it.
+    """
+
+    def __init__(self) -> None:
+        missing = slicer_mrml_missing()
+        if missing:
+            raise EMRegError(missing)
+        import slicer
+
+        self.scene = slicer.vtkMRMLScene()
+        self.application_logic = slicer.vtkSlicerApplicationLogic()
+        self.application_logic.SetMRMLScene(self.scene)
+        colors = self.application_logic.GetColorLogic()
+        colors.SetMRMLScene(self.scene)
+        colors.AddDefaultColorNodes()
+        self.logics: dict[str, Any] = {}
+        for name, logic_class in (("Markups", slicer.vtkSlicerMarkupsLogic),
+                                  ("Transforms", slicer.vtkSlicerTransformLogic),
+                                  ("Volumes", slicer.vtkSlicerVolumesLogic),
+                                  ("Sequences", slicer.vtkSlicerSequencesLogic)):
+            logic = logic_class()
+            logic.SetMRMLApplicationLogic(self.application_logic)
+            logic.SetMRMLScene(self.scene)
+            self.application_logic.SetModuleLogic(name, logic)
+            self.logics[name] = logic
+        self._cache = tempfile.TemporaryDirectory(prefix="emreg-mrml-cache-")
+        self.remote_io = slicer.vtkMRMLRemoteIOLogic()
+        self.remote_io.SetMRMLScene(self.scene)
+        self.remote_io.SetMRMLApplicationLogic(self.application_logic)
+        self.remote_io.GetCacheManager().SetRemoteCacheDirectory(self._cache.name)
+        self.data_io = slicer.vtkDataIOManagerLogic()
+        self.data_io.SetMRMLScene(self.scene)
+        self.data_io.SetMRMLApplicationLogic(self.application_logic)
+        self.data_io.SetAndObserveDataIOManager(self.remote_io.GetDataIOManager())
+        self.remote_io.AddDataIOToScene()
+
+    def read_bundle(self, path: str | os.PathLike[str]) -> None:
+        """Import a scene bundle (``.mrb``) with Slicer's reader (``vtkMRMLScene::ReadFromMRB``)."""
+        path = Path(path)
+        if not path.is_file():
+            raise EMRegError(f"{path}: scene bundle not found")
+        if not self.scene.ReadFromMRB(str(path.resolve())):
+            raise EMRegError(f"{path}: 3D Slicer could not read this scene bundle")
+
+    def write_bundle(self, path: str | os.PathLike[str]) -> Path:
+        """Write the scene as a bundle (``.mrb``: the ``.mrml`` scene and its data files, zipped) with
+        Slicer's writer (``vtkMRMLScene::WriteToMRB``), atomically: built in a private folder beside
+        ``path``, then renamed onto it."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        for node in self.nodes("vtkMRMLStorableNode"):
+            if node.GetStorageNode() is None:
+                node.AddDefaultStorageNode()
+            storage = node.GetStorageNode()
+            if storage is not None and storage.IsA("vtkMRMLVolumeArchetypeStorageNode"):
+                # the CT dominates the bundle: gzip's fastest level halves a 450 MB CT in a quarter of the
+                # default level's time (the zip around it does not compress again)
+                storage.SetCompressionParameter("CompressionParameterFastest")
+        work = Path(tempfile.mkdtemp(prefix=f".{path.stem}-", dir=path.parent))
+        try:
+            staged = work / path.name
+            self.scene.SetRootDirectory(str(work))
+            if not self.scene.WriteToMRB(str(staged)) or not staged.is_file():
+                raise EMRegError(f"{path}: 3D Slicer's writer could not write the scene bundle "
+                                 "(disk full or no permission?)")
+            os.replace(staged, path)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+        return path
+
+    def nodes(self, class_name: str = "vtkMRMLNode") -> list[Any]:
+        """The scene's nodes of a class (all nodes by default)."""
+        collection = self.scene.GetNodesByClass(class_name)
+        return [collection.GetItemAsObject(i) for i in range(collection.GetNumberOfItems())]
+
+    def node(self, name: str) -> Any:
+        """The first node of that name; a missing node raises :class:`EMRegError`."""
+        found = self.scene.GetFirstNodeByName(name)
+        if found is None:
+            raise EMRegError(f"the scene has no node named {name!r}")
+        return found
+
+
+# --- nodes (usable on Slicer's application scene and on a SlicerScene's) -----------------------------
+
+
+def _named_node(scene: Any, class_name: str, name: str, existing: Any = None) -> Any:
+    if existing is not None and scene.GetNodeByID(existing.GetID()) is existing:
+        return existing
+    return scene.AddNewNodeByClass(class_name, name)
+
+
+def image_ijk_to_ras(image: Any) -> np.ndarray:
+    """IJK-to-RAS 4x4 of a SimpleITK image (its index-to-LPS matrix, flipped to RAS)."""
+    spacing = np.asarray(image.GetSpacing(), dtype=float)
+    direction = np.asarray(image.GetDirection(), dtype=float).reshape(3, 3)
+    ijk_to_lps = np.eye(4)
+    ijk_to_lps[:3, :3] = direction * spacing
+    ijk_to_lps[:3, 3] = image.GetOrigin()
+    return LPS_TO_RAS @ ijk_to_lps
+
+
+def show_volume(scene: Any, image: Any, name: str = VOLUME_NODE_NAME, node: Any = None) -> Any:
+    """A SimpleITK scalar image as a scalar volume node (voxels copied; IJK-to-RAS from the image)."""
+    import SimpleITK as sitk
+    import slicer.util
+
+    if image.GetNumberOfComponentsPerPixel() != 1 or image.GetDimension() != 3:
+        raise EMRegError("the CT must be a 3D scalar image to show it in 3D Slicer")
+    node = _named_node(scene, "vtkMRMLScalarVolumeNode", name, node)
+    node.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(image_ijk_to_ras(image)))
+    slicer.util.updateVolumeFromArray(node, sitk.GetArrayViewFromImage(image))
+    node.CreateDefaultDisplayNodes()
+    display = node.GetDisplayNode()
+    if display is not None:  # a CT window (soft tissue to PVC and bone)
+        display.AutoWindowLevelOff()
+        display.SetWindowLevel(2000.0, 300.0)
+    return node
+
+
+def show_points(scene: Any, name: str, labels: Sequence[str], positions: Any, color: Sequence[float],
+                descriptions: Sequence[str] | None = None, node: Any = None,
+                parent_transform: Any = None) -> Any:
+    """A locked markups point list; ``positions`` (N, 3) in the node's own coordinates (RAS, or the
+    parent transform's frame when ``parent_transform`` is given)."""
+    import vtk
+
+    node = _named_node(scene, "vtkMRMLMarkupsFiducialNode", name, node)
+    node.RemoveAllControlPoints()
+    positions = np.asarray(positions, dtype=float).reshape(-1, 3)
+    texts = list(descriptions) if descriptions is not None else [""] * len(positions)
+    if not (len(labels) == len(positions) == len(texts)):
+        raise EMRegError(f"{name}: {len(labels)} labels, {len(positions)} positions, {len(texts)} descriptions")
+    for label, position, text in zip(labels, positions, texts):  # noqa: B905 - lengths checked (Python 3.9 in old Slicer)
+        index = node.AddControlPoint(vtk.vtkVector3d(*(float(v) for v in position)), str(label))
+        if text:
+            node.SetNthControlPointDescription(index, str(text))
+    node.SetLocked(True)
+    node.CreateDefaultDisplayNodes()
+    display = node.GetDisplayNode()
+    if display is not None:
+        display.SetSelectedColor(*color)
+        display.SetColor(*color)
+    node.SetAndObserveTransformNodeID(parent_transform.GetID() if parent_transform is not None else None)
+    return node
+
+
+def show_curve(scene: Any, name: str, positions_ras: Any, color: Sequence[float] = (1.0, 0.8, 0.0),
+               node: Any = None) -> Any:
+    """A locked markups curve through ``positions_ras`` (N, 3), without labels."""
+    import slicer.util
+
+    node = _named_node(scene, "vtkMRMLMarkupsCurveNode", name, node)
+    points = np.asarray(positions_ras, dtype=float).reshape(-1, 3)
+    slicer.util.updateMarkupsControlPointsFromArray(node, points)
+    for index in range(node.GetNumberOfControlPoints()):
+        node.SetNthControlPointLabel(index, "")
+    node.SetLocked(True)
+    node.CreateDefaultDisplayNodes()
+    display = node.GetDisplayNode()
+    if display is not None:
+        display.SetSelectedColor(*color)
+        display.SetColor(*color)
+        display.SetPointLabelsVisibility(False)
+    return node
+
+
+def show_transform(scene: Any, name: str, to_parent: Any, parent: Any = None, node: Any = None) -> Any:
+    """A linear transform node with matrix ``to_parent`` (4x4), under ``parent`` (or the world)."""
+    import slicer.util
+
+    node = _named_node(scene, "vtkMRMLLinearTransformNode", name, node)
+    slicer.util.updateTransformMatrixFromArray(node, np.asarray(to_parent, dtype=float))
+    node.SetAndObserveTransformNodeID(parent.GetID() if parent is not None else None)
+    return node
+
+
+def show_reference_to_image(scene: Any, reference_to_image: Any, node: Any = None) -> Any:
+    """``ReferenceToImage`` (LPS) as the transform node ``ReferenceToImage`` = ReferenceToRAS."""
+    return show_transform(scene, TRANSFORM_NODE_NAME, LPS_TO_RAS @ np.asarray(reference_to_image, dtype=float),
+                          node=node)
+
+
+def show_residual_spheres(scene: Any, centres_ras: Any, residuals_mm: Sequence[float], radius_mm: float = 4.0,
+                          name: str = RESIDUALS_NODE_NAME, node: Any = None) -> Any:
+    """A model of one sphere per paired marker, coloured by its registration residual (mm) with
+    Slicer's ``ColdToHotRainbow`` table (blue 0 mm to red at the largest residual)."""
+    import vtk
+    from vtk.util import numpy_support
+
+    append = vtk.vtkAppendPolyData()
+    for centre, residual in zip(np.asarray(centres_ras, dtype=float).reshape(-1, 3), residuals_mm):  # noqa: B905
+        sphere = vtk.vtkSphereSource()
+        sphere.SetCenter(*centre)
+        sphere.SetRadius(radius_mm)
+        sphere.SetThetaResolution(16)
+        sphere.SetPhiResolution(12)
+        sphere.Update()
+        polydata = sphere.GetOutput()
+        values = numpy_support.numpy_to_vtk(np.full(polydata.GetNumberOfPoints(), float(residual)), deep=True)
+        values.SetName("residual_mm")
+        polydata.GetPointData().AddArray(values)
+        append.AddInputData(polydata)
+    append.Update()
+    node = _named_node(scene, "vtkMRMLModelNode", name, node)
+    node.SetAndObservePolyData(append.GetOutput())
+    node.CreateDefaultDisplayNodes()
+    display = node.GetDisplayNode()
+    if display is not None:
+        display.SetActiveScalar("residual_mm", vtk.vtkAssignAttribute.POINT_DATA)
+        colors = scene.GetFirstNodeByName("ColdToHotRainbow")
+        if colors is not None:
+            display.SetAndObserveColorNodeID(colors.GetID())
+        high = max([float(r) for r in residuals_mm] + [1e-3])
+        display.SetScalarRangeFlag(display.UseManualScalarRange)
+        display.SetScalarRange(0.0, high)
+        display.SetScalarVisibility(True)
+        display.SetOpacity(0.6)
+    return node
+
+
+# --- the scene of one run -------------------------------------------------------------------------
+
+
+@dataclass
+class RunScene:
+    """What a run's scene shows, from its output files (all image-space positions LPS, mm)."""
+
+    marker_ids: list[str] = field(default_factory=list)
+    marker_origins: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    marker_axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    calibration_labels: list[str] = field(default_factory=list)
+    calibration_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    registration: dict[str, Any] | None = None
+    target_labels: list[str] = field(default_factory=list)
+    targets: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    path: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    probe_to_reference: np.ndarray | None = None
+    image: Any = None
+    notes: list[str] = field(default_factory=list)
+
+
+def _read_navigation_positions(path: Path) -> np.ndarray:
+    with path.open(newline="", encoding="utf-8") as handle:
+        rows = [(row["x_mm"], row["y_mm"], row["z_mm"]) for row in csv.DictReader(handle)]
+    try:
+        return np.array(rows, dtype=float).reshape(-1, 3)
+    except ValueError:
+        raise EMRegError(f"{path}: navigation positions are not numbers") from None
+
+
+def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
+                image: Any = None) -> RunScene:
+    """Read a run's outputs (``markers.json``, ``frame_calibration.json``, ``registration.json``,
+    ``navigation.csv``), the case's targets and its CT (``image`` if given, else the CT that
+    ``run.json`` names)."""
+    from .atomic import read_json
+
+    out = Path(out_dir)
+    run = read_json(out / "run.json", "run record") if (out / "run.json").is_file() else {}
+    if case_dir is None and run.get("case"):
+        case_dir = run["case"]
+    content = RunScene(image=image)
+    if (out / "markers.json").is_file():
+        markers = read_json(out / "markers.json", "markers JSON").get("markers", [])
+        content.marker_ids = [str(m["id"]) for m in markers]
+        content.marker_origins = np.array([m["origin"] for m in markers], dtype=float).reshape(-1, 3)
+        content.marker_axes = np.array([m["axis"] for m in markers], dtype=float).reshape(-1, 3)
+    if (out / "frame_calibration.json").is_file():
+        points = read_json(out / "frame_calibration.json", "frame calibration JSON").get("points", [])
+        content.calibration_labels = [str(p["label"]) for p in points]
+        content.calibration_points = np.array([p["position"] for p in points], dtype=float).reshape(-1, 3)
+    if (out / "registration.json").is_file():
+        content.registration = read_json(out / "registration.json", "registration JSON")
+    if (out / "navigation.csv").is_file():
+        content.path = _read_navigation_positions(out / "navigation.csv")
+    if case_dir is not None:
+        targets = Path(case_dir) / "targets.mrk.json"
+        if targets.is_file():
+            from .markups import read_markups
+
+            labels, positions = read_markups(targets)
+            content.target_labels, content.targets = list(labels), np.asarray(positions, dtype=float)
+    if content.image is None:
+        ct = run.get("ct")
+        if ct and Path(ct).exists():
+            from .image import read_ct
+
+            try:
+                content.image = read_ct(ct)
+            except EMRegError as exc:
+                content.notes.append(f"CT not included ({exc})")
+        else:
+            content.notes.append("CT not included (run.json names no CT that exists)")
+    return content
+
+
+def _pair_descriptions(content: RunScene) -> tuple[list[str], dict[str, tuple[str, float]]]:
+    """Per marker: its pairing in words; and marker id -> (calibration label, residual)."""
+    pairs: dict[str, tuple[str, float]] = {}
+    if content.registration is not None:
+        for pair in content.registration.get("pairs", []):
+            pairs[str(pair["image_marker"])] = (str(pair["calibration_point"]), float(pair["residual_mm"]))
+    texts = []
+    for marker_id in content.marker_ids:
+        if marker_id in pairs:
+            label, residual = pairs[marker_id]
+            texts.append(f"paired with calibration point {label}; residual {residual:.2f} mm")
+        elif content.registration is not None:
+            texts.append("unpaired (no calibration point matches it)")
+        else:
+            texts.append("not registered")
+    return texts, pairs
+
+
+def build_run_scene(scene: Any, content: RunScene, nodes: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Add a run's nodes to ``scene`` (a ``vtkMRMLScene``); returns them by name.
+
+    CT volume; markers (origins, RAS; label = marker id, description = pairing and residual);
+    ``ReferenceToImage`` (ReferenceToRAS) with the calibration points under it (Reference frame)
+    and, when known, the probe pose ``ProbeToReference`` under it too; the pinhole points the
+    calibration points are fitted to (``origin + l * axis``, RAS); spheres at them coloured by
+    residual; targets; the probe path (curve, RAS).
+
+    ``nodes`` (name -> node) are reused and updated in place; those the content no longer has
+    (e.g. the registration after a new CT) are removed from the scene, except the volume.
+    """
+    nodes = nodes if nodes is not None else {}
+    built: dict[str, Any] = {}
+
+    def keep(name: str, node: Any) -> Any:
+        built[name] = nodes[name] = node
+        return node
+
+    if content.image is not None:
+        keep(VOLUME_NODE_NAME, show_volume(scene, content.image, node=nodes.get(VOLUME_NODE_NAME)))
+    texts, pairs = _pair_descriptions(content)
+    if content.marker_ids:
+        keep(MARKERS_NODE_NAME, show_points(scene, MARKERS_NODE_NAME, content.marker_ids,
+                                            lps_to_ras_points(content.marker_origins), (0.2, 0.8, 0.3), texts,
+                                            node=nodes.get(MARKERS_NODE_NAME)))
+    transform = None
+    if content.registration is not None:
+        transform = keep(TRANSFORM_NODE_NAME, show_reference_to_image(
+            scene, content.registration["ReferenceToImage"], node=nodes.get(TRANSFORM_NODE_NAME)))
+        l_mm = float(content.registration["sensor_offset_l_mm"])
+        index = {marker_id: k for k, marker_id in enumerate(content.marker_ids)}
+        paired = [m for m in pairs if m in index]
+        if paired:
+            rows = [index[m] for m in paired]
+            pinholes = lps_to_ras_points(content.marker_origins[rows] + l_mm * content.marker_axes[rows])
+            keep(PINHOLES_NODE_NAME, show_points(
+                scene, PINHOLES_NODE_NAME, paired, pinholes, (0.1, 0.6, 1.0),
+                [f"pinhole point at l = {l_mm:.2f} mm of marker {m}; calibration point {pairs[m][0]}"
+                 for m in paired], node=nodes.get(PINHOLES_NODE_NAME)))
+            keep(RESIDUALS_NODE_NAME, show_residual_spheres(scene, pinholes, [pairs[m][1] for m in paired],
+                                                            node=nodes.get(RESIDUALS_NODE_NAME)))
+        if content.probe_to_reference is not None:
+            keep(PROBE_NODE_NAME, show_transform(scene, PROBE_NODE_NAME, content.probe_to_reference, transform,
+                                                 node=nodes.get(PROBE_NODE_NAME)))
+    if content.calibration_labels:
+        keep(CALIBRATION_NODE_NAME, show_points(scene, CALIBRATION_NODE_NAME, content.calibration_labels,
+                                                content.calibration_points, (0.9, 0.2, 0.9),
+                                                node=nodes.get(CALIBRATION_NODE_NAME), parent_transform=transform))
+    if content.target_labels:
+        keep(TARGETS_NODE_NAME, show_points(scene, TARGETS_NODE_NAME, content.target_labels,
+                                            lps_to_ras_points(content.targets), (0.9, 0.1, 0.1),
+                                            node=nodes.get(TARGETS_NODE_NAME)))
+    if len(content.path):
+        step = max(1, int(np.ceil(len(content.path) / MAX_PATH_POINTS)))
+        keep(PATH_NODE_NAME, show_curve(scene, PATH_NODE_NAME, lps_to_ras_points(content.path[::step]),
+                                        node=nodes.get(PATH_NODE_NAME)))
+    for name in [n for n in nodes if n not in built and n != VOLUME_NODE_NAME]:
+        stale = nodes.pop(name)
+        if stale is not None and scene.GetNodeByID(stale.GetID()) is stale:
+            scene.RemoveNode(stale)
+    return built
+
+
+def write_run_bundle(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
+                     image: Any = None) -> tuple[Path | None, str]:
+    """Write ``OUT/EMReg.mrb`` from a run's outputs; returns ``(path, message)``.
+
+    Never raises for a bundle that cannot be made (Slicer's MRML missing, unreadable outputs,
+    disk full, no permission): ``path`` is then ``None`` and ``message`` says why; the run's
+    other outputs are untouched and a previous bundle is removed only when this one replaces it.
+    """
+    out = Path(out_dir)
+    missing = slicer_mrml_missing()
+    if missing:
+        _remove_stale_bundle(out)
+        return None, f"no {BUNDLE_FILE} written: {missing}"
+    try:
+        content = collect_run(out, case_dir, image)
+        if not content.marker_ids and not content.calibration_labels:
+            _remove_stale_bundle(out)
+            return None, f"no {BUNDLE_FILE} written: no markers or calibration in {out}"
+        holder = SlicerScene()
+        build_run_scene(holder.scene, content)
+        path = holder.write_bundle(out / BUNDLE_FILE)
+    except (EMRegError, OSError, KeyError, ValueError, TypeError) as exc:
+        _remove_stale_bundle(out)
+        return None, f"no {BUNDLE_FILE} written: {exc}"
+    notes = f" ({'; '.join(content.notes)})" if content.notes else ""
+    return path, f"{path}{notes}"
+
+
+def _remove_stale_bundle(out: Path) -> None:
+    """A bundle of an earlier run beside this run's outputs would mislead: remove it (if it is a file)."""
+    with contextlib.suppress(OSError):
+        (out / BUNDLE_FILE).unlink()
