@@ -43,7 +43,8 @@ from .io.case import check_known_keys, setting_number
 from .io.itk_transform import write_slicer_linear_transform
 from .marker_model import MarkerModel
 from .pairing import PairingSettings
-from .sensor_offset import solve_sensor_offset
+from .probe_axis import pair_with_probe_axis
+from .sensor_offset import OffsetSolution, solve_sensor_offset
 from .transforms import apply_transform, is_rigid, predicted_tre, residuals
 
 #: Name of the ITK transform file written beside ``registration.json``.
@@ -243,65 +244,26 @@ def register(
     image_ids, origins, axes = _image_markers(detection)
     labels = frame_calibration.labels
     points = frame_calibration.positions
-    directions = frame_calibration.directions
-    if config.sensor_offset_l_mm is not None:
-        if not model.pinhole_bottom_mm <= config.sensor_offset_l_mm <= model.pinhole_top_mm:
-            raise EMRegError(f"case.toml [registration] sensor_offset_l_mm = {config.sensor_offset_l_mm:g} lies "
-                             f"outside the marker's pinhole {model.pinhole_bottom_mm:g}..{model.pinhole_top_mm:g} mm: "
-                             "the probe sensor cannot sit there")
-        l_range = (config.sensor_offset_l_mm, config.sensor_offset_l_mm)
-    else:
-        l_range = (model.pinhole_bottom_mm, model.pinhole_top_mm)
-    from .probe_axis import pair_with_probe_axis
-
+    fixed = config.sensor_offset_l_mm is not None
+    l_range = _offset_range(config, model)
     stored = frame_calibration.direction_convention
     pairing, axis_report = pair_with_probe_axis(
-        origins, axes, points, directions, l_range, config.pairing,
+        origins, axes, points, frame_calibration.directions, l_range, config.pairing,
         setting=frame_calibration.probe_axis if probe_axis is None else probe_axis,
         stored_convention=stored if stored in ("+x_in", "+x_out") else "+x_in")
     image_index = np.array([j for j, _ in pairing.pairs])
     cal_index = np.array([i for _, i in pairing.pairs])
     warnings: list[str] = list(axis_report.warnings)
 
-    solution = solve_sensor_offset(points[cal_index], origins[image_index], axes[image_index], l_range)
-    pair_residuals = residuals(solution.reference_to_image, points[cal_index],
-                               origins[image_index] + solution.l_mm * axes[image_index])
-    outlier = flag_outliers(pair_residuals, config)
-    used = np.ones(len(cal_index), dtype=bool)
-    if config.exclude_outliers and np.any(outlier) and np.count_nonzero(~outlier) >= config.pairing.min_pairs:
-        used = ~outlier
-        solution = solve_sensor_offset(points[cal_index[used]], origins[image_index[used]],
-                                       axes[image_index[used]], l_range)
-        pair_residuals = residuals(solution.reference_to_image, points[cal_index],
-                                   origins[image_index] + solution.l_mm * axes[image_index])
-        warnings.append(f"{np.count_nonzero(outlier)} outlier pair(s) left out of the fit")
+    fit = _fit_pairs(points[cal_index], origins[image_index], axes[image_index], l_range, config)
+    solution, pair_residuals, outlier, used = fit.solution, fit.residuals_mm, fit.outlier, fit.used
+    warnings += fit.warnings
     if np.any(outlier):
         names = ", ".join(f"{image_ids[j]}/{labels[i]} ({r:.2f} mm)"
                           for j, i, r, o in zip(image_index, cal_index, pair_residuals, outlier, strict=True) if o)
         warnings.append(f"outlier pair(s): {names}")
-
     fre_value = float(np.sqrt(np.mean(pair_residuals[used] ** 2)))
-    if fre_value > config.max_fre_mm:
-        raise NoSafeAnswerError(
-            f"registration FRE {fre_value:.2f} mm is above the limit of {config.max_fre_mm:g} mm "
-            f"([registration] max_fre_mm); check the calibration recording and the detected markers"
-        )
-    fixed = config.sensor_offset_l_mm is not None
-
-    if not fixed:
-        a, b = l_range
-        if solution.l_std_mm > config.max_l_std_mm:
-            raise NoSafeAnswerError(
-                f"the sensor offset l is poorly determined (standard error {solution.l_std_mm:.2f} mm > "
-                f"{config.max_l_std_mm:g} mm): the paired markers' axes are (nearly) parallel, so l trades off "
-                "against a translation along them; give l in case.toml [registration] sensor_offset_l_mm "
-                "or use markers on more than one face"
-            )
-        if solution.l_std_mm > config.warn_l_std_mm:
-            warnings.append(f"sensor offset l poorly determined: standard error {solution.l_std_mm:.2f} mm")
-        if min(solution.l_mm - a, b - solution.l_mm) < 0.05:
-            warnings.append(f"sensor offset l = {solution.l_mm:.2f} mm is at the end of the pinhole range "
-                            f"[{a:g}, {b:g}] mm: check the marker model")
+    warnings += _check_fre_and_offset(fre_value, solution, l_range, config)
     n_used = int(np.count_nonzero(used))
     fle = fre_value * np.sqrt(n_used / (n_used - 2)) if n_used > 2 else float("nan")
     predicted = None
@@ -339,6 +301,77 @@ def register(
                  "distance_tolerance_mm": round(config.pairing.distance_tolerance_mm, 3)},
         probe_axis=axis_report.to_json(),
     )
+
+
+def _offset_range(config: RegistrationSettings, model: MarkerModel) -> tuple[float, float]:
+    """The range [a, b] (mm) of the sensor offset l: the pinhole's, or the given l (checked to lie in it)."""
+    if config.sensor_offset_l_mm is None:
+        return (model.pinhole_bottom_mm, model.pinhole_top_mm)
+    if not model.pinhole_bottom_mm <= config.sensor_offset_l_mm <= model.pinhole_top_mm:
+        raise EMRegError(f"case.toml [registration] sensor_offset_l_mm = {config.sensor_offset_l_mm:g} lies "
+                         f"outside the marker's pinhole {model.pinhole_bottom_mm:g}..{model.pinhole_top_mm:g} mm: "
+                         "the probe sensor cannot sit there")
+    return (config.sensor_offset_l_mm, config.sensor_offset_l_mm)
+
+
+@dataclass
+class _PairFit:
+    """The sensor offset solved on the paired points, the residual of every pair (mm), which pairs
+    are outliers and which were used in the fit, and the warnings of the fit."""
+
+    solution: OffsetSolution
+    residuals_mm: np.ndarray
+    outlier: np.ndarray
+    used: np.ndarray
+    warnings: list[str]
+
+
+def _fit_pairs(points_reference: np.ndarray, origins_image: np.ndarray, axes_image: np.ndarray,
+               l_range: tuple[float, float], config: RegistrationSettings) -> _PairFit:
+    """Solve l and ``ReferenceToImage`` on the paired points (Reference / image, row k paired with row k),
+    flag outliers and, with ``exclude_outliers``, solve again without them (while enough pairs remain)."""
+    def residuals_at(solution: OffsetSolution) -> np.ndarray:
+        return residuals(solution.reference_to_image, points_reference, origins_image + solution.l_mm * axes_image)
+
+    solution = solve_sensor_offset(points_reference, origins_image, axes_image, l_range)
+    pair_residuals = residuals_at(solution)
+    outlier = flag_outliers(pair_residuals, config)
+    used = np.ones(len(points_reference), dtype=bool)
+    warnings: list[str] = []
+    if config.exclude_outliers and np.any(outlier) and np.count_nonzero(~outlier) >= config.pairing.min_pairs:
+        used = ~outlier
+        solution = solve_sensor_offset(points_reference[used], origins_image[used], axes_image[used], l_range)
+        pair_residuals = residuals_at(solution)
+        warnings.append(f"{np.count_nonzero(outlier)} outlier pair(s) left out of the fit")
+    return _PairFit(solution, pair_residuals, outlier, used, warnings)
+
+
+def _check_fre_and_offset(fre_value: float, solution: OffsetSolution, l_range: tuple[float, float],
+                          config: RegistrationSettings) -> list[str]:
+    """Refuse (:class:`NoSafeAnswerError`) an FRE above ``max_fre_mm`` or a solved l whose standard error
+    is above ``max_l_std_mm``; the warnings about l (poorly determined, at an end of the pinhole)."""
+    if fre_value > config.max_fre_mm:
+        raise NoSafeAnswerError(
+            f"registration FRE {fre_value:.2f} mm is above the limit of {config.max_fre_mm:g} mm "
+            f"([registration] max_fre_mm); check the calibration recording and the detected markers"
+        )
+    if config.sensor_offset_l_mm is not None:
+        return []
+    warnings = []
+    a, b = l_range
+    if solution.l_std_mm > config.max_l_std_mm:
+        raise NoSafeAnswerError(
+            f"the sensor offset l is poorly determined (standard error {solution.l_std_mm:.2f} mm > "
+            f"{config.max_l_std_mm:g} mm): the paired markers' axes are (nearly) parallel, so l trades off "
+            "against a translation along them; give l in case.toml [registration] sensor_offset_l_mm "
+            "or use markers on more than one face"
+        )
+    if solution.l_std_mm > config.warn_l_std_mm:
+        warnings.append(f"sensor offset l poorly determined: standard error {solution.l_std_mm:.2f} mm")
+    if min(solution.l_mm - a, b - solution.l_mm) < 0.05:
+        warnings.append(f"sensor offset l = {solution.l_mm:.2f} mm is at the end of the pinhole range "
+                        f"[{a:g}, {b:g}] mm: check the marker model")
+    return warnings
 
 
 def flag_outliers(pair_residuals: np.ndarray, config: RegistrationSettings) -> np.ndarray:

@@ -28,8 +28,9 @@ Steps, for one segmented blob:
    trimmed) onto the CAD surface, from that close start with a 1e-4 mm convergence criterion;
    the fit RMS is the distance of the edge points to the fitted surface.
 
-Cost: about 8 ms per marker (a few thousand profile samples per step, a short ICP of a few
-hundred reconstruction points, one ICP of ~800 edge points that starts converged).
+The work per marker is small and bounded: a few thousand profile samples per step, a short ICP
+of a few hundred reconstruction points, one ICP of ~800 edge points that starts converged
+(timings: ``scripts/bench_detect.py``).
 """
 
 from __future__ import annotations

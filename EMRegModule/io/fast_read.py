@@ -3,7 +3,7 @@
 SimpleITK inflates gzip/zlib voxel data with plain zlib, which makes reading the slowest part of
 ``emreg detect`` on a full-frame scan. Here SimpleITK reads only the header (so origin,
 spacing, direction cosines and pixel type are exactly those of ``sitk.ReadImage``), allocates
-the image, and the voxel bytes are inflated with ISA-L (``isal``, about 2.5x faster than zlib)
+the image, and the voxel bytes are inflated with ISA-L (``isal``, faster than zlib: see ``scripts/bench_read_ct.py``)
 straight into that image's buffer, a bounded chunk at a time: peak memory is the volume plus a
 few MB, with no second copy. This runs on a background thread that announces whole slices as
 they are filled (:class:`VolumeFill`), so that marker detection can work on them meanwhile.

@@ -39,6 +39,7 @@ import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage
 
+from ..io.atomic import atomic_path
 from ..progress import QUIET, Progress
 from .shapes import F32, Shape
 
@@ -309,8 +310,6 @@ def flip_to_right_handed(array_kji: np.ndarray, grid: Grid) -> tuple[np.ndarray,
 
 def write_nrrd(image: sitk.Image, path: Path) -> None:
     """Write a compressed NRRD atomically (fast zlib level)."""
-    from ..io.atomic import atomic_path
-
     with atomic_path(path) as tmp:
         sitk.WriteImage(image, str(tmp), True, 1)
 

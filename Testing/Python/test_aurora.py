@@ -369,7 +369,9 @@ def test_watchdog_with_the_aurora_stops_and_resumes(tmp_path):
                 assert nav.published == during, kind  # nothing published meanwhile
                 sim.set_state(kind, sensor, False)
                 assert wait_for("ok"), kind
-                time.sleep(0.2)
+                deadline = time.monotonic() + 30  # wait on the count: a loaded machine only takes longer
+                while nav.published <= during and time.monotonic() < deadline:
+                    time.sleep(0.005)
                 assert nav.published > during, kind  # publishing again
             sim.stall(1.0)
             assert wait_for("stale")
@@ -495,7 +497,7 @@ def test_cli_record_and_live_navigate_from_the_aurora(tmp_path, replay):
                                             "sensor_offset_l_mm": 14.0, "fre_mm": 0.5, "pairs": []}))
         port = _free_port()
         nav = subprocess.Popen([*EMREG, "navigate", "--registration", str(registration), "--source",
-                                f"aurora://{sim.link}?baud=230400", "--igtl-port", str(port), "--max-samples", "80",
+                                f"aurora://{sim.link}?baud=230400", "--igtl-port", str(port), "--max-samples", "200",
                                 "--out", str(tmp_path / "out")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                text=True, env=ENV)
         client = pyigtl.OpenIGTLinkClient("127.0.0.1", port)
@@ -509,7 +511,7 @@ def test_cli_record_and_live_navigate_from_the_aurora(tmp_path, replay):
     finally:
         sim.stop()
     rows = (tmp_path / "out" / "navigation.csv").read_text().splitlines()
-    assert len(rows) - 1 >= 70
+    assert len(rows) - 1 >= 100  # frames the watchdog let through (the link is judged first)
     assert message is not None
     lps = (LPS_TO_RAS @ np.asarray(message.matrix, dtype=float))[:3, 3]
     # the published pose is Eq. 12 applied to one replayed frame

@@ -280,7 +280,7 @@ def test_watchdog_with_the_simulator_stops_and_resumes():
                 return False
 
             assert wait_for("ok")
-            time.sleep(0.2)
+            assert wait_for_count(lambda: nav.published > 10)
             published = nav.published
             sim.set_unplugged(1)
             assert wait_for("reference_missing")

@@ -582,20 +582,14 @@ def test_logic_end_to_end_on_a_real_mrml_scene(slicer_core, standard_case, tmp_p
     np.testing.assert_allclose(_world_points(path)[0], _ras(navigation[0])[0], atol=1e-3)
 
 
-def test_files_for_slicer_read_by_slicers_storage_nodes(slicer_core, standard_case, tmp_path):
-    """markers.mrk.json and ReferenceToImage.h5 as Slicer's own readers see them."""
+def test_files_for_slicer_read_by_slicers_storage_nodes(slicer_core, run_output):
+    """markers.mrk.json and ReferenceToImage.h5 of ``emreg run`` as Slicer's own readers see them."""
     import json
 
     import slicer
     import slicer.util
 
-    from EMRegModule.cli import main
-
-    out = tmp_path / "out"
-    assert main(["detect", str(standard_case), "--out", str(out), "--quiet"]) == 0
-    assert main(["calibrate", str(standard_case / "calibration.csv"), "--out", str(out), "--quiet"]) == 0
-    assert main(["register", "--markers", str(out / "markers.json"), "--calibration",
-                 str(out / "frame_calibration.json"), "--out", str(out), "--quiet"]) == 0
+    _, out = run_output
     scene = slicer_core.scene
     markers = json.loads((out / "markers.json").read_text())["markers"]
     node = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "read")
@@ -613,6 +607,33 @@ def test_files_for_slicer_read_by_slicers_storage_nodes(slicer_core, standard_ca
     assert transform.IsLinear()
     np.testing.assert_allclose(slicer.util.arrayFromTransformMatrix(transform),
                                np.diag([-1.0, -1.0, 1.0, 1.0]) @ registration["ReferenceToImage"], atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["ReferenceToImage.h5", "t.tfm", "t.txt"])
+def test_itk_transform_files_load_in_slicer_as_reference_to_ras(slicer_core, tmp_path, name):
+    """Each ITK transform format EMReg writes, read by Slicer's transform storage node: the node's matrix
+    is ReferenceToRAS, and a Reference-frame point under it lands where ReferenceToImage puts it (RAS)."""
+    import slicer.util
+    from scipy.spatial.transform import Rotation
+
+    from EMRegModule.io.itk_transform import write_slicer_linear_transform
+
+    reference_to_image = np.eye(4)
+    reference_to_image[:3, :3] = Rotation.from_euler("zyx", [31.0, -12.0, 74.0], degrees=True).as_matrix()
+    reference_to_image[:3, 3] = [-41.5, 12.25, 160.0]
+    write_slicer_linear_transform(tmp_path / name, reference_to_image)
+    scene = slicer_core.scene
+    transform = scene.AddNewNodeByClass("vtkMRMLLinearTransformNode", "read")
+    storage = scene.AddNewNodeByClass("vtkMRMLTransformStorageNode")
+    storage.SetFileName(str(tmp_path / name))
+    assert storage.ReadData(transform) == 1
+    np.testing.assert_allclose(slicer.util.arrayFromTransformMatrix(transform),
+                               np.diag([-1.0, -1.0, 1.0, 1.0]) @ reference_to_image, atol=1e-9)
+    point = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "p")
+    point.AddControlPoint(10.0, -20.0, 30.0)
+    point.SetAndObserveTransformNodeID(transform.GetID())
+    expected = reference_to_image @ [10.0, -20.0, 30.0, 1.0]
+    np.testing.assert_allclose(_world_points(point)[0], _ras(expected[:3])[0], atol=1e-9)
 
 
 def test_live_navigation_without_openigtlinkif_says_what_to_install(slicer_core):
