@@ -265,15 +265,19 @@ def recording_from_frames(frames: SequenceFrames, ports: dict[str, int]) -> Trac
 
 
 def _frames_of(recording: TrackingRecording) -> tuple[np.ndarray, np.ndarray]:
-    """Frame number of each row (rows within ``SAME_MOMENT_S`` of a frame's first row share it) and
-    each frame's time."""
+    """Frame number of each row (rows within ``SAME_MOMENT_S`` of a frame's first row share it, one
+    row per sensor: a sensor seen again starts a new frame) and each frame's time."""
     order = np.argsort(recording.time_s, kind="stable")
     times = recording.time_s[order]
+    sensors = recording.sensor[order]
     frame = np.empty(len(times), dtype=int)
     starts: list[float] = []
-    for k, t in enumerate(times):
-        if not starts or t - starts[-1] > SAME_MOMENT_S:
+    seen: set[int] = set()
+    for k, (t, s) in enumerate(zip(times.tolist(), sensors.tolist(), strict=True)):
+        if not starts or t - starts[-1] > SAME_MOMENT_S or s in seen:
             starts.append(float(t))
+            seen = set()
+        seen.add(s)
         frame[k] = len(starts) - 1
     out = np.empty(len(times), dtype=int)
     out[order] = frame
@@ -322,11 +326,13 @@ def format_sequence_metafile(
                 lines.append(f"{prefix}{name}TransformStatus = INVALID")
                 continue
             matrix = transforms[row].copy()
+            status = "OK" if statuses is None or port not in statuses else str(statuses[port][row])
+            if status != "OK" and not np.all(np.isfinite(matrix)):
+                matrix = np.eye(4)  # no pose: PLUS writes the identity with the status
             position_only = not np.all(np.isfinite(matrix[:3, :3]))
             if position_only:
                 matrix[:3, :3] = np.eye(3)
             lines.append(f"{prefix}{name}Transform = " + " ".join(_number(v) for v in matrix.ravel()))
-            status = "OK" if statuses is None or port not in statuses else str(statuses[port][row])
             lines.append(f"{prefix}{name}TransformStatus = {status}")
             if np.isfinite(recording.quality[row]):
                 lines.append(f"{prefix}{name}TransformQuality = {_number(recording.quality[row])}")
