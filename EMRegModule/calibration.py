@@ -23,13 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from .dwell import DwellSettings, find_dwells, group_by_place, robust_mean, robust_mean_direction
+from .dwell import find_dwells, group_by_place, robust_mean, robust_mean_direction
 from .errors import EMRegError
 from .io.atomic import atomic_write_json, read_json
+from .settings import CalibrationSettings
 from .tracking import TrackingRecording, probe_in_reference
-
-#: Visits of one pinhole whose averages differ by more than this (mm) earn a warning.
-DEFAULT_REVISIT_TOLERANCE_MM = 1.0
 
 
 @dataclass
@@ -167,7 +165,7 @@ def calibrate_frame(
     recording: TrackingRecording,
     reference_sensor: int = 1,
     probe_sensor: int = 2,
-    settings: Mapping[str, Any] | None = None,
+    settings: CalibrationSettings | None = None,
     probe_axis: str = "auto",
 ) -> FrameCalibration:
     """One point per marker pinhole, in the Reference frame (mm), from a calibration recording.
@@ -175,12 +173,12 @@ def calibrate_frame(
     ``probe_axis``: ``[sensors] probe_axis`` (see :mod:`EMRegModule.probe_axis`); probe rows
     without angles (position only) give points without a direction.
 
-    ``settings``: the ``case.toml`` ``[calibration]`` table (see :class:`EMRegModule.dwell.DwellSettings`
-    and ``revisit_tolerance_mm``). Unlabelled dwells are named ``P01, P02, ...`` in time order
-    of their first visit. Raises :class:`EMRegError` when no dwell is found.
+    ``settings``: the ``[calibration]`` table (dwell keys and ``revisit_tolerance_mm``). Unlabelled
+    dwells are named ``P01, P02, ...`` in time order of their first visit. Raises
+    :class:`EMRegError` when no dwell is found.
     """
-    dwell_settings = DwellSettings.from_settings(settings, "calibration", strict=True)
-    revisit_tolerance = float(dict(settings or {}).get("revisit_tolerance_mm", DEFAULT_REVISIT_TOLERANCE_MM))
+    dwell_settings = settings or CalibrationSettings()
+    revisit_tolerance = dwell_settings.revisit_tolerance_mm
     from .probe_axis import ASSUMED_CONVENTION, check_probe_axis, marker_directions
 
     probe_axis = check_probe_axis(probe_axis)

@@ -13,10 +13,14 @@ import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from . import __version__
 from .errors import EXIT_BAD_INPUT, EMRegError, NoSafeAnswerError, StageNotAvailableError
 from .progress import Progress
+
+if TYPE_CHECKING:
+    from .settings import Settings
 
 #: Output files of each stage in OUT, in workflow order (used to clear stale results).
 STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
@@ -51,17 +55,15 @@ def _progress(args: argparse.Namespace) -> Progress:
     return Progress(enabled=not getattr(args, "quiet", False))
 
 
-def _settings(args: argparse.Namespace, case_dir: Path | None = None) -> dict:
-    from .io.case import read_case_settings
+def _settings(args: argparse.Namespace, case_dir: Path | None = None) -> Settings:
+    """``--settings FILE``, else the case folder's ``case.toml``, else the defaults (typed, checked)."""
+    from .settings import load_settings
 
     if getattr(args, "settings", None):
-        path = Path(args.settings)
-        if not path.is_file():
-            raise EMRegError(f"{path}: settings file not found")
-        return read_case_settings(path)
+        return load_settings(args.settings, required=True)
     if case_dir is not None:
-        return read_case_settings(case_dir / "case.toml")
-    return {}
+        return load_settings(case_dir / "case.toml")
+    return load_settings(None)
 
 
 def _out_folder(out: str | Path | None, create: bool = True) -> Path | None:
@@ -99,12 +101,11 @@ def _out_file(out: str | Path) -> Path:
     return path
 
 
-def _with_series(settings: dict, args: argparse.Namespace) -> dict:
+def _with_series(settings: Settings, args: argparse.Namespace) -> Settings:
     """``--series UID|NUMBER`` overrides ``[ct] series`` of case.toml."""
-    if getattr(args, "series", None):
-        settings = dict(settings)
-        settings["ct"] = {**(settings.get("ct") or {}), "series": args.series}
-    return settings
+    from .settings import with_series
+
+    return with_series(settings, getattr(args, "series", None))
 
 
 def _warn(command: str, warnings: Sequence[str]) -> None:
@@ -113,7 +114,7 @@ def _warn(command: str, warnings: Sequence[str]) -> None:
         print(f"emreg {command}: warning: {warning}", file=sys.stderr)
 
 
-def _controller(args: argparse.Namespace, settings: dict):
+def _controller(args: argparse.Namespace, settings: Settings):
     from .controller import EMRegController
 
     controller = EMRegController(settings, _progress(args))
@@ -226,7 +227,7 @@ def cmd_navigate(args: argparse.Namespace) -> int:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     _need_stage("evaluation", "evaluation")
-    from .evaluation import evaluate_case, write_evaluation
+    from .evaluation import write_evaluation
     from .io.case import open_case
     from .registration import max_fre_from_settings, read_registration
 
@@ -240,12 +241,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                          "(and no board.csv)")
     if args.settings:
         case.settings = _settings(args)
+    case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # sequence files' ports
     controller = _controller(args, case.settings)
     controller.set_registration(read_registration(args.registration, max_fre_from_settings(case.settings)))
-    result = evaluate_case(case, controller.reference_to_image, controller.reference_sensor,
-                           controller.probe_sensor)
+    result = controller.evaluate(case.read_recording("navigation"), case.read_targets(), case.read_recording("board"))
     write_evaluation(result, Path(args.out) / "evaluation.json")
-    _warn("evaluate", result.get("warnings", []))
+    _warn("evaluate", result.warnings)
     print(f"evaluation -> {Path(args.out) / 'evaluation.json'}")
     return 0
 
@@ -255,12 +256,11 @@ def cmd_convert(args: argparse.Namespace) -> int:
     from .io.sequence_metafile import is_sequence_file, read_sequence_frames, recording_from_frames
     from .io.tracking_csv import read_tracking_csv
 
-    settings = _settings(args)
-    sensors = settings.get("sensors", {})
-    reference = args.reference_sensor or int(sensors.get("reference", 1))
-    probe = args.probe_sensor or int(sensors.get("probe", 2))
-    names = {"reference_transform": str(sensors.get("reference_transform", "ReferenceToTracker")),
-             "probe_transform": str(sensors.get("probe_transform", "ProbeToTracker"))}
+    sensors = _settings(args).sensors
+    reference = args.reference_sensor or sensors.reference
+    probe = args.probe_sensor or sensors.probe
+    names = {"reference_transform": sensors.reference_transform or "ReferenceToTracker",
+             "probe_transform": sensors.probe_transform or "ProbeToTracker"}
     source, target = Path(args.input), Path(args.output)
     if source.resolve() == target.resolve():
         raise EMRegError(f"convert: {target} is the input file; give another output name")
@@ -281,7 +281,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
         others = {n: p for n, p in ports.items() if n not in names.values()}
     else:
         recording, others = read_tracking_csv(source), {}
-    write_recording(recording, target, {"sensors": {**sensors, **names}}, reference, probe,
+    write_recording(recording, target, {"sensors": names}, reference, probe,
                     orientation="quaternion" if args.quaternion else None)
     _warn("convert", recording.warnings)
     extra = ("; other transforms as sensor ports " + ", ".join(f"{n} = {p}" for n, p in others.items())
@@ -302,7 +302,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args))
         print(f"{len(pages)} reports written under {args.batch}")
         for folder in folders:
-            print(slicer_bundle(folder))
+            print(slicer_bundle(folder, progress=_progress(args)))
         return 0
     if not args.out:
         raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
@@ -310,11 +310,11 @@ def cmd_report(args: argparse.Namespace) -> int:
     case = Path(args.case) if args.case else None
     path = write_report(Path(args.out), case_dir=case, progress=_progress(args))
     print(f"report -> {path}")
-    print(slicer_bundle(Path(args.out), case))
+    print(slicer_bundle(Path(args.out), case, progress=_progress(args)))
     return 0
 
 
-def slicer_bundle(out: Path, case_dir: Path | None = None, image=None) -> str:
+def slicer_bundle(out: Path, case_dir: Path | None = None, image=None, progress: Progress | None = None) -> str:
     """Write ``OUT/EMReg.mrb`` (3D Slicer scene bundle) from the outputs in OUT; one summary line.
 
     Optional: without slicer-core, or when the bundle cannot be written (disk full, no
@@ -322,7 +322,8 @@ def slicer_bundle(out: Path, case_dir: Path | None = None, image=None) -> str:
     """
     from .io.slicer_scene import write_run_bundle
 
-    path, message = write_run_bundle(out, case_dir, image)
+    with (progress or Progress(enabled=False)).step("writing the 3D Slicer scene bundle"):
+        path, message = write_run_bundle(out, case_dir, image)
     if path is None:
         _warn("bundle", [message])
     return f"bundle: {message}"
@@ -378,15 +379,16 @@ def run_case(
     """
     from .controller import EMRegController
     from .io.atomic import atomic_write_json
-    from .io.case import open_case, read_case_settings
+    from .io.case import open_case
+    from .settings import load_settings, with_series
 
     case = open_case(case_dir)
     if settings_path:
-        case.settings = read_case_settings(settings_path)
-    if series:
-        case.settings = {**case.settings, "ct": {**(case.settings.get("ct") or {}), "series": series}}
+        case.settings = load_settings(settings_path, required=True)
+    case.settings = with_series(case.settings, series)
     if case.ct is None:
         raise EMRegError(f"{case_dir}: no CT found (ct.nrrd, ct.nii.gz, ct.mha or a ct/ DICOM folder)")
+    case.settings = case.settings.with_sensors(reference_sensor, probe_sensor)  # a sequence file's ports too
     controller = EMRegController.for_case(case, progress)
     controller.set_sensors(reference_sensor, probe_sensor)
     out.mkdir(parents=True, exist_ok=True)
@@ -437,12 +439,10 @@ def run_case(
         current = "navigate"
         if controller.registration is not None and case.navigation is not None \
                 and stage_available("navigation"):
-            from .io.recording import read_recording
             from .navigation import write_navigation_csv
 
             try:
-                navigation_recording = read_recording(case.navigation, controller.settings,
-                                                      controller.reference_sensor, controller.probe_sensor)
+                navigation_recording = case.read_recording("navigation")
                 navigation = controller.navigate_recording(navigation_recording)
             except NoSafeAnswerError:
                 raise
@@ -457,22 +457,27 @@ def run_case(
         current = "evaluate"
         if controller.registration is not None and stage_available("evaluation") \
                 and (case.navigation is not None or case.board is not None):
-            from .evaluation import evaluate_case, write_evaluation
+            from .evaluation import write_evaluation
 
-            evaluation = evaluate_case(case, controller.reference_to_image, controller.reference_sensor,
-                                       controller.probe_sensor, tolerant=True)
-            for part, reason in evaluation.get("not_evaluated", {}).items():
+            unreadable: dict[str, str] = {}
+            inputs: dict[str, object] = {}
+            for part, read in (("tre", lambda: (case.read_recording("navigation"), case.read_targets())),
+                               ("board", lambda: case.read_recording("board"))):
+                try:
+                    inputs[part] = read()
+                except NoSafeAnswerError:
+                    raise
+                except EMRegError as exc:  # an unreadable optional recording: that part is not evaluated
+                    unreadable[part] = str(exc)
+            navigation_input, targets_input = inputs.get("tre") or (None, None)
+            evaluation = controller.evaluate(navigation_input, targets_input, inputs.get("board"),
+                                             tolerant=True, not_evaluated=unreadable)
+            for part, reason in evaluation.not_evaluated.items():
                 not_made[part] = reason
-                what = "TRE" if part == "tre" else part
-                print(f"emreg run: warning: {what} not evaluated: {reason}", file=sys.stderr)
-                summary.append(f"evaluate: {what} not evaluated: {reason}")
+                print(f"emreg run: warning: {'TRE' if part == 'tre' else part} not evaluated: {reason}",
+                      file=sys.stderr)
             write_evaluation(evaluation, out / "evaluation.json")
-            if "tre" in evaluation:
-                summary.append(f"evaluate: TRE {evaluation['tre']['mean_mm']:.2f} "
-                               f"+/- {evaluation['tre']['std_mm']:.2f} mm")
-            if "board" in evaluation:
-                summary.append("evaluate: board edges " + ", ".join(
-                    f"{k} {v['mean_mm']:.2f}" for k, v in evaluation["board"]["edges"].items()))
+            summary.extend(evaluation.summary())
         current = "report"
         if stage_available("report"):
             from .report import write_report
@@ -484,7 +489,7 @@ def run_case(
         summary.append(f"{current}: refused: {exc}")
         atomic_write_json(out / "run.json", run_record)
         raise
-    summary.append(slicer_bundle(out, case.folder, controller.image))
+    summary.append(slicer_bundle(out, case.folder, controller.image, progress))
     atomic_write_json(out / "run.json", run_record)
     return summary
 

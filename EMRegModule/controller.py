@@ -22,15 +22,17 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .errors import EMRegError
-from .io.case import DEFAULT_PROBE_SENSOR, DEFAULT_REFERENCE_SENSOR, Case
+from .io.case import Case
 from .marker_model import MarkerModel
 from .progress import QUIET, Progress
+from .settings import Settings
 
 if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only when used
     import SimpleITK as sitk
 
     from .calibration import FrameCalibration
     from .detection import DetectionResult
+    from .evaluation import Evaluation
     from .navigation import NavigationResult
     from .registration import RegistrationResult
     from .tracking import TrackingRecording
@@ -54,18 +56,18 @@ class WorkflowError(EMRegError):
 class EMRegController:
     """Sequences the EMReg workflow; usable without any GUI.
 
-    ``settings`` is the parsed ``case.toml`` (sections ``sensors``, ``marker``,
-    ``detection``, ``calibration``, ``registration``, ``board``...).
+    ``settings`` is the typed, checked ``case.toml`` (:class:`~EMRegModule.settings.Settings`;
+    defaults when None); each stage gets its own table.
     """
 
-    def __init__(self, settings: dict[str, Any] | None = None, progress: Progress | None = None) -> None:
-        self.settings: dict[str, Any] = dict(settings or {})
+    def __init__(self, settings: Settings | None = None, progress: Progress | None = None) -> None:
+        if settings is not None and not isinstance(settings, Settings):
+            raise TypeError("EMRegController takes a Settings object (EMRegModule.settings.load_settings)")
+        self.settings: Settings = settings or Settings()
         self.progress = progress or QUIET
-        self.marker_model = MarkerModel.from_settings(self.settings.get("marker"))
-        sensors = self.settings.get("sensors", {})
-        self.reference_sensor: int = int(sensors.get("reference", DEFAULT_REFERENCE_SENSOR))
-        self.probe_sensor: int = int(sensors.get("probe", DEFAULT_PROBE_SENSOR))
-        _check_two_ports(self.reference_sensor, self.probe_sensor)
+        self.marker_model: MarkerModel = self.settings.marker
+        self.reference_sensor: int = self.settings.sensors.reference
+        self.probe_sensor: int = self.settings.sensors.probe
         self.image: sitk.Image | None = None
         self.image_source: str | None = None
         self.ct_series: dict[str, Any] | None = None  # a DICOM CT: the series used and the others
@@ -144,7 +146,7 @@ class EMRegController:
         from .detection import detect_markers
 
         try:
-            result = detect_markers(fill.image, self.marker_model, self.settings.get("detection"), self.progress,
+            result = detect_markers(fill.image, self.marker_model, self.settings.detection, self.progress,
                                     wait_for_slices=fill.wait_for_slices)
             image = fill.result()  # the checksum is verified only at the end
         except BaseException as exc:
@@ -162,18 +164,8 @@ class EMRegController:
     @property
     def ct_series_choice(self) -> str | None:
         """``[ct] series`` (a Series Instance UID or a series number) forcing the DICOM series, or None."""
-        from .io.case import check_known_keys
-
-        table = self.settings.get("ct") or {}
-        if not isinstance(table, dict):
-            raise EMRegError("case.toml [ct] must be a table")
-        value = check_known_keys(table, "ct", {"series"}).get("series")
-        if value is None or isinstance(value, bool) or not isinstance(value, (str, int)):
-            if value is not None:
-                raise EMRegError(f"case.toml [ct]: series must be a Series Instance UID or a series number, "
-                                 f"got {value!r}")
-            return None
-        return str(value)
+        value = self.settings.ct.series
+        return None if value is None else str(value)
 
     def set_image(self, image: sitk.Image, source: str = "CT") -> None:
         """Use an image already in memory (e.g. a Slicer volume node converted to SimpleITK)."""
@@ -198,15 +190,12 @@ class EMRegController:
         self._invalidate(frame_calibration=True)
 
     def set_sensors(self, reference_sensor: int | None = None, probe_sensor: int | None = None) -> None:
-        """Change the sensor ports; a change drops the frame calibration and what follows."""
-        _check_two_ports(self.reference_sensor if reference_sensor is None else int(reference_sensor),
-                         self.probe_sensor if probe_sensor is None else int(probe_sensor))
-        changed = False
-        if reference_sensor is not None and reference_sensor != self.reference_sensor:
-            self.reference_sensor, changed = int(reference_sensor), True
-        if probe_sensor is not None and probe_sensor != self.probe_sensor:
-            self.probe_sensor, changed = int(probe_sensor), True
-        if changed:
+        """Change the sensor ports (checked as ``[sensors]``: 1..4, two different ports); a change drops
+        the frame calibration and what follows."""
+        current = self.settings.with_sensors(self.reference_sensor, self.probe_sensor)
+        sensors = current.with_sensors(reference_sensor, probe_sensor).sensors
+        if (sensors.reference, sensors.probe) != (self.reference_sensor, self.probe_sensor):
+            self.reference_sensor, self.probe_sensor = sensors.reference, sensors.probe
             self._invalidate(frame_calibration=True)
 
     # --- stages -----------------------------------------------------------------------------
@@ -216,7 +205,7 @@ class EMRegController:
         self._require(image=self.image)
         from .detection import detect_markers
 
-        result = detect_markers(self.image, self.marker_model, self.settings.get("detection"), self.progress)
+        result = detect_markers(self.image, self.marker_model, self.settings.detection, self.progress)
         result.ct_series = self.ct_series
         self.set_detection(result)
         return result
@@ -234,7 +223,7 @@ class EMRegController:
         with self.progress.step("calibrating frame"):
             result = calibrate_frame(
                 self.calibration_recording, self.reference_sensor, self.probe_sensor,
-                self.settings.get("calibration"), probe_axis=self.probe_axis or "auto",
+                self.settings.calibration, probe_axis=self.probe_axis or "auto",
             )
         self.set_frame_calibration(result)
         return result
@@ -255,7 +244,7 @@ class EMRegController:
         with self.progress.step("pairing and registering"):
             result = register(
                 self.detection, self.frame_calibration, self.marker_model,
-                self.settings.get("registration"), targets_image=targets_image, probe_axis=self.probe_axis,
+                self.settings.registration, targets_image=targets_image, probe_axis=self.probe_axis,
             )
         self.registration = result
         self.navigation = None
@@ -277,14 +266,29 @@ class EMRegController:
         self.navigation = result
         return result
 
+    def evaluate(self, navigation: TrackingRecording | None = None,
+                 targets: tuple[list[str], np.ndarray] | None = None,
+                 board: TrackingRecording | None = None, tolerant: bool = False,
+                 not_evaluated: dict[str, str] | None = None) -> Evaluation:
+        """TRE at ``targets`` (labels, (K, 3) LPS mm) from a navigation recording, and the board table
+        from a board recording, with the current registration (``[evaluation]``, ``[board]`` settings).
+
+        ``tolerant`` (a run): a part that cannot be evaluated is "not evaluated" with its reason in the
+        result instead of an error; ``not_evaluated``: parts whose recording could not be read, and why."""
+        self._require(registration=self.registration)
+        from .evaluation import evaluate
+
+        with self.progress.step("evaluating"):
+            return evaluate(self.registration.reference_to_image, self.reference_sensor, self.probe_sensor,
+                            self.settings.evaluation, navigation=navigation, targets=targets, board=board,
+                            nominal_edges_mm=self.settings.board.edges_mm, tolerant=tolerant,
+                            not_evaluated=not_evaluated)
+
     @property
     def probe_axis(self) -> str | None:
         """``[sensors] probe_axis`` when set (None: ``auto`` for a calibration, the calibration's own
         setting for a registration)."""
-        from .probe_axis import check_probe_axis
-
-        value = self.settings.get("sensors", {}).get("probe_axis")
-        return None if value is None else check_probe_axis(value)
+        return self.settings.sensors.probe_axis
 
     @property
     def reference_to_image(self) -> np.ndarray:
@@ -302,13 +306,6 @@ class EMRegController:
         if self.registration is not None:
             parts.append(f"FRE {self.registration.fre_mm:.2f} mm, l = {self.registration.sensor_offset_l_mm:.2f} mm")
         return "; ".join(parts)
-
-
-def _check_two_ports(reference_sensor: int, probe_sensor: int) -> None:
-    """The reference and the probe must be two different ports (one line, exit 2)."""
-    if reference_sensor == probe_sensor:
-        raise EMRegError(f"the reference and the probe sensor are both port {reference_sensor}; give two different "
-                         "ports (--reference-sensor / --probe-sensor or case.toml [sensors] reference / probe)")
 
 
 def _import_in_background(module: str) -> None:

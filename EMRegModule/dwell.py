@@ -12,72 +12,16 @@ Everything here is plain numpy over arrays of times (s) and positions (mm).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, fields
-from typing import Any
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .errors import EMRegError
-from .io.case import check_known_keys, setting_number
+from .settings import DwellSettings
 
 #: A chi-distributed 3D distance with per-axis sigma s has median about 1.538 s.
 _MEDIAN_CHI3 = 1.5382
 #: A still period's ends are trimmed to the samples within this many ``still_radius_mm`` of its median.
 TRIM_FACTOR = 1.5
-
-
-@dataclass(frozen=True)
-class DwellSettings:
-    """How dwells are found (``case.toml`` ``[calibration]`` keys of the same names).
-
-    ``min_duration_s``: an unlabelled still period shorter than this is a pause, not a dwell.
-    ``still_radius_mm``: the probe counts as still while the median distance of the samples in
-    a ``window_s`` window from their median stays below this (tracker jitter is ~0.1 mm).
-    ``max_gap_s``: still periods split by a shorter interruption (a burst of wild or bad-quality
-    samples) at the same place are one dwell. ``merge_radius_mm``: dwells closer than this are
-    at the same hole (revisits). ``max_quality``: samples whose tracker quality number exceeds it
-    are ignored (None: an automatic limit from the recording's own quality distribution).
-    ``min_samples``: fewer good samples than this make no dwell. ``max_drift_mm``: a still
-    period whose first and last quarters (medians) lie farther apart than this is slow motion,
-    not a dwell (None: twice ``still_radius_mm``).
-    """
-
-    min_duration_s: float = 0.5
-    still_radius_mm: float = 0.5
-    window_s: float = 0.25
-    max_gap_s: float = 0.3
-    merge_radius_mm: float = 3.0
-    max_quality: float | None = None
-    min_samples: int = 5
-    max_drift_mm: float | None = None
-
-    @property
-    def drift_limit_mm(self) -> float:
-        return 2.0 * self.still_radius_mm if self.max_drift_mm is None else float(self.max_drift_mm)
-
-    @classmethod
-    def from_settings(cls, settings: Mapping[str, Any] | None, section: str = "calibration",
-                      strict: bool = False) -> DwellSettings:
-        """Build from a settings table; with ``strict`` an unknown key is an :class:`EMRegError`."""
-        settings = dict(settings or {})
-        known = {f.name for f in fields(cls)}
-        if strict:
-            check_known_keys(settings, section, known | _OTHER_CALIBRATION_KEYS)
-        values: dict[str, Any] = {}
-        for name in known & set(settings):
-            value = settings[name]
-            if name in ("max_quality", "max_drift_mm") and value is None:
-                continue
-            number = setting_number(section, name, value)
-            if number < 0 or (number == 0 and name != "max_quality"):
-                raise EMRegError(f"case.toml [{section}]: {name} must be a positive number, got {value!r}")
-            values[name] = int(number) if name == "min_samples" else number
-        return cls(**values)
-
-
-#: Other keys of ``[calibration]`` (used by :mod:`EMRegModule.calibration`).
-_OTHER_CALIBRATION_KEYS = frozenset({"revisit_tolerance_mm"})
 
 
 @dataclass
@@ -296,8 +240,7 @@ def describe_still_periods(time_s: np.ndarray, position_mm: np.ndarray, quality:
     valid = np.all(np.isfinite(position_mm), axis=1) & np.isfinite(time_s)
     if quality is not None:
         valid &= good_quality_mask(quality, settings.max_quality)
-    loose = DwellSettings(**{**{f.name: getattr(settings, f.name) for f in fields(DwellSettings)},
-                             "min_duration_s": 1e-9, "min_samples": 3, "max_drift_mm": np.inf})
+    loose = replace(settings, min_duration_s=1e-9, min_samples=3, max_drift_mm=np.inf)
     periods = still_periods(time_s, position_mm, valid, loose)
     rule = (f"a dwell must last {settings.min_duration_s:g} s ([{section}] min_duration_s) with the probe within "
             f"{settings.still_radius_mm:g} mm ([{section}] still_radius_mm) and drifting less than "
@@ -322,6 +265,8 @@ def describe_still_periods(time_s: np.ndarray, position_mm: np.ndarray, quality:
             if longest < settings.min_duration_s else
             f"raise [{section}] still_radius_mm or max_drift_mm")
     return (f"{len(periods)} still period(s) found: {', '.join(parts)}{more}; {rule}; {hint}")
+
+
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:

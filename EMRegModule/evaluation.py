@@ -13,6 +13,9 @@
   the mean and the mean +- std of the per-round errors (the paper's Table 1 layout).
 
 Standard deviations are sample standard deviations (ddof = 1; 0 for a single value).
+The stages take recordings and targets already read and return typed results
+(:class:`Evaluation`, :class:`TargetEvaluation`, :class:`BoardEvaluation`) that hold full-precision
+values; ``to_json`` rounds (4 decimals) only when ``evaluation.json`` is written.
 """
 
 from __future__ import annotations
@@ -20,99 +23,282 @@ from __future__ import annotations
 import os
 import re
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from .dwell import Dwell, DwellSettings, find_dwells, group_by_place, robust_mean
+from .dwell import Dwell, describe_still_periods, find_dwells, group_by_place, robust_mean
 from .errors import EMRegError, NoSafeAnswerError
-from .io.atomic import atomic_write_json
-from .io.case import Case
+from .io.atomic import atomic_write_json, read_json
+from .navigation import navigate_recording
+from .settings import DwellSettings, EvaluationSettings
 from .tracking import TrackingRecording, probe_in_reference
 
-#: Dwells farther than this from every target (mm) are not counted for TRE (unlabelled recordings).
-DEFAULT_MAX_TARGET_DISTANCE_MM = 15.0
-#: Stillness radius (mm) for finding dwells in navigation and board recordings without labels.
-DEFAULT_STILL_RADIUS_MM = 1.0
-#: Shortest unlabelled dwell (s) in navigation and board recordings: a hand-held probe held still
-#: for 0.4 s at 80 Hz (32 samples, 0.39 s from first to last) is a dwell; a mid-air hesitation of
-#: up to 0.3 s is not, nor is transit motion (it drifts more than twice the stillness radius, see
-#: :class:`EMRegModule.dwell.DwellSettings`).
-DEFAULT_MIN_DURATION_S = 0.35
+#: The name of the evaluation file in an output folder.
+EVALUATION_JSON = "evaluation.json"
 
 
-def evaluation_dwell_settings(section: Mapping[str, Any] | None) -> DwellSettings:
-    """Dwell settings of ``case.toml`` ``[evaluation]`` over the evaluation defaults (hand-held probe)."""
-    section = {k: v for k, v in dict(section or {}).items() if k != "max_target_distance_mm"}
-    return DwellSettings.from_settings({"still_radius_mm": DEFAULT_STILL_RADIUS_MM,
-                                        "min_duration_s": DEFAULT_MIN_DURATION_S, **section}, "evaluation")
+# --- typed results ---------------------------------------------------------------------------
 
 
-def evaluate_case(case: Case, reference_to_image: np.ndarray, reference_sensor: int = 1,
-                  probe_sensor: int = 2, tolerant: bool = False) -> dict[str, Any]:
-    """The ``evaluation.json`` content for a case folder: ``tre`` when the case has a navigation
-    recording and targets, ``board`` when it has a board recording (see module docstring).
+@dataclass
+class Stats:
+    """Mean, sample std (ddof 1; 0 for one value) and count of a set of lengths or errors (mm); None when empty."""
 
-    ``reference_to_image``: Reference -> CT LPS (mm). Settings: ``case.toml`` ``[evaluation]``
-    (dwell keys as in ``[calibration]``, ``still_radius_mm`` defaulting to 1 mm here, and
-    ``max_target_distance_mm``) and ``[board] edges_mm``.
+    mean_mm: float | None
+    std_mm: float | None
+    n: int
 
-    ``tolerant`` (``emreg run``): a part that cannot be evaluated (no dwell found, a bad
-    recording) is left out and named with its reason under ``not_evaluated`` and in ``warnings``
-    instead of raising; ``emreg evaluate`` raises.
-    """
-    from .io.markups import read_markups
-    from .io.recording import read_recording
+    @classmethod
+    def of(cls, values: Sequence[float] | np.ndarray) -> Stats:
+        values = np.asarray(values, dtype=float)
+        if len(values) == 0:
+            return cls(None, None, 0)
+        return cls(float(values.mean()), _std(values), int(len(values)))
 
-    section = case.section("evaluation")
-    # Hand-held touches at targets shake more than a probe resting in a pinhole: a wider
-    # stillness radius and a shorter dwell by default (targets and holes are tens of mm apart).
-    dwell_settings = evaluation_dwell_settings(section)
-    result: dict[str, Any] = {}
-    not_evaluated: dict[str, str] = {}
-    warnings: list[str] = []  # time resets / gaps / invalid frames found in the recordings
+    def to_json(self) -> dict[str, Any]:
+        return {"mean_mm": _round(self.mean_mm), "std_mm": _round(self.std_mm), "n": int(self.n)}
 
-    def part(name: str, compute) -> None:
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any]) -> Stats:
+        return cls(_maybe_float(document.get("mean_mm")), _maybe_float(document.get("std_mm")), int(document["n"]))
+
+
+@dataclass
+class TargetDwell:
+    """One dwell at a target: its error (mm), time span (s), samples, and mean probe position (LPS mm)."""
+
+    target: str
+    error_mm: float
+    start_s: float
+    end_s: float
+    samples: int
+    position: np.ndarray
+
+    def to_json(self) -> dict[str, Any]:
+        return {"target": self.target, "error_mm": round(self.error_mm, 4), "start_s": round(self.start_s, 4),
+                "end_s": round(self.end_s, 4), "samples": int(self.samples),
+                "position": [round(float(v), 4) for v in self.position]}
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any]) -> TargetDwell:
+        return cls(str(document["target"]), float(document["error_mm"]), float(document["start_s"]),
+                   float(document["end_s"]), int(document["samples"]), np.asarray(document["position"], dtype=float))
+
+
+@dataclass
+class TargetEvaluation:
+    """TRE: one error per dwell at a target (``dwells``), statistics per target, dwells matched to no target."""
+
+    dwells: list[TargetDwell]
+    targets: dict[str, Stats]
+    unmatched_dwells: int = 0
+    labelled: bool = False
+
+    @property
+    def errors_mm(self) -> np.ndarray:
+        return np.array([d.error_mm for d in self.dwells], dtype=float)
+
+    @property
+    def mean_mm(self) -> float:
+        return float(self.errors_mm.mean())
+
+    @property
+    def std_mm(self) -> float:
+        return _std(self.errors_mm)
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``tre`` block. Its overall figures are over the dwell errors as written (4 decimals), so the
+        file is self-consistent: the ``dwells`` listed give back ``mean_mm``, ``std_mm`` and ``max_mm``."""
+        dwells = [d.to_json() for d in self.dwells]
+        errors = np.array([d["error_mm"] for d in dwells])
+        return {"mean_mm": round(float(errors.mean()), 4), "std_mm": round(_std(errors), 4), "n": len(errors),
+                "max_mm": round(float(errors.max()), 4), "targets": {k: v.to_json() for k, v in self.targets.items()},
+                "dwells": dwells, "unmatched_dwells": int(self.unmatched_dwells), "labelled": bool(self.labelled)}
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any]) -> TargetEvaluation:
+        return cls([TargetDwell.from_json(d) for d in document.get("dwells", [])],
+                   {str(k): Stats.from_json(v) for k, v in document.get("targets", {}).items()},
+                   int(document.get("unmatched_dwells", 0)), bool(document.get("labelled", False)))
+
+
+@dataclass
+class BoardEdge:
+    """One board edge between two holes: its length statistics over the rounds (mm) and, with a nominal
+    length, the error of the mean and the mean +- std of the per-round errors (mm and percent)."""
+
+    holes: tuple[str, str]
+    length: Stats
+    nominal_mm: float | None = None
+    abs_error_mm: float | None = None
+    rel_error_percent: float | None = None
+    abs_error_mean_mm: float | None = None
+    abs_error_std_mm: float | None = None
+    rel_error_mean_percent: float | None = None
+    rel_error_std_percent: float | None = None
+
+    _ERROR_KEYS = ("abs_error_mm", "rel_error_percent", "abs_error_mean_mm", "abs_error_std_mm",
+                   "rel_error_mean_percent", "rel_error_std_percent")
+
+    @classmethod
+    def measure(cls, holes: tuple[str, str], lengths: Sequence[float], nominal_mm: float | None) -> BoardEdge:
+        edge = cls(holes, Stats.of(lengths))
+        if nominal_mm is not None and len(lengths):
+            length = np.asarray(lengths, dtype=float)
+            error = np.abs(length - nominal_mm)
+            mean_error = abs(float(length.mean()) - nominal_mm)
+            edge.nominal_mm = nominal_mm
+            edge.abs_error_mm, edge.rel_error_percent = mean_error, 100 * mean_error / nominal_mm
+            edge.abs_error_mean_mm, edge.abs_error_std_mm = float(error.mean()), _std(error)
+            edge.rel_error_mean_percent = float(100 * (error / nominal_mm).mean())
+            edge.rel_error_std_percent = 100 * _std(error / nominal_mm)
+        return edge
+
+    def to_json(self) -> dict[str, Any]:
+        document = {**self.length.to_json(), "holes": list(self.holes)}
+        if self.nominal_mm is not None:
+            document["nominal_mm"] = self.nominal_mm
+            document.update({key: _round(getattr(self, key)) for key in self._ERROR_KEYS})
+        return document
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any]) -> BoardEdge:
+        a, b = document["holes"]
+        return cls((str(a), str(b)), Stats.from_json(document), _maybe_float(document.get("nominal_mm")),
+                   **{key: _maybe_float(document.get(key)) for key in cls._ERROR_KEYS})
+
+
+@dataclass
+class BoardEvaluation:
+    """The board-phantom table: edges L1..Ln, rounds and dwells counted, the frame the hole positions
+    (``holes``, mm) are in, and whether the recording was labelled."""
+
+    edges: dict[str, BoardEdge]
+    rounds: int
+    dwells: int
+    frame: str
+    holes: dict[str, np.ndarray]
+    labelled: bool
+
+    def to_json(self) -> dict[str, Any]:
+        return {"edges": {k: v.to_json() for k, v in self.edges.items()}, "rounds": int(self.rounds),
+                "dwells": int(self.dwells), "frame": self.frame,
+                "holes": {k: [round(float(v), 4) for v in p] for k, p in self.holes.items()},
+                "labelled": bool(self.labelled)}
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any]) -> BoardEvaluation:
+        return cls({str(k): BoardEdge.from_json(v) for k, v in document["edges"].items()}, int(document["rounds"]),
+                   int(document["dwells"]), str(document["frame"]),
+                   {str(k): np.asarray(v, dtype=float) for k, v in document.get("holes", {}).items()},
+                   bool(document.get("labelled", False)))
+
+
+@dataclass
+class Evaluation:
+    """What ``emreg evaluate`` found: ``tre`` (navigation recording and targets), ``board`` (board
+    recording); either is None when its inputs are absent. ``extra`` keeps keys added by others."""
+
+    tre: TargetEvaluation | None = None
+    board: BoardEvaluation | None = None
+    warnings: list[str] = field(default_factory=list)
+    extra: dict[str, Any] = field(default_factory=dict)
+    #: parts that could not be evaluated (``tre``, ``board``) and why (``emreg run``: the run still finishes)
+    not_evaluated: dict[str, str] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``evaluation.json`` document (spec keys; values rounded to 4 decimals)."""
+        document: dict[str, Any] = {}
+        if self.tre is not None:
+            document["tre"] = self.tre.to_json()
+        if self.board is not None:
+            document["board"] = self.board.to_json()
+        if self.not_evaluated:
+            document["not_evaluated"] = dict(self.not_evaluated)
+        if self.warnings:
+            document["warnings"] = list(self.warnings)
+        document.update(self.extra)
+        return document
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any], source: str = EVALUATION_JSON) -> Evaluation:
+        """Parse an ``evaluation.json`` document; :class:`EMRegError` naming ``source`` if malformed."""
         try:
-            result[name] = compute()
+            tre = document.get("tre")
+            board = document.get("board")
+            return cls(None if tre is None else TargetEvaluation.from_json(tre),
+                       None if board is None else BoardEvaluation.from_json(board),
+                       [str(w) for w in document.get("warnings", [])],
+                       {k: v for k, v in document.items() if k not in ("tre", "board", "warnings", "not_evaluated")},
+                       {str(k): str(v) for k, v in (document.get("not_evaluated") or {}).items()})
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise EMRegError(f"{source}: not an evaluation file ({exc!s:.100})") from None
+
+    def summary(self) -> list[str]:
+        """One line per part, for the terminal and ``run.json``."""
+        lines = []
+        if self.tre is not None:
+            tre = self.tre.to_json()
+            lines.append(f"evaluate: TRE {tre['mean_mm']:.2f} +/- {tre['std_mm']:.2f} mm")
+        if self.board is not None:
+            edges = self.board.to_json()["edges"]
+            lines.append("evaluate: board edges " + ", ".join(f"{k} {v['mean_mm']:.2f}" for k, v in edges.items()))
+        for part, reason in self.not_evaluated.items():
+            lines.append(f"evaluate: {_PART_NAMES.get(part, part)} not evaluated: {reason}")
+        return lines
+
+
+_PART_NAMES = {"tre": "TRE", "board": "board"}
+
+
+def evaluate(
+    reference_to_image: np.ndarray,
+    reference_sensor: int,
+    probe_sensor: int,
+    settings: EvaluationSettings | None = None,
+    navigation: TrackingRecording | None = None,
+    targets: tuple[Sequence[str], np.ndarray] | None = None,
+    board: TrackingRecording | None = None,
+    nominal_edges_mm: Sequence[float] | None = None,
+    tolerant: bool = False,
+    not_evaluated: Mapping[str, str] | None = None,
+) -> Evaluation:
+    """TRE when a navigation recording and targets (labels, (K, 3) LPS mm) are given, the board table
+    when a board recording is; ``reference_to_image``: Reference -> CT LPS (mm).
+
+    ``settings``: the ``[evaluation]`` table; ``nominal_edges_mm``: ``[board] edges_mm``.
+    ``tolerant`` (``emreg run``): a part that cannot be evaluated (no dwell found, a bad recording) is
+    left out and named with its reason in ``not_evaluated`` and ``warnings`` instead of raising
+    (``emreg evaluate`` raises); ``not_evaluated``: parts the caller could not even read, with why.
+    """
+    settings = settings or EvaluationSettings()
+    result = Evaluation(not_evaluated=dict(not_evaluated or {}))
+
+    def part(name: str, compute) -> Any:
+        try:
+            return compute()
         except NoSafeAnswerError:
             raise
         except EMRegError as exc:
             if not tolerant:
                 raise
-            not_evaluated[name] = str(exc)
+            result.not_evaluated[name] = str(exc)
+            return None
 
-    if case.navigation is not None and case.targets is not None:
-        def tre() -> dict[str, Any]:
-            labels, positions = read_markups(case.targets)
-            recording = read_recording(case.navigation, case.settings, reference_sensor, probe_sensor)
-            warnings.extend(recording.warnings)
-            return evaluate_targets(
-                recording, labels, positions, reference_to_image, reference_sensor, probe_sensor, dwell_settings,
-                float(section.get("max_target_distance_mm", DEFAULT_MAX_TARGET_DISTANCE_MM)),
-            )
-
-        part("tre", tre)
-    if case.board is not None:
-        def board() -> dict[str, Any]:
-            nominal = case.section("board").get("edges_mm")
-            if nominal is not None:
-                try:
-                    nominal = [float(v) for v in nominal]
-                except (TypeError, ValueError):
-                    raise EMRegError(f"{case.folder / 'case.toml'}: [board] edges_mm must be a list of "
-                                     "numbers") from None
-            recording = read_recording(case.board, case.settings, reference_sensor, probe_sensor)
-            warnings.extend(recording.warnings)
-            return evaluate_board(recording, reference_sensor, probe_sensor, nominal, dwell_settings)
-
-        part("board", board)
-    if not_evaluated:
-        result["not_evaluated"] = not_evaluated
-        warnings += [f"{'TRE' if name == 'tre' else name} not evaluated: {reason}"
-                     for name, reason in not_evaluated.items()]
-    if warnings:
-        result["warnings"] = warnings
+    if navigation is not None and targets is not None:
+        labels, positions = targets
+        result.tre = part("tre", lambda: evaluate_targets(
+            navigation, labels, positions, reference_to_image, reference_sensor, probe_sensor, settings,
+            settings.max_target_distance_mm))
+        result.warnings += navigation.warnings
+    if board is not None:
+        result.board = part("board", lambda: evaluate_board(board, reference_sensor, probe_sensor, nominal_edges_mm,
+                                                            settings))
+        result.warnings += board.warnings  # time resets / gaps / invalid frames found in the recordings
+    result.warnings += [f"{_PART_NAMES.get(name, name)} not evaluated: {reason}"
+                        for name, reason in result.not_evaluated.items()]
     return result
 
 
@@ -127,11 +313,15 @@ def evaluate_targets(
     reference_sensor: int = 1,
     probe_sensor: int = 2,
     settings: DwellSettings | None = None,
-    max_target_distance_mm: float = DEFAULT_MAX_TARGET_DISTANCE_MM,
-) -> dict[str, Any]:
-    """TRE per target over its dwells and overall (mm). ``targets_image`` (K, 3) LPS mm."""
-    from .navigation import navigate_recording
+    max_target_distance_mm: float | None = None,
+) -> TargetEvaluation:
+    """TRE per target over its dwells and overall (mm). ``targets_image`` (K, 3) LPS mm.
 
+    ``max_target_distance_mm``: an unlabelled dwell farther from every target is not counted
+    (default: the ``[evaluation]`` default).
+    """
+    if max_target_distance_mm is None:
+        max_target_distance_mm = EvaluationSettings().max_target_distance_mm
     targets_image = np.asarray(targets_image, dtype=float).reshape(-1, 3)
     if len(targets_image) == 0:
         raise EMRegError("evaluation: the targets file holds no target points")
@@ -140,7 +330,7 @@ def evaluate_targets(
     dwells = find_dwells(navigation.time_s, position, navigation.label, navigation.quality, settings)
     index_of = {str(label): k for k, label in enumerate(target_labels)}
     per_target: dict[str, list[float]] = {str(label): [] for label in target_labels}
-    details = []
+    found: list[TargetDwell] = []
     unmatched = 0
     for dwell in dwells:
         mean = robust_mean(position[dwell.indices]).mean
@@ -158,27 +348,21 @@ def evaluate_targets(
         error = float(np.linalg.norm(mean - targets_image[k]))
         label = str(target_labels[k])
         per_target[label].append(error)
-        details.append({"target": label, "error_mm": round(error, 4), "start_s": round(dwell.start_s, 4),
-                        "end_s": round(dwell.end_s, 4), "samples": len(dwell),
-                        "position": [round(float(v), 4) for v in mean]})
-    errors = np.array([d["error_mm"] for d in details])
-    if len(errors) == 0:
-        from .dwell import describe_still_periods
-
+        found.append(TargetDwell(label, error, float(dwell.start_s), float(dwell.end_s), len(dwell), mean))
+    if not found:
         if dwells and dwells[0].label:
             seen = ", ".join(sorted({d.label for d in dwells})[:6])
-            found = (f"{len(dwells)} labelled dwell(s), none with a target's label "
-                     f"({seen} vs {', '.join(map(str, target_labels[:6]))})")
+            what = (f"{len(dwells)} labelled dwell(s), none with a target's label "
+                    f"({seen} vs {', '.join(map(str, list(target_labels)[:6]))})")
+        elif dwells:
+            what = (f"{len(dwells)} dwell(s), none within {max_target_distance_mm:g} mm of a target "
+                    "([evaluation] max_target_distance_mm)")
         else:
-            found = (f"{len(dwells)} dwell(s), none within {max_target_distance_mm:g} mm of a target "
-                     "([evaluation] max_target_distance_mm)" if dwells else
-                     describe_still_periods(navigation.time_s, position, navigation.quality, settings,
-                                            targets_image, "target"))
-        raise EMRegError(f"{recording.source}: no probe dwell at any target was found: {found}")
-    targets = {label: _stats(values) for label, values in per_target.items() if values}
-    return {"mean_mm": round(float(errors.mean()), 4), "std_mm": round(_std(errors), 4), "n": len(errors),
-            "max_mm": round(float(errors.max()), 4), "targets": targets, "dwells": details,
-            "unmatched_dwells": unmatched, "labelled": bool(dwells and dwells[0].label)}
+            what = describe_still_periods(navigation.time_s, position, navigation.quality, settings, targets_image,
+                                          "target")
+        raise EMRegError(f"{recording.source}: no probe dwell at any target was found: {what}")
+    targets = {label: Stats.of(values) for label, values in per_target.items() if values}
+    return TargetEvaluation(found, targets, unmatched, bool(dwells and dwells[0].label))
 
 
 # --- board phantom ---------------------------------------------------------------------------
@@ -190,7 +374,7 @@ def evaluate_board(
     probe_sensor: int = 2,
     nominal_edges_mm: Sequence[float] | None = None,
     settings: DwellSettings | None = None,
-) -> dict[str, Any]:
+) -> BoardEvaluation:
     """Board-phantom edge lengths from a recording of the probe in each corner hole in turn
     (positions in the Reference frame; in the Tracker frame if the recording has no reference)."""
     settings = settings or DwellSettings()
@@ -204,46 +388,28 @@ def evaluate_board(
         frame = "Tracker"
     dwells = find_dwells(time_s, position, labels, quality, settings)
     if not dwells:
-        from .dwell import describe_still_periods
-
         raise EMRegError(f"{recording.source}: no probe dwell found in the board recording: "
-                         + describe_still_periods(time_s, position, quality, settings, section="evaluation"))
+                         + describe_still_periods(time_s, position, quality, settings))
     centres = np.array([robust_mean(position[d.indices]).mean for d in dwells])
     hole_of_dwell, hole_names = _board_holes(dwells, centres, settings)
     n_holes = len(hole_names)
     if n_holes < 3:
         raise EMRegError(f"{recording.source}: the board recording visits {n_holes} hole(s); at least 3 needed")
     rounds = _rounds(hole_of_dwell)
-    edges: dict[str, Any] = {}
-    nominal = None if nominal_edges_mm is None else list(nominal_edges_mm)
+    nominal = None if nominal_edges_mm is None else [float(v) for v in nominal_edges_mm]
     if nominal is not None and len(nominal) != n_holes:
         raise EMRegError(f"case.toml [board] edges_mm has {len(nominal)} values but the board recording "
                          f"visits {n_holes} holes")
+    edges: dict[str, BoardEdge] = {}
     for k in range(n_holes):
         h1, h2 = k, (k + 1) % n_holes
-        lengths = []
-        for round_dwells in rounds:
-            if h1 in round_dwells and h2 in round_dwells:
-                lengths.append(float(np.linalg.norm(centres[round_dwells[h1]] - centres[round_dwells[h2]])))
-        entry = _stats(lengths)
-        entry["holes"] = [hole_names[h1], hole_names[h2]]
-        if nominal is not None and lengths:
-            length = np.asarray(lengths)
-            error = np.abs(length - nominal[k])
-            entry.update({
-                "nominal_mm": nominal[k],
-                "abs_error_mm": round(abs(float(length.mean()) - nominal[k]), 4),
-                "rel_error_percent": round(100 * abs(float(length.mean()) - nominal[k]) / nominal[k], 4),
-                "abs_error_mean_mm": round(float(error.mean()), 4), "abs_error_std_mm": round(_std(error), 4),
-                "rel_error_mean_percent": round(float(100 * (error / nominal[k]).mean()), 4),
-                "rel_error_std_percent": round(100 * _std(error / nominal[k]), 4),
-            })
-        edges[f"L{k + 1}"] = entry
-    holes = {name: [round(float(v), 4) for v in robust_mean(
-        np.concatenate([position[dwells[d].indices] for d in np.nonzero(hole_of_dwell == h)[0]])).mean]
-        for h, name in enumerate(hole_names)}
-    return {"edges": edges, "rounds": len(rounds), "dwells": len(dwells), "frame": frame, "holes": holes,
-            "labelled": bool(dwells[0].label)}
+        lengths = [float(np.linalg.norm(centres[r[h1]] - centres[r[h2]])) for r in rounds if h1 in r and h2 in r]
+        edges[f"L{k + 1}"] = BoardEdge.measure((hole_names[h1], hole_names[h2]), lengths,
+                                               None if nominal is None else nominal[k])
+    holes = {name: robust_mean(np.concatenate([position[dwells[d].indices]
+                                               for d in np.nonzero(hole_of_dwell == h)[0]])).mean
+             for h, name in enumerate(hole_names)}
+    return BoardEvaluation(edges, len(rounds), len(dwells), frame, holes, bool(dwells[0].label))
 
 
 def _board_holes(dwells: list[Dwell], centres: np.ndarray, settings: DwellSettings) -> tuple[np.ndarray, list[str]]:
@@ -278,13 +444,22 @@ def _std(values: Sequence[float] | np.ndarray) -> float:
     return float(values.std(ddof=1)) if len(values) > 1 else 0.0
 
 
-def _stats(values: Sequence[float]) -> dict[str, Any]:
-    values = np.asarray(values, dtype=float)
-    if len(values) == 0:
-        return {"mean_mm": None, "std_mm": None, "n": 0}
-    return {"mean_mm": round(float(values.mean()), 4), "std_mm": round(_std(values), 4), "n": int(len(values))}
+def _round(value: float | None, digits: int = 4) -> float | None:
+    return None if value is None else round(float(value), digits)
 
 
-def write_evaluation(result: Mapping[str, Any], path: str | os.PathLike[str]) -> None:
+def _maybe_float(value: Any) -> float | None:
+    return None if value is None else float(value)
+
+
+def write_evaluation(result: Evaluation, path: str | os.PathLike[str]) -> None:
     """Write ``evaluation.json`` atomically."""
-    atomic_write_json(path, dict(result))
+    atomic_write_json(path, result.to_json())
+
+
+def read_evaluation(path: str | os.PathLike[str]) -> Evaluation:
+    """Read an ``evaluation.json``; a missing or malformed file is an :class:`EMRegError`."""
+    document = read_json(path, "evaluation JSON")
+    if not isinstance(document, dict):
+        raise EMRegError(f"{path}: not an evaluation file (not a JSON object)")
+    return Evaluation.from_json(document, str(path))

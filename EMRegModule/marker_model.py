@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from .errors import EMRegError
-from .io.case import check_known_keys, setting_number
+from .tables import parse_table
 
 
 @dataclass(frozen=True)
@@ -44,8 +44,7 @@ class MarkerModel:
     @classmethod
     def from_settings(cls, settings: dict[str, Any] | None) -> MarkerModel:
         """Build from a ``[marker]`` table (keys as the field names); unknown keys are an error."""
-        table = check_known_keys(settings, "marker", (f.name for f in fields(cls)))
-        return cls(**{k: setting_number("marker", k, v) for k, v in table.items()})
+        return parse_table(cls, settings, "marker")
 
     def to_dict(self) -> dict[str, float]:
         return asdict(self)

@@ -30,72 +30,14 @@ calibration point, the image's for a marker, and the angular error of the direct
 from __future__ import annotations
 
 import itertools
-from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
-from typing import Any
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from .errors import EMRegError, NoSafeAnswerError
-from .io.case import setting_number
 from .sensor_offset import fre_curve
-
-
-@dataclass(frozen=True)
-class PairingSettings:
-    """Pairing tolerances and safety margins (``case.toml`` ``[registration]`` keys of the same names).
-
-    ``tracker_error_mm`` / ``image_error_mm``: RMS 3D localisation error of a calibration point
-    and of an image marker's pinhole; ``direction_error_deg``: RMS angular error of a direction
-    (probe or marker axis); ``n_sigma``: how many error units a constraint tolerates;
-    ``min_pairs``: fewest pairs accepted; ``ambiguity_margin``: a rival pairing must explain at
-    least this many points fewer than the best, else the pairing is refused as ambiguous.
-    """
-
-    tracker_error_mm: float = 0.5
-    image_error_mm: float = 0.3
-    direction_error_deg: float = 2.5
-    n_sigma: float = 4.0
-    min_pairs: int = 4
-    ambiguity_margin: int = 2
-    max_seeds: int = 60
-    rival_seeds: int = 24
-
-    @classmethod
-    def from_settings(cls, settings: Mapping[str, Any] | None) -> PairingSettings:
-        """Build from the ``[registration]`` table (other keys of that table are ignored here)."""
-        settings = dict(settings or {})
-        values: dict[str, Any] = {}
-        for f in fields(cls):
-            if f.name not in settings:
-                continue
-            value = settings[f.name]
-            number = setting_number("registration", f.name, value)
-            if number <= 0:
-                raise EMRegError(f"case.toml [registration]: {f.name} must be positive, got {value!r}")
-            values[f.name] = int(number) if f.type in ("int", int) else number
-        return cls(**values)
-
-    @property
-    def point_sigma_mm(self) -> float:
-        """RMS 3D error of the difference between a calibration point and its image pinhole."""
-        return float(np.hypot(self.tracker_error_mm, self.image_error_mm))
-
-    @property
-    def distance_tolerance_mm(self) -> float:
-        """Tolerance on an inter-point distance (two points' errors projected on the line)."""
-        return self.n_sigma * self.point_sigma_mm * np.sqrt(2.0 / 3.0)
-
-    @property
-    def point_tolerance_mm(self) -> float:
-        """Largest residual of a paired point after the fit."""
-        return self.n_sigma * self.point_sigma_mm
-
-    @property
-    def angle_tolerance_deg(self) -> float:
-        """Tolerance on an angle between two directions, or between a mapped direction and an axis."""
-        return self.n_sigma * self.direction_error_deg * np.sqrt(2.0)
+from .settings import PairingSettings
 
 
 @dataclass
@@ -160,7 +102,7 @@ def pair_markers(
     points_reference: np.ndarray,
     directions_reference: np.ndarray | None,
     l_range_mm: tuple[float, float],
-    settings: PairingSettings | Mapping[str, Any] | None = None,
+    settings: PairingSettings | None = None,
     unsigned_directions: bool = False,
 ) -> PairingResult:
     """Pair image markers (origins (M, 3) and unit +Y axes (M, 3), image space, mm) with
@@ -174,8 +116,7 @@ def pair_markers(
     Raises :class:`NoSafeAnswerError` when fewer than ``min_pairs`` pairs are found or when
     two different pairings explain the data about equally well (symmetric layout).
     """
-    if not isinstance(settings, PairingSettings):
-        settings = PairingSettings.from_settings(settings)
+    settings = settings or PairingSettings()
     problem = _Problem(origins_image, axes_image, points_reference, directions_reference, l_range_mm, settings)
     problem.unsigned = bool(unsigned_directions)
     return problem.solve()

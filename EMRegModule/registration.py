@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -39,12 +39,11 @@ import numpy as np
 from .calibration import FrameCalibration
 from .errors import EMRegError, NoSafeAnswerError
 from .io.atomic import atomic_write_json, read_json
-from .io.case import check_known_keys, setting_number
 from .io.itk_transform import write_slicer_linear_transform
 from .marker_model import MarkerModel
-from .pairing import PairingSettings
 from .probe_axis import pair_with_probe_axis
 from .sensor_offset import OffsetSolution, solve_sensor_offset
+from .settings import RegistrationSettings, Settings
 from .transforms import apply_transform, is_rigid, predicted_tre, residuals
 
 #: Name of the ITK transform file written beside ``registration.json``.
@@ -56,40 +55,6 @@ RIGID_TOLERANCE = 1e-4
 
 #: Median of a chi-squared variable with 3 degrees of freedom (robust RMS of 3D residuals).
 _CHI2_3_MEDIAN = 2.3660
-
-
-@dataclass(frozen=True)
-class RegistrationSettings:
-    """``case.toml`` ``[registration]`` (pairing keys: see :class:`EMRegModule.pairing.PairingSettings`)."""
-
-    max_fre_mm: float = 2.0
-    outlier_factor: float = 2.5
-    outlier_min_mm: float = 1.0
-    warn_l_std_mm: float = 0.3
-    max_l_std_mm: float = 1.0
-    sensor_offset_l_mm: float | None = None
-    exclude_outliers: bool = False
-    pairing: PairingSettings = field(default_factory=PairingSettings)
-
-    @classmethod
-    def from_settings(cls, settings: Mapping[str, Any] | None) -> RegistrationSettings:
-        own = {f.name for f in fields(cls)} - {"pairing"}
-        pairing_keys = {f.name for f in fields(PairingSettings)}
-        settings = check_known_keys(settings, "registration", own | pairing_keys)
-        values: dict[str, Any] = {}
-        for name in own & set(settings):
-            value = settings[name]
-            if name == "exclude_outliers":
-                if not isinstance(value, bool):
-                    raise EMRegError(f"case.toml [registration]: exclude_outliers must be true or false, got {value!r}")
-                values[name] = value
-                continue
-            number = setting_number("registration", name, value)
-            if number <= 0:
-                raise EMRegError(f"case.toml [registration]: {name} must be a positive number, got {value!r}")
-            values[name] = number
-        pairing = PairingSettings.from_settings({k: v for k, v in settings.items() if k in pairing_keys})
-        return cls(pairing=pairing, **values)
 
 
 @dataclass
@@ -224,7 +189,7 @@ def register(
     detection: Any,
     frame_calibration: FrameCalibration,
     model: MarkerModel,
-    settings: Mapping[str, Any] | None = None,
+    settings: RegistrationSettings | None = None,
     targets_image: np.ndarray | None = None,
     probe_axis: str | None = None,
 ) -> RegistrationResult:
@@ -236,11 +201,11 @@ def register(
 
     ``detection``: a DetectionResult (markers with ``id``, ``origin``, ``axis`` in image space);
     ``frame_calibration``: pinhole points in the Reference frame; ``model``: gives l's range
-    [a, b]; ``settings``: ``case.toml`` ``[registration]``; ``targets_image`` (K, 3, LPS mm):
+    [a, b]; ``settings``: the ``[registration]`` table; ``targets_image`` (K, 3, LPS mm):
     targets for the predicted TRE. Raises :class:`NoSafeAnswerError` for an ambiguous pairing,
     too few pairs, FRE above ``max_fre_mm`` or a poorly determined l.
     """
-    config = RegistrationSettings.from_settings(settings)
+    config = settings or RegistrationSettings()
     image_ids, origins, axes = _image_markers(detection)
     labels = frame_calibration.labels
     points = frame_calibration.positions
@@ -418,6 +383,6 @@ def read_registration(path: str | os.PathLike[str], max_fre_mm: float | None = N
     return result
 
 
-def max_fre_from_settings(settings: Mapping[str, Any] | None) -> float:
-    """The FRE limit (mm) of a parsed ``case.toml`` (its ``[registration]`` table), for consumers."""
-    return RegistrationSettings.from_settings(dict(settings or {}).get("registration")).max_fre_mm
+def max_fre_from_settings(settings: Settings | None) -> float:
+    """The FRE limit (mm) of the settings (``[registration] max_fre_mm``; the default without settings)."""
+    return (settings or Settings()).registration.max_fre_mm

@@ -28,7 +28,8 @@ def main(argv=None) -> int:
     frame = sc.prepare_frame(args)
     case = open_case(frame.case_dir)
     nominal = [float(v) for v in frame.truth["board"]["edges_mm"]]
-    result = evaluate_board(read_tracking_csv(case.board), case.reference_sensor, case.probe_sensor, nominal)
+    result = evaluate_board(read_tracking_csv(case.board), case.reference_sensor, case.probe_sensor,
+                            nominal).to_json()
     rows = []
     for name, edge in result["edges"].items():
         paper = sc.PAPER["board"][name]

@@ -40,7 +40,7 @@ def main(argv=None) -> int:
         done += 1
         recording = sc.simulate_navigation(frame, rng, rounds=args.placements, noise=sc.noise_model(args.noise_scale))
         result = evaluate_targets(recording, frame.target_labels, frame.targets_image,
-                                  session.registration.reference_to_image)
+                                  session.registration.reference_to_image).to_json()
         for dwell in result["dwells"]:
             per_target[dwell["target"]].append(dwell["error_mm"])
             overall.append(dwell["error_mm"])

@@ -41,22 +41,22 @@ from .measure import measure_blob, metal_distance_mm
 from .pose import fit_pose, model_moments
 from .result import DetectedMarker, DetectionResult, RejectedCandidate
 from .segmentation import Blob, CoarseScan, Region, TooLarge, blobs_in_region, region_around
-from .settings import DetectionSettings, settings_from_dict
+from .settings import DetectionSettings, default_settings
 
 
-def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings: dict | None = None,
+def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings: DetectionSettings | None = None,
                    progress: Progress | None = None,
                    wait_for_slices: Callable[[int], None] | None = None) -> DetectionResult:
     """Markers in ``image`` (a scalar 3D CT in HU): origins (bottom-face centres) and +Y axes, LPS mm.
 
-    ``settings`` is the ``[detection]`` table of ``case.toml`` (unknown keys are an error).
+    ``settings`` is the ``[detection]`` table (None: the defaults for ``model``).
     ``wait_for_slices(n)``, when given, blocks until slices ``0 .. n-1`` (numpy axis 0) of an
     image still being read hold their values (:class:`~EMRegModule.io.fast_read.VolumeFill`):
     detection then works on the slices already read while the rest arrives, with the same result.
     Raises :class:`NoSafeAnswerError` (exit 3) when fewer than ``min_markers`` markers are found.
     """
     model = model or MarkerModel()
-    options = settings_from_dict(settings, model)
+    options = settings or default_settings(model)
     progress = progress or QUIET
     check_ct(image)
     volume = sitk.GetArrayViewFromImage(image)

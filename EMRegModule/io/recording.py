@@ -13,6 +13,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from ..settings import Settings
 from ..tracking import TrackingRecording
 from .sequence_metafile import (
     DEFAULT_PROBE_TRANSFORM,
@@ -27,28 +28,33 @@ from .tracking_csv import read_tracking_csv, write_tracking_csv
 RECORDING_SUFFIXES = (".csv", ".seq.mha", ".mha", ".seq.nrrd", ".igs.nrrd")
 
 
-def _names(settings: Mapping[str, Any] | None, reference_port: int | None = None,
+def _names(settings: Settings | Mapping[str, Any] | None, reference_port: int | None = None,
            probe_port: int | None = None) -> dict[str, Any]:
-    sensors = dict((settings or {}).get("sensors", {}) or {})
+    """Transform names and ports from the typed settings (or a parsed ``case.toml`` mapping)."""
+    if isinstance(settings, Settings):
+        sensors: dict[str, Any] = {k: v for k, v in vars(settings.sensors).items() if v is not None}
+    else:
+        sensors = dict((settings or {}).get("sensors", {}) or {})
     return {
-        "reference_transform": str(sensors.get("reference_transform", DEFAULT_REFERENCE_TRANSFORM)),
-        "probe_transform": str(sensors.get("probe_transform", DEFAULT_PROBE_TRANSFORM)),
+        "reference_transform": str(sensors.get("reference_transform") or DEFAULT_REFERENCE_TRANSFORM),
+        "probe_transform": str(sensors.get("probe_transform") or DEFAULT_PROBE_TRANSFORM),
         "reference_port": int(reference_port if reference_port is not None else sensors.get("reference", 1)),
         "probe_port": int(probe_port if probe_port is not None else sensors.get("probe", 2)),
     }
 
 
-def read_recording(path: str | os.PathLike[str], settings: Mapping[str, Any] | None = None,
+def read_recording(path: str | os.PathLike[str], settings: Settings | Mapping[str, Any] | None = None,
                    reference_port: int | None = None, probe_port: int | None = None) -> TrackingRecording:
     """Read a tracking recording (CSV or sequence metafile, by its name). ``settings``: the parsed
-    ``case.toml`` (its ``[sensors]`` table); the ports override ``[sensors] reference`` / ``probe``."""
+    ``case.toml`` (its ``[sensors]`` table; typed or a mapping); the ports override ``[sensors]
+    reference`` / ``probe``."""
     if is_sequence_file(path):
         return read_sequence_metafile(path, **_names(settings, reference_port, probe_port))
     return read_tracking_csv(path)
 
 
 def write_recording(recording: TrackingRecording, path: str | os.PathLike[str],
-                    settings: Mapping[str, Any] | None = None, reference_port: int | None = None,
+                    settings: Settings | Mapping[str, Any] | None = None, reference_port: int | None = None,
                     probe_port: int | None = None, orientation: str | None = None) -> None:
     """Write a recording atomically as CSV or, for a sequence-metafile name, as a PLUS sequence metafile."""
     if is_sequence_file(path):

@@ -124,14 +124,12 @@ class SlicerScene:
         ``path``, then renamed onto it."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
+        # Slicer's default storage nodes; the CT is written gzip-compressed as Slicer does (the zip around the
+        # scene stores its files as they are). Measured on the full demo CT (450 MB of voxels): 247 MB in
+        # 15-23 s; uncompressed would be 452 MB in 3 s, and the "fastest" compression preset changed neither.
         for node in self.nodes("vtkMRMLStorableNode"):
             if node.GetStorageNode() is None:
                 node.AddDefaultStorageNode()
-            storage = node.GetStorageNode()
-            if storage is not None and storage.IsA("vtkMRMLVolumeArchetypeStorageNode"):
-                # the CT dominates the bundle: gzip's fastest level halves a 450 MB CT in a quarter of the
-                # default level's time (the zip around it does not compress again)
-                storage.SetCompressionParameter("CompressionParameterFastest")
         work = Path(tempfile.mkdtemp(prefix=f".{path.stem}-", dir=path.parent))
         try:
             staged = work / path.name

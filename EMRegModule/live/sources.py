@@ -69,6 +69,11 @@ class TrakstarSource(SampleSource):
         self.description = f"trakSTAR on {url.path} at {url.baud} baud, {self.driver.rate_hz:g} Hz"
         self._watch: threading.Thread | None = None
 
+    def link_counts(self) -> tuple[int, int]:
+        """Cumulative (accepted, rejected) records of the serial link (for the link-quality monitor)."""
+        stats = self.driver.stats
+        return stats.records, stats.rejected
+
     def start(self, callback: SampleCallback) -> None:
         self.driver.start_stream(callback)
         self._watch = threading.Thread(target=self._watch_errors, name="trakstar-watch", daemon=True)

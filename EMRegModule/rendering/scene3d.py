@@ -184,7 +184,7 @@ class FrameSceneRenderer:
     def warm_up(self) -> None:
         """Draw once (discarded) so that the views later cost only their own rendering."""
         _frame_camera(self.plotter, _scene_bounds(self.meshes_for_bounds, self.points_for_bounds), "oblique")
-        self.plotter.render()
+        self.plotter.screenshot(return_img=False)  # pyvista draws the first frame only through a screenshot
 
     def set_context_surface(self, surface) -> None:
         """Add the CT context surface (``pyvista.PolyData``, LPS mm; None or empty: nothing)."""
@@ -202,6 +202,7 @@ class FrameSceneRenderer:
                 _set_camera(self.plotter, camera)
             else:
                 _frame_camera(self.plotter, _scene_bounds(self.meshes_for_bounds, self.points_for_bounds), view)
+            self.plotter.render()  # a screenshot after the first one shows the last frame drawn, not the new camera
             image = self.plotter.screenshot(return_img=True)
             images.append(np.ascontiguousarray(np.asarray(image)[:, :, :3], dtype=np.uint8))
         return images

@@ -32,6 +32,9 @@ _SHIFT = 4  # OpenCV sub-pixel drawing: coordinates in 1/16 pixel
 _SCALE = 1 << _SHIFT
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 BACKGROUND = (32, 32, 36)
+#: Pixels per side of one view and their size (mm) in the report's mosaic.
+VIEW_PX = 140
+MM_PER_PX = 0.2
 TEXT = (235, 235, 235)
 
 
@@ -86,22 +89,58 @@ def _profile(model: MarkerModel) -> np.ndarray:
                      (-rt, h), (-rt, hb), (-rb, hb)], dtype=float)
 
 
-def sample_marker_views(
-    sampler: CTSampler, marker_to_image: np.ndarray, model: MarkerModel, view_px: int, mm_per_px: float
-) -> list[np.ndarray]:
-    """The three planes of one marker as float arrays (view_px, view_px) of CT values."""
+def marker_view_points(marker_to_image: np.ndarray, model: MarkerModel, view_px: int, mm_per_px: float
+                       ) -> np.ndarray:
+    """Image-space points (3, view_px, view_px, 3; LPS mm) of a marker's three planes (XY, ZY, XZ)."""
     centre_px = (view_px - 1) / 2.0
     offsets = (np.arange(view_px) - centre_px) * mm_per_px
-    views = []
+    planes = []
     for _, h_axis, v_axis, n_axis, n_offset, v_centre in _view_planes(model):
         horizontal, vertical = np.meshgrid(offsets, v_centre - offsets)
         points_marker = np.zeros(horizontal.shape + (3,))
         points_marker[..., h_axis] = horizontal
         points_marker[..., v_axis] = vertical
         points_marker[..., n_axis] = n_offset
-        views.append(sampler.sample(apply_transform(marker_to_image, points_marker.reshape(-1, 3))
-                                    .reshape(points_marker.shape)))
-    return views
+        planes.append(apply_transform(marker_to_image, points_marker.reshape(-1, 3)).reshape(points_marker.shape))
+    return np.stack(planes)
+
+
+def sample_marker_views(
+    sampler: CTSampler, marker_to_image: np.ndarray, model: MarkerModel, view_px: int, mm_per_px: float
+) -> list[np.ndarray]:
+    """The three planes of one marker as float arrays (view_px, view_px) of CT values."""
+    return list(sampler.sample(marker_view_points(marker_to_image, model, view_px, mm_per_px)))
+
+
+class StreamingMarkerViews:
+    """Samples each marker's three planes as soon as the CT slices they cross have been read.
+
+    ``sample_ready(n)`` samples every marker whose planes lie within slices ``0 .. n-1`` (numpy
+    axis 0, the image's k index); ``views()`` returns them all (sampling what is left), in the
+    order of ``markers``, for :func:`marker_slices_mosaic`.
+    """
+
+    def __init__(self, image: sitk.Image, markers: list[SliceMarker], model: MarkerModel, view_px: int = VIEW_PX,
+                 mm_per_px: float = MM_PER_PX) -> None:
+        self.sampler = CTSampler(image)
+        self._views: list[list[np.ndarray] | None] = [None] * len(markers)
+        self._pending: list[tuple[int, int, np.ndarray]] = []
+        slices = self.sampler.array.shape[0]
+        for n, marker in enumerate(markers):
+            points = marker_view_points(marker.marker_to_image, model, view_px, mm_per_px)
+            k = apply_transform(self.sampler.image_to_index, points.reshape(-1, 3))[:, 2]
+            stop = int(np.clip(np.floor(np.max(k)) + 2, 0, slices))  # trilinear: floor(k) and floor(k) + 1
+            self._pending.append((stop, n, points))
+        self._pending.sort(key=lambda item: item[0])
+
+    def sample_ready(self, ready_slices: int) -> None:
+        while self._pending and self._pending[0][0] <= ready_slices:
+            _, n, points = self._pending.pop(0)
+            self._views[n] = list(self.sampler.sample(points))
+
+    def views(self) -> list[list[np.ndarray]]:
+        self.sample_ready(self.sampler.array.shape[0])
+        return self._views
 
 
 def _to_px(h_mm: np.ndarray, v_mm: np.ndarray, v_centre: float, view_px: int, mm_per_px: float) -> np.ndarray:
@@ -162,17 +201,21 @@ def _to_grey_rgb(values: np.ndarray, window: tuple[float, float]) -> np.ndarray:
 
 
 def marker_slices_mosaic(
-    image: sitk.Image, markers: list[SliceMarker], model: MarkerModel, columns: int = 3, view_px: int = 140,
-    mm_per_px: float = 0.2, window: tuple[float, float] | None = None,
+    image: sitk.Image | None, markers: list[SliceMarker], model: MarkerModel, columns: int = 3,
+    view_px: int = VIEW_PX, mm_per_px: float = MM_PER_PX, window: tuple[float, float] | None = None,
+    views: list[list[np.ndarray]] | None = None,
 ) -> np.ndarray:
     """A mosaic (RGB ``uint8``) of every marker's three views with overlays, ``columns`` markers per row.
 
-    ``window`` is the displayed CT value range (default: 1st to 99.5th percentile of all views).
+    ``window`` is the displayed CT value range (default: 1st to 99.5th percentile of all views);
+    ``views``: the planes already sampled (:class:`StreamingMarkerViews`), else sampled from ``image``.
     """
     if not markers:
         raise ValueError("marker_slices_mosaic needs at least one marker")
-    sampler = CTSampler(image)
-    all_views = [sample_marker_views(sampler, m.marker_to_image, model, view_px, mm_per_px) for m in markers]
+    if views is None:
+        sampler = CTSampler(image)
+        views = [sample_marker_views(sampler, m.marker_to_image, model, view_px, mm_per_px) for m in markers]
+    all_views = views
     window = window or _window([v for views in all_views for v in views])
     gap, header = 4, 20
     tile_w = 3 * view_px + 2 * gap

@@ -14,8 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..dwell import DwellSettings
-from ..errors import EMRegError
 from ..io.image import image_geometry
 from ..registration import RegistrationResult, RegistrationSettings, flag_outliers
 from .derived import MarkerRow
@@ -31,10 +29,7 @@ class ReportWarning:
 
 
 def _registration_settings(inputs: ReportInputs) -> RegistrationSettings:
-    try:
-        return RegistrationSettings.from_settings(inputs.section("registration"))
-    except EMRegError:
-        return RegistrationSettings()
+    return inputs.settings.registration
 
 
 def run_checks(inputs: ReportInputs) -> list[ReportWarning]:
@@ -125,10 +120,7 @@ def calibration_checks(inputs: ReportInputs) -> list[ReportWarning]:
     """Calibration dwells whose spread exceeds the dwell's own stillness radius (the probe moved)."""
     if inputs.frame_calibration is None:
         return []
-    try:
-        limit = DwellSettings.from_settings(inputs.section("calibration")).still_radius_mm
-    except EMRegError:
-        limit = DwellSettings().still_radius_mm
+    limit = inputs.settings.calibration.still_radius_mm
     return [ReportWarning("warning", f"calibration point {p.label}: the probe moved during the dwell "
                                      f"(spread {p.std_mm:.2f} mm)")
             for p in inputs.frame_calibration.points if np.isfinite(p.std_mm) and p.std_mm > limit]

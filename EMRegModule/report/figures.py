@@ -53,6 +53,7 @@ class ReportData:
     warnings: list[ReportWarning] = field(default_factory=list)
     surface: ContextSurface | None = None
     scene_renderer: object | None = None  # a FrameSceneRenderer built before the CT is read
+    marker_views: object | None = None  # StreamingMarkerViews: the slices sampled as the CT is read
 
     @property
     def l_mm(self) -> float | None:
@@ -88,16 +89,23 @@ def _frame_scene(data: ReportData):
 
 
 def prepare_context_surface(data: ReportData) -> None:
-    """Bin the CT (following its read) and contour it for the 3D view; a CT that fails to read becomes a note."""
+    """Bin the CT (following its read) and contour it for the 3D view; the marker slices are sampled meanwhile.
+
+    A CT that fails to read becomes a note (and no CT figure).
+    """
+    from ..rendering.slices import StreamingMarkerViews
+
     if data.inputs.ct is None or data.surface is not None:
         return
     try:
-        binned = binned_ct(data.inputs.ct)
+        if data.rows:
+            data.marker_views = StreamingMarkerViews(data.inputs.ct.image, _slice_markers(data), data.inputs.model)
+        binned = binned_ct(data.inputs.ct, on_slices=data.marker_views.sample_ready if data.marker_views else None)
     except EMRegError as exc:
         data.inputs.notes.append(str(exc))
-        data.inputs.ct = None
+        data.inputs.ct, data.marker_views = None, None
         return
-    iso_value = finite_or_none(data.inputs.section("report").get("iso_value"))
+    iso_value = data.inputs.settings.report.iso_value
     data.surface = context_surface(binned, iso_value)
 
 
@@ -132,9 +140,9 @@ def render_scenes(data: ReportData) -> list[Figure]:
 # --- CT slices ------------------------------------------------------------------------------------
 
 
-def render_marker_slices(data: ReportData) -> list[Figure]:
-    """Two planes along each marker's axis and one across its base, with the fitted outline."""
-    from ..rendering.slices import SliceMarker, marker_slices_mosaic
+def _slice_markers(data: ReportData) -> list:
+    """Every detected marker as drawn on the slices: caption, paired or not, sensor and calibration points."""
+    from ..rendering.slices import SliceMarker
 
     registration = data.inputs.registration
     slice_markers = []
@@ -153,13 +161,18 @@ def render_marker_slices(data: ReportData) -> list[Figure]:
             r.id, r.marker_to_image, caption, paired=r.calibration_label is not None or registration is None,
             sensor_point=r.sensor_point(data.l_mm) if data.l_mm is not None else None,
             calibration_point=calibration_point))
-    try:
-        image = data.inputs.image
-    except EMRegError as exc:
-        data.inputs.notes.append(str(exc))
-        data.inputs.ct = None
+    return slice_markers
+
+
+def render_marker_slices(data: ReportData) -> list[Figure]:
+    """Two planes along each marker's axis and one across its base, with the fitted outline."""
+    from ..rendering.slices import marker_slices_mosaic
+
+    prepare_context_surface(data)  # samples the slices while following the CT's read
+    if data.inputs.ct is None:
         return []
-    mosaic = marker_slices_mosaic(image, slice_markers, data.inputs.model)
+    views = data.marker_views.views() if data.marker_views is not None else None
+    mosaic = marker_slices_mosaic(data.inputs.image, _slice_markers(data), data.inputs.model, views=views)
     return [Figure("marker_slices", "CT slices through each marker",
                    "Per marker: two planes through the marker axis (XY, ZY) and a cross-section of its base (XZ), "
                    "with the fitted model outline (green: paired, orange: unpaired), the sensor point at the solved "

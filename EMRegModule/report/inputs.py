@@ -30,6 +30,7 @@ from ..io.case import open_case
 from ..io.markups import read_markups
 from ..marker_model import MarkerModel
 from ..registration import RegistrationResult, read_registration
+from ..settings import Settings
 
 if TYPE_CHECKING:
     import SimpleITK as sitk
@@ -45,7 +46,8 @@ class ReportInputs:
     """Everything found for one report; None where absent. Positions in image space (LPS mm).
 
     ``ct`` is the case's CT, possibly still being read (``ct.result()`` waits for it);
-    ``settings`` the case's ``case.toml`` tables; ``notes`` the inputs that could not be read.
+    ``settings`` the case's checked ``case.toml`` (defaults when unreadable); ``notes`` the inputs
+    that could not be read.
     """
 
     out_dir: Path
@@ -61,7 +63,7 @@ class ReportInputs:
     ct_path: Path | None = None
     targets_labels: list[str] | None = None
     targets_positions: np.ndarray | None = None
-    settings: dict = field(default_factory=dict)
+    settings: Settings = field(default_factory=Settings)
     model: MarkerModel = field(default_factory=MarkerModel)
     notes: list[str] = field(default_factory=list)
 
@@ -69,11 +71,6 @@ class ReportInputs:
     def image(self) -> sitk.Image | None:
         """The whole CT (waits for its read to finish), or None without one."""
         return None if self.ct is None else self.ct.result()
-
-    def section(self, name: str) -> dict[str, Any]:
-        """One ``case.toml`` table of the case (empty when absent or not a table)."""
-        table = self.settings.get(name)
-        return table if isinstance(table, dict) else {}
 
 
 def has_report_inputs(folder: str | os.PathLike[str]) -> bool:
@@ -84,20 +81,21 @@ def has_report_inputs(folder: str | os.PathLike[str]) -> bool:
 
 def read_navigation_csv(path: Path) -> tuple[np.ndarray, list[str]]:
     """Probe positions (N, 3, image LPS mm) and labels of an ``OUT/navigation.csv``."""
-    positions: list[list[float]] = []
-    labels: list[str] = []
+    with path.open(newline="", encoding="utf-8") as f:
+        reader = csv.reader(f)
+        header = [name.strip() for name in next(reader, [])]
+        missing = {"x_mm", "y_mm", "z_mm"} - set(header)
+        if missing:
+            raise EMRegError(f"{path}: navigation CSV lacks column(s) {', '.join(sorted(missing))}")
+        rows = [row for row in reader if row]
+    columns = [header.index(name) for name in ("x_mm", "y_mm", "z_mm")]
+    label = header.index("label") if "label" in header else None
     try:
-        with path.open(newline="", encoding="utf-8") as f:
-            reader = csv.DictReader(f)
-            missing = {"x_mm", "y_mm", "z_mm"} - set(reader.fieldnames or [])
-            if missing:
-                raise EMRegError(f"{path}: navigation CSV lacks column(s) {', '.join(sorted(missing))}")
-            for row in reader:
-                positions.append([float(row["x_mm"]), float(row["y_mm"]), float(row["z_mm"])])
-                labels.append((row.get("label") or "").strip())
-    except (ValueError, TypeError):
+        positions = np.array([[row[i] for i in columns] for row in rows], dtype=float).reshape(-1, 3)
+    except (ValueError, IndexError):
         raise EMRegError(f"{path}: navigation CSV holds a non-numeric position") from None
-    return np.asarray(positions, dtype=float).reshape(-1, 3), labels
+    labels = [row[label].strip() if label is not None and label < len(row) else "" for row in rows]
+    return positions, labels
 
 
 def _read_optional(path: Path, read: Callable[[Path], Any], notes: list[str]) -> Any:
@@ -111,14 +109,9 @@ def _read_optional(path: Path, read: Callable[[Path], Any], notes: list[str]) ->
         return None
 
 
-def _max_fre_mm(settings: dict | None) -> float | None:
-    """The case's ``[registration] max_fre_mm`` (None: the default, also when the settings are unusable)."""
-    from ..registration import max_fre_from_settings
-
-    try:
-        return max_fre_from_settings(settings)
-    except EMRegError:
-        return None
+def _max_fre_mm(settings: Settings | None) -> float | None:
+    """The case's ``[registration] max_fre_mm`` (the default without settings)."""
+    return (settings or Settings()).registration.max_fre_mm
 
 
 def _read_json_object(what: str) -> Callable[[Path], dict]:
@@ -172,7 +165,7 @@ def _start_ct(inputs: ReportInputs, image: sitk.Image | None, read_image: bool) 
         inputs.ct = VolumeFill.complete(image)
     elif read_image and inputs.ct_path is not None:
         used = (inputs.run or {}).get("ct_series") or {}  # a DICOM folder: the series the run detected in
-        series = used.get("series_instance_uid") or (inputs.settings.get("ct") or {}).get("series")
+        series = used.get("series_instance_uid") or inputs.settings.ct.series
         try:
             inputs.ct = open_ct(inputs.ct_path, series)
         except EMRegError as exc:
@@ -213,8 +206,5 @@ def load_report_inputs(out_dir: str | os.PathLike[str], case_dir: str | os.PathL
     navigation = _read_optional(out / "navigation.csv", read_navigation_csv, notes)
     if navigation is not None:
         inputs.navigation_positions, inputs.navigation_labels = navigation
-    try:
-        inputs.model = MarkerModel.from_settings(inputs.settings.get("marker"))
-    except EMRegError as exc:
-        notes.append(str(exc))
+    inputs.model = inputs.settings.marker
     return inputs

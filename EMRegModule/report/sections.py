@@ -191,7 +191,7 @@ def board_section(data: ReportData, figures: dict[str, Figure]) -> str:
     if not board or not board.get("edges"):
         return "<h2>Board phantom</h2>\n" + note(
             "Not shown: no board table in evaluation.json (needs board.csv in the case).")
-    nominal = list(data.inputs.section("board").get("edges_mm") or [])
+    nominal = list(data.inputs.settings.board.edges_mm or [])
     rows = [_board_row(i, name, edge, nominal) for i, (name, edge) in enumerate(board["edges"].items())]
     return "\n".join([
         "<h2>Board phantom</h2>",

@@ -13,7 +13,9 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import EMRegError
 from ..io.atomic import atomic_write_json, atomic_write_text, read_json
+from ..io.case import CT_FILE_NAMES, CT_FOLDER_NAME
 from ..io.markups import write_markups
 from ..io.tracking_csv import write_tracking_csv
 from ..marker_model import MarkerModel
@@ -130,8 +132,6 @@ def _phantom(seed: int, opts: SimulationOptions, model: MarkerModel) -> Phantom:
         return build_phantom(layout, model, opts.frame_size_mm, opts.n_markers, opts.n_decoys, absent,
                              uncalibrated, opts.n_targets, opts.patient, opts.couch)
     except ValueError as exc:
-        from ..errors import EMRegError
-
         raise EMRegError(f"simulate: {exc}") from None
 
 
@@ -148,8 +148,6 @@ def _frame_to_image(rng: np.random.Generator, phantom: Phantom, opts: Simulation
 
 def _synthesise_ct(seed: int, opts: SimulationOptions, phantom: Phantom, frame_to_image: np.ndarray,
                    grid: ct.Grid, progress: Progress):
-    from ..errors import EMRegError
-
     if grid.n_voxels > MAX_VOXELS:
         raise EMRegError(f"simulate: a CT of {grid.size} voxels is too large; use a coarser --spacing")
     start = time.perf_counter()
@@ -190,8 +188,6 @@ def _write_ct(image, grid: ct.Grid, out_dir: Path, opts: SimulationOptions, seed
 
 def _remove_stale_cts(out_dir: Path, keep: str) -> None:
     """A case holds one CT: drop those an earlier simulation into the same folder left behind."""
-    from ..io.image import CT_FILE_NAMES, CT_FOLDER_NAME
-
     for name in (*CT_FILE_NAMES, CT_FOLDER_NAME):
         path = out_dir / name
         if name == keep or not path.exists():

@@ -433,12 +433,12 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
     def evaluate(self):
         """TRE at the targets and the board table when the case has the recordings; writes ``evaluation.json``."""
-        from EMRegModule.evaluation import evaluate_case, write_evaluation
+        from EMRegModule.evaluation import write_evaluation
 
         if self.case is None or (self.case.navigation is None and self.case.board is None):
             return None
-        self.evaluation = evaluate_case(self.case, self.controller.reference_to_image,
-                                        self.controller.reference_sensor, self.controller.probe_sensor)
+        self.evaluation = self.controller.evaluate(self.case.read_recording("navigation"), self.case.read_targets(),
+                                                   self.case.read_recording("board"))
         write_evaluation(self.evaluation, self._output("evaluation.json"))
         return self.evaluation
 
@@ -567,9 +567,9 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
             if registration.unpaired_image_markers or registration.unpaired_calibration_points:
                 lines.append(f"unpaired: {len(registration.unpaired_image_markers)} markers, "
                              f"{len(registration.unpaired_calibration_points)} calibration points")
-        tre = (self.evaluation or {}).get("tre")
-        if tre:
-            lines.append(f"TRE {tre['mean_mm']:.2f} +/- {tre['std_mm']:.2f} mm")
+        tre = self.evaluation.tre if self.evaluation is not None else None
+        if tre is not None:
+            lines.append(f"TRE {tre.mean_mm:.2f} +/- {tre.std_mm:.2f} mm")
         if self.reportPath is not None:
             lines.append(f"report: {self.reportPath}")
         return "\n".join(lines)
@@ -666,8 +666,8 @@ class EMRegTest(ScriptedLoadableModuleTest):
         if logic.case.navigation is not None:
             navigation = logic.navigateRecording()
             self.assertGreater(len(navigation), 0)
-            if logic.evaluation and "tre" in logic.evaluation:
-                self.assertLess(logic.evaluation["tre"]["mean_mm"], 2.0)
+            if logic.evaluation is not None and logic.evaluation.tre is not None:
+                self.assertLess(logic.evaluation.tre.mean_mm, 2.0)
             # the last probe pose, under ReferenceToImage, lands where navigation says (RAS)
             probeNode = slicer.mrmlScene.GetFirstNodeByName(EMRegLogic.PROBE_NODE_NAME)
             self.assertEqual(probeNode.GetTransformNodeID(), transformNode.GetID())

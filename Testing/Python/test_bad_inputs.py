@@ -230,14 +230,15 @@ def test_fixed_sensor_offset_outside_the_pinhole_is_refused():
 
     from EMRegModule.errors import EMRegError
     from EMRegModule.marker_model import MarkerModel
-    from EMRegModule.registration import register
+    from EMRegModule.registration import RegistrationSettings, register
 
     markers, calibration = _inputs(pairing_problem(3))
     for l_mm in (1000.0, 5.0, 18.6):
         with pytest.raises(EMRegError, match="outside the marker's pinhole 11..18.5") as info:
-            register(markers, calibration, MarkerModel(), {"sensor_offset_l_mm": l_mm})
+            register(markers, calibration, MarkerModel(), RegistrationSettings(sensor_offset_l_mm=l_mm))
         assert info.value.exit_code == 2
-    assert register(markers, calibration, MarkerModel(), {"sensor_offset_l_mm": 18.5}).sensor_offset_fixed
+    assert register(markers, calibration, MarkerModel(),
+                    RegistrationSettings(sensor_offset_l_mm=18.5)).sensor_offset_fixed
 
 
 @pytest.mark.parametrize("units,scale", [("mm", 1.0), ("m", 1000.0), (None, 1.0)])

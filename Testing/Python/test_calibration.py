@@ -18,6 +18,7 @@ from EMRegModule.cli import main
 from EMRegModule.dwell import DwellSettings, find_dwells, good_quality_mask, robust_mean
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.tracking_csv import write_tracking_csv
+from EMRegModule.settings import CalibrationSettings, Settings
 from EMRegModule.tracking import TrackingRecording
 from EMRegModule.transforms import angle_between_deg, make_transform, random_rotation
 
@@ -120,13 +121,13 @@ def test_min_duration_setting_and_short_dwells(frame):
                                          dwell_s=0.4)
     with pytest.raises(EMRegError, match="no dwell"):
         calibrate_frame(recording, 1, 2, None)
-    calibration = calibrate_frame(recording, 1, 2, {"min_duration_s": 0.3})
+    calibration = calibrate_frame(recording, 1, 2, CalibrationSettings(min_duration_s=0.3))
     assert len(calibration.points) == 5
 
 
 def test_settings_are_checked():
-    with pytest.raises(EMRegError, match="unknown key"):
-        DwellSettings.from_settings({"min_duration": 1.0}, strict=True)
+    with pytest.raises(EMRegError, match=r"\[calibration\] unknown key min_duration; known: .*min_duration_s"):
+        Settings.from_mapping({"calibration": {"min_duration": 1.0}})
     with pytest.raises(EMRegError, match="positive"):
         DwellSettings.from_settings({"still_radius_mm": -1})
     assert DwellSettings.from_settings({"min_samples": 12.0}).min_samples == 12

@@ -8,6 +8,7 @@ import SimpleITK as sitk
 
 from EMRegModule.controller import EMRegController, WorkflowError, WorkflowState
 from EMRegModule.errors import EMRegError
+from EMRegModule.settings import Settings
 
 
 def _detection():
@@ -68,11 +69,15 @@ def test_states_advance_and_new_inputs_invalidate():
 
 
 def test_settings_configure_marker_and_sensors():
-    controller = EMRegController({"sensors": {"reference": 3, "probe": 4}, "marker": {"top_height_mm": 12}})
+    settings = Settings.from_mapping({"sensors": {"reference": 3, "probe": 4}, "marker": {"top_height_mm": 12}})
+    controller = EMRegController(settings)
     assert (controller.reference_sensor, controller.probe_sensor) == (3, 4)
     assert controller.marker_model.pinhole_top_mm == pytest.approx(20.5)
-    with pytest.raises(EMRegError):
-        EMRegController({"marker": {"bogus": 1}})
+    with pytest.raises(TypeError):
+        EMRegController({"marker": {"top_height_mm": 12}})  # typed settings only, never a raw dict
+    with pytest.raises(EMRegError, match="two different ports"):
+        controller.set_sensors(probe_sensor=3)
+    assert (controller.reference_sensor, controller.probe_sensor) == (3, 4)
 
 
 def test_bad_image_is_refused_before_anything_changes():

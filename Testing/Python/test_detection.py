@@ -183,7 +183,7 @@ def test_empty_ct_has_no_safe_answer():
     image = ph.render(geometry, [plate], noise_hu=20.0)
     with pytest.raises(NoSafeAnswerError, match="0 marker"):
         detect_markers(image, MarkerModel())
-    assert detect_markers(image, MarkerModel(), {"min_markers": 0}).markers == []
+    assert detect_markers(image, MarkerModel(), settings_from_dict({"min_markers": 0}, MarkerModel())).markers == []
 
 
 def test_settings_are_checked_and_overridable():
@@ -201,7 +201,8 @@ def test_settings_are_checked_and_overridable():
 
 def test_a_band_that_misses_the_markers_finds_nothing(standard_scene):
     with pytest.raises(NoSafeAnswerError, match="high_hu 900"):
-        detect_markers(standard_scene.image, standard_scene.model, {"high_hu": 900})
+        detect_markers(standard_scene.image, standard_scene.model,
+                       settings_from_dict({"high_hu": 900}, standard_scene.model))
 
 
 def test_files_round_trip(tmp_path, standard_scene, standard_result):

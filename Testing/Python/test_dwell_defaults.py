@@ -9,7 +9,12 @@ import numpy as np
 import pytest
 
 from EMRegModule.dwell import describe_still_periods, find_dwells
-from EMRegModule.evaluation import DEFAULT_MIN_DURATION_S, DEFAULT_STILL_RADIUS_MM, evaluation_dwell_settings
+from EMRegModule.settings import EvaluationSettings, Settings
+
+
+def evaluation_dwell_settings(table: dict) -> EvaluationSettings:
+    """The ``[evaluation]`` table as ``case.toml`` would give it (defaults where absent)."""
+    return Settings.from_mapping({"evaluation": table}, "test").evaluation
 
 RATE_HZ = 80.0
 
@@ -41,9 +46,10 @@ def _track(parts: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
 
 def test_the_defaults_are_what_the_evaluation_uses():
     settings = evaluation_dwell_settings({})
-    assert settings.min_duration_s == DEFAULT_MIN_DURATION_S == 0.35
-    assert settings.still_radius_mm == DEFAULT_STILL_RADIUS_MM == 1.0
+    assert settings.min_duration_s == 0.35
+    assert settings.still_radius_mm == 1.0
     assert settings.drift_limit_mm == 2.0
+    assert Settings().calibration.min_duration_s == 0.5  # a probe resting in a pinhole: unchanged
     assert evaluation_dwell_settings({"min_duration_s": 0.8, "max_target_distance_mm": 5}).min_duration_s == 0.8
 
 

@@ -9,7 +9,7 @@ import pytest
 from synth_registration import calibration_recording, make_frame
 
 from EMRegModule.errors import EMRegError
-from EMRegModule.evaluation import evaluate_board, evaluate_case, write_evaluation
+from EMRegModule.evaluation import Evaluation, evaluate, evaluate_board, read_evaluation, write_evaluation
 from EMRegModule.io.case import open_case
 from EMRegModule.io.markups import write_markups
 from EMRegModule.io.tracking_csv import write_tracking_csv
@@ -56,6 +56,15 @@ def case_folder(tmp_path_factory):
     write_tracking_csv(board, folder / "board.csv")
     (folder / "case.toml").write_text("[board]\nedges_mm = [75.3, 60.4, 75.5, 60.4]\n")
     return folder, frame, targets_image, visits, nav_truth, board, board_truth
+
+
+def evaluate_case(case, reference_to_image, reference_sensor, probe_sensor) -> dict:
+    """The evaluation of a case folder's recordings, as written to evaluation.json."""
+    result = evaluate(reference_to_image, reference_sensor, probe_sensor, case.settings.evaluation,
+                      navigation=case.read_recording("navigation"), targets=case.read_targets(),
+                      board=case.read_recording("board"), nominal_edges_mm=case.settings.board.edges_mm)
+    assert isinstance(result, Evaluation)
+    return result.to_json()
 
 
 def _expected_target_errors(frame, targets_image, visits, nav_truth):
@@ -122,16 +131,25 @@ def test_unlabelled_recordings_give_the_same_figures(case_folder, tmp_path):
 def test_board_without_nominal_edges_and_bad_settings(case_folder):
     folder, *_, board, board_truth = case_folder
     result = evaluate_board(board, 1, 2, None)
-    assert "nominal_mm" not in result["edges"]["L1"] and result["edges"]["L1"]["n"] == 5
+    assert result.edges["L1"].nominal_mm is None and result.edges["L1"].length.n == 5
+    assert "nominal_mm" not in result.to_json()["edges"]["L1"]
     with pytest.raises(EMRegError, match="edges_mm has 3 values"):
         evaluate_board(board, 1, 2, [1.0, 2.0, 3.0])
 
 
 def test_write_evaluation_spec_layout(case_folder, tmp_path):
     folder, frame, *_ = case_folder
-    result = evaluate_case(open_case(folder), frame.reference_to_image, 1, 2)
+    case = open_case(folder)
+    result = evaluate(frame.reference_to_image, 1, 2, case.settings.evaluation,
+                      navigation=case.read_recording("navigation"), targets=case.read_targets(),
+                      board=case.read_recording("board"), nominal_edges_mm=case.settings.board.edges_mm)
     write_evaluation(result, tmp_path / "evaluation.json")
     document = json.loads((tmp_path / "evaluation.json").read_text())
+    # full precision in memory, 4 decimals on disk; reading back and writing again changes nothing
+    assert result.tre.dwells[0].error_mm != round(result.tre.dwells[0].error_mm, 4)
+    assert document["tre"]["dwells"][0]["error_mm"] == round(result.tre.dwells[0].error_mm, 4)
+    again = read_evaluation(tmp_path / "evaluation.json")
+    assert again.to_json() == document and again.tre.targets["T1"].n == 4
     assert set(document["tre"]) >= {"mean_mm", "std_mm", "targets"}
     assert set(document["tre"]["targets"]["T1"]) >= {"mean_mm", "std_mm", "n"}
     assert set(document["board"]["edges"]["L1"]) >= {"mean_mm", "std_mm", "n"}

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fixtures import samples
+from fixtures.compare import REGENERATE_ENV, check_against_baseline, compare_images, regenerate_requested
 
-from EMRegModule.rendering.compare import REGENERATE_ENV, check_against_baseline, compare_images, regenerate_requested
 from EMRegModule.rendering.images import read_png
 
 BASELINE_DIR = Path(__file__).resolve().parents[1] / "Baseline"

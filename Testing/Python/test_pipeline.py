@@ -20,7 +20,7 @@ import pytest
 from conftest import load_truth
 
 from EMRegModule.cli import main, stage_available
-from EMRegModule.evaluation import evaluate_case
+from EMRegModule.evaluation import evaluate
 from EMRegModule.io.case import open_case
 from EMRegModule.io.itk_transform import read_slicer_linear_transform
 from EMRegModule.transforms import fit_rigid
@@ -130,7 +130,9 @@ def test_tre_is_close_to_the_ideal_registration(run):
     pairs = [(points[label], np.asarray(markers[name]["origin"]) + l_true * np.asarray(markers[name]["axis"]))
              for label, name in calibration.items() if name is not None and markers[name]["in_ct"]]
     ideal = fit_rigid(np.array([p for p, _ in pairs]), np.array([q for _, q in pairs]))
-    ideal_tre = evaluate_case(open_case(case), ideal, 1, 2)["tre"]["mean_mm"]
+    folder = open_case(case)
+    ideal_tre = evaluate(ideal, 1, 2, folder.settings.evaluation, navigation=folder.read_recording("navigation"),
+                         targets=folder.read_targets()).to_json()["tre"]["mean_mm"]
     tre = _load(out, "evaluation.json")["tre"]
     assert tre["n"] == len(truth["navigation"]["dwells"])
     assert tre["mean_mm"] <= 1.2 * ideal_tre + 0.1, (tre["mean_mm"], ideal_tre)

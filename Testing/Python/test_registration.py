@@ -69,7 +69,8 @@ def test_predicted_tre_matches_the_observed_error():
                                   extra_calibration=0, image_error_mm=0.05, direction_error_deg=0.5)
         markers, calibration = _inputs(problem)
         targets = problem.frame.origins_image.mean(axis=0) + np.random.default_rng(seed).uniform(-120, 120, (5, 3))
-        result = register(markers, calibration, MODEL, {"sensor_offset_l_mm": problem.frame.l_mm}, targets)
+        fixed = RegistrationSettings.from_settings({"sensor_offset_l_mm": problem.frame.l_mm})
+        result = register(markers, calibration, MODEL, fixed, targets)
         observed.append(_target_error(result, problem.frame, targets) ** 2)
         predicted.append(result.predicted_tre_mm**2)
     ratio = np.sqrt(np.mean(observed) / np.mean(predicted))
@@ -84,7 +85,7 @@ def test_parallel_axes_leave_l_undetermined_and_are_refused():
     markers, calibration = _inputs(problem)
     with pytest.raises(NoSafeAnswerError, match="poorly determined"):
         register(markers, calibration, MODEL)
-    result = register(markers, calibration, MODEL, {"sensor_offset_l_mm": 14.0})
+    result = register(markers, calibration, MODEL, RegistrationSettings.from_settings({"sensor_offset_l_mm": 14.0}))
     assert result.sensor_offset_l_mm == 14.0 and result.sensor_offset_fixed
 
 
@@ -114,7 +115,7 @@ def test_fre_limit_refuses():
     problem = pairing_problem(7)
     markers, calibration = _inputs(problem)
     with pytest.raises(NoSafeAnswerError, match="max_fre_mm"):
-        register(markers, calibration, MODEL, {"max_fre_mm": 0.2})
+        register(markers, calibration, MODEL, RegistrationSettings.from_settings({"max_fre_mm": 0.2}))
 
 
 def test_an_outlier_pair_is_flagged_and_can_be_left_out():
@@ -127,7 +128,7 @@ def test_an_outlier_pair_is_flagged_and_can_be_left_out():
     partner = int(np.nonzero(problem.image_truth == problem.calibration_truth[4])[0][0])
     assert result.outliers == [markers[partner]["id"]]
     assert any("outlier" in w for w in result.warnings)
-    cleaned = register(markers, calibration, MODEL, {"exclude_outliers": True})
+    cleaned = register(markers, calibration, MODEL, RegistrationSettings.from_settings({"exclude_outliers": True}))
     assert cleaned.fre_mm < result.fre_mm
     assert any("left out" in w for w in cleaned.warnings)
 

@@ -114,8 +114,8 @@ def test_board_edges(case_name, request):
     case = request.getfixturevalue(case_name)
     truth = load_truth(case)
     settings = open_case(case).settings
-    assert settings["sensors"] == {"reference": 1, "probe": 2}
-    assert settings["board"]["edges_mm"] == pytest.approx(truth["board"]["edges_mm"])
+    assert (settings.sensors.reference, settings.sensors.probe) == (1, 2)
+    assert settings.board.edges_mm == pytest.approx(truth["board"]["edges_mm"])
     assert truth["board"]["edges_mm"] == pytest.approx([75.3, 60.4, 75.5, 60.4])
     recording = read_tracking_csv(case / "board.csv")
     samples = probe_in_reference(recording, 1, 2)

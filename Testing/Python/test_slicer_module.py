@@ -861,3 +861,64 @@ def test_everything_the_slicer_module_imports_runs_on_slicers_python():
     assert not outside & REMOVED_STDLIB
     third_party = {name for name in outside if name not in sys.stdlib_module_names} - SLICER_PROVIDED
     assert third_party <= set(declared) | OPTIONAL_WITH_FALLBACK, third_party - set(declared)
+
+
+class FakeConnectorNode:
+    """Stand-in for vtkMRMLIGTLConnectorNode of the SlicerOpenIGTLink extension (C++, not in slicer-core):
+    the calls the Logic makes (``SetTypeClient``, ``Start`` returning 1 on success, ``Stop``)."""
+
+    def __init__(self, name: str, starts: bool) -> None:
+        self.name, self.starts, self.client, self.started = name, starts, None, False
+
+    def GetID(self) -> str:
+        return f"vtkMRMLIGTLConnectorNode_{self.name}"
+
+    def SetTypeClient(self, host: str, port: int) -> None:
+        self.client = (host, port)
+
+    def Start(self) -> int:
+        self.started = self.starts
+        return 1 if self.starts else 0
+
+    def Stop(self) -> None:
+        self.started = False
+
+
+class SceneWithOpenIGTLink:
+    """The real MRML scene, which also knows the extension's connector node class (a stand-in)."""
+
+    def __init__(self, scene, starts: bool = True) -> None:
+        self._scene, self.starts, self.connectors = scene, starts, []
+
+    def __getattr__(self, name):
+        return getattr(self._scene, name)
+
+    def AddNewNodeByClass(self, className, name=""):
+        if className == "vtkMRMLIGTLConnectorNode":
+            self.connectors.append(FakeConnectorNode(name, self.starts))
+            return self.connectors[-1]
+        return self._scene.AddNewNodeByClass(className, name)
+
+    def RemoveNode(self, node) -> None:
+        if isinstance(node, FakeConnectorNode):
+            self.connectors.remove(node)
+        else:
+            self._scene.RemoveNode(node)
+
+
+def test_live_navigation_connects_and_disconnects_openigtlinkif(slicer_core):
+    from EMRegModule.errors import EMRegError
+
+    module = slicer_core.load_module()
+    scene = SceneWithOpenIGTLink(slicer_core.scene)
+    logic = module.EMRegLogic(scene=scene)
+    connector = logic.startLiveNavigation("navigation-pc", 18945)
+    assert connector.client == ("navigation-pc", 18945) and connector.started and scene.connectors == [connector]
+    assert connector.name == "EMReg OpenIGTLink"
+    logic.stopLiveNavigation()
+    assert not connector.started and scene.connectors == [] and logic.connectorNode is None
+
+    refusing = module.EMRegLogic(scene=SceneWithOpenIGTLink(slicer_core.scene, starts=False))
+    with pytest.raises(EMRegError, match="cannot connect to OpenIGTLink at localhost:18944"):
+        refusing.startLiveNavigation()
+    assert refusing.connectorNode is None and refusing.scene.connectors == []

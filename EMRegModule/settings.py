@@ -1,0 +1,371 @@
+"""EMReg's settings: the one typed tree parsed from ``case.toml``, validated when it is read.
+
+:class:`Settings` holds one frozen table per ``case.toml`` table; every default lives here, in
+the field that defines the key. Reading a file (:func:`load_settings`) or a mapping
+(:meth:`Settings.from_mapping`) refuses an unknown table or key, a value of the wrong type and a
+value out of range, with one line naming the file, the table and the key (see
+:mod:`EMRegModule.tables`), so a typo can never loosen a safety limit silently. The stages take
+their own table (``settings.registration`` ...), never a raw dict.
+
+Adding a key is one line: a field with its default (and range) in its table class below.
+The stage modules re-export their table (``EMRegModule.registration.RegistrationSettings`` ...).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import tomllib
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any, ClassVar
+
+from .errors import EMRegError
+from .marker_model import MarkerModel
+from .tables import SettingError, fraction, non_negative, one_of, parse_table, port, positive
+
+# --- [sensors] ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SensorSettings:
+    """``[sensors]``: the tracker ports of the reference sensor (Model 800) and of the probe (Model 90);
+    ``probe_axis`` (``auto``, ``+x_in``, ``+x_out``, ``none``; None: ``auto`` for a calibration, the
+    calibration's own for a registration; see :mod:`EMRegModule.probe_axis`); the transform names of
+    the two sensors in a PLUS sequence file (None: ``ReferenceToTracker``, ``ProbeToTracker``)."""
+
+    reference: int = port(1)
+    probe: int = port(2)
+    probe_axis: str | None = one_of(None, "auto", "+x_in", "+x_out", "none")
+    reference_transform: str | None = None
+    probe_transform: str | None = None
+
+    def validate(self) -> None:
+        if self.reference == self.probe:
+            raise SettingError(f"reference and probe are both port {self.reference}; give two different ports")
+        for key in ("reference_transform", "probe_transform"):
+            value = getattr(self, key)
+            if value is not None and not value.strip().isidentifier():
+                raise SettingError(f"must be a transform name such as 'ProbeToTracker', got {value!r}", key)
+
+
+# --- [detection] -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DetectionSettings:
+    """``[detection]``: thresholds of the marker detection (HU, mm, fractions).
+
+    - ``low_hu`` (600): the band's lower edge, well above POM (the frame's plastic, about 340 HU),
+      soft tissue (< 100) and fat; PVC markers read far higher (about 1000-1500 HU).
+    - ``high_hu`` (1800): the band's upper edge, the cortical-bone cut; PVC stays below it.
+    - ``metal_hu`` (2800): saturated / metal voxels (the reference sensor and its streaks).
+    - ``coarse_step_mm``: the step of the coarse candidate search, a third of the marker's narrowest
+      diameter (at most 2 mm; :meth:`for_model`), so that every part of a marker is sampled.
+    - ``volume_tolerance`` (0.25): a candidate's volume must lie within +/- this fraction of
+      ``MarkerModel.volume_mm3``.
+    - ``shape_tolerance`` (0.15): relative tolerance on each principal spread (square root of the
+      principal moments) against the model's, plus 0.6 of the largest voxel side (mm).
+    - ``max_fit_rms_mm`` (0.35): largest RMS distance of the edge points to the fitted CAD surface.
+    - ``min_inlier_fraction`` (0.8): share of edge points within ``3 * max_fit_rms_mm`` of the surface.
+    - ``bone_fraction`` (0.02): voxels above ``high_hu`` touching the blob, per blob voxel, above
+      which the blob is taken for bone.
+    - ``metal_distance_mm`` (10): a blob with metal voxels this close is checked with halved fit
+      tolerances and rejected as wrecked by metal streaks if it fails them.
+    - ``smoothing_sigma_mm`` (0.3) and ``opening_radius_mm`` (0.5): the Gaussian smoothing and
+      binary opening applied (inside candidate regions only) before the band threshold's
+      connected components, which drop noise and the thin partial-volume shells of bone.
+    - ``min_markers`` (1): fewer markers found is "no safe answer" (exit 3).
+    """
+
+    low_hu: float = 600.0
+    high_hu: float = 1800.0
+    metal_hu: float = 2800.0
+    coarse_step_mm: float = positive(2.0)
+    volume_tolerance: float = positive(0.25)
+    shape_tolerance: float = positive(0.15)
+    max_fit_rms_mm: float = positive(0.35)
+    min_inlier_fraction: float = fraction(0.8)
+    bone_fraction: float = non_negative(0.02)
+    metal_distance_mm: float = positive(10.0)
+    smoothing_sigma_mm: float = non_negative(0.3)
+    opening_radius_mm: float = non_negative(0.5)
+    min_markers: int = non_negative(1)
+
+    @classmethod
+    def for_model(cls, model: MarkerModel) -> DetectionSettings:
+        """Defaults for ``model``: the coarse step resolves the narrowest part of the marker."""
+        return cls(coarse_step_mm=min(2.0, model.top_diameter_mm / 3.0))
+
+    def validate(self) -> None:
+        if not self.low_hu < self.high_hu <= self.metal_hu:
+            raise SettingError(f"need low_hu < high_hu <= metal_hu, got {self.low_hu}, {self.high_hu}, "
+                               f"{self.metal_hu}")
+        if self.volume_tolerance >= 1:
+            raise SettingError(f"must be below 1, got {self.volume_tolerance}", "volume_tolerance")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+# --- dwells: [calibration] and [evaluation] ----------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DwellSettings:
+    """How dwells are found (the dwell keys of ``[calibration]`` and ``[evaluation]``).
+
+    ``min_duration_s``: an unlabelled still period shorter than this is a pause, not a dwell.
+    ``still_radius_mm``: the probe counts as still while the median distance of the samples in
+    a ``window_s`` window from their median stays below this (tracker jitter is ~0.1 mm).
+    ``max_gap_s``: still periods split by a shorter interruption (a burst of wild or bad-quality
+    samples) at the same place are one dwell. ``merge_radius_mm``: dwells closer than this are
+    at the same hole (revisits). ``max_quality``: samples whose tracker quality number exceeds it
+    are ignored (None: an automatic limit from the recording's own quality distribution).
+    ``min_samples``: fewer good samples than this make no dwell. ``max_drift_mm``: a still
+    period whose first and last quarters (medians) lie farther apart than this is slow motion,
+    not a dwell (None: twice ``still_radius_mm``).
+    """
+
+    min_duration_s: float = positive(0.5)
+    still_radius_mm: float = positive(0.5)
+    window_s: float = positive(0.25)
+    max_gap_s: float = positive(0.3)
+    merge_radius_mm: float = positive(3.0)
+    max_quality: float | None = non_negative(None)
+    min_samples: int = positive(5)
+    max_drift_mm: float | None = positive(None)
+
+    @property
+    def drift_limit_mm(self) -> float:
+        """The drift above which a still period is slow motion (mm)."""
+        return 2.0 * self.still_radius_mm if self.max_drift_mm is None else float(self.max_drift_mm)
+
+    @classmethod
+    def from_settings(cls, settings: Any, section: str = "calibration") -> DwellSettings:
+        """The dwell keys of a table (its other keys are left to their owner)."""
+        return parse_table(cls, settings, section, ignore_unknown=True)
+
+
+@dataclass(frozen=True)
+class CalibrationSettings(DwellSettings):
+    """``[calibration]``: the dwell keys, and ``revisit_tolerance_mm`` (1.0): visits of one pinhole
+    whose averages differ by more than this earn a warning."""
+
+    revisit_tolerance_mm: float = positive(1.0)
+
+
+@dataclass(frozen=True)
+class EvaluationSettings(DwellSettings):
+    """``[evaluation]``: the dwell keys (hand-held touches at targets shake more than a probe resting in
+    a pinhole: ``still_radius_mm`` defaults to 1 mm here; targets and holes are tens of mm apart), and
+    ``max_target_distance_mm`` (15): an unlabelled dwell farther than this from every target is not
+    counted for TRE.
+
+    ``min_duration_s`` defaults to 0.35 s here: a hand-held probe held still for 0.4 s at 80 Hz
+    (32 samples, 0.39 s from first to last) is a dwell; a mid-air hesitation of up to 0.3 s is not,
+    nor is transit motion (it drifts more than twice the stillness radius)."""
+
+    min_duration_s: float = positive(0.35)
+    still_radius_mm: float = positive(1.0)
+    max_target_distance_mm: float = positive(15.0)
+
+
+# --- [registration] ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PairingSettings:
+    """Pairing tolerances and safety margins (``[registration]`` keys of the same names).
+
+    ``tracker_error_mm`` / ``image_error_mm``: RMS 3D localisation error of a calibration point
+    and of an image marker's pinhole; ``direction_error_deg``: RMS angular error of a direction
+    (probe or marker axis); ``n_sigma``: how many error units a constraint tolerates;
+    ``min_pairs``: fewest pairs accepted; ``ambiguity_margin``: a rival pairing must explain at
+    least this many points fewer than the best, else the pairing is refused as ambiguous.
+    """
+
+    tracker_error_mm: float = positive(0.5)
+    image_error_mm: float = positive(0.3)
+    direction_error_deg: float = positive(2.5)
+    n_sigma: float = positive(4.0)
+    min_pairs: int = positive(4)
+    ambiguity_margin: int = positive(2)
+    max_seeds: int = positive(60)
+    rival_seeds: int = positive(24)
+
+    @classmethod
+    def from_settings(cls, settings: Any) -> PairingSettings:
+        """The pairing keys of the ``[registration]`` table (its other keys are ignored here)."""
+        return parse_table(cls, settings, "registration", ignore_unknown=True)
+
+    @property
+    def point_sigma_mm(self) -> float:
+        """RMS 3D error of the difference between a calibration point and its image pinhole."""
+        return float(math.hypot(self.tracker_error_mm, self.image_error_mm))
+
+    @property
+    def distance_tolerance_mm(self) -> float:
+        """Tolerance on an inter-point distance (two points' errors projected on the line)."""
+        return self.n_sigma * self.point_sigma_mm * math.sqrt(2.0 / 3.0)
+
+    @property
+    def point_tolerance_mm(self) -> float:
+        """Largest residual of a paired point after the fit."""
+        return self.n_sigma * self.point_sigma_mm
+
+    @property
+    def angle_tolerance_deg(self) -> float:
+        """Tolerance on an angle between two directions, or between a mapped direction and an axis."""
+        return self.n_sigma * self.direction_error_deg * math.sqrt(2.0)
+
+
+@dataclass(frozen=True)
+class RegistrationSettings:
+    """``[registration]``: ``max_fre_mm`` (2.0, FRE above it is refused), ``sensor_offset_l_mm`` (fix l
+    instead of solving it), outlier flagging (``outlier_factor`` x robust RMS, at least
+    ``outlier_min_mm``; ``exclude_outliers`` refits without them), the l uncertainty that earns a warning
+    (``warn_l_std_mm``) or a refusal (``max_l_std_mm``), and the pairing keys (:class:`PairingSettings`)."""
+
+    max_fre_mm: float = positive(2.0)
+    outlier_factor: float = positive(2.5)
+    outlier_min_mm: float = positive(1.0)
+    warn_l_std_mm: float = positive(0.3)
+    max_l_std_mm: float = positive(1.0)
+    sensor_offset_l_mm: float | None = positive(None)
+    exclude_outliers: bool = False
+    pairing: PairingSettings = field(default_factory=PairingSettings)
+
+    @classmethod
+    def from_settings(cls, settings: Any) -> RegistrationSettings:
+        return parse_table(cls, settings, "registration")
+
+
+# --- [board], [report], [ct] -------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class BoardSettings:
+    """``[board]``: ``edges_mm``, the nominal edge lengths L1..Ln of the board phantom (mm), if known."""
+
+    edges_mm: tuple[float, ...] | None = None
+
+    def validate(self) -> None:
+        if self.edges_mm is not None and (len(self.edges_mm) < 3 or min(self.edges_mm) <= 0):
+            raise SettingError(f"must be three or more positive lengths, got {list(self.edges_mm)}", "edges_mm")
+
+
+@dataclass(frozen=True)
+class ReportSettings:
+    """``[report]``: ``iso_value``, the HU of the 3D view's CT surface (None: Otsu's threshold)."""
+
+    iso_value: float | None = None
+
+
+@dataclass(frozen=True)
+class CTSettings:
+    """``[ct]``: ``series``, the DICOM series to use (UID or series number; None: chosen automatically)."""
+
+    series: str | int | None = None
+
+
+# --- the tree ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Every ``case.toml`` table, typed (defaults where a table or key is absent).
+
+    ``source`` names the file the settings were read from (empty: defaults only).
+    """
+
+    sensors: SensorSettings = field(default_factory=SensorSettings)
+    marker: MarkerModel = field(default_factory=MarkerModel)
+    detection: DetectionSettings = field(default_factory=DetectionSettings)
+    calibration: CalibrationSettings = field(default_factory=CalibrationSettings)
+    registration: RegistrationSettings = field(default_factory=RegistrationSettings)
+    evaluation: EvaluationSettings = field(default_factory=EvaluationSettings)
+    board: BoardSettings = field(default_factory=BoardSettings)
+    report: ReportSettings = field(default_factory=ReportSettings)
+    ct: CTSettings = field(default_factory=CTSettings)
+    source: str = ""
+
+    #: The tables, by TOML name (every field but ``source``).
+    TABLES: ClassVar[tuple[str, ...]] = ("sensors", "marker", "detection", "calibration", "registration",
+                                         "evaluation", "board", "report", "ct")
+
+    @classmethod
+    def from_mapping(cls, mapping: Any, source: str = "case.toml") -> Settings:
+        """Settings from a parsed TOML document; :class:`EMRegError` (one line) for anything unknown or bad."""
+        if mapping is None:
+            mapping = {}
+        if not isinstance(mapping, dict):
+            raise EMRegError(f"{source}: settings must be TOML tables, got {mapping!r:.60}")
+        unknown = sorted(set(mapping) - set(cls.TABLES))
+        if unknown:
+            raise EMRegError(f"{source}: unknown table{'s' if len(unknown) > 1 else ''} "
+                             f"{', '.join(f'[{name}]' for name in unknown)}; known: "
+                             f"{', '.join(f'[{name}]' for name in sorted(cls.TABLES))}")
+        tables: dict[str, Any] = {}
+        for name in cls.TABLES:
+            table_class = _TABLE_CLASSES[name]
+            base = None
+            if name == "detection":
+                base = DetectionSettings.for_model(tables["marker"])
+            tables[name] = parse_table(table_class, mapping.get(name), name, source, base=base)
+        return cls(**tables, source=str(source))
+
+    def with_sensors(self, reference: int | None = None, probe: int | None = None) -> Settings:
+        """These settings with the ports overridden (command line); checked like ``[sensors]``."""
+        values = {k: v for k, v in (("reference", reference), ("probe", probe)) if v is not None}
+        if not values:
+            return self
+        sensors = parse_table(SensorSettings, values, "sensors", "command line", base=self.sensors)
+        return replace(self, sensors=sensors)
+
+    def to_json(self) -> dict[str, Any]:
+        """Every table and value (defaults included), as a JSON-ready dict (tuples as lists)."""
+        return json.loads(json.dumps({name: asdict(getattr(self, name)) for name in self.TABLES}))
+
+    def digest(self) -> str:
+        """sha256 of :meth:`to_json` in canonical form: equal digests, equal settings."""
+        text = json.dumps(self.to_json(), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def with_series(settings: Settings, series: str | int | None) -> Settings:
+    """``settings`` with ``[ct] series`` overridden (``--series UID|NUMBER``); unchanged when ``series`` is None."""
+    if series is None:
+        return settings
+    return replace(settings, ct=parse_table(CTSettings, {"series": series}, "ct", "--series", base=settings.ct))
+
+
+_TABLE_CLASSES: dict[str, type] = {
+    "sensors": SensorSettings, "marker": MarkerModel, "detection": DetectionSettings,
+    "calibration": CalibrationSettings, "registration": RegistrationSettings, "evaluation": EvaluationSettings,
+    "board": BoardSettings, "report": ReportSettings, "ct": CTSettings,
+}
+
+
+def load_settings(path: str | os.PathLike[str] | None, required: bool = False) -> Settings:
+    """Read and check a ``case.toml``; defaults when ``path`` is None or (unless ``required``) absent.
+
+    Malformed TOML, an unknown table or key, or a bad value is an :class:`EMRegError` naming the file.
+    """
+    if path is None:
+        return Settings()
+    path = Path(path)
+    if not path.is_file():
+        if required:
+            raise EMRegError(f"{path}: settings file not found")
+        return Settings()
+    try:
+        with path.open("rb") as f:
+            document = tomllib.load(f)
+    except tomllib.TOMLDecodeError as exc:
+        raise EMRegError(f"{path}: malformed TOML ({exc})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise EMRegError(f"{path}: cannot read the settings ({exc})") from None
+    return Settings.from_mapping(document, str(path))

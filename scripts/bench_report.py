@@ -1,0 +1,177 @@
+#!/usr/bin/env python3
+"""Benchmark ``emreg report`` and ``emreg run`` at full-frame scan sizes against today's report and detection.
+
+Measured in one run, each command in its own process so that peak memory (``ru_maxrss``) is its own:
+
+(a) ``emreg detect CASE`` (the detection alone: read the CT, find and pose the markers);
+(b) ``emreg report OUT`` on the outputs of an ``emreg run`` (reads the CT itself);
+(c) the baseline: the same ``emreg report`` of the EMReg revision before the report package
+    (``--baseline-rev``, extracted with ``git archive``), on a copy of the same outputs;
+(d) ``emreg run CASE`` end to end, and (e) the baseline revision's ``emreg run``.
+
+Printed per case: times and peaks, the CT's voxel bytes, and the goals of issue 17:
+report time / detect time <= 1.0; report peak and run peak / CT bytes <= 1.3; with the ratios
+against the baseline measured in the same run. It also compares every figure the two reports
+wrote, pixel for pixel (the 3D views differ on purpose: the artefact sheets are gone).
+
+Cases come from ``emreg simulate`` (reused when present in ``--work``): ``--spacing 0.6`` and
+the paper's scan size; the simulator refuses 0.3 mm for the full frame (1.7 G voxels, above its
+limit of 1.5 G), so the finest default is 0.32 mm (1.40 G voxels, 2.8 GB as int16, the size of
+the 0.3 mm scan of issue 17: 1.37 G voxels). Simulating that case needs about 10 GB once.
+
+Usage: ``.venv/bin/python scripts/bench_report.py [--spacing 0.6 0.32] [--work DIR] [--baseline-rev REV]``
+(run it under ``flock /work/heavy.lock`` on a shared machine).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+PYTHON = sys.executable
+#: The last revision with ``EMRegModule/report.py`` (before the report package of issues 10 and 17).
+DEFAULT_BASELINE_REV = "c81b885"
+FIGURES = ("scene_oblique", "scene_top", "marker_slices", "residuals", "fre_curve", "tre_targets")
+
+
+def run_child(command: list[str], env: dict[str, str] | None = None, cwd: Path | None = None
+              ) -> tuple[float, float, str]:
+    """Run ``command``; wall time (s) and its own peak RSS (bytes) from ``os.wait4``; raises on failure."""
+    start = time.perf_counter()
+    with tempfile.TemporaryFile() as err:
+        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err, env=env, cwd=cwd)
+        _, status, usage = os.wait4(process.pid, 0)
+        wall = time.perf_counter() - start
+        if os.waitstatus_to_exitcode(status) != 0:
+            err.seek(0)
+            raise SystemExit(f"{' '.join(command)} failed: {err.read().decode(errors='replace')[-600:]}")
+    return wall, usage.ru_maxrss * 1024.0, ""
+
+
+def emreg(*args: str) -> list[str]:
+    return [PYTHON, "-m", "EMRegModule", *args, "--quiet"]
+
+
+def baseline_tree(rev: str, work: Path) -> Path:
+    """The source of revision ``rev`` in ``work/baseline-REV`` (``git archive``; reused when there)."""
+    folder = work / f"baseline-{rev}"
+    if not (folder / "EMRegModule").is_dir():
+        folder.mkdir(parents=True, exist_ok=True)
+        archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev], check=True, capture_output=True).stdout
+        with tempfile.TemporaryFile() as f:
+            f.write(archive)
+            f.seek(0)
+            with tarfile.open(fileobj=f) as tar:
+                tar.extractall(folder, filter="data")
+    return folder
+
+
+def simulated_case(work: Path, spacing: float, seed: int) -> Path:
+    folder = work / f"case-{spacing:g}mm-seed{seed}"
+    if not (folder / "truth.json").is_file():
+        print(f"simulating the full frame at {spacing:g} mm into {folder} ...", flush=True)
+        subprocess.run(emreg("simulate", str(folder), "--seed", str(seed), "--spacing", str(spacing)), check=True)
+    return folder
+
+
+def ct_bytes(case: Path) -> float:
+    import SimpleITK as sitk
+
+    from EMRegModule.io.case import find_ct
+
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(find_ct(case)))
+    reader.ReadImageInformation()
+    pixel = sitk.Image([1, 1, 1], reader.GetPixelID())
+    return float(np.prod(reader.GetSize())) * pixel.GetSizeOfPixelComponent()
+
+
+def copy_outputs(source: Path, target: Path) -> None:
+    """The run's outputs without any report (so that each report starts from the same state)."""
+    shutil.rmtree(target, ignore_errors=True)
+    shutil.copytree(source, target, ignore=shutil.ignore_patterns("report.html", "report_figures"))
+
+
+def same_figures(a: Path, b: Path) -> dict[str, str]:
+    """Per figure: "identical pixels", "differs (max N)" or "missing"."""
+    verdicts = {}
+    for name in FIGURES:
+        fa, fb = a / "report_figures" / f"{name}.png", b / "report_figures" / f"{name}.png"
+        if not fa.is_file() or not fb.is_file():
+            verdicts[name] = "missing"
+            continue
+        ia, ib = cv2.imread(str(fa)), cv2.imread(str(fb))
+        if ia.shape != ib.shape:
+            verdicts[name] = f"differs (size {ia.shape[:2]} vs {ib.shape[:2]})"
+        elif np.array_equal(ia, ib):
+            verdicts[name] = "identical pixels"
+        else:
+            changed = np.any(ia != ib, axis=2).mean() * 100
+            verdicts[name] = f"differs ({changed:.1f} % of pixels)"
+    return verdicts
+
+
+def bench_case(case: Path, work: Path, baseline: Path) -> None:
+    size = ct_bytes(case)
+    base_env = {**os.environ, "PYTHONPATH": str(baseline)}
+    tag = case.name
+    outs = {name: work / f"{tag}-{name}" for name in ("run", "run-base", "detect", "report", "report-base")}
+    for folder in outs.values():
+        shutil.rmtree(folder, ignore_errors=True)
+    results: dict[str, tuple[float, float]] = {}
+    print(f"\n{case} (CT {size / 1e9:.2f} GB)", flush=True)
+    results["run"] = run_child(emreg("run", str(case), "--out", str(outs["run"])), cwd=ROOT)[:2]
+    results["run (baseline)"] = run_child(emreg("run", str(case), "--out", str(outs["run-base"])), env=base_env,
+                                          cwd=baseline)[:2]
+    results["detect"] = run_child(emreg("detect", str(case), "--out", str(outs["detect"])), cwd=ROOT)[:2]
+    copy_outputs(outs["run"], outs["report"])
+    copy_outputs(outs["run"], outs["report-base"])
+    results["report (baseline)"] = run_child(emreg("report", str(outs["report-base"])), env=base_env,
+                                             cwd=baseline)[:2]
+    results["report"] = run_child(emreg("report", str(outs["report"])), cwd=ROOT)[:2]
+    print(f"{'command':<20} {'time (s)':>9} {'peak (GB)':>10} {'peak / CT':>10}")
+    for name, (wall, peak) in results.items():
+        print(f"{name:<20} {wall:9.2f} {peak / 1e9:10.2f} {peak / size:10.2f}")
+    report, base, detect = results["report"], results["report (baseline)"], results["detect"]
+    run, run_base = results["run"], results["run (baseline)"]
+    print(f"report time / detect time        {report[0] / detect[0]:.2f}  (goal <= 1.0; baseline "
+          f"{base[0] / detect[0]:.2f})")
+    print(f"report peak / CT bytes           {report[1] / size:.2f}  (goal <= 1.3; baseline {base[1] / size:.2f})")
+    print(f"run peak / CT bytes              {run[1] / size:.2f}  (goal <= 1.3; baseline {run_base[1] / size:.2f})")
+    print(f"report vs baseline: time {report[0] / base[0]:.2f}x, peak {report[1] / base[1]:.2f}x; "
+          f"run vs baseline: time {run[0] / run_base[0]:.2f}x, peak {run[1] / run_base[1]:.2f}x")
+    for name, verdict in same_figures(outs["report"], outs["report-base"]).items():
+        print(f"  {name:<15} {verdict}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--spacing", type=float, nargs="+", default=[0.6, 0.32], help="voxel sizes (mm)")
+    parser.add_argument("--work", type=Path, default=Path("/tmp/emreg-bench-report"),
+                        help="folder for the cases and outputs (cases kept for reuse)")
+    parser.add_argument("--case", type=Path, nargs="*", default=[], help="use these case folders instead")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--baseline-rev", default=DEFAULT_BASELINE_REV, help="git revision measured as baseline")
+    args = parser.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    baseline = baseline_tree(args.baseline_rev, args.work)
+    cases = args.case or [simulated_case(args.work, spacing, args.seed) for spacing in args.spacing]
+    print(f"baseline: EMReg at {args.baseline_rev} ({baseline}); {os.cpu_count()} CPUs; load "
+          f"{os.getloadavg()[0]:.1f}", flush=True)
+    for case in cases:
+        bench_case(case.resolve(), args.work, baseline)
+
+
+if __name__ == "__main__":
+    main()
