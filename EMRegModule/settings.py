@@ -78,6 +78,9 @@ class DetectionSettings:
       binary opening applied (inside candidate regions only) before the band threshold's
       connected components, which drop noise and the thin partial-volume shells of bone.
     - ``min_markers`` (1): fewer markers found is "no safe answer" (exit 3).
+    - ``estimate_band`` (true): when the markers read far from the middle of the default band
+      (a low-kVp scan: PVC at 1700-1900 HU), detect again with the band scaled to their measured
+      intensity; a band given in the table (``low_hu``/``high_hu`` not the defaults) is used as given.
     """
 
     low_hu: float = 600.0
@@ -93,6 +96,7 @@ class DetectionSettings:
     smoothing_sigma_mm: float = non_negative(0.3)
     opening_radius_mm: float = non_negative(0.5)
     min_markers: int = non_negative(1)
+    estimate_band: bool = True
 
     @classmethod
     def for_model(cls, model: MarkerModel) -> DetectionSettings:
@@ -154,10 +158,18 @@ class EvaluationSettings(DwellSettings):
     """``[evaluation]``: the dwell keys (hand-held touches at targets shake more than a probe resting in
     a pinhole: ``still_radius_mm`` defaults to 1 mm here; targets and holes are tens of mm apart), and
     ``max_target_distance_mm`` (15): an unlabelled dwell farther than this from every target is not
-    counted for TRE."""
+    counted for TRE.
+
+    The error model's priors (:mod:`EMRegModule.error_model`): ``reference_error_mm`` and
+    ``reference_error_deg``, the reference sensor's per-axis pose error (default: a quarter of the
+    probe's measured per-dwell error, and the rotation that moves a point 100 mm away by as much);
+    ``placement_error_mm`` (0), the 3D RMS error of putting the probe on a target."""
 
     still_radius_mm: float = positive(1.0)
     max_target_distance_mm: float = positive(15.0)
+    reference_error_mm: float | None = non_negative(None)
+    reference_error_deg: float | None = non_negative(None)
+    placement_error_mm: float = non_negative(0.0)
 
 
 # --- [registration] ----------------------------------------------------------------------------

@@ -106,14 +106,19 @@ def _add_replay_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_watchdog_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--max-quality", type=float, default=20.0, metavar="Q",
-                        help="worst acceptable tracker quality number, 0 = best (default 20; -1: do not check)")
+    parser.add_argument("--max-quality", type=float, default=None, metavar="Q",
+                        help="worst acceptable tracker quality number, 0 = best (default: 20 for the trakSTAR's "
+                             "METAL number, 1 mm for the Aurora's RMS error; -1: do not check)")
     parser.add_argument("--stale-periods", type=float, default=3.0, metavar="K",
                         help="data are stale after K sample periods without a sample (default 3)")
 
 
 def _max_quality(args: argparse.Namespace) -> float | None:
-    return None if args.max_quality is not None and args.max_quality < 0 else args.max_quality
+    if args.max_quality is None:  # not given: the source's own scale, else the trakSTAR's
+        from .navigator import DEFAULT_MAX_QUALITY
+
+        return float(getattr(args, "source_max_quality", None) or DEFAULT_MAX_QUALITY)
+    return None if args.max_quality < 0 else args.max_quality
 
 
 def _say(args: argparse.Namespace, text: str) -> None:
@@ -321,6 +326,7 @@ def run_serve(args: argparse.Namespace) -> int:
 
     reference, probe = _sensor_ports(args)
     source = open_source(args.device, reference, probe, fast=args.fast, loop=args.loop)
+    args.source_max_quality = getattr(source, "default_max_quality", None)
     try:
         server = IGTLServer(args.host, args.igtl_port)
     except BaseException:
@@ -375,6 +381,7 @@ def run_live_navigate(args: argparse.Namespace) -> int:
     reference_to_image = load_reference_to_image(args.registration, getattr(args, "settings", None))
     reference, probe = _sensor_ports(args)
     source = open_source(args.source, reference, probe, fast=args.fast, loop=args.loop)
+    args.source_max_quality = getattr(source, "default_max_quality", None)
     server = writer = None
     try:
         if args.igtl_port is not None:

@@ -1,4 +1,4 @@
-"""The report's figures: one function per figure, listed in :data:`FIGURES` in the page's order.
+"""The report's figures: one function per figure, listed in the registry :data:`FIGURES`.
 
 Each entry says whether the figure can be drawn from what the run left (``available``), whether
 it uses the CT's voxels (``uses_ct``; ``needs_ct``: left out without them) and what of it can be
@@ -269,12 +269,12 @@ FIGURES: tuple[FigureSpec, ...] = (
                render_tre_targets),
 )
 
-#: Every figure name, in the page's order.
+#: Every figure name, in the order of the registry.
 FIGURE_NAMES = tuple(name for spec in FIGURES for name in spec.names)
 
 
 def render_figures(data: ReportData, progress: Progress = QUIET) -> list[Figure]:
-    """Render every figure whose inputs exist, in page order.
+    """Render every figure whose inputs exist, in the order of :data:`FIGURES`.
 
     While the CT is read: the figures that do not need it, and the preparation of those that
     do; then the CT's figures. A CT that fails to read leaves its slices out (with a note).
