@@ -37,6 +37,19 @@ def _sensor_ports(args: argparse.Namespace) -> tuple[int, int]:
     return sensors.reference, sensors.probe
 
 
+def _check_ports_attached(source, reference: int, probe: int) -> None:
+    """Refuse (exit 2) a reference or probe port without a sensor, when the source can tell."""
+    ports = getattr(source, "attached_ports", None)
+    if not callable(ports):
+        return
+    attached = ports()
+    for role, port in (("reference", reference), ("probe", probe)):
+        if port not in attached:
+            source.stop()
+            raise EMRegError(f"{source.description}: no sensor on the {role} port {port} (sensors on ports "
+                             f"{', '.join(map(str, attached)) or 'none'}); set --{role}-sensor")
+
+
 def load_reference_to_image(path: str, settings_path: str | None = None) -> np.ndarray:
     """``ReferenceToImage`` (4x4, mm, LPS) from ``registration.json`` (via the registration module).
 
@@ -326,6 +339,7 @@ def run_serve(args: argparse.Namespace) -> int:
 
     reference, probe = _sensor_ports(args)
     source = open_source(args.device, reference, probe, fast=args.fast, loop=args.loop)
+    _check_ports_attached(source, reference, probe)
     args.source_max_quality = getattr(source, "default_max_quality", None)
     try:
         server = IGTLServer(args.host, args.igtl_port)
@@ -381,6 +395,7 @@ def run_live_navigate(args: argparse.Namespace) -> int:
     reference_to_image = load_reference_to_image(args.registration, getattr(args, "settings", None))
     reference, probe = _sensor_ports(args)
     source = open_source(args.source, reference, probe, fast=args.fast, loop=args.loop)
+    _check_ports_attached(source, reference, probe)
     args.source_max_quality = getattr(source, "default_max_quality", None)
     server = writer = None
     try:
@@ -415,10 +430,11 @@ def run_live_navigate(args: argparse.Namespace) -> int:
                 except EMRegError as exc:  # the device failed: cable pulled, tracker switched off or killed
                     source.stop()
                     navigator.device_lost(f"tracker lost: {exc}")  # the last STATUS a client sees is not OK
-                    source = _reconnect(args, reference, probe, stop, exc)
-                    if source is None:
+                    back = _reconnect(args, reference, probe, stop, exc)
+                    if back is None:
                         why = "interrupted while reconnecting"
                         break
+                    source = back
                     reconnects += 1
                     navigator.device_back(guard_for(source))
     finally:
