@@ -26,7 +26,7 @@ if TYPE_CHECKING:
 STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
     "detect": ("markers.json", "markers.mrk.json"),
     "calibrate": ("frame_calibration.json",),
-    "register": ("registration.json", "ReferenceToImage.h5"),
+    "register": ("registration.json", "ReferenceToImage.h5", "tre_map.nrrd"),
     "navigate": ("navigation.csv",),
     "evaluate": ("evaluation.json",),
     "report": ("report.html", "EMReg.mrb"),
@@ -355,6 +355,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_study(args: argparse.Namespace) -> int:
+    from .studies import STUDIES, format_table, run_study
+
+    summary = run_study(args.name, Path(args.out), quick=args.quick, scheduler=args.scheduler, workers=args.workers,
+                        case_dir=Path(args.case) if args.case else None,
+                        work=Path(args.work) if args.work else None, seed=args.seed, progress=_progress(args))
+    print(f"{STUDIES[args.name].title}\n")
+    print(format_table(summary))
+    print(f"\n-> {Path(args.out) / args.name}.json, .csv, .png")
+    return 0
+
+
 def _remove_outputs(out: Path, from_stage: str) -> None:
     """Delete the outputs of ``from_stage`` and every later stage (stale after a refusal)."""
     stages = list(STAGE_OUTPUTS)
@@ -455,6 +467,7 @@ def run_case(
                 write_navigation_csv(navigation, out / "navigation.csv")
                 summary.append(f"navigate: {len(navigation)} probe samples")
         current = "evaluate"
+        evaluation = None
         if controller.registration is not None and stage_available("evaluation") \
                 and (case.navigation is not None or case.board is not None):
             from .evaluation import write_evaluation
@@ -478,6 +491,12 @@ def run_case(
                       file=sys.stderr)
             write_evaluation(evaluation, out / "evaluation.json")
             summary.extend(evaluation.summary())
+        if controller.error_model is not None:
+            from .tre_map import write_tre_map
+
+            tracking_rms = evaluation.tre.tracking_rms_mm if evaluation and evaluation.tre else None
+            write_tre_map(out / "tre_map.nrrd", controller.error_model, controller.detection.image,
+                          None if tracking_rms is None else tracking_rms**2)
         current = "report"
         if stage_available("report"):
             from .report import write_report
@@ -578,7 +597,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("out", nargs="?", metavar="OUT")
     p.add_argument("--case", metavar="CASE", help="the case folder (for the CT), when not recorded in OUT")
     p.add_argument("--batch", metavar="DIR", help="render a report in every output folder under DIR")
-    p.add_argument("--jobs", type=int, default=1)
+    p.add_argument("--jobs", type=int, default=1,
+                   help="reports rendered at a time with --batch (lowered to what the available memory holds)")
 
     p = add("run", cmd_run, "run every stage on a case folder")
     p.add_argument("case", metavar="CASE")
@@ -590,6 +610,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="demo-output", metavar="DIR")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--spacing", type=float, default=None, metavar="MM")
+
+    p = add("study", cmd_study, "an accuracy study on simulated data, run on Dask: OUT/NAME.json, .csv, .png")
+    p.add_argument("name", metavar="NAME", help="calibration, board, tre, noise, markers or prediction")
+    p.add_argument("--out", required=True, metavar="DIR")
+    p.add_argument("--quick", action="store_true", help="a small frame and few sessions (a smoke-sized run)")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="an existing Dask scheduler (default: a local one)")
+    p.add_argument("--workers", type=int, default=None, metavar="N", help="local worker processes (default 2)")
+    p.add_argument("--case", metavar="CASE", help="a simulated case folder with truth.json (default: simulate one)")
+    p.add_argument("--work", metavar="DIR", help="where the simulated case and its detection are kept (OUT/work)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the simulated case")
 
     if stage_available("live"):
         from .live import commands as live

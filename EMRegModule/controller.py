@@ -32,6 +32,7 @@ if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only wh
 
     from .calibration import FrameCalibration
     from .detection import DetectionResult
+    from .error_model import ErrorModel
     from .evaluation import Evaluation
     from .navigation import NavigationResult
     from .registration import RegistrationResult
@@ -281,8 +282,8 @@ class EMRegController:
         with self.progress.step("evaluating"):
             return evaluate(self.registration.reference_to_image, self.reference_sensor, self.probe_sensor,
                             self.settings.evaluation, navigation=navigation, targets=targets, board=board,
-                            nominal_edges_mm=self.settings.board.edges_mm, tolerant=tolerant,
-                            not_evaluated=not_evaluated)
+                            nominal_edges_mm=self.settings.board.edges_mm, error_model=self.error_model,
+                            tolerant=tolerant, not_evaluated=not_evaluated)
 
     @property
     def probe_axis(self) -> str | None:
@@ -295,6 +296,18 @@ class EMRegController:
         """The current ``ReferenceToImage`` (4x4, mm); a :class:`WorkflowError` before registration."""
         self._require(registration=self.registration)
         return self.registration.reference_to_image
+
+    @property
+    def error_model(self) -> ErrorModel | None:
+        """The end-to-end error model of the current registration (``[evaluation]`` priors), or None."""
+        if self.registration is None or self.registration.error is None:
+            return None
+        from .error_model import ErrorModel
+
+        priors = self.settings.evaluation
+        return ErrorModel.with_priors(self.registration.reference_to_image, self.registration.error,
+                                      priors.reference_error_mm, priors.reference_error_deg,
+                                      priors.placement_error_mm)
 
     def describe(self) -> str:
         """A one-line summary of the state for logs and the Slicer module's status label."""

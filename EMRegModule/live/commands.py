@@ -37,6 +37,19 @@ def _sensor_ports(args: argparse.Namespace) -> tuple[int, int]:
     return sensors.reference, sensors.probe
 
 
+def _check_ports_attached(source, reference: int, probe: int) -> None:
+    """Refuse (exit 2) a reference or probe port without a sensor, when the source can tell."""
+    ports = getattr(source, "attached_ports", None)
+    if not callable(ports):
+        return
+    attached = ports()
+    for role, port in (("reference", reference), ("probe", probe)):
+        if port not in attached:
+            source.stop()
+            raise EMRegError(f"{source.description}: no sensor on the {role} port {port} (sensors on ports "
+                             f"{', '.join(map(str, attached)) or 'none'}); set --{role}-sensor")
+
+
 def load_reference_to_image(path: str, settings_path: str | None = None) -> np.ndarray:
     """``ReferenceToImage`` (4x4, mm, LPS) from ``registration.json`` (via the registration module).
 
@@ -106,14 +119,19 @@ def _add_replay_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_watchdog_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--max-quality", type=float, default=20.0, metavar="Q",
-                        help="worst acceptable tracker quality number, 0 = best (default 20; -1: do not check)")
+    parser.add_argument("--max-quality", type=float, default=None, metavar="Q",
+                        help="worst acceptable tracker quality number, 0 = best (default: 20 for the trakSTAR's "
+                             "METAL number, 1 mm for the Aurora's RMS error; -1: do not check)")
     parser.add_argument("--stale-periods", type=float, default=3.0, metavar="K",
                         help="data are stale after K sample periods without a sample (default 3)")
 
 
 def _max_quality(args: argparse.Namespace) -> float | None:
-    return None if args.max_quality is not None and args.max_quality < 0 else args.max_quality
+    if args.max_quality is None:  # not given: the source's own scale, else the trakSTAR's
+        from .navigator import DEFAULT_MAX_QUALITY
+
+        return float(getattr(args, "source_max_quality", None) or DEFAULT_MAX_QUALITY)
+    return None if args.max_quality < 0 else args.max_quality
 
 
 def _say(args: argparse.Namespace, text: str) -> None:
@@ -325,6 +343,8 @@ def run_serve(args: argparse.Namespace) -> int:
 
     reference, probe = _sensor_ports(args)
     source = open_source(args.device, reference, probe, fast=args.fast, loop=args.loop)
+    _check_ports_attached(source, reference, probe)
+    args.source_max_quality = getattr(source, "default_max_quality", None)
     try:
         server = IGTLServer(args.host, args.igtl_port)
     except BaseException:
@@ -379,6 +399,8 @@ def run_live_navigate(args: argparse.Namespace) -> int:
     reference_to_image = load_reference_to_image(args.registration, getattr(args, "settings", None))
     reference, probe = _sensor_ports(args)
     source = open_source(args.source, reference, probe, fast=args.fast, loop=args.loop)
+    _check_ports_attached(source, reference, probe)
+    args.source_max_quality = getattr(source, "default_max_quality", None)
     server = writer = None
     try:
         if args.igtl_port is not None:
@@ -412,10 +434,11 @@ def run_live_navigate(args: argparse.Namespace) -> int:
                 except EMRegError as exc:  # the device failed: cable pulled, tracker switched off or killed
                     source.stop()
                     navigator.device_lost(f"tracker lost: {exc}")  # the last STATUS a client sees is not OK
-                    source = _reconnect(args, reference, probe, stop, exc)
-                    if source is None:
+                    back = _reconnect(args, reference, probe, stop, exc)
+                    if back is None:
                         why = "interrupted while reconnecting"
                         break
+                    source = back
                     reconnects += 1
                     navigator.device_back(guard_for(source))
     finally:

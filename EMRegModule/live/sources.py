@@ -69,6 +69,10 @@ class TrakstarSource(SampleSource):
         self.description = f"trakSTAR on {url.path} at {url.baud} baud, {self.driver.rate_hz:g} Hz"
         self._watch: threading.Thread | None = None
 
+    def attached_ports(self) -> tuple[int, ...]:
+        """Ports with a sensor plugged in (the tracker's sensor serial number is non-zero)."""
+        return tuple(s for s in self.driver.group_sensors if self.driver.sensor_attached(s))
+
     def link_counts(self) -> tuple[int, int]:
         """Cumulative (accepted, rejected) records of the serial link (for the link-quality monitor)."""
         stats = self.driver.stats
