@@ -10,7 +10,7 @@ pose the simulator really sent (its truth log). For each fault level it prints:
   those that would have been *published* (the monitor's state OK at that moment);
 - on clean data, the fastest motion the jump test saw (mm/s), i.e. the margin to its limit.
 
-Usage: ``python scripts/measure_link_quality.py [--seconds 8] [--levels 0,0.01,0.05]``.
+Usage: ``python scripts/measure_link_quality.py [--seconds 8] [--levels 0,0.01,0.05] [--replay FILE.csv]``.
 """
 
 from __future__ import annotations
@@ -28,11 +28,17 @@ from EMRegModule.live.tracker_simulator import FaultPlan, TrackerSimulator
 WRONG_MM = 1.0
 
 
-def measure(level: float, seconds: float, seed: int, kind: str) -> dict:
+def measure(level: float, seconds: float, seed: int, kind: str, replay: str | None = None) -> dict:
     faults = FaultPlan(**{kind: level}) if level > 0 else FaultPlan()
     samples = []
     states = []
-    with TrackerSimulator(faults=faults, seed=seed, keep_truth=True, attached=(1, 2)) as sim:
+    scene = None
+    if replay:
+        from EMRegModule.io.tracking_csv import read_tracking_csv
+        from EMRegModule.live.tracker_simulator import ReplayScene
+
+        scene = ReplayScene(read_tracking_csv(replay))
+    with TrackerSimulator(scene, faults=faults, seed=seed, keep_truth=True, attached=(1, 2)) as sim:
         source = TrakstarSource(parse_device_url(f"trakstar://{sim.path}?rate=80"))
         guard = LinkGuard(source.link_counts, LinkQualityMonitor(), period_s=source.period_s)
         fractions = []
@@ -88,6 +94,8 @@ def main() -> None:
     parser.add_argument("--levels", default="0,0.002,0.01,0.05")
     parser.add_argument("--kinds", default="corrupt,drop")
     parser.add_argument("--seed", type=int, default=5)
+    parser.add_argument("--replay", metavar="FILE.csv", help="replay this recording (hand motion) instead of "
+                        "the built-in scene")
     args = parser.parse_args()
     print("kind     level  records  framing  jump  mean_frac  max_frac  alarms  published  wrong_acc  wrong_pub  "
           "max_err_pub_mm  max_speed_mm_s  max_dev_mm")
@@ -95,7 +103,7 @@ def main() -> None:
         for level in (float(v) for v in args.levels.split(",")):
             if level == 0 and kind != args.kinds.split(",")[0]:
                 continue
-            r = measure(level, args.seconds, args.seed, kind)
+            r = measure(level, args.seconds, args.seed, kind, args.replay)
             print(f"{kind:8s} {level:5.3f}  {r['records']:7d}  {r['framing_rejected']:7d}  {r['jump_rejected']:4d}  "
                   f"{r['mean_fraction']:9.3f}  {r['max_fraction']:8.3f}  {r['alarms']:6d}  {r['published']:9d}  "
                   f"{r['wrong_accepted']:9d}  {r['wrong_published']:9d}  {r['max_error_published_mm']:14.3f}  "

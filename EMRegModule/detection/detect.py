@@ -66,65 +66,8 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
     volume = sitk.GetArrayViewFromImage(image)
     spacing_zyx = np.asarray(image.GetSpacing(), dtype=float)[::-1]
     index_to_image = index_to_physical_matrix(image)
-    slice_count = volume.shape[0]
-
-    def one_pass(options: DetectionSettings,
-                 wait_for_slices: Callable[[int], None] | None) -> tuple[list[_Outcome], list[TooLarge]]:
-        """One detection of every marker with the band of ``options``."""
-        scan = CoarseScan(volume, spacing_zyx, model, options)
-        guard = _guard_slices(model, options, index_to_image)
-        queued: list[Region] = []
-        too_large: list[TooLarge] = []
-        examined: list[tuple[Region, Future]] = []
-
-        def examine(region: Region, metal_zyx: np.ndarray) -> list[_Outcome]:
-            found = []
-            for blob in blobs_in_region(volume, region, index_to_image, spacing_zyx, model, options):
-                if blob.touches_region_edge:
-                    blob = _regrown(volume, blob, index_to_image, spacing_zyx, model, options)
-                outcome = _classify(blob, metal_zyx, index_to_image, model, options)
-                if isinstance(outcome, RejectedCandidate) and outcome.code in _SPLIT_CODES \
-                        and not blob.touches_region_edge:
-                    joined = with_fragments(volume, blob, index_to_image, spacing_zyx, model, options)
-                    if joined is not None and not joined.touches_region_edge:
-                        whole = _classify(joined, metal_zyx, index_to_image, model, options)
-                        if isinstance(whole, DetectedMarker):
-                            outcome = whole
-                found.append((blob.centroid(), outcome))
-            return found
-
-        def start_ready(pool: ThreadPoolExecutor, slices: int) -> None:
-            """Start the regions whose slices, and all a check of theirs may look at, are read."""
-            ready: list[Region] = []
-            waiting: list[Region] = []
-            for region in queued:
-                (ready if slices >= slice_count or region.slices[0].stop + guard <= slices else waiting).append(region)
-            if ready:
-                metal_zyx = scan.metal_zyx  # complete within ``guard`` of the ready regions
-                examined.extend((region, pool.submit(examine, region, metal_zyx)) for region in ready)
-                queued[:] = waiting
-
-        with ThreadPoolExecutor(max_workers=_workers()) as pool, _cancel_on_error(pool):
-            streaming = wait_for_slices is not None
-            with progress.step("reading CT and finding candidates" if streaming else "finding candidates"):
-                step_slices = _STEP_ROWS * int(scan.strides[0]) if streaming else slice_count
-                for slices in range(step_slices, slice_count + step_slices, step_slices):
-                    slices = min(slices, slice_count)
-                    if streaming:
-                        wait_for_slices(slices)
-                    regions, large = scan.advance(slices)
-                    queued.extend(regions)
-                    too_large.extend(large)
-                    start_ready(pool, slices)
-            with progress.step("fitting markers", total=len(examined) + len(queued)) as step:
-                start_ready(pool, slice_count)
-                outcomes: list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]] = []
-                for _, future in sorted(examined, key=lambda item: _region_key(item[0])):  # the order of a whole read
-                    outcomes.extend(future.result())
-                    step.advance()
-        return outcomes, too_large
-
-    outcomes, too_large = one_pass(options, wait_for_slices)
+    outcomes, too_large = _one_pass(volume, spacing_zyx, index_to_image, model, options, progress,
+                                    wait_for_slices)
     defaults = DetectionSettings()
     explicit = not options.estimate_band or (options.low_hu, options.high_hu) != (defaults.low_hu, defaults.high_hu)
     band = {"low_hu": options.low_hu, "high_hu": options.high_hu,
@@ -134,7 +77,8 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
         scaled = _band_around(estimate, options)
         with progress.step(f"markers read {estimate:.0f} HU: detecting again with the band "
                            f"{scaled.low_hu:.0f}..{scaled.high_hu:.0f} HU"):
-            again, again_large = one_pass(scaled, None)  # the image is whole by now
+            again, again_large = _one_pass(volume, spacing_zyx, index_to_image, model, scaled, progress,
+                                           None)  # the image is whole by now
         if _marker_count(again) >= max(1, _marker_count(outcomes)):
             outcomes, too_large, options = again, again_large, scaled
             band = {"low_hu": scaled.low_hu, "high_hu": scaled.high_hu,
@@ -144,6 +88,67 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
     band["marker_hu"] = None if final is None else round(final, 1)
     result.band = band
     return result
+
+
+def _one_pass(volume: np.ndarray, spacing_zyx: np.ndarray, index_to_image: np.ndarray, model: MarkerModel,
+              options: DetectionSettings, progress: Progress,
+              wait_for_slices: Callable[[int], None] | None) -> tuple[list[_Outcome], list[TooLarge]]:
+    """One detection of every marker of ``volume`` (numpy order k, j, i; ``index_to_image`` maps (i, j, k)
+    to LPS mm) with the band of ``options``: the coarse scan slice block by slice block (waiting for
+    them when streaming), each candidate region examined on a worker as soon as its slices are read."""
+    slice_count = volume.shape[0]
+    scan = CoarseScan(volume, spacing_zyx, model, options)
+    guard = _guard_slices(model, options, index_to_image)
+    queued: list[Region] = []
+    too_large: list[TooLarge] = []
+    examined: list[tuple[Region, Future]] = []
+
+    def examine(region: Region, metal_zyx: np.ndarray) -> list[_Outcome]:
+        found = []
+        for blob in blobs_in_region(volume, region, index_to_image, spacing_zyx, model, options):
+            if blob.touches_region_edge:
+                blob = _regrown(volume, blob, index_to_image, spacing_zyx, model, options)
+            outcome = _classify(blob, metal_zyx, index_to_image, model, options)
+            if isinstance(outcome, RejectedCandidate) and outcome.code in _SPLIT_CODES \
+                    and not blob.touches_region_edge:
+                joined = with_fragments(volume, blob, index_to_image, spacing_zyx, model, options)
+                if joined is not None and not joined.touches_region_edge:
+                    whole = _classify(joined, metal_zyx, index_to_image, model, options)
+                    if isinstance(whole, DetectedMarker):
+                        outcome = whole
+            found.append((blob.centroid(), outcome))
+        return found
+
+    def start_ready(pool: ThreadPoolExecutor, slices: int) -> None:
+        """Start the regions whose slices, and all a check of theirs may look at, are read."""
+        ready: list[Region] = []
+        waiting: list[Region] = []
+        for region in queued:
+            (ready if slices >= slice_count or region.slices[0].stop + guard <= slices else waiting).append(region)
+        if ready:
+            metal_zyx = scan.metal_zyx  # complete within ``guard`` of the ready regions
+            examined.extend((region, pool.submit(examine, region, metal_zyx)) for region in ready)
+            queued[:] = waiting
+
+    with ThreadPoolExecutor(max_workers=_workers()) as pool, _cancel_on_error(pool):
+        streaming = wait_for_slices is not None
+        with progress.step("reading CT and finding candidates" if streaming else "finding candidates"):
+            step_slices = _STEP_ROWS * int(scan.strides[0]) if streaming else slice_count
+            for slices in range(step_slices, slice_count + step_slices, step_slices):
+                slices = min(slices, slice_count)
+                if streaming:
+                    wait_for_slices(slices)
+                regions, large = scan.advance(slices)
+                queued.extend(regions)
+                too_large.extend(large)
+                start_ready(pool, slices)
+        with progress.step("fitting markers", total=len(examined) + len(queued)) as step:
+            start_ready(pool, slice_count)
+            outcomes: list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]] = []
+            for _, future in sorted(examined, key=lambda item: _region_key(item[0])):  # the order of a whole read
+                outcomes.extend(future.result())
+                step.advance()
+    return outcomes, too_large
 
 
 def _marker_count(outcomes: list[_Outcome]) -> int:

@@ -215,7 +215,6 @@ class AuroraSimulator:
         self._drop_next = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._lock = threading.Lock()
         self.master_fd, self.slave_fd = os.openpty()
         tty.setraw(self.slave_fd)
         attrs = termios.tcgetattr(self.slave_fd)

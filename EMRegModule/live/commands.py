@@ -37,6 +37,19 @@ def _sensor_ports(args: argparse.Namespace) -> tuple[int, int]:
     return sensors.reference, sensors.probe
 
 
+def _check_ports_attached(source, reference: int, probe: int) -> None:
+    """Refuse (exit 2) a reference or probe port without a sensor, when the source can tell."""
+    ports = getattr(source, "attached_ports", None)
+    if not callable(ports):
+        return
+    attached = ports()
+    for role, port in (("reference", reference), ("probe", probe)):
+        if port not in attached:
+            source.stop()
+            raise EMRegError(f"{source.description}: no sensor on the {role} port {port} (sensors on ports "
+                             f"{', '.join(map(str, attached)) or 'none'}); set --{role}-sensor")
+
+
 def load_reference_to_image(path: str, settings_path: str | None = None) -> np.ndarray:
     """``ReferenceToImage`` (4x4, mm, LPS) from ``registration.json`` (via the registration module).
 
@@ -175,9 +188,9 @@ def run_sim_tracker(args: argparse.Namespace) -> int:
 
     scene = BuiltinScene(args.seed)
     if args.replay:
-        from ..io.tracking_csv import read_tracking_csv
+        from ..io.recording import read_recording
 
-        scene = ReplayScene(read_tracking_csv(args.replay))
+        scene = ReplayScene(read_recording(args.replay))
     attached = sensors_from_list(args.attached) if args.attached else None
     sim = TrackerSimulator(scene, baud=args.baud, faults=FaultPlan.parse(args.fault), seed=args.seed, link=args.link,
                            fast=args.fast, max_records=args.max_records, duration_s=args.duration, attached=attached,
@@ -252,7 +265,9 @@ def add_record_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", required=True, metavar="URL",
                         help="trakstar:///dev/ttyUSB0?baud=115200, aurora:///dev/ttyUSB0, igtl://HOST:PORT or "
                              "replay:FILE.csv")
-    parser.add_argument("--out", required=True, metavar="rec.csv", help="tracking CSV to write (flushed every second)")
+    parser.add_argument("--out", required=True, metavar="rec.csv",
+                        help="tracking CSV to write (flushed every second), or a PLUS sequence metafile "
+                             "rec.seq.mha (written at the end; samples kept meanwhile in rec.seq.mha.partial.csv)")
     parser.add_argument("--reference-sensor", type=int, default=None, metavar="PORT")
     parser.add_argument("--probe-sensor", type=int, default=None, metavar="PORT")
     _add_limits(parser)
@@ -260,15 +275,17 @@ def add_record_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_record(args: argparse.Namespace) -> int:
+    from ..io.sequence_metafile import is_sequence_file
     from .sources import open_source
-    from .writers import RecordingWriter
+    from .writers import RecordingWriter, SequenceRecordingWriter
 
     reference, probe = _sensor_ports(args)
     from ..cli import _out_file
 
     _out_file(args.out)
     source = open_source(args.device, reference, probe, fast=args.fast, loop=args.loop)
-    writer = RecordingWriter(args.out)
+    writer = (SequenceRecordingWriter(args.out, reference_port=reference, probe_port=probe)
+              if is_sequence_file(args.out) else RecordingWriter(args.out))
     count = [0]
     guard = guard_for(source)
     paused = [False]
@@ -326,6 +343,7 @@ def run_serve(args: argparse.Namespace) -> int:
 
     reference, probe = _sensor_ports(args)
     source = open_source(args.device, reference, probe, fast=args.fast, loop=args.loop)
+    _check_ports_attached(source, reference, probe)
     args.source_max_quality = getattr(source, "default_max_quality", None)
     try:
         server = IGTLServer(args.host, args.igtl_port)
@@ -381,6 +399,7 @@ def run_live_navigate(args: argparse.Namespace) -> int:
     reference_to_image = load_reference_to_image(args.registration, getattr(args, "settings", None))
     reference, probe = _sensor_ports(args)
     source = open_source(args.source, reference, probe, fast=args.fast, loop=args.loop)
+    _check_ports_attached(source, reference, probe)
     args.source_max_quality = getattr(source, "default_max_quality", None)
     server = writer = None
     try:
@@ -415,10 +434,11 @@ def run_live_navigate(args: argparse.Namespace) -> int:
                 except EMRegError as exc:  # the device failed: cable pulled, tracker switched off or killed
                     source.stop()
                     navigator.device_lost(f"tracker lost: {exc}")  # the last STATUS a client sees is not OK
-                    source = _reconnect(args, reference, probe, stop, exc)
-                    if source is None:
+                    back = _reconnect(args, reference, probe, stop, exc)
+                    if back is None:
                         why = "interrupted while reconnecting"
                         break
+                    source = back
                     reconnects += 1
                     navigator.device_back(guard_for(source))
     finally:

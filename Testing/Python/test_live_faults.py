@@ -277,8 +277,9 @@ def test_a_client_that_stops_reading_gets_the_latest_pose_not_a_backlog():
         time.sleep(0.2)
         slow.setblocking(False)
         data = b""
-        deadline = time.monotonic() + 2.0
-        while time.monotonic() < deadline:
+        newest = np.array([sent], dtype=">f4").tobytes()
+        deadline = time.monotonic() + 15.0  # a zero-window probe of TCP may take seconds after a long stall
+        while time.monotonic() < deadline and not (len(data) % 106 == 0 and data[-12:-8] == newest):
             try:
                 chunk = slow.recv(65536)
             except BlockingIOError:
@@ -294,3 +295,17 @@ def test_a_client_that_stops_reading_gets_the_latest_pose_not_a_backlog():
     xs = [np.frombuffer(data[k * size + 58 + 36:k * size + 58 + 40], dtype=">f4")[0] for k in range(count)]
     assert count < sent / 2, (count, sent)
     assert xs[-1] == sent  # the newest pose arrived
+
+
+def test_live_navigate_refuses_a_port_without_a_sensor(tmp_path):
+    link = tmp_path / "trakstar"
+    sim = _start_sim(link, "--attached", "1,2")
+    try:
+        nav = _navigate(tmp_path, link, _free_port(), 5.0, "--probe-sensor", "3")
+        out, err = nav.communicate(timeout=60)
+    finally:
+        sim.send_signal(signal.SIGTERM)
+        sim.communicate(timeout=20)
+    assert nav.returncode == 2
+    lines = [line for line in err.splitlines() if "error" in line]
+    assert len(lines) == 1 and "no sensor on the probe port 3 (sensors on ports 1, 2)" in lines[0]

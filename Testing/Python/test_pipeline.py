@@ -163,6 +163,11 @@ def test_predicted_end_to_end_tre_matches_the_measured_one(run):
     for target in tre["targets"].values():
         budget = target["budget_rms_mm"]
         assert np.sqrt(sum(v**2 for v in budget.values())) == pytest.approx(target["predicted_rms_mm"], abs=2e-4)
+    # the report shows the budget and the map, and the predicted values beside the measured ones
+    assert (out / "report_figures" / "error_budget.png").stat().st_size > 0
+    assert (out / "report_figures" / "tre_map.png").stat().st_size > 0
+    page = (out / "report.html").read_text(encoding="utf-8")
+    assert f"{tre['predicted_rms_mm']:.2f}" in page and "Error budget per target" in page
 
 
 def test_tre_map_covers_the_ct_and_agrees_with_the_targets_predictions(run):

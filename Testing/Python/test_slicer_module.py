@@ -725,6 +725,7 @@ def test_run_writes_a_bundle_that_slicer_imports_matching_the_outputs(run_output
     assert values is not None and values.GetRange()[1] == pytest.approx(max(p["residual_mm"] for p in pairs.values()),
                                                                          abs=1e-4)
     assert residuals.GetDisplayNode().GetScalarVisibility()
+    assert residuals.GetDisplayNode().GetColorNode().GetName() == "ReverseRainbow"
 
     targets = json.loads((standard_case / "targets.mrk.json").read_text())["markups"][0]["controlPoints"]
     targets_node = mrml.node("EMReg targets")
@@ -922,3 +923,40 @@ def test_live_navigation_connects_and_disconnects_openigtlinkif(slicer_core):
     with pytest.raises(EMRegError, match="cannot connect to OpenIGTLink at localhost:18944"):
         refusing.startLiveNavigation()
     assert refusing.connectorNode is None and refusing.scene.connectors == []
+
+
+def test_bundle_shows_the_predicted_tre_map_as_slicer_reads_it(run_output, tmp_path):
+    """A run's ``tre_map.nrrd`` (float32, the CT's LPS origin and directions, coarse spacing) goes into the
+    bundle as a volume; imported, its IJK-to-RAS and values match the file as SimpleITK reads it."""
+    import json
+    import shutil
+
+    import SimpleITK as sitk
+    import slicer.util
+    import vtk
+
+    from EMRegModule.io.image import index_to_physical_matrix
+    from EMRegModule.io.slicer_scene import write_run_bundle
+
+    _, out = run_output
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy, ignore=shutil.ignore_patterns("EMReg.mrb", "report*"))
+    if not (copy / "tre_map.nrrd").is_file():  # written by emreg run when the error model is available
+        geometry = json.loads((copy / "markers.json").read_text())["image"]
+        values = np.random.default_rng(5).uniform(0.3, 1.5, size=(17, 23, 29)).astype(np.float32)  # z, y, x
+        tre_map = sitk.GetImageFromArray(values)
+        tre_map.SetOrigin(geometry["origin"])
+        tre_map.SetSpacing((4.5, 4.5, 4.5))
+        tre_map.SetDirection(geometry["direction"])
+        sitk.WriteImage(tre_map, str(copy / "tre_map.nrrd"))
+    expected = sitk.ReadImage(str(copy / "tre_map.nrrd"))
+    path, message = write_run_bundle(copy)
+    assert path == copy / "EMReg.mrb", message
+    mrml = _import_bundle(path)  # keep the scene alive while its nodes are used
+    node = mrml.node("EMReg predicted TRE (mm)")
+    matrix = vtk.vtkMatrix4x4()
+    node.GetIJKToRASMatrix(matrix)
+    np.testing.assert_allclose(slicer.util.arrayFromVTKMatrix(matrix),
+                               np.diag([-1.0, -1.0, 1.0, 1.0]) @ index_to_physical_matrix(expected), atol=1e-6)
+    assert np.array_equal(slicer.util.arrayFromVolume(node), sitk.GetArrayViewFromImage(expected))
+    assert node.GetDisplayNode().GetColorNode().GetName() == "ReverseRainbow"
