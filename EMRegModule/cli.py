@@ -214,9 +214,10 @@ def cmd_navigate(args: argparse.Namespace) -> int:
     settings = _settings(args)
     controller = _controller(args, settings)
     controller.set_registration(read_registration(args.registration, max_fre_from_settings(settings)))
-    from .io.tracking_csv import read_tracking_csv
+    from .io.recording import read_recording
 
-    recording = read_tracking_csv(args.source[len("replay:"):])
+    recording = read_recording(args.source[len("replay:"):], controller.settings, controller.reference_sensor,
+                               controller.probe_sensor)
     result = controller.navigate_recording(recording)
     _warn("navigate", recording.warnings)
     write_navigation_csv(result, Path(args.out) / "navigation.csv")
@@ -240,12 +241,52 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                          "(and no board.csv)")
     if args.settings:
         case.settings = _settings(args)
+    case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # sequence files' ports
     controller = _controller(args, case.settings)
     controller.set_registration(read_registration(args.registration, max_fre_from_settings(case.settings)))
     result = controller.evaluate(case.read_recording("navigation"), case.read_targets(), case.read_recording("board"))
     write_evaluation(result, Path(args.out) / "evaluation.json")
     _warn("evaluate", result.warnings)
     print(f"evaluation -> {Path(args.out) / 'evaluation.json'}")
+    return 0
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    from .io.recording import write_recording
+    from .io.sequence_metafile import is_sequence_file, read_sequence_frames, recording_from_frames
+    from .io.tracking_csv import read_tracking_csv
+
+    sensors = _settings(args).sensors
+    reference = args.reference_sensor or sensors.reference
+    probe = args.probe_sensor or sensors.probe
+    names = {"reference_transform": sensors.reference_transform or "ReferenceToTracker",
+             "probe_transform": sensors.probe_transform or "ProbeToTracker"}
+    source, target = Path(args.input), Path(args.output)
+    if source.resolve() == target.resolve():
+        raise EMRegError(f"convert: {target} is the input file; give another output name")
+    if is_sequence_file(source):
+        frames = read_sequence_frames(source)
+        ports = {names["reference_transform"]: reference, names["probe_transform"]: probe}
+        missing = [n for n in ports if n not in frames.matrices]
+        if missing:
+            raise EMRegError(f"{source}: no {' or '.join(n + 'Transform' for n in missing)} in the file; it holds "
+                             f"{', '.join(n + 'Transform' for n in frames.names)}; name them with [sensors] "
+                             "reference_transform / probe_transform (--settings case.toml)")
+        free = (p for p in range(1, 100) if p not in ports.values())
+        for name in frames.names:  # every other transform of the file keeps its own port
+            if name not in ports:
+                port = name[len("Sensor"):-len("ToTracker")] if name.startswith("Sensor") else ""
+                ports[name] = int(port) if port.isdigit() and int(port) not in ports.values() else next(free)
+        recording = recording_from_frames(frames, ports)
+        others = {n: p for n, p in ports.items() if n not in names.values()}
+    else:
+        recording, others = read_tracking_csv(source), {}
+    write_recording(recording, target, {"sensors": names}, reference, probe,
+                    orientation="quaternion" if args.quaternion else None)
+    _warn("convert", recording.warnings)
+    extra = ("; other transforms as sensor ports " + ", ".join(f"{n} = {p}" for n, p in others.items())
+             if others else "")
+    print(f"{len(recording)} sensor samples converted -> {target}{extra}")
     return 0
 
 
@@ -344,6 +385,9 @@ def run_case(
     report finds the CT through it).
     A stage that refuses (no safe answer) removes its own and all later outputs from OUT,
     so no stale result of an earlier run can be mistaken for this one's, then re-raises.
+    Once the registration stands, an optional recording that cannot be used (navigation, TRE
+    targets, board) does not fail the run: the part is "not evaluated" with its reason in
+    ``run.json`` (``not_evaluated``), ``evaluation.json`` and the report, and on stderr.
     """
     from .controller import EMRegController
     from .io.atomic import atomic_write_json
@@ -356,6 +400,7 @@ def run_case(
     case.settings = with_series(case.settings, series)
     if case.ct is None:
         raise EMRegError(f"{case_dir}: no CT found (ct.nrrd, ct.nii.gz, ct.mha or a ct/ DICOM folder)")
+    case.settings = case.settings.with_sensors(reference_sensor, probe_sensor)  # a sequence file's ports too
     controller = EMRegController.for_case(case, progress)
     controller.set_sensors(reference_sensor, probe_sensor)
     out.mkdir(parents=True, exist_ok=True)
@@ -363,6 +408,8 @@ def run_case(
     run_record = {"case": str(case.folder.resolve()), "ct": str(case.ct.resolve()), "emreg_version": __version__,
                   "reference_sensor": controller.reference_sensor, "probe_sensor": controller.probe_sensor,
                   "summary": summary}
+    not_made: dict[str, str] = {}
+    run_record["not_evaluated"] = not_made
     atomic_write_json(out / "run.json", run_record)
     current = "detect"
     try:
@@ -404,22 +451,44 @@ def run_case(
         current = "navigate"
         if controller.registration is not None and case.navigation is not None \
                 and stage_available("navigation"):
-            from .io.tracking_csv import read_tracking_csv
             from .navigation import write_navigation_csv
 
-            navigation_recording = read_tracking_csv(case.navigation)
-            navigation = controller.navigate_recording(navigation_recording)
-            _warn("run", navigation_recording.warnings)
-            write_navigation_csv(navigation, out / "navigation.csv")
-            summary.append(f"navigate: {len(navigation)} probe samples")
+            try:
+                navigation_recording = case.read_recording("navigation")
+                navigation = controller.navigate_recording(navigation_recording)
+            except NoSafeAnswerError:
+                raise
+            except EMRegError as exc:  # the registration stands; an unusable navigation recording is reported
+                not_made["navigation"] = str(exc)
+                print(f"emreg run: warning: navigation not made: {exc}", file=sys.stderr)
+                summary.append(f"navigate: not made: {exc}")
+            else:
+                _warn("run", navigation_recording.warnings)
+                write_navigation_csv(navigation, out / "navigation.csv")
+                summary.append(f"navigate: {len(navigation)} probe samples")
         current = "evaluate"
         evaluation = None
         if controller.registration is not None and stage_available("evaluation") \
                 and (case.navigation is not None or case.board is not None):
             from .evaluation import write_evaluation
 
-            evaluation = controller.evaluate(case.read_recording("navigation"), case.read_targets(),
-                                             case.read_recording("board"))
+            unreadable: dict[str, str] = {}
+            inputs: dict[str, object] = {}
+            for part, read in (("tre", lambda: (case.read_recording("navigation"), case.read_targets())),
+                               ("board", lambda: case.read_recording("board"))):
+                try:
+                    inputs[part] = read()
+                except NoSafeAnswerError:
+                    raise
+                except EMRegError as exc:  # an unreadable optional recording: that part is not evaluated
+                    unreadable[part] = str(exc)
+            navigation_input, targets_input = inputs.get("tre") or (None, None)
+            evaluation = controller.evaluate(navigation_input, targets_input, inputs.get("board"),
+                                             tolerant=True, not_evaluated=unreadable)
+            for part, reason in evaluation.not_evaluated.items():
+                not_made[part] = reason
+                print(f"emreg run: warning: {'TRE' if part == 'tre' else part} not evaluated: {reason}",
+                      file=sys.stderr)
             write_evaluation(evaluation, out / "evaluation.json")
             summary.extend(evaluation.summary())
         if controller.error_model is not None:
@@ -515,6 +584,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("case", metavar="CASE")
     p.add_argument("--registration", required=True, metavar="registration.json")
     p.add_argument("--out", required=True, metavar="OUT")
+    _add_sensor_options(p)
+
+    p = add("convert", cmd_convert, "convert a tracking recording between CSV and a PLUS sequence metafile "
+            "(.seq.mha, .mha, .seq.nrrd)")
+    p.add_argument("input", metavar="IN")
+    p.add_argument("output", metavar="OUT")
+    p.add_argument("--quaternion", action="store_true", help="write CSV orientations as qw,qx,qy,qz")
     _add_sensor_options(p)
 
     p = add("report", cmd_report, "render the verification report: OUT/report.html")

@@ -180,9 +180,9 @@ class EMRegController:
 
     def load_calibration_recording(self, path: str | os.PathLike[str]) -> TrackingRecording:
         """Read the frame-calibration recording; drops the frame calibration and what follows."""
-        from .io.tracking_csv import read_tracking_csv
+        from .io.recording import read_recording
 
-        recording = read_tracking_csv(path)
+        recording = read_recording(path, self.settings, self.reference_sensor, self.probe_sensor)
         self.set_calibration_recording(recording)
         return recording
 
@@ -269,16 +269,21 @@ class EMRegController:
 
     def evaluate(self, navigation: TrackingRecording | None = None,
                  targets: tuple[list[str], np.ndarray] | None = None,
-                 board: TrackingRecording | None = None) -> Evaluation:
+                 board: TrackingRecording | None = None, tolerant: bool = False,
+                 not_evaluated: dict[str, str] | None = None) -> Evaluation:
         """TRE at ``targets`` (labels, (K, 3) LPS mm) from a navigation recording, and the board table
-        from a board recording, with the current registration (``[evaluation]``, ``[board]`` settings)."""
+        from a board recording, with the current registration (``[evaluation]``, ``[board]`` settings).
+
+        ``tolerant`` (a run): a part that cannot be evaluated is "not evaluated" with its reason in the
+        result instead of an error; ``not_evaluated``: parts whose recording could not be read, and why."""
         self._require(registration=self.registration)
         from .evaluation import evaluate
 
         with self.progress.step("evaluating"):
             return evaluate(self.registration.reference_to_image, self.reference_sensor, self.probe_sensor,
                             self.settings.evaluation, navigation=navigation, targets=targets, board=board,
-                            nominal_edges_mm=self.settings.board.edges_mm, error_model=self.error_model)
+                            nominal_edges_mm=self.settings.board.edges_mm, error_model=self.error_model,
+                            tolerant=tolerant, not_evaluated=not_evaluated)
 
     @property
     def probe_axis(self) -> str | None:

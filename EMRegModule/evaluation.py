@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from .dwell import Dwell, find_dwells, group_by_place, robust_mean
+from .dwell import Dwell, describe_still_periods, find_dwells, group_by_place, robust_mean
 from .error_model import ErrorModel, repeated_dwell_ms
-from .errors import EMRegError
+from .errors import EMRegError, NoSafeAnswerError
 from .io.atomic import atomic_write_json, read_json
 from .navigation import navigate_recording
 from .settings import DwellSettings, EvaluationSettings
@@ -257,6 +257,8 @@ class Evaluation:
     board: BoardEvaluation | None = None
     warnings: list[str] = field(default_factory=list)
     extra: dict[str, Any] = field(default_factory=dict)
+    #: parts that could not be evaluated (``tre``, ``board``) and why (``emreg run``: the run still finishes)
+    not_evaluated: dict[str, str] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """The ``evaluation.json`` document (spec keys; values rounded to 4 decimals)."""
@@ -265,6 +267,8 @@ class Evaluation:
             document["tre"] = self.tre.to_json()
         if self.board is not None:
             document["board"] = self.board.to_json()
+        if self.not_evaluated:
+            document["not_evaluated"] = dict(self.not_evaluated)
         if self.warnings:
             document["warnings"] = list(self.warnings)
         document.update(self.extra)
@@ -279,7 +283,8 @@ class Evaluation:
             return cls(None if tre is None else TargetEvaluation.from_json(tre),
                        None if board is None else BoardEvaluation.from_json(board),
                        [str(w) for w in document.get("warnings", [])],
-                       {k: v for k, v in document.items() if k not in ("tre", "board", "warnings")})
+                       {k: v for k, v in document.items() if k not in ("tre", "board", "warnings", "not_evaluated")},
+                       {str(k): str(v) for k, v in (document.get("not_evaluated") or {}).items()})
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise EMRegError(f"{source}: not an evaluation file ({exc!s:.100})") from None
 
@@ -292,7 +297,12 @@ class Evaluation:
         if self.board is not None:
             edges = self.board.to_json()["edges"]
             lines.append("evaluate: board edges " + ", ".join(f"{k} {v['mean_mm']:.2f}" for k, v in edges.items()))
+        for part, reason in self.not_evaluated.items():
+            lines.append(f"evaluate: {_PART_NAMES.get(part, part)} not evaluated: {reason}")
         return lines
+
+
+_PART_NAMES = {"tre": "TRE", "board": "board"}
 
 
 def evaluate(
@@ -305,23 +315,44 @@ def evaluate(
     board: TrackingRecording | None = None,
     nominal_edges_mm: Sequence[float] | None = None,
     error_model: ErrorModel | None = None,
+    tolerant: bool = False,
+    not_evaluated: Mapping[str, str] | None = None,
 ) -> Evaluation:
     """TRE when a navigation recording and targets (labels, (K, 3) LPS mm) are given, the board table
     when a board recording is; ``reference_to_image``: Reference -> CT LPS (mm).
 
     ``settings``: the ``[evaluation]`` table; ``nominal_edges_mm``: ``[board] edges_mm``;
     ``error_model``: the registration's, for the predicted TRE beside the measured one.
+    ``tolerant`` (``emreg run``): a part that cannot be evaluated (no dwell found, a bad recording) is
+    left out and named with its reason in ``not_evaluated`` and ``warnings`` instead of raising
+    (``emreg evaluate`` raises); ``not_evaluated``: parts the caller could not even read, with why.
     """
     settings = settings or EvaluationSettings()
-    result = Evaluation()
+    result = Evaluation(not_evaluated=dict(not_evaluated or {}))
+
+    def part(name: str, compute) -> Any:
+        try:
+            return compute()
+        except NoSafeAnswerError:
+            raise
+        except EMRegError as exc:
+            if not tolerant:
+                raise
+            result.not_evaluated[name] = str(exc)
+            return None
+
     if navigation is not None and targets is not None:
         labels, positions = targets
-        result.tre = evaluate_targets(navigation, labels, positions, reference_to_image, reference_sensor,
-                                      probe_sensor, settings, settings.max_target_distance_mm, error_model)
+        result.tre = part("tre", lambda: evaluate_targets(
+            navigation, labels, positions, reference_to_image, reference_sensor, probe_sensor, settings,
+            settings.max_target_distance_mm, error_model))
         result.warnings += navigation.warnings
     if board is not None:
-        result.board = evaluate_board(board, reference_sensor, probe_sensor, nominal_edges_mm, settings)
-        result.warnings += board.warnings  # time resets / gaps found in the recordings (kept as segments)
+        result.board = part("board", lambda: evaluate_board(board, reference_sensor, probe_sensor, nominal_edges_mm,
+                                                            settings))
+        result.warnings += board.warnings  # time resets / gaps / invalid frames found in the recordings
+    result.warnings += [f"{_PART_NAMES.get(name, name)} not evaluated: {reason}"
+                        for name, reason in result.not_evaluated.items()]
     return result
 
 
@@ -376,8 +407,17 @@ def evaluate_targets(
         per_target[label].append(error)
         found.append(TargetDwell(label, error, float(dwell.start_s), float(dwell.end_s), len(dwell), mean))
     if not found:
-        raise EMRegError(f"{recording.source}: no probe dwell at any target was found; "
-                         "check the navigation recording's labels and the targets file")
+        if dwells and dwells[0].label:
+            seen = ", ".join(sorted({d.label for d in dwells})[:6])
+            what = (f"{len(dwells)} labelled dwell(s), none with a target's label "
+                    f"({seen} vs {', '.join(map(str, list(target_labels)[:6]))})")
+        elif dwells:
+            what = (f"{len(dwells)} dwell(s), none within {max_target_distance_mm:g} mm of a target "
+                    "([evaluation] max_target_distance_mm)")
+        else:
+            what = describe_still_periods(navigation.time_s, position, navigation.quality, settings, targets_image,
+                                          "target")
+        raise EMRegError(f"{recording.source}: no probe dwell at any target was found: {what}")
     targets = {label: Stats.of(values) for label, values in per_target.items() if values}
     result = TargetEvaluation(found, targets, unmatched, bool(dwells and dwells[0].label))
     if error_model is not None:
@@ -425,7 +465,8 @@ def evaluate_board(
         frame = "Tracker"
     dwells = find_dwells(time_s, position, labels, quality, settings)
     if not dwells:
-        raise EMRegError(f"{recording.source}: no probe dwell found in the board recording")
+        raise EMRegError(f"{recording.source}: no probe dwell found in the board recording: "
+                         + describe_still_periods(time_s, position, quality, settings))
     centres = np.array([robust_mean(position[d.indices]).mean for d in dwells])
     hole_of_dwell, hole_names = _board_holes(dwells, centres, settings)
     n_holes = len(hole_names)

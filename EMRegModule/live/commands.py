@@ -188,9 +188,9 @@ def run_sim_tracker(args: argparse.Namespace) -> int:
 
     scene = BuiltinScene(args.seed)
     if args.replay:
-        from ..io.tracking_csv import read_tracking_csv
+        from ..io.recording import read_recording
 
-        scene = ReplayScene(read_tracking_csv(args.replay))
+        scene = ReplayScene(read_recording(args.replay))
     attached = sensors_from_list(args.attached) if args.attached else None
     sim = TrackerSimulator(scene, baud=args.baud, faults=FaultPlan.parse(args.fault), seed=args.seed, link=args.link,
                            fast=args.fast, max_records=args.max_records, duration_s=args.duration, attached=attached,
@@ -265,7 +265,9 @@ def add_record_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", required=True, metavar="URL",
                         help="trakstar:///dev/ttyUSB0?baud=115200, aurora:///dev/ttyUSB0, igtl://HOST:PORT or "
                              "replay:FILE.csv")
-    parser.add_argument("--out", required=True, metavar="rec.csv", help="tracking CSV to write (flushed every second)")
+    parser.add_argument("--out", required=True, metavar="rec.csv",
+                        help="tracking CSV to write (flushed every second), or a PLUS sequence metafile "
+                             "rec.seq.mha (written at the end; samples kept meanwhile in rec.seq.mha.partial.csv)")
     parser.add_argument("--reference-sensor", type=int, default=None, metavar="PORT")
     parser.add_argument("--probe-sensor", type=int, default=None, metavar="PORT")
     _add_limits(parser)
@@ -273,15 +275,17 @@ def add_record_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_record(args: argparse.Namespace) -> int:
+    from ..io.sequence_metafile import is_sequence_file
     from .sources import open_source
-    from .writers import RecordingWriter
+    from .writers import RecordingWriter, SequenceRecordingWriter
 
     reference, probe = _sensor_ports(args)
     from ..cli import _out_file
 
     _out_file(args.out)
     source = open_source(args.device, reference, probe, fast=args.fast, loop=args.loop)
-    writer = RecordingWriter(args.out)
+    writer = (SequenceRecordingWriter(args.out, reference_port=reference, probe_port=probe)
+              if is_sequence_file(args.out) else RecordingWriter(args.out))
     count = [0]
     guard = guard_for(source)
     paused = [False]

@@ -13,7 +13,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..errors import EMRegError
-from ..io.tracking_csv import read_tracking_csv
+from ..io.recording import read_recording
 from ..tracking import SAME_MOMENT_S
 from .device_url import DeviceURL, parse_device_url
 from .samples import SensorSample
@@ -107,7 +107,7 @@ class ReplaySource(SampleSource):
 
     def __init__(self, path: str, fast: bool = False, loop: bool = False) -> None:
         super().__init__()
-        self.recording = read_tracking_csv(path)
+        self.recording = read_recording(path)
         self.fast = fast
         self.loop = loop
         rec = self.recording

@@ -414,13 +414,14 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         ``evaluation.json``; shows the probe path and the last probe pose (``ProbeToReference``,
         under ``ReferenceToImage``)."""
         from EMRegModule.errors import EMRegError
-        from EMRegModule.io.tracking_csv import read_tracking_csv
+        from EMRegModule.io.recording import read_recording
         from EMRegModule.navigation import write_navigation_csv
         from EMRegModule.tracking import probe_in_reference
 
         if self.case is None or self.case.navigation is None:
             raise EMRegError("the case has no navigation.csv to replay")
-        recording = read_tracking_csv(self.case.navigation)
+        recording = read_recording(self.case.navigation, self.case.settings, self.controller.reference_sensor,
+                                   self.controller.probe_sensor)
         result = self.controller.navigate_recording(recording)
         write_navigation_csv(result, self._output("navigation.csv"))
         # the last probe pose straight from the recording (Reference frame); Slicer composes it with ReferenceToRAS
