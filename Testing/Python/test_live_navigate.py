@@ -81,8 +81,8 @@ class _FakeServer:
         self.messages.append(message)
         return time.monotonic_ns()
 
-    def send_transform(self, name, matrix, timestamp=None) -> int:
-        self.messages.append((name, np.asarray(matrix)))
+    def send_transform(self, name, matrix, timestamp=None, status="OK") -> int:
+        self.messages.append((name, np.asarray(matrix), status))
         return time.monotonic_ns()
 
 
@@ -132,9 +132,12 @@ def test_navigator_publishes_only_good_frames_and_announces_changes(capsys):
     nav.on_sample(_sample(2, 1))
     nav.on_sample(_sample(1, 2))
     nav.on_sample(_sample(2, 2))
-    transforms = [m for m in server.messages if isinstance(m, tuple)]
+    transforms = [m for m in server.messages if isinstance(m, tuple) and m[2] == "OK"]
     statuses = [m for m in server.messages if isinstance(m, StatusMessage)]
     assert nav.published == 2 and nav.withheld == 1 and len(transforms) == 2
+    # the withheld frame went out as the last pose with TransformStatus INVALID (PLUS habit)
+    invalid = [m for m in server.messages if isinstance(m, tuple) and m[2] == "INVALID"]
+    assert invalid and all(np.allclose(m[1], transforms[0][1]) for m in invalid)
     expected = reference_to_image @ invert_rigid(make_transform(None, [100, 0, 0])) @ make_transform(None, [110, 5, 0])
     np.testing.assert_allclose(transforms[0][1], LPS_TO_RAS @ expected, atol=1e-9)
     assert [s.error_name for s in statuses][-3:] == ["OK", "ReferenceMissing", "OK"]
@@ -158,10 +161,14 @@ def test_replay_published_over_tcp_matches_offline_navigation(tmp_path):
                      "--out", str(tmp_path / "offline")]) == 0
     port = _free_port()
     received = []
+
     # every message, decoded by pyigtl (polling pyigtl's client only sees the newest one: a loaded test thread
     # that polls late loses the others)
-    client = IGTLReceiver("127.0.0.1", port, lambda m: received.append(np.asarray(m.matrix, dtype=float))
-                          if m.device_name == "ProbeToImage" else None, reconnect_s=0.01)
+    def collect(message):
+        if message.device_name == "ProbeToImage" and message.metadata.get("TransformStatus") == "OK":
+            received.append(np.asarray(message.matrix, dtype=float))
+
+    client = IGTLReceiver("127.0.0.1", port, collect, reconnect_s=0.01)
     argv = ["navigate", "--registration", str(registration), "--source", f"replay:{csv}", "--igtl-port", str(port),
             "--out", str(tmp_path / "live"), "--quiet"]
     result = {}
