@@ -127,39 +127,47 @@ class SlicerScene:
         ``path``, then renamed onto it."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        # Slicer's default storage nodes. Its single-threaded gzip of a CT is slow (450 MB of voxels: 15-41 s),
-        # so volumes are written uncompressed (~3 s) and their NRRD entries re-encoded as ``encoding: gzip``
-        # with ISA-L afterwards (:func:`_gzip_volume_entries`): the same NRRD, about as small, several times
-        # faster.
-        volumes: list[str] = []
+        # Slicer's default storage nodes. Its single-threaded gzip of a CT is slow (450 MB of voxels: 10-41 s)
+        # and its bundle writer copies the voxels to disk twice (the folder, then the zip). So each scalar
+        # volume is saved by Slicer as a one-voxel placeholder of the same type and geometry, uncompressed,
+        # and :func:`_zip_bundle` writes its NRRD entry from that header (true ``sizes``, ``encoding: gzip``)
+        # and the node's voxels in memory, gzip-compressed by ISA-L on their way into the zip.
+        volumes: dict[str, tuple[Any, Any]] = {}  # storage node id -> (volume node, its image data)
         fast_gzip = _isal_available()  # without it (3D Slicer's Python), Slicer's own compressed writer
         for node in self.nodes("vtkMRMLStorableNode"):
             if node.GetStorageNode() is None:
                 node.AddDefaultStorageNode()
             storage = node.GetStorageNode()
-            if fast_gzip and node.IsA("vtkMRMLScalarVolumeNode") and storage is not None and storage.IsA(
-                    "vtkMRMLVolumeArchetypeStorageNode"):
-                storage.UseCompressionOff()
-                volumes.append(storage.GetID())
+            data = node.GetImageData() if node.IsA("vtkMRMLScalarVolumeNode") else None
+            if (fast_gzip and data is not None and data.GetPointData().GetScalars() is not None
+                    and storage is not None and storage.IsA("vtkMRMLVolumeArchetypeStorageNode")):
+                volumes[storage.GetID()] = (node, data)
         work = Path(tempfile.mkdtemp(prefix=f".{path.stem}-", dir=path.parent)).resolve()
         try:
             # What ``vtkMRMLScene::WriteToMRB`` does (the scene and its data in a folder named as the bundle,
-            # zipped), with the zip made here: the raw volumes are gzip-encoded on their way into it instead
-            # of being zipped by Slicer as they are and rewritten afterwards.
+            # zipped: stored entries), with the zip made here.
             folder = work / path.stem
             staged = work / path.name
             folder.mkdir()
+            for storage_id, (node, data) in volumes.items():
+                self.scene.GetNodeByID(storage_id).UseCompressionOff()
+                node.SetAndObserveImageData(_placeholder_like(data))
             self.scene.SetRootDirectory(str(work))
-            if not self.scene.SaveSceneToSlicerDataBundleDirectory(str(folder)) or not folder.is_dir():
+            saved = self.scene.SaveSceneToSlicerDataBundleDirectory(str(folder))
+            voxels = {}
+            for storage_id, (node, data) in volumes.items():
+                node.SetAndObserveImageData(data)
+                voxels[storage_id] = data
+            if not saved or not folder.is_dir():
                 raise EMRegError(f"{path}: 3D Slicer's writer could not write the scene bundle "
                                  "(disk full or no permission?)")
-            _zip_bundle(folder, staged, volumes)
+            _zip_bundle(folder, staged, voxels)
             os.replace(staged, path)
         finally:
-            for storage_id in volumes:  # the scene's nodes as they were (Slicer's default: compressed)
-                storage = self.scene.GetNodeByID(storage_id)
-                if storage is not None:
-                    storage.UseCompressionOn()
+            for storage_id, (node, data) in volumes.items():  # the scene as it was (Slicer's default: compressed)
+                if node.GetImageData() is not data:
+                    node.SetAndObserveImageData(data)
+                self.scene.GetNodeByID(storage_id).UseCompressionOn()
             shutil.rmtree(work, ignore_errors=True)
         return path
 
@@ -182,21 +190,45 @@ BUNDLE_GZIP_LEVEL = 2
 _CHUNK_BYTES = 16 << 20
 
 
-def _zip_bundle(folder: Path, target: Path, storage_ids: Sequence[str]) -> None:
-    """Zip a scene-bundle folder (Slicer's ``.mrb`` layout: ``NAME/NAME.mrml``, ``NAME/Data/...``, stored
-    entries) into ``target``, its raw NRRD volumes re-encoded as gzip NRRD on the way.
+def _placeholder_like(data: Any) -> Any:
+    """A one-voxel ``vtkImageData`` of the scalar type and components of ``data`` (geometry is the node's)."""
+    import vtk
 
-    A raw NRRD's header is kept as Slicer wrote it, with ``encoding: raw`` changed to ``encoding: gzip``
-    (a gzip stream of the same voxel bytes, as Slicer's own compressed writer makes, by ISA-L at
-    :data:`BUNDLE_GZIP_LEVEL`); the ``.mrml`` says ``useCompression="1"`` again for the storage nodes
-    ``storage_ids``, so that a scene saved again from Slicer stays compressed. Streams in chunks of
-    :data:`_CHUNK_BYTES` (bounded memory).
+    scalars = data.GetPointData().GetScalars()
+    placeholder = vtk.vtkImageData()
+    placeholder.SetDimensions(1, 1, 1)
+    placeholder.AllocateScalars(scalars.GetDataType(), scalars.GetNumberOfComponents())
+    placeholder.GetPointData().GetScalars().Fill(0)
+    return placeholder
+
+
+def _zip_bundle(folder: Path, target: Path, voxels: dict[str, Any]) -> None:
+    """Zip a scene-bundle folder (Slicer's ``.mrb`` layout: ``NAME/NAME.mrml``, ``NAME/Data/...``, stored
+    entries) into ``target``.
+
+    ``voxels``: storage node id -> ``vtkImageData`` of the volumes Slicer saved as one-voxel raw NRRD
+    placeholders (their files are found by the storage nodes' ``fileName`` in the ``.mrml``).
+    Their entries are written from the placeholder's header (Slicer's fields and geometry) with ``sizes``
+    set to the image's dimensions and ``encoding: gzip``, followed by a gzip stream of the image's voxels
+    (as Slicer's own compressed writer makes, by ISA-L at :data:`BUNDLE_GZIP_LEVEL`, in chunks of
+    :data:`_CHUNK_BYTES` read from memory). The ``.mrml`` says ``useCompression="1"`` again for the storage
+    nodes, so that a scene saved again from Slicer stays compressed.
     """
     import re
     import zipfile
+    from urllib.parse import unquote
 
     from isal import isal_zlib
+    from vtk.util import numpy_support
 
+    files_of: dict[Path, Any] = {}
+    for scene_file in folder.glob("*.mrml"):
+        scene = scene_file.read_text(encoding="utf-8")
+        for storage_id, data in voxels.items():
+            found = re.search(rf'<\w+\s[^>]*\bid="{re.escape(storage_id)}"[^>]*\bfileName="([^"]*)"', scene)
+            if found:  # relative to the scene's folder, URL-encoded
+                files_of[(folder / unquote(found.group(1))).resolve()] = data
+    written = set()
     with zipfile.ZipFile(target, "w", zipfile.ZIP_STORED, allowZip64=True) as out:
         for current, dirs, files in os.walk(folder):
             dirs.sort()
@@ -205,25 +237,34 @@ def _zip_bundle(folder: Path, target: Path, storage_ids: Sequence[str]) -> None:
             for name in sorted(files):
                 source = here / name
                 arcname = source.relative_to(folder.parent).as_posix()
-                size = source.stat().st_size
                 if name.endswith(".mrml"):
                     scene = source.read_text(encoding="utf-8")
-                    for storage_id in storage_ids:
+                    for storage_id in voxels:
                         scene = re.sub(rf'(<\w+\s[^>]*\bid="{re.escape(storage_id)}"[^>]*\buseCompression=")0"',
                                        r'\g<1>1"', scene)
                     out.writestr(arcname, scene.encode("utf-8"))
                     continue
-                with source.open("rb") as entry, out.open(arcname, "w", force_zip64=size > 1 << 30) as sink:
-                    header = _read_nrrd_header(entry) if name.lower().endswith(".nrrd") else b""
-                    if not (header.endswith(b"\n\n") and b"\nencoding: raw\n" in header):  # others: as they are
-                        sink.write(header)
-                        shutil.copyfileobj(entry, sink, _CHUNK_BYTES)
-                        continue
-                    sink.write(header.replace(b"\nencoding: raw\n", b"\nencoding: gzip\n", 1))
+                if source.resolve() not in files_of:
+                    out.write(source, arcname)
+                    continue
+                with source.open("rb") as placeholder:
+                    header = _read_nrrd_header(placeholder)
+                if not (header.endswith(b"\n\n") and b"\nencoding: raw\n" in header and b"\nsizes: 1 1 1\n" in header):
+                    raise EMRegError(f"{arcname}: 3D Slicer wrote the volume in a form EMReg does not expect")
+                data = files_of[source.resolve()]
+                written.add(id(data))
+                sizes = " ".join(str(n) for n in data.GetDimensions()).encode("ascii")
+                header = header.replace(b"\nencoding: raw\n", b"\nencoding: gzip\n", 1).replace(
+                    b"\nsizes: 1 1 1\n", b"\nsizes: " + sizes + b"\n", 1)
+                flat = memoryview(numpy_support.vtk_to_numpy(data.GetPointData().GetScalars())).cast("B")
+                with out.open(arcname, "w", force_zip64=flat.nbytes > 1 << 30) as sink:
+                    sink.write(header)
                     deflate = isal_zlib.compressobj(BUNDLE_GZIP_LEVEL, isal_zlib.DEFLATED, 31)  # 31: a gzip stream
-                    while chunk := entry.read(_CHUNK_BYTES):
-                        sink.write(deflate.compress(chunk))
+                    for start in range(0, flat.nbytes, _CHUNK_BYTES):
+                        sink.write(deflate.compress(flat[start:start + _CHUNK_BYTES]))
                     sink.write(deflate.flush())
+    if written != {id(data) for data in voxels.values()}:  # a placeholder left as a volume: a wrong scene
+        raise EMRegError("3D Slicer did not write every volume where its scene says")
 
 
 def _isal_available() -> bool:

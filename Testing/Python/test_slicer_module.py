@@ -739,9 +739,9 @@ def test_run_writes_a_bundle_that_slicer_imports_matching_the_outputs(run_output
 
 
 def test_bundle_volume_is_gzip_nrrd_holding_the_cts_voxels(run_output, standard_case):
-    """The CT in the bundle is an attached gzip NRRD (re-encoded with ISA-L after Slicer's uncompressed write):
-    its header is Slicer's with ``encoding: gzip``, its inflated bytes are the CT's voxels, and the scene
-    keeps Slicer's default (compressed) for a re-save."""
+    """The CT in the bundle is an attached gzip NRRD (Slicer's header, voxels gzip-compressed by EMReg with
+    ISA-L): ``encoding: gzip``, the CT's sizes, its inflated bytes are the CT's voxels, and the scene keeps
+    Slicer's default (compressed) for a re-save. (Slicer's import of the same bundle is checked above.)"""
     import gzip
     import re
     import zipfile
