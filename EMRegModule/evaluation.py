@@ -205,6 +205,7 @@ class Evaluation:
     board: BoardEvaluation | None = None
     warnings: list[str] = field(default_factory=list)
     extra: dict[str, Any] = field(default_factory=dict)
+    provenance: dict[str, Any] | None = None  # what it was made from (``EMRegModule.provenance``)
 
     def to_json(self) -> dict[str, Any]:
         """The ``evaluation.json`` document (spec keys; values rounded to 4 decimals)."""
@@ -216,6 +217,8 @@ class Evaluation:
         if self.warnings:
             document["warnings"] = list(self.warnings)
         document.update(self.extra)
+        if self.provenance is not None:
+            document["provenance"] = self.provenance
         return document
 
     @classmethod
@@ -227,7 +230,8 @@ class Evaluation:
             return cls(None if tre is None else TargetEvaluation.from_json(tre),
                        None if board is None else BoardEvaluation.from_json(board),
                        [str(w) for w in document.get("warnings", [])],
-                       {k: v for k, v in document.items() if k not in ("tre", "board", "warnings")})
+                       {k: v for k, v in document.items() if k not in ("tre", "board", "warnings", "provenance")},
+                       document["provenance"] if isinstance(document.get("provenance"), dict) else None)
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise EMRegError(f"{source}: not an evaluation file ({exc!s:.100})") from None
 

@@ -81,6 +81,7 @@ class RegistrationResult:
     warnings: list[str] = field(default_factory=list)
     pairing: dict[str, Any] = field(default_factory=dict)
     probe_axis: dict[str, Any] = field(default_factory=dict)
+    provenance: dict[str, Any] | None = None  # what it was made from (``EMRegModule.provenance``)
 
     @property
     def outliers(self) -> list[str]:
@@ -113,6 +114,8 @@ class RegistrationResult:
         if self.targets_image is not None and self.predicted_tre_mm is not None:
             document["targets_image"] = np.asarray(self.targets_image).tolist()
             document["predicted_tre_mm"] = [round(float(v), 4) for v in self.predicted_tre_mm]
+        if self.provenance is not None:
+            document["provenance"] = self.provenance
         return document
 
     @classmethod
@@ -149,6 +152,7 @@ class RegistrationResult:
                 warnings=[str(w) for w in document.get("warnings", [])],
                 pairing=dict(document.get("pairing", {})),
                 probe_axis=dict(document.get("probe_axis") or {}),
+                provenance=document["provenance"] if isinstance(document.get("provenance"), dict) else None,
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise EMRegError(f"{source}: not a registration file ({exc!s:.100})") from None

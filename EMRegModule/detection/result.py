@@ -81,6 +81,7 @@ class DetectionResult:
     rejected: list[RejectedCandidate] = field(default_factory=list)
     image: dict[str, Any] = field(default_factory=dict)
     ct_series: dict[str, Any] | None = None  # a DICOM CT: the series used and the others (``io.dicom_series``)
+    provenance: dict[str, Any] | None = None  # what it was made from (``EMRegModule.provenance``)
 
     def __len__(self) -> int:
         return len(self.markers)
@@ -108,6 +109,8 @@ class DetectionResult:
                     "rejected": [r.to_json() for r in self.rejected]}
         if self.ct_series is not None:
             document["ct_series"] = self.ct_series
+        if self.provenance is not None:
+            document["provenance"] = self.provenance
         return document
 
     @classmethod
@@ -138,7 +141,9 @@ class DetectionResult:
         if len(set(ids)) != len(ids):
             raise EMRegError(f"{source}: marker ids must be unique")
         series = document.get("ct_series")
-        return cls(markers, rejected, dict(document.get("image", {})), series if isinstance(series, dict) else None)
+        provenance = document.get("provenance")
+        return cls(markers, rejected, dict(document.get("image", {})), series if isinstance(series, dict) else None,
+                   provenance if isinstance(provenance, dict) else None)
 
 
 def write_detection(result: DetectionResult, out_dir: str | os.PathLike[str]) -> None:
