@@ -197,9 +197,12 @@ def calibrate_frame(
     out_of_hole = marker_directions(samples.direction, convention)
     dwells = find_dwells(samples.time_s, position, samples.label, samples.quality, dwell_settings)
     if not dwells:
+        from .dwell import describe_still_periods
+
         raise EMRegError(
             f"{recording.source}: no dwell found (the probe never stayed still in a pinhole for "
-            f"{dwell_settings.min_duration_s:g} s); check the sensor ports or [calibration] min_duration_s"
+            f"{dwell_settings.min_duration_s:g} s; check the sensor ports): "
+            + describe_still_periods(samples.time_s, position, samples.quality, dwell_settings, section="calibration")
         )
     labelled = bool(dwells[0].label)
     inlier_index = []

@@ -196,12 +196,13 @@ def cmd_navigate(args: argparse.Namespace) -> int:
         return run_live_navigate(args)
     if not args.out:
         raise EMRegError("navigate: --out DIR is needed to write navigation.csv from a replay")
-    from .io.tracking_csv import read_tracking_csv
+    from .io.recording import read_recording
 
     recording_path = Path(args.source[len("replay:"):])
     controller = _controller(args, _settings(args))
     controller.load_registration(args.registration)
-    recording = read_tracking_csv(recording_path)
+    recording = read_recording(recording_path, controller.settings, controller.reference_sensor,
+                               controller.probe_sensor)
     folder = _output_folder(args, "navigate", [recording_path, Path(args.registration)])
     controller.note_inputs(navigation=recording_path)
     result = controller.navigate_recording(recording)
@@ -224,6 +225,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                          "(and no board.csv)")
     if args.settings:
         case.settings = _settings(args)
+    case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # sequence files' ports
     controller = _controller(args, case.settings)
     inputs = [p for p in (case.navigation, case.targets, case.board) if p is not None]
     folder = _output_folder(args, "evaluate", [*inputs, Path(args.registration)], case.folder)
@@ -234,6 +236,45 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     controller.save_evaluation(folder, result)
     controller.warn(result.warnings)
     print(f"evaluation -> {folder.path / 'evaluation.json'}")
+    return 0
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    from .io.recording import write_recording
+    from .io.sequence_metafile import is_sequence_file, read_sequence_frames, recording_from_frames
+    from .io.tracking_csv import read_tracking_csv
+
+    sensors = _settings(args).sensors
+    reference = args.reference_sensor or sensors.reference
+    probe = args.probe_sensor or sensors.probe
+    names = {"reference_transform": sensors.reference_transform or "ReferenceToTracker",
+             "probe_transform": sensors.probe_transform or "ProbeToTracker"}
+    source, target = Path(args.input), Path(args.output)
+    if source.resolve() == target.resolve():
+        raise EMRegError(f"convert: {target} is the input file; give another output name")
+    if is_sequence_file(source):
+        frames = read_sequence_frames(source)
+        ports = {names["reference_transform"]: reference, names["probe_transform"]: probe}
+        missing = [n for n in ports if n not in frames.matrices]
+        if missing:
+            raise EMRegError(f"{source}: no {' or '.join(n + 'Transform' for n in missing)} in the file; it holds "
+                             f"{', '.join(n + 'Transform' for n in frames.names)}; name them with [sensors] "
+                             "reference_transform / probe_transform (--settings case.toml)")
+        free = (p for p in range(1, 100) if p not in ports.values())
+        for name in frames.names:  # every other transform of the file keeps its own port
+            if name not in ports:
+                port = name[len("Sensor"):-len("ToTracker")] if name.startswith("Sensor") else ""
+                ports[name] = int(port) if port.isdigit() and int(port) not in ports.values() else next(free)
+        recording = recording_from_frames(frames, ports)
+        others = {n: p for n, p in ports.items() if n not in names.values()}
+    else:
+        recording, others = read_tracking_csv(source), {}
+    write_recording(recording, target, {"sensors": names}, reference, probe,
+                    orientation="quaternion" if args.quaternion else None)
+    _warn("convert", recording.warnings)
+    extra = ("; other transforms as sensor ports " + ", ".join(f"{n} = {p}" for n, p in others.items())
+             if others else "")
+    print(f"{len(recording)} sensor samples converted -> {target}{extra}")
     return 0
 
 
@@ -250,7 +291,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args))
         print(f"{len(pages)} reports written under {args.batch}")
         for folder in folders:
-            print(slicer_bundle(folder))
+            print(slicer_bundle(folder, progress=_progress(args)))
         return 0
     if not args.out:
         raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
@@ -277,6 +318,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.settings:
         case.settings = _settings(args)
     case.settings = with_series(case.settings, args.series)
+    case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # a sequence file's too
     controller = _controller(args, case.settings)
     for line in controller.run(case, Path(args.out)):
         print(line)
@@ -301,7 +343,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def slicer_bundle(out: Path, case_dir: Path | None = None, image=None) -> str:
+def slicer_bundle(out: Path, case_dir: Path | None = None, image=None, progress: Progress | None = None) -> str:
     """Write ``OUT/EMReg.mrb`` (3D Slicer scene bundle) from the outputs in OUT; one summary line.
 
     Optional: without slicer-core, or when the bundle cannot be written (disk full, no
@@ -309,10 +351,23 @@ def slicer_bundle(out: Path, case_dir: Path | None = None, image=None) -> str:
     """
     from .io.slicer_scene import write_run_bundle
 
-    path, message = write_run_bundle(out, case_dir, image)
+    with (progress or Progress(enabled=False)).step("writing the 3D Slicer scene bundle"):
+        path, message = write_run_bundle(out, case_dir, image)
     if path is None:
         _warn("bundle", [message])
     return f"bundle: {message}"
+
+
+def cmd_study(args: argparse.Namespace) -> int:
+    from .studies import STUDIES, format_table, run_study
+
+    summary = run_study(args.name, Path(args.out), quick=args.quick, scheduler=args.scheduler, workers=args.workers,
+                        case_dir=Path(args.case) if args.case else None,
+                        work=Path(args.work) if args.work else None, seed=args.seed, progress=_progress(args))
+    print(f"{STUDIES[args.name].title}\n")
+    print(format_table(summary))
+    print(f"\n-> {Path(args.out) / args.name}.json, .csv, .png")
+    return 0
 
 
 # --- parser -----------------------------------------------------------------------------------
@@ -385,11 +440,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="OUT")
     _add_sensor_options(p)
 
+    p = add("convert", cmd_convert, "convert a tracking recording between CSV and a PLUS sequence metafile "
+            "(.seq.mha, .mha, .seq.nrrd)")
+    p.add_argument("input", metavar="IN")
+    p.add_argument("output", metavar="OUT")
+    p.add_argument("--quaternion", action="store_true", help="write CSV orientations as qw,qx,qy,qz")
+    _add_sensor_options(p)
+
     p = add("report", cmd_report, "render the verification report: OUT/report.html")
     p.add_argument("out", nargs="?", metavar="OUT")
     p.add_argument("--case", metavar="CASE", help="the case folder (for the CT), when not recorded in OUT")
     p.add_argument("--batch", metavar="DIR", help="render a report in every output folder under DIR")
-    p.add_argument("--jobs", type=int, default=1)
+    p.add_argument("--jobs", type=int, default=1,
+                   help="reports rendered at a time with --batch (lowered to what the available memory holds)")
 
     p = add("run", cmd_run, "run every stage on a case folder")
     p.add_argument("case", metavar="CASE")
@@ -401,6 +464,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="demo-output", metavar="DIR")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--spacing", type=float, default=None, metavar="MM")
+
+    p = add("study", cmd_study, "an accuracy study on simulated data, run on Dask: OUT/NAME.json, .csv, .png")
+    p.add_argument("name", metavar="NAME", help="calibration, board, tre, noise, markers or prediction")
+    p.add_argument("--out", required=True, metavar="DIR")
+    p.add_argument("--quick", action="store_true", help="a small frame and few sessions (a smoke-sized run)")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="an existing Dask scheduler (default: a local one)")
+    p.add_argument("--workers", type=int, default=None, metavar="N", help="local worker processes (default 2)")
+    p.add_argument("--case", metavar="CASE", help="a simulated case folder with truth.json (default: simulate one)")
+    p.add_argument("--work", metavar="DIR", help="where the simulated case and its detection are kept (OUT/work)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the simulated case")
 
     for name, add_arguments, run, help_text in live.SUBCOMMANDS:
         p = add(name, run, help_text)

@@ -37,6 +37,7 @@ if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only wh
 
     from .calibration import FrameCalibration
     from .detection import DetectionResult
+    from .error_model import ErrorModel
     from .evaluation import Evaluation
     from .navigation import NavigationResult
     from .registration import RegistrationResult
@@ -191,9 +192,9 @@ class EMRegController:
 
     def load_calibration_recording(self, path: str | os.PathLike[str]) -> TrackingRecording:
         """Read the frame-calibration recording; drops the frame calibration and what follows."""
-        from .io.tracking_csv import read_tracking_csv
+        from .io.recording import read_recording
 
-        recording = read_tracking_csv(path)
+        recording = read_recording(path, self.settings, self.reference_sensor, self.probe_sensor)
         self.set_calibration_recording(recording)
         return recording
 
@@ -280,16 +281,21 @@ class EMRegController:
 
     def evaluate(self, navigation: TrackingRecording | None = None,
                  targets: tuple[list[str], np.ndarray] | None = None,
-                 board: TrackingRecording | None = None) -> Evaluation:
+                 board: TrackingRecording | None = None, tolerant: bool = False,
+                 not_evaluated: dict[str, str] | None = None) -> Evaluation:
         """TRE at ``targets`` (labels, (K, 3) LPS mm) from a navigation recording, and the board table
-        from a board recording, with the current registration (``[evaluation]``, ``[board]`` settings)."""
+        from a board recording, with the current registration (``[evaluation]``, ``[board]`` settings).
+
+        ``tolerant`` (a run): a part that cannot be evaluated is "not evaluated" with its reason in the
+        result instead of an error; ``not_evaluated``: parts whose recording could not be read, and why."""
         self._require(registration=self.registration)
         from .evaluation import evaluate
 
         with self.progress.step("evaluating"):
             self.evaluation = evaluate(self.registration.reference_to_image, self.reference_sensor,
                                        self.probe_sensor, self.settings.evaluation, navigation=navigation,
-                                       targets=targets, board=board, nominal_edges_mm=self.settings.board.edges_mm)
+                                       targets=targets, board=board, nominal_edges_mm=self.settings.board.edges_mm,
+                                       error_model=self.error_model, tolerant=tolerant, not_evaluated=not_evaluated)
         return self.evaluation
 
     @property
@@ -303,6 +309,18 @@ class EMRegController:
         """The current ``ReferenceToImage`` (4x4, mm); a :class:`WorkflowError` before registration."""
         self._require(registration=self.registration)
         return self.registration.reference_to_image
+
+    @property
+    def error_model(self) -> ErrorModel | None:
+        """The end-to-end error model of the current registration (``[evaluation]`` priors), or None."""
+        if self.registration is None or self.registration.error is None:
+            return None
+        from .error_model import ErrorModel
+
+        priors = self.settings.evaluation
+        return ErrorModel.with_priors(self.registration.reference_to_image, self.registration.error,
+                                      priors.reference_error_mm, priors.reference_error_deg,
+                                      priors.placement_error_mm)
 
     # --- provenance and persistence -----------------------------------------------------------
 
@@ -452,7 +470,8 @@ class EMRegController:
         from .io.slicer_scene import write_run_bundle
 
         used = self._adopt_outputs(folder)
-        path, message = write_run_bundle(folder.path, case_dir, self.image)
+        with self.progress.step("writing the 3D Slicer scene bundle"):
+            path, message = write_run_bundle(folder.path, case_dir, self.image)
         if path is None:
             self.warn([message])
         else:
@@ -485,7 +504,7 @@ class EMRegController:
         summary: list[str] = []
         stage = "start"
         steps = (("detect", self._run_detect), ("calibrate", self._run_calibrate), ("register", self._run_register),
-                 ("navigate", self._run_navigate), ("evaluate", self._run_evaluate))
+                 ("navigate", self._run_navigate), ("evaluate", self._run_evaluate), ("tre_map", self._run_tre_map))
         if report:
             steps += (("report", self._run_report), ("bundle", self._run_bundle))
         try:
@@ -510,7 +529,7 @@ class EMRegController:
     def _run_record(self, case: Case, summary: list[str]) -> dict[str, Any]:
         return {"case": str(case.folder.resolve()), "ct": str(case.ct.resolve()), "emreg_version": __version__,
                 "reference_sensor": self.reference_sensor, "probe_sensor": self.probe_sensor,
-                "summary": summary, "settings_file": self.settings.source,
+                "summary": summary, "not_evaluated": {}, "settings_file": self.settings.source,
                 "settings_sha256": self.settings.digest(), "settings": self.settings.to_json()}
 
     def _run_detect(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
@@ -543,28 +562,55 @@ class EMRegController:
     def _run_navigate(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
         if self.registration is None or case.navigation is None:
             return
-        recording = case.read_recording("navigation")
-        navigation = self.navigate_recording(recording)
+        try:
+            recording = case.read_recording("navigation")
+            navigation = self.navigate_recording(recording)
+        except NoSafeAnswerError:
+            raise
+        except EMRegError as exc:  # the registration stands; an unusable navigation recording is reported
+            folder.manifest["not_evaluated"]["navigation"] = str(exc)
+            self.warn([f"navigation not made: {exc}"])
+            summary.append(f"navigate: not made: {exc}")
+            return
         self.warn(recording.warnings)
         self.save_navigation(folder)
         summary.append(f"navigate: {len(navigation)} probe samples")
 
     def _run_evaluate(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
+        """The optional evaluation: a part that cannot be made is "not evaluated" with its reason in
+        ``run.json``, ``evaluation.json``, the report and on stderr; the run goes on."""
         if self.registration is None or (case.navigation is None and case.board is None):
             return
-        from .evaluation import Evaluation
-
-        try:
-            evaluation = self.evaluate(case.read_recording("navigation"), case.read_targets(),
-                                       case.read_recording("board"))
-        except EMRegError as exc:  # optional: the registration stands without it
-            reason = str(exc)
-            evaluation = Evaluation(extra={"not_evaluated": reason, "warnings": [f"not evaluated: {reason}"]})
-            folder.manifest["evaluation"] = {"status": "not evaluated", "reason": reason}
-            self.warn([f"evaluation not made: {reason}"])
-            summary.append(f"evaluate: not evaluated: {reason}")
+        unreadable: dict[str, str] = {}
+        inputs: dict[str, Any] = {}
+        for part, read in (("tre", lambda: (case.read_recording("navigation"), case.read_targets())),
+                           ("board", lambda: case.read_recording("board"))):
+            try:
+                inputs[part] = read()
+            except NoSafeAnswerError:
+                raise
+            except EMRegError as exc:  # an unreadable optional recording: that part is not evaluated
+                unreadable[part] = str(exc)
+        navigation, targets = inputs.get("tre") or (None, None)
+        evaluation = self.evaluate(navigation, targets, inputs.get("board"), tolerant=True, not_evaluated=unreadable)
+        for part, reason in evaluation.not_evaluated.items():
+            folder.manifest["not_evaluated"][part] = reason
+            self.warn([f"{'TRE' if part == 'tre' else part} not evaluated: {reason}"])
         self.save_evaluation(folder, evaluation)
         summary.extend(evaluation.summary())
+
+    def _run_tre_map(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
+        """``tre_map.nrrd``: the predicted RMS TRE over the CT's space (with the measured tracking error)."""
+        if self.error_model is None:
+            return
+        from .tre_map import write_tre_map
+
+        evaluation = self.evaluation
+        tracking_rms = evaluation.tre.tracking_rms_mm if evaluation is not None and evaluation.tre else None
+        write_tre_map(folder.path / "tre_map.nrrd", self.error_model, self.detection.image,
+                      None if tracking_rms is None else tracking_rms**2)
+        uses = ("registration.json", "evaluation.json") if evaluation is not None else ("registration.json",)
+        self._recorded(folder, "tre_map", self._provenance((), uses))
 
     def _run_report(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
         page = self.save_report(folder, case.folder)

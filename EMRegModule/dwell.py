@@ -12,7 +12,7 @@ Everything here is plain numpy over arrays of times (s) and positions (mm).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -20,6 +20,8 @@ from .settings import DwellSettings
 
 #: A chi-distributed 3D distance with per-axis sigma s has median about 1.538 s.
 _MEDIAN_CHI3 = 1.5382
+#: A still period's ends are trimmed to the samples within this many ``still_radius_mm`` of its median.
+TRIM_FACTOR = 1.5
 
 
 @dataclass
@@ -202,11 +204,69 @@ def still_periods(time_s: np.ndarray, position_mm: np.ndarray, valid: np.ndarray
         periods.append((s, e))
     dwells = []
     for s, e in periods:
+        # The window's verdict spills half a window into the slow ends of the approach and the
+        # departure: trim the ends to the samples near the period's median before measuring it.
+        near = np.flatnonzero(np.linalg.norm(p[s:e] - np.median(p[s:e], axis=0), axis=1)
+                              <= TRIM_FACTOR * settings.still_radius_mm)
+        if len(near) == 0:
+            continue
+        s, e = s + int(near[0]), s + int(near[-1]) + 1
         if e - s < settings.min_samples or t[e - 1] - t[s] < settings.min_duration_s:
+            continue
+        if _drift(p[s:e]) > settings.drift_limit_mm:
             continue
         members = index[s:e]
         dwells.append(Dwell(members, "", float(t[s]), float(t[e - 1])))
     return dwells
+
+
+def _drift(points: np.ndarray) -> float:
+    """Distance (mm) between the medians of the first and the last quarter of a still period:
+    near zero for a probe held still (even hand-held), the distance travelled for slow motion."""
+    quarter = max(1, len(points) // 4)
+    return float(np.linalg.norm(np.median(points[:quarter], axis=0) - np.median(points[-quarter:], axis=0)))
+
+
+def describe_still_periods(time_s: np.ndarray, position_mm: np.ndarray, quality: np.ndarray | None = None,
+                           settings: DwellSettings | None = None, places: np.ndarray | None = None,
+                           place_name: str = "target", section: str = "evaluation", limit: int = 5) -> str:
+    """What a dwell search that found nothing did find, for the error message: the still periods
+    of any length (durations, drift, distance to the nearest of ``places`` (K, 3) in the same
+    frame) and which ``[section]`` setting would accept them.
+    """
+    settings = settings or DwellSettings()
+    time_s = np.asarray(time_s, dtype=float)
+    position_mm = np.asarray(position_mm, dtype=float).reshape(-1, 3)
+    valid = np.all(np.isfinite(position_mm), axis=1) & np.isfinite(time_s)
+    if quality is not None:
+        valid &= good_quality_mask(quality, settings.max_quality)
+    loose = replace(settings, min_duration_s=1e-9, min_samples=3, max_drift_mm=np.inf)
+    periods = still_periods(time_s, position_mm, valid, loose)
+    rule = (f"a dwell must last {settings.min_duration_s:g} s ([{section}] min_duration_s) with the probe within "
+            f"{settings.still_radius_mm:g} mm ([{section}] still_radius_mm) and drifting less than "
+            f"{settings.drift_limit_mm:g} mm")
+    if not periods:
+        return (f"the probe was never still ({int(np.count_nonzero(valid))} usable samples over "
+                f"{float(np.ptp(time_s[valid])) if np.any(valid) else 0.0:.1f} s); {rule}; "
+                f"raise [{section}] still_radius_mm if the probe was hand-held")
+    periods = sorted(periods, key=lambda d: -d.duration_s)
+    parts = []
+    for dwell in periods[:limit]:
+        points = position_mm[dwell.indices]
+        text = f"{dwell.duration_s:.2f} s (drift {_drift(points):.1f} mm"
+        if places is not None and len(places):
+            distance = float(np.min(np.linalg.norm(np.asarray(places, dtype=float) - np.median(points, axis=0),
+                                                   axis=1)))
+            text += f", {distance:.1f} mm from the nearest {place_name}"
+        parts.append(text + ")")
+    more = f" and {len(periods) - limit} shorter" if len(periods) > limit else ""
+    longest = periods[0].duration_s
+    hint = (f"lower [{section}] min_duration_s (e.g. to {max(0.05, np.floor(longest * 20) / 20 - 0.05):.2f})"
+            if longest < settings.min_duration_s else
+            f"raise [{section}] still_radius_mm or max_drift_mm")
+    return (f"{len(periods)} still period(s) found: {', '.join(parts)}{more}; {rule}; {hint}")
+
+
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:

@@ -28,8 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from .dwell import Dwell, find_dwells, group_by_place, robust_mean
-from .errors import EMRegError
+from .dwell import Dwell, describe_still_periods, find_dwells, group_by_place, robust_mean
+from .error_model import ErrorModel, repeated_dwell_ms
+from .errors import EMRegError, NoSafeAnswerError
 from .io.atomic import atomic_write_json, read_json
 from .navigation import navigate_recording
 from .settings import DwellSettings, EvaluationSettings
@@ -88,13 +89,42 @@ class TargetDwell:
 
 
 @dataclass
+class TargetPrediction:
+    """The end-to-end RMS TRE predicted at one target (mm) and its budget: each term's own RMS (mm),
+    adding in quadrature (registration, tracking, reference, placement; :mod:`EMRegModule.error_model`)."""
+
+    predicted_rms_mm: float
+    budget_rms_mm: dict[str, float]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"predicted_rms_mm": _round(_finite_or_none(self.predicted_rms_mm)),
+                "budget_rms_mm": {k: _round(_finite_or_none(v)) for k, v in self.budget_rms_mm.items()}}
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any]) -> TargetPrediction:
+        def number(value: Any) -> float:
+            return float("inf") if value is None else float(value)
+
+        return cls(number(document["predicted_rms_mm"]),
+                   {str(k): number(v) for k, v in document.get("budget_rms_mm", {}).items()})
+
+
+@dataclass
 class TargetEvaluation:
-    """TRE: one error per dwell at a target (``dwells``), statistics per target, dwells matched to no target."""
+    """TRE: one error per dwell at a target (``dwells``), statistics per target, dwells matched to no target.
+
+    ``predictions``: per target the predicted end-to-end RMS TRE and its budget, when the evaluation
+    had the registration's error model; ``tracking_rms_mm`` and ``tracking_source``: the probe's
+    per-dwell error the predictions used and where it came from.
+    """
 
     dwells: list[TargetDwell]
     targets: dict[str, Stats]
     unmatched_dwells: int = 0
     labelled: bool = False
+    predictions: dict[str, TargetPrediction] = field(default_factory=dict)
+    tracking_rms_mm: float | None = None
+    tracking_source: str | None = None
 
     @property
     def errors_mm(self) -> np.ndarray:
@@ -108,20 +138,42 @@ class TargetEvaluation:
     def std_mm(self) -> float:
         return _std(self.errors_mm)
 
+    @property
+    def predicted_rms_mm(self) -> float | None:
+        """The predicted RMS TRE over all dwells (each target weighted by its dwells), or None."""
+        if not self.predictions:
+            return None
+        counts = {label: stats.n for label, stats in self.targets.items()}
+        squares = sum(counts[k] * p.predicted_rms_mm**2 for k, p in self.predictions.items())
+        return float(np.sqrt(squares / sum(counts[k] for k in self.predictions)))
+
     def to_json(self) -> dict[str, Any]:
         """The ``tre`` block. Its overall figures are over the dwell errors as written (4 decimals), so the
-        file is self-consistent: the ``dwells`` listed give back ``mean_mm``, ``std_mm`` and ``max_mm``."""
+        file is self-consistent: the ``dwells`` listed give back ``mean_mm``, ``std_mm``, ``rms_mm`` and ``max_mm``."""
         dwells = [d.to_json() for d in self.dwells]
         errors = np.array([d["error_mm"] for d in dwells])
-        return {"mean_mm": round(float(errors.mean()), 4), "std_mm": round(_std(errors), 4), "n": len(errors),
-                "max_mm": round(float(errors.max()), 4), "targets": {k: v.to_json() for k, v in self.targets.items()},
-                "dwells": dwells, "unmatched_dwells": int(self.unmatched_dwells), "labelled": bool(self.labelled)}
+        targets = {}
+        for label, stats in self.targets.items():
+            mine = np.array([d["error_mm"] for d in dwells if d["target"] == label])
+            targets[label] = {**stats.to_json(), "rms_mm": _rms(mine)}
+            if label in self.predictions:
+                targets[label].update(self.predictions[label].to_json())
+        document = {"mean_mm": round(float(errors.mean()), 4), "std_mm": round(_std(errors), 4), "n": len(errors),
+                    "max_mm": round(float(errors.max()), 4), "rms_mm": _rms(errors), "targets": targets,
+                    "dwells": dwells, "unmatched_dwells": int(self.unmatched_dwells), "labelled": bool(self.labelled)}
+        if self.predictions:
+            document.update(predicted_rms_mm=_round(_finite_or_none(self.predicted_rms_mm)),
+                            tracking_rms_mm=_round(self.tracking_rms_mm), tracking_source=self.tracking_source)
+        return document
 
     @classmethod
     def from_json(cls, document: Mapping[str, Any]) -> TargetEvaluation:
+        targets = document.get("targets", {})
         return cls([TargetDwell.from_json(d) for d in document.get("dwells", [])],
-                   {str(k): Stats.from_json(v) for k, v in document.get("targets", {}).items()},
-                   int(document.get("unmatched_dwells", 0)), bool(document.get("labelled", False)))
+                   {str(k): Stats.from_json(v) for k, v in targets.items()},
+                   int(document.get("unmatched_dwells", 0)), bool(document.get("labelled", False)),
+                   {str(k): TargetPrediction.from_json(v) for k, v in targets.items() if "predicted_rms_mm" in v},
+                   _maybe_float(document.get("tracking_rms_mm")), document.get("tracking_source"))
 
 
 @dataclass
@@ -205,6 +257,8 @@ class Evaluation:
     board: BoardEvaluation | None = None
     warnings: list[str] = field(default_factory=list)
     extra: dict[str, Any] = field(default_factory=dict)
+    #: parts that could not be evaluated (``tre``, ``board``) and why (``emreg run``: the run still finishes)
+    not_evaluated: dict[str, str] = field(default_factory=dict)
     provenance: dict[str, Any] | None = None  # what it was made from (``EMRegModule.provenance``)
 
     def to_json(self) -> dict[str, Any]:
@@ -214,6 +268,8 @@ class Evaluation:
             document["tre"] = self.tre.to_json()
         if self.board is not None:
             document["board"] = self.board.to_json()
+        if self.not_evaluated:
+            document["not_evaluated"] = dict(self.not_evaluated)
         if self.warnings:
             document["warnings"] = list(self.warnings)
         document.update(self.extra)
@@ -230,7 +286,9 @@ class Evaluation:
             return cls(None if tre is None else TargetEvaluation.from_json(tre),
                        None if board is None else BoardEvaluation.from_json(board),
                        [str(w) for w in document.get("warnings", [])],
-                       {k: v for k, v in document.items() if k not in ("tre", "board", "warnings", "provenance")},
+                       {k: v for k, v in document.items()
+                        if k not in ("tre", "board", "warnings", "not_evaluated", "provenance")},
+                       {str(k): str(v) for k, v in (document.get("not_evaluated") or {}).items()},
                        document["provenance"] if isinstance(document.get("provenance"), dict) else None)
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise EMRegError(f"{source}: not an evaluation file ({exc!s:.100})") from None
@@ -244,7 +302,12 @@ class Evaluation:
         if self.board is not None:
             edges = self.board.to_json()["edges"]
             lines.append("evaluate: board edges " + ", ".join(f"{k} {v['mean_mm']:.2f}" for k, v in edges.items()))
+        for part, reason in self.not_evaluated.items():
+            lines.append(f"evaluate: {_PART_NAMES.get(part, part)} not evaluated: {reason}")
         return lines
+
+
+_PART_NAMES = {"tre": "TRE", "board": "board"}
 
 
 def evaluate(
@@ -256,22 +319,45 @@ def evaluate(
     targets: tuple[Sequence[str], np.ndarray] | None = None,
     board: TrackingRecording | None = None,
     nominal_edges_mm: Sequence[float] | None = None,
+    error_model: ErrorModel | None = None,
+    tolerant: bool = False,
+    not_evaluated: Mapping[str, str] | None = None,
 ) -> Evaluation:
     """TRE when a navigation recording and targets (labels, (K, 3) LPS mm) are given, the board table
     when a board recording is; ``reference_to_image``: Reference -> CT LPS (mm).
 
-    ``settings``: the ``[evaluation]`` table; ``nominal_edges_mm``: ``[board] edges_mm``.
+    ``settings``: the ``[evaluation]`` table; ``nominal_edges_mm``: ``[board] edges_mm``;
+    ``error_model``: the registration's, for the predicted TRE beside the measured one.
+    ``tolerant`` (``emreg run``): a part that cannot be evaluated (no dwell found, a bad recording) is
+    left out and named with its reason in ``not_evaluated`` and ``warnings`` instead of raising
+    (``emreg evaluate`` raises); ``not_evaluated``: parts the caller could not even read, with why.
     """
     settings = settings or EvaluationSettings()
-    result = Evaluation()
+    result = Evaluation(not_evaluated=dict(not_evaluated or {}))
+
+    def part(name: str, compute) -> Any:
+        try:
+            return compute()
+        except NoSafeAnswerError:
+            raise
+        except EMRegError as exc:
+            if not tolerant:
+                raise
+            result.not_evaluated[name] = str(exc)
+            return None
+
     if navigation is not None and targets is not None:
         labels, positions = targets
-        result.tre = evaluate_targets(navigation, labels, positions, reference_to_image, reference_sensor,
-                                      probe_sensor, settings, settings.max_target_distance_mm)
+        result.tre = part("tre", lambda: evaluate_targets(
+            navigation, labels, positions, reference_to_image, reference_sensor, probe_sensor, settings,
+            settings.max_target_distance_mm, error_model))
         result.warnings += navigation.warnings
     if board is not None:
-        result.board = evaluate_board(board, reference_sensor, probe_sensor, nominal_edges_mm, settings)
-        result.warnings += board.warnings  # time resets / gaps found in the recordings (kept as segments)
+        result.board = part("board", lambda: evaluate_board(board, reference_sensor, probe_sensor, nominal_edges_mm,
+                                                            settings))
+        result.warnings += board.warnings  # time resets / gaps / invalid frames found in the recordings
+    result.warnings += [f"{_PART_NAMES.get(name, name)} not evaluated: {reason}"
+                        for name, reason in result.not_evaluated.items()]
     return result
 
 
@@ -287,11 +373,14 @@ def evaluate_targets(
     probe_sensor: int = 2,
     settings: DwellSettings | None = None,
     max_target_distance_mm: float | None = None,
+    error_model: ErrorModel | None = None,
 ) -> TargetEvaluation:
     """TRE per target over its dwells and overall (mm). ``targets_image`` (K, 3) LPS mm.
 
     ``max_target_distance_mm``: an unlabelled dwell farther from every target is not counted
-    (default: the ``[evaluation]`` default).
+    (default: the ``[evaluation]`` default). With ``error_model`` (the registration's), each target
+    also gets the predicted end-to-end RMS TRE and its budget; the tracking term is then measured
+    from the scatter of repeated dwells at the same target when there are any.
     """
     if max_target_distance_mm is None:
         max_target_distance_mm = EvaluationSettings().max_target_distance_mm
@@ -323,10 +412,39 @@ def evaluate_targets(
         per_target[label].append(error)
         found.append(TargetDwell(label, error, float(dwell.start_s), float(dwell.end_s), len(dwell), mean))
     if not found:
-        raise EMRegError(f"{recording.source}: no probe dwell at any target was found; "
-                         "check the navigation recording's labels and the targets file")
+        if dwells and dwells[0].label:
+            seen = ", ".join(sorted({d.label for d in dwells})[:6])
+            what = (f"{len(dwells)} labelled dwell(s), none with a target's label "
+                    f"({seen} vs {', '.join(map(str, list(target_labels)[:6]))})")
+        elif dwells:
+            what = (f"{len(dwells)} dwell(s), none within {max_target_distance_mm:g} mm of a target "
+                    "([evaluation] max_target_distance_mm)")
+        else:
+            what = describe_still_periods(navigation.time_s, position, navigation.quality, settings, targets_image,
+                                          "target")
+        raise EMRegError(f"{recording.source}: no probe dwell at any target was found: {what}")
     targets = {label: Stats.of(values) for label, values in per_target.items() if values}
-    return TargetEvaluation(found, targets, unmatched, bool(dwells and dwells[0].label))
+    result = TargetEvaluation(found, targets, unmatched, bool(dwells and dwells[0].label))
+    if error_model is not None:
+        _predict(result, target_labels, targets_image, error_model)
+    return result
+
+
+def _predict(result: TargetEvaluation, target_labels: Sequence[str], targets_image: np.ndarray,
+             error_model: ErrorModel) -> None:
+    """Fill ``result.predictions``: the error model's budget at each visited target."""
+    means: dict[str, list[np.ndarray]] = {}
+    for dwell in result.dwells:
+        means.setdefault(dwell.target, []).append(dwell.position)
+    repeated = repeated_dwell_ms({k: np.array(v) for k, v in means.items()})
+    budget = error_model.budget(targets_image, None if repeated is None else repeated[0])
+    terms = budget.term_rms_mm()
+    for k, label in enumerate(map(str, target_labels)):
+        if label in result.targets:
+            result.predictions[label] = TargetPrediction(float(budget.rms_mm[k]),
+                                                         {name: float(v[k]) for name, v in terms.items()})
+    result.tracking_rms_mm = float(np.sqrt(budget.tracking_ms[0]))
+    result.tracking_source = "repeated dwells at the targets" if repeated is not None else "calibration"
 
 
 # --- board phantom ---------------------------------------------------------------------------
@@ -352,7 +470,8 @@ def evaluate_board(
         frame = "Tracker"
     dwells = find_dwells(time_s, position, labels, quality, settings)
     if not dwells:
-        raise EMRegError(f"{recording.source}: no probe dwell found in the board recording")
+        raise EMRegError(f"{recording.source}: no probe dwell found in the board recording: "
+                         + describe_still_periods(time_s, position, quality, settings))
     centres = np.array([robust_mean(position[d.indices]).mean for d in dwells])
     hole_of_dwell, hole_names = _board_holes(dwells, centres, settings)
     n_holes = len(hole_names)
@@ -409,6 +528,15 @@ def _std(values: Sequence[float] | np.ndarray) -> float:
 
 def _round(value: float | None, digits: int = 4) -> float | None:
     return None if value is None else round(float(value), digits)
+
+
+def _rms(errors: np.ndarray) -> float:
+    return round(float(np.sqrt(np.mean(np.square(errors)))), 4)
+
+
+def _finite_or_none(value: float | None) -> float | None:
+    """A prediction for JSON: None (null) when the configuration does not determine it (infinite)."""
+    return None if value is None or not np.isfinite(value) else float(value)
 
 
 def _maybe_float(value: Any) -> float | None:

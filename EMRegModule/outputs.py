@@ -37,11 +37,12 @@ STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
     "register": ("registration.json", "ReferenceToImage.h5"),
     "navigate": ("navigation.csv",),
     "evaluate": ("evaluation.json",),
+    "tre_map": ("tre_map.nrrd",),
     "report": ("report.html", "report_figures"),
     "bundle": ("EMReg.mrb",),
 }
 #: Other files a run writes (moved aside with the rest when a new run starts).
-OTHER_OUTPUTS = ("tre_map.nrrd",)
+OTHER_OUTPUTS: tuple[str, ...] = ()
 #: Where earlier outputs are moved.
 PREVIOUS_FOLDER = "previous"
 #: Names a case folder is read from (an output folder equal to the case must not write any of them).
@@ -56,11 +57,12 @@ def all_output_names() -> list[str]:
 
 #: The stages whose results are made from each stage's (directly or not): stale when it has a new result.
 DEPENDENTS: dict[str, tuple[str, ...]] = {
-    "detect": ("register", "navigate", "evaluate", "report", "bundle"),
-    "calibrate": ("register", "navigate", "evaluate", "report", "bundle"),
-    "register": ("navigate", "evaluate", "report", "bundle"),
+    "detect": ("register", "navigate", "evaluate", "tre_map", "report", "bundle"),
+    "calibrate": ("register", "navigate", "evaluate", "tre_map", "report", "bundle"),
+    "register": ("navigate", "evaluate", "tre_map", "report", "bundle"),
     "navigate": ("report", "bundle"),
-    "evaluate": ("report", "bundle"),
+    "evaluate": ("tre_map", "report", "bundle"),
+    "tre_map": ("report", "bundle"),
     "report": ("bundle",),
     "bundle": (),
 }

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from .calibration import FrameCalibration
+from .error_model import RegistrationError, registration_error
 from .errors import EMRegError, NoSafeAnswerError
 from .io.atomic import atomic_write_json, read_json
 from .io.itk_transform import write_slicer_linear_transform
@@ -44,7 +45,7 @@ from .marker_model import MarkerModel
 from .probe_axis import pair_with_probe_axis
 from .sensor_offset import OffsetSolution, solve_sensor_offset
 from .settings import RegistrationSettings, Settings
-from .transforms import apply_transform, is_rigid, predicted_tre, residuals
+from .transforms import apply_transform, is_rigid, residuals
 
 #: Name of the ITK transform file written beside ``registration.json``.
 TRANSFORM_FILE = "ReferenceToImage.h5"
@@ -62,7 +63,9 @@ class RegistrationResult:
     """``ReferenceToImage`` (4x4, mm, Reference -> CT LPS) and everything that qualifies it.
 
     ``pairs``: dicts ``image_marker``, ``calibration_point``, ``residual_mm``, ``outlier``;
-    ``fre_curve``: (l values, FRE values) in mm; ``predicted_tre_mm``: per target (or None).
+    ``fre_curve``: (l values, FRE values) in mm; ``predicted_tre_mm``: the registration's own
+    RMS error at each target (or None; the end-to-end prediction adds tracking, the reference
+    sensor and placement: :mod:`EMRegModule.error_model`); ``error``: what the fit knows of its error.
     """
 
     reference_to_image: np.ndarray
@@ -78,6 +81,7 @@ class RegistrationResult:
     fre_curve: tuple[np.ndarray, np.ndarray] = field(default_factory=lambda: (np.zeros(0), np.zeros(0)))
     targets_image: np.ndarray | None = None
     predicted_tre_mm: np.ndarray | None = None
+    error: RegistrationError | None = None
     warnings: list[str] = field(default_factory=list)
     pairing: dict[str, Any] = field(default_factory=dict)
     probe_axis: dict[str, Any] = field(default_factory=dict)
@@ -113,7 +117,9 @@ class RegistrationResult:
         }
         if self.targets_image is not None and self.predicted_tre_mm is not None:
             document["targets_image"] = np.asarray(self.targets_image).tolist()
-            document["predicted_tre_mm"] = [round(float(v), 4) for v in self.predicted_tre_mm]
+            document["predicted_registration_tre_mm"] = [_round(v) for v in self.predicted_tre_mm]
+        if self.error is not None:
+            document["error_model"] = self.error.to_json()
         if self.provenance is not None:
             document["provenance"] = self.provenance
         return document
@@ -132,7 +138,8 @@ class RegistrationResult:
                     raise EMRegError(f"{source}: {key} is not a finite number")
             curve = document.get("fre_curve") or {}
             targets = document.get("targets_image")
-            tre = document.get("predicted_tre_mm")
+            tre = document.get("predicted_registration_tre_mm", document.get("predicted_tre_mm"))
+            error = document.get("error_model")
             return cls(
                 reference_to_image=matrix,
                 sensor_offset_l_mm=float(document["sensor_offset_l_mm"]),
@@ -148,7 +155,8 @@ class RegistrationResult:
                 fre_curve=(np.asarray(curve.get("l_mm", []), dtype=float),
                            np.asarray(curve.get("fre_mm", []), dtype=float)),
                 targets_image=None if targets is None else np.asarray(targets, dtype=float).reshape(-1, 3),
-                predicted_tre_mm=None if tre is None else np.asarray(tre, dtype=float),
+                predicted_tre_mm=None if tre is None else np.array([_float(v) for v in tre]),
+                error=None if error is None else RegistrationError.from_json(error),
                 warnings=[str(w) for w in document.get("warnings", [])],
                 pairing=dict(document.get("pairing", {})),
                 probe_axis=dict(document.get("probe_axis") or {}),
@@ -235,12 +243,13 @@ def register(
     warnings += _check_fre_and_offset(fre_value, solution, l_range, config)
     n_used = int(np.count_nonzero(used))
     fle = fre_value * np.sqrt(n_used / (n_used - 2)) if n_used > 2 else float("nan")
+    error = registration_error(points[cal_index[used]], origins[image_index[used]], axes[image_index[used]],
+                               solution.l_mm, not fixed, pair_residuals[used])
     predicted = None
     targets = None
-    if targets_image is not None and len(np.atleast_2d(targets_image)) and np.isfinite(fle):
+    if targets_image is not None and len(np.atleast_2d(targets_image)):
         targets = np.asarray(targets_image, dtype=float).reshape(-1, 3)
-        fiducials = origins[image_index[used]] + solution.l_mm * axes[image_index[used]]
-        predicted = predicted_tre(fiducials, fle, targets)
+        predicted = np.sqrt(np.trace(error.covariance.at(targets), axis1=-2, axis2=-1))
 
     pairs = [
         {"image_marker": image_ids[j], "calibration_point": labels[i], "residual_mm": float(r), "outlier": bool(o)}
@@ -262,6 +271,7 @@ def register(
         fre_curve=(solution.curve_l_mm, solution.curve_fre_mm),
         targets_image=targets,
         predicted_tre_mm=predicted,
+        error=error,
         warnings=warnings + list(frame_calibration.warnings),
         pairing={"support": pairing.support, "rival_support": pairing.rival_support,
                  "hypotheses": pairing.hypotheses, "seed_triangles": pairing.seeds,

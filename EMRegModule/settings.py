@@ -78,6 +78,9 @@ class DetectionSettings:
       binary opening applied (inside candidate regions only) before the band threshold's
       connected components, which drop noise and the thin partial-volume shells of bone.
     - ``min_markers`` (1): fewer markers found is "no safe answer" (exit 3).
+    - ``estimate_band`` (true): when the markers read far from the middle of the default band
+      (a low-kVp scan: PVC at 1700-1900 HU), detect again with the band scaled to their measured
+      intensity; a band given in the table (``low_hu``/``high_hu`` not the defaults) is used as given.
     """
 
     low_hu: float = 600.0
@@ -93,6 +96,7 @@ class DetectionSettings:
     smoothing_sigma_mm: float = non_negative(0.3)
     opening_radius_mm: float = non_negative(0.5)
     min_markers: int = non_negative(1)
+    estimate_band: bool = True
 
     @classmethod
     def for_model(cls, model: MarkerModel) -> DetectionSettings:
@@ -124,7 +128,9 @@ class DwellSettings:
     samples) at the same place are one dwell. ``merge_radius_mm``: dwells closer than this are
     at the same hole (revisits). ``max_quality``: samples whose tracker quality number exceeds it
     are ignored (None: an automatic limit from the recording's own quality distribution).
-    ``min_samples``: fewer good samples than this make no dwell.
+    ``min_samples``: fewer good samples than this make no dwell. ``max_drift_mm``: a still
+    period whose first and last quarters (medians) lie farther apart than this is slow motion,
+    not a dwell (None: twice ``still_radius_mm``).
     """
 
     min_duration_s: float = positive(0.5)
@@ -134,6 +140,12 @@ class DwellSettings:
     merge_radius_mm: float = positive(3.0)
     max_quality: float | None = non_negative(None)
     min_samples: int = positive(5)
+    max_drift_mm: float | None = positive(None)
+
+    @property
+    def drift_limit_mm(self) -> float:
+        """The drift above which a still period is slow motion (mm)."""
+        return 2.0 * self.still_radius_mm if self.max_drift_mm is None else float(self.max_drift_mm)
 
     @classmethod
     def from_settings(cls, settings: Any, section: str = "calibration") -> DwellSettings:
@@ -154,10 +166,23 @@ class EvaluationSettings(DwellSettings):
     """``[evaluation]``: the dwell keys (hand-held touches at targets shake more than a probe resting in
     a pinhole: ``still_radius_mm`` defaults to 1 mm here; targets and holes are tens of mm apart), and
     ``max_target_distance_mm`` (15): an unlabelled dwell farther than this from every target is not
-    counted for TRE."""
+    counted for TRE.
 
+    The error model's priors (:mod:`EMRegModule.error_model`): ``reference_error_mm`` and
+    ``reference_error_deg``, the reference sensor's per-axis pose error (default: a quarter of the
+    probe's measured per-dwell error, and the rotation that moves a point 100 mm away by as much);
+    ``placement_error_mm`` (0), the 3D RMS error of putting the probe on a target.
+
+    ``min_duration_s`` defaults to 0.35 s here: a hand-held probe held still for 0.4 s at 80 Hz
+    (32 samples, 0.39 s from first to last) is a dwell; a mid-air hesitation of up to 0.3 s is not,
+    nor is transit motion (it drifts more than twice the stillness radius)."""
+
+    min_duration_s: float = positive(0.35)
     still_radius_mm: float = positive(1.0)
     max_target_distance_mm: float = positive(15.0)
+    reference_error_mm: float | None = non_negative(None)
+    reference_error_deg: float | None = non_negative(None)
+    placement_error_mm: float = non_negative(0.0)
 
 
 # --- [registration] ----------------------------------------------------------------------------

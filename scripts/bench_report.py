@@ -7,6 +7,8 @@ Measured in one run, each command in its own process so that peak memory (``ru_m
 (b) ``emreg report OUT`` on the outputs of an ``emreg run`` (reads the CT itself);
 (c) the baseline: the same ``emreg report`` of the EMReg revision before the report package
     (``--baseline-rev``, extracted with ``git archive``), on a copy of the same outputs;
+    (b') and (c') the report page alone (``write_report``), without the 3D Slicer bundle
+    ``EMReg.mrb`` that ``emreg report`` writes too when ``slicer-core`` is installed;
 (d) ``emreg run CASE`` end to end, and (e) the baseline revision's ``emreg run``.
 
 Printed per case: times and peaks, the CT's voxel bytes, and the goals of issue 17:
@@ -26,6 +28,7 @@ Usage: ``.venv/bin/python scripts/bench_report.py [--spacing 0.6 0.32] [--work D
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import shutil
 import subprocess
@@ -61,6 +64,12 @@ def run_child(command: list[str], env: dict[str, str] | None = None, cwd: Path |
 
 def emreg(*args: str) -> list[str]:
     return [PYTHON, "-m", "EMRegModule", *args, "--quiet"]
+
+
+def report_page(out: Path) -> list[str]:
+    """The report page alone (``write_report``), without the Slicer bundle ``emreg report`` also writes."""
+    return [PYTHON, "-c", "import sys; from EMRegModule.report import write_report; write_report(sys.argv[1])",
+            str(out)]
 
 
 def baseline_tree(rev: str, work: Path) -> Path:
@@ -126,7 +135,8 @@ def bench_case(case: Path, work: Path, baseline: Path) -> None:
     size = ct_bytes(case)
     base_env = {**os.environ, "PYTHONPATH": str(baseline)}
     tag = case.name
-    outs = {name: work / f"{tag}-{name}" for name in ("run", "run-base", "detect", "report", "report-base")}
+    outs = {name: work / f"{tag}-{name}" for name in ("run", "run-base", "detect", "report", "report-base", "page",
+                                                       "page-base")}
     for folder in outs.values():
         shutil.rmtree(folder, ignore_errors=True)
     results: dict[str, tuple[float, float]] = {}
@@ -135,22 +145,27 @@ def bench_case(case: Path, work: Path, baseline: Path) -> None:
     results["run (baseline)"] = run_child(emreg("run", str(case), "--out", str(outs["run-base"])), env=base_env,
                                           cwd=baseline)[:2]
     results["detect"] = run_child(emreg("detect", str(case), "--out", str(outs["detect"])), cwd=ROOT)[:2]
-    copy_outputs(outs["run"], outs["report"])
-    copy_outputs(outs["run"], outs["report-base"])
+    for name in ("report", "report-base", "page", "page-base"):
+        copy_outputs(outs["run"], outs[name])
     results["report (baseline)"] = run_child(emreg("report", str(outs["report-base"])), env=base_env,
                                              cwd=baseline)[:2]
     results["report"] = run_child(emreg("report", str(outs["report"])), cwd=ROOT)[:2]
+    results["page (baseline)"] = run_child(report_page(outs["page-base"]), env=base_env, cwd=baseline)[:2]
+    results["page"] = run_child(report_page(outs["page"]), cwd=ROOT)[:2]
     print(f"{'command':<20} {'time (s)':>9} {'peak (GB)':>10} {'peak / CT':>10}")
     for name, (wall, peak) in results.items():
         print(f"{name:<20} {wall:9.2f} {peak / 1e9:10.2f} {peak / size:10.2f}")
-    report, base, detect = results["report"], results["report (baseline)"], results["detect"]
-    run, run_base = results["run"], results["run (baseline)"]
-    print(f"report time / detect time        {report[0] / detect[0]:.2f}  (goal <= 1.0; baseline "
-          f"{base[0] / detect[0]:.2f})")
-    print(f"report peak / CT bytes           {report[1] / size:.2f}  (goal <= 1.3; baseline {base[1] / size:.2f})")
-    print(f"run peak / CT bytes              {run[1] / size:.2f}  (goal <= 1.3; baseline {run_base[1] / size:.2f})")
-    print(f"report vs baseline: time {report[0] / base[0]:.2f}x, peak {report[1] / base[1]:.2f}x; "
-          f"run vs baseline: time {run[0] / run_base[0]:.2f}x, peak {run[1] / run_base[1]:.2f}x")
+    detect, run, run_base = results["detect"], results["run"], results["run (baseline)"]
+    for what, new, base in (("emreg report", results["report"], results["report (baseline)"]),
+                            ("report page alone", results["page"], results["page (baseline)"])):
+        print(f"{what}: time / detect time {new[0] / detect[0]:.2f} (goal <= 1.0; baseline {base[0] / detect[0]:.2f}),"
+              f" peak / CT bytes {new[1] / size:.2f} (goal <= 1.3; baseline {base[1] / size:.2f}); against the "
+              f"baseline: time {new[0] / base[0]:.2f}x, peak {new[1] / base[1]:.2f}x")
+    print(f"emreg run: peak / CT bytes {run[1] / size:.2f} (goal <= 1.3; baseline {run_base[1] / size:.2f}); against "
+          f"the baseline: time {run[0] / run_base[0]:.2f}x, peak {run[1] / run_base[1]:.2f}x")
+    bundle = "" if importlib.util.find_spec("slicer") is None else \
+        " (slicer-core is installed: emreg run and emreg report also write EMReg.mrb, the CT included)"
+    print("baseline: EMReg before the report package" + bundle)
     for name, verdict in same_figures(outs["report"], outs["report-base"]).items():
         print(f"  {name:<15} {verdict}")
 

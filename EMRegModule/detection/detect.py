@@ -28,6 +28,7 @@ import os
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
+from dataclasses import replace
 
 import numpy as np
 import SimpleITK as sitk
@@ -40,8 +41,11 @@ from ..transforms import apply_transform
 from .measure import measure_blob, metal_distance_mm
 from .pose import fit_pose, model_moments
 from .result import DetectedMarker, DetectionResult, RejectedCandidate
-from .segmentation import Blob, CoarseScan, Region, TooLarge, blobs_in_region, region_around
+from .segmentation import Blob, CoarseScan, Region, TooLarge, blobs_in_region, region_around, with_fragments
 from .settings import DetectionSettings, default_settings
+
+_Outcome = tuple[np.ndarray, DetectedMarker | RejectedCandidate]
+"""A blob's centroid (LPS mm) and what became of it."""
 
 
 def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings: DetectionSettings | None = None,
@@ -62,6 +66,36 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
     volume = sitk.GetArrayViewFromImage(image)
     spacing_zyx = np.asarray(image.GetSpacing(), dtype=float)[::-1]
     index_to_image = index_to_physical_matrix(image)
+    outcomes, too_large = _one_pass(volume, spacing_zyx, index_to_image, model, options, progress,
+                                    wait_for_slices)
+    defaults = DetectionSettings()
+    explicit = not options.estimate_band or (options.low_hu, options.high_hu) != (defaults.low_hu, defaults.high_hu)
+    band = {"low_hu": options.low_hu, "high_hu": options.high_hu,
+            "source": "case.toml [detection]" if explicit else "default"}
+    estimate = _marker_hu_estimate(outcomes, model, options)
+    if not explicit and estimate is not None and not _band_suits(estimate, options):
+        scaled = _band_around(estimate, options)
+        with progress.step(f"markers read {estimate:.0f} HU: detecting again with the band "
+                           f"{scaled.low_hu:.0f}..{scaled.high_hu:.0f} HU"):
+            again, again_large = _one_pass(volume, spacing_zyx, index_to_image, model, scaled, progress,
+                                           None)  # the image is whole by now
+        if _marker_count(again) >= max(1, _marker_count(outcomes)):
+            outcomes, too_large, options = again, again_large, scaled
+            band = {"low_hu": scaled.low_hu, "high_hu": scaled.high_hu,
+                    "source": f"estimated from the markers' intensity ({estimate:.0f} HU in the default band)"}
+    result = _result(outcomes, too_large, index_to_image, options, image)
+    final = _marker_hu_estimate(outcomes, model, options, markers_only=True)
+    band["marker_hu"] = None if final is None else round(final, 1)
+    result.band = band
+    return result
+
+
+def _one_pass(volume: np.ndarray, spacing_zyx: np.ndarray, index_to_image: np.ndarray, model: MarkerModel,
+              options: DetectionSettings, progress: Progress,
+              wait_for_slices: Callable[[int], None] | None) -> tuple[list[_Outcome], list[TooLarge]]:
+    """One detection of every marker of ``volume`` (numpy order k, j, i; ``index_to_image`` maps (i, j, k)
+    to LPS mm) with the band of ``options``: the coarse scan slice block by slice block (waiting for
+    them when streaming), each candidate region examined on a worker as soon as its slices are read."""
     slice_count = volume.shape[0]
     scan = CoarseScan(volume, spacing_zyx, model, options)
     guard = _guard_slices(model, options, index_to_image)
@@ -69,12 +103,20 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
     too_large: list[TooLarge] = []
     examined: list[tuple[Region, Future]] = []
 
-    def examine(region: Region, metal_zyx: np.ndarray) -> list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]]:
+    def examine(region: Region, metal_zyx: np.ndarray) -> list[_Outcome]:
         found = []
         for blob in blobs_in_region(volume, region, index_to_image, spacing_zyx, model, options):
             if blob.touches_region_edge:
                 blob = _regrown(volume, blob, index_to_image, spacing_zyx, model, options)
-            found.append((blob.centroid(), _classify(blob, metal_zyx, index_to_image, model, options)))
+            outcome = _classify(blob, metal_zyx, index_to_image, model, options)
+            if isinstance(outcome, RejectedCandidate) and outcome.code in _SPLIT_CODES \
+                    and not blob.touches_region_edge:
+                joined = with_fragments(volume, blob, index_to_image, spacing_zyx, model, options)
+                if joined is not None and not joined.touches_region_edge:
+                    whole = _classify(joined, metal_zyx, index_to_image, model, options)
+                    if isinstance(whole, DetectedMarker):
+                        outcome = whole
+            found.append((blob.centroid(), outcome))
         return found
 
     def start_ready(pool: ThreadPoolExecutor, slices: int) -> None:
@@ -106,8 +148,52 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
             for _, future in sorted(examined, key=lambda item: _region_key(item[0])):  # the order of a whole read
                 outcomes.extend(future.result())
                 step.advance()
-    return _result(outcomes, too_large, index_to_image, options, image)
+    return outcomes, too_large
 
+
+def _marker_count(outcomes: list[_Outcome]) -> int:
+    return sum(isinstance(outcome, DetectedMarker) for _, outcome in outcomes)
+
+
+def _marker_hu_estimate(outcomes: list[_Outcome], model: MarkerModel, options: DetectionSettings,
+                        markers_only: bool = False) -> float | None:
+    """The markers' own intensity (HU): the median core intensity of the blobs that fit the CAD model.
+
+    With fewer than three markers found, the marker-sized candidates turned down as bone stand in
+    (markers brighter than the band's top touch "bone-density" voxels: a low-kVp scan), with the
+    median of their voxels above the band's bottom, the bright ones included; None when there is
+    neither. A second pass with a band around such an estimate is kept only if it finds at least
+    as many markers.
+    """
+    markers = [o.marker_hu for _, o in outcomes if isinstance(o, DetectedMarker) and np.isfinite(o.marker_hu)]
+    if len(markers) >= 3 or markers_only:
+        return float(np.median(markers)) if markers else None
+    bright = [o.marker_hu for _, o in outcomes if isinstance(o, RejectedCandidate) and o.code == "bone"
+              and np.isfinite(o.marker_hu) and abs(o.volume_mm3 / model.volume_mm3 - 1) <= 2 * options.volume_tolerance]
+    return float(np.median(bright)) if len(bright) >= 3 else None
+
+
+def _band_suits(marker_hu: float, options: DetectionSettings) -> bool:
+    """True when the markers' intensity sits well inside the band (default band: 900..1440 HU)."""
+    width = options.high_hu - options.low_hu
+    return options.low_hu + 0.25 * width <= marker_hu <= options.high_hu - 0.3 * width
+
+
+def _band_around(marker_hu: float, options: DetectionSettings) -> DetectionSettings:
+    """The default band scaled to the markers' intensity (600..1800 HU is 0.545..1.64 of PVC's 1100 HU)."""
+    defaults = DetectionSettings()
+    low = marker_hu * defaults.low_hu / _PVC_HU
+    high = min(marker_hu * defaults.high_hu / _PVC_HU, options.metal_hu)
+    return replace(options, low_hu=low, high_hu=high)
+
+
+_PVC_HU = 1100.0
+"""PVC's intensity at 120 kVp, for which the default band 600..1800 HU is made."""
+
+
+
+_SPLIT_CODES = ("shape", "volume", "metal")
+"""Rejections that a streak splitting a marker causes: such a blob is tried again with its fragments."""
 
 _STEP_ROWS = 16
 """Coarse rows sampled per step while the CT is being read."""
@@ -197,8 +283,10 @@ def _classify(blob: Blob, metal_zyx: np.ndarray, index_to_image: np.ndarray, mod
     measures = measure_blob(blob, options)
     centroid, volume = measures.centroid, measures.volume_mm3
 
+    marker_hu = measures.marker_hu
+
     def reject(reason: str, code: str) -> RejectedCandidate:
-        return RejectedCandidate(centroid, volume, reason, code)
+        return RejectedCandidate(centroid, volume, reason, code, marker_hu=marker_hu)
 
     if blob.touches_image_edge:
         return reject("cut by the edge of the image", "edge")
@@ -211,6 +299,7 @@ def _classify(blob: Blob, metal_zyx: np.ndarray, index_to_image: np.ndarray, mod
         problem, code = "extends beyond a marker-sized region (too large)", "volume"
     elif measures.bone_fraction > options.bone_fraction:
         problem, code = f"touches bone-density voxels (>= {options.high_hu:g} HU)", "bone"
+        marker_hu = measures.bright_hu  # a marker brighter than the band (low kVp) is mostly above it
     else:
         problem, code = _size_and_shape_problem(measures.volume_mm3, measures.spreads_mm, model, options, strict,
                                                 float(np.max(blob.spacing_zyx)))
@@ -227,7 +316,7 @@ def _classify(blob: Blob, metal_zyx: np.ndarray, index_to_image: np.ndarray, mod
         if near_metal:
             return reject(f"wrecked by metal artefacts nearby ({problem})", "metal")
         return reject(problem, code)
-    return DetectedMarker("", fit.origin, fit.axis, volume, fit.fit_rms_mm)
+    return DetectedMarker("", fit.origin, fit.axis, volume, fit.fit_rms_mm, marker_hu=measures.marker_hu)
 
 
 def _size_and_shape_problem(volume: float, spreads: np.ndarray, model: MarkerModel, options: DetectionSettings,

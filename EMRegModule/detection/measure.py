@@ -30,6 +30,7 @@ class BlobMeasures:
     marker_hu: float
     bone_fraction: float
     points: np.ndarray
+    bright_hu: float = float("nan")  # median of the voxels >= low_hu within 1.5 mm, those above the band included
 
 
 def measure_blob(blob: Blob, settings: DetectionSettings) -> BlobMeasures:
@@ -65,9 +66,11 @@ def measure_blob(blob: Blob, settings: DetectionSettings) -> BlobMeasures:
     else:
         spreads = np.zeros(3)
         centroid = blob.centroid()
-    bone = np.count_nonzero(near & (values >= settings.high_hu))
+    bright = near & (values >= settings.high_hu)
+    bone = np.count_nonzero(bright)
+    bright_hu = float(np.median(values[near & (values >= settings.low_hu)])) if bone else marker_hu
     return BlobMeasures(centroid, np.count_nonzero(inside) * blob.voxel_volume_mm3, spreads, marker_hu,
-                        bone / max(1, blob.voxel_count), points)
+                        bone / max(1, blob.voxel_count), points, bright_hu)
 
 
 def _grown_box(mask: np.ndarray, margin: np.ndarray) -> tuple[slice, slice, slice]:

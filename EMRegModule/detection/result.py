@@ -39,6 +39,7 @@ class DetectedMarker:
     volume_mm3: float
     fit_rms_mm: float
     marker_to_image: np.ndarray = field(default=None)  # type: ignore[assignment]
+    marker_hu: float = float("nan")  # the median intensity of its core (HU), as measured in the CT
 
     def __post_init__(self) -> None:
         self.origin = np.asarray(self.origin, dtype=float).reshape(3)
@@ -61,6 +62,7 @@ class RejectedCandidate:
     volume_mm3: float
     reason: str
     code: str = "other"
+    marker_hu: float = float("nan")  # the median intensity of its core (HU)
 
     def __post_init__(self) -> None:
         self.centroid = np.asarray(self.centroid, dtype=float).reshape(3)
@@ -81,6 +83,7 @@ class DetectionResult:
     rejected: list[RejectedCandidate] = field(default_factory=list)
     image: dict[str, Any] = field(default_factory=dict)
     ct_series: dict[str, Any] | None = None  # a DICOM CT: the series used and the others (``io.dicom_series``)
+    band: dict[str, Any] | None = None  # the intensity band used (low_hu, high_hu, source, marker_hu)
     provenance: dict[str, Any] | None = None  # what it was made from (``EMRegModule.provenance``)
 
     def __len__(self) -> int:
@@ -107,6 +110,8 @@ class DetectionResult:
         document = {"coordinate_system": "LPS", "image": self.image,
                     "markers": [m.to_json() for m in self.markers],
                     "rejected": [r.to_json() for r in self.rejected]}
+        if self.band is not None:
+            document["band"] = self.band
         if self.ct_series is not None:
             document["ct_series"] = self.ct_series
         if self.provenance is not None:
@@ -140,10 +145,10 @@ class DetectionResult:
         ids = [m.id for m in markers]
         if len(set(ids)) != len(ids):
             raise EMRegError(f"{source}: marker ids must be unique")
-        series = document.get("ct_series")
+        series, band = document.get("ct_series"), document.get("band")
         provenance = document.get("provenance")
         return cls(markers, rejected, dict(document.get("image", {})), series if isinstance(series, dict) else None,
-                   provenance if isinstance(provenance, dict) else None)
+                   band if isinstance(band, dict) else None, provenance if isinstance(provenance, dict) else None)
 
 
 def write_detection(result: DetectionResult, out_dir: str | os.PathLike[str]) -> None:

@@ -321,9 +321,42 @@ def block_mean(values: np.ndarray, factors_zyx: np.ndarray) -> np.ndarray:
     return values.reshape(nz, fz, ny, fy, nx, fx).mean(axis=(1, 3, 5), dtype=np.float32)
 
 
-def blobs_in_region(volume_zyx: np.ndarray, region: Region, index_to_image: np.ndarray, spacing_zyx: np.ndarray,
-                    model: MarkerModel, settings: DetectionSettings) -> list[Blob]:
-    """Connected components of the smoothed, band-thresholded, opened region (work grid)."""
+@dataclass
+class _Segmented:
+    """A region's work-grid arrays and its labelled band mask (see :func:`blobs_in_region`)."""
+
+    values: np.ndarray
+    smoothed: np.ndarray
+    labels: np.ndarray
+    count: int
+    start: np.ndarray
+    stop: np.ndarray
+    factors: np.ndarray
+    work_spacing: np.ndarray
+    full_values: np.ndarray
+    work_to_image: np.ndarray
+    full_to_image: np.ndarray
+    image_shape: np.ndarray
+
+    def blob(self, component: np.ndarray) -> Blob:
+        """The blob of a boolean mask on this region's work grid (edge flags and box from its extent)."""
+        box = ndimage.find_objects(component.astype(np.uint8))[0]
+        lo = np.array([b.start for b in box])
+        hi = np.array([b.stop for b in box])
+        on_low = lo == 0
+        on_high = hi == np.array(self.values.shape)
+        at_image_low = self.start == 0
+        at_image_high = self.stop + self.factors > self.image_shape
+        touches_image = bool(np.any(on_low & at_image_low) or np.any(on_high & at_image_high))
+        touches_region = bool(np.any(on_low & ~at_image_low) or np.any(on_high & ~at_image_high))
+        return Blob(self.values, self.smoothed, component, self.work_to_image, self.work_spacing, self.full_values,
+                    self.full_to_image, touches_image, touches_region,
+                    (self.start + lo * self.factors, self.start + hi * self.factors))
+
+
+def _segment(volume_zyx: np.ndarray, region: Region, index_to_image: np.ndarray, spacing_zyx: np.ndarray,
+             settings: DetectionSettings) -> _Segmented:
+    """Smooth, band-threshold, open and label one region (work grid)."""
     spacing_zyx = np.asarray(spacing_zyx, dtype=float)
     factors = work_factors(spacing_zyx)
     image_shape = np.array(volume_zyx.shape)
@@ -340,29 +373,74 @@ def blobs_in_region(volume_zyx: np.ndarray, region: Region, index_to_image: np.n
     if settings.opening_radius_mm > 0:
         mask = open_ball(mask, settings.opening_radius_mm, work_spacing)
     labels, count = ndimage.label(mask, structure=_CONNECTIVITY_26)
-    if count == 0:
+    return _Segmented(values, smoothed, labels, count, start, stop, factors, work_spacing, full_values,
+                      local_to_image(index_to_image, start, factors),
+                      local_to_image(index_to_image, start, np.ones(3, dtype=int)), image_shape)
+
+
+def blobs_in_region(volume_zyx: np.ndarray, region: Region, index_to_image: np.ndarray, spacing_zyx: np.ndarray,
+                    model: MarkerModel, settings: DetectionSettings) -> list[Blob]:
+    """Connected components of the smoothed, band-thresholded, opened region (work grid)."""
+    segmented = _segment(volume_zyx, region, index_to_image, spacing_zyx, settings)
+    if segmented.count == 0:
         return []
-    work_to_image = local_to_image(index_to_image, start, factors)
-    full_to_image = local_to_image(index_to_image, start, np.ones(3, dtype=int))
-    voxel_volume = float(np.prod(work_spacing))
+    voxel_volume = float(np.prod(segmented.work_spacing))
     blobs = []
-    for label_value, box in enumerate(ndimage.find_objects(labels), start=1):
+    for label_value, box in enumerate(ndimage.find_objects(segmented.labels), start=1):
         if box is None or np.prod([b.stop - b.start for b in box]) * voxel_volume < 0.3 * model.volume_mm3:
             continue
-        component = labels == label_value
+        component = segmented.labels == label_value
         if np.count_nonzero(component) * voxel_volume < 0.3 * model.volume_mm3:
             continue
-        lo = np.array([b.start for b in box])
-        hi = np.array([b.stop for b in box])
-        on_low = lo == 0
-        on_high = hi == np.array(values.shape)
-        at_image_low = start == 0
-        at_image_high = stop + factors > image_shape
-        touches_image = bool(np.any(on_low & at_image_low) or np.any(on_high & at_image_high))
-        touches_region = bool(np.any(on_low & ~at_image_low) or np.any(on_high & ~at_image_high))
-        blobs.append(Blob(values, smoothed, component, work_to_image, work_spacing, full_values, full_to_image,
-                          touches_image, touches_region, (start + lo * factors, start + hi * factors)))
+        blobs.append(segmented.blob(component))
     return blobs
+
+
+def with_fragments(volume_zyx: np.ndarray, blob: Blob, index_to_image: np.ndarray, spacing_zyx: np.ndarray,
+                   model: MarkerModel, settings: DetectionSettings, gap_mm: float = 3.0) -> Blob | None:
+    """``blob`` joined with the smaller fragments lying within ``gap_mm`` of it and within a marker's extent.
+
+    A dark streak crossing a marker splits its thresholded blob (a disc and a pin, or other
+    pieces); their union is the marker again, for the CAD fit to judge like any candidate. A
+    fragment joins when it comes within ``gap_mm`` of the blob, is smaller than half a marker,
+    and the union is no longer than a marker's diagonal (plus two voxels). None when no fragment
+    joins.
+    """
+    spacing_zyx = np.asarray(spacing_zyx, dtype=float)
+    region = region_around(blob, spacing_zyx, volume_zyx.shape, margin_mm=model.height_mm)
+    segmented = _segment(volume_zyx, region, index_to_image, spacing_zyx, settings)
+    if segmented.count < 2:
+        return None
+    lo = (blob.box_zyx[0] - segmented.start) // segmented.factors
+    hi = -(-(blob.box_zyx[1] - segmented.start) // segmented.factors)
+    inside = segmented.labels[tuple(slice(max(0, int(a)), int(b)) for a, b in zip(lo, hi, strict=True))]
+    counts = np.bincount(inside.ravel(), minlength=segmented.count + 1)
+    counts[0] = 0
+    main = int(np.argmax(counts))
+    if main == 0:
+        return None
+    union = segmented.labels == main
+    near = dilate_ball(union, gap_mm, segmented.work_spacing)
+    voxel_volume = float(np.prod(segmented.work_spacing))
+    sizes = np.bincount(segmented.labels.ravel(), minlength=segmented.count + 1)
+    longest = float(np.hypot(model.height_mm, model.bottom_diameter_mm)) + 2 * float(np.max(segmented.work_spacing))
+    joined = False
+    for label_value in np.unique(segmented.labels[near]):
+        if label_value in (0, main) or sizes[label_value] * voxel_volume > 0.5 * model.volume_mm3:
+            continue
+        candidate = union | (segmented.labels == label_value)
+        if _diameter_mm(candidate, segmented.work_to_image) > longest:
+            continue
+        union, joined = candidate, True
+    return segmented.blob(union) if joined else None
+
+
+def _diameter_mm(mask: np.ndarray, local_to_image: np.ndarray) -> float:
+    """The mask's longest extent (mm), by two farthest-point sweeps (exact for convex, near for others)."""
+    points = np.argwhere(mask)[:, ::-1] @ local_to_image[:3, :3].T
+    far = points[np.argmax(np.linalg.norm(points - points.mean(axis=0), axis=1))]
+    other = points[np.argmax(np.linalg.norm(points - far, axis=1))]
+    return float(np.max(np.linalg.norm(points - other, axis=1)))
 
 
 def region_around(blob: Blob, spacing_zyx: np.ndarray, image_shape: tuple[int, ...], margin_mm: float = 3.0) -> Region:

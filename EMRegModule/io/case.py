@@ -1,5 +1,6 @@
 """Case folders (spec: ``ct.*`` or ``ct/``, ``calibration.csv``, ``navigation.csv``,
-``targets.mrk.json``, ``board.csv``, ``case.toml``) and their settings.
+``targets.mrk.json``, ``board.csv``, ``case.toml``) and their settings. The recordings may also
+be PLUS sequence metafiles (``calibration.seq.mha`` ...; :mod:`EMRegModule.io.recording`).
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ from ..errors import EMRegError
 from ..settings import Settings, load_settings
 from ..tracking import TrackingRecording
 from .markups import read_markups
-from .tracking_csv import read_tracking_csv
 
 CT_FILE_NAMES = ("ct.nrrd", "ct.nii.gz", "ct.nii", "ct.mha", "ct.mhd")
 CT_FOLDER_NAME = "ct"
@@ -46,8 +46,10 @@ class Case:
 
     def read_recording(self, role: str) -> TrackingRecording | None:
         """The tracking recording ``calibration``, ``navigation`` or ``board``, or None when absent."""
+        from .recording import read_recording
+
         path = getattr(self, role)
-        return None if path is None else read_tracking_csv(path)
+        return None if path is None else read_recording(path, self.settings)
 
 
 def find_ct(case_dir: str | os.PathLike[str]) -> Path | None:
@@ -70,12 +72,14 @@ def open_case(folder: str | os.PathLike[str]) -> Case:
     def optional(name: str) -> Path | None:
         return folder / name if (folder / name).is_file() else None
 
+    from .recording import find_recording
+
     return Case(
         folder=folder,
         ct=find_ct(folder),
-        calibration=optional("calibration.csv"),
-        navigation=optional("navigation.csv"),
+        calibration=find_recording(folder, "calibration"),
+        navigation=find_recording(folder, "navigation"),
         targets=optional("targets.mrk.json"),
-        board=optional("board.csv"),
+        board=find_recording(folder, "board"),
         settings=load_settings(folder / "case.toml"),
     )

@@ -84,6 +84,8 @@ class SliceHeader:
     signed: bool
     samples: int
     instance: int | None
+    bits_allocated: int = 16
+    photometric: str = "MONOCHROME2"
 
 
 @dataclass
@@ -251,7 +253,9 @@ def read_header(path: Path) -> SliceHeader | None:
             slope=float(dataset.get("RescaleSlope", 1) or 1), intercept=float(dataset.get("RescaleIntercept", 0) or 0),
             bits_stored=int(dataset.get("BitsStored", 16) or 16),
             signed=int(dataset.get("PixelRepresentation", 0) or 0) == 1,
-            samples=int(dataset.get("SamplesPerPixel", 1) or 1), instance=_int(dataset.get("InstanceNumber")))
+            samples=int(dataset.get("SamplesPerPixel", 1) or 1), instance=_int(dataset.get("InstanceNumber")),
+            bits_allocated=int(dataset.get("BitsAllocated", 16) or 16),
+            photometric=str(dataset.get("PhotometricInterpretation", "MONOCHROME2") or "MONOCHROME2"))
     except (TypeError, ValueError, AttributeError) as exc:
         raise EMRegError(f"{path}: malformed DICOM header ({_short(exc)})") from None
 
@@ -500,6 +504,53 @@ def voxel_type(headers: list[SliceHeader]) -> int:
     return sitk.sitkFloat32
 
 
+_UNCOMPRESSED = {"1.2.840.10008.1.2": "<", "1.2.840.10008.1.2.1": "<", "1.2.840.10008.1.2.2": ">"}
+_PIXEL_DATA_TAG = {"<": b"\xe0\x7f\x10\x00", ">": b"\x7f\xe0\x00\x10"}
+
+
+def _read_uncompressed(header: SliceHeader, out: np.ndarray) -> bool:
+    """Read an uncompressed 16-bit slice straight into ``out`` (HU after its rescale); False if not that simple.
+
+    Taken only when the file ends with its Pixel Data element (checked from its tag) holding
+    exactly rows x columns 16-bit values of a MONOCHROME2 image; the stored bits are masked
+    (unsigned) or sign-extended (signed) as DICOM defines, then the slice's own slope and
+    intercept applied. Anything else is decoded by GDCM. The tests compare both with
+    ``SimpleITK.ImageSeriesReader``.
+    """
+    order = _UNCOMPRESSED.get(header.transfer_syntax)
+    if order is None or header.bits_allocated != 16 or header.frames != 1 or header.samples != 1 \
+            or header.photometric != "MONOCHROME2" or not 1 <= header.bits_stored <= 16:
+        return False
+    count = header.rows * header.columns
+    try:
+        with header.path.open("rb") as stream:
+            size = stream.seek(0, os.SEEK_END)
+            start = size - 2 * count
+            explicit = header.transfer_syntax != "1.2.840.10008.1.2"
+            stream.seek(start - (12 if explicit else 8))
+            element = stream.read(12 if explicit else 8)
+            length = int.from_bytes(element[-4:], "little" if order == "<" else "big")
+            if element[:4] != _PIXEL_DATA_TAG[order] or length != 2 * count \
+                    or (explicit and element[4:6] not in (b"OW", b"OB")):
+                return False
+            stored = np.empty(count, dtype=np.dtype("i2" if header.signed else "u2").newbyteorder(order))
+            if stream.readinto(stored) != stored.nbytes:
+                return False
+    except OSError as exc:
+        raise EMRegError(f"{header.path}: cannot read ({exc.strerror})") from None
+    stored = stored.astype(stored.dtype.newbyteorder("="), copy=False).reshape(header.rows, header.columns)
+    unused = 16 - header.bits_stored
+    if unused and header.signed:
+        stored = (stored << unused) >> unused  # sign-extend the stored bits
+    elif unused:
+        stored = stored & ((1 << header.bits_stored) - 1)
+    if header.slope == 1.0 and out.dtype.kind in "iu" and float(header.intercept).is_integer():
+        np.add(stored, np.int32(header.intercept), out=out, casting="unsafe")  # int32 sums, then the output type
+    else:
+        np.copyto(out, stored * np.float32(header.slope) + np.float32(header.intercept), casting="unsafe")
+    return True
+
+
 def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int) -> None:
     """The reading thread: allocate, decode slices on a pool, announce the in-order prefix."""
     try:
@@ -516,7 +567,10 @@ def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int) -> None:
         def decode(k: int) -> None:
             if fill._cancelled:
                 return
-            path = series.headers[k].path
+            header = series.headers[k]
+            path = header.path
+            if _read_uncompressed(header, voxels[k]):
+                return
             slice_image = _read_one(path)
             values = sitk.GetArrayViewFromImage(slice_image)
             values = values.reshape(values.shape[-2:]) if values.ndim == 3 and values.shape[0] == 1 else values

@@ -56,6 +56,10 @@ OPEN_ATTEMPTS = 3
 #: ndicapi codes of a damaged line rather than a device's answer ([CAPI] ndicapi.h: bad CRC, write
 #: error, read error, timeout).
 LINE_ERRORS = (ndi.NDI_BAD_CRC, ndi.NDI_TIMEOUT, ndi.NDI_WRITE_ERROR, ndi.NDI_READ_ERROR)
+#: The Aurora's measuring rate, at which its frame counter advances (choice: 40 Hz, the Aurora's nominal
+#: update rate; ``?rate=`` in the URL overrides it). Sample times come from frame numbers at this rate,
+#: not from when a poll happened to be answered: polling jitter would otherwise look like motion.
+DEFAULT_RATE_HZ = 40.0
 #: Times a start-up command is sent when the line damages its reply (choice).
 COMMAND_ATTEMPTS = 3
 #: ndiSerialProbe results that mean a device answered but the reply was damaged ([CAPI] ndicapi.h:
@@ -146,7 +150,7 @@ class AuroraDriver:
     """
 
     def __init__(self, port: str, baud: int = ndi.DEFAULT_BAUD, reply: str = "auto",
-                 five_dof: tuple[int, ...] = ()) -> None:
+                 five_dof: tuple[int, ...] = (), rate_hz: float = DEFAULT_RATE_HZ) -> None:
         if baud not in ndi.BAUD_RATES:
             raise EMRegError(f"Aurora baud {baud}: use one of {', '.join(map(str, ndi.BAUD_RATES))}")
         if reply not in ("auto", "bx", "tx"):
@@ -155,6 +159,9 @@ class AuroraDriver:
         self.baud = baud
         self.reply = reply
         self.five_dof = tuple(five_dof)
+        if not rate_hz > 0:
+            raise EMRegError(f"Aurora rate {rate_hz}: must be a positive number of Hz")
+        self.rate_hz = float(rate_hz)
         self.api = NdicapiLibrary.get()
         self.pol: int | None = None
         self.freeze_tag = ""
@@ -321,7 +328,7 @@ class AuroraDriver:
     def _poll(self, callback: SampleCallback) -> None:
         text = f"{'BX' if self.use_bx else 'TX'}:{REPLY_OPTION:04X}"
         last_frame: int | None = None
-        t0_ns = time.monotonic_ns()
+        first_frame: int | None = None
         st = self.stats
         errors_in_row = 0
         try:
@@ -343,7 +350,7 @@ class AuroraDriver:
                         return
                     continue
                 errors_in_row = 0
-                samples = self._decode(t_ns, t0_ns)
+                samples = self._decode(t_ns)
                 frame = samples[0].frame if samples else None
                 if frame is None or frame == last_frame:
                     st.repeated += 1
@@ -353,12 +360,16 @@ class AuroraDriver:
                     st.missed_frames += frame - last_frame - 1
                 last_frame = frame
                 st.frames += 1
+                if first_frame is None:
+                    first_frame = frame
+                time_s = (frame - first_frame) / self.rate_hz  # the device's clock: its frame counter
                 for sample in samples:
+                    sample.time_s = time_s
                     callback(sample)
         except Exception as exc:  # pragma: no cover - the callback or the library failed
             self.error = f"Aurora on {self.port}: {exc}"
 
-    def _decode(self, t_ns: int, t0_ns: int) -> list[SensorSample]:
+    def _decode(self, t_ns: int) -> list[SensorSample]:
         """Samples of every enabled tool from the last BX/TX reply ndicapi accepted."""
         lib, pol = self.api.lib, self.pol
         out = []
@@ -373,12 +384,12 @@ class AuroraDriver:
                 result = lib.ndiGetTXTransform(pol, tool.handle, values)
                 port_status = lib.ndiGetTXPortStatus(pol, tool.handle)
                 frame = int(lib.ndiGetTXFrame(pol, tool.handle))
-            out.append(self._sample(tool, result, list(values), port_status, frame, t_ns, t0_ns))
+            out.append(self._sample(tool, result, list(values), port_status, frame, t_ns))
         return out
 
     @staticmethod
-    def _sample(tool: AuroraTool, result: int, values: list[float], port_status: int, frame: int, t_ns: int,
-                t0_ns: int) -> SensorSample:
+    def _sample(tool: AuroraTool, result: int, values: list[float], port_status: int, frame: int,
+                t_ns: int) -> SensorSample:
         nan3 = np.full(3, np.nan)
         status = STATUS_OK
         if result == 1 or not port_status & ndi.PORT_OCCUPIED:  # NDI_DISABLED, or the tool was unplugged
@@ -393,7 +404,7 @@ class AuroraDriver:
                 rotation = rotation @ FIVE_DOF_X_TO_NDI
         else:
             quaternion, position, rotation, error = None, nan3, np.full((3, 3), np.nan), float("nan")
-        sample = SensorSample(tool.sensor, (t_ns - t0_ns) / 1e9, position, rotation, error, status, frame=frame,
+        sample = SensorSample(tool.sensor, 0.0, position, rotation, error, status, frame=frame,
                               received_ns=t_ns)
         sample.extra.update(handle=tool.handle, port_status=port_status, dof=tool.dof, quaternion=quaternion)
         return sample
@@ -421,17 +432,25 @@ class AuroraSource(SampleSource):
     """An Aurora (or the simulator) polled through :class:`AuroraDriver`; samples per tool and frame.
 
     URL options: ``baud`` (default 115200), ``reply`` (auto, bx, tx), ``five_dof`` (sensor numbers of
-    5-DOF sensors), ``rate`` (the Aurora's measuring rate in Hz for the watchdog; default: estimated).
+    5-DOF sensors), ``rate`` (the Aurora's measuring rate in Hz: sample times and the watchdog's period;
+    default 40).
     """
+
+    #: Worst acceptable RMS error (mm) when ``--max-quality`` is not given (choice: a clean Aurora solution
+    #: reports a few hundredths to tenths of a millimetre; the simulator's distortion fault reports 2.5).
+    default_max_quality = 1.0
 
     def __init__(self, url) -> None:
         super().__init__()
         options = url.options
+        try:
+            rate_hz = float(options.get("rate", DEFAULT_RATE_HZ))
+        except ValueError:
+            raise EMRegError(f"device {url.text!r}: rate must be a number of Hz") from None
         self.driver = AuroraDriver(url.path, url.baud, options.get("reply", "auto"),
-                                   sensors_from_text(options.get("five_dof")))
+                                   sensors_from_text(options.get("five_dof")), rate_hz)
         self.driver.open()
-        if "rate" in options:
-            self.period_s = 1.0 / float(options["rate"])
+        self.period_s = 1.0 / rate_hz
         tools = ", ".join(f"port {t.port}{'/' + str(t.channel) if t.channel else ''} -> sensor {t.sensor}"
                           for t in self.driver.tools)
         self.description = (f"Aurora on {url.path} at {url.baud} baud ({self.driver.freeze_tag or 'firmware ?'}, "

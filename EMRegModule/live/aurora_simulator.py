@@ -11,13 +11,16 @@ given the path: ``aurora://PATH`` for EMReg, ``{"serial port": PATH}`` for sciki
 ``ndiProbe(PATH)`` / ``ndiOpen(PATH)`` for ndicapi. What it emulates (formats and constants in
 :mod:`.ndi_protocol`, with their sources):
 
-- commands ``INIT``, ``COMM`` (baud change after the OKAY, as ndicapi expects), ``VER`` (0..5; 3 is
-  ``ERROR23`` as on a real Aurora), ``GETINFO`` (``ERROR01``: this firmware has none, so ndicapi's
-  probe falls back to ``VER``; choice), ``BEEP``, ``PHSR`` (all five modes), ``PHINF`` (every field),
-  ``PHF``, ``PINIT`` (``ERROR13`` for a tool without SROM), ``PENA`` / ``PDIS``, ``TSTART`` /
-  ``TSTOP``, ``BX`` and ``TX`` (reply modes 0x0001 and 0x0800), every reply with its CRC16; a
-  command with a wrong CRC gets ``ERROR04``, an unknown one ``ERROR01``, BX/TX outside tracking
-  ``ERROR0C``;
+- commands ``INIT``, ``COMM`` (baud change after the OKAY, as ndicapi expects), ``VER`` (3 is
+  ``ERROR23`` as on a real Aurora; 0, 1, 2, 4, 5 give the same text: choice), ``GETINFO``
+  (``ERROR01``: this firmware has none, so ndicapi's probe falls back to ``VER``; choice), ``BEEP``
+  (answers ``1``: choice), ``PHSR`` (all five modes), ``PHINF`` (every field; tool type ``0B``
+  catheter, manufacturer, serial and part number are choices), ``PHF``, ``PINIT`` (``ERROR13`` for a
+  tool without SROM), ``PENA`` / ``PDIS``, ``TSTART`` / ``TSTOP``, ``BX`` and ``TX`` (reply modes
+  0x0001 and 0x0800; BX/TX list every initialised handle, DISABLED when not enabled: choice), every
+  reply with its CRC16; a command with a wrong CRC gets ``ERROR04``, an unknown one ``ERROR01``,
+  BX/TX outside tracking and PHSR/PHINF/PINIT/PENA during tracking ``ERROR0C``, anything but INIT,
+  COMM, VER, BEEP before INIT ``ERROR10`` (which code a real Aurora sends there: choice);
 - the line: replies leave no faster than the current baud allows (start + data + parity + stop
   bits per byte) and are written when their last byte would have arrived; the device reads the
   host's line speed from the pty (Linux reports the slave's termios on the master), so a client
@@ -212,7 +215,6 @@ class AuroraSimulator:
         self._drop_next = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._lock = threading.Lock()
         self.master_fd, self.slave_fd = os.openpty()
         tty.setraw(self.slave_fd)
         attrs = termios.tcgetattr(self.slave_fd)

@@ -25,6 +25,7 @@ from ..settings import load_settings
 from ..transforms import is_rigid
 from . import trakstar_protocol as tp
 from .igtl_server import DEFAULT_PORT
+from .link_quality import guard_for
 
 # --- shared helpers ---------------------------------------------------------------------------
 
@@ -33,6 +34,19 @@ def _sensor_ports(args: argparse.Namespace) -> tuple[int, int]:
     settings = load_settings(getattr(args, "settings", None), required=True)
     sensors = settings.with_sensors(args.reference_sensor, args.probe_sensor).sensors
     return sensors.reference, sensors.probe
+
+
+def _check_ports_attached(source, reference: int, probe: int) -> None:
+    """Refuse (exit 2) a reference or probe port without a sensor, when the source can tell."""
+    ports = getattr(source, "attached_ports", None)
+    if not callable(ports):
+        return
+    attached = ports()
+    for role, port in (("reference", reference), ("probe", probe)):
+        if port not in attached:
+            source.stop()
+            raise EMRegError(f"{source.description}: no sensor on the {role} port {port} (sensors on ports "
+                             f"{', '.join(map(str, attached)) or 'none'}); set --{role}-sensor")
 
 
 def load_reference_to_image(path: str, settings_path: str | None = None) -> np.ndarray:
@@ -100,14 +114,19 @@ def _add_replay_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_watchdog_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--max-quality", type=float, default=20.0, metavar="Q",
-                        help="worst acceptable tracker quality number, 0 = best (default 20; -1: do not check)")
+    parser.add_argument("--max-quality", type=float, default=None, metavar="Q",
+                        help="worst acceptable tracker quality number, 0 = best (default: 20 for the trakSTAR's "
+                             "METAL number, 1 mm for the Aurora's RMS error; -1: do not check)")
     parser.add_argument("--stale-periods", type=float, default=3.0, metavar="K",
                         help="data are stale after K sample periods without a sample (default 3)")
 
 
 def _max_quality(args: argparse.Namespace) -> float | None:
-    return None if args.max_quality is not None and args.max_quality < 0 else args.max_quality
+    if args.max_quality is None:  # not given: the source's own scale, else the trakSTAR's
+        from .navigator import DEFAULT_MAX_QUALITY
+
+        return float(getattr(args, "source_max_quality", None) or DEFAULT_MAX_QUALITY)
+    return None if args.max_quality < 0 else args.max_quality
 
 
 def _say(args: argparse.Namespace, text: str) -> None:
@@ -147,7 +166,7 @@ def add_sim_tracker_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--link", metavar="PATH", help="also make PATH a symbolic link to the pty (like socat's link)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the scene and of the faults")
     parser.add_argument("--fault", action="append", default=[], metavar="KIND=VALUE",
-                        help="inject faults: drop=P, flip=P (per byte), stall=EVERY_S:DURATION_S, "
+                        help="inject faults: drop=P, flip=P, corrupt=P (per byte), stall=EVERY_S:DURATION_S, "
                              "unplug=SENSOR@START-END, out-of-range=SENSOR@START-END (repeatable)")
     parser.add_argument("--attached", default=None, metavar="1,2,3,4", help="ports with a sensor (default all)")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
@@ -164,9 +183,9 @@ def run_sim_tracker(args: argparse.Namespace) -> int:
 
     scene = BuiltinScene(args.seed)
     if args.replay:
-        from ..io.tracking_csv import read_tracking_csv
+        from ..io.recording import read_recording
 
-        scene = ReplayScene(read_tracking_csv(args.replay))
+        scene = ReplayScene(read_recording(args.replay))
     attached = sensors_from_list(args.attached) if args.attached else None
     sim = TrackerSimulator(scene, baud=args.baud, faults=FaultPlan.parse(args.fault), seed=args.seed, link=args.link,
                            fast=args.fast, max_records=args.max_records, duration_s=args.duration, attached=attached,
@@ -241,7 +260,9 @@ def add_record_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", required=True, metavar="URL",
                         help="trakstar:///dev/ttyUSB0?baud=115200, aurora:///dev/ttyUSB0, igtl://HOST:PORT or "
                              "replay:FILE.csv")
-    parser.add_argument("--out", required=True, metavar="rec.csv", help="tracking CSV to write (flushed every second)")
+    parser.add_argument("--out", required=True, metavar="rec.csv",
+                        help="tracking CSV to write (flushed every second), or a PLUS sequence metafile "
+                             "rec.seq.mha (written at the end; samples kept meanwhile in rec.seq.mha.partial.csv)")
     parser.add_argument("--reference-sensor", type=int, default=None, metavar="PORT")
     parser.add_argument("--probe-sensor", type=int, default=None, metavar="PORT")
     _add_limits(parser)
@@ -249,20 +270,35 @@ def add_record_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_record(args: argparse.Namespace) -> int:
+    from ..io.sequence_metafile import is_sequence_file
     from .sources import open_source
-    from .writers import RecordingWriter
+    from .writers import RecordingWriter, SequenceRecordingWriter
 
     reference, probe = _sensor_ports(args)
     from ..cli import _out_file
 
     _out_file(args.out)
     source = open_source(args.device, reference, probe, fast=args.fast, loop=args.loop)
-    writer = RecordingWriter(args.out)
+    writer = (SequenceRecordingWriter(args.out, reference_port=reference, probe_port=probe)
+              if is_sequence_file(args.out) else RecordingWriter(args.out))
     count = [0]
+    guard = guard_for(source)
+    paused = [False]
+    lock = threading.Lock()
 
     def on_sample(sample) -> None:
-        if writer.write_sample(sample):
-            count[0] += 1
+        with lock:
+            if guard is not None:
+                admitted = guard.admit(sample)
+                state = guard.state()
+                alarm = guard.monitor.alarm
+                if alarm != paused[0]:  # the link went bad or came back
+                    paused[0] = alarm
+                    _say(args, f"[emreg] record: {'not recording' if alarm else 'recording again'}: {state.message}")
+                if not (admitted and state.ok):
+                    return
+            if writer.write_sample(sample):
+                count[0] += 1
 
     _say(args, f"[emreg] recording {source.description} -> {args.out}")
     try:
@@ -302,21 +338,27 @@ def run_serve(args: argparse.Namespace) -> int:
 
     reference, probe = _sensor_ports(args)
     source = open_source(args.device, reference, probe, fast=args.fast, loop=args.loop)
+    _check_ports_attached(source, reference, probe)
+    args.source_max_quality = getattr(source, "default_max_quality", None)
     try:
         server = IGTLServer(args.host, args.igtl_port)
     except BaseException:
         source.stop()
         raise
     publisher = TrackerPublisher(server, reference, probe, source.period_s, args.stale_periods, _max_quality(args),
-                                 out=None if args.quiet else sys.stderr)
+                                 out=None if args.quiet else sys.stderr, link=guard_for(source))
     _say(args, f"[emreg] serving {source.description} on OpenIGTLink {args.host}:{server.port} "
                f"(ReferenceToTracker, ProbeToTracker, STATUS Tracker)")
     try:
         with _StopFlag() as stop:
             source.start(publisher.on_sample)
-            why = _run_loop(source, stop, args.duration,
-                            lambda: args.max_samples is not None and publisher.samples >= args.max_samples,
-                            publisher.tick)
+            try:
+                why = _run_loop(source, stop, args.duration,
+                                lambda: args.max_samples is not None and publisher.samples >= args.max_samples,
+                                publisher.tick)
+            except EMRegError as exc:
+                publisher.device_lost(f"tracker lost: {exc}")  # the last STATUS a client sees is not OK
+                raise
     finally:
         source.stop()
         server.close()
@@ -331,6 +373,9 @@ def run_serve(args: argparse.Namespace) -> int:
 def add_live_navigate_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of live ``emreg navigate`` beyond those ``cli.py`` defines."""
     parser.add_argument("--host", default="127.0.0.1", help="address the OpenIGTLink server listens on")
+    parser.add_argument("--reconnect", type=float, default=DEFAULT_RECONNECT_S, metavar="S",
+                        help="when the tracker is lost, try to reopen it once a second for up to S seconds "
+                             f"(default {DEFAULT_RECONNECT_S:g}; 0: end at once); STATUS is not OK meanwhile")
     _add_replay_options(parser)
     _add_limits(parser)
     _add_watchdog_options(parser)
@@ -349,6 +394,8 @@ def run_live_navigate(args: argparse.Namespace) -> int:
     reference_to_image = load_reference_to_image(args.registration, getattr(args, "settings", None))
     reference, probe = _sensor_ports(args)
     source = open_source(args.source, reference, probe, fast=args.fast, loop=args.loop)
+    _check_ports_attached(source, reference, probe)
+    args.source_max_quality = getattr(source, "default_max_quality", None)
     server = writer = None
     try:
         if args.igtl_port is not None:
@@ -361,26 +408,79 @@ def run_live_navigate(args: argparse.Namespace) -> int:
             server.close()
         raise
     navigator = LiveNavigator(reference_to_image, reference, probe, server, writer, source.period_s,
-                              args.stale_periods, _max_quality(args), out=None if args.quiet else sys.stderr)
+                              args.stale_periods, _max_quality(args), out=None if args.quiet else sys.stderr,
+                              link=guard_for(source))
     where = f"OpenIGTLink {args.host}:{server.port} (ProbeToImage, RAS)" if server else ""
     if writer:
         where += (" and " if where else "") + str(writer.path)
     _say(args, f"[emreg] navigating from {source.description} -> {where}")
+    deadline = None if args.duration is None else time.monotonic() + args.duration
+    reconnects = 0
     try:
         with _StopFlag() as stop:
-            source.start(navigator.on_sample)
-            why = _run_loop(source, stop, args.duration,
-                            lambda: args.max_samples is not None and navigator.frames >= args.max_samples,
-                            navigator.tick)
+            while True:
+                source.start(navigator.on_sample)
+                try:
+                    left = None if deadline is None else max(0.0, deadline - time.monotonic())
+                    why = _run_loop(source, stop, left,
+                                    lambda: args.max_samples is not None and navigator.frames >= args.max_samples,
+                                    navigator.tick)
+                    break
+                except EMRegError as exc:  # the device failed: cable pulled, tracker switched off or killed
+                    source.stop()
+                    navigator.device_lost(f"tracker lost: {exc}")  # the last STATUS a client sees is not OK
+                    back = _reconnect(args, reference, probe, stop, exc)
+                    if back is None:
+                        why = "interrupted while reconnecting"
+                        break
+                    source = back
+                    reconnects += 1
+                    navigator.device_back(guard_for(source))
     finally:
         source.stop()
         if server is not None:
             server.close()
         if writer is not None:
             writer.close()
-    print(f"{navigator.published} probe poses published, {navigator.withheld} withheld by the watchdog ({why})")
+    again = f", {reconnects} reconnection(s)" if reconnects else ""
+    print(f"{navigator.published} probe poses published, {navigator.withheld} withheld by the watchdog "
+          f"({why}{again})")
     _report_framing(args, source)
     return 0
+
+
+def _reconnect(args: argparse.Namespace, reference: int, probe: int, stop: _StopFlag, cause: Exception):
+    """Reopen ``--source`` once a second for up to ``--reconnect`` seconds (bounded retries).
+
+    Returns the new source, or None when interrupted; raises :class:`EMRegError` (exit 2) when the
+    device did not come back in time. Replays are not reopened.
+    """
+    from .device_url import parse_device_url
+    from .sources import open_source
+
+    window = float(getattr(args, "reconnect", 0) or 0)
+    if window <= 0 or parse_device_url(args.source).kind == "replay":
+        raise EMRegError(f"{cause}; not reconnecting (--reconnect 0)") if window <= 0 else cause
+    _say(args, f"[emreg] tracker lost ({cause}); trying to reconnect for up to {window:g} s")
+    give_up = time.monotonic() + window
+    attempts = 0
+    while time.monotonic() < give_up:
+        if stop.event.wait(RECONNECT_INTERVAL_S):
+            return None
+        attempts += 1
+        try:
+            source = open_source(args.source, reference, probe, fast=args.fast, loop=args.loop)
+        except Exception:  # noqa: BLE001 - any failure to open or configure it: not back yet
+            continue
+        _say(args, f"[emreg] tracker back after {attempts} attempt(s): {source.description}")
+        return source
+    raise EMRegError(f"{cause}; the tracker did not come back within {window:g} s ({attempts} attempts)")
+
+
+#: Seconds between two attempts to reopen a lost tracker.
+RECONNECT_INTERVAL_S = 1.0
+#: Default time (s) live navigation keeps trying to reopen a lost tracker before it gives up.
+DEFAULT_RECONNECT_S = 30.0
 
 
 #: ``(name, add_arguments, run, help)`` for ``cli.py``.

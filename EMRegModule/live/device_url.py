@@ -8,7 +8,8 @@
 - ``aurora:///dev/ttyUSB0?baud=115200``: an NDI Aurora (or ``emreg sim-tracker --model aurora``) through
   ndicapi. Options: ``baud`` (set with COMM after the 9600-baud start; default 115200), ``reply``
   (``auto``: BX unless the firmware needs TX; ``bx``, ``tx``), ``five_dof`` (sensors with 5-DOF
-  sensors, e.g. ``2``), ``rate`` (Hz, for the watchdog; default estimated). A tool's sensor number is
+  sensors, e.g. ``2``), ``rate`` (Hz at which its frame counter runs: sample times and the
+  watchdog's period; default 40). A tool's sensor number is
   its port 1..4 (+4 for channel 1 of a splitter).
 - ``igtl://HOST:PORT``: another EMReg (``emreg serve``) or PLUS server; options ``reference`` and
   ``probe``: the TRANSFORM device names to consume (default ``ReferenceToTracker``,

@@ -8,8 +8,13 @@ a stalled client would stall the tracker loop. This server keeps pyigtl for the 
   from the caller's thread (the tracker loop: no queue hop on the latency path); what a client's
   socket cannot take now waits in that client's own queue, flushed by the server thread when the
   socket becomes writable;
-- a client whose queue exceeds ``max_pending_bytes`` loses its oldest whole queued messages
-  (transforms are superseded by newer ones anyway) - it is never allowed to block anyone;
+- a queued message older than ``STALE_AFTER_S`` is replaced by a newer one of the same type and device
+  name (a newer TRANSFORM ``ProbeToImage`` supersedes it), so a client that stops reading gets the
+  latest pose when it reads again, not a backlog - once the kernel's socket buffers are full. What those
+  buffers took before (the client's receive buffer grows by autotuning; ``send_buffer_bytes`` bounds the
+  server's side) still arrives first: only the client can shed that (read everything, keep the newest).
+  Beyond that, a client whose queue exceeds ``max_pending_bytes``
+  loses its oldest whole queued messages - it is never allowed to block anyone;
 - clients that disconnect are dropped; what they send is read and ignored;
 - the last STATUS message of each device name is replayed to every new client, so a client that
   connects while the watchdog holds poses back learns why.
@@ -34,12 +39,19 @@ from .igtl_status import StatusMessage
 
 DEFAULT_PORT = 18944
 
+#: A message that has waited this long (s) in a client's queue is stale: a newer message of the same
+#: type and device name replaces it (a newer pose supersedes an older one). A client that keeps up
+#: within this time loses nothing.
+STALE_AFTER_S = 0.5
+
 
 class _Client:
     def __init__(self, sock: socket.socket, address: tuple) -> None:
         self.sock = sock
         self.address = address
         self.pending: deque[memoryview] = deque()
+        self.keys: deque[str] = deque()  # the device name of each pending message (latest-only per name)
+        self.times: deque[float] = deque()  # when each pending message was queued (monotonic s)
         self.pending_bytes = 0
         self.partial = False  # the head of ``pending`` is a message already partly sent
         self.dropped_messages = 0
@@ -49,9 +61,14 @@ class _Client:
 class IGTLServer:
     """OpenIGTLink TCP server: ``send(message)`` to every connected client."""
 
-    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, max_pending_bytes: int = 1 << 20) -> None:
+    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, max_pending_bytes: int = 1 << 20,
+                 stale_after_s: float | None = None, send_buffer_bytes: int | None = None) -> None:
         self.host = host
         self.max_pending_bytes = max_pending_bytes
+        #: queued messages older than this are superseded by newer ones of the same type and device name
+        self.stale_after_s = STALE_AFTER_S if stale_after_s is None else stale_after_s
+        #: the kernel send buffer of each client socket (None: the system's, autotuned)
+        self.send_buffer_bytes = send_buffer_bytes
         self._listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
@@ -88,19 +105,21 @@ class IGTLServer:
         if isinstance(message, StatusMessage):
             with self._lock:
                 self._sticky[message.device_name] = data
-        return self.send_bytes(data)
+        return self.send_bytes(data, f"{message.message_type}:{message.device_name}")
 
     def send_transform(self, device_name: str, matrix: np.ndarray, timestamp: float | None = None) -> int:
         """Send a TRANSFORM (4x4, mm) under ``device_name``."""
         return self.send(TransformMessage(np.asarray(matrix, dtype=np.float32), timestamp=timestamp,
                                           device_name=device_name))
 
-    def send_bytes(self, data: bytes) -> int:
+    def send_bytes(self, data: bytes, key: str = "") -> int:
+        """Offer packed bytes to every client. ``key`` (message type and device name): a client that has
+        not taken an earlier message of the same key yet gets only this newer one (latest, not backlog)."""
         wake = False
         with self._lock:
             for client in self._clients:
                 if client.alive:
-                    wake |= self._offer(client, memoryview(data))
+                    wake |= self._offer(client, memoryview(data), key)
             self.messages_sent += 1
         done_ns = time.monotonic_ns()
         if wake:
@@ -140,9 +159,10 @@ class IGTLServer:
         self.close()
 
     # -- internals (called with the lock held) -------------------------------------------------
-    def _offer(self, client: _Client, data: memoryview) -> bool:
+    def _offer(self, client: _Client, data: memoryview, key: str = "") -> bool:
         """Send now if nothing is queued, else queue. Returns True if the server thread must watch
-        the socket for writability."""
+        the socket for writability. A queued, not yet started message of the same ``key`` is
+        replaced by this one: a slow client gets the latest pose, not a backlog of stale ones."""
         if not client.pending:
             try:
                 n = client.sock.send(data)
@@ -154,16 +174,34 @@ class IGTLServer:
             if n == len(data):
                 return False
             client.pending.append(data[n:])
+            client.keys.append(key if n == 0 else "")
+            client.times.append(time.monotonic())
             client.pending_bytes += len(data) - n
             client.partial = n > 0
             return True
+        now = time.monotonic()
+        stale = now - self.stale_after_s
+        if key and client.times and client.times[0] < stale:  # the client is behind: latest only
+            start = 1 if client.partial else 0
+            for index in range(len(client.keys) - 1, start - 1, -1):
+                if client.keys[index] == key and client.times[index] < stale:
+                    superseded = client.pending[index]
+                    del client.pending[index]
+                    del client.keys[index]
+                    del client.times[index]
+                    client.pending_bytes -= len(superseded)
+                    client.dropped_messages += 1
         client.pending.append(data)
+        client.keys.append(key)
+        client.times.append(now)
         client.pending_bytes += len(data)
         while client.pending_bytes > self.max_pending_bytes and len(client.pending) > 1:
             # drop the oldest whole message (never the partly sent head: that would break framing)
             index = 1 if client.partial else 0
             dropped = client.pending[index]
             del client.pending[index]
+            del client.keys[index]
+            del client.times[index]
             client.pending_bytes -= len(dropped)
             client.dropped_messages += 1
         return True
@@ -181,14 +219,19 @@ class IGTLServer:
             client.pending_bytes -= n
             if n < len(head):
                 client.pending[0] = head[n:]
+                client.keys[0] = ""  # partly sent: never replaced
                 client.partial = True
                 return
             client.pending.popleft()
+            client.keys.popleft()
+            client.times.popleft()
             client.partial = False
 
     def _drop(self, client: _Client) -> None:
         client.alive = False
         client.pending.clear()
+        client.keys.clear()
+        client.times.clear()
         client.pending_bytes = 0
         with contextlib.suppress(OSError):
             client.sock.close()
@@ -243,12 +286,15 @@ class IGTLServer:
             sock.setblocking(False)
             with contextlib.suppress(OSError):
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            if self.send_buffer_bytes:
+                with contextlib.suppress(OSError):
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.send_buffer_bytes)
             client = _Client(sock, address)
             with self._lock:
                 self._clients.append(client)
                 self.connections += 1
-                for data in self._sticky.values():
-                    self._offer(client, memoryview(data))
+                for name, data in self._sticky.items():
+                    self._offer(client, memoryview(data), f"STATUS:{name}")
 
     def _read(self, client: _Client) -> None:
         try:

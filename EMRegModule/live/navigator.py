@@ -21,6 +21,7 @@ Poses come only from samples that passed the driver's framing checks.
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import threading
 import time
@@ -35,6 +36,9 @@ from ..transforms import LPS_TO_RAS
 from . import igtl_status as st
 from .igtl_status import StatusMessage
 from .samples import STATUS_NOT_ATTACHED, STATUS_OUT_OF_RANGE, SensorSample  # noqa: F401
+
+#: Status of a sample whose pose the link guard's jump test refused (moved faster than a hand can).
+STATUS_REJECTED = "rejected"
 
 #: Default worst acceptable quality number (0 = best). The trakSTAR's METAL byte runs 0..127 and a
 #: clean field reads a few units; the simulated recordings mark wild samples with 40..250 (choice).
@@ -67,8 +71,11 @@ class Watchdog:
     """
 
     def __init__(self, reference_sensor: int = 1, probe_sensor: int = 2, period_s: float | None = None,
-                 stale_periods: float = 3.0, max_quality: float | None = DEFAULT_MAX_QUALITY) -> None:
+                 stale_periods: float = 3.0, max_quality: float | None = DEFAULT_MAX_QUALITY,
+                 link=None) -> None:
         self.reference_sensor = reference_sensor
+        self.link = link  # a link_quality.LinkGuard for a raw tracker link, or None
+        self.lost: str | None = None  # set when the device is gone (no more samples will come)
         self.probe_sensor = probe_sensor
         self.nominal_period_s = period_s
         self.stale_periods = stale_periods
@@ -99,8 +106,17 @@ class Watchdog:
 
     def evaluate(self, now_s: float) -> Verdict:
         """The verdict at ``now_s``."""
+        if self.lost is not None:
+            return Verdict(False, "lost", self.lost, st.STATUS_TIME_OUT, "TrackerLost")
         if not self._last:
             return Verdict(False, "no_data", "no tracker data yet", st.STATUS_NOT_READY, "NoData")
+        if self.link is not None:
+            link = self.link.state()
+            if not link.ok:
+                judging = link.judged < self.link.monitor.min_records
+                return Verdict(False, "no_data" if judging else "link", link.message,
+                               st.STATUS_NOT_READY if judging else st.STATUS_CHECKSUM_ERROR,
+                               "NoData" if judging else "LinkCorrupt")
         limit = self.stale_after_s
         newest = max(t for _, t in self._last.values())
         if now_s - newest > limit:
@@ -186,6 +202,31 @@ class _WatchedPublisher:
             self.announcer.update(verdict, now)
             return verdict
 
+    def device_lost(self, message: str) -> Verdict:
+        """The device is gone: publish a not-OK STATUS now (clients must not keep the last OK)."""
+        now = time.monotonic()
+        with self._lock:
+            self.watchdog.lost = message
+            verdict = self.watchdog.evaluate(now)
+            self.announcer.update(verdict, now)
+            return verdict
+
+    def device_back(self, link=None) -> None:
+        """A new connection to the device: a fresh link guard, the watchdog judges again from scratch."""
+        with self._lock:
+            self.watchdog.lost = None
+            self.watchdog.link = link
+            self.watchdog._last.clear()
+            self.watchdog._first_s = None
+
+    def _admit(self, sample: SensorSample) -> SensorSample:
+        """The sample, or a copy marked rejected when the link guard's jump test refuses its pose."""
+        link = self.watchdog.link
+        if link is None or link.admit(sample):
+            return sample
+        self.jump_rejected += 1
+        return dataclasses.replace(sample, status=STATUS_REJECTED)
+
 
 class LiveNavigator(_WatchedPublisher):
     """Turns sensor samples into published ``ProbeToImage`` poses (see module docstring).
@@ -198,15 +239,16 @@ class LiveNavigator(_WatchedPublisher):
     def __init__(self, reference_to_image: np.ndarray, reference_sensor: int = 1, probe_sensor: int = 2,
                  server=None, writer=None, period_s: float | None = None, stale_periods: float = 3.0,
                  max_quality: float | None = DEFAULT_MAX_QUALITY, out: TextIO | None = sys.stderr,
-                 device_name: str = "ProbeToImage", status_name: str = "Navigation") -> None:
+                 device_name: str = "ProbeToImage", status_name: str = "Navigation", link=None) -> None:
         self.reference_to_image = np.asarray(reference_to_image, dtype=float)
         self.reference_sensor = reference_sensor
         self.probe_sensor = probe_sensor
         self.server = server
         self.writer = writer
         self.device_name = device_name
-        self.watchdog = Watchdog(reference_sensor, probe_sensor, period_s, stale_periods, max_quality)
+        self.watchdog = Watchdog(reference_sensor, probe_sensor, period_s, stale_periods, max_quality, link)
         self.announcer = _Announcer(server, status_name, out, device_name)
+        self.jump_rejected = 0
         self._latest: dict[int, SensorSample] = {}
         self._done_frame: int | None = None
         self._lock = threading.Lock()
@@ -221,14 +263,23 @@ class LiveNavigator(_WatchedPublisher):
     def verdict(self) -> Verdict | None:
         return self.announcer.current
 
+    def device_back(self, link=None) -> None:
+        super().device_back(link)
+        with self._lock:  # the new connection numbers its frames from 0 again
+            self._latest.clear()
+            self._done_frame = None
+
     def on_sample(self, sample: SensorSample) -> None:
         now = time.monotonic()
         with self._lock:
+            if sample.sensor not in (self.reference_sensor, self.probe_sensor):
+                self.watchdog.observe(sample, now)
+                self.announcer.update(self.watchdog.evaluate(now), now)
+                return
+            sample = self._admit(sample)
             self.watchdog.observe(sample, now)
             verdict = self.watchdog.evaluate(now)
             self.announcer.update(verdict, now)
-            if sample.sensor not in (self.reference_sensor, self.probe_sensor):
-                return
             self._latest[sample.sensor] = sample
             reference = self._latest.get(self.reference_sensor)
             probe = self._latest.get(self.probe_sensor)
@@ -260,12 +311,13 @@ class TrackerPublisher(_WatchedPublisher):
 
     def __init__(self, server, reference_sensor: int = 1, probe_sensor: int = 2, period_s: float | None = None,
                  stale_periods: float = 3.0, max_quality: float | None = DEFAULT_MAX_QUALITY,
-                 out: TextIO | None = sys.stderr) -> None:
+                 out: TextIO | None = sys.stderr, link=None) -> None:
         self.server = server
         self.reference_sensor = reference_sensor
         self.probe_sensor = probe_sensor
-        self.watchdog = Watchdog(reference_sensor, probe_sensor, period_s, stale_periods, max_quality)
+        self.watchdog = Watchdog(reference_sensor, probe_sensor, period_s, stale_periods, max_quality, link)
         self.announcer = _Announcer(server, "Tracker", out, "tracker transforms")
+        self.jump_rejected = 0
         self._frame: int | None = None
         self._stamp = 0.0
         self._lock = threading.Lock()
@@ -284,13 +336,17 @@ class TrackerPublisher(_WatchedPublisher):
         now = time.monotonic()
         with self._lock:
             self.samples += 1
+            sample = self._admit(sample)
             self.watchdog.observe(sample, now)
-            self.announcer.update(self.watchdog.evaluate(now), now)
+            verdict = self.watchdog.evaluate(now)
+            self.announcer.update(verdict, now)
             if sample.frame != self._frame:
                 self._frame = sample.frame
                 self._stamp = time.time() - (time.monotonic_ns() - sample.received_ns) / 1e9
             name = self.name(sample.sensor)
-            if sample.valid:
+            guarded = self.watchdog.link is not None
+            paused = verdict.reason in ("link", "lost") or (guarded and verdict.reason == "no_data")
+            if sample.valid and not paused:
                 sent_ns = self.server.send_transform(name, sample.transform(), self._stamp)
                 self.latencies.append((sample.frame, sample.received_ns, sent_ns))
                 self.published += 1

@@ -154,8 +154,9 @@ SYSTEM_COMM_SYNC_ERROR = 0x0001
 SYSTEM_COMM_CRC_ERROR = 0x0004
 SYSTEM_PORT_OCCUPIED = 0x0040
 SYSTEM_PORT_UNOCCUPIED = 0x0080
-#: Aurora wired tools sit on ports 1..4 of the System Control Unit; a port with a splitter carries two
-#: 5-DOF sensors on channels 0 and 1 ([CAPI] ndicapi.h ``ndiPHRQ``: "AURORA tool channel 00 or 01").
+#: Wired tool ports of the simulated System Control Unit: 1..4 (choice: the four-port SCU); a port with a
+#: splitter carries two 5-DOF sensors on channels 0 and 1 ([CAPI] ndicapi.h ``ndiPHRQ``: "AURORA tool
+#: channel 00 or 01").
 AURORA_PORTS = (1, 2, 3, 4)
 #: First handle the simulated Aurora assigns; handles follow in port order, channel-1 tools after all
 #: channel-0 tools (choice).

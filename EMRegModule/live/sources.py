@@ -13,7 +13,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..errors import EMRegError
-from ..io.tracking_csv import read_tracking_csv
+from ..io.recording import read_recording
 from ..tracking import SAME_MOMENT_S
 from .device_url import DeviceURL, parse_device_url
 from .samples import SensorSample
@@ -69,6 +69,15 @@ class TrakstarSource(SampleSource):
         self.description = f"trakSTAR on {url.path} at {url.baud} baud, {self.driver.rate_hz:g} Hz"
         self._watch: threading.Thread | None = None
 
+    def attached_ports(self) -> tuple[int, ...]:
+        """Ports with a sensor plugged in (the tracker's sensor serial number is non-zero)."""
+        return tuple(s for s in self.driver.group_sensors if self.driver.sensor_attached(s))
+
+    def link_counts(self) -> tuple[int, int]:
+        """Cumulative (accepted, rejected) records of the serial link (for the link-quality monitor)."""
+        stats = self.driver.stats
+        return stats.records, stats.rejected
+
     def start(self, callback: SampleCallback) -> None:
         self.driver.start_stream(callback)
         self._watch = threading.Thread(target=self._watch_errors, name="trakstar-watch", daemon=True)
@@ -98,7 +107,7 @@ class ReplaySource(SampleSource):
 
     def __init__(self, path: str, fast: bool = False, loop: bool = False) -> None:
         super().__init__()
-        self.recording = read_tracking_csv(path)
+        self.recording = read_recording(path)
         self.fast = fast
         self.loop = loop
         rec = self.recording

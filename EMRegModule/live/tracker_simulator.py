@@ -149,14 +149,16 @@ class FaultPlan:
     """Faults to inject. Probabilities are per byte sent; windows are seconds after start.
 
     ``drop``: a byte is lost. ``flip``: a byte's phasing bit (bit 7) is inverted - the corruption
-    the protocol's framing can detect (a flipped data bit cannot be detected by this checksum-free
-    protocol at all; see the driver's docstring). ``stall_every_s`` / ``stall_s``: the tracker
+    the protocol's framing can detect. ``corrupt``: a byte's seven data bits are replaced by random
+    ones - line noise that this checksum-free protocol's framing cannot detect at all (the link
+    guard's jump test and value checks catch what they can). ``stall_every_s`` / ``stall_s``: the tracker
     falls silent for ``stall_s`` every ``stall_every_s`` seconds. ``unplugged`` / ``out_of_range``:
     ``(sensor, start_s, end_s)`` windows.
     """
 
     drop: float = 0.0
     flip: float = 0.0
+    corrupt: float = 0.0
     stall_every_s: float = 0.0
     stall_s: float = 0.0
     unplugged: list[tuple[int, float, float]] = field(default_factory=list)
@@ -165,7 +167,7 @@ class FaultPlan:
 
     @classmethod
     def parse(cls, items: Iterable[str]) -> FaultPlan:
-        """From ``KIND=VALUE`` strings: ``drop=0.001``, ``flip=0.001``, ``stall=EVERY_S:DURATION_S``,
+        """From ``KIND=VALUE`` strings: ``drop=0.001``, ``flip=0.001``, ``corrupt=0.01``, ``stall=EVERY_S:DURATION_S``,
         ``unplug=SENSOR@START-END``, ``out-of-range=SENSOR@START-END``, ``distort=SENSOR@START-END``
         (metal distortion: bad METAL byte, pose still sent) (seconds after start)."""
         plan = cls()
@@ -173,7 +175,7 @@ class FaultPlan:
             kind, _, value = item.partition("=")
             kind = kind.strip().lower().replace("_", "-")
             try:
-                if kind in ("drop", "flip"):
+                if kind in ("drop", "flip", "corrupt"):
                     setattr(plan, kind, float(value))
                 elif kind == "stall":
                     every, _, duration = value.partition(":")
@@ -410,10 +412,17 @@ class TrackerSimulator:
 
     def _corrupt(self, data: bytes) -> tuple[bytes, bool]:
         f = self.faults
-        if f.drop <= 0 and f.flip <= 0:
+        if f.drop <= 0 and f.flip <= 0 and f.corrupt <= 0:
             return data, False
         arr = np.frombuffer(data, dtype=np.uint8).copy()
         corrupted = False
+        if f.corrupt > 0:  # line noise in the data bits: invisible to the framing
+            hit = self.rng.random(len(arr)) < f.corrupt
+            if hit.any():
+                noise = self.rng.integers(0, 128, int(hit.sum()), dtype=np.uint8)
+                changed = (arr[hit] & 0x80) | noise
+                corrupted = corrupted or bool(np.any(changed != arr[hit]))
+                arr[hit] = changed
         if f.flip > 0:
             flips = self.rng.random(len(arr)) < f.flip
             if flips.any():

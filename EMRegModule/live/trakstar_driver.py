@@ -72,6 +72,8 @@ class TrakstarDriver:
         self._last_address = 99
         self._last_record_ns = 0
         self.error: str | None = None
+        #: ports with a sensor when the stream started; samples of other ports are always "not attached"
+        self.attached: frozenset[int] | None = None
 
     # -- connection ----------------------------------------------------------------------
     def open(self) -> TrakstarDriver:
@@ -299,6 +301,8 @@ class TrakstarDriver:
         if group and not self.group_mode:
             self.set_group_mode(True)
         length = self._group_length() if self.group_mode else self.record_length(1)
+        if self.group_mode:  # a corrupted record of an empty port would look like a pose: it stays "not attached"
+            self.attached = frozenset(s for s in self.group_sensors if self.sensor_attached(s))
         self.parser.configure(length, self.group_sensors if self.group_mode else None)
         self.serial.reset_input_buffer()
         self._t0_ns = time.monotonic_ns()
@@ -352,6 +356,8 @@ class TrakstarDriver:
                     self._last_record_ns = t_ns
                     sample = self._sample(data, address if self.group_mode else 1, t_ns, new_frame)
                     if sample is not None:
+                        if self.attached is not None and sample.sensor not in self.attached:
+                            sample.status = STATUS_NOT_ATTACHED  # whatever a corrupted record of it says
                         callback(sample)
         except Exception as exc:  # the port vanished (cable pulled, simulator stopped)
             if not self._stop_reader.is_set():

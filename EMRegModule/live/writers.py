@@ -83,6 +83,51 @@ class RecordingWriter(StreamingCSV):
         return True
 
 
+class SequenceRecordingWriter(RecordingWriter):
+    """A PLUS sequence metafile (``.seq.mha``) recorded live: the valid samples also stream into a
+    sidecar CSV (``<path>.partial.csv``, flushed like every live file, so a crash keeps them); at
+    :meth:`close` every sample, with its status (``OK``, or the source's reason for an unusable
+    pose, e.g. ``INVALID``), is written into the sequence metafile atomically (its header needs
+    the frame count) and the sidecar is removed."""
+
+    def __init__(self, path: str | os.PathLike[str], flush_interval_s: float = 1.0,
+                 reference_port: int = 1, probe_port: int = 2) -> None:
+        self.target = Path(path)
+        self.reference_port, self.probe_port = reference_port, probe_port
+        self._samples: list[tuple] = []
+        super().__init__(self.target.with_name(self.target.name + ".partial.csv"), flush_interval_s)
+
+    def write_sample(self, sample: SensorSample) -> bool:
+        with self._lock:
+            if not self._file.closed:
+                self._samples.append((sample.time_s, sample.sensor, np.asarray(sample.position_mm, dtype=float),
+                                      np.asarray(sample.rotation, dtype=float), sample.quality,
+                                      "OK" if sample.valid else (str(sample.status).upper() or "INVALID")))
+        return super().write_sample(sample)
+
+    def close(self) -> None:
+        with self._lock:
+            was_open = not self._file.closed
+        super().close()
+        if not was_open:
+            return
+        if self._samples:
+            from ..io.atomic import atomic_write_text
+            from ..io.sequence_metafile import format_sequence_metafile
+            from ..tracking import TrackingRecording
+
+            time_s, sensor, position, rotation, quality, status = zip(*self._samples, strict=True)
+            recording = TrackingRecording(np.array(time_s), np.array(sensor), np.array(position).reshape(-1, 3),
+                                          np.array(rotation).reshape(-1, 3, 3), np.array(quality, dtype=float),
+                                          np.full(len(time_s), "", dtype=object), source=str(self.target))
+            statuses = np.array(status, dtype=object)
+            text = format_sequence_metafile(recording, reference_port=self.reference_port,
+                                            probe_port=self.probe_port,
+                                            statuses={int(p): statuses for p in np.unique(recording.sensor)})
+            atomic_write_text(self.target, text)
+        self.path.unlink(missing_ok=True)
+
+
 class NavigationWriter(StreamingCSV):
     """``navigation.csv`` (``time_s,x_mm,y_mm,z_mm,label``): the probe position in LPS image space."""
 

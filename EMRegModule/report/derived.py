@@ -10,10 +10,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import sensor_offset
 from ..calibration import CalibrationPoint, FrameCalibration
 from ..detection.result import DetectedMarker, DetectionResult
 from ..registration import RegistrationResult
-from ..transforms import apply_transform, fit_rigid, fre
+from ..transforms import apply_transform
 from .inputs import ReportInputs
 
 #: Samples of the FRE(l) curve over the pinhole range [a, b] when the registration stored none.
@@ -87,27 +88,15 @@ def calibration_points(frame_calibration: FrameCalibration | None) -> dict[str, 
 
 def fre_curve(rows: Sequence[MarkerRow], points: dict[str, CalibrationPoint], l_range: tuple[float, float],
               samples: int = FRE_CURVE_SAMPLES) -> tuple[np.ndarray, np.ndarray] | None:
-    """FRE(l) (paper Eq. 10) over the pinhole range for the paired markers; None with fewer than 3 pairs.
-
-    For each l the sensor points ``origin + l * axis`` (image) are fitted rigidly to the paired
-    calibration points (Reference) and the RMS residual is taken.
-    """
+    """FRE(l) (paper Eq. 10, :func:`EMRegModule.sensor_offset.fre_curve`) over the pinhole range for the
+    paired markers: (l values, FRE values) in mm; None with fewer than 3 pairs."""
     paired = [r for r in rows if r.calibration_label in points]
     if len(paired) < 3:
         return None
-    points_reference = np.stack([points[r.calibration_label].position for r in paired])
-    origins = np.stack([r.origin for r in paired])
-    axes = np.stack([r.axis for r in paired])
-    l_values = np.linspace(l_range[0], l_range[1], samples)
-    values = np.empty_like(l_values)
-    for i, l_mm in enumerate(l_values):
-        points_image = origins + l_mm * axes
-        try:
-            reference_to_image = fit_rigid(points_reference, points_image)
-        except ValueError:
-            return None
-        values[i] = fre(reference_to_image, points_reference, points_image)
-    return l_values, values
+    curve = sensor_offset.fre_curve(np.linspace(l_range[0], l_range[1], samples),
+                                    np.stack([points[r.calibration_label].position for r in paired]),
+                                    np.stack([r.origin for r in paired]), np.stack([r.axis for r in paired]))
+    return curve.l_mm, curve.fre_mm
 
 
 def stored_fre_curve(registration: RegistrationResult) -> tuple[np.ndarray, np.ndarray] | None:

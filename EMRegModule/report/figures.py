@@ -1,4 +1,4 @@
-"""The report's figures: one function per figure, listed in :data:`FIGURES` in the page's order.
+"""The report's figures: one function per figure, listed in the registry :data:`FIGURES`.
 
 Each entry says whether the figure can be drawn from what the run left (``available``), whether
 it uses the CT's voxels (``uses_ct``; ``needs_ct``: left out without them) and what of it can be
@@ -14,17 +14,19 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+import SimpleITK as sitk
 
 from ..calibration import CalibrationPoint
 from ..errors import EMRegError
 from ..progress import QUIET, Progress
 from ..rendering.colors import GREY, colorize, residual_range
 from ..rendering.context import ContextSurface, binned_ct, context_surface
+from ..rendering.error_views import error_budget_chart, tre_map_slices
 from ..rendering.images import encode_png
 from ..rendering.plots import bar_chart, line_chart
 from ..transforms import apply_transform
 from .checks import ReportWarning
-from .derived import MarkerRow, calibration_points_in_image, finite_or_none, predicted_tre_by_target
+from .derived import MarkerRow, calibration_points_in_image, finite_or_none
 from .inputs import ReportInputs
 
 #: Navigated probe positions drawn in the 3D view at most (a longer path is thinned evenly).
@@ -219,7 +221,7 @@ def render_fre_curve(data: ReportData) -> list[Figure]:
 
 
 def render_tre_targets(data: ReportData) -> list[Figure]:
-    """Measured TRE per target (mean and spread) with the predicted TRE when the registration has one."""
+    """Measured TRE per target (mean and spread) with the predicted end-to-end RMS TRE when there is one."""
     tre = data.inputs.evaluation["tre"]
     targets = tre["targets"]
     labels = list(targets)
@@ -227,15 +229,47 @@ def render_tre_targets(data: ReportData) -> list[Figure]:
     stds = [float(targets[t].get("std_mm") or 0.0) for t in labels]
     mean = finite_or_none(tre.get("mean_mm"))
     lines = [(mean, f"mean {mean:.2f} mm")] if mean is not None else []
-    predicted = predicted_tre_by_target(data.inputs)
-    overlay = [predicted.get(t, np.nan) for t in labels] if predicted else None
+    predicted = [finite_or_none(targets[t].get("predicted_rms_mm")) for t in labels]
+    overlay = [np.nan if p is None else p for p in predicted] if any(p is not None for p in predicted) else None
     chart = bar_chart(labels, means, errors=stds, title="Target registration error", y_label="TRE (mm)",
-                      reference_lines=lines, overlay=overlay,
-                      overlay_label="predicted from FLE (Fitzpatrick)" if overlay else "")
+                      reference_lines=lines, overlay=overlay, overlay_label="predicted RMS" if overlay else "")
     return [Figure("tre_targets", "TRE per target",
                    "Mean and standard deviation over the dwells at each target"
-                   + (", with the RMS TRE predicted from the fiducial configuration and FLE (red)" if overlay else "")
+                   + (", with the end-to-end RMS TRE the error model predicts (red)" if overlay else "")
                    + " (paper: 1.38 +/- 0.32 mm over 6 targets x 15 placements).", encode_png(chart))]
+
+
+def _has_budget(data: ReportData) -> bool:
+    targets = ((data.inputs.evaluation or {}).get("tre") or {}).get("targets") or {}
+    return any("budget_rms_mm" in t for t in targets.values())
+
+
+def render_error_budget(data: ReportData) -> list[Figure]:
+    """The predicted error budget per target, stacked, beside the measured RMS TRE."""
+    targets = {k: t for k, t in data.inputs.evaluation["tre"]["targets"].items() if "budget_rms_mm" in t}
+    labels = list(targets)
+    terms = list(next(iter(targets.values()))["budget_rms_mm"])
+    budget = {term: [np.nan if (v := targets[t]["budget_rms_mm"].get(term)) is None else v for t in labels]
+              for term in terms}
+    chart = error_budget_chart(labels, budget, [targets[t].get("rms_mm", np.nan) for t in labels])
+    source = data.inputs.evaluation["tre"].get("tracking_source") or "calibration"
+    return [Figure("error_budget", "Error budget per target",
+                   "The predicted end-to-end RMS TRE at each target split into its terms (they add in quadrature: "
+                   "each segment is what its term adds): the registration (fiducial errors of both spaces through "
+                   "the fit, l included), the probe's tracking error at the target (measured from the "
+                   f"{source}), the reference sensor's pose error during calibration and navigation (a prior) and "
+                   "the placement; the black line is the measured RMS TRE.", encode_png(chart))]
+
+
+def render_tre_map(data: ReportData) -> list[Figure]:
+    """Three planes of ``tre_map.nrrd`` through the targets (or the map's centre)."""
+    tre_map = sitk.ReadImage(str(data.inputs.out_dir / "tre_map.nrrd"))
+    positions = data.inputs.targets_positions if data.inputs.targets_positions is not None else np.zeros((0, 3))
+    image = tre_map_slices(tre_map, positions, data.inputs.targets_labels or [])
+    return [Figure("tre_map", "Predicted TRE over the CT",
+                   "tre_map.nrrd: the predicted end-to-end RMS TRE (mm) on index planes of the CT's grid through the "
+                   "targets' centre, with iso-lines; it grows with the distance from the markers' centroid and from "
+                   "the reference sensor. Load it in 3D Slicer as a colour overlay on the CT.", encode_png(image))]
 
 
 # --- the registry ---------------------------------------------------------------------------------
@@ -267,14 +301,16 @@ FIGURES: tuple[FigureSpec, ...] = (
     FigureSpec(("fre_curve",), lambda d: d.curve is not None, render_fre_curve),
     FigureSpec(("tre_targets",), lambda d: bool(((d.inputs.evaluation or {}).get("tre") or {}).get("targets")),
                render_tre_targets),
+    FigureSpec(("error_budget",), _has_budget, render_error_budget),
+    FigureSpec(("tre_map",), lambda d: (d.inputs.out_dir / "tre_map.nrrd").is_file(), render_tre_map),
 )
 
-#: Every figure name, in the page's order.
+#: Every figure name, in the order of the registry.
 FIGURE_NAMES = tuple(name for spec in FIGURES for name in spec.names)
 
 
 def render_figures(data: ReportData, progress: Progress = QUIET) -> list[Figure]:
-    """Render every figure whose inputs exist, in page order.
+    """Render every figure whose inputs exist, in the order of :data:`FIGURES`.
 
     While the CT is read: the figures that do not need it, and the preparation of those that
     do; then the CT's figures. A CT that fails to read leaves its slices out (with a note).

@@ -30,6 +30,7 @@ from .tracking import NoiseModel, Visit, apply_probe_convention, probe_rotation_
 # independent random streams, so that e.g. a new spacing does not change the recordings
 STREAM_LAYOUT, STREAM_PLACEMENT, STREAM_NOISE, STREAM_STREAKS = 1, 2, 3, 4
 STREAM_CALIBRATION, STREAM_NAVIGATION, STREAM_BOARD, STREAM_OFFSET = 5, 6, 7, 8
+STREAM_MARKER_STREAKS = 9
 MAX_VOXELS = 1_500_000_000
 
 
@@ -130,7 +131,7 @@ def _phantom(seed: int, opts: SimulationOptions, model: MarkerModel) -> Phantom:
     uncalibrated = [int(i) for i in chosen[opts.n_absent:opts.n_absent + opts.n_uncalibrated]]
     try:
         return build_phantom(layout, model, opts.frame_size_mm, opts.n_markers, opts.n_decoys, absent,
-                             uncalibrated, opts.n_targets, opts.patient, opts.couch)
+                             uncalibrated, opts.n_targets, opts.patient, opts.couch, pvc_hu=opts.pvc_hu)
     except ValueError as exc:
         raise EMRegError(f"simulate: {exc}") from None
 
@@ -161,6 +162,8 @@ def _synthesise_ct(seed: int, opts: SimulationOptions, phantom: Phantom, frame_t
         half_z = abs(axis[2]) * REFERENCE_SENSOR_LENGTH_MM / 2 + REFERENCE_SENSOR_DIAMETER_MM / 2
         ct.add_metal_streaks(volume, grid, reference_to_image[:3, 3], half_z, _rng(seed, STREAM_STREAKS),
                              radius_mm=110.0 * min(phantom.geometry.size[:2]) / 350.0 + 20.0)
+    if opts.marker_streaks:
+        _streak_markers(volume, grid, phantom, frame_to_image, opts, _rng(seed, STREAM_MARKER_STREAKS))
     array = ct.to_int16(volume)
     del volume
     elapsed = time.perf_counter() - start
@@ -170,6 +173,33 @@ def _synthesise_ct(seed: int, opts: SimulationOptions, phantom: Phantom, frame_t
         array, grid = ct.flip_to_right_handed(array, grid)
         array = np.ascontiguousarray(array)
     return ct.to_sitk(array, grid), grid
+
+
+def _streak_markers(volume, grid: ct.Grid, phantom: Phantom, frame_to_image: np.ndarray, opts: SimulationOptions,
+                    rng: np.random.Generator) -> None:
+    """Dark streaks crossing ``opts.marker_streaks`` markers at their shoulder (where the top meets the bottom).
+
+    A streak lies in the scanner's axial plane (constant LPS z), across the marker's axis as
+    the plane shows it, over the slices within 4 mm of the shoulder: it cuts the narrow top off
+    the wide bottom, as a streak from the reference sensor's metal does. Markers whose axis is
+    within 30 degrees of z are not chosen (an axial streak cannot cut their top off). The
+    markers chosen are recorded as ``streaked`` in ``truth.json``.
+    """
+    model = phantom.model
+    candidates = []
+    for m in phantom.markers:
+        axis = (frame_to_image @ m.marker_to_frame)[:3, 1]
+        if m.in_ct and abs(axis[2]) < np.cos(np.radians(30.0)):
+            candidates.append(m)
+    for m in rng.permutation(len(candidates))[:opts.marker_streaks]:
+        marker = candidates[int(m)]
+        marker_to_image = frame_to_image @ marker.marker_to_frame
+        shoulder = marker_to_image[:3, 3] + model.bottom_height_mm * marker_to_image[:3, 1]
+        axis_in_plane = marker_to_image[:3, 1] * np.array([1.0, 1.0, 0.0])
+        line_angle = float(np.arctan2(axis_in_plane[1], axis_in_plane[0])) + np.pi / 2  # across the axis
+        ct.add_dark_streak(volume, grid, shoulder, line_angle, opts.marker_streak_hu, half_extent_z_mm=4.0,
+                           width_mm=float(rng.uniform(0.8, 1.1)), length_mm=60.0)
+        marker.streaked = True
 
 
 def _write_ct(image, grid: ct.Grid, out_dir: Path, opts: SimulationOptions, seed: int, progress: Progress) -> dict:
@@ -360,6 +390,7 @@ def _truth(seed: int, difficulty: str, opts: SimulationOptions, model: MarkerMod
         markers.append({
             "label": m.label, "origin": marker_to_image[:3, 3], "axis": marker_to_image[:3, 1],
             "marker_to_image": marker_to_image, "in_ct": m.in_ct, "calibrated": m.calibrated,
+            "streaked": m.streaked,
             "pinhole_in_reference": pinhole, "face": m.face,
         })
     decoys = [{"center": apply_transform(frame_to_image, d.centre), "kind": d.kind, "hu": d.hu,

@@ -278,6 +278,37 @@ def add_metal_streaks(volume: np.ndarray, grid: Grid, centre_image: np.ndarray, 
         volume[k0:k1, start[1]:stop[1], start[0]:stop[0]] += streaks * window * weight_z
 
 
+def add_dark_streak(volume: np.ndarray, grid: Grid, point_image: np.ndarray, angle_rad: float, amplitude_hu: float,
+                    half_extent_z_mm: float, width_mm: float = 1.0, length_mm: float = 60.0) -> None:
+    """One streak through ``point_image`` in the axial planes (constant LPS z), at ``angle_rad`` from +x.
+
+    Gaussian across the line (``width_mm`` sigma), ``amplitude_hu`` on it (negative: dark),
+    fading to nothing ``length_mm / 2`` along the line from the point and outside the slices
+    within ``half_extent_z_mm`` of it (soft edge, 0.5 mm).
+    """
+    centre = np.asarray(point_image, dtype=float)
+    reach = np.array([length_mm / 2, length_mm / 2, half_extent_z_mm + 2.0])
+    corners = np.array([[centre[0] + sx * reach[0], centre[1] + sy * reach[1], centre[2] + sz * reach[2]]
+                        for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+    image_to_index = np.linalg.inv(grid.index_to_image)
+    idx = corners @ image_to_index[:3, :3].T + image_to_index[:3, 3]
+    start = np.maximum(np.floor(idx.min(axis=0)).astype(int), 0)
+    stop = np.minimum(np.ceil(idx.max(axis=0)).astype(int) + 1, np.asarray(grid.size))
+    if np.any(stop <= start):
+        return
+    ii, jj, kk = (np.arange(a, b, dtype=F32) for a, b in zip(start, stop, strict=True))
+    a = grid.index_to_image[:3, :3].astype(F32)
+    b = (grid.index_to_image[:3, 3] - centre).astype(F32)
+    rel = [(b[r] + a[r, 0] * ii)[None, None, :] + (a[r, 1] * jj)[None, :, None] + (a[r, 2] * kk)[:, None, None]
+           for r in range(3)]
+    along = rel[0] * F32(np.cos(angle_rad)) + rel[1] * F32(np.sin(angle_rad))
+    across = -rel[0] * F32(np.sin(angle_rad)) + rel[1] * F32(np.cos(angle_rad))
+    dz = np.maximum(np.abs(rel[2]) - F32(half_extent_z_mm), 0)
+    weight = np.exp(-(dz * dz) / F32(2 * 0.5**2)) * np.clip(1 - (2 * along / F32(length_mm)) ** 2, 0, 1)
+    volume[start[2]:stop[2], start[1]:stop[1], start[0]:stop[0]] += \
+        F32(amplitude_hu) * np.exp(-(across * across) / F32(2 * width_mm**2)) * weight
+
+
 def to_int16(volume: np.ndarray) -> np.ndarray:
     """Clip to [-1024, 3071] and round to int16, slab by slab (no full-size temporary)."""
     out = np.empty(volume.shape, dtype=np.int16)

@@ -60,6 +60,7 @@ class MarkerSlot:
     marker_to_frame: np.ndarray
     in_ct: bool = True
     calibrated: bool = True
+    streaked: bool = False  # a dark streak cuts it at its shoulder in the CT (``marker_streaks``)
 
     @property
     def origin(self) -> np.ndarray:
@@ -553,9 +554,10 @@ def _couch_layers(geometry: FrameGeometry) -> tuple[list[Layer], list[np.ndarray
 def build_phantom(rng: np.random.Generator, model: MarkerModel, size_mm=(350.0, 350.0, 200.0),
                   n_markers: int = 28, n_decoys: int = 0, absent: list[int] | None = None,
                   uncalibrated: list[int] | None = None, n_targets: int = 6, patient: bool = True,
-                  couch: bool = True) -> Phantom:
+                  couch: bool = True, pvc_hu: float = HU["pvc"]) -> Phantom:
     """The phantom in the Frame with its painting layers (patient, block, slots, sensor, markers, decoys).
 
+    ``pvc_hu``: the markers' density (1100 HU at 120 kVp; higher on a low-kVp scan).
     ``absent``: indices of markers removed before the scan (empty slots in the CT, still
     calibrated); ``uncalibrated``: indices of markers in the CT but not calibrated.
     """
@@ -593,7 +595,7 @@ def build_phantom(rng: np.random.Generator, model: MarkerModel, size_mm=(350.0, 
     for m in markers:
         extent.append(m.origin + model.height_mm * m.axis)
         if m.in_ct:
-            hu = HU["pvc"] + float(rng.normal(0.0, 12.0))  # markers cut from one rod: nearly equal
+            hu = pvc_hu + float(rng.normal(0.0, 12.0))  # markers cut from one rod: nearly equal
             layers.append(Layer(f"marker {m.label}", Posed(solid, m.marker_to_frame), hu, 5))
     targets = np.zeros((0, 3))
     normals = np.zeros((0, 3))

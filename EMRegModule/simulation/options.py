@@ -34,6 +34,9 @@ class SimulationOptions:
     patient: bool = True
     couch: bool = True  # the scanner couch under the frame
     metal_streaks: bool = True
+    pvc_hu: float = 1100.0  # the markers' density (a low-kVp scan reads PVC at 1700-1900 HU)
+    marker_streaks: int = 0  # markers crossed at their shoulder by a dark streak (issue 13)
+    marker_streak_hu: float = -1000.0  # the dark streaks' strength on their line (HU)
     n_decoys: int = 0
     n_absent: int = 0  # calibrated markers absent from the CT (removed before the scan)
     n_uncalibrated: int = 0  # markers in the CT that the calibration recording skips
@@ -76,7 +79,11 @@ class SimulationOptions:
             raise EMRegError(f"simulate: probe_axis must be '+x_in', '+x_out' or 'none', got {self.probe_axis!r}")
         if len(self.board_edges_mm) != 4:
             raise EMRegError("simulate: board_edges_mm needs four edge lengths")
-        for name in ("n_decoys", "n_bumps", "n_targets", "navigation_rounds", "board_rounds"):
+        if not 300.0 <= self.pvc_hu <= 2800.0:
+            raise EMRegError(f"simulate: pvc_hu must lie in 300..2800 HU, got {self.pvc_hu}")
+        if self.marker_streaks > self.n_markers:
+            raise EMRegError("simulate: marker_streaks cannot exceed n_markers")
+        for name in ("n_decoys", "marker_streaks", "n_bumps", "n_targets", "navigation_rounds", "board_rounds"):
             if getattr(self, name) < 0:
                 raise EMRegError(f"simulate: {name} must not be negative")
 

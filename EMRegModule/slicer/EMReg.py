@@ -413,9 +413,12 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         ``evaluation.json``; shows the probe path and the last probe pose (``ProbeToReference``,
         under ``ReferenceToImage``)."""
         from EMRegModule.errors import EMRegError
+        from EMRegModule.io.recording import read_recording
+
         if self.case is None or self.case.navigation is None:
             raise EMRegError("the case has no navigation.csv to replay")
-        recording = self.case.read_recording("navigation")
+        recording = read_recording(self.case.navigation, self.case.settings, self.controller.reference_sensor,
+                                   self.controller.probe_sensor)
         result = self.controller.navigate_recording(recording)
         self.controller.save_navigation(self._outputs("navigate"))
         self._lastProbePose(recording)

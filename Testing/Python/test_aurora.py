@@ -46,17 +46,19 @@ ENV = dict(os.environ, PYTHONUNBUFFERED="1")
 
 
 def _recording(n_frames: int = 120, rate_hz: float = 40.0, seed: int = 3) -> TrackingRecording:
-    """Reference on port 1 (still), probe on port 2 moving as a hand would (60 mm/s, turning 120 deg/s
-    about a tilted axis: every quaternion sign pattern within 3 s), in the Tracker frame."""
+    """Reference on port 1 (still), probe on port 2 moving as a hand would (a 60 mm circle, 126 mm/s,
+    turning 120 deg/s about a tilted axis: every quaternion sign pattern), in the Tracker frame. The
+    motion closes on itself, so the replay loops without a jump (the link guard's jump test would
+    rightly reject one)."""
     rng = np.random.default_rng(seed)
     reference = make_transform(random_rotation(rng, 30), [250.0, 30.0, -80.0])
     axis = np.array([0.3, -0.5, 0.81]) / np.linalg.norm([0.3, -0.5, 0.81])
     start = random_rotation(rng, 180)
     t, sensors, positions, rotations = [], [], [], []
     for i in range(n_frames):
-        s = i / rate_hz
-        turn = quaternion_to_rotation(np.r_[np.cos(np.radians(60 * s)), np.sin(np.radians(60 * s)) * axis])
-        path = 60.0 * np.array([np.cos(s), np.sin(s), 0.3 * np.sin(2 * s)])
+        phase = 2 * np.pi * i / n_frames  # one full turn of path and orientation per loop
+        turn = quaternion_to_rotation(np.r_[np.cos(phase / 2), np.sin(phase / 2) * axis])
+        path = 60.0 * np.array([np.cos(phase), np.sin(phase), 0.3 * np.sin(2 * phase)])
         probe = make_transform(turn @ start, reference[:3, 3] + path)
         for sensor, pose in ((1, reference), (2, probe)):
             t.append(i / rate_hz)
@@ -89,7 +91,7 @@ class _Simulator:
         self.link = tmp_path / name
         self.log = tmp_path / f"{name}-emit.csv"
         self.proc = subprocess.Popen([*EMREG, "sim-tracker", "--model", "aurora", "--link", str(self.link),
-                                      "--duration", "60", "--emit-log", str(self.log), *args],
+                                      "--duration", "180", "--emit-log", str(self.log), *args],
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
         self.banner = self.proc.stdout.readline()
         assert "Aurora simulator on /dev/pts/" in self.banner, self.proc.stderr.read()
@@ -214,11 +216,17 @@ def test_ndicapi_reads_bx_and_tx_frames_equal_to_the_replay(tmp_path, replay):
             assert _same_quaternion(q_t[:4], q, 0.5e-4 + 1e-9)
             assert np.abs(np.asarray(q_t[4:7]) - p).max() <= 0.005 + 1e-9
         ndicapy.ndiCommand(device, "TSTOP:")
+        ndicapy.ndiCommand(device, "PDIS:0B")  # a disabled tool: DISABLED in BX, no transform
+        ndicapy.ndiCommand(device, "TSTART:")
+        ndicapy.ndiCommand(device, "BX:0801")
+        assert ndicapy.ndiGetBXTransform(device, bytes([0x0B])) == "DISABLED"
+        assert len(ndicapy.ndiGetBXTransform(device, bytes([0x0A]))) == 8
+        ndicapy.ndiCommand(device, "TSTOP:")
         with pytest.raises(OSError, match="0x0c"):  # TX outside tracking: ERROR0C ("invalid for current mode")
             ndicapy.ndiCommand(device, "TX:0801")
-        # the same text reply to BX: ndicapi checks it as a binary reply and calls it a bad CRC - still an error
-        with pytest.raises(OSError, match="Bad CRC"):
-            ndicapy.ndiCommand(device, "BX:0801")
+        # (not sent here: BX outside tracking. ndicapi checks the text ERROR reply as a binary one - "bad CRC" -
+        # and ndicapy then builds a str from the unterminated binary buffer: depending on what the buffer held
+        # before, it raises or crashes the interpreter. One reason EMReg's driver calls ndicapi through ctypes.)
         ndicapy.ndiClose(device)
         assert checked >= 480
     finally:
@@ -330,6 +338,8 @@ def test_driver_reads_every_tool_with_states_and_5dof(tmp_path):
         # a 5-DOF sensor's coil axis (NDI +Z) is EMReg's probe axis (+X)
         axis = s.rotation[:, 0] if s.sensor == 3 else s.rotation[:, 2]
         assert np.abs(axis - quaternion_to_rotation(q)[:, 2]).max() < 1e-6
+    # sample times are the device's: frame numbers at 40 Hz, never the jittery moment a poll was answered
+    assert all(s.time_s == (s.frame - samples[0].frame) / 40.0 for s in samples)
     late = {s.sensor: s.status for s in samples[-4:]}
     assert late == {1: STATUS_OK, 2: STATUS_OUT_OF_RANGE, 3: STATUS_OUT_OF_RANGE, 4: STATUS_NOT_ATTACHED}
     # frames of the last four samples: one frame, all tools; poses only where the status is ok
@@ -339,6 +349,7 @@ def test_driver_reads_every_tool_with_states_and_5dof(tmp_path):
 
 def test_watchdog_with_the_aurora_stops_and_resumes(tmp_path):
     from EMRegModule.live.igtl_server import IGTLServer
+    from EMRegModule.live.link_quality import guard_for
     from EMRegModule.live.navigator import LiveNavigator
     from EMRegModule.live.sources import open_source
 
@@ -346,8 +357,9 @@ def test_watchdog_with_the_aurora_stops_and_resumes(tmp_path):
         source = open_source(f"aurora://{tmp_path / 'aurora'}?rate=40")
         server = IGTLServer("127.0.0.1", 0)
         # 8 periods (200 ms): a loaded test machine must not look like a stale tracker; the RMS error in mm
+        # with the tracker-agnostic link guard, as live navigation runs it: a clean Aurora line must pass it
         nav = LiveNavigator(np.eye(4), 1, 2, server, None, source.period_s, stale_periods=8, max_quality=1.0,
-                            out=None)
+                            out=None, link=guard_for(source))
         try:
             source.start(nav.on_sample)
 
@@ -380,6 +392,7 @@ def test_watchdog_with_the_aurora_stops_and_resumes(tmp_path):
             source.stop()
             server.close()
     reasons = [v.reason for v in nav.announcer.changes]
+    assert "link" not in reasons  # never judged corrupt on a clean line
     for reason in ("reference_missing", "out_of_range", "bad_quality", "stale"):
         assert reason in reasons
     assert reasons.count("ok") >= 6
@@ -498,6 +511,7 @@ def test_cli_record_and_live_navigate_from_the_aurora(tmp_path, replay):
         port = _free_port()
         nav = subprocess.Popen([*EMREG, "navigate", "--registration", str(registration), "--source",
                                 f"aurora://{sim.link}?baud=230400", "--igtl-port", str(port), "--max-samples", "200",
+                                "--stale-periods", "8",
                                 "--out", str(tmp_path / "out")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                text=True, env=ENV)
         client = pyigtl.OpenIGTLinkClient("127.0.0.1", port)
@@ -511,7 +525,7 @@ def test_cli_record_and_live_navigate_from_the_aurora(tmp_path, replay):
     finally:
         sim.stop()
     rows = (tmp_path / "out" / "navigation.csv").read_text().splitlines()
-    assert len(rows) - 1 >= 100  # frames the watchdog let through (the link is judged first)
+    assert len(rows) - 1 >= 50  # frames the watchdog let through (the link is judged first; a loaded host pauses)
     assert message is not None
     lps = (LPS_TO_RAS @ np.asarray(message.matrix, dtype=float))[:3, 3]
     # the published pose is Eq. 12 applied to one replayed frame
@@ -522,3 +536,16 @@ def test_cli_record_and_live_navigate_from_the_aurora(tmp_path, replay):
         probe = make_transform(quaternion_to_rotation(q2), p2)
         expected.append((reference_to_image @ invert_rigid(ref) @ probe)[:3, 3])
     assert np.linalg.norm(np.array(expected) - lps, axis=1).min() < 1e-2
+
+
+def test_quality_limit_defaults_to_the_sources_scale():
+    import argparse
+
+    from EMRegModule.live.aurora_driver import AuroraSource
+    from EMRegModule.live.commands import _max_quality
+
+    aurora = argparse.Namespace(max_quality=None, source_max_quality=AuroraSource.default_max_quality)
+    assert _max_quality(aurora) == 1.0  # the Aurora's RMS error, mm
+    assert _max_quality(argparse.Namespace(max_quality=None, source_max_quality=None)) == 20.0  # trakSTAR METAL
+    assert _max_quality(argparse.Namespace(max_quality=-1, source_max_quality=1.0)) is None
+    assert _max_quality(argparse.Namespace(max_quality=0.5, source_max_quality=1.0)) == 0.5

@@ -232,3 +232,26 @@ def test_detect_on_a_multi_series_export_uses_the_thin_volume_and_says_so(hard_c
     assert {o["series_instance_uid"] for o in document["ct_series"]["others"]} == {uid(21), uid(22)}
     origin_errors, _, false, missed = errors_against_truth(read_detection(tmp_path), load_truth(hard_case))
     assert not false and not missed and np.median(origin_errors) < 0.25
+
+
+@pytest.mark.parametrize("signed", [True, False])
+def test_uncompressed_slices_are_read_directly_and_match_gdcm(tmp_path, monkeypatch, signed):
+    """Uncompressed slices skip GDCM (read straight into the volume); the voxels are GDCM's."""
+    from EMRegModule.io import dicom_series
+
+    pixel = sitk.sitkInt16 if signed else sitk.sitkUInt16
+    files = write_series(make_volume(pixel=pixel, seed=6), tmp_path, uid(12), bits_stored=12,
+                         rescale=[(1.0, -1024.0 if not signed else 0.0), (2.0, -7.0)] * 6)
+    direct: list[bool] = []
+    original = dicom_series._read_uncompressed
+
+    def spied(header, out) -> bool:
+        direct.append(original(header, out))
+        return direct[-1]
+
+    monkeypatch.setattr(dicom_series, "_read_uncompressed", spied)
+    image = read_ct(tmp_path)
+    assert direct == [True] * len(files)
+    np.testing.assert_array_equal(_voxels(image), _voxels(_series_reader(files)).astype(float))
+    monkeypatch.setattr(dicom_series, "_read_uncompressed", lambda h, out: False)  # GDCM for every slice
+    np.testing.assert_array_equal(_voxels(read_ct(tmp_path)), _voxels(image))

@@ -320,7 +320,8 @@ def test_cli_sim_tracker_link_and_live_navigate(tmp_path):
     port = _free_port()
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     emreg = [sys.executable, "-m", "EMRegModule"]
-    sim = subprocess.Popen([*emreg, "sim-tracker", "--link", str(link), "--duration", "20"], stdout=subprocess.PIPE,
+    # the simulator runs until the test stops it (a fixed lifetime ran out on a loaded machine before navigate started)
+    sim = subprocess.Popen([*emreg, "sim-tracker", "--link", str(link), "--duration", "600"], stdout=subprocess.PIPE,
                            stderr=subprocess.PIPE, text=True, env=env)
     try:
         line = sim.stdout.readline()

@@ -725,6 +725,7 @@ def test_run_writes_a_bundle_that_slicer_imports_matching_the_outputs(run_output
     assert values is not None and values.GetRange()[1] == pytest.approx(max(p["residual_mm"] for p in pairs.values()),
                                                                          abs=1e-4)
     assert residuals.GetDisplayNode().GetScalarVisibility()
+    assert residuals.GetDisplayNode().GetColorNode().GetName() == "ReverseRainbow"
 
     targets = json.loads((standard_case / "targets.mrk.json").read_text())["markups"][0]["controlPoints"]
     targets_node = mrml.node("EMReg targets")
@@ -861,3 +862,101 @@ def test_everything_the_slicer_module_imports_runs_on_slicers_python():
     assert not outside & REMOVED_STDLIB
     third_party = {name for name in outside if name not in sys.stdlib_module_names} - SLICER_PROVIDED
     assert third_party <= set(declared) | OPTIONAL_WITH_FALLBACK, third_party - set(declared)
+
+
+class FakeConnectorNode:
+    """Stand-in for vtkMRMLIGTLConnectorNode of the SlicerOpenIGTLink extension (C++, not in slicer-core):
+    the calls the Logic makes (``SetTypeClient``, ``Start`` returning 1 on success, ``Stop``)."""
+
+    def __init__(self, name: str, starts: bool) -> None:
+        self.name, self.starts, self.client, self.started = name, starts, None, False
+
+    def GetID(self) -> str:
+        return f"vtkMRMLIGTLConnectorNode_{self.name}"
+
+    def SetTypeClient(self, host: str, port: int) -> None:
+        self.client = (host, port)
+
+    def Start(self) -> int:
+        self.started = self.starts
+        return 1 if self.starts else 0
+
+    def Stop(self) -> None:
+        self.started = False
+
+
+class SceneWithOpenIGTLink:
+    """The real MRML scene, which also knows the extension's connector node class (a stand-in)."""
+
+    def __init__(self, scene, starts: bool = True) -> None:
+        self._scene, self.starts, self.connectors = scene, starts, []
+
+    def __getattr__(self, name):
+        return getattr(self._scene, name)
+
+    def AddNewNodeByClass(self, className, name=""):
+        if className == "vtkMRMLIGTLConnectorNode":
+            self.connectors.append(FakeConnectorNode(name, self.starts))
+            return self.connectors[-1]
+        return self._scene.AddNewNodeByClass(className, name)
+
+    def RemoveNode(self, node) -> None:
+        if isinstance(node, FakeConnectorNode):
+            self.connectors.remove(node)
+        else:
+            self._scene.RemoveNode(node)
+
+
+def test_live_navigation_connects_and_disconnects_openigtlinkif(slicer_core):
+    from EMRegModule.errors import EMRegError
+
+    module = slicer_core.load_module()
+    scene = SceneWithOpenIGTLink(slicer_core.scene)
+    logic = module.EMRegLogic(scene=scene)
+    connector = logic.startLiveNavigation("navigation-pc", 18945)
+    assert connector.client == ("navigation-pc", 18945) and connector.started and scene.connectors == [connector]
+    assert connector.name == "EMReg OpenIGTLink"
+    logic.stopLiveNavigation()
+    assert not connector.started and scene.connectors == [] and logic.connectorNode is None
+
+    refusing = module.EMRegLogic(scene=SceneWithOpenIGTLink(slicer_core.scene, starts=False))
+    with pytest.raises(EMRegError, match="cannot connect to OpenIGTLink at localhost:18944"):
+        refusing.startLiveNavigation()
+    assert refusing.connectorNode is None and refusing.scene.connectors == []
+
+
+def test_bundle_shows_the_predicted_tre_map_as_slicer_reads_it(run_output, tmp_path):
+    """A run's ``tre_map.nrrd`` (float32, the CT's LPS origin and directions, coarse spacing) goes into the
+    bundle as a volume; imported, its IJK-to-RAS and values match the file as SimpleITK reads it."""
+    import json
+    import shutil
+
+    import SimpleITK as sitk
+    import slicer.util
+    import vtk
+
+    from EMRegModule.io.image import index_to_physical_matrix
+    from EMRegModule.io.slicer_scene import write_run_bundle
+
+    _, out = run_output
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy, ignore=shutil.ignore_patterns("EMReg.mrb", "report*"))
+    if not (copy / "tre_map.nrrd").is_file():  # written by emreg run when the error model is available
+        geometry = json.loads((copy / "markers.json").read_text())["image"]
+        values = np.random.default_rng(5).uniform(0.3, 1.5, size=(17, 23, 29)).astype(np.float32)  # z, y, x
+        tre_map = sitk.GetImageFromArray(values)
+        tre_map.SetOrigin(geometry["origin"])
+        tre_map.SetSpacing((4.5, 4.5, 4.5))
+        tre_map.SetDirection(geometry["direction"])
+        sitk.WriteImage(tre_map, str(copy / "tre_map.nrrd"))
+    expected = sitk.ReadImage(str(copy / "tre_map.nrrd"))
+    path, message = write_run_bundle(copy)
+    assert path == copy / "EMReg.mrb", message
+    mrml = _import_bundle(path)  # keep the scene alive while its nodes are used
+    node = mrml.node("EMReg predicted TRE (mm)")
+    matrix = vtk.vtkMatrix4x4()
+    node.GetIJKToRASMatrix(matrix)
+    np.testing.assert_allclose(slicer.util.arrayFromVTKMatrix(matrix),
+                               np.diag([-1.0, -1.0, 1.0, 1.0]) @ index_to_physical_matrix(expected), atol=1e-6)
+    assert np.array_equal(slicer.util.arrayFromVolume(node), sitk.GetArrayViewFromImage(expected))
+    assert node.GetDisplayNode().GetColorNode().GetName() == "ReverseRainbow"

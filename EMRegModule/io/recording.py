@@ -1,0 +1,74 @@
+"""Tracking recordings in any of the formats EMReg accepts: the spec's CSV or a PLUS / 3D Slicer
+sequence metafile (``.seq.mha``, ``.mha``, ``.seq.nrrd``, ``.igs.nrrd``), chosen by the file name.
+
+``[sensors]`` settings used for sequence metafiles: ``reference`` / ``probe`` (the ports the two
+transforms become) and ``reference_transform`` / ``probe_transform`` (the transform names,
+default ``ReferenceToTracker`` / ``ProbeToTracker``).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from ..settings import Settings
+from ..tracking import TrackingRecording
+from .sequence_metafile import (
+    DEFAULT_PROBE_TRANSFORM,
+    DEFAULT_REFERENCE_TRANSFORM,
+    is_sequence_file,
+    read_sequence_metafile,
+    write_sequence_metafile,
+)
+from .tracking_csv import read_tracking_csv, write_tracking_csv
+
+#: Names a case folder's recordings may have, in order of preference (the spec's CSV first).
+RECORDING_SUFFIXES = (".csv", ".seq.mha", ".mha", ".seq.nrrd", ".igs.nrrd")
+
+
+def _names(settings: Settings | Mapping[str, Any] | None, reference_port: int | None = None,
+           probe_port: int | None = None) -> dict[str, Any]:
+    """Transform names and ports from the typed settings (or a parsed ``case.toml`` mapping)."""
+    if isinstance(settings, Settings):
+        sensors: dict[str, Any] = {k: v for k, v in vars(settings.sensors).items() if v is not None}
+    else:
+        sensors = dict((settings or {}).get("sensors", {}) or {})
+    return {
+        "reference_transform": str(sensors.get("reference_transform") or DEFAULT_REFERENCE_TRANSFORM),
+        "probe_transform": str(sensors.get("probe_transform") or DEFAULT_PROBE_TRANSFORM),
+        "reference_port": int(reference_port if reference_port is not None else sensors.get("reference", 1)),
+        "probe_port": int(probe_port if probe_port is not None else sensors.get("probe", 2)),
+    }
+
+
+def read_recording(path: str | os.PathLike[str], settings: Settings | Mapping[str, Any] | None = None,
+                   reference_port: int | None = None, probe_port: int | None = None) -> TrackingRecording:
+    """Read a tracking recording (CSV or sequence metafile, by its name). ``settings``: the parsed
+    ``case.toml`` (its ``[sensors]`` table; typed or a mapping); the ports override ``[sensors]
+    reference`` / ``probe``."""
+    if is_sequence_file(path):
+        return read_sequence_metafile(path, **_names(settings, reference_port, probe_port))
+    return read_tracking_csv(path)
+
+
+def write_recording(recording: TrackingRecording, path: str | os.PathLike[str],
+                    settings: Settings | Mapping[str, Any] | None = None, reference_port: int | None = None,
+                    probe_port: int | None = None, orientation: str | None = None) -> None:
+    """Write a recording atomically as CSV or, for a sequence-metafile name, as a PLUS sequence metafile."""
+    if is_sequence_file(path):
+        write_sequence_metafile(recording, path, **_names(settings, reference_port, probe_port))
+    else:
+        write_tracking_csv(recording, path, orientation=orientation)
+
+
+def find_recording(folder: str | os.PathLike[str], stem: str) -> Path | None:
+    """A case folder's recording ``stem`` (``calibration``, ``navigation``, ``board``) under any accepted
+    name (``stem.csv`` first, then ``stem.seq.mha``, ``stem.mha``, ``stem.seq.nrrd``, ``stem.igs.nrrd``)."""
+    folder = Path(folder)
+    for suffix in RECORDING_SUFFIXES:
+        candidate = folder / f"{stem}{suffix}"
+        if candidate.is_file():
+            return candidate
+    return None

@@ -1,0 +1,249 @@
+"""The accuracy studies: what each varies (its tasks), what one task measures, and how rows are summarised.
+
+Each study is a list of independent tasks (one simulated session each, seeded from the study's
+seed and the task's index, so results do not depend on how many workers run them); a task returns
+JSON-able rows; the summary turns all rows into a table and a figure. Errors are against the
+simulator's ground truth. Units: mm.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..error_model import ErrorModel
+from ..evaluation import evaluate_board, evaluate_targets
+from ..io.case import open_case
+from ..rendering.plots import bar_chart, line_chart
+from .frame import Frame, calibrate_and_register, noise_model, simulate_navigation, with_noise
+
+#: The paper's figures (Lin et al. 2020) printed beside ours.
+PAPER = {"calibration_fre_mean_mm": 1.38, "tre_mean_mm": 1.38, "tre_std_mm": 0.32,
+         "board_abs_error_mm": {"L1": 0.18, "L2": 0.19, "L3": 0.21, "L4": 0.16}}
+
+
+@dataclass(frozen=True)
+class Summary:
+    """A study's result: a table (header + rows of text) and a figure (RGB image)."""
+
+    header: list[str]
+    rows: list[list[str]]
+    figure: np.ndarray
+    notes: list[str]
+
+
+@dataclass(frozen=True)
+class Study:
+    """One study: ``tasks(quick)`` -> parameters per task; ``run(frame, params, rng)`` -> rows; ``summarize``."""
+
+    name: str
+    title: str
+    tasks: Callable[[bool], list[dict]]
+    run: Callable[[Frame, dict, np.random.Generator], list[dict]]
+    summarize: Callable[[list[dict]], Summary]
+
+
+def _mean_std(values: list[float] | np.ndarray) -> str:
+    values = np.asarray(values, dtype=float)
+    if values.size == 0:
+        return "-"
+    return f"{values.mean():.2f} +/- {values.std(ddof=1) if values.size > 1 else 0.0:.2f}"
+
+
+def _session_rows(frame: Frame, params: dict, rng: np.random.Generator) -> list[dict]:
+    """One calibration + registration: FRE, l error, the registration's true RMS error at the targets."""
+    subset = None
+    if params.get("markers"):
+        available = np.nonzero(frame.in_ct)[0]
+        subset = np.sort(rng.choice(available, min(params["markers"], len(available)), replace=False))
+    session = calibrate_and_register(frame, rng, noise_model(params.get("noise", 1.0)), subset)
+    row = {**params, "refused": session.refused}
+    if session.registration is not None:
+        row.update(fre_mm=session.registration.fre_mm, l_error_mm=session.l_error_mm,
+                   registration_tre_rms_mm=float(np.sqrt(np.mean(session.target_errors_mm**2))),
+                   worst_target_mm=float(np.max(session.target_errors_mm)))
+    return [row]
+
+
+# --- calibration: FRE over repeated calibrations (paper Fig. 8) -------------------------------
+
+
+def _calibration_summary(rows: list[dict]) -> Summary:
+    done = [r for r in rows if not r["refused"]]
+    fre = [r["fre_mm"] for r in done]
+    table = [["calibrations", f"{len(done)} ({len(rows) - len(done)} refused)", "30"],
+             ["FRE mean (mm)", f"{np.mean(fre):.2f}" if fre else "-", f"{PAPER['calibration_fre_mean_mm']:.2f}"],
+             ["FRE std (mm)", _mean_std(fre).split(" +/- ")[-1], "n/a"],
+             ["l error mean +/- std (mm)", _mean_std([r["l_error_mm"] for r in done]), "n/a (l unknown)"],
+             ["registration error at targets, RMS (mm)", _mean_std([r["registration_tre_rms_mm"] for r in done]),
+              "n/a"]]
+    figure = bar_chart([str(r["task"] + 1) for r in done], fre, title="FRE per calibration", y_label="FRE (mm)",
+                       reference_lines=[(PAPER["calibration_fre_mean_mm"], "paper mean")])
+    return Summary(["figure", "EMReg (simulated)", "paper"], table, figure, [])
+
+
+# --- board: edge lengths (paper Table 1) -------------------------------------------------------
+
+
+def _board_rows(frame: Frame, params: dict, rng: np.random.Generator) -> list[dict]:
+    case = open_case(frame.case_dir)
+    nominal = [float(v) for v in frame.truth["board"]["edges_mm"]]
+    result = evaluate_board(case.read_recording("board"), case.reference_sensor, case.probe_sensor,
+                            nominal).to_json()
+    return [{"edge": name, "mean_mm": e["mean_mm"], "std_mm": e["std_mm"], "nominal_mm": e["nominal_mm"],
+             "abs_error_mean_mm": e["abs_error_mean_mm"], "abs_error_std_mm": e["abs_error_std_mm"]}
+            for name, e in result["edges"].items()]
+
+
+def _board_summary(rows: list[dict]) -> Summary:
+    table = [[r["edge"], f"{r['mean_mm']:.2f}", f"{r['std_mm']:.2f}", f"{r['nominal_mm']:.2f}",
+              f"{r['abs_error_mean_mm']:.2f} +/- {r['abs_error_std_mm']:.2f}",
+              f"{PAPER['board_abs_error_mm'].get(r['edge'], float('nan')):.2f}"] for r in rows]
+    figure = bar_chart([r["edge"] for r in rows], [r["abs_error_mean_mm"] for r in rows],
+                       [r["abs_error_std_mm"] for r in rows], title="Board phantom: absolute edge error",
+                       y_label="mm", overlay=[PAPER["board_abs_error_mm"].get(r["edge"], np.nan) for r in rows],
+                       overlay_label="paper")
+    return Summary(["edge", "mean (mm)", "sigma", "nominal", "abs error (mm)", "paper abs error"], table, figure, [])
+
+
+# --- tre: 6 targets x placements (paper Fig. 12) -------------------------------------------------
+
+
+def _navigation_rows(frame: Frame, params: dict, rng: np.random.Generator) -> list[dict]:
+    """One registration and one navigation session: per target measured and predicted RMS TRE."""
+    noise = noise_model(params.get("noise", 1.0))
+    if params.get("reference_jitter"):
+        noise = with_noise(noise, reference_jitter_mm=noise.reference_jitter_mm * params["reference_jitter"],
+                           reference_jitter_deg=noise.reference_jitter_deg * params["reference_jitter"])
+    subset = None
+    if params.get("markers"):
+        available = np.nonzero(frame.in_ct)[0]
+        subset = np.sort(rng.choice(available, min(params["markers"], len(available)), replace=False))
+    session = calibrate_and_register(frame, rng, noise, subset)
+    if session.registration is None:
+        return [{**params, "refused": session.refused}]
+    model = ErrorModel.with_priors(session.registration.reference_to_image, session.registration.error)
+    recording = simulate_navigation(frame, rng, rounds=params.get("placements", 15), noise=noise)
+    result = evaluate_targets(recording, frame.target_labels, frame.targets_image,
+                              session.registration.reference_to_image, error_model=model).to_json()
+    calibration_only = model.budget(frame.targets_image).rms_mm
+    rows = []
+    for k, label in enumerate(frame.target_labels):
+        target = result["targets"].get(label)
+        if target is None:
+            continue
+        errors = [d["error_mm"] for d in result["dwells"] if d["target"] == label]
+        rows.append({**params, "refused": None, "target": label, "errors_mm": errors,
+                     "measured_rms_mm": target["rms_mm"], "predicted_rms_mm": target["predicted_rms_mm"],
+                     "predicted_before_navigation_rms_mm": float(calibration_only[k]),
+                     "budget_rms_mm": target["budget_rms_mm"]})
+    return rows
+
+
+def _tre_summary(rows: list[dict]) -> Summary:
+    done = [r for r in rows if not r["refused"]]
+    labels = sorted({r["target"] for r in done})
+    errors = {label: [e for r in done if r["target"] == label for e in r["errors_mm"]] for label in labels}
+    overall = [e for v in errors.values() for e in v]
+    table = [[label, str(len(v)), _mean_std(v), f"{np.max(v):.2f}"] for label, v in errors.items()]
+    table.append(["all", str(len(overall)), _mean_std(overall), f"{np.max(overall):.2f}" if overall else "-"])
+    figure = bar_chart(labels, [np.mean(errors[label]) for label in labels],
+                       [np.std(errors[label], ddof=1) if len(errors[label]) > 1 else 0.0 for label in labels],
+                       title="TRE per target", y_label="TRE (mm)",
+                       reference_lines=[(PAPER["tre_mean_mm"], "paper mean")])
+    notes = [f"paper (Fig. 12): {PAPER['tre_mean_mm']:.2f} +/- {PAPER['tre_std_mm']:.2f} mm"]
+    return Summary(["target", "placements", "TRE mean +/- std (mm)", "max (mm)"], table, figure, notes)
+
+
+# --- noise and markers: registration accuracy against tracker noise and marker count ----------
+
+
+def _by(rows: list[dict], key: str) -> dict:
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault(r[key], []).append(r)
+    return dict(sorted(groups.items()))
+
+
+def _sweep_summary(key: str, label: str) -> Callable[[list[dict]], Summary]:
+    def summarize(rows: list[dict]) -> Summary:
+        table, x, y = [], [], []
+        for value, group in _by(rows, key).items():
+            done = [r for r in group if not r["refused"]]
+            tre = [r["registration_tre_rms_mm"] for r in done]
+            table.append([f"{value:g}", f"{len(group) - len(done)}/{len(group)}",
+                          _mean_std([r["fre_mm"] for r in done]), _mean_std(tre),
+                          f"{np.mean([abs(r['l_error_mm']) for r in done]):.2f}" if done else "-"])
+            if tre:
+                x.append(value)
+                y.append(float(np.mean(tre)))
+        figure = line_chart(x, y, title=f"Registration error against {label}", x_label=label,
+                            y_label="RMS at targets (mm)") if len(x) > 1 else bar_chart(
+            [f"{v:g}" for v in x], y, title=f"Registration error against {label}", y_label="mm")
+        return Summary([label, "refused", "FRE (mm)", "registration TRE RMS (mm)", "mean |l error| (mm)"], table,
+                       figure, [])
+
+    return summarize
+
+
+# --- prediction: predicted vs measured end-to-end TRE ----------------------------------------------
+
+
+def _prediction_summary(rows: list[dict]) -> Summary:
+    done = [r for r in rows if not r["refused"]]
+    table = []
+    conditions = sorted({(r.get("noise", 1.0), r.get("markers") or 0, r.get("reference_jitter") or 1.0)
+                         for r in done})
+    ratios_all = []
+    for noise, markers, jitter in conditions:
+        group = [r for r in done if (r.get("noise", 1.0), r.get("markers") or 0,
+                                     r.get("reference_jitter") or 1.0) == (noise, markers, jitter)]
+        measured = np.sqrt(np.mean([e**2 for r in group for e in r["errors_mm"]]))
+        predicted = np.sqrt(np.mean([r["predicted_rms_mm"] ** 2 * len(r["errors_mm"]) for r in group])
+                            / np.mean([len(r["errors_mm"]) for r in group]))
+        before = np.sqrt(np.mean([r["predicted_before_navigation_rms_mm"] ** 2 for r in group]))
+        ratios = np.array([r["predicted_rms_mm"] / r["measured_rms_mm"] for r in group])
+        ratios_all.append(predicted / measured)
+        table.append([f"x{noise:g}", "all" if not markers else str(markers), f"x{jitter:g}", str(len(group)),
+                      f"{measured:.3f}", f"{predicted:.3f}", f"{predicted / measured:.2f}",
+                      f"{before / measured:.2f}", f"{np.percentile(ratios, 5):.2f}-{np.percentile(ratios, 95):.2f}",
+                      f"{np.mean((ratios >= 0.65) & (ratios <= 1.5)) * 100:.0f} %"])
+    figure = bar_chart([f"{row[0]} {row[1]} {row[2]}" for row in table], ratios_all,
+                       title="predicted / measured RMS TRE", y_label="ratio",
+                       reference_lines=[(1.0, "exact"), (0.8, "0.8"), (1.25, "1.25")])
+    notes = [f"{len(rows) - len(done)} of {len(rows)} sessions refused"] if len(done) < len(rows) else []
+    return Summary(["tracker noise", "markers", "reference jitter", "target visits", "measured RMS (mm)",
+                    "predicted RMS (mm)", "predicted / measured", "before navigation / measured",
+                    "per target 5-95 %", "per target in 0.65-1.5"], table, figure, notes)
+
+
+def _grid(quick: bool, full: dict, small: dict, repetitions: int, quick_repetitions: int) -> list[dict]:
+    """Every combination of the swept values, ``repetitions`` sessions each."""
+    values = small if quick else full
+    combos = [{}]
+    for key, options in values.items():
+        combos = [{**c, key: v} for c in combos for v in options]
+    count = quick_repetitions if quick else repetitions
+    return [{**c, "repetition": r} for c in combos for r in range(count)]
+
+
+STUDIES: dict[str, Study] = {s.name: s for s in (
+    Study("calibration", "FRE over repeated frame calibrations at different frame positions",
+          lambda quick: [{"noise": 1.0}] * (3 if quick else 30), _session_rows, _calibration_summary),
+    Study("board", "board phantom edge lengths (paper Table 1)", lambda quick: [{}], _board_rows, _board_summary),
+    Study("tre", "TRE at 6 targets x 15 placements (paper Fig. 12)",
+          lambda quick: [{"placements": 4 if quick else 15}] * (2 if quick else 5), _navigation_rows, _tre_summary),
+    Study("noise", "registration accuracy against tracker noise",
+          lambda quick: _grid(quick, {"noise": [0.5, 1.0, 2.0, 4.0]}, {"noise": [1.0, 4.0]}, 10, 2),
+          _session_rows, _sweep_summary("noise", "tracker noise scale")),
+    Study("markers", "registration accuracy against the number of markers",
+          lambda quick: _grid(quick, {"markers": [3, 4, 5, 6, 8, 12, 16, 20, 28]}, {"markers": [3, 6]}, 10, 2),
+          _session_rows, _sweep_summary("markers", "markers")),
+    Study("prediction", "predicted against measured end-to-end TRE",
+          lambda quick: _grid(quick, {"noise": [0.5, 1.0, 2.0, 4.0], "markers": [0, 8, 5]},
+                              {"noise": [1.0, 4.0], "markers": [0]}, 8, 2)
+          + ([] if quick else [{"reference_jitter": 5.0, "repetition": r} for r in range(8)]),
+          _navigation_rows, _prediction_summary),
+)}

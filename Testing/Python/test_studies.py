@@ -1,0 +1,52 @@
+"""``emreg study``: the accuracy studies run on Dask, locally or on a scheduler, with results that do not
+depend on the number of workers."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from distributed import LocalCluster
+
+from EMRegModule.cli import main
+
+
+@pytest.fixture(scope="module")
+def study_work(tmp_path_factory):
+    return tmp_path_factory.mktemp("study-work")  # the CI case's CT is detected once for all studies here
+
+
+def _study(name: str, out, case, work, *options: str) -> dict:
+    assert main(["study", name, "--quick", "--quiet", "--case", str(case), "--work", str(work), "--out", str(out),
+                 *options]) == 0
+    for suffix in (".json", ".csv", ".png"):
+        assert (out / f"{name}{suffix}").stat().st_size > 0
+    return json.loads((out / f"{name}.json").read_text())
+
+
+def test_results_do_not_depend_on_the_number_of_workers(standard_case, study_work, tmp_path):
+    one = _study("calibration", tmp_path / "one", standard_case, study_work, "--workers", "1")
+    two = _study("calibration", tmp_path / "two", standard_case, study_work, "--workers", "2")
+    assert one == two
+    assert len(one["rows"]) == 3 and len({r["fre_mm"] for r in one["rows"]}) == 3  # different sessions
+    assert (tmp_path / "one" / "calibration.csv").read_text() == (tmp_path / "two" / "calibration.csv").read_text()
+
+
+def test_prediction_study_on_a_scheduler_address_validates_the_error_model(standard_case, study_work, tmp_path,
+                                                                           capsys):
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        result = _study("prediction", tmp_path, standard_case, study_work, "--scheduler", cluster.scheduler_address)
+    out = capsys.readouterr().out
+    assert "predicted / measured" in out
+    header, rows = result["summary"]["header"], result["summary"]["rows"]
+    ratio = header.index("predicted / measured")
+    assert len(rows) == 2  # tracker noise x1 and x4
+    for row in rows:
+        assert 0.8 <= float(row[ratio]) <= 1.25, row
+
+
+def test_unknown_study_and_unreachable_scheduler_are_one_line_errors(tmp_path, capsys):
+    assert main(["study", "nonsense", "--out", str(tmp_path)]) == 2
+    assert "unknown study 'nonsense'" in capsys.readouterr().err
+    assert main(["study", "calibration", "--quick", "--out", str(tmp_path), "--scheduler", "tcp://127.0.0.1:9"]) == 2
+    assert "cannot reach the Dask scheduler tcp://127.0.0.1:9" in capsys.readouterr().err
