@@ -19,11 +19,11 @@ from typing import TYPE_CHECKING
 from . import __version__
 from .errors import EXIT_BAD_INPUT, EMRegError, NoSafeAnswerError
 from .live import commands as live
-from .outputs import OutputFolder, check_outputs, outputs_from, refuse_out_over_inputs
 from .progress import Progress
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # the commands import what they use: `emreg --help` and `emreg detect` start fast
     from .controller import EMRegController
+    from .outputs import OutputFolder
     from .settings import Settings
 
 class _Parser(argparse.ArgumentParser):
@@ -101,6 +101,8 @@ def _output_folder(args: argparse.Namespace, stage: str, inputs: Sequence[Path],
                    case_dir: Path | None = None) -> OutputFolder:
     """OUT for a per-stage command: refused when it could overwrite an input; the outputs of ``stage`` and
     of the stages made from it (stale once this stage has a new result) moved to ``OUT/previous/``."""
+    from .outputs import OutputFolder, outputs_from, refuse_out_over_inputs
+
     refuse_out_over_inputs(args.out, inputs, outputs_from(stage), case_dir)
     folder = OutputFolder(args.out, f"emreg {args.command}")
     folder.start_stage(stage)
@@ -279,6 +281,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    from .outputs import OutputFolder, check_outputs
     from .report import write_reports_batch
 
     if args.batch:

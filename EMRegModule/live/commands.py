@@ -21,7 +21,6 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EMRegError
-from ..settings import load_settings
 from ..transforms import is_rigid
 from . import trakstar_protocol as tp
 from .igtl_server import DEFAULT_PORT
@@ -31,6 +30,8 @@ from .link_quality import guard_for
 
 
 def _sensor_ports(args: argparse.Namespace) -> tuple[int, int]:
+    from ..settings import load_settings  # here, not at the top: `emreg --help` imports this module
+
     settings = load_settings(getattr(args, "settings", None), required=True)
     sensors = settings.with_sensors(args.reference_sensor, args.probe_sensor).sensors
     return sensors.reference, sensors.probe
@@ -57,6 +58,7 @@ def load_reference_to_image(path: str, settings_path: str | None = None) -> np.n
     """
     from ..provenance import check_belongs
     from ..registration import max_fre_from_settings, read_registration
+    from ..settings import load_settings
 
     settings = load_settings(settings_path, required=True)
     matrix = np.asarray(read_registration(path, max_fre_from_settings(settings)).reference_to_image, dtype=float)
