@@ -291,10 +291,11 @@ def cmd_report(args: argparse.Namespace) -> int:
         folders = sorted(p for p in batch.iterdir() if p.is_dir())
         for folder in folders:
             check_outputs(folder)
-        pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args))
+        bundles: list = []  # each job writes its case's bundle with the CT its report read
+        pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args), bundles=bundles)
         print(f"{len(pages)} reports written under {args.batch}")
-        for folder in folders:
-            print(slicer_bundle(folder, progress=_progress(args)))
+        for _, (path, message) in bundles:
+            print(_bundle_line(path, message))
         return 0
     if not args.out:
         raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
@@ -356,6 +357,11 @@ def slicer_bundle(out: Path, case_dir: Path | None = None, image=None, progress:
 
     with (progress or Progress(enabled=False)).step("writing the 3D Slicer scene bundle"):
         path, message = write_run_bundle(out, case_dir, image)
+    return _bundle_line(path, message)
+
+
+def _bundle_line(path, message: str) -> str:
+    """The summary line of a scene bundle; one that could not be written is also a warning."""
     if path is None:
         _warn("bundle", [message])
     return f"bundle: {message}"

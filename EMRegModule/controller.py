@@ -88,6 +88,7 @@ class EMRegController:
         self._inputs: dict[str, tuple[str, str | BackgroundHash]] = {}  # role -> (path, sha256)
         self._made_from: dict[str, Provenance] = {}  # output name -> provenance of the result held
         self._output_sha: dict[str, str] = {}  # output name -> sha256 of the file written or read
+        self._report_image: sitk.Image | None = None  # the CT the report read, for the Slicer bundle
 
     @classmethod
     def for_case(cls, case: Case, progress: Progress | None = None) -> EMRegController:
@@ -449,11 +450,13 @@ class EMRegController:
         self._recorded(folder, "evaluate", provenance)
 
     def save_report(self, folder: OutputFolder, case_dir: Path | None) -> Path:
-        """The verification report of ``folder`` (its outputs checked to belong together first)."""
-        from .report import write_report
+        """The verification report of ``folder`` (its outputs checked to belong together first); the CT
+        the report read is kept for the Slicer bundle (:meth:`save_bundle`)."""
+        from .report.writer import write_report_keeping_ct
 
         used = self._adopt_outputs(folder)
-        page = write_report(folder.path, case_dir=case_dir, progress=self.progress, image=self.image)
+        page, self._report_image = write_report_keeping_ct(folder.path, case_dir=case_dir, progress=self.progress,
+                                                           image=self.image)
         self._recorded(folder, "report", self._provenance((), tuple(used)))
         return page
 
@@ -470,8 +473,9 @@ class EMRegController:
         from .io.slicer_scene import write_run_bundle
 
         used = self._adopt_outputs(folder)
+        image = self.image if self.image is not None else self._report_image  # the CT is not read again
         with self.progress.step("writing the 3D Slicer scene bundle"):
-            path, message = write_run_bundle(folder.path, case_dir, self.image)
+            path, message = write_run_bundle(folder.path, case_dir, image)
         if path is None:
             self.warn([message])
         else:

@@ -135,8 +135,8 @@ def bench_case(case: Path, work: Path, baseline: Path) -> None:
     size = ct_bytes(case)
     base_env = {**os.environ, "PYTHONPATH": str(baseline)}
     tag = case.name
-    outs = {name: work / f"{tag}-{name}" for name in ("run", "run-base", "detect", "report", "report-base", "page",
-                                                       "page-base")}
+    outs = {name: work / f"{tag}-{name}" for name in ("run", "run-base", "run-nobundle", "detect", "report",
+                                                       "report-base", "page", "page-base")}
     for folder in outs.values():
         shutil.rmtree(folder, ignore_errors=True)
     results: dict[str, tuple[float, float]] = {}
@@ -144,6 +144,11 @@ def bench_case(case: Path, work: Path, baseline: Path) -> None:
     results["run"] = run_child(emreg("run", str(case), "--out", str(outs["run"])), cwd=ROOT)[:2]
     results["run (baseline)"] = run_child(emreg("run", str(case), "--out", str(outs["run-base"])), env=base_env,
                                           cwd=baseline)[:2]
+    if importlib.util.find_spec("slicer") is not None:  # the same run without writing EMReg.mrb
+        no_slicer = ("import sys; sys.modules['slicer'] = None; from EMRegModule.cli import main; "
+                     "sys.exit(main(sys.argv[1:]))")
+        results["run, no EMReg.mrb"] = run_child([PYTHON, "-c", no_slicer, "run", str(case), "--out",
+                                                  str(outs["run-nobundle"]), "--quiet"], cwd=ROOT)[:2]
     results["detect"] = run_child(emreg("detect", str(case), "--out", str(outs["detect"])), cwd=ROOT)[:2]
     for name in ("report", "report-base", "page", "page-base"):
         copy_outputs(outs["run"], outs[name])
@@ -163,6 +168,9 @@ def bench_case(case: Path, work: Path, baseline: Path) -> None:
               f"baseline: time {new[0] / base[0]:.2f}x, peak {new[1] / base[1]:.2f}x")
     print(f"emreg run: peak / CT bytes {run[1] / size:.2f} (goal <= 1.3; baseline {run_base[1] / size:.2f}); against "
           f"the baseline: time {run[0] / run_base[0]:.2f}x, peak {run[1] / run_base[1]:.2f}x")
+    if "run, no EMReg.mrb" in results:
+        print(f"emreg run without EMReg.mrb: peak / CT bytes {results['run, no EMReg.mrb'][1] / size:.2f} "
+              "(goal <= 1.3)")
     bundle = "" if importlib.util.find_spec("slicer") is None else \
         " (slicer-core is installed: emreg run and emreg report also write EMReg.mrb, the CT included)"
     print("baseline: EMReg before the report package" + bundle)

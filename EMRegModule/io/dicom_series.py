@@ -35,12 +35,9 @@ import numpy as np
 import SimpleITK as sitk
 
 from ..errors import EMRegError
+from .dicom_header import quick_header
 from .fast_read import VolumeFill, _writable_bytes
 
-_TAGS = ("SOPClassUID", "Modality", "SeriesInstanceUID", "SeriesNumber", "SeriesDescription", "ImageType",
-         "ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing", "Rows", "Columns", "NumberOfFrames",
-         "RescaleSlope", "RescaleIntercept", "BitsStored", "PixelRepresentation", "SamplesPerPixel",
-         "InstanceNumber", "SliceThickness")
 _SOP_ENHANCED_CT = "1.2.840.10008.5.1.4.1.1.2.1"
 _LOCALIZER_TYPES = {"LOCALIZER", "SCOUT", "TOPOGRAM", "SURVIEW", "SCANOGRAM"}
 _TRANSFER_SYNTAX_NAMES = {
@@ -217,8 +214,14 @@ def _case_insensitive(root: Path, parts: list[str]) -> Path | None:
 def read_header(path: Path) -> SliceHeader | None:
     """The image header of a DICOM file, or None for a file that is not a DICOM image.
 
-    A file with the DICOM preamble whose header cannot be parsed is an :class:`EMRegError`.
+    Plain little-endian files are walked by :func:`.dicom_header.quick_header`; the others (and
+    anything it finds unusual) are read by pydicom. A file with the DICOM preamble whose header
+    cannot be parsed is an :class:`EMRegError`.
     """
+    quick = quick_header(path)
+    if quick is not None:
+        transfer, values = quick
+        return _slice_header(path, transfer, values.get)
     import pydicom
     from pydicom.errors import InvalidDicomError
 
@@ -232,30 +235,38 @@ def read_header(path: Path) -> SliceHeader | None:
         dataset = pydicom.dcmread(path, stop_before_pixels=True, force=not has_preamble)
     except InvalidDicomError:
         return None
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:  # noqa: BLE001 - pydicom raises many types for a broken file
         if not has_preamble:
             return None
         raise EMRegError(f"{path}: unreadable DICOM file ({_short(exc)})") from None
+    if dataset.get("DirectoryRecordSequence"):
+        return None
+    transfer = str(getattr(getattr(dataset, "file_meta", None), "TransferSyntaxUID", "") or "")
+    return _slice_header(path, transfer, dataset.get)
+
+
+def _slice_header(path: Path, transfer: str, get: Any) -> SliceHeader | None:
+    """A :class:`SliceHeader` from ``get(keyword, default)`` (pydicom's or the quick reader's values)."""
     try:
-        if "SeriesInstanceUID" not in dataset or "Rows" not in dataset or dataset.get("DirectoryRecordSequence"):
+        if get("SeriesInstanceUID") is None or get("Rows") is None:
             return None  # not an image (a DICOMDIR, a report, a file that is not DICOM at all)
-        transfer = str(getattr(getattr(dataset, "file_meta", None), "TransferSyntaxUID", "") or "")
         return SliceHeader(
-            path=path, series_uid=str(dataset.SeriesInstanceUID), series_number=_int(dataset.get("SeriesNumber")),
-            description=str(dataset.get("SeriesDescription", "") or ""), modality=str(dataset.get("Modality", "")),
-            image_type=tuple(str(v).upper() for v in _list(dataset.get("ImageType"))),
-            sop_class=str(dataset.get("SOPClassUID", "")), transfer_syntax=transfer,
-            position=_vector(dataset.get("ImagePositionPatient"), 3),
-            orientation=_vector(dataset.get("ImageOrientationPatient"), 6),
-            pixel_spacing=_pair(dataset.get("PixelSpacing")),
-            rows=int(dataset.Rows), columns=int(dataset.get("Columns", 0) or 0),
-            frames=_int(dataset.get("NumberOfFrames")) or 1,
-            slope=float(dataset.get("RescaleSlope", 1) or 1), intercept=float(dataset.get("RescaleIntercept", 0) or 0),
-            bits_stored=int(dataset.get("BitsStored", 16) or 16),
-            signed=int(dataset.get("PixelRepresentation", 0) or 0) == 1,
-            samples=int(dataset.get("SamplesPerPixel", 1) or 1), instance=_int(dataset.get("InstanceNumber")),
-            bits_allocated=int(dataset.get("BitsAllocated", 16) or 16),
-            photometric=str(dataset.get("PhotometricInterpretation", "MONOCHROME2") or "MONOCHROME2"))
+            path=path, series_uid=str(get("SeriesInstanceUID")), series_number=_int(get("SeriesNumber")),
+            description=str(get("SeriesDescription", "") or "").strip(),
+            modality=str(get("Modality", "") or "").strip(),
+            image_type=tuple(str(v).strip().upper() for v in _list(get("ImageType"))),
+            sop_class=str(get("SOPClassUID", "") or ""), transfer_syntax=transfer,
+            position=_vector(get("ImagePositionPatient"), 3),
+            orientation=_vector(get("ImageOrientationPatient"), 6),
+            pixel_spacing=_pair(get("PixelSpacing")),
+            rows=int(get("Rows")), columns=int(get("Columns", 0) or 0),
+            frames=_int(get("NumberOfFrames")) or 1,
+            slope=float(get("RescaleSlope", 1) or 1), intercept=float(get("RescaleIntercept", 0) or 0),
+            bits_stored=int(get("BitsStored", 16) or 16),
+            signed=int(get("PixelRepresentation", 0) or 0) == 1,
+            samples=int(get("SamplesPerPixel", 1) or 1), instance=_int(get("InstanceNumber")),
+            bits_allocated=int(get("BitsAllocated", 16) or 16),
+            photometric=str(get("PhotometricInterpretation", "MONOCHROME2") or "MONOCHROME2"))
     except (TypeError, ValueError, AttributeError) as exc:
         raise EMRegError(f"{path}: malformed DICOM header ({_short(exc)})") from None
 

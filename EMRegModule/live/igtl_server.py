@@ -38,6 +38,32 @@ from ..errors import EMRegError
 from .igtl_status import StatusMessage
 
 DEFAULT_PORT = 18944
+#: ``TransformStatus`` of a valid pose (PLUS's tool status names: ``OK``, ``INVALID``, ``MISSING`` ...).
+TRANSFORM_OK = "OK"
+TRANSFORM_INVALID = "INVALID"
+
+
+def transform_message(device_name: str, matrix: np.ndarray, timestamp: float | None = None,
+                      status: str = TRANSFORM_OK) -> TransformMessage:
+    """A TRANSFORM message with header version 2 and the metadata PLUS sends with each transform:
+    ``TransformStatus`` and ``TransformValid``."""
+    message = TransformMessage(np.asarray(matrix, dtype=np.float32), timestamp=timestamp, device_name=device_name)
+    message.header_version = 2
+    message.metadata = {"TransformStatus": status, "TransformValid": "true" if status == TRANSFORM_OK else "false"}
+    return message
+
+
+def transform_status(message) -> str:
+    """The ``TransformStatus`` a received TRANSFORM carries (``OK`` when it carries none, as from a
+    header-version-1 sender); ``TransformValid`` false without a status counts as ``INVALID``."""
+    metadata = getattr(message, "metadata", None) or {}
+    status = str(metadata.get("TransformStatus", "")).strip().upper()
+    valid = str(metadata.get("TransformValid", "")).strip().lower()
+    if status:
+        return status
+    if valid in ("false", "0", "\x00", "no"):
+        return TRANSFORM_INVALID
+    return TRANSFORM_OK
 
 #: A message that has waited this long (s) in a client's queue is stale: a newer message of the same
 #: type and device name replaces it (a newer pose supersedes an older one). A client that keeps up
@@ -107,10 +133,12 @@ class IGTLServer:
                 self._sticky[message.device_name] = data
         return self.send_bytes(data, f"{message.message_type}:{message.device_name}")
 
-    def send_transform(self, device_name: str, matrix: np.ndarray, timestamp: float | None = None) -> int:
-        """Send a TRANSFORM (4x4, mm) under ``device_name``."""
-        return self.send(TransformMessage(np.asarray(matrix, dtype=np.float32), timestamp=timestamp,
-                                          device_name=device_name))
+    def send_transform(self, device_name: str, matrix: np.ndarray, timestamp: float | None = None,
+                       status: str = TRANSFORM_OK) -> int:
+        """Send a TRANSFORM (4x4, mm) under ``device_name`` with PLUS's status metadata (OpenIGTLink
+        header version 2): ``TransformStatus`` (``OK``, or why the pose is not valid, e.g. ``INVALID``)
+        and ``TransformValid`` (``true`` / ``false``). A client must not use a pose whose status is not OK."""
+        return self.send(transform_message(device_name, matrix, timestamp, status))
 
     def send_bytes(self, data: bytes, key: str = "") -> int:
         """Offer packed bytes to every client. ``key`` (message type and device name): a client that has

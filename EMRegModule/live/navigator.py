@@ -26,6 +26,7 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TextIO
 
@@ -34,6 +35,7 @@ import numpy as np
 from ..navigation import probe_to_image as probe_to_image_pose
 from ..transforms import LPS_TO_RAS
 from . import igtl_status as st
+from .igtl_server import TRANSFORM_INVALID, TRANSFORM_OK
 from .igtl_status import StatusMessage
 from .samples import STATUS_NOT_ATTACHED, STATUS_OUT_OF_RANGE, SensorSample  # noqa: F401
 
@@ -156,7 +158,8 @@ class Watchdog:
 class _Announcer:
     """Sends a STATUS and prints one terminal line when the verdict changes (and re-sends STATUS each second)."""
 
-    def __init__(self, server, device_name: str, out: TextIO | None, what: str) -> None:
+    def __init__(self, server, device_name: str, out: TextIO | None, what: str,
+                 on_paused: Callable[[Verdict], None] | None = None) -> None:
         self.server = server
         self.device_name = device_name
         self.what = what
@@ -164,6 +167,8 @@ class _Announcer:
         self.current: Verdict | None = None
         self._last_sent = 0.0
         self.changes: list[Verdict] = []
+        #: called with a not-OK verdict when it starts and with each STATUS re-sent (the transforms' INVALID)
+        self.on_paused = on_paused
 
     def update(self, verdict: Verdict, now_s: float) -> None:
         changed = self.current is None or verdict.key != self.current.key
@@ -182,6 +187,8 @@ class _Announcer:
             self._last_sent = now_s
             self.server.send(StatusMessage(verdict.code, 0, verdict.error_name, verdict.message,
                                            device_name=self.device_name))
+            if not verdict.ok and self.on_paused is not None:
+                self.on_paused(verdict)
 
 
 class _WatchedPublisher:
@@ -247,7 +254,7 @@ class LiveNavigator(_WatchedPublisher):
         self.writer = writer
         self.device_name = device_name
         self.watchdog = Watchdog(reference_sensor, probe_sensor, period_s, stale_periods, max_quality, link)
-        self.announcer = _Announcer(server, status_name, out, device_name)
+        self.announcer = _Announcer(server, status_name, out, device_name, on_paused=self._send_invalid)
         self.jump_rejected = 0
         self._latest: dict[int, SensorSample] = {}
         self._done_frame: int | None = None
@@ -258,6 +265,7 @@ class LiveNavigator(_WatchedPublisher):
         #: (frame, received_ns of the frame's later sensor record, send-complete ns) per published pose
         self.latencies: deque[tuple[int, int, int]] = deque(maxlen=200_000)
         self.last_probe_to_image: np.ndarray | None = None
+        self.invalid_sent = 0  # TRANSFORMs sent with TransformStatus INVALID (poses withheld)
 
     @property
     def verdict(self) -> Verdict | None:
@@ -289,17 +297,31 @@ class LiveNavigator(_WatchedPublisher):
             self.frames += 1
             if not (verdict.ok and reference.valid and probe.valid):
                 self.withheld += 1
+                self._send_invalid(verdict)
                 return
             probe_to_image = probe_to_image_pose(self.reference_to_image, reference.transform(), probe.transform())
             self.last_probe_to_image = probe_to_image
             received_ns = max(reference.received_ns, probe.received_ns)
             if self.server is not None:
                 stamp = time.time() - (time.monotonic_ns() - received_ns) / 1e9
-                sent_ns = self.server.send_transform(self.device_name, LPS_TO_RAS @ probe_to_image, stamp)
+                sent_ns = self.server.send_transform(self.device_name, LPS_TO_RAS @ probe_to_image, stamp,
+                                                     TRANSFORM_OK)
                 self.latencies.append((probe.frame, received_ns, sent_ns))
             if self.writer is not None:
                 self.writer.write_position(probe.time_s, probe_to_image[:3, 3], probe.label)
             self.published += 1
+
+
+    def _send_invalid(self, verdict: Verdict) -> None:
+        """Tell the clients on the transform itself that no valid pose is published now (PLUS habit:
+        ``TransformStatus = INVALID`` with the last published pose), besides the STATUS. Nothing before
+        the first pose: there is nothing to invalidate, and a client ignoring the status would show a
+        made-up pose."""
+        if self.server is None or self.last_probe_to_image is None:
+            return
+        self.server.send_transform(self.device_name, LPS_TO_RAS @ self.last_probe_to_image, time.time(),
+                                   TRANSFORM_INVALID)
+        self.invalid_sent += 1
 
 
 class TrackerPublisher(_WatchedPublisher):
@@ -323,6 +345,8 @@ class TrackerPublisher(_WatchedPublisher):
         self._lock = threading.Lock()
         self.published = 0
         self.samples = 0
+        self.invalid_sent = 0  # TRANSFORMs sent with TransformStatus INVALID
+        self._last_pose: dict[str, np.ndarray] = {}
         self.latencies: deque[tuple[int, int, int]] = deque(maxlen=200_000)
 
     def name(self, sensor: int) -> str:
@@ -347,6 +371,10 @@ class TrackerPublisher(_WatchedPublisher):
             guarded = self.watchdog.link is not None
             paused = verdict.reason in ("link", "lost") or (guarded and verdict.reason == "no_data")
             if sample.valid and not paused:
-                sent_ns = self.server.send_transform(name, sample.transform(), self._stamp)
+                sent_ns = self.server.send_transform(name, sample.transform(), self._stamp, TRANSFORM_OK)
                 self.latencies.append((sample.frame, sample.received_ns, sent_ns))
+                self._last_pose[name] = sample.transform()
                 self.published += 1
+            elif name in self._last_pose:  # PLUS habit: the transform goes out with TransformStatus INVALID
+                self.server.send_transform(name, self._last_pose[name], self._stamp, TRANSFORM_INVALID)
+                self.invalid_sent += 1

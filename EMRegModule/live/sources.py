@@ -16,7 +16,7 @@ from ..errors import EMRegError
 from ..io.recording import read_recording
 from ..tracking import SAME_MOMENT_S
 from .device_url import DeviceURL, parse_device_url
-from .samples import SensorSample
+from .samples import STATUS_OK, SensorSample
 
 SampleCallback = Callable[[SensorSample], None]
 
@@ -191,6 +191,7 @@ class IGTLSource(SampleSource):
 
     def start(self, callback: SampleCallback) -> None:
         from .igtl_client import IGTLReceiver
+        from .igtl_server import TRANSFORM_OK, transform_status
 
         def on_message(message) -> None:
             sensor = self.names.get(message.device_name)
@@ -204,7 +205,11 @@ class IGTLSource(SampleSource):
                 self._frame += 1
                 self._frame_stamp = stamp
             matrix = np.asarray(message.matrix, dtype=float)
+            # PLUS's status metadata (header version 2): a transform whose TransformStatus is not OK
+            # (or TransformValid false) carries no valid pose and is never used as one
+            status = transform_status(message)
             callback(SensorSample(sensor, self._time(stamp), matrix[:3, 3].copy(), matrix[:3, :3].copy(),
+                                  status=STATUS_OK if status == TRANSFORM_OK else status.lower(),
                                   frame=self._frame, received_ns=now_ns))
 
         self.receiver = IGTLReceiver(self.url.host, self.url.port, on_message)

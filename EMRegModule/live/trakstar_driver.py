@@ -70,7 +70,8 @@ class TrakstarDriver:
         self._frame = -1
         self._frame_time_s = 0.0
         self._last_address = 99
-        self._last_record_ns = 0
+        self._last_end: int | None = None
+        self._last_arrival_end: tuple[int, int] | None = None
         self.error: str | None = None
         #: ports with a sensor when the stream started; samples of other ports are always "not attached"
         self.attached: frozenset[int] | None = None
@@ -273,20 +274,25 @@ class TrakstarDriver:
                              "use configure()")
         return lengths.pop()
 
-    def _sample(self, data: bytes, sensor: int | None, t_ns: int, new_frame: bool = False) -> SensorSample | None:
-        """Decode a framed record into a sample; None (and counted) when its values are impossible."""
+    def _sample(self, data: bytes, sensor: int | None, t_ns: int, new_frame: bool = False,
+                received_ns: int | None = None) -> SensorSample | None:
+        """Decode a framed record into a sample; None (and counted) when its values are impossible.
+
+        ``t_ns``: when the record arrived (a new frame takes its time from it); ``received_ns``: when
+        the reader got it (default ``t_ns``)."""
         if sensor is None:
             sensor = data[-1] & 0x7F
         fmt = self.formats[sensor]
         record = tp.decode_record(fmt, data, self.scale_inches, self.metal[sensor], self.group_mode)
+        if new_frame:  # a cycle starts even when its first record is then refused
+            self._frame += 1
+            self._frame_time_s = (t_ns - self._t0_ns) / 1e9
         if not tp.record_values_plausible(record):
             self.parser.stats.value_errors += 1
             self.parser.stats.records -= 1
             return None
-        if new_frame:
-            self._frame += 1
-            self._frame_time_s = (t_ns - self._t0_ns) / 1e9
-        return record_to_sample(record, sensor, self._frame_time_s, self._frame, t_ns)
+        return record_to_sample(record, sensor, self._frame_time_s, self._frame,
+                                t_ns if received_ns is None else received_ns)
 
     # -- streaming -----------------------------------------------------------------------
     @property
@@ -308,6 +314,8 @@ class TrakstarDriver:
         self._t0_ns = time.monotonic_ns()
         self._frame = -1
         self._last_address = 99
+        self._last_end = None
+        self._last_arrival_end = None
         self._stop_reader.clear()
         self.error = None
         self._write(bytes([tp.STREAM]))
@@ -336,7 +344,6 @@ class TrakstarDriver:
 
     def _read_stream(self, callback: SampleCallback) -> None:
         ser = self.serial
-        period_ns = 1e9 / max(self.rate_hz, 1.0)
         try:
             while not self._stop_reader.is_set():
                 chunk = ser.read(1)
@@ -346,15 +353,12 @@ class TrakstarDriver:
                 if waiting:
                     chunk += ser.read(waiting)
                 t_ns = time.monotonic_ns()
-                for data in self.parser.feed(chunk, t_ns):
+                records = self.parser.feed(chunk, t_ns)
+                for data, end in zip(records, self.parser.ends, strict=True):
                     address = data[-1] & 0x7F if self.group_mode else 1
-                    # a new measurement cycle starts when the address sequence wraps (group mode sends
-                    # ports in order), or after a silence of two periods (read jitter makes anything
-                    # tighter unreliable)
-                    new_frame = (address <= self._last_address or t_ns - self._last_record_ns > 2 * period_ns)
-                    self._last_address = address
-                    self._last_record_ns = t_ns
-                    sample = self._sample(data, address if self.group_mode else 1, t_ns, new_frame)
+                    new_frame = self._starts_cycle(address, end, len(data))
+                    arrival_ns = self._arrival_ns(t_ns, end)
+                    sample = self._sample(data, address, arrival_ns, new_frame, received_ns=t_ns)
                     if sample is not None:
                         if self.attached is not None and sample.sensor not in self.attached:
                             sample.status = STATUS_NOT_ATTACHED  # whatever a corrupted record of it says
@@ -362,6 +366,45 @@ class TrakstarDriver:
         except Exception as exc:  # the port vanished (cable pulled, simulator stopped)
             if not self._stop_reader.is_set():
                 self.error = f"trakSTAR port {self.port}: read failed ({exc})"
+
+    def _starts_cycle(self, address: int, end: int, length: int) -> bool:
+        """True when an accepted stream record begins a new measurement cycle (decided by the data only).
+
+        In group mode every port of the unit answers each cycle, one record of ``length`` bytes per
+        port, in port order, back to back ([FOB] group mode); outside group mode each record is a
+        cycle. So a record starts a new cycle when its port does not come after the previous record's
+        port, or when more bytes lie between the two records than the ports skipped between them
+        could fill (records of a later cycle were lost in between). A dropped byte only shortens that
+        gap, so lost bytes never merge two cycles unless at least a whole cycle's bytes vanished.
+        When the reader is late (a loaded host) the bytes wait in the input buffer: the host time
+        between records says nothing about the cycle and is not used.
+        """
+        previous_address, previous_end = self._last_address, self._last_end
+        self._last_address, self._last_end = address, end
+        if not self.group_mode or previous_end is None or address not in self.group_sensors \
+                or previous_address not in self.group_sensors:
+            return True
+        skipped_ports = self.group_sensors.index(address) - self.group_sensors.index(previous_address) - 1
+        if skipped_ports < 0:
+            return True
+        bytes_between = end - length - previous_end
+        return bytes_between > skipped_ports * length
+
+    def _arrival_ns(self, read_ns: int, end: int) -> int:
+        """When a record's last byte reached the host (monotonic ns), estimated from the line rate.
+
+        A read returns every byte waiting, so a record followed by ``k`` more bytes of the same read
+        was complete at least ``k`` byte times (10 bits at the baud rate) before the read. Two
+        records cannot arrive closer than the line time of the bytes between their ends, which also
+        keeps the estimate strictly increasing when a late reader collects several cycles at once.
+        """
+        byte_ns = tp.BITS_PER_BYTE * 1e9 / self.baud
+        arrival = read_ns - int((self.parser.offset - end) * byte_ns)
+        if self._last_arrival_end is not None:
+            previous_ns, previous_end = self._last_arrival_end
+            arrival = max(arrival, previous_ns + int((end - previous_end) * byte_ns))
+        self._last_arrival_end = (arrival, end)
+        return arrival
 
 
 def record_to_sample(record: DecodedRecord, sensor: int, time_s: float, frame: int, received_ns: int) -> SensorSample:

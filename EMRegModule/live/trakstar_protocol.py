@@ -459,6 +459,10 @@ class FramingStats:
 class RecordParser:
     """Finds complete, well-framed records in a byte stream (resynchronising on the phasing bit).
 
+    After each :meth:`feed`, ``ends`` holds where each returned record ended in the byte stream
+    (``offset`` counts every byte fed, good or bad), so a caller can tell how many bytes lay between
+    two accepted records.
+
     ``length`` is the record length in bytes (:func:`record_length`); ``addresses`` the group-mode
     sensor addresses accepted in the last byte (None: not group mode). A record is accepted when it
     starts with the phasing bit, has no phasing bit in any other byte, has the right length, ends
@@ -475,6 +479,10 @@ class RecordParser:
     def __post_init__(self) -> None:
         self._current = bytearray()
         self._last_byte_ns = 0
+        #: bytes consumed so far (the stream offset of the next byte fed)
+        self.offset = 0
+        #: stream offsets just past the last byte of each record the last :meth:`feed` returned
+        self.ends: list[int] = []
 
     def reset(self) -> None:
         """Forget any partial record (after a flush of the serial input)."""
@@ -489,6 +497,10 @@ class RecordParser:
     def feed(self, data: bytes, t_ns: int) -> list[bytes]:
         """Consume bytes received at ``t_ns`` (monotonic); return the complete valid records."""
         out: list[bytes] = []
+        ends: list[int] = []
+        base = self.offset
+        self.offset += len(data)
+        self.ends = ends
         current = self._current
         if current and t_ns - self._last_byte_ns > self.max_gap_ns:
             self.stats.gap_errors += 1
@@ -515,6 +527,7 @@ class RecordParser:
                 else:
                     self.stats.records += 1
                     out.append(bytes(current))
+                    ends.append(base + i + 1)
                 current.clear()
         return out
 

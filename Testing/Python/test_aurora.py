@@ -515,8 +515,12 @@ def test_cli_record_and_live_navigate_from_the_aurora(tmp_path, replay):
                                 "--out", str(tmp_path / "out")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                text=True, env=ENV)
         client = pyigtl.OpenIGTLinkClient("127.0.0.1", port)
-        try:
-            message = client.wait_for_message("ProbeToImage", timeout=20)
+        try:  # as long as navigate runs (a loaded machine starts it late), not for a fixed time
+            end = time.monotonic() + 180
+            message = None
+            while message is None and nav.poll() is None and time.monotonic() < end:
+                message = client.wait_for_message("ProbeToImage", timeout=0.1)
+            message = message or client.wait_for_message("ProbeToImage", timeout=1.0)
         finally:
             client.stop()
         stdout, stderr = nav.communicate(timeout=60)

@@ -255,3 +255,43 @@ def test_uncompressed_slices_are_read_directly_and_match_gdcm(tmp_path, monkeypa
     np.testing.assert_array_equal(_voxels(image), _voxels(_series_reader(files)).astype(float))
     monkeypatch.setattr(dicom_series, "_read_uncompressed", lambda h, out: False)  # GDCM for every slice
     np.testing.assert_array_equal(_voxels(read_ct(tmp_path)), _voxels(image))
+
+
+def test_detection_while_decoding_gives_the_markers_of_the_whole_image(hard_case, hard_export):
+    """Detection on slices as they are decoded (thread pool) equals detection on the image read whole."""
+    from EMRegModule.controller import EMRegController
+    from EMRegModule.detection import detect_markers
+
+    streamed = EMRegController().load_ct_and_detect(hard_export)
+    whole = detect_markers(read_ct(hard_case / "ct"))
+    assert len(streamed.markers) == len(whole.markers) > 0
+    np.testing.assert_array_equal(streamed.origins, whole.origins)
+    np.testing.assert_array_equal(streamed.axes, whole.axes)
+
+
+@pytest.mark.skipif(bool(tools_available()), reason=f"DICOM tools missing: {tools_available()} (scripts/setup)")
+def test_quick_header_reader_agrees_with_pydicom_on_every_syntax(tmp_path, monkeypatch):
+    """The quick header walk gives pydicom's values; files it does not handle go to pydicom."""
+    from EMRegModule.io import dicom_header, dicom_series
+
+    volume = make_volume(seed=8)
+    quick_used = 0
+    for syntax in ["plain", *sorted(TRANSFER_SYNTAXES)]:
+        folder = tmp_path / syntax
+        files = write_series(volume[:, :, :3], folder, uid(13), number=4, description="dé scription",
+                             rescale=[(2.0, -5.0)] * 3, bits_stored=12)
+        if syntax != "plain":
+            convert(files, syntax)
+        for path in files:
+            quick_used += dicom_header.quick_header(path) is not None
+            fast = dicom_series.read_header(path)
+            with monkeypatch.context() as patch:
+                patch.setattr(dicom_series, "quick_header", lambda p: None)
+                slow = dicom_series.read_header(path)
+            for name in ("series_uid", "series_number", "description", "modality", "image_type", "sop_class",
+                         "transfer_syntax", "pixel_spacing", "rows", "columns", "frames", "slope", "intercept",
+                         "bits_stored", "signed", "samples", "instance", "bits_allocated", "photometric"):
+                assert getattr(fast, name) == getattr(slow, name), (syntax, name)
+            np.testing.assert_allclose(fast.position, slow.position)
+            np.testing.assert_allclose(fast.orientation, slow.orientation)
+    assert quick_used >= 3 * 6  # plain and the little-endian compressed syntaxes take the quick walk

@@ -119,8 +119,12 @@ class _StatusListener:
         self.receiver = IGTLReceiver("127.0.0.1", port, self.messages.append)
 
     def poses(self) -> np.ndarray:
+        from EMRegModule.live.igtl_server import transform_status
+
+        # a client uses only the poses whose TransformStatus is OK (an INVALID one repeats the last pose)
         matrices = [np.asarray(m.matrix, dtype=float) for m in list(self.messages)
-                    if m.message_type == "TRANSFORM" and m.device_name == "ProbeToImage"]
+                    if m.message_type == "TRANSFORM" and m.device_name == "ProbeToImage"
+                    and transform_status(m) == "OK"]
         return np.asarray([(np.linalg.inv(LPS_TO_RAS) @ m)[:3, 3] for m in matrices]).reshape(-1, 3)
 
     def statuses(self) -> list[str]:

@@ -138,13 +138,43 @@ def test_stream_four_sensors_every_pose_matches_truth(sim, driver, name):
     assert {s.sensor for s in got} == {1, 2, 3, 4}
     checked = assert_subsequence_of_truth(got, sim.truth, 36)
     assert checked == len(got) and driver.stats.rejected == 0
-    # samples of one measurement cycle share time and frame; frames advance
+    assert_whole_cycles(got)
+
+
+def assert_whole_cycles(samples) -> None:
+    """On a clean link every frame is one whole measurement cycle (ports 1..4 in order, one time),
+    except the last (the stream may stop inside a cycle); frame times strictly increase."""
     by_frame = {}
-    for s in got:
+    for s in samples:
         by_frame.setdefault(s.frame, []).append(s)
-    full = [v for v in by_frame.values() if len(v) == 4]
-    assert len(full) >= 0.9 * len(by_frame)
-    assert all(len({s.time_s for s in v}) == 1 for v in full)
+    frames = [by_frame[k] for k in sorted(by_frame)]
+    assert len(frames) >= 10
+    assert sorted(by_frame) == list(range(frames[0][0].frame, frames[0][0].frame + len(frames)))
+    split = [[s.sensor for s in v] for v in frames[:-1] if [s.sensor for s in v] != [1, 2, 3, 4]]
+    assert not split, f"{len(split)} of {len(frames)} frames are not one whole cycle: {split[:5]}"
+    assert all(len({s.time_s for s in v}) == 1 for v in frames)
+    times = np.array([v[0].time_s for v in frames])
+    assert np.all(np.diff(times) > 0), "frame times must strictly increase"
+
+
+def test_stream_cycles_stay_whole_when_the_reader_is_late(sim, driver):
+    """A reader that falls behind (a loaded host; here a slow callback after every port-2 record)
+    finds several records - of one cycle or of several - waiting at once, long after they arrived:
+    grouping into cycles and the cycle times must come from the data, not from when reads return."""
+    driver.configure("POSITION/ANGLES", metal=True, group=True, rate_hz=200.0)
+    got = []
+
+    def late_reader(sample):
+        got.append(sample)
+        if sample.sensor == 2:
+            time.sleep(0.025)  # five periods at 200 Hz
+
+    driver.start_stream(late_reader)
+    assert wait_for(lambda: len(got) >= 4 * 40)
+    driver.stop_stream()
+    assert driver.stats.rejected == 0
+    assert assert_subsequence_of_truth(got, sim.truth, 36) == len(got)
+    assert_whole_cycles(got)
 
 
 def test_faults_never_yield_a_wrong_pose():

@@ -1,0 +1,169 @@
+"""A quick reader of the few DICOM header elements series choice needs (little endian files only).
+
+Scanning a hospital export reads the header of every file; pydicom builds a full dataset for
+each (about 1-2 ms a file, most of it converting values). Here the file's first 64 KB are walked
+element by element and only the elements :mod:`.dicom_series` uses are kept, as text or
+numbers, top level only (sequences are skipped). Anything unusual (no preamble, big endian,
+deflate, a header longer than the buffer, a malformed element) returns ``None`` and the caller
+reads the file with pydicom; the tests compare both on every transfer syntax they make.
+"""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+from typing import Any
+
+_HEAD_BYTES = 1 << 16
+_PIXEL_DATA = (0x7FE0, 0x0010)
+_LONG_VRS = {b"OB", b"OW", b"OF", b"SQ", b"UT", b"UN", b"UC", b"UR", b"OD", b"OL", b"OV", b"SV", b"UV"}
+_IMPLICIT_LE = "1.2.840.10008.1.2"
+_NOT_PLAIN_LE = {"1.2.840.10008.1.2.2", "1.2.840.10008.1.2.1.99"}  # big endian, deflate
+_UNDEFINED = 0xFFFFFFFF
+
+#: The elements kept: (group, element) -> (pydicom keyword, kind); kind "us" = unsigned short.
+WANTED = {
+    (0x0008, 0x0008): ("ImageType", "text"), (0x0008, 0x0016): ("SOPClassUID", "text"),
+    (0x0008, 0x0060): ("Modality", "text"), (0x0008, 0x103E): ("SeriesDescription", "text"),
+    (0x0020, 0x000E): ("SeriesInstanceUID", "text"), (0x0020, 0x0011): ("SeriesNumber", "text"),
+    (0x0020, 0x0013): ("InstanceNumber", "text"), (0x0020, 0x0032): ("ImagePositionPatient", "text"),
+    (0x0020, 0x0037): ("ImageOrientationPatient", "text"), (0x0028, 0x0002): ("SamplesPerPixel", "us"),
+    (0x0028, 0x0004): ("PhotometricInterpretation", "text"), (0x0028, 0x0008): ("NumberOfFrames", "text"),
+    (0x0028, 0x0010): ("Rows", "us"), (0x0028, 0x0011): ("Columns", "us"), (0x0028, 0x0030): ("PixelSpacing", "text"),
+    (0x0028, 0x0100): ("BitsAllocated", "us"), (0x0028, 0x0101): ("BitsStored", "us"),
+    (0x0028, 0x0103): ("PixelRepresentation", "us"), (0x0028, 0x1052): ("RescaleIntercept", "text"),
+    (0x0028, 0x1053): ("RescaleSlope", "text"),
+}
+
+
+class _UnusualError(Exception):
+    """Something this reader does not handle: the caller falls back to pydicom."""
+
+
+def quick_header(path: Path) -> tuple[str, dict[str, Any]] | None:
+    """(transfer syntax UID, {keyword: value}) of a plain little-endian DICOM file, or None.
+
+    Values are strings (multi-valued ones split at ``\\``, a list) or ints for unsigned shorts;
+    None also for a file that has a DICOMDIR's records or no Pixel Data within the first 64 KB.
+    """
+    try:
+        with path.open("rb") as stream:
+            head = stream.read(_HEAD_BYTES)
+            whole = len(head) < _HEAD_BYTES or not stream.read(1)
+        if len(head) < 132 or head[128:132] != b"DICM":
+            return None
+        syntax, position = _meta(head)
+        if syntax in _NOT_PLAIN_LE:
+            return None
+        values = _dataset(head, position, syntax == _IMPLICIT_LE, whole)
+    except (_UnusualError, struct.error, UnicodeDecodeError, IndexError, ValueError):
+        return None
+    return syntax, values
+
+
+def _meta(head: bytes) -> tuple[str, int]:
+    """The transfer syntax and where the dataset starts (file meta: explicit VR little endian)."""
+    position, syntax = 132, None
+    while position + 8 <= len(head):
+        group, element = struct.unpack_from("<HH", head, position)
+        if group != 0x0002:
+            break
+        value, position = _explicit_element(head, position)
+        if element == 0x0010:
+            syntax = value.rstrip(b"\0 ").decode("ascii")
+    if syntax is None:
+        raise _UnusualError("no transfer syntax")
+    return syntax, position
+
+
+def _explicit_element(head: bytes, position: int) -> tuple[bytes, int]:
+    vr = head[position + 4:position + 6]
+    if vr in _LONG_VRS:
+        (length,) = struct.unpack_from("<I", head, position + 8)
+        start = position + 12
+    else:
+        (length,) = struct.unpack_from("<H", head, position + 6)
+        start = position + 8
+    if length == _UNDEFINED:
+        raise _UnusualError("undefined length in the file meta")
+    return head[start:start + length], start + length
+
+
+def _dataset(head: bytes, position: int, implicit: bool, whole: bool) -> dict[str, Any]:
+    values: dict[str, Any] = {}
+    while True:
+        if position + 8 > len(head):
+            if whole:
+                return values  # no pixel data: not an image (the caller says so)
+            raise _UnusualError("header longer than the buffer")
+        group, element = struct.unpack_from("<HH", head, position)
+        if (group, element) == _PIXEL_DATA:
+            return values
+        if (group, element) == (0x0004, 0x1220):
+            raise _UnusualError("a DICOMDIR")
+        if implicit:
+            vr = None
+            (length,) = struct.unpack_from("<I", head, position + 4)
+            start = position + 8
+        else:
+            vr = head[position + 4:position + 6]
+            if vr in _LONG_VRS:
+                (length,) = struct.unpack_from("<I", head, position + 8)
+                start = position + 12
+            else:
+                (length,) = struct.unpack_from("<H", head, position + 6)
+                start = position + 8
+        if length == _UNDEFINED:
+            position = _skip_undefined(head, start, implicit)
+            continue
+        end = start + length
+        if end > len(head):
+            raise _UnusualError("element past the buffer")
+        wanted = WANTED.get((group, element))
+        if wanted is not None:
+            keyword, kind = wanted
+            raw = head[start:end]
+            if kind == "us":
+                if len(raw) != 2:
+                    raise _UnusualError(f"{keyword} is not one unsigned short")
+                values[keyword] = struct.unpack("<H", raw)[0]
+            else:
+                text = raw.decode("latin-1").rstrip("\0 ").strip()
+                parts = [p.strip() for p in text.split("\\")]
+                values[keyword] = parts if len(parts) > 1 else text
+        position = end
+
+
+def _skip_undefined(head: bytes, position: int, implicit: bool) -> int:
+    """Past a sequence (or item) of undefined length starting at ``position``: its items, to the delimiter."""
+    while position + 8 <= len(head):
+        group, element = struct.unpack_from("<HH", head, position)
+        (length,) = struct.unpack_from("<I", head, position + 4)
+        if (group, element) == (0xFFFE, 0xE0DD):  # sequence delimiter
+            return position + 8
+        if (group, element) != (0xFFFE, 0xE000):
+            raise _UnusualError("no item in a sequence")
+        position += 8
+        if length != _UNDEFINED:
+            position += length
+            continue
+        while True:  # an item of undefined length: its elements, to the item delimiter
+            if position + 8 > len(head):
+                raise _UnusualError("item past the buffer")
+            group, element = struct.unpack_from("<HH", head, position)
+            if (group, element) == (0xFFFE, 0xE00D):
+                position += 8
+                break
+            if implicit:
+                (length,) = struct.unpack_from("<I", head, position + 4)
+                start = position + 8
+            else:
+                vr = head[position + 4:position + 6]
+                if vr in _LONG_VRS:
+                    (length,) = struct.unpack_from("<I", head, position + 8)
+                    start = position + 12
+                else:
+                    (length,) = struct.unpack_from("<H", head, position + 6)
+                    start = position + 8
+            position = _skip_undefined(head, start, implicit) if length == _UNDEFINED else start + length
+    raise _UnusualError("sequence past the buffer")
