@@ -68,6 +68,7 @@ def run_child(command: list[str]) -> tuple[float, float, str, str, int]:
         process = subprocess.Popen(command, stdout=out, stderr=err)
         _, status, usage = os.wait4(process.pid, 0)
     wall = time.perf_counter() - start
+    run_child.cpu_seconds = usage.ru_utime + usage.ru_stime  # the child's CPU time (user + system)
     process.returncode = os.waitstatus_to_exitcode(status)
     texts = out_file.read_text(), err_file.read_text()
     out_file.unlink()
@@ -321,12 +322,17 @@ def dicom_main(args: argparse.Namespace) -> None:
     results = {}
     for name, folder in folders.items():
         run_child([PYTHON, "-c", DICOM_READ_ONLY, str(folder)])  # warm the page cache
-        reads = [run_child([PYTHON, "-c", DICOM_READ_ONLY, str(folder)]) for _ in range(args.repeat)]
+        reads, read_cpu = [], []
+        for _ in range(args.repeat):
+            reads.append(run_child([PYTHON, "-c", DICOM_READ_ONLY, str(folder)]))
+            read_cpu.append(run_child.cpu_seconds)
         t_read = float(np.median([float(re.search(r"read (\S+)", r[2]).group(1)) for r in reads]))
         t_read_process = float(np.median([r[0] for r in reads]))
         out_dir = work / f"out-dicom-{name.split()[0].lower()}"
-        detects = [run_child([PYTHON, "-m", "EMRegModule", "detect", str(folder), "--out", str(out_dir)])
-                   for _ in range(args.repeat)]
+        detects, detect_cpu = [], []
+        for _ in range(args.repeat):
+            detects.append(run_child([PYTHON, "-m", "EMRegModule", "detect", str(folder), "--out", str(out_dir)]))
+            detect_cpu.append(run_child.cpu_seconds)
         for _, _, _, err, code in detects:
             if code != 0:
                 sys.exit(f"emreg detect failed ({code}): {err.strip()}")
@@ -342,6 +348,8 @@ def dicom_main(args: argparse.Namespace) -> None:
               f"(its whole process {t_read_process:.2f} s)")
         print(f"  a/c = {t_detect / t_read:.2f} (goal <= {goal}); a / c's whole process = "
               f"{t_detect / t_read_process:.2f}")
+        print(f"  CPU time (user + system, median): emreg detect {np.median(detect_cpu):.2f} s, the reader's process "
+              f"{np.median(read_cpu):.2f} s (on a busy machine the wall times follow the CPU each gets)")
         print(f"  accuracy: {accuracy(out_dir / 'markers.json', case / 'truth.json')}")
     origins = [np.array([m["origin"] for m in document["markers"]]) for document in results.values()]
     same = origins[0].shape == origins[1].shape and np.allclose(origins[0], origins[1], atol=1e-6)

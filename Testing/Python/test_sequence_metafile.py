@@ -238,3 +238,19 @@ def test_record_from_a_replay_writes_what_slicer_loads(recording, tmp_path):
     assert len(times) == len(reference)
     assert np.allclose(times, reference.time_s, atol=1e-3)
     assert np.allclose(matrices, reference.transforms(), atol=1e-4)
+
+
+def test_the_plus_nrrd_header_variant_is_read(tmp_path):
+    """PLUS's NRRD flavour: a NRRD header whose per-frame fields are ``key:=value`` lines."""
+    lines = ["NRRD0004", "type: uint8", "dimension: 3", "sizes: 0 0 2", "encoding: raw"]
+    for k, x in enumerate((10.0, 11.5)):
+        lines += [f"Seq_Frame{k:04d}_ReferenceToTrackerTransform:=1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1",
+                  f"Seq_Frame{k:04d}_ReferenceToTrackerTransformStatus:=OK",
+                  f"Seq_Frame{k:04d}_ProbeToTrackerTransform:=0 -1 0 {x} 1 0 0 2 0 0 1 3 0 0 0 1",
+                  f"Seq_Frame{k:04d}_ProbeToTrackerTransformStatus:=OK",
+                  f"Seq_Frame{k:04d}_Timestamp:={0.0125 * k}"]
+    path = tmp_path / "plus.igs.nrrd"
+    path.write_text("\n".join(lines) + "\n\n")
+    recording = read_recording(path)
+    probe = recording.select(recording.sensor == 2)
+    assert np.allclose(probe.position_mm[:, 0], [10.0, 11.5]) and np.allclose(probe.rotation[0][:, 0], [0, 1, 0])
