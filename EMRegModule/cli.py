@@ -292,25 +292,27 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
 def cmd_report(args: argparse.Namespace) -> int:
     _need_stage("report", "the verification report")
-    from .report import write_report, write_reports_batch
+    from .report import write_reports_batch
+    from .report.writer import write_report_keeping_ct
 
     if args.batch:
         batch = Path(args.batch)
         if not batch.is_dir():
             raise EMRegError(f"{batch}: folder of run outputs not found")
         folders = sorted(p for p in batch.iterdir() if p.is_dir())
-        pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args))
+        bundles: list = []  # each job writes its case's bundle with the CT its report read
+        pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args), bundles=bundles)
         print(f"{len(pages)} reports written under {args.batch}")
-        for folder in folders:
-            print(slicer_bundle(folder, progress=_progress(args)))
+        for _, (path, message) in bundles:
+            print(_bundle_line(path, message))
         return 0
     if not args.out:
         raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
     _out_folder(args.out, create=False)  # the run's folder: the report is written into it
     case = Path(args.case) if args.case else None
-    path = write_report(Path(args.out), case_dir=case, progress=_progress(args))
+    path, image = write_report_keeping_ct(Path(args.out), case_dir=case, progress=_progress(args))
     print(f"report -> {path}")
-    print(slicer_bundle(Path(args.out), case, progress=_progress(args)))
+    print(slicer_bundle(Path(args.out), case, image, progress=_progress(args)))  # the report's CT, not re-read
     return 0
 
 
@@ -324,6 +326,11 @@ def slicer_bundle(out: Path, case_dir: Path | None = None, image=None, progress:
 
     with (progress or Progress(enabled=False)).step("writing the 3D Slicer scene bundle"):
         path, message = write_run_bundle(out, case_dir, image)
+    return _bundle_line(path, message)
+
+
+def _bundle_line(path, message: str) -> str:
+    """The summary line of a scene bundle; one that could not be written is also a warning."""
     if path is None:
         _warn("bundle", [message])
     return f"bundle: {message}"

@@ -17,10 +17,16 @@ from ..errors import EMRegError
 from ..progress import QUIET, Progress
 from .inputs import has_report_inputs
 
+#: A scene bundle written by a batch job: its path (None when none could be written) and its message.
+BundleResult = tuple[str | None, str]
+
 #: Peak memory of one report over its CT's bytes (the CT once, its binned copy, the slices).
 CT_MEMORY_FACTOR = 1.1
 #: Memory of one report process besides its CT: Python, VTK/pyvista, OpenCV, SciPy, the scene.
 LIBRARY_BYTES = 450e6
+#: Memory a case's 3D Slicer scene bundle adds to its report's process (slicer-core's libraries and the
+#: writer's buffers; the CT is the report's own, shared with the volume node, not copied).
+BUNDLE_BYTES = 250e6
 #: Share of the available memory the batch may plan to use.
 MEMORY_SHARE = 0.85
 
@@ -61,13 +67,15 @@ def ct_bytes_of_run(folder: Path) -> float:
     return size * pixel.GetNumberOfComponentsPerPixel() * pixel.GetSizeOfPixelComponent()
 
 
-def memory_limited_jobs(folders: Sequence[str], jobs: int, progress: Progress = QUIET) -> int:
-    """``jobs`` lowered so that the largest cases, rendered together, fit in the available memory."""
+def memory_limited_jobs(folders: Sequence[str], jobs: int, progress: Progress = QUIET, bundles: bool = False) -> int:
+    """``jobs`` lowered so that the largest cases, rendered together, fit in the available memory
+    (``bundles``: each job also writes its case's scene bundle, :data:`BUNDLE_BYTES` more)."""
     if jobs <= 1 or len(folders) <= 1:
         return max(1, min(jobs, len(folders)))
     jobs = min(jobs, len(folders))
     available = available_memory_bytes()
-    per_case = sorted((CT_MEMORY_FACTOR * ct_bytes_of_run(Path(f)) + LIBRARY_BYTES for f in folders), reverse=True)
+    extra = LIBRARY_BYTES + (BUNDLE_BYTES if bundles else 0.0)
+    per_case = sorted((CT_MEMORY_FACTOR * ct_bytes_of_run(Path(f)) + extra for f in folders), reverse=True)
     if available is None:
         return jobs
     budget = MEMORY_SHARE * available
@@ -81,25 +89,37 @@ def memory_limited_jobs(folders: Sequence[str], jobs: int, progress: Progress = 
     return fitting
 
 
-def _batch_worker(folder: str) -> tuple[str, str | None, str | None]:
-    from .writer import write_report
+def _batch_worker(folder: str, bundle: bool = False) -> tuple[str, str | None, str | None, BundleResult | None]:
+    from .writer import write_report_keeping_ct
 
     try:
-        return folder, str(write_report(Path(folder))), None
+        page, ct = write_report_keeping_ct(Path(folder))
     except EMRegError as exc:
-        return folder, None, str(exc)
+        return folder, None, str(exc), None
     except Exception as exc:  # noqa: BLE001 - one broken folder must not stop the batch; reported below
-        return folder, None, f"{type(exc).__name__}: {exc}"
+        return folder, None, f"{type(exc).__name__}: {exc}", None
+    written = None
+    if bundle:  # with the CT the report holds: not read a second time
+        from ..io.slicer_scene import write_run_bundle
+
+        path, message = write_run_bundle(folder, image=ct)
+        written = (None if path is None else str(path), message)
+    return folder, str(page), None, written
 
 
 def write_reports_batch(folders: Sequence[str | os.PathLike[str]], jobs: int = 1,
-                        progress: Progress | None = None) -> list[Path]:
+                        progress: Progress | None = None,
+                        bundles: list[tuple[str, BundleResult]] | None = None) -> list[Path]:
     """Render a report in every output folder, up to ``jobs`` processes at a time, with a progress bar.
 
     Folders without any run output are skipped (with a message); ``jobs`` is lowered to what the
     available memory holds (:func:`memory_limited_jobs`). Each report finds its CT through its
     ``run.json``. Returns the written pages in the order of ``folders``; when a folder fails the
     others are still rendered, then :class:`EMRegError` lists the failures.
+
+    ``bundles``: when a list is given, each job also writes its case's 3D Slicer scene bundle
+    (``write_run_bundle``, with the CT its report read) and ``(folder, (bundle path or None, message))``
+    is appended to it for every reported folder, in the order of ``folders``.
     """
     progress = progress or QUIET
     if jobs < 1:
@@ -110,13 +130,16 @@ def write_reports_batch(folders: Sequence[str | os.PathLike[str]], jobs: int = 1
             selected.append(str(folder))
         else:
             progress.message(f"[emreg] report: skipping {folder} (no run outputs in it)")
-    jobs = memory_limited_jobs(selected, jobs, progress)
+    jobs = memory_limited_jobs(selected, jobs, progress, bundles=bundles is not None)
     results: dict[str, tuple[str | None, str | None]] = {}
+    written: dict[str, BundleResult] = {}
     with progress.step("reports", total=len(selected), per_minute="cases") as step:
         if jobs == 1:
             for folder in selected:
-                _, path, error = _batch_worker(folder)
+                _, path, error, bundle = _batch_worker(folder, bundles is not None)
                 results[folder] = (path, error)
+                if bundle is not None:
+                    written[folder] = bundle
                 step.advance()
         else:
             import multiprocessing
@@ -124,11 +147,15 @@ def write_reports_batch(folders: Sequence[str | os.PathLike[str]], jobs: int = 1
 
             context = multiprocessing.get_context("spawn")  # VTK/EGL state must not be forked
             with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
-                futures = [pool.submit(_batch_worker, folder) for folder in selected]
+                futures = [pool.submit(_batch_worker, folder, bundles is not None) for folder in selected]
                 for future in as_completed(futures):
-                    folder, path, error = future.result()
+                    folder, path, error, bundle = future.result()
                     results[folder] = (path, error)
+                    if bundle is not None:
+                        written[folder] = bundle
                     step.advance()
+    if bundles is not None:
+        bundles.extend((folder, written[folder]) for folder in selected if folder in written)
     failures = [f"{folder}: {error}" for folder in selected for path, error in [results[folder]] if error]
     if failures:
         raise EMRegError(f"{len(failures)} of {len(selected)} reports failed: " + "; ".join(failures))

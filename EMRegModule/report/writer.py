@@ -28,12 +28,20 @@ FIGURE_DIR = "report_figures"
 
 def write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
                  progress: Progress | None = None, image: sitk.Image | None = None) -> Path:
+    """Render ``OUT/report.html`` (see :func:`write_report_keeping_ct`); returns the path of the page."""
+    return write_report_keeping_ct(out_dir, case_dir, progress, image)[0]
+
+
+def write_report_keeping_ct(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
+                            progress: Progress | None = None,
+                            image: sitk.Image | None = None) -> tuple[Path, sitk.Image | None]:
     """Render ``OUT/report.html`` (and ``OUT/report_figures/*.png``) from what the run left in OUT.
 
     ``case_dir`` is the case folder (for the CT and targets); by default the one recorded in
     ``OUT/run.json``. ``image``: the case's CT already in memory (``SimpleITK.Image``), which spares
-    reading it again. Returns the path of the page. Raises :class:`EMRegError` when OUT holds
-    nothing to report.
+    reading it again. Returns the path of the page and the CT the report used (None without one, or
+    when it could not be read), so that the caller can reuse it (the 3D Slicer bundle). Raises
+    :class:`EMRegError` when OUT holds nothing to report.
     """
     progress = progress or QUIET
     inputs = load_report_inputs(out_dir, case_dir, image=image)
@@ -62,4 +70,7 @@ def write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[st
             (figure_dir / f"{name}.png").unlink(missing_ok=True)
     path = inputs.out_dir / REPORT_NAME
     atomic_write_text(path, sections.build_html(data, figures))
-    return path
+    ct = None
+    if inputs.ct is not None and inputs.ct.read_error() is None:
+        ct = inputs.ct.result()
+    return path, ct

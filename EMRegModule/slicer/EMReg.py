@@ -515,8 +515,9 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         """The controller's CT as a scalar volume node (IJK-to-RAS from the image's LPS geometry)."""
         from EMRegModule.io import slicer_scene
 
+        # A copy: in 3D Slicer a user may edit the volume in place; the controller's CT must not change.
         node = slicer_scene.show_volume(self.scene, self.controller.image, self.VOLUME_NODE_NAME,
-                                        node=self.nodes.get(self.VOLUME_NODE_NAME))
+                                        node=self.nodes.get(self.VOLUME_NODE_NAME), copy_voxels=True)
         self.nodes[self.VOLUME_NODE_NAME] = node
         if hasattr(slicer, "app"):  # slice views exist only in the application
             slicer.util.setSliceViewerLayers(background=node, fit=True)

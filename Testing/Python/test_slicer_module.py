@@ -738,6 +738,61 @@ def test_run_writes_a_bundle_that_slicer_imports_matching_the_outputs(run_output
     np.testing.assert_allclose(path, _ras(navigation[::step]), atol=1e-4)
 
 
+def test_bundle_volume_is_gzip_nrrd_holding_the_cts_voxels(run_output, standard_case):
+    """The CT in the bundle is an attached gzip NRRD (re-encoded with ISA-L after Slicer's uncompressed write):
+    its header is Slicer's with ``encoding: gzip``, its inflated bytes are the CT's voxels, and the scene
+    keeps Slicer's default (compressed) for a re-save."""
+    import gzip
+    import re
+    import zipfile
+
+    import SimpleITK as sitk
+
+    from EMRegModule.io.image import read_ct
+
+    _, out = run_output
+    with zipfile.ZipFile(out / "EMReg.mrb") as archive:
+        entry = archive.getinfo("EMReg/Data/EMReg CT.nrrd")
+        data = archive.read(entry)
+        scene = archive.read("EMReg/EMReg.mrml").decode("utf-8")
+    header, _, body = data.partition(b"\n\n")
+    fields = dict(line.split(": ", 1) for line in header.decode("ascii").splitlines()[1:] if ": " in line)
+    assert fields["encoding"] == "gzip" and fields["type"] == "short" and fields["endian"] == "little"
+    image = read_ct(standard_case / "ct.nrrd")
+    ct = sitk.GetArrayViewFromImage(image)  # a view: ``image`` must stay alive while it is used
+    assert fields["sizes"].split() == [str(n) for n in ct.shape[::-1]]
+    assert body[:2] == b"\x1f\x8b"  # a gzip stream
+    voxels = np.frombuffer(gzip.decompress(body), dtype="<i2")
+    assert np.array_equal(voxels, ct.astype("<i2").reshape(-1))
+    assert len(body) < 0.8 * ct.nbytes  # compressed, not merely wrapped
+    storage = re.search(r'<VolumeArchetypeStorage\s[^>]*fileName="[^"]*EMReg%20CT\.nrrd"[^>]*>', scene) or \
+        re.search(r'<VolumeArchetypeStorage\s[^>]*fileName="[^"]*EMReg CT\.nrrd"[^>]*>', scene)
+    assert storage is not None and 'useCompression="1"' in storage.group(0)
+
+
+def test_volume_node_shares_the_images_voxels_and_keeps_the_image_alive(slicer_core):
+    import gc
+
+    import SimpleITK as sitk
+    import slicer.util
+
+    from EMRegModule.io.slicer_scene import SlicerScene, show_volume
+
+    voxels = np.arange(4 * 5 * 6, dtype=np.int16).reshape(4, 5, 6)
+    image = sitk.GetImageFromArray(voxels)
+    image.SetSpacing((0.5, 0.6, 0.7))
+    image.SetOrigin((10.0, -20.0, 30.0))
+    mrml = SlicerScene()
+    node = show_volume(mrml.scene, image)
+    assert np.shares_memory(slicer.util.arrayFromVolume(node), sitk.GetArrayViewFromImage(image))  # no copy
+    del image
+    gc.collect()
+    sitk.GetImageFromArray(np.full((4, 5, 6), -1, dtype=np.int16))  # reuse freed memory, were it freed
+    assert np.array_equal(slicer.util.arrayFromVolume(node), voxels)
+    copied = show_volume(mrml.scene, sitk.GetImageFromArray(voxels), name="copy", copy_voxels=True)
+    assert np.array_equal(slicer.util.arrayFromVolume(copied), voxels)
+
+
 def test_report_batch_writes_one_bundle_per_case_and_an_unwritable_one_breaks_nothing(run_output, tmp_path, capsys):
     import json
     import shutil
