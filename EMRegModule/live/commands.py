@@ -290,6 +290,8 @@ def run_record(args: argparse.Namespace) -> int:
 
     def on_sample(sample) -> None:
         with lock:
+            if args.max_samples is not None and count[0] >= args.max_samples:
+                return  # the reader may deliver more before the loop below stops it
             if guard is not None:
                 admitted = guard.admit(sample)
                 state = guard.state()
@@ -349,6 +351,7 @@ def run_serve(args: argparse.Namespace) -> int:
         raise
     publisher = TrackerPublisher(server, reference, probe, source.period_s, args.stale_periods, _max_quality(args),
                                  out=None if args.quiet else sys.stderr, link=guard_for(source))
+    publisher.max_samples = args.max_samples
     _say(args, f"[emreg] serving {source.description} on OpenIGTLink {args.host}:{server.port} "
                f"(ReferenceToTracker, ProbeToTracker, STATUS Tracker)")
     try:
@@ -412,6 +415,7 @@ def run_live_navigate(args: argparse.Namespace) -> int:
     navigator = LiveNavigator(reference_to_image, reference, probe, server, writer, source.period_s,
                               args.stale_periods, _max_quality(args), out=None if args.quiet else sys.stderr,
                               link=guard_for(source))
+    navigator.max_frames = args.max_samples
     where = f"OpenIGTLink {args.host}:{server.port} (ProbeToImage, RAS)" if server else ""
     if writer:
         where += (" and " if where else "") + str(writer.path)
