@@ -63,9 +63,13 @@ DEFAULT_RATE_HZ = 40.0
 #: Times a start-up command is sent when the line damages its reply (choice).
 COMMAND_ATTEMPTS = 3
 #: ndiSerialProbe results that mean a device answered but the reply was damaged ([CAPI] ndicapi.h:
-#: NDI_PROBE_FAIL, NDI_BAD_REPLY, NDI_NO_FEATURES_FIRMWARE, NDI_COMMAND_VER_FAILED); a timeout (nothing
-#: answered) or an open error is not retried.
+#: NDI_PROBE_FAIL, NDI_BAD_REPLY, NDI_NO_FEATURES_FIRMWARE, NDI_COMMAND_VER_FAILED); an open error is not
+#: retried.
 PROBE_GARBLED = (0x0107, 0x0201, 0x0202, 0x0203)
+#: A probe timeout is retried too (choice): ndicapi gives INIT only 0.1 s (after a 0.1 s pause) before it
+#: falls back to a break, which a device that answered INIT just late may not follow with RESET; the next
+#: probe finds it initialised. A port where nothing answers costs ``OPEN_ATTEMPTS`` probes (~7 s each).
+PROBE_RETRIED = (*PROBE_GARBLED, ndi.NDI_TIMEOUT)
 #: BX/TX reply option: transforms + out-of-volume ones too ([CAPI] 0x0001 | 0x0800; what [SKS] sends).
 REPLY_OPTION = ndi.REPLY_TRANSFORMS | ndi.REPLY_NOT_NORMALLY_REPORTED
 
@@ -110,6 +114,10 @@ class NdicapiLibrary:
 
 class _LineError(EMRegError):
     """A reply damaged on the line (ndicapi: bad CRC, timeout, read/write error)."""
+
+
+class _ProbeTimeoutError(_LineError):
+    """Nothing answered the probe in time (tried again: see ``PROBE_RETRIED``)."""
 
 
 @dataclass
@@ -205,16 +213,19 @@ class AuroraDriver:
                 return self._open_once()
             except _LineError as exc:
                 if attempt == OPEN_ATTEMPTS:
-                    raise EMRegError(f"{exc} ({attempt} attempts; the serial line garbles replies - check the "
-                                     "cable and the baud rate)") from None
+                    why = "" if isinstance(exc, _ProbeTimeoutError) else \
+                        "; the serial line garbles replies - check the cable and the baud rate"
+                    raise EMRegError(f"{exc} ({attempt} attempts{why})") from None
         raise AssertionError("unreachable")
 
     def _open_once(self) -> AuroraDriver:
         lib = self.api.lib
         code = lib.ndiSerialProbe(self.port.encode(), False)
         if code != ndi.NDI_OKAY:
-            # something answered, but garbled (a bad reply to INIT, GETINFO or VER): try again
-            error = _LineError if code in PROBE_GARBLED else EMRegError
+            # something answered, but garbled (a bad reply to INIT, GETINFO or VER), or nothing in time: try again
+            error = _LineError if code in PROBE_RETRIED else EMRegError
+            if code == ndi.NDI_TIMEOUT:
+                error = _ProbeTimeoutError
             raise error(f"Aurora on {self.port}: no NDI device answered ({self.api.error_string(code)}); "
                              "check the path, power, cable and permissions (dialout group)")
         pol = lib.ndiOpenSerial(self.port.encode())

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import importlib.util
 import os
 import signal
 import sys
@@ -22,7 +21,6 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EMRegError
-from ..settings import load_settings
 from ..transforms import is_rigid
 from . import trakstar_protocol as tp
 from .igtl_server import DEFAULT_PORT
@@ -32,6 +30,8 @@ from .link_quality import guard_for
 
 
 def _sensor_ports(args: argparse.Namespace) -> tuple[int, int]:
+    from ..settings import load_settings  # here, not at the top: `emreg --help` imports this module
+
     settings = load_settings(getattr(args, "settings", None), required=True)
     sensors = settings.with_sensors(args.reference_sensor, args.probe_sensor).sensors
     return sensors.reference, sensors.probe
@@ -54,18 +54,15 @@ def load_reference_to_image(path: str, settings_path: str | None = None) -> np.n
     """``ReferenceToImage`` (4x4, mm, LPS) from ``registration.json`` (via the registration module).
 
     The file is checked as every consumer checks it (finite, rigid, FRE within ``max_fre_mm`` of
-    the settings file when given).
+    the settings file when given, and belonging to the run recorded beside it: no stale registration).
     """
-    if importlib.util.find_spec("EMRegModule.registration") is not None:
-        from ..registration import max_fre_from_settings, read_registration
+    from ..provenance import check_belongs
+    from ..registration import max_fre_from_settings, read_registration
+    from ..settings import load_settings
 
-        settings = load_settings(settings_path, required=True)
-        matrix = np.asarray(read_registration(path, max_fre_from_settings(settings)).reference_to_image, dtype=float)
-    else:  # pragma: no cover - only before the registration stage exists
-        from ..io.atomic import read_json
-
-        data = read_json(Path(path), "registration JSON")
-        matrix = np.asarray(data.get("ReferenceToImage"), dtype=float)
+    settings = load_settings(settings_path, required=True)
+    matrix = np.asarray(read_registration(path, max_fre_from_settings(settings)).reference_to_image, dtype=float)
+    check_belongs(Path(path) / "registration.json" if Path(path).is_dir() else Path(path))
     if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)) or not is_rigid(matrix, 1e-4):
         raise EMRegError(f"{path}: ReferenceToImage is not a rigid 4x4 transform")
     return matrix
@@ -293,6 +290,8 @@ def run_record(args: argparse.Namespace) -> int:
 
     def on_sample(sample) -> None:
         with lock:
+            if args.max_samples is not None and count[0] >= args.max_samples:
+                return  # the reader may deliver more before the loop below stops it
             if guard is not None:
                 admitted = guard.admit(sample)
                 state = guard.state()
@@ -352,6 +351,7 @@ def run_serve(args: argparse.Namespace) -> int:
         raise
     publisher = TrackerPublisher(server, reference, probe, source.period_s, args.stale_periods, _max_quality(args),
                                  out=None if args.quiet else sys.stderr, link=guard_for(source))
+    publisher.max_samples = args.max_samples
     _say(args, f"[emreg] serving {source.description} on OpenIGTLink {args.host}:{server.port} "
                f"(ReferenceToTracker, ProbeToTracker, STATUS Tracker)")
     try:
@@ -415,6 +415,7 @@ def run_live_navigate(args: argparse.Namespace) -> int:
     navigator = LiveNavigator(reference_to_image, reference, probe, server, writer, source.period_s,
                               args.stale_periods, _max_quality(args), out=None if args.quiet else sys.stderr,
                               link=guard_for(source))
+    navigator.max_frames = args.max_samples
     where = f"OpenIGTLink {args.host}:{server.port} (ProbeToImage, RAS)" if server else ""
     if writer:
         where += (" and " if where else "") + str(writer.path)

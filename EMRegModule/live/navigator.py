@@ -266,6 +266,8 @@ class LiveNavigator(_WatchedPublisher):
         self.latencies: deque[tuple[int, int, int]] = deque(maxlen=200_000)
         self.last_probe_to_image: np.ndarray | None = None
         self.invalid_sent = 0  # TRANSFORMs sent with TransformStatus INVALID (poses withheld)
+        #: frames handled at most (``--max-samples``); later samples are ignored (None: no limit)
+        self.max_frames: int | None = None
 
     @property
     def verdict(self) -> Verdict | None:
@@ -293,6 +295,8 @@ class LiveNavigator(_WatchedPublisher):
             probe = self._latest.get(self.probe_sensor)
             if reference is None or probe is None or reference.frame != probe.frame or probe.frame == self._done_frame:
                 return
+            if self.max_frames is not None and self.frames >= self.max_frames:
+                return  # --max-samples reached: the reader may deliver more before the command loop stops it
             self._done_frame = probe.frame
             self.frames += 1
             if not (verdict.ok and reference.valid and probe.valid):
@@ -348,6 +352,8 @@ class TrackerPublisher(_WatchedPublisher):
         self.invalid_sent = 0  # TRANSFORMs sent with TransformStatus INVALID
         self._last_pose: dict[str, np.ndarray] = {}
         self.latencies: deque[tuple[int, int, int]] = deque(maxlen=200_000)
+        #: samples handled at most (``--max-samples``); later samples are ignored (None: no limit)
+        self.max_samples: int | None = None
 
     def name(self, sensor: int) -> str:
         if sensor == self.reference_sensor:
@@ -359,6 +365,8 @@ class TrackerPublisher(_WatchedPublisher):
     def on_sample(self, sample: SensorSample) -> None:
         now = time.monotonic()
         with self._lock:
+            if self.max_samples is not None and self.samples >= self.max_samples:
+                return
             self.samples += 1
             sample = self._admit(sample)
             self.watchdog.observe(sample, now)

@@ -122,6 +122,23 @@ def test_watchdog_states():
     assert dog.evaluate(t + 0.05 + 11 * 0.0125).reason == "reference_missing"
 
 
+def test_navigator_and_publisher_stop_at_the_sample_limit():
+    """--max-samples N: frames after the N-th are ignored even when the reader delivers them before the
+    command loop notices (a loaded host)."""
+    server = _FakeServer()
+    nav = LiveNavigator(_reference_to_image(), 1, 2, server, None, period_s=0.0125, out=None)
+    nav.max_frames = 3
+    publisher = TrackerPublisher(_FakeServer(), 1, 2, 0.0125, out=None)
+    publisher.max_samples = 5
+    for frame in range(6):
+        for sensor in (1, 2):
+            nav.on_sample(_sample(sensor, frame))
+            publisher.on_sample(_sample(sensor, frame))
+    assert nav.frames == 3 and nav.published == 3
+    assert [m[0] for m in server.messages if isinstance(m, tuple)] == ["ProbeToImage"] * 3
+    assert publisher.samples == 5 and publisher.published == 5
+
+
 def test_navigator_publishes_only_good_frames_and_announces_changes(capsys):
     server = _FakeServer()
     reference_to_image = _reference_to_image()
