@@ -78,6 +78,7 @@ class FrameCalibration:
     #: (``+x_in`` / ``+x_out``; ``none`` when no point has a direction).
     probe_axis: str = "auto"
     direction_convention: str = "+x_in"
+    provenance: dict[str, Any] | None = None  # what it was made from (``EMRegModule.provenance``)
 
     @property
     def labels(self) -> list[str]:
@@ -95,12 +96,15 @@ class FrameCalibration:
 
     def to_json(self) -> dict[str, Any]:
         """The ``frame_calibration.json`` document (spec keys plus a few extra)."""
-        return {
+        document = {
             "reference_sensor": int(self.reference_sensor), "probe_sensor": int(self.probe_sensor),
             "points": [p.to_json() for p in self.points],
             "labelled": bool(self.labelled), "source": self.source, "warnings": list(self.warnings),
             "probe_axis": self.probe_axis_json(),
         }
+        if self.provenance is not None:
+            document["provenance"] = self.provenance
+        return document
 
     def probe_axis_json(self) -> dict[str, Any]:
         """How the directions were made (the registration decides the sign under ``auto``)."""
@@ -152,9 +156,14 @@ class FrameCalibration:
                 raise EMRegError(f"{source}: probe_axis direction_convention must be +x_in, +x_out or none")
             return cls(points, int(document.get("reference_sensor", 1)), int(document.get("probe_sensor", 2)),
                        bool(document.get("labelled", True)), str(document.get("source", "")),
-                       [str(w) for w in document.get("warnings", [])], setting, convention)
+                       [str(w) for w in document.get("warnings", [])], setting, convention,
+                       _dict_or_none(document.get("provenance")))
         except (KeyError, TypeError, ValueError) as exc:
             raise EMRegError(f"{source}: not a frame calibration file ({exc!s:.100})") from None
+
+
+def _dict_or_none(value: Any) -> dict[str, Any] | None:
+    return value if isinstance(value, dict) else None
 
 
 def _float(value: Any) -> float:

@@ -7,31 +7,24 @@ wrong); 3 the data do not allow a safe answer. Every output file is written atom
 from __future__ import annotations
 
 import argparse
-import importlib.util
+import signal
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from . import __version__
-from .errors import EXIT_BAD_INPUT, EMRegError, NoSafeAnswerError, StageNotAvailableError
+from .errors import EXIT_BAD_INPUT, EMRegError, NoSafeAnswerError
+from .live import commands as live
 from .progress import Progress
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # the commands import what they use: `emreg --help` and `emreg detect` start fast
+    from .controller import EMRegController
+    from .outputs import OutputFolder
     from .settings import Settings
-
-#: Output files of each stage in OUT, in workflow order (used to clear stale results).
-STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
-    "detect": ("markers.json", "markers.mrk.json"),
-    "calibrate": ("frame_calibration.json",),
-    "register": ("registration.json", "ReferenceToImage.h5", "tre_map.nrrd"),
-    "navigate": ("navigation.csv",),
-    "evaluate": ("evaluation.json",),
-    "report": ("report.html", "EMReg.mrb"),
-}
-
 
 class _Parser(argparse.ArgumentParser):
     """argparse with the spec's exit code 2 and a one-line message for usage errors."""
@@ -39,16 +32,6 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # type: ignore[override]
         self.print_usage(sys.stderr)
         self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message}\n")
-
-
-def stage_available(module: str) -> bool:
-    """True when the core module for a stage exists in this build."""
-    return importlib.util.find_spec(f"EMRegModule.{module}") is not None
-
-
-def _need_stage(module: str, what: str) -> None:
-    if not stage_available(module):
-        raise StageNotAvailableError(f"{what} is not built yet in this version of EMReg")
 
 
 def _progress(args: argparse.Namespace) -> Progress:
@@ -114,10 +97,23 @@ def _warn(command: str, warnings: Sequence[str]) -> None:
         print(f"emreg {command}: warning: {warning}", file=sys.stderr)
 
 
-def _controller(args: argparse.Namespace, settings: Settings):
+def _output_folder(args: argparse.Namespace, stage: str, inputs: Sequence[Path],
+                   case_dir: Path | None = None) -> OutputFolder:
+    """OUT for a per-stage command: refused when it could overwrite an input; the outputs of ``stage`` and
+    of the stages made from it (stale once this stage has a new result) moved to ``OUT/previous/``."""
+    from .outputs import OutputFolder, outputs_from, refuse_out_over_inputs
+
+    refuse_out_over_inputs(args.out, inputs, outputs_from(stage), case_dir)
+    folder = OutputFolder(args.out, f"emreg {args.command}")
+    folder.start_stage(stage)
+    return folder
+
+
+def _controller(args: argparse.Namespace, settings: Settings) -> EMRegController:
     from .controller import EMRegController
 
     controller = EMRegController(settings, _progress(args))
+    controller.command = f"emreg {args.command}"
     controller.set_sensors(getattr(args, "reference_sensor", None), getattr(args, "probe_sensor", None))
     return controller
 
@@ -126,7 +122,6 @@ def _controller(args: argparse.Namespace, settings: Settings):
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    _need_stage("simulation", "the case simulator")
     _out_folder(args.out)
     from .simulation import simulate_case
 
@@ -140,7 +135,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_detect(args: argparse.Namespace) -> int:
-    _need_stage("detection", "marker detection")
     from .io.case import find_ct
 
     _out_folder(args.out)
@@ -148,50 +142,48 @@ def cmd_detect(args: argparse.Namespace) -> int:
     case_dir = source if source.is_dir() and find_ct(source) is not None else None
     ct_path = find_ct(source) if case_dir is not None else source
     controller = _controller(args, _with_series(_settings(args, case_dir), args))
+    folder = _output_folder(args, "detect", [ct_path], case_dir)
+    controller.note_inputs(ct=ct_path if ct_path.exists() else None)
     result = controller.load_ct_and_detect(ct_path)  # detects on the slices read while the rest arrives
-    from .detection import write_detection
-
-    write_detection(result, Path(args.out))
+    controller.save_detection(folder)
     print(f"{len(result.markers)} markers detected, {len(result.rejected)} candidates rejected -> {args.out}")
     return 0
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    _need_stage("calibration", "frame calibration")
-    from .calibration import write_frame_calibration
-
     _out_folder(args.out)
+    recording = Path(args.recording)
     controller = _controller(args, _settings(args))
-    controller.load_calibration_recording(args.recording)
+    controller.load_calibration_recording(recording)
+    folder = _output_folder(args, "calibrate", [recording])
+    controller.note_inputs(calibration=recording)
     result = controller.calibrate_frame()
-    write_frame_calibration(result, Path(args.out) / "frame_calibration.json")
-    _warn("calibrate", result.warnings)
+    controller.save_frame_calibration(folder)
+    controller.warn(result.warnings)
     print(f"{len(result.points)} pinholes calibrated -> {args.out}")
     return 0
 
 
 def cmd_register(args: argparse.Namespace) -> int:
-    _need_stage("registration", "registration")
-    from .calibration import read_frame_calibration
-    from .detection import read_detection
-    from .registration import write_registration
-
     _out_folder(args.out)
     controller = _controller(args, _settings(args))
-    controller.set_detection(read_detection(args.markers))
-    controller.set_frame_calibration(read_frame_calibration(args.calibration))
+    inputs = [Path(p) for p in (args.markers, args.calibration, args.targets) if p]
+    folder = _output_folder(args, "register", inputs)
+    controller.load_detection(args.markers)
+    controller.load_frame_calibration(args.calibration)
     targets = None
     if args.targets:
         from .io.markups import read_markups
 
+        controller.note_inputs(targets=args.targets)
         targets = read_markups(args.targets)[1]
     try:
         result = controller.register(targets)
     except NoSafeAnswerError:
-        _remove_outputs(Path(args.out), "register")
+        folder.remove_from("register")
         raise
-    write_registration(result, Path(args.out))
-    _warn("register", result.warnings)
+    controller.save_registration(folder)
+    controller.warn(result.warnings)
     print(f"registered: FRE {result.fre_mm:.2f} mm, l = {result.sensor_offset_l_mm:.2f} mm, "
           f"{len(result.pairs)} pairs -> {args.out}")
     return 0
@@ -201,35 +193,29 @@ def cmd_navigate(args: argparse.Namespace) -> int:
     _out_folder(args.out)
     live = args.igtl_port is not None or not args.source.startswith("replay:")
     if live:
-        _need_stage("live", "live navigation (tracker / OpenIGTLink)")
         from .live.commands import run_live_navigate
 
         return run_live_navigate(args)
     if not args.out:
         raise EMRegError("navigate: --out DIR is needed to write navigation.csv from a replay")
-    _need_stage("navigation", "navigation")
-    from .navigation import write_navigation_csv
-    from .registration import max_fre_from_settings, read_registration
-
-    settings = _settings(args)
-    controller = _controller(args, settings)
-    controller.set_registration(read_registration(args.registration, max_fre_from_settings(settings)))
     from .io.recording import read_recording
 
-    recording = read_recording(args.source[len("replay:"):], controller.settings, controller.reference_sensor,
+    recording_path = Path(args.source[len("replay:"):])
+    controller = _controller(args, _settings(args))
+    controller.load_registration(args.registration)
+    recording = read_recording(recording_path, controller.settings, controller.reference_sensor,
                                controller.probe_sensor)
+    folder = _output_folder(args, "navigate", [recording_path, Path(args.registration)])
+    controller.note_inputs(navigation=recording_path)
     result = controller.navigate_recording(recording)
-    _warn("navigate", recording.warnings)
-    write_navigation_csv(result, Path(args.out) / "navigation.csv")
+    controller.warn(recording.warnings)
+    controller.save_navigation(folder)
     print(f"{len(result)} probe samples mapped into image space -> {args.out}")
     return 0
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    _need_stage("evaluation", "evaluation")
-    from .evaluation import write_evaluation
     from .io.case import open_case
-    from .registration import max_fre_from_settings, read_registration
 
     case = open_case(args.case)
     _out_folder(args.out)
@@ -243,11 +229,15 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         case.settings = _settings(args)
     case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # sequence files' ports
     controller = _controller(args, case.settings)
-    controller.set_registration(read_registration(args.registration, max_fre_from_settings(case.settings)))
+    inputs = [p for p in (case.navigation, case.targets, case.board) if p is not None]
+    folder = _output_folder(args, "evaluate", [*inputs, Path(args.registration)], case.folder)
+    controller.load_registration(args.registration)
+    controller.check_case_inputs("registration.json", args.registration, case)
+    controller.note_inputs(navigation=case.navigation, targets=case.targets, board=case.board)
     result = controller.evaluate(case.read_recording("navigation"), case.read_targets(), case.read_recording("board"))
-    write_evaluation(result, Path(args.out) / "evaluation.json")
-    _warn("evaluate", result.warnings)
-    print(f"evaluation -> {Path(args.out) / 'evaluation.json'}")
+    controller.save_evaluation(folder, result)
+    controller.warn(result.warnings)
+    print(f"evaluation -> {folder.path / 'evaluation.json'}")
     return 0
 
 
@@ -291,15 +281,16 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    _need_stage("report", "the verification report")
+    from .outputs import OutputFolder, check_outputs
     from .report import write_reports_batch
-    from .report.writer import write_report_keeping_ct
 
     if args.batch:
         batch = Path(args.batch)
         if not batch.is_dir():
             raise EMRegError(f"{batch}: folder of run outputs not found")
         folders = sorted(p for p in batch.iterdir() if p.is_dir())
+        for folder in folders:
+            check_outputs(folder)
         bundles: list = []  # each job writes its case's bundle with the CT its report read
         pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args), bundles=bundles)
         print(f"{len(pages)} reports written under {args.batch}")
@@ -309,10 +300,50 @@ def cmd_report(args: argparse.Namespace) -> int:
     if not args.out:
         raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
     _out_folder(args.out, create=False)  # the run's folder: the report is written into it
+    if not Path(args.out).is_dir():
+        raise EMRegError(f"{args.out}: output folder not found")
     case = Path(args.case) if args.case else None
-    path, image = write_report_keeping_ct(Path(args.out), case_dir=case, progress=_progress(args))
+    controller = _controller(args, _settings(args))
+    folder = OutputFolder(args.out, "emreg report")
+    folder.start_stage("report")
+    path = controller.save_report(folder, case)
     print(f"report -> {path}")
-    print(slicer_bundle(Path(args.out), case, image, progress=_progress(args)))  # the report's CT, not re-read
+    print(controller.save_bundle(folder, case))
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from .io.case import open_case
+
+    _out_folder(args.out)
+    from .settings import with_series
+
+    case = open_case(args.case)
+    if args.settings:
+        case.settings = _settings(args)
+    case.settings = with_series(case.settings, args.series)
+    case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # a sequence file's too
+    controller = _controller(args, case.settings)
+    for line in controller.run(case, Path(args.out)):
+        print(line)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .io.case import open_case
+    from .simulation import simulate_case
+
+    out = _out_folder(args.out)
+    case_dir = out / "case"
+    progress = _progress(args)
+    start = time.perf_counter()
+    progress.message(f"[emreg] demo: simulating the sample case into {case_dir}")
+    simulate_case(case_dir, seed=args.seed, difficulty="standard", spacing_mm=args.spacing, progress=progress)
+    case = open_case(case_dir)
+    controller = _controller(args, case.settings)
+    for line in controller.run(case, out / "result"):
+        print(line)
+    print(f"demo finished in {time.perf_counter() - start:.1f} s; outputs in {out / 'result'}")
     return 0
 
 
@@ -336,32 +367,6 @@ def _bundle_line(path, message: str) -> str:
     return f"bundle: {message}"
 
 
-def cmd_run(args: argparse.Namespace) -> int:
-    _out_folder(args.out)
-    summary = run_case(Path(args.case), Path(args.out), _progress(args), reference_sensor=args.reference_sensor,
-                       probe_sensor=args.probe_sensor, settings_path=args.settings, series=args.series)
-    for line in summary:
-        print(line)
-    return 0
-
-
-def cmd_demo(args: argparse.Namespace) -> int:
-    _need_stage("simulation", "the case simulator")
-    from .simulation import simulate_case
-
-    out = _out_folder(args.out)
-    case_dir = out / "case"
-    progress = _progress(args)
-    start = time.perf_counter()
-    progress.message(f"[emreg] demo: simulating the sample case into {case_dir}")
-    simulate_case(case_dir, seed=args.seed, difficulty="standard", spacing_mm=args.spacing, progress=progress)
-    summary = run_case(case_dir, out / "result", progress)
-    for line in summary:
-        print(line)
-    print(f"demo finished in {time.perf_counter() - start:.1f} s; outputs in {out / 'result'}")
-    return 0
-
-
 def cmd_study(args: argparse.Namespace) -> int:
     from .studies import STUDIES, format_table, run_study
 
@@ -372,152 +377,6 @@ def cmd_study(args: argparse.Namespace) -> int:
     print(format_table(summary))
     print(f"\n-> {Path(args.out) / args.name}.json, .csv, .png")
     return 0
-
-
-def _remove_outputs(out: Path, from_stage: str) -> None:
-    """Delete the outputs of ``from_stage`` and every later stage (stale after a refusal)."""
-    stages = list(STAGE_OUTPUTS)
-    for stage in stages[stages.index(from_stage):]:
-        for name in STAGE_OUTPUTS[stage]:
-            (out / name).unlink(missing_ok=True)
-
-
-def run_case(
-    case_dir: Path, out: Path, progress: Progress, reference_sensor: int | None = None,
-    probe_sensor: int | None = None, settings_path: str | None = None, series: str | None = None,
-) -> list[str]:
-    """Run every available stage on a case folder through the controller; returns summary lines.
-
-    ``OUT/run.json`` records the case folder, the CT, the sensor ports and the summary (the
-    report finds the CT through it).
-    A stage that refuses (no safe answer) removes its own and all later outputs from OUT,
-    so no stale result of an earlier run can be mistaken for this one's, then re-raises.
-    Once the registration stands, an optional recording that cannot be used (navigation, TRE
-    targets, board) does not fail the run: the part is "not evaluated" with its reason in
-    ``run.json`` (``not_evaluated``), ``evaluation.json`` and the report, and on stderr.
-    """
-    from .controller import EMRegController
-    from .io.atomic import atomic_write_json
-    from .io.case import open_case
-    from .settings import load_settings, with_series
-
-    case = open_case(case_dir)
-    if settings_path:
-        case.settings = load_settings(settings_path, required=True)
-    case.settings = with_series(case.settings, series)
-    if case.ct is None:
-        raise EMRegError(f"{case_dir}: no CT found (ct.nrrd, ct.nii.gz, ct.mha or a ct/ DICOM folder)")
-    case.settings = case.settings.with_sensors(reference_sensor, probe_sensor)  # a sequence file's ports too
-    controller = EMRegController.for_case(case, progress)
-    controller.set_sensors(reference_sensor, probe_sensor)
-    out.mkdir(parents=True, exist_ok=True)
-    summary: list[str] = []
-    run_record = {"case": str(case.folder.resolve()), "ct": str(case.ct.resolve()), "emreg_version": __version__,
-                  "reference_sensor": controller.reference_sensor, "probe_sensor": controller.probe_sensor,
-                  "summary": summary}
-    not_made: dict[str, str] = {}
-    run_record["not_evaluated"] = not_made
-    atomic_write_json(out / "run.json", run_record)
-    current = "detect"
-    try:
-        if stage_available("detection"):
-            from .detection import write_detection
-
-            detection = controller.load_ct_and_detect(case.ct)
-            if detection.ct_series is not None:
-                run_record["ct_series"] = detection.ct_series
-            write_detection(detection, out)
-            summary.append(f"detect: {len(detection.markers)} markers, {len(detection.rejected)} rejected")
-        else:
-            summary.append("detect: not built yet, skipped")
-        current = "calibrate"
-        if case.calibration is not None and stage_available("calibration"):
-            from .calibration import write_frame_calibration
-
-            controller.load_calibration_recording(case.calibration)
-            calibration = controller.calibrate_frame()
-            write_frame_calibration(calibration, out / "frame_calibration.json")
-            if controller.detection is None:  # otherwise the registration repeats them
-                _warn("run", calibration.warnings)
-            summary.append(f"calibrate: {len(calibration.points)} pinholes")
-        current = "register"
-        if controller.detection is not None and controller.frame_calibration is not None \
-                and stage_available("registration"):
-            from .registration import write_registration
-
-            targets = None
-            if case.targets is not None:
-                from .io.markups import read_markups
-
-                targets = read_markups(case.targets)[1]
-            registration = controller.register(targets)
-            write_registration(registration, out)
-            _warn("run", registration.warnings)
-            summary.append(f"register: FRE {registration.fre_mm:.2f} mm, l = "
-                           f"{registration.sensor_offset_l_mm:.2f} mm, {len(registration.pairs)} pairs")
-        current = "navigate"
-        if controller.registration is not None and case.navigation is not None \
-                and stage_available("navigation"):
-            from .navigation import write_navigation_csv
-
-            try:
-                navigation_recording = case.read_recording("navigation")
-                navigation = controller.navigate_recording(navigation_recording)
-            except NoSafeAnswerError:
-                raise
-            except EMRegError as exc:  # the registration stands; an unusable navigation recording is reported
-                not_made["navigation"] = str(exc)
-                print(f"emreg run: warning: navigation not made: {exc}", file=sys.stderr)
-                summary.append(f"navigate: not made: {exc}")
-            else:
-                _warn("run", navigation_recording.warnings)
-                write_navigation_csv(navigation, out / "navigation.csv")
-                summary.append(f"navigate: {len(navigation)} probe samples")
-        current = "evaluate"
-        evaluation = None
-        if controller.registration is not None and stage_available("evaluation") \
-                and (case.navigation is not None or case.board is not None):
-            from .evaluation import write_evaluation
-
-            unreadable: dict[str, str] = {}
-            inputs: dict[str, object] = {}
-            for part, read in (("tre", lambda: (case.read_recording("navigation"), case.read_targets())),
-                               ("board", lambda: case.read_recording("board"))):
-                try:
-                    inputs[part] = read()
-                except NoSafeAnswerError:
-                    raise
-                except EMRegError as exc:  # an unreadable optional recording: that part is not evaluated
-                    unreadable[part] = str(exc)
-            navigation_input, targets_input = inputs.get("tre") or (None, None)
-            evaluation = controller.evaluate(navigation_input, targets_input, inputs.get("board"),
-                                             tolerant=True, not_evaluated=unreadable)
-            for part, reason in evaluation.not_evaluated.items():
-                not_made[part] = reason
-                print(f"emreg run: warning: {'TRE' if part == 'tre' else part} not evaluated: {reason}",
-                      file=sys.stderr)
-            write_evaluation(evaluation, out / "evaluation.json")
-            summary.extend(evaluation.summary())
-        if controller.error_model is not None:
-            from .tre_map import write_tre_map
-
-            tracking_rms = evaluation.tre.tracking_rms_mm if evaluation and evaluation.tre else None
-            write_tre_map(out / "tre_map.nrrd", controller.error_model, controller.detection.image,
-                          None if tracking_rms is None else tracking_rms**2)
-        current = "report"
-        if stage_available("report"):
-            from .report import write_report
-
-            page = write_report(out, case_dir=case.folder, progress=progress, image=controller.image)
-            summary.append(f"report: {page}")
-    except NoSafeAnswerError as exc:
-        _remove_outputs(out, current)
-        summary.append(f"{current}: refused: {exc}")
-        atomic_write_json(out / "run.json", run_record)
-        raise
-    summary.append(slicer_bundle(out, case.folder, controller.image, progress))
-    atomic_write_json(out / "run.json", run_record)
-    return summary
 
 
 # --- parser -----------------------------------------------------------------------------------
@@ -582,10 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="OUT")
     p.add_argument("--igtl-port", type=int, default=None, metavar="PORT", help="publish ProbeToImage over OpenIGTLink")
     _add_sensor_options(p)
-    if stage_available("live"):
-        from .live.commands import add_live_navigate_arguments
-
-        add_live_navigate_arguments(p)
+    live.add_live_navigate_arguments(p)
 
     p = add("evaluate", cmd_evaluate, "TRE at targets and the board table: OUT/evaluation.json")
     p.add_argument("case", metavar="CASE")
@@ -628,38 +484,40 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--work", metavar="DIR", help="where the simulated case and its detection are kept (OUT/work)")
     p.add_argument("--seed", type=int, default=1, help="seed of the simulated case")
 
-    if stage_available("live"):
-        from .live import commands as live
-
-        for name, add_arguments, run, help_text in live.SUBCOMMANDS:
-            p = add(name, run, help_text)
-            add_arguments(p)
-    else:
-        for name in ("record", "sim-tracker", "serve"):
-            p = add(name, _not_built(name), f"{name} (not built yet)")
-            p.add_argument("rest", nargs=argparse.REMAINDER)
+    for name, add_arguments, run, help_text in live.SUBCOMMANDS:
+        p = add(name, run, help_text)
+        add_arguments(p)
     return parser
 
 
-def _not_built(name: str) -> Callable[[argparse.Namespace], int]:
-    def run(args: argparse.Namespace) -> int:
-        raise StageNotAvailableError(f"'emreg {name}' is not built yet in this version of EMReg")
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread like Ctrl-C so that every ``finally`` and atomic write cleans up."""
 
-    return run
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    raise Terminated("SIGTERM")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``emreg`` console script."""
+    """Entry point of the ``emreg`` console script.
+
+    SIGINT and SIGTERM end a command with one line on stderr and exit code 130 / 143; temporary
+    files are removed on the way out and an interrupted ``emreg run`` says so in ``OUT/run.json``.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return int(args.func(args) or 0)
     except EMRegError as exc:
         print(f"emreg {args.command}: error: {exc}", file=sys.stderr)
         return exc.exit_code
-    except KeyboardInterrupt:
-        print(f"emreg {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        terminated = isinstance(exc, Terminated)
+        print(f"emreg {args.command}: interrupted ({'SIGTERM' if terminated else 'SIGINT'}); no partial file "
+              "was left in place of a complete one", file=sys.stderr)
+        return 143 if terminated else 130
     except OSError as exc:  # a file-system failure no specific check foresaw: still one line, exit 2
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
         print(f"emreg {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)

@@ -17,14 +17,19 @@ from __future__ import annotations
 import contextlib
 import enum
 import os
+import sys
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .errors import EMRegError
+from . import __version__
+from .errors import EMRegError, NoSafeAnswerError
 from .io.case import Case
 from .marker_model import MarkerModel
+from .outputs import STAGE_OUTPUTS, OutputFolder, all_output_names, check_outputs, refuse_out_over_inputs
 from .progress import QUIET, Progress
+from .provenance import BackgroundHash, Provenance, check_belongs, check_inputs_match, file_sha256
 from .settings import Settings
 
 if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only when used
@@ -77,6 +82,13 @@ class EMRegController:
         self.frame_calibration: FrameCalibration | None = None
         self.registration: RegistrationResult | None = None
         self.navigation: NavigationResult | None = None
+        self.evaluation: Evaluation | None = None
+        #: The command this controller serves (in warnings and provenance).
+        self.command = "emreg"
+        self._inputs: dict[str, tuple[str, str | BackgroundHash]] = {}  # role -> (path, sha256)
+        self._made_from: dict[str, Provenance] = {}  # output name -> provenance of the result held
+        self._output_sha: dict[str, str] = {}  # output name -> sha256 of the file written or read
+        self._report_image: sitk.Image | None = None  # the CT the report read, for the Slicer bundle
 
     @classmethod
     def for_case(cls, case: Case, progress: Progress | None = None) -> EMRegController:
@@ -119,6 +131,7 @@ class EMRegController:
             self.frame_calibration = None
         self.registration = None
         self.navigation = None
+        self.evaluation = None
 
     # --- inputs -----------------------------------------------------------------------------
 
@@ -280,10 +293,11 @@ class EMRegController:
         from .evaluation import evaluate
 
         with self.progress.step("evaluating"):
-            return evaluate(self.registration.reference_to_image, self.reference_sensor, self.probe_sensor,
-                            self.settings.evaluation, navigation=navigation, targets=targets, board=board,
-                            nominal_edges_mm=self.settings.board.edges_mm, error_model=self.error_model,
-                            tolerant=tolerant, not_evaluated=not_evaluated)
+            self.evaluation = evaluate(self.registration.reference_to_image, self.reference_sensor,
+                                       self.probe_sensor, self.settings.evaluation, navigation=navigation,
+                                       targets=targets, board=board, nominal_edges_mm=self.settings.board.edges_mm,
+                                       error_model=self.error_model, tolerant=tolerant, not_evaluated=not_evaluated)
+        return self.evaluation
 
     @property
     def probe_axis(self) -> str | None:
@@ -308,6 +322,311 @@ class EMRegController:
         return ErrorModel.with_priors(self.registration.reference_to_image, self.registration.error,
                                       priors.reference_error_mm, priors.reference_error_deg,
                                       priors.placement_error_mm)
+
+    # --- provenance and persistence -----------------------------------------------------------
+
+    def note_inputs(self, **paths: str | os.PathLike[str] | None) -> None:
+        """Record input files by role (``ct``, ``calibration``, ``navigation``, ``targets``, ``board``) for the
+        provenance of the outputs made from them; a CT is hashed on a thread while other work goes on."""
+        for role, path in paths.items():
+            if path is None:
+                continue
+            path = Path(path)
+            digest: str | BackgroundHash = BackgroundHash(path) if role == "ct" else file_sha256(path)
+            self._inputs[role] = (str(path), digest)
+
+    def _provenance(self, roles: tuple[str, ...], uses: tuple[str, ...]) -> Provenance:
+        """The provenance of an output made from the inputs ``roles`` and the upstream outputs ``uses``."""
+        inputs: dict[str, dict[str, str]] = {}
+        for name in uses:
+            if name in self._made_from:
+                inputs.update(self._made_from[name].inputs)
+        for role in roles:
+            if role in self._inputs:
+                path, digest = self._inputs[role]
+                inputs[role] = {"path": path, "sha256": digest if isinstance(digest, str) else digest.result()}
+        used = {name: self._output_sha[name] for name in uses if name in self._output_sha}
+        return Provenance(inputs, used, self.settings.digest(), self.settings.source, made_by=self.command)
+
+    def _recorded(self, folder: OutputFolder, stage: str, provenance: Provenance) -> None:
+        folder.record(STAGE_OUTPUTS[stage], provenance)
+        for name in STAGE_OUTPUTS[stage]:
+            if (folder.path / name).exists():
+                self._made_from[name] = provenance
+                self._output_sha[name] = folder.sha256(name)
+
+    def _read_output(self, name: str, path: Path, document_provenance: dict[str, Any] | None) -> None:
+        """An upstream output read from a file: checked to belong where it lies, remembered for provenance."""
+        check_belongs(path)
+        provenance = Provenance.from_json(document_provenance)
+        if provenance is not None:
+            self._made_from[name] = provenance
+        self._output_sha[name] = file_sha256(path)
+
+    def load_detection(self, path: str | os.PathLike[str]) -> DetectionResult:
+        """Use the markers of a ``markers.json`` (file or folder), checked to belong with its folder."""
+        from .detection import read_detection
+
+        path = Path(path)
+        path = path / "markers.json" if path.is_dir() else path
+        detection = read_detection(path)
+        self._read_output("markers.json", path, detection.provenance)
+        self.set_detection(detection)
+        return detection
+
+    def load_frame_calibration(self, path: str | os.PathLike[str]) -> FrameCalibration:
+        """Use the points of a ``frame_calibration.json``, checked to belong with its folder."""
+        from .calibration import read_frame_calibration
+
+        calibration = read_frame_calibration(path)
+        self._read_output("frame_calibration.json", Path(path), calibration.provenance)
+        self.set_frame_calibration(calibration)
+        return calibration
+
+    def load_registration(self, path: str | os.PathLike[str]) -> RegistrationResult:
+        """Use the transform of a ``registration.json``, checked as every consumer checks it (finite, rigid,
+        FRE within ``[registration] max_fre_mm``) and to belong with its folder (a stale registration left
+        in a reused output folder is refused)."""
+        from .registration import read_registration
+
+        path = Path(path)
+        path = path / "registration.json" if path.is_dir() else path
+        registration = read_registration(path, self.settings.registration.max_fre_mm)
+        self._read_output("registration.json", path, registration.provenance)
+        self.set_registration(registration)
+        return registration
+
+    def check_case_inputs(self, name: str, path: str | os.PathLike[str], case: Case) -> None:
+        """Refuse an upstream output (read with ``load_*``) made from another calibration recording or CT
+        than ``case``'s own."""
+        check_inputs_match(path, self._made_from.get(name), {"calibration": case.calibration, "ct": case.ct})
+
+    def save_detection(self, folder: OutputFolder) -> None:
+        """``markers.json`` and ``markers.mrk.json`` into ``folder`` (atomic, recorded with provenance)."""
+        from .detection import write_detection
+
+        self._require(detection=self.detection)
+        provenance = self._provenance(("ct",), ())
+        self.detection.provenance = provenance.to_json()
+        write_detection(self.detection, folder.path)
+        self._recorded(folder, "detect", provenance)
+
+    def save_frame_calibration(self, folder: OutputFolder) -> None:
+        """``frame_calibration.json`` into ``folder``."""
+        from .calibration import write_frame_calibration
+
+        self._require(frame_calibration=self.frame_calibration)
+        provenance = self._provenance(("calibration",), ())
+        self.frame_calibration.provenance = provenance.to_json()
+        write_frame_calibration(self.frame_calibration, folder.path / "frame_calibration.json")
+        self._recorded(folder, "calibrate", provenance)
+
+    def save_registration(self, folder: OutputFolder) -> None:
+        """``registration.json`` and ``ReferenceToImage.h5`` into ``folder``."""
+        from .registration import write_registration
+
+        self._require(registration=self.registration)
+        provenance = self._provenance(("targets",), ("markers.json", "frame_calibration.json"))
+        self.registration.provenance = provenance.to_json()
+        write_registration(self.registration, folder.path)
+        self._recorded(folder, "register", provenance)
+
+    def save_navigation(self, folder: OutputFolder) -> None:
+        """``navigation.csv`` into ``folder`` (its provenance lives in the folder's ``run.json``)."""
+        from .navigation import write_navigation_csv
+
+        self._require(navigation=self.navigation)
+        provenance = self._provenance(("navigation",), ("registration.json",))
+        write_navigation_csv(self.navigation, folder.path / "navigation.csv")
+        self._recorded(folder, "navigate", provenance)
+
+    def save_evaluation(self, folder: OutputFolder, evaluation: Evaluation) -> None:
+        """``evaluation.json`` into ``folder``."""
+        from .evaluation import write_evaluation
+
+        provenance = self._provenance(("navigation", "targets", "board"), ("registration.json",))
+        evaluation.provenance = provenance.to_json()
+        write_evaluation(evaluation, folder.path / "evaluation.json")
+        self._recorded(folder, "evaluate", provenance)
+
+    def save_report(self, folder: OutputFolder, case_dir: Path | None) -> Path:
+        """The verification report of ``folder`` (its outputs checked to belong together first); the CT
+        the report read is kept for the Slicer bundle (:meth:`save_bundle`)."""
+        from .report.writer import write_report_keeping_ct
+
+        used = self._adopt_outputs(folder)
+        page, self._report_image = write_report_keeping_ct(folder.path, case_dir=case_dir, progress=self.progress,
+                                                           image=self.image)
+        self._recorded(folder, "report", self._provenance((), tuple(used)))
+        return page
+
+    def _adopt_outputs(self, folder: OutputFolder) -> list[str]:
+        """The outputs present in ``folder``, checked to belong together; their sha256 kept for provenance."""
+        used = check_outputs(folder.path)
+        for name in used:
+            self._output_sha.setdefault(name, folder.sha256(name))
+        return used
+
+    def save_bundle(self, folder: OutputFolder, case_dir: Path | None) -> str:
+        """``EMReg.mrb``, the 3D Slicer scene of ``folder``'s outputs; a summary line. Optional: without
+        slicer-core, or when it cannot be written, the other outputs stand and a warning says why."""
+        from .io.slicer_scene import write_run_bundle
+
+        used = self._adopt_outputs(folder)
+        image = self.image if self.image is not None else self._report_image  # the CT is not read again
+        with self.progress.step("writing the 3D Slicer scene bundle"):
+            path, message = write_run_bundle(folder.path, case_dir, image)
+        if path is None:
+            self.warn([message])
+        else:
+            self._recorded(folder, "bundle", self._provenance((), tuple(used)))
+        return f"bundle: {message}"
+
+    # --- a whole run ---------------------------------------------------------------------------
+
+    def run(self, case: Case, out: str | os.PathLike[str], report: bool = True) -> list[str]:
+        """Every stage the case allows, in order, into the output folder ``out``; returns summary lines.
+
+        OUT is refused when it would overwrite an input of the case; the outputs of an earlier run are
+        moved to ``OUT/previous/`` before anything is written; every output is written atomically and
+        listed with its provenance in ``OUT/run.json``, which also records the case, the CT, the ports,
+        the summary and how the run ended (``status``: finished, refused, failed, interrupted). A stage
+        that refuses (no safe answer) leaves none of its own or later outputs. An evaluation that cannot
+        be made does not stop the run: the reason goes to ``run.json``, ``evaluation.json`` and stderr.
+        ``report=False`` leaves out the report and the Slicer bundle (3D Slicer without pyvista).
+        """
+        if case.ct is None:
+            raise EMRegError(f"{case.folder}: no CT found (ct.nrrd, ct.nii.gz, ct.mha or a ct/ DICOM folder)")
+        inputs = {"ct": case.ct, "calibration": case.calibration, "navigation": case.navigation,
+                  "targets": case.targets, "board": case.board}
+        settings_file = Path(self.settings.source) if self.settings.source else None
+        refuse_out_over_inputs(out, [p for p in (*inputs.values(), settings_file) if p],
+                               all_output_names(), case.folder)
+        self.command = self.command if self.command != "emreg" else "emreg run"
+        self.note_inputs(**inputs)
+        folder = OutputFolder(out, self.command)
+        summary: list[str] = []
+        stage = "start"
+        steps = (("detect", self._run_detect), ("calibrate", self._run_calibrate), ("register", self._run_register),
+                 ("navigate", self._run_navigate), ("evaluate", self._run_evaluate), ("tre_map", self._run_tre_map))
+        if report:
+            steps += (("report", self._run_report), ("bundle", self._run_bundle))
+        try:
+            folder.start_run(self._run_record(case, summary))
+            for name, step in steps:
+                stage = name  # named in run.json if this stage fails
+                step(case, folder, summary)
+        except NoSafeAnswerError as exc:
+            folder.remove_from(stage)
+            summary.append(f"{stage}: refused: {exc}")
+            folder.finish("refused", f"{stage}: {exc}")
+            raise
+        except EMRegError as exc:
+            folder.finish("failed", f"{stage}: {exc}")
+            raise
+        except KeyboardInterrupt as exc:
+            folder.finish("interrupted", f"{stage}: {exc or 'interrupted'}")
+            raise
+        folder.finish("finished")
+        return summary
+
+    def _run_record(self, case: Case, summary: list[str]) -> dict[str, Any]:
+        return {"case": str(case.folder.resolve()), "ct": str(case.ct.resolve()), "emreg_version": __version__,
+                "reference_sensor": self.reference_sensor, "probe_sensor": self.probe_sensor,
+                "summary": summary, "not_evaluated": {}, "settings_file": self.settings.source,
+                "settings_sha256": self.settings.digest(), "settings": self.settings.to_json()}
+
+    def _run_detect(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
+        detection = self.load_ct_and_detect(case.ct)
+        self.save_detection(folder)
+        if detection.ct_series is not None:
+            folder.manifest["ct_series"] = detection.ct_series
+        summary.append(f"detect: {len(detection.markers)} markers, {len(detection.rejected)} rejected")
+
+    def _run_calibrate(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
+        if case.calibration is None:
+            return
+        self.load_calibration_recording(case.calibration)
+        calibration = self.calibrate_frame()
+        self.save_frame_calibration(folder)
+        if self.detection is None:  # otherwise the registration repeats them
+            self.warn(calibration.warnings)
+        summary.append(f"calibrate: {len(calibration.points)} pinholes")
+
+    def _run_register(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
+        if self.detection is None or self.frame_calibration is None:
+            return
+        targets = case.read_targets()
+        registration = self.register(None if targets is None else targets[1])
+        self.save_registration(folder)
+        self.warn(registration.warnings)
+        summary.append(f"register: FRE {registration.fre_mm:.2f} mm, l = {registration.sensor_offset_l_mm:.2f} mm, "
+                       f"{len(registration.pairs)} pairs")
+
+    def _run_navigate(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
+        if self.registration is None or case.navigation is None:
+            return
+        try:
+            recording = case.read_recording("navigation")
+            navigation = self.navigate_recording(recording)
+        except NoSafeAnswerError:
+            raise
+        except EMRegError as exc:  # the registration stands; an unusable navigation recording is reported
+            folder.manifest["not_evaluated"]["navigation"] = str(exc)
+            self.warn([f"navigation not made: {exc}"])
+            summary.append(f"navigate: not made: {exc}")
+            return
+        self.warn(recording.warnings)
+        self.save_navigation(folder)
+        summary.append(f"navigate: {len(navigation)} probe samples")
+
+    def _run_evaluate(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
+        """The optional evaluation: a part that cannot be made is "not evaluated" with its reason in
+        ``run.json``, ``evaluation.json``, the report and on stderr; the run goes on."""
+        if self.registration is None or (case.navigation is None and case.board is None):
+            return
+        unreadable: dict[str, str] = {}
+        inputs: dict[str, Any] = {}
+        for part, read in (("tre", lambda: (case.read_recording("navigation"), case.read_targets())),
+                           ("board", lambda: case.read_recording("board"))):
+            try:
+                inputs[part] = read()
+            except NoSafeAnswerError:
+                raise
+            except EMRegError as exc:  # an unreadable optional recording: that part is not evaluated
+                unreadable[part] = str(exc)
+        navigation, targets = inputs.get("tre") or (None, None)
+        evaluation = self.evaluate(navigation, targets, inputs.get("board"), tolerant=True, not_evaluated=unreadable)
+        for part, reason in evaluation.not_evaluated.items():
+            folder.manifest["not_evaluated"][part] = reason
+            self.warn([f"{'TRE' if part == 'tre' else part} not evaluated: {reason}"])
+        self.save_evaluation(folder, evaluation)
+        summary.extend(evaluation.summary())
+
+    def _run_tre_map(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
+        """``tre_map.nrrd``: the predicted RMS TRE over the CT's space (with the measured tracking error)."""
+        if self.error_model is None:
+            return
+        from .tre_map import write_tre_map
+
+        evaluation = self.evaluation
+        tracking_rms = evaluation.tre.tracking_rms_mm if evaluation is not None and evaluation.tre else None
+        write_tre_map(folder.path / "tre_map.nrrd", self.error_model, self.detection.image,
+                      None if tracking_rms is None else tracking_rms**2)
+        uses = ("registration.json", "evaluation.json") if evaluation is not None else ("registration.json",)
+        self._recorded(folder, "tre_map", self._provenance((), uses))
+
+    def _run_report(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
+        page = self.save_report(folder, case.folder)
+        summary.append(f"report: {page}")
+
+    def _run_bundle(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
+        summary.append(self.save_bundle(folder, case.folder))
+
+    def warn(self, warnings: list[str]) -> None:
+        """A stage's warnings (also kept in its output) on stderr, one line each (even when quiet)."""
+        for warning in warnings:
+            print(f"{self.command}: warning: {warning}", file=sys.stderr)
 
     def describe(self) -> str:
         """A one-line summary of the state for logs and the Slicer module's status label."""

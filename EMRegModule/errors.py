@@ -25,6 +25,3 @@ class NoSafeAnswerError(EMRegError):
 
     exit_code = EXIT_NO_SAFE_ANSWER
 
-
-class StageNotAvailableError(EMRegError):
-    """A workflow stage that this build does not provide yet."""

@@ -259,6 +259,7 @@ class Evaluation:
     extra: dict[str, Any] = field(default_factory=dict)
     #: parts that could not be evaluated (``tre``, ``board``) and why (``emreg run``: the run still finishes)
     not_evaluated: dict[str, str] = field(default_factory=dict)
+    provenance: dict[str, Any] | None = None  # what it was made from (``EMRegModule.provenance``)
 
     def to_json(self) -> dict[str, Any]:
         """The ``evaluation.json`` document (spec keys; values rounded to 4 decimals)."""
@@ -272,6 +273,8 @@ class Evaluation:
         if self.warnings:
             document["warnings"] = list(self.warnings)
         document.update(self.extra)
+        if self.provenance is not None:
+            document["provenance"] = self.provenance
         return document
 
     @classmethod
@@ -283,8 +286,10 @@ class Evaluation:
             return cls(None if tre is None else TargetEvaluation.from_json(tre),
                        None if board is None else BoardEvaluation.from_json(board),
                        [str(w) for w in document.get("warnings", [])],
-                       {k: v for k, v in document.items() if k not in ("tre", "board", "warnings", "not_evaluated")},
-                       {str(k): str(v) for k, v in (document.get("not_evaluated") or {}).items()})
+                       {k: v for k, v in document.items()
+                        if k not in ("tre", "board", "warnings", "not_evaluated", "provenance")},
+                       {str(k): str(v) for k, v in (document.get("not_evaluated") or {}).items()},
+                       document["provenance"] if isinstance(document.get("provenance"), dict) else None)
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise EMRegError(f"{source}: not an evaluation file ({exc!s:.100})") from None
 

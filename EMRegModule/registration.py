@@ -85,6 +85,7 @@ class RegistrationResult:
     warnings: list[str] = field(default_factory=list)
     pairing: dict[str, Any] = field(default_factory=dict)
     probe_axis: dict[str, Any] = field(default_factory=dict)
+    provenance: dict[str, Any] | None = None  # what it was made from (``EMRegModule.provenance``)
 
     @property
     def outliers(self) -> list[str]:
@@ -119,6 +120,8 @@ class RegistrationResult:
             document["predicted_registration_tre_mm"] = [_round(v) for v in self.predicted_tre_mm]
         if self.error is not None:
             document["error_model"] = self.error.to_json()
+        if self.provenance is not None:
+            document["provenance"] = self.provenance
         return document
 
     @classmethod
@@ -157,6 +160,7 @@ class RegistrationResult:
                 warnings=[str(w) for w in document.get("warnings", [])],
                 pairing=dict(document.get("pairing", {})),
                 probe_axis=dict(document.get("probe_axis") or {}),
+                provenance=document["provenance"] if isinstance(document.get("provenance"), dict) else None,
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise EMRegError(f"{source}: not a registration file ({exc!s:.100})") from None

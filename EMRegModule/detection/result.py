@@ -84,6 +84,7 @@ class DetectionResult:
     image: dict[str, Any] = field(default_factory=dict)
     ct_series: dict[str, Any] | None = None  # a DICOM CT: the series used and the others (``io.dicom_series``)
     band: dict[str, Any] | None = None  # the intensity band used (low_hu, high_hu, source, marker_hu)
+    provenance: dict[str, Any] | None = None  # what it was made from (``EMRegModule.provenance``)
 
     def __len__(self) -> int:
         return len(self.markers)
@@ -113,6 +114,8 @@ class DetectionResult:
             document["band"] = self.band
         if self.ct_series is not None:
             document["ct_series"] = self.ct_series
+        if self.provenance is not None:
+            document["provenance"] = self.provenance
         return document
 
     @classmethod
@@ -143,8 +146,9 @@ class DetectionResult:
         if len(set(ids)) != len(ids):
             raise EMRegError(f"{source}: marker ids must be unique")
         series, band = document.get("ct_series"), document.get("band")
+        provenance = document.get("provenance")
         return cls(markers, rejected, dict(document.get("image", {})), series if isinstance(series, dict) else None,
-                   band if isinstance(band, dict) else None)
+                   band if isinstance(band, dict) else None, provenance if isinstance(provenance, dict) else None)
 
 
 def write_detection(result: DetectionResult, out_dir: str | os.PathLike[str]) -> None:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import importlib.util
 import os
 import signal
 import sys
@@ -22,7 +21,6 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EMRegError
-from ..settings import load_settings
 from ..transforms import is_rigid
 from . import trakstar_protocol as tp
 from .igtl_server import DEFAULT_PORT
@@ -32,6 +30,8 @@ from .link_quality import guard_for
 
 
 def _sensor_ports(args: argparse.Namespace) -> tuple[int, int]:
+    from ..settings import load_settings  # here, not at the top: `emreg --help` imports this module
+
     settings = load_settings(getattr(args, "settings", None), required=True)
     sensors = settings.with_sensors(args.reference_sensor, args.probe_sensor).sensors
     return sensors.reference, sensors.probe
@@ -54,18 +54,15 @@ def load_reference_to_image(path: str, settings_path: str | None = None) -> np.n
     """``ReferenceToImage`` (4x4, mm, LPS) from ``registration.json`` (via the registration module).
 
     The file is checked as every consumer checks it (finite, rigid, FRE within ``max_fre_mm`` of
-    the settings file when given).
+    the settings file when given, and belonging to the run recorded beside it: no stale registration).
     """
-    if importlib.util.find_spec("EMRegModule.registration") is not None:
-        from ..registration import max_fre_from_settings, read_registration
+    from ..provenance import check_belongs
+    from ..registration import max_fre_from_settings, read_registration
+    from ..settings import load_settings
 
-        settings = load_settings(settings_path, required=True)
-        matrix = np.asarray(read_registration(path, max_fre_from_settings(settings)).reference_to_image, dtype=float)
-    else:  # pragma: no cover - only before the registration stage exists
-        from ..io.atomic import read_json
-
-        data = read_json(Path(path), "registration JSON")
-        matrix = np.asarray(data.get("ReferenceToImage"), dtype=float)
+    settings = load_settings(settings_path, required=True)
+    matrix = np.asarray(read_registration(path, max_fre_from_settings(settings)).reference_to_image, dtype=float)
+    check_belongs(Path(path) / "registration.json" if Path(path).is_dir() else Path(path))
     if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)) or not is_rigid(matrix, 1e-4):
         raise EMRegError(f"{path}: ReferenceToImage is not a rigid 4x4 transform")
     return matrix

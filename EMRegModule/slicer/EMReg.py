@@ -319,6 +319,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     TRANSFORM_NODE_NAME = "ReferenceToImage"
     PROBE_NODE_NAME = "ProbeToReference"
     CONNECTOR_NODE_NAME = "EMReg OpenIGTLink"
+    COMMAND = "EMReg (3D Slicer)"
 
     def __init__(self, settings=None, scene=None):
         ScriptedLoadableModuleLogic.__init__(self)
@@ -327,6 +328,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
         self._scene = scene
         self.controller = EMRegController(settings)
+        self.controller.command = self.COMMAND
         self.case = None
         self.outputDirectory = None
         self.reportPath = None
@@ -356,6 +358,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         if case.ct is None:
             raise EMRegError(f"{case.folder}: no CT found (ct.nrrd, ct.nii.gz, ct.mha or a ct/ DICOM folder)")
         self.controller = EMRegController.for_case(case)  # sensor ports from case.toml (default 1 and 2)
+        self.controller.command = self.COMMAND
         self.case = case
         self.outputDirectory = Path(outputDirectory) if outputDirectory else case.folder / "emreg-output"
         self.outputDirectory.mkdir(parents=True, exist_ok=True)
@@ -363,6 +366,8 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         self.evaluation = None
         self.probeToReference = None
         self.controller.load_ct(case.ct)
+        self.controller.note_inputs(ct=case.ct, calibration=case.calibration, navigation=case.navigation,
+                                    targets=case.targets, board=case.board)  # provenance of the outputs
         if case.calibration is not None:
             self.controller.load_calibration_recording(case.calibration)
         self.showVolume()
@@ -379,33 +384,27 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
     def calibrateFrame(self):
         """Frame calibration (one point per pinhole, Reference frame); writes ``frame_calibration.json``."""
-        from EMRegModule.calibration import write_frame_calibration
-
         result = self.controller.calibrate_frame()
-        write_frame_calibration(result, self._output("frame_calibration.json"))
+        self.controller.save_frame_calibration(self._outputs("calibrate"))
         self.showResults()
         return result
 
     def detectMarkers(self):
         """Marker detection in the CT; writes ``markers.json`` and shows the markers (RAS)."""
-        from EMRegModule.detection import write_detection
-
         result = self.controller.detect_markers()
-        write_detection(result, self.outputDirectory or self._output(""))
+        self.controller.save_detection(self._outputs("detect"))
         self.showResults()
         return result
 
     def register(self):
         """Pairing, sensor offset and ``ReferenceToImage``; writes ``registration.json`` and the .h5 file."""
-        from EMRegModule.registration import write_registration
-
         targets = None
         if self.case is not None and self.case.targets is not None:
             from EMRegModule.io.markups import read_markups
 
             targets = read_markups(self.case.targets)[1]
         result = self.controller.register(targets)
-        write_registration(result, self.outputDirectory or self._output(""))
+        self.controller.save_registration(self._outputs("register"))
         self.showResults()
         return result
 
@@ -415,56 +414,58 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         under ``ReferenceToImage``)."""
         from EMRegModule.errors import EMRegError
         from EMRegModule.io.recording import read_recording
-        from EMRegModule.navigation import write_navigation_csv
-        from EMRegModule.tracking import probe_in_reference
 
         if self.case is None or self.case.navigation is None:
             raise EMRegError("the case has no navigation.csv to replay")
         recording = read_recording(self.case.navigation, self.case.settings, self.controller.reference_sensor,
                                    self.controller.probe_sensor)
         result = self.controller.navigate_recording(recording)
-        write_navigation_csv(result, self._output("navigation.csv"))
-        # the last probe pose straight from the recording (Reference frame); Slicer composes it with ReferenceToRAS
-        inReference = probe_in_reference(recording, self.controller.reference_sensor, self.controller.probe_sensor)
-        self.probeToReference = inReference.probe_to_reference[-1]
+        self.controller.save_navigation(self._outputs("navigate"))
+        self._lastProbePose(recording)
         self.evaluate()
         self.showResults()
         return result
 
     def evaluate(self):
         """TRE at the targets and the board table when the case has the recordings; writes ``evaluation.json``."""
-        from EMRegModule.evaluation import write_evaluation
-
         if self.case is None or (self.case.navigation is None and self.case.board is None):
             return None
         self.evaluation = self.controller.evaluate(self.case.read_recording("navigation"), self.case.read_targets(),
                                                    self.case.read_recording("board"))
-        write_evaluation(self.evaluation, self._output("evaluation.json"))
+        self.controller.save_evaluation(self._outputs("evaluate"), self.evaluation)
         return self.evaluation
 
     def writeReport(self):
         """The verification report ``report.html`` of the output folder (offscreen rendering)."""
-        from EMRegModule.report import write_report
-
-        self.reportPath = write_report(self.outputDirectory, case_dir=self.case.folder if self.case else None)
+        self.reportPath = self.controller.save_report(self._outputs("report"), self.case.folder if self.case else None)
         return self.reportPath
 
     def runAll(self):
-        """Every available step in order, as ``emreg run`` does."""
-        if self.controller.calibration_recording is not None:
-            self.calibrateFrame()
-        self.detectMarkers()
-        if self.controller.frame_calibration is not None:
-            self.register()
-            if self.case is not None and self.case.navigation is not None:
-                self.navigateRecording()
-            else:
-                self.evaluate()
-        if importlib.util.find_spec("pyvista") is not None and importlib.util.find_spec("cv2") is not None:
-            self.writeReport()
-        else:
+        """Every step in order: the controller's run, the same as ``emreg run`` (output folder, ``run.json``,
+        provenance); then the results are shown in the scene."""
+        from EMRegModule.errors import EMRegError
+
+        if self.case is None:
+            raise EMRegError("load a case first")
+        report = importlib.util.find_spec("pyvista") is not None and importlib.util.find_spec("cv2") is not None
+        if not report:
             logging.warning("EMReg: the report needs pyvista and opencv-python-headless; skipped")
+        summary = self.controller.run(self.case, self.outputDirectory, report=report)
+        self.evaluation = self.controller.evaluation
+        if self.controller.navigation is not None:
+            self._lastProbePose(self.case.read_recording("navigation"))
+        page = self.outputDirectory / "report.html"
+        self.reportPath = page if report and page.is_file() else None
         self.showResults()
+        return summary
+
+    def _lastProbePose(self, recording):
+        """The last probe pose straight from the recording (Reference frame); Slicer composes it with
+        ReferenceToRAS."""
+        from EMRegModule.tracking import probe_in_reference
+
+        inReference = probe_in_reference(recording, self.controller.reference_sensor, self.controller.probe_sensor)
+        self.probeToReference = inReference.probe_to_reference[-1]
 
     # --- live navigation ----------------------------------------------------------------------------
 
@@ -503,13 +504,17 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         self.nodes = {}
         self.connectorNode = None
 
-    def _output(self, name):
+    def _outputs(self, stage):
+        """The output folder for one step: that step's earlier outputs and those of later steps move to
+        ``previous/`` (stale once this step has a new result)."""
         from EMRegModule.errors import EMRegError
+        from EMRegModule.outputs import OutputFolder
 
         if self.outputDirectory is None:
             raise EMRegError("load a case (or set an output folder) first")
-        self.outputDirectory.mkdir(parents=True, exist_ok=True)
-        return self.outputDirectory / name
+        folder = OutputFolder(self.outputDirectory, self.COMMAND)
+        folder.start_stage(stage)
+        return folder
 
     def showVolume(self):
         """The controller's CT as a scalar volume node (IJK-to-RAS from the image's LPS geometry)."""

@@ -9,7 +9,6 @@ import pytest
 from synth_registration import calibration_recording, make_frame, pairing_problem
 
 from EMRegModule.calibration import CalibrationPoint, FrameCalibration, calibrate_frame
-from EMRegModule.cli import stage_available
 from EMRegModule.errors import EMRegError, NoSafeAnswerError
 from EMRegModule.io.itk_transform import read_slicer_linear_transform
 from EMRegModule.marker_model import MarkerModel
@@ -192,8 +191,6 @@ def _write_inputs(problem, folder):
     write_frame_calibration(calibration, folder / "frame_calibration.json")
 
 
-@pytest.mark.skipif(not stage_available("detection"),
-                    reason="marker detection (read_detection) not built yet")
 def test_emreg_register_command_and_its_refusal_of_a_symmetric_frame(tmp_path, capsys):
     from synth_registration import symmetric_layout
 

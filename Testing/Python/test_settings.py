@@ -150,7 +150,7 @@ def test_readme_settings_table_lists_every_key():
     """The README's settings table names every key of every optional table, and no other."""
     from pathlib import Path
 
-    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text(encoding="utf-8")
     rows = {m.group(1): m.group(2) for m in re.finditer(r"^ *\| `\[(\w+)\]` \| (.*) \|$", readme, re.M)}
     for table in ("detection", "calibration", "registration", "evaluation", "report"):
         documented = set(re.findall(r"`(\w+)`", rows[table]))
