@@ -5,7 +5,8 @@ Protocol facts and their sources are in :mod:`.trakstar_protocol`. What the driv
 - Framing: records are found by the phasing bit; a record is used only if it passes every check of
   :class:`~.trakstar_protocol.RecordParser` (start byte, no stray phasing bit, exact length,
   group-mode address, followed by a record start when that byte is already there, no long silence
-  inside it) *and* its values are possible (:func:`~.trakstar_protocol.record_values_plausible`).
+  inside it while the reader was waiting on the line: bytes found already waiting say nothing about
+  silences) *and* its values are possible (:func:`~.trakstar_protocol.record_values_plausible`).
   Anything else is dropped and counted; the parser resynchronises on the next record start. No
   pose is ever made from a record that failed these checks.
 - Limits of the protocol: records carry no checksum, so a flipped *data* bit (bits 0..6) that keeps
@@ -346,6 +347,8 @@ class TrakstarDriver:
         ser = self.serial
         try:
             while not self._stop_reader.is_set():
+                # bytes already waiting: the reader is late, and how late says nothing about the line
+                late = ser.in_waiting > 0
                 chunk = ser.read(1)
                 if not chunk:
                     continue
@@ -353,7 +356,7 @@ class TrakstarDriver:
                 if waiting:
                     chunk += ser.read(waiting)
                 t_ns = time.monotonic_ns()
-                records = self.parser.feed(chunk, t_ns)
+                records = self.parser.feed(chunk, t_ns, timed=not late)
                 for data, end in zip(records, self.parser.ends, strict=True):
                     address = data[-1] & 0x7F if self.group_mode else 1
                     new_frame = self._starts_cycle(address, end, len(data))

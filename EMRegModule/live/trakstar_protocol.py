@@ -494,15 +494,19 @@ class RecordParser:
         self.addresses = None if addresses is None else frozenset(addresses)
         self.reset()
 
-    def feed(self, data: bytes, t_ns: int) -> list[bytes]:
-        """Consume bytes received at ``t_ns`` (monotonic); return the complete valid records."""
+    def feed(self, data: bytes, t_ns: int, timed: bool = True) -> list[bytes]:
+        """Consume bytes received at ``t_ns`` (monotonic); return the complete valid records.
+
+        ``timed=False``: the bytes had been waiting in the input buffer before the read began, so the
+        host's clock says nothing about a silence on the line before them (a late reader is not a
+        silent line): the gap check is not applied to them."""
         out: list[bytes] = []
         ends: list[int] = []
         base = self.offset
         self.offset += len(data)
         self.ends = ends
         current = self._current
-        if current and t_ns - self._last_byte_ns > self.max_gap_ns:
+        if current and timed and t_ns - self._last_byte_ns > self.max_gap_ns:
             self.stats.gap_errors += 1
             current.clear()
         self._last_byte_ns = t_ns

@@ -177,6 +177,49 @@ def test_stream_cycles_stay_whole_when_the_reader_is_late(sim, driver):
     assert_whole_cycles(got)
 
 
+class _UsbChunks:
+    """A serial port whose reads return at most ``size`` bytes, as a USB-serial adapter delivers its
+    packets: a record often arrives in two reads."""
+
+    def __init__(self, inner, size: int = 20) -> None:
+        self.inner = inner
+        self.size = size
+
+    def read(self, n: int) -> bytes:
+        return self.inner.read(min(n, self.size))
+
+    @property
+    def in_waiting(self) -> int:
+        return min(self.inner.in_waiting, self.size - 1)
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
+def test_a_late_reader_is_not_a_silent_line(sim, driver):
+    """Records split across reads by the adapter, and a reader late by more than the gap limit (60 ms
+    here): no byte was lost and the line never fell silent, so no record may be dropped as interrupted."""
+    driver.configure("POSITION/ANGLES", metal=True, group=True, rate_hz=80.0)
+    serial_port = driver.serial
+    driver.serial = _UsbChunks(serial_port)
+    got = []
+
+    def late_reader(sample):
+        got.append(sample)
+        if sample.sensor == 2:
+            time.sleep(0.06)
+
+    try:
+        driver.start_stream(late_reader)
+        assert wait_for(lambda: len(got) >= 4 * 25)
+        driver.stop_stream()
+    finally:
+        driver.serial = serial_port
+    assert driver.stats.gap_errors == 0 and driver.stats.rejected == 0, driver.stats
+    assert assert_subsequence_of_truth(got, sim.truth, 36) == len(got)
+    assert_whole_cycles(got)
+
+
 def test_faults_never_yield_a_wrong_pose():
     faults = FaultPlan(drop=0.004, flip=0.004)
     with TrackerSimulator(keep_truth=True, seed=7, faults=faults, fast=True) as sim, \

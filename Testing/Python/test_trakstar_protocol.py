@@ -135,6 +135,12 @@ def test_parser_rejects_wrong_address_extra_byte_and_long_silence():
     assert parser.feed(records[0][:6], 0) == []
     assert parser.feed(records[0][6:] + records[1], 50_000_000) == [records[1]]
     assert parser.stats.gap_errors == 1
+    assert parser.ends == [parser.offset]  # where the accepted record ended in the byte stream
+    # ... but bytes that were already waiting when a late reader read them say nothing about the line
+    parser = RecordParser(14, frozenset({1, 2, 3, 4}), max_gap_ns=10_000_000)
+    assert parser.feed(records[0][:6], 0) == []
+    assert parser.feed(records[0][6:] + records[1], 50_000_000, timed=False) == [records[0], records[1]]
+    assert parser.stats.gap_errors == 0 and parser.ends == [14, 28]
 
 
 def test_value_checks_reject_impossible_orientations():
