@@ -243,35 +243,6 @@ def fre(a_to_b: ArrayLike, points_a: ArrayLike, points_b: ArrayLike) -> float:
     return float(np.sqrt(np.mean(residuals(a_to_b, points_a, points_b) ** 2)))
 
 
-def predicted_tre(fiducials: ArrayLike, fle_rms_mm: float, targets: ArrayLike) -> Array:
-    """Expected RMS TRE (mm) at each target from the RMS FLE (Fitzpatrick, West & Maurer 1998).
-
-    ``TRE^2(r) = FLE^2 / N * (1 + 1/3 * sum_k d_k^2 / f_k^2)`` where ``d_k`` is the target's
-    distance from principal axis k of the fiducial configuration and ``f_k`` the RMS distance
-    of the fiducials from that axis. ``fle_rms_mm`` is the RMS (isotropic) localisation
-    error of one fiducial; fiducials and targets share one frame.
-    """
-    fiducials = np.asarray(fiducials, dtype=float)
-    targets = np.atleast_2d(np.asarray(targets, dtype=float))
-    if fiducials.ndim != 2 or fiducials.shape[0] < 3:
-        raise ValueError("predicted_tre needs at least 3 fiducials")
-    centroid = fiducials.mean(axis=0)
-    centred = fiducials - centroid
-    _, eigenvectors = np.linalg.eigh(centred.T @ centred)
-    ratio = np.zeros(len(targets))
-    for k in range(3):
-        axis = eigenvectors[:, k]
-        f_k2 = np.mean(_squared_distance_from_axis(centred, axis))
-        d_k2 = _squared_distance_from_axis(targets - centroid, axis)
-        ratio += d_k2 / f_k2
-    return np.sqrt(fle_rms_mm**2 / len(fiducials) * (1.0 + ratio / 3.0))
-
-
-def _squared_distance_from_axis(points: Array, unit_axis: Array) -> Array:
-    along = points @ unit_axis
-    return np.sum(points**2, axis=-1) - along**2
-
-
 def rotation_angle_deg(rotation_a: ArrayLike, rotation_b: ArrayLike) -> float:
     """Angle in degrees of the rotation taking ``rotation_a`` to ``rotation_b`` (3x3 each)."""
     relative = np.asarray(rotation_a, dtype=float)[:3, :3].T @ np.asarray(rotation_b, dtype=float)[:3, :3]

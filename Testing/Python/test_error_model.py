@@ -141,3 +141,40 @@ def test_end_to_end_budget_adds_tracking_reference_and_registration():
     arms = np.linalg.norm(apply_transform(invert_rigid(reference_to_image), targets), axis=1)
     assert (budget.reference_ms[1] > budget.reference_ms[0]) == (arms[1] > arms[0])
     assert np.allclose(budget.rms_mm**2, budget.registration_ms + budget.tracking_ms + budget.reference_ms + 0.09)
+
+
+def _fitzpatrick_tre(fiducials: np.ndarray, fle_rms_mm: float, targets: np.ndarray) -> np.ndarray:
+    """Fitzpatrick, West & Maurer 1998, written out here as an independent closed form:
+    ``TRE^2 = FLE^2 / N (1 + 1/3 sum_k d_k^2 / f_k^2)`` over the principal axes k of the fiducials."""
+    centred = fiducials - fiducials.mean(axis=0)
+    _, axes = np.linalg.eigh(centred.T @ centred)
+    ratio = np.zeros(len(targets))
+    for k in range(3):
+        def off_axis(points, axis=axes[:, k]):
+            return np.sum(points**2, axis=1) - (points @ axis) ** 2
+
+        ratio += off_axis(targets - fiducials.mean(axis=0)) / np.mean(off_axis(centred))
+    return np.sqrt(fle_rms_mm**2 / len(fiducials) * (1.0 + ratio / 3.0))
+
+
+def test_isotropic_equal_errors_with_fixed_l_reduce_to_fitzpatricks_formula():
+    rng = np.random.default_rng(7)
+    fiducials = rng.uniform(-80, 80, size=(8, 3)) * [1.0, 0.6, 0.3] + [40.0, -20.0, 100.0]
+    targets = np.array([[0, 0, 0], [60, 40, 100.0], [150, -20, 10]])
+    fle_rms = 1.0
+    covariance = registration_covariance(fiducials, np.tile(fle_rms**2 / 3 * np.eye(3), (8, 1, 1)))
+    ours = np.sqrt(np.trace(covariance.at(targets), axis1=-2, axis2=-1))
+    np.testing.assert_allclose(ours, _fitzpatrick_tre(fiducials, fle_rms, targets), rtol=1e-9)
+
+
+def test_agrees_with_scikit_surgery_where_its_formula_holds():
+    """scikit-surgerycore's ``compute_tre_from_fle`` reads eigenvectors as rows, right only for a configuration
+    whose principal axes are the coordinate axes and whose centroid is the origin: compare there only."""
+    errors = pytest.importorskip("sksurgerycore.algorithms.errors")
+    fiducials = np.array([[-50, 0, 0], [50, 0, 0], [0, -30, 0], [0, 30, 0], [0, 0, -10], [0, 0, 10.0]])
+    covariance = registration_covariance(fiducials, np.tile(0.5**2 / 3 * np.eye(3), (6, 1, 1)))
+    for target in ([0, 0, 0], [20, 40, 60], [100, -5, 3]):
+        tre_squared = errors.compute_tre_from_fle(fiducials, 0.5**2, np.array([target], dtype=float))
+        ours = np.trace(covariance.at(np.array([target], dtype=float))[0])
+        assert ours == pytest.approx(tre_squared, rel=1e-9)
+
