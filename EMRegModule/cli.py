@@ -347,19 +347,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def slicer_bundle(out: Path, case_dir: Path | None = None, image=None, progress: Progress | None = None) -> str:
-    """Write ``OUT/EMReg.mrb`` (3D Slicer scene bundle) from the outputs in OUT; one summary line.
-
-    Optional: without slicer-core, or when the bundle cannot be written (disk full, no
-    permission), the rest of the outputs stand, a warning says why and the exit code is unchanged.
-    """
-    from .io.slicer_scene import write_run_bundle
-
-    with (progress or Progress(enabled=False)).step("writing the 3D Slicer scene bundle"):
-        path, message = write_run_bundle(out, case_dir, image)
-    return _bundle_line(path, message)
-
-
 def _bundle_line(path, message: str) -> str:
     """The summary line of a scene bundle; one that could not be written is also a warning."""
     if path is None:
