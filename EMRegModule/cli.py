@@ -382,6 +382,17 @@ def _add_series_option(parser: argparse.ArgumentParser) -> None:
                              "volume best for detection)")
 
 
+def _add_study_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("name", metavar="NAME", help="calibration, board, tre, noise, markers or prediction")
+    p.add_argument("--out", required=True, metavar="DIR")
+    p.add_argument("--quick", action="store_true", help="a small frame and few sessions (a smoke-sized run)")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="an existing Dask scheduler (default: a local one)")
+    p.add_argument("--workers", type=int, default=None, metavar="N", help="local worker processes (default 2)")
+    p.add_argument("--case", metavar="CASE", help="a simulated case folder with truth.json (default: simulate one)")
+    p.add_argument("--work", metavar="DIR", help="where the simulated case and its detection are kept (OUT/work)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the simulated case")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``emreg`` argument parser with every subcommand."""
     parser = _Parser(prog="emreg", description="Automatic patient-to-image registration for EM navigation.")
@@ -461,15 +472,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--spacing", type=float, default=None, metavar="MM")
 
-    p = add("study", cmd_study, "an accuracy study on simulated data, run on Dask: OUT/NAME.json, .csv, .png")
-    p.add_argument("name", metavar="NAME", help="calibration, board, tre, noise, markers or prediction")
-    p.add_argument("--out", required=True, metavar="DIR")
-    p.add_argument("--quick", action="store_true", help="a small frame and few sessions (a smoke-sized run)")
-    p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="an existing Dask scheduler (default: a local one)")
-    p.add_argument("--workers", type=int, default=None, metavar="N", help="local worker processes (default 2)")
-    p.add_argument("--case", metavar="CASE", help="a simulated case folder with truth.json (default: simulate one)")
-    p.add_argument("--work", metavar="DIR", help="where the simulated case and its detection are kept (OUT/work)")
-    p.add_argument("--seed", type=int, default=1, help="seed of the simulated case")
+    _add_study_arguments(add("study", cmd_study,
+                             "an accuracy study on simulated data, run on Dask: OUT/NAME.json, .csv, .png"))
 
     for name, add_arguments, run, help_text in live.SUBCOMMANDS:
         p = add(name, run, help_text)
