@@ -436,10 +436,10 @@ def sensors_from_text(text: str | None) -> tuple[int, ...]:
 
 # --- the live source behind aurora:// URLs --------------------------------------------------------------
 
-from .sources import SampleSource  # noqa: E402  (sources imports this module lazily)
+from .sources import DriverSource  # noqa: E402  (sources imports this module lazily)
 
 
-class AuroraSource(SampleSource):
+class AuroraSource(DriverSource):
     """An Aurora (or the simulator) polled through :class:`AuroraDriver`; samples per tool and frame.
 
     URL options: ``baud`` (default 115200), ``reply`` (auto, bx, tx), ``five_dof`` (sensor numbers of
@@ -450,6 +450,7 @@ class AuroraSource(SampleSource):
     #: Worst acceptable RMS error (mm) when ``--max-quality`` is not given (choice: a clean Aurora solution
     #: reports a few hundredths to tenths of a millimetre; the simulator's distortion fault reports 2.5).
     default_max_quality = 1.0
+    watch_name = "aurora-watch"
 
     def __init__(self, url) -> None:
         super().__init__()
@@ -466,7 +467,6 @@ class AuroraSource(SampleSource):
                           for t in self.driver.tools)
         self.description = (f"Aurora on {url.path} at {url.baud} baud ({self.driver.freeze_tag or 'firmware ?'}, "
                             f"{'BX' if self.driver.use_bx else 'TX'}; {tools})")
-        self._watch: threading.Thread | None = None
 
     def link_counts(self) -> tuple[int, int]:
         """Cumulative (accepted, rejected) samples of the serial link, for the tracker-agnostic link-quality
@@ -475,24 +475,8 @@ class AuroraSource(SampleSource):
         st, tools = self.driver.stats, len(self.driver.tools)
         return st.frames * tools, st.rejected * tools
 
-    def start(self, callback: SampleCallback) -> None:
+    def _start_driver(self, callback: SampleCallback) -> None:
         self.driver.start(callback)
-        self._watch = threading.Thread(target=self._watch_errors, name="aurora-watch", daemon=True)
-        self._watch.start()
-
-    def _watch_errors(self) -> None:
-        while not self.finished.is_set():
-            if self.driver.error:
-                self.error = self.driver.error
-                self.finished.set()
-                return
-            time.sleep(0.05)
-
-    def stop(self) -> None:
-        self.finished.set()
-        self.driver.close()
-        if self._watch is not None:
-            self._watch.join(timeout=1.0)
 
     def framing_summary(self) -> str:
         st = self.driver.stats

@@ -47,8 +47,48 @@ class SampleSource(ABC):
         self.stop()
 
 
-class TrakstarSource(SampleSource):
+class DriverSource(SampleSource):
+    """A source over a tracker driver that reads on its own thread and reports a failure in ``driver.error``.
+
+    Subclasses set ``self.driver`` and implement :meth:`_start_driver`; a watch thread turns the driver's
+    error into ``self.error`` and ``finished``.
+    """
+
+    watch_name = "tracker-watch"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.driver = None
+        self._watch: threading.Thread | None = None
+
+    @abstractmethod
+    def _start_driver(self, callback: SampleCallback) -> None:
+        """Start the driver delivering samples to ``callback``."""
+
+    def start(self, callback: SampleCallback) -> None:
+        self._start_driver(callback)
+        self._watch = threading.Thread(target=self._watch_errors, name=self.watch_name, daemon=True)
+        self._watch.start()
+
+    def _watch_errors(self) -> None:
+        while not self.finished.is_set():
+            if self.driver.error:
+                self.error = self.driver.error
+                self.finished.set()
+                return
+            time.sleep(0.05)
+
+    def stop(self) -> None:
+        self.finished.set()
+        self.driver.close()
+        if self._watch is not None:
+            self._watch.join(timeout=1.0)
+
+
+class TrakstarSource(DriverSource):
     """A trakSTAR (or the simulator) streaming every sensor in group mode."""
+
+    watch_name = "trakstar-watch"
 
     def __init__(self, url: DeviceURL) -> None:
         super().__init__()
@@ -67,7 +107,6 @@ class TrakstarSource(SampleSource):
             raise
         self.period_s = 1.0 / self.driver.rate_hz
         self.description = f"trakSTAR on {url.path} at {url.baud} baud, {self.driver.rate_hz:g} Hz"
-        self._watch: threading.Thread | None = None
 
     def attached_ports(self) -> tuple[int, ...]:
         """Ports with a sensor plugged in (the tracker's sensor serial number is non-zero)."""
@@ -78,24 +117,8 @@ class TrakstarSource(SampleSource):
         stats = self.driver.stats
         return stats.records, stats.rejected
 
-    def start(self, callback: SampleCallback) -> None:
+    def _start_driver(self, callback: SampleCallback) -> None:
         self.driver.start_stream(callback)
-        self._watch = threading.Thread(target=self._watch_errors, name="trakstar-watch", daemon=True)
-        self._watch.start()
-
-    def _watch_errors(self) -> None:
-        while not self.finished.is_set():
-            if self.driver.error:
-                self.error = self.driver.error
-                self.finished.set()
-                return
-            time.sleep(0.05)
-
-    def stop(self) -> None:
-        self.finished.set()
-        self.driver.close()
-        if self._watch is not None:
-            self._watch.join(timeout=1.0)
 
 
 class ReplaySource(SampleSource):
