@@ -15,7 +15,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -194,6 +194,18 @@ def run_sim_tracker(args: argparse.Namespace) -> int:
                            keep_truth=bool(args.emit_log))
     link = f" (link {args.link})" if args.link else ""
     print(f"trakSTAR simulator on {sim.path}{link}: connect with trakstar://{sim.path}?baud={args.baud}", flush=True)
+    _run_until_stopped(sim)
+    if args.emit_log:
+        _write_emit_log(args.emit_log, "seq,sensor,emit_ns,status,corrupted,x_mm,y_mm,z_mm,azimuth_deg,elevation_deg,"
+                        "roll_deg", (f"{r.seq},{r.sensor},{r.emit_ns},{r.status},{int(r.corrupted)},"
+                                     + ",".join(f"{v:.6f}" for v in (*r.pose.position_mm, *r.pose.angles_deg))
+                                     for r in sim.truth if r.emit_ns))
+    _say(args, f"simulator stopped after {sim.records_sent} records")
+    return 0
+
+
+def _run_until_stopped(sim) -> None:
+    """Run a simulator until it ends by itself or SIGINT/SIGTERM asks it to stop; close it either way."""
     with _StopFlag() as stop:
         watcher = threading.Thread(target=lambda: (stop.event.wait(), sim._stop.set()), daemon=True)
         watcher.start()
@@ -202,16 +214,13 @@ def run_sim_tracker(args: argparse.Namespace) -> int:
         finally:
             stop.event.set()
             sim.close()
-    if args.emit_log:
-        from ..io.atomic import atomic_write_text
 
-        lines = ["seq,sensor,emit_ns,status,corrupted,x_mm,y_mm,z_mm,azimuth_deg,elevation_deg,roll_deg"]
-        lines += [f"{r.seq},{r.sensor},{r.emit_ns},{r.status},{int(r.corrupted)},"
-                  + ",".join(f"{v:.6f}" for v in (*r.pose.position_mm, *r.pose.angles_deg))
-                  for r in sim.truth if r.emit_ns]
-        atomic_write_text(args.emit_log, "\n".join(lines) + "\n")
-    _say(args, f"simulator stopped after {sim.records_sent} records")
-    return 0
+
+def _write_emit_log(path: str, header: str, lines: Iterable[str]) -> None:
+    """The simulator's log of what it emitted (the tests' truth), as CSV, atomically."""
+    from ..io.atomic import atomic_write_text
+
+    atomic_write_text(path, "\n".join([header, *lines]) + "\n")
 
 
 def _run_aurora_simulator(args: argparse.Namespace) -> int:
@@ -221,9 +230,9 @@ def _run_aurora_simulator(args: argparse.Namespace) -> int:
 
     scene = BuiltinScene(args.seed)
     if args.replay:
-        from ..io.tracking_csv import read_tracking_csv
+        from ..io.recording import read_recording
 
-        scene = ReplayScene(read_tracking_csv(args.replay))
+        scene = ReplayScene(read_recording(args.replay))
     sim = AuroraSimulator(scene, tools=parse_tools(args.tools) if args.tools else None, rate_hz=args.rate,
                           faults=AuroraFaults.parse(args.fault), seed=args.seed, link=args.link,
                           duration_s=args.duration, freeze_tag=args.freeze_tag or ndi.DEFAULT_FREEZE_TAG,
@@ -237,20 +246,10 @@ def _run_aurora_simulator(args: argparse.Namespace) -> int:
                       + ("" if t.srom else " without SROM") for t in sim.tools)
     print(f"Aurora simulator on {sim.path}{link}: connect with aurora://{sim.path}?baud=115200 "
           f"({sim.rate_hz:g} Hz; {tools})", flush=True)
-    with _StopFlag() as stop:
-        watcher = threading.Thread(target=lambda: (stop.event.wait(), sim._stop.set()), daemon=True)
-        watcher.start()
-        try:
-            sim.run()
-        finally:
-            stop.event.set()
-            sim.close()
+    _run_until_stopped(sim)
     if args.emit_log:
-        from ..io.atomic import atomic_write_text
-
-        lines = ["frame,command,emit_ns,corrupted"]
-        lines += [f"{f.frame},{f.command},{f.emit_ns},{int(f.corrupted)}" for f in sim.log if f.emit_ns]
-        atomic_write_text(args.emit_log, "\n".join(lines) + "\n")
+        _write_emit_log(args.emit_log, "frame,command,emit_ns,corrupted",
+                        (f"{f.frame},{f.command},{f.emit_ns},{int(f.corrupted)}" for f in sim.log if f.emit_ns))
     _say(args, f"simulator stopped after {sim.frames_sent} BX/TX replies")
     return 0
 
