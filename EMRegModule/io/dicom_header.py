@@ -77,13 +77,7 @@ def _meta(head: bytes) -> tuple[str, int]:
 
 
 def _explicit_element(head: bytes, position: int) -> tuple[bytes, int]:
-    vr = head[position + 4:position + 6]
-    if vr in _LONG_VRS:
-        (length,) = struct.unpack_from("<I", head, position + 8)
-        start = position + 12
-    else:
-        (length,) = struct.unpack_from("<H", head, position + 6)
-        start = position + 8
+    length, start = _element_length(head, position, implicit=False)
     if length == _UNDEFINED:
         raise _UnusualError("undefined length in the file meta")
     return head[start:start + length], start + length
@@ -101,18 +95,7 @@ def _dataset(head: bytes, position: int, implicit: bool, whole: bool) -> dict[st
             return values
         if (group, element) == (0x0004, 0x1220):
             raise _UnusualError("a DICOMDIR")
-        if implicit:
-            vr = None
-            (length,) = struct.unpack_from("<I", head, position + 4)
-            start = position + 8
-        else:
-            vr = head[position + 4:position + 6]
-            if vr in _LONG_VRS:
-                (length,) = struct.unpack_from("<I", head, position + 8)
-                start = position + 12
-            else:
-                (length,) = struct.unpack_from("<H", head, position + 6)
-                start = position + 8
+        length, start = _element_length(head, position, implicit)
         if length == _UNDEFINED:
             position = _skip_undefined(head, start, implicit)
             continue
@@ -132,6 +115,15 @@ def _dataset(head: bytes, position: int, implicit: bool, whole: bool) -> dict[st
                 parts = [p.strip() for p in text.split("\\")]
                 values[keyword] = parts if len(parts) > 1 else text
         position = end
+
+
+def _element_length(head: bytes, position: int, implicit: bool) -> tuple[int, int]:
+    """(value length, value start) of the element whose tag is at ``position`` (little endian)."""
+    if implicit:
+        return struct.unpack_from("<I", head, position + 4)[0], position + 8
+    if head[position + 4:position + 6] in _LONG_VRS:
+        return struct.unpack_from("<I", head, position + 8)[0], position + 12
+    return struct.unpack_from("<H", head, position + 6)[0], position + 8
 
 
 def _skip_undefined(head: bytes, position: int, implicit: bool) -> int:
@@ -154,16 +146,6 @@ def _skip_undefined(head: bytes, position: int, implicit: bool) -> int:
             if (group, element) == (0xFFFE, 0xE00D):
                 position += 8
                 break
-            if implicit:
-                (length,) = struct.unpack_from("<I", head, position + 4)
-                start = position + 8
-            else:
-                vr = head[position + 4:position + 6]
-                if vr in _LONG_VRS:
-                    (length,) = struct.unpack_from("<I", head, position + 8)
-                    start = position + 12
-                else:
-                    (length,) = struct.unpack_from("<H", head, position + 6)
-                    start = position + 8
+            length, start = _element_length(head, position, implicit)
             position = _skip_undefined(head, start, implicit) if length == _UNDEFINED else start + length
     raise _UnusualError("sequence past the buffer")
