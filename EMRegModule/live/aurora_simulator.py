@@ -55,18 +55,15 @@ import os
 import select
 import struct
 import termios
-import threading
 import time
-import tty
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from ..errors import EMRegError
 from ..transforms import rotation_to_quaternion
 from . import ndi_protocol as ndi
-from .tracker_simulator import BuiltinScene, ReplayScene
+from .tracker_simulator import BuiltinScene, PtyDevice, ReplayScene
 
 #: Measuring rate of the simulated Aurora (choice: 40 Hz, the Aurora's nominal update rate).
 DEFAULT_RATE_HZ = 40.0
@@ -186,8 +183,10 @@ class _Pending:
     after: object = None  # callable run once written (the COMM baud switch)
 
 
-class AuroraSimulator:
+class AuroraSimulator(PtyDevice):
     """An Aurora System Control Unit on a pty. ``start()`` (thread) or ``run()`` (foreground), ``stop()``."""
+
+    thread_name = "aurora-simulator"
 
     def __init__(self, scene: BuiltinScene | ReplayScene | None = None, tools: list[AuroraTool] | None = None,
                  rate_hz: float | None = None, faults: AuroraFaults | None = None, seed: int = 0,
@@ -213,26 +212,7 @@ class AuroraSimulator:
         self._stall_until_ns = 0
         self._corrupt_next = 0
         self._drop_next = False
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self.master_fd, self.slave_fd = os.openpty()
-        tty.setraw(self.slave_fd)
-        attrs = termios.tcgetattr(self.slave_fd)
-        attrs[4] = attrs[5] = termios.B9600
-        termios.tcsetattr(self.slave_fd, termios.TCSANOW, attrs)
-        fcntl.ioctl(self.master_fd, termios.TIOCPKT, struct.pack("i", 1))
-        flags = fcntl.fcntl(self.master_fd, fcntl.F_GETFL)
-        fcntl.fcntl(self.master_fd, fcntl.F_SETFL, flags | os.O_NONBLOCK)
-        self.path = os.ttyname(self.slave_fd)
-        self.link = Path(link) if link else None
-        if self.link is not None:
-            if self.link.is_symlink():
-                self.link.unlink()
-            elif self.link.exists():
-                self._close_fds()
-                raise EMRegError(f"--link {self.link}: a file of that name exists and is not a symbolic link")
-            os.symlink(self.path, self.link)
-        self._closed = False
+        self._open_pty(link)
         self._start_ns = time.monotonic_ns()
         self._power_on()
 
@@ -272,36 +252,13 @@ class AuroraSimulator:
         """Lose one byte (in the middle) of the next BX/TX reply on the line."""
         self._drop_next = True
 
-    def start(self) -> AuroraSimulator:
-        self._thread = threading.Thread(target=self.run, name="aurora-simulator", daemon=True)
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=5.0)
-        self.close()
-
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        self._close_fds()
-        if self.link is not None and self.link.is_symlink():
-            with contextlib.suppress(OSError):
-                self.link.unlink()
-
-    def _close_fds(self) -> None:
-        for fd in (self.master_fd, self.slave_fd):
-            with contextlib.suppress(OSError):
-                os.close(fd)
-
-    def __enter__(self) -> AuroraSimulator:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
+    def _configure_pty(self) -> None:
+        """The line starts at 9600 baud (the Aurora's power-on speed) and the master side sees the host's
+        flushes (packet mode: a break is emulated from them)."""
+        attrs = termios.tcgetattr(self.slave_fd)
+        attrs[4] = attrs[5] = termios.B9600
+        termios.tcsetattr(self.slave_fd, termios.TCSANOW, attrs)
+        fcntl.ioctl(self.master_fd, termios.TIOCPKT, struct.pack("i", 1))
 
     # -- truth ------------------------------------------------------------------------------------
     def frame_time_s(self, frame: int) -> float:

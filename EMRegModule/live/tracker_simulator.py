@@ -223,12 +223,88 @@ class _Pending:
 # --- the simulator ----------------------------------------------------------------------------
 
 
-class TrackerSimulator:
+class PtyDevice:
+    """A simulated serial device serving the master side of a pseudo-terminal in raw mode.
+
+    Clients open ``path`` (the slave side) or ``link``, a symbolic link to it. Subclasses call
+    :meth:`_open_pty` in their constructor, implement ``run()`` (ending when ``_stop`` is set) and may
+    configure the line in :meth:`_configure_pty`.
+    """
+
+    thread_name = "pty-device"
+
+    def _open_pty(self, link: str | os.PathLike[str] | None) -> None:
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.master_fd, self.slave_fd = os.openpty()
+        tty.setraw(self.slave_fd)
+        self._configure_pty()
+        flags = fcntl.fcntl(self.master_fd, fcntl.F_GETFL)
+        fcntl.fcntl(self.master_fd, fcntl.F_SETFL, flags | os.O_NONBLOCK)
+        self.path = os.ttyname(self.slave_fd)
+        self.link = Path(link) if link else None
+        if self.link is not None:
+            self._make_link()
+        self._closed = False
+
+    def _configure_pty(self) -> None:
+        """Line settings beyond raw mode (none by default)."""
+
+    def _make_link(self) -> None:
+        assert self.link is not None
+        if self.link.is_symlink():
+            self.link.unlink()
+        elif self.link.exists():
+            self._close_fds()
+            raise EMRegError(f"--link {self.link}: a file of that name exists and is not a symbolic link; "
+                             "choose another path")
+        os.symlink(self.path, self.link)
+
+    def _close_fds(self) -> None:
+        for fd in (self.master_fd, self.slave_fd):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+    def run(self) -> None:
+        raise NotImplementedError
+
+    def start(self) -> PtyDevice:
+        """Serve in a background thread (daemon; stops with ``stop()``)."""
+        self._thread = threading.Thread(target=self.run, name=self.thread_name, daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop serving, close the pty and remove the link (idempotent)."""
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=5.0)
+        self.close()
+
+    def __enter__(self) -> PtyDevice:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._close_fds()
+        if self.link is not None and self.link.is_symlink():
+            with contextlib.suppress(OSError):
+                self.link.unlink()
+
+
+class TrackerSimulator(PtyDevice):
     """A trakSTAR on a pseudo-terminal. Use ``start()`` (background thread) or ``run()`` (foreground).
 
     ``path`` is the slave device to open (e.g. with ``trakstar://<path>``); ``link`` makes a
     symbolic link to it. Stop with ``stop()``; the pty is closed and the link removed.
     """
+
+    thread_name = "trakstar-simulator"
 
     def __init__(self, scene: BuiltinScene | ReplayScene | None = None, baud: int = tp.DEFAULT_BAUD,
                  faults: FaultPlan | None = None, seed: int = 0, link: str | os.PathLike[str] | None = None,
@@ -254,18 +330,8 @@ class TrackerSimulator:
         self._manual_out_of_range: set[int] = set()
         self._manual_distorted: set[int] = set()
         self._stall_until_ns = 0
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self.master_fd, self.slave_fd = os.openpty()
-        tty.setraw(self.slave_fd)
-        flags = fcntl.fcntl(self.master_fd, fcntl.F_GETFL)
-        fcntl.fcntl(self.master_fd, fcntl.F_SETFL, flags | os.O_NONBLOCK)
-        self.path = os.ttyname(self.slave_fd)
-        self.link = Path(link) if link else None
-        if self.link is not None:
-            self._make_link()
+        self._open_pty(link)
         self._reset_state()
-        self._closed = False
 
     # -- device state --------------------------------------------------------------------
     def _reset_state(self) -> None:
@@ -304,36 +370,6 @@ class TrackerSimulator:
     def stall(self, seconds: float) -> None:
         """Fall silent for ``seconds`` from now (records due meanwhile are skipped or delayed)."""
         self._stall_until_ns = time.monotonic_ns() + int(seconds * 1e9)
-
-    def start(self) -> TrackerSimulator:
-        """Serve in a background thread (daemon; stops with ``stop()``)."""
-        self._thread = threading.Thread(target=self.run, name="trakstar-simulator", daemon=True)
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        """Stop serving, close the pty and remove the link (idempotent)."""
-        self._stop.set()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=5.0)
-        self.close()
-
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        for fd in (self.master_fd, self.slave_fd):
-            with contextlib.suppress(OSError):
-                os.close(fd)
-        if self.link is not None and self.link.is_symlink():
-            with contextlib.suppress(OSError):
-                self.link.unlink()
-
-    def __enter__(self) -> TrackerSimulator:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
     @property
     def finished(self) -> bool:
@@ -680,18 +716,3 @@ class TrackerSimulator:
         elif param not in tp.CHANGE_LENGTH:
             self.error_code = tp.ERROR_INVALID_COMMAND
 
-    # -- link ----------------------------------------------------------------------------
-    def _make_link(self) -> None:
-        assert self.link is not None
-        if self.link.is_symlink():
-            self.link.unlink()
-        elif self.link.exists():
-            self.close_fds_quietly()
-            raise EMRegError(f"--link {self.link}: a file of that name exists and is not a symbolic link; "
-                             "choose another path")
-        os.symlink(self.path, self.link)
-
-    def close_fds_quietly(self) -> None:
-        for fd in (self.master_fd, self.slave_fd):
-            with contextlib.suppress(OSError):
-                os.close(fd)
