@@ -188,6 +188,33 @@ def start_fast_read(path: Path) -> VolumeFill | None:
     return fill
 
 
+def stored_nrrd_voxels(path: Path) -> tuple[sitk.ImageFileReader, np.dtype, int, str] | None:
+    """How a plain NRRD file stores its voxels, for copying them without decoding (the 3D Slicer bundle).
+
+    Returns SimpleITK's header reading (geometry, size, pixel type: those of ``sitk.ReadImage``), the
+    voxel type, the data offset and the encoding ("raw" or "gzip") when the file is a 3D scalar NRRD
+    with attached data in the machine's byte order (or one byte per voxel), no skips,
+    and a pixel type SimpleITK agrees on: then its data bytes are exactly the voxels the readers give
+    (raw, or their gzip stream). ``None`` for anything else.
+    """
+    path = Path(path)
+    if not path.name.lower().endswith(".nrrd") or not path.is_file():
+        return None
+    info = sitk.ImageFileReader()
+    info.SetFileName(str(path))
+    try:
+        info.ReadImageInformation()
+        with path.open("rb") as stream:
+            storage = _nrrd_storage(stream)
+    except (RuntimeError, OSError):
+        return None
+    if (storage is None or storage.compression not in ("raw", "gzip") or info.GetDimension() != 3
+            or info.GetNumberOfComponents() != 1 or not storage.dtype.isnative
+            or _SITK_TYPES.get(storage.dtype.newbyteorder("=").name) != info.GetPixelID()):
+        return None
+    return info, storage.dtype.newbyteorder("="), storage.data_offset, storage.compression
+
+
 def _read_voxels(path: Path, info: sitk.ImageFileReader, storage: _Storage, fill: VolumeFill) -> None:
     """The reading thread: allocate the image, fill it, announce whole slices as they are done.
 

@@ -169,6 +169,7 @@ def add_sim_tracker_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the scene and of the faults")
     parser.add_argument("--fault", action="append", default=[], metavar="KIND=VALUE",
                         help="inject faults: drop=P, flip=P, corrupt=P (per byte), stall=EVERY_S:DURATION_S, "
+                             "late=P:DELAY_S (a POINT reply DELAY_S late), "
                              "unplug=SENSOR@START-END, out-of-range=SENSOR@START-END (repeatable)")
     parser.add_argument("--attached", default=None, metavar="1,2,3,4", help="ports with a sensor (default all)")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
