@@ -325,6 +325,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     case.settings = with_series(case.settings, args.series)
     case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # a sequence file's too
     controller = _controller(args, case.settings)
+    controller.keep_ct = False  # nothing uses the CT after the run: freed as soon as nothing needs it
     for line in controller.run(case, Path(args.out)):
         print(line)
     return 0

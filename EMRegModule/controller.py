@@ -29,7 +29,7 @@ from .io.case import Case
 from .marker_model import MarkerModel
 from .outputs import STAGE_OUTPUTS, OutputFolder, all_output_names, check_outputs, refuse_out_over_inputs
 from .progress import QUIET, Progress
-from .provenance import BackgroundHash, Provenance, check_belongs, check_inputs_match, file_sha256
+from .provenance import InputDigest, Provenance, check_belongs, check_inputs_match, file_sha256
 from .settings import Settings
 
 if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only when used
@@ -85,10 +85,13 @@ class EMRegController:
         self.evaluation: Evaluation | None = None
         #: The command this controller serves (in warnings and provenance).
         self.command = "emreg"
-        self._inputs: dict[str, tuple[str, str | BackgroundHash]] = {}  # role -> (path, sha256)
+        self._inputs: dict[str, tuple[str, str | InputDigest]] = {}  # role -> (path, sha256)
         self._made_from: dict[str, Provenance] = {}  # output name -> provenance of the result held
         self._output_sha: dict[str, str] = {}  # output name -> sha256 of the file written or read
         self._report_image: sitk.Image | None = None  # the CT the report read, for the Slicer bundle
+        #: Keep the CT in memory to the end of :meth:`run` (the Slicer Logic shows it afterwards). False
+        #: (``emreg run``): it is let go before the Slicer bundle when the bundle copies it from its file.
+        self.keep_ct = True
 
     @classmethod
     def for_case(cls, case: Case, progress: Progress | None = None) -> EMRegController:
@@ -327,12 +330,13 @@ class EMRegController:
 
     def note_inputs(self, **paths: str | os.PathLike[str] | None) -> None:
         """Record input files by role (``ct``, ``calibration``, ``navigation``, ``targets``, ``board``) for the
-        provenance of the outputs made from them; a CT is hashed on a thread while other work goes on."""
+        provenance of the outputs made from them; a CT's sha256 is the one its read computes in the same pass
+        (:class:`~EMRegModule.provenance.InputDigest`)."""
         for role, path in paths.items():
             if path is None:
                 continue
             path = Path(path)
-            digest: str | BackgroundHash = BackgroundHash(path) if role == "ct" else file_sha256(path)
+            digest: str | InputDigest = InputDigest(path) if role == "ct" else file_sha256(path)
             self._inputs[role] = (str(path), digest)
 
     def _provenance(self, roles: tuple[str, ...], uses: tuple[str, ...]) -> Provenance:
@@ -470,10 +474,15 @@ class EMRegController:
     def save_bundle(self, folder: OutputFolder, case_dir: Path | None) -> str:
         """``EMReg.mrb``, the 3D Slicer scene of ``folder``'s outputs; a summary line. Optional: without
         slicer-core, or when it cannot be written, the other outputs stand and a warning says why."""
-        from .io.slicer_scene import write_run_bundle
+        from .io.slicer_scene import bundle_needs_ct_image, write_run_bundle
 
         used = self._adopt_outputs(folder)
         image = self.image if self.image is not None else self._report_image  # the CT is not read again
+        self._report_image = None
+        if not bundle_needs_ct_image(_recorded_ct(folder.path)):
+            image = None  # the bundle copies the CT from its file: its memory is freed before slicer-core loads
+            if not self.keep_ct:
+                self.image = None
         with self.progress.step("writing the 3D Slicer scene bundle"):
             path, message = write_run_bundle(folder.path, case_dir, image)
         if path is None:
@@ -649,6 +658,18 @@ class EMRegController:
         if self.registration is not None:
             parts.append(f"FRE {self.registration.fre_mm:.2f} mm, l = {self.registration.sensor_offset_l_mm:.2f} mm")
         return "; ".join(parts)
+
+
+def _recorded_ct(out: Path) -> str | None:
+    """The CT path ``OUT/run.json`` names (None when it names none or cannot be read)."""
+    from .io.atomic import read_json
+
+    try:
+        run = read_json(out / "run.json", "run record")
+    except (EMRegError, OSError):
+        return None
+    ct = run.get("ct") if isinstance(run, dict) else None
+    return ct if isinstance(ct, str) else None
 
 
 def _import_in_background(module: str) -> None:

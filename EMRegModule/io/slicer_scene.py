@@ -121,27 +121,39 @@ class SlicerScene:
         if not self.scene.ReadFromMRB(str(path.resolve())):
             raise EMRegError(f"{path}: 3D Slicer could not read this scene bundle")
 
-    def write_bundle(self, path: str | os.PathLike[str]) -> Path:
+    def write_bundle(self, path: str | os.PathLike[str], stored: dict[str, StoredVoxels] | None = None) -> Path:
         """Write the scene as a bundle (``.mrb``: the ``.mrml`` scene and its data files, zipped) with
         Slicer's writer (``vtkMRMLScene::WriteToMRB``), atomically: built in a private folder beside
-        ``path``, then renamed onto it."""
+        ``path``, then renamed onto it.
+
+        ``stored``: volume node id -> :class:`StoredVoxels`, for volume nodes made by
+        :func:`show_stored_volume` (a one-voxel placeholder with the CT's geometry): their entries get
+        the voxels of that file, copied as it stores them (no decoding, no re-compression)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
+        stored = stored or {}
         # Slicer's default storage nodes. Its single-threaded gzip of a CT is slow (450 MB of voxels: 10-41 s)
         # and its bundle writer copies the voxels to disk twice (the folder, then the zip). So each scalar
         # volume is saved by Slicer as a one-voxel placeholder of the same type and geometry, uncompressed,
         # and :func:`_zip_bundle` writes its NRRD entry from that header (true ``sizes``, ``encoding: gzip``)
         # and the node's voxels in memory, gzip-compressed by ISA-L on their way into the zip.
         volumes: dict[str, tuple[Any, Any]] = {}  # storage node id -> (volume node, its image data)
+        sources: dict[str, Any] = {}  # storage node id -> where the entry's voxels come from
         fast_gzip = _isal_available()  # without it (3D Slicer's Python), Slicer's own compressed writer
         for node in self.nodes("vtkMRMLStorableNode"):
             if node.GetStorageNode() is None:
                 node.AddDefaultStorageNode()
             storage = node.GetStorageNode()
             data = node.GetImageData() if node.IsA("vtkMRMLScalarVolumeNode") else None
-            if (fast_gzip and data is not None and data.GetPointData().GetScalars() is not None
+            if node.GetID() in stored and storage is not None:
+                if not storage.IsA("vtkMRMLVolumeArchetypeStorageNode"):
+                    raise EMRegError(f"{path}: 3D Slicer gave the volume {node.GetName()!r} an unexpected writer")
+                volumes[storage.GetID()] = (node, data)  # already a placeholder: written as it is
+                sources[storage.GetID()] = stored[node.GetID()]
+            elif (fast_gzip and data is not None and data.GetPointData().GetScalars() is not None
                     and storage is not None and storage.IsA("vtkMRMLVolumeArchetypeStorageNode")):
                 volumes[storage.GetID()] = (node, data)
+                sources[storage.GetID()] = _MemoryVoxels(data)
         work = Path(tempfile.mkdtemp(prefix=f".{path.stem}-", dir=path.parent)).resolve()
         try:
             # What ``vtkMRMLScene::WriteToMRB`` does (the scene and its data in a folder named as the bundle,
@@ -151,17 +163,16 @@ class SlicerScene:
             folder.mkdir()
             for storage_id, (node, data) in volumes.items():
                 self.scene.GetNodeByID(storage_id).UseCompressionOff()
-                node.SetAndObserveImageData(_placeholder_like(data))
+                if not isinstance(sources[storage_id], StoredVoxels):
+                    node.SetAndObserveImageData(_placeholder_like(data))
             self.scene.SetRootDirectory(str(work))
             saved = self.scene.SaveSceneToSlicerDataBundleDirectory(str(folder))
-            voxels = {}
-            for storage_id, (node, data) in volumes.items():
+            for node, data in volumes.values():
                 node.SetAndObserveImageData(data)
-                voxels[storage_id] = data
             if not saved or not folder.is_dir():
                 raise EMRegError(f"{path}: 3D Slicer's writer could not write the scene bundle "
                                  "(disk full or no permission?)")
-            _zip_bundle(folder, staged, voxels)
+            _zip_bundle(folder, staged, sources)
             os.replace(staged, path)
         finally:
             for storage_id, (node, data) in volumes.items():  # the scene as it was (Slicer's default: compressed)
@@ -192,42 +203,137 @@ _CHUNK_BYTES = 16 << 20
 
 def _placeholder_like(data: Any) -> Any:
     """A one-voxel ``vtkImageData`` of the scalar type and components of ``data`` (geometry is the node's)."""
-    import vtk
-
     scalars = data.GetPointData().GetScalars()
-    placeholder = vtk.vtkImageData()
+    return _placeholder(scalars.GetDataType(), scalars.GetNumberOfComponents())
+
+
+def _placeholder_of(dtype: np.dtype) -> Any:
+    """A one-voxel scalar ``vtkImageData`` of a numpy voxel type."""
+    from vtkmodules.util import numpy_support
+
+    return _placeholder(numpy_support.get_vtk_array_type(np.dtype(dtype)), 1)
+
+
+def _placeholder(vtk_type: int, components: int) -> Any:
+    from vtkmodules.vtkCommonDataModel import vtkImageData
+
+    placeholder = vtkImageData()
     placeholder.SetDimensions(1, 1, 1)
-    placeholder.AllocateScalars(scalars.GetDataType(), scalars.GetNumberOfComponents())
+    placeholder.AllocateScalars(vtk_type, components)
     placeholder.GetPointData().GetScalars().Fill(0)
     return placeholder
 
 
-def _zip_bundle(folder: Path, target: Path, voxels: dict[str, Any]) -> None:
+class _MemoryVoxels:
+    """An entry's voxels from a ``vtkImageData`` in memory, gzip-compressed by ISA-L on their way into the zip."""
+
+    def __init__(self, data: Any) -> None:
+        self.data = data
+
+    @property
+    def dimensions(self) -> tuple[int, int, int]:
+        return tuple(int(n) for n in self.data.GetDimensions())
+
+    def write_gzip(self, sink: Any) -> None:
+        from isal import isal_zlib
+        from vtkmodules.util import numpy_support
+
+        flat = memoryview(numpy_support.vtk_to_numpy(self.data.GetPointData().GetScalars())).cast("B")
+        deflate = isal_zlib.compressobj(BUNDLE_GZIP_LEVEL, isal_zlib.DEFLATED, 31)  # 31: a gzip stream
+        for start in range(0, flat.nbytes, _CHUNK_BYTES):
+            sink.write(deflate.compress(flat[start:start + _CHUNK_BYTES]))
+        sink.write(deflate.flush())
+
+    @property
+    def nbytes(self) -> int:
+        scalars = self.data.GetPointData().GetScalars()
+        return scalars.GetNumberOfValues() * scalars.GetDataTypeSize()
+
+
+@dataclass(frozen=True)
+class StoredVoxels:
+    """A CT's voxels as its NRRD file stores them (:func:`stored_voxels`): copied into a bundle as they are.
+
+    ``path`` the file, ``offset`` where its data starts, ``encoding`` "gzip" (the gzip stream is copied
+    byte for byte: nothing is decoded or compressed again) or "raw" (compressed by ISA-L from the file,
+    a chunk at a time); ``geometry`` SimpleITK's reading of the header (size, spacing, origin, direction
+    and pixel type as ``sitk.ReadImage`` gives them); ``dtype`` the voxel type (machine byte order).
+    """
+
+    path: Path
+    offset: int
+    encoding: str
+    geometry: Any
+    dtype: np.dtype
+
+    @property
+    def dimensions(self) -> tuple[int, int, int]:
+        return tuple(int(n) for n in self.geometry.GetSize())
+
+    @property
+    def nbytes(self) -> int:
+        return int(np.prod(self.dimensions)) * self.dtype.itemsize
+
+    def write_gzip(self, sink: Any) -> None:
+        with self.path.open("rb") as source:
+            source.seek(self.offset)
+            if self.encoding == "gzip":
+                shutil.copyfileobj(source, sink, _CHUNK_BYTES)
+                return
+            from isal import isal_zlib
+
+            deflate = isal_zlib.compressobj(BUNDLE_GZIP_LEVEL, isal_zlib.DEFLATED, 31)
+            left = self.nbytes
+            while left > 0:
+                chunk = source.read(min(_CHUNK_BYTES, left))
+                if not chunk:
+                    raise EMRegError(f"{self.path}: the CT file is shorter than its header says")
+                left -= len(chunk)
+                sink.write(deflate.compress(chunk))
+            sink.write(deflate.flush())
+
+
+def stored_voxels(path: str | os.PathLike[str] | None) -> StoredVoxels | None:
+    """The CT file's voxels as a bundle can copy them (a plain NRRD: attached raw or gzip data in the
+    machine's byte order, see :func:`EMRegModule.io.fast_read.stored_nrrd_voxels`), or None (then the
+    bundle needs the CT in memory: DICOM, MetaImage, NIfTI, other NRRD layouts)."""
+    if path is None:
+        return None
+    from .fast_read import stored_nrrd_voxels
+
+    found = stored_nrrd_voxels(Path(path))
+    if found is None:
+        return None
+    geometry, dtype, offset, encoding = found
+    if encoding == "raw" and not _isal_available():
+        return None
+    return StoredVoxels(Path(path).resolve(), offset, encoding, geometry, dtype)
+
+
+def _zip_bundle(folder: Path, target: Path, sources: dict[str, Any]) -> None:
     """Zip a scene-bundle folder (Slicer's ``.mrb`` layout: ``NAME/NAME.mrml``, ``NAME/Data/...``, stored
     entries) into ``target``.
 
-    ``voxels``: storage node id -> ``vtkImageData`` of the volumes Slicer saved as one-voxel raw NRRD
-    placeholders (their files are found by the storage nodes' ``fileName`` in the ``.mrml``).
-    Their entries are written from the placeholder's header (Slicer's fields and geometry) with ``sizes``
-    set to the image's dimensions and ``encoding: gzip``, followed by a gzip stream of the image's voxels
-    (as Slicer's own compressed writer makes, by ISA-L at :data:`BUNDLE_GZIP_LEVEL`, in chunks of
-    :data:`_CHUNK_BYTES` read from memory). The ``.mrml`` says ``useCompression="1"`` again for the storage
+    ``sources``: storage node id -> the voxels (:class:`_MemoryVoxels` or :class:`StoredVoxels`) of
+    the volumes Slicer saved as one-voxel raw NRRD placeholders (their files are found by the storage
+    nodes' ``fileName`` in the ``.mrml``). Their entries are written from the placeholder's header
+    (Slicer's fields and geometry) with ``sizes`` set to the volume's dimensions and ``encoding: gzip``,
+    followed by a gzip stream of the voxels (as Slicer's own compressed writer makes): compressed by
+    ISA-L at :data:`BUNDLE_GZIP_LEVEL` a chunk of :data:`_CHUNK_BYTES` at a time, or the CT file's own
+    gzip stream copied as it is. The ``.mrml`` says ``useCompression="1"`` again for the storage
     nodes, so that a scene saved again from Slicer stays compressed.
     """
     import re
     import zipfile
     from urllib.parse import unquote
 
-    from isal import isal_zlib
-    from vtk.util import numpy_support
-
     files_of: dict[Path, Any] = {}
     for scene_file in folder.glob("*.mrml"):
         scene = scene_file.read_text(encoding="utf-8")
-        for storage_id, data in voxels.items():
+        for storage_id, source in sources.items():
             found = re.search(rf'<\w+\s[^>]*\bid="{re.escape(storage_id)}"[^>]*\bfileName="([^"]*)"', scene)
             if found:  # relative to the scene's folder, URL-encoded
-                files_of[(folder / unquote(found.group(1))).resolve()] = data
+                files_of[(folder / unquote(found.group(1))).resolve()] = source
     written = set()
     with zipfile.ZipFile(target, "w", zipfile.ZIP_STORED, allowZip64=True) as out:
         for current, dirs, files in os.walk(folder):
@@ -235,35 +341,31 @@ def _zip_bundle(folder: Path, target: Path, voxels: dict[str, Any]) -> None:
             here = Path(current)
             out.write(here, here.relative_to(folder.parent).as_posix() + "/")
             for name in sorted(files):
-                source = here / name
-                arcname = source.relative_to(folder.parent).as_posix()
+                path = here / name
+                arcname = path.relative_to(folder.parent).as_posix()
                 if name.endswith(".mrml"):
-                    scene = source.read_text(encoding="utf-8")
-                    for storage_id in voxels:
+                    scene = path.read_text(encoding="utf-8")
+                    for storage_id in sources:
                         scene = re.sub(rf'(<\w+\s[^>]*\bid="{re.escape(storage_id)}"[^>]*\buseCompression=")0"',
                                        r'\g<1>1"', scene)
                     out.writestr(arcname, scene.encode("utf-8"))
                     continue
-                if source.resolve() not in files_of:
-                    out.write(source, arcname)
+                if path.resolve() not in files_of:
+                    out.write(path, arcname)
                     continue
-                with source.open("rb") as placeholder:
+                with path.open("rb") as placeholder:
                     header = _read_nrrd_header(placeholder)
                 if not (header.endswith(b"\n\n") and b"\nencoding: raw\n" in header and b"\nsizes: 1 1 1\n" in header):
                     raise EMRegError(f"{arcname}: 3D Slicer wrote the volume in a form EMReg does not expect")
-                data = files_of[source.resolve()]
-                written.add(id(data))
-                sizes = " ".join(str(n) for n in data.GetDimensions()).encode("ascii")
+                source = files_of[path.resolve()]
+                written.add(id(source))
+                sizes = " ".join(str(n) for n in source.dimensions).encode("ascii")
                 header = header.replace(b"\nencoding: raw\n", b"\nencoding: gzip\n", 1).replace(
                     b"\nsizes: 1 1 1\n", b"\nsizes: " + sizes + b"\n", 1)
-                flat = memoryview(numpy_support.vtk_to_numpy(data.GetPointData().GetScalars())).cast("B")
-                with out.open(arcname, "w", force_zip64=flat.nbytes > 1 << 30) as sink:
+                with out.open(arcname, "w", force_zip64=source.nbytes > 1 << 30) as sink:
                     sink.write(header)
-                    deflate = isal_zlib.compressobj(BUNDLE_GZIP_LEVEL, isal_zlib.DEFLATED, 31)  # 31: a gzip stream
-                    for start in range(0, flat.nbytes, _CHUNK_BYTES):
-                        sink.write(deflate.compress(flat[start:start + _CHUNK_BYTES]))
-                    sink.write(deflate.flush())
-    if written != {id(data) for data in voxels.values()}:  # a placeholder left as a volume: a wrong scene
+                    source.write_gzip(sink)
+    if written != {id(source) for source in sources.values()}:  # a placeholder left as a volume: a wrong scene
         raise EMRegError("3D Slicer did not write every volume where its scene says")
 
 
@@ -322,15 +424,39 @@ def show_volume(scene: Any, image: Any, name: str = VOLUME_NODE_NAME, node: Any 
         raise EMRegError("the CT must be a 3D scalar image to show it in 3D Slicer")
     node = _named_node(scene, "vtkMRMLScalarVolumeNode", name, node)
     node.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(image_ijk_to_ras(image)))
+    _ct_display(node)  # before the voxels: a display node made after them computes their histogram
     if copy_voxels:
         slicer.util.updateVolumeFromArray(node, sitk.GetArrayViewFromImage(image))
     else:
         node.SetAndObserveImageData(_image_data_sharing_voxels(image))
+    return node
+
+
+def _ct_display(node: Any) -> None:
+    """The volume's display node with a fixed CT window (soft tissue to PVC and bone).
+
+    Made while the node holds no voxels (or a placeholder): a display node created over a whole CT
+    would first compute its automatic window from the CT's histogram (seconds for a full-frame scan)
+    only to be overridden here."""
     node.CreateDefaultDisplayNodes()
     display = node.GetDisplayNode()
-    if display is not None:  # a CT window (soft tissue to PVC and bone)
+    if display is not None:
         display.AutoWindowLevelOff()
         display.SetWindowLevel(2000.0, 300.0)
+
+
+def show_stored_volume(scene: Any, stored: StoredVoxels, name: str = VOLUME_NODE_NAME, node: Any = None) -> Any:
+    """A scalar volume node for a CT kept in its file (:class:`StoredVoxels`), without its voxels in memory.
+
+    The node has the CT's IJK-to-RAS and a one-voxel placeholder of its pixel type; pass
+    ``{node.GetID(): stored}`` to :meth:`SlicerScene.write_bundle`, which writes the file's voxels
+    into the bundle (3D Slicer then loads the whole CT from it)."""
+    import slicer.util
+
+    node = _named_node(scene, "vtkMRMLScalarVolumeNode", name, node)
+    node.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(image_ijk_to_ras(stored.geometry)))
+    _ct_display(node)
+    node.SetAndObserveImageData(_placeholder_of(stored.dtype))
     return node
 
 
@@ -497,6 +623,7 @@ class RunScene:
     probe_to_reference: np.ndarray | None = None
     tre_map_path: Path | None = None
     image: Any = None
+    stored_ct: StoredVoxels | None = None  # the CT in its file, copied into a bundle without being read
     notes: list[str] = field(default_factory=list)
 
 
@@ -512,8 +639,9 @@ def _read_navigation_positions(path: Path) -> np.ndarray:
 def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
                 image: Any = None) -> RunScene:
     """Read a run's outputs (``markers.json``, ``frame_calibration.json``, ``registration.json``,
-    ``navigation.csv``), the case's targets and its CT (``image`` if given, else the CT that
-    ``run.json`` names)."""
+    ``navigation.csv``), the case's targets and its CT: when the CT that ``run.json`` names is a
+    plain NRRD (:func:`stored_voxels`) and ``image``, if given, has its grid, the file's stored voxels
+    (a bundle copies them, nothing is read into memory); otherwise ``image``, else the CT read."""
     from .atomic import read_json
 
     out = Path(out_dir)
@@ -543,8 +671,11 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
 
             labels, positions = read_markups(targets)
             content.target_labels, content.targets = list(labels), np.asarray(positions, dtype=float)
-    if content.image is None:
-        ct = run.get("ct")
+    ct = run.get("ct")
+    stored = stored_voxels(ct) if ct and Path(ct).is_file() else None
+    if stored is not None and (image is None or _same_grid(stored.geometry, image)):
+        content.stored_ct, content.image = stored, None
+    elif content.image is None:
         if ct and Path(ct).exists():
             from .image import read_ct
 
@@ -555,6 +686,21 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
         else:
             content.notes.append("CT not included (run.json names no CT that exists)")
     return content
+
+
+def _same_grid(geometry: Any, image: Any) -> bool:
+    """True when a header reading (``sitk.ImageFileReader``) and an image have the same size, pixel type
+    and physical grid."""
+    return (tuple(geometry.GetSize()) == tuple(image.GetSize()) and geometry.GetPixelID() == image.GetPixelID()
+            and np.allclose(geometry.GetSpacing(), image.GetSpacing(), rtol=0, atol=1e-9)
+            and np.allclose(geometry.GetOrigin(), image.GetOrigin(), rtol=0, atol=1e-9)
+            and np.allclose(geometry.GetDirection(), image.GetDirection(), rtol=0, atol=1e-12))
+
+
+def bundle_needs_ct_image(ct_path: str | os.PathLike[str] | None) -> bool:
+    """False when a bundle of a run on this CT copies the CT from its file (:func:`stored_voxels`), so that
+    the CT need not be kept in memory for it."""
+    return stored_voxels(ct_path) is None
 
 
 def _pair_descriptions(content: RunScene) -> tuple[list[str], dict[str, tuple[str, float]]]:
@@ -594,7 +740,9 @@ def build_run_scene(scene: Any, content: RunScene, nodes: dict[str, Any] | None 
         built[name] = nodes[name] = node
         return node
 
-    if content.image is not None:
+    if content.stored_ct is not None:
+        keep(VOLUME_NODE_NAME, show_stored_volume(scene, content.stored_ct, node=nodes.get(VOLUME_NODE_NAME)))
+    elif content.image is not None:
         keep(VOLUME_NODE_NAME, show_volume(scene, content.image, node=nodes.get(VOLUME_NODE_NAME)))
     texts, pairs = _pair_descriptions(content)
     if content.marker_ids:
@@ -660,8 +808,9 @@ def write_run_bundle(out_dir: str | os.PathLike[str], case_dir: str | os.PathLik
             _remove_stale_bundle(out)
             return None, f"no {BUNDLE_FILE} written: no markers or calibration in {out}"
         holder = SlicerScene()
-        build_run_scene(holder.scene, content)
-        path = holder.write_bundle(out / BUNDLE_FILE)
+        built = build_run_scene(holder.scene, content)
+        stored = {built[VOLUME_NODE_NAME].GetID(): content.stored_ct} if content.stored_ct is not None else {}
+        path = holder.write_bundle(out / BUNDLE_FILE, stored)
     except (EMRegError, OSError, KeyError, ValueError, TypeError) as exc:
         _remove_stale_bundle(out)
         return None, f"no {BUNDLE_FILE} written: {exc}"

@@ -153,7 +153,10 @@ class FaultPlan:
     ones - line noise that this checksum-free protocol's framing cannot detect at all (the link
     guard's jump test and value checks catch what they can). ``stall_every_s`` / ``stall_s``: the tracker
     falls silent for ``stall_s`` every ``stall_every_s`` seconds. ``unplugged`` / ``out_of_range``:
-    ``(sensor, start_s, end_s)`` windows.
+    ``(sensor, start_s, end_s)`` windows. ``late`` / ``late_s``: a POINT request is answered ``late_s``
+    seconds late with probability ``late`` (a tracker busy with something else, or a host that missed
+    its reply): the reply is the same bytes, only later, and the replies to later requests queue behind
+    it on the line, as on the real cable (the protocol has no request id).
     """
 
     drop: float = 0.0
@@ -161,6 +164,8 @@ class FaultPlan:
     corrupt: float = 0.0
     stall_every_s: float = 0.0
     stall_s: float = 0.0
+    late: float = 0.0
+    late_s: float = 0.0
     unplugged: list[tuple[int, float, float]] = field(default_factory=list)
     out_of_range: list[tuple[int, float, float]] = field(default_factory=list)
     distorted: list[tuple[int, float, float]] = field(default_factory=list)
@@ -168,6 +173,7 @@ class FaultPlan:
     @classmethod
     def parse(cls, items: Iterable[str]) -> FaultPlan:
         """From ``KIND=VALUE`` strings: ``drop=0.001``, ``flip=0.001``, ``corrupt=0.01``, ``stall=EVERY_S:DURATION_S``,
+        ``late=P:DELAY_S`` (a POINT reply comes DELAY_S late with probability P),
         ``unplug=SENSOR@START-END``, ``out-of-range=SENSOR@START-END``, ``distort=SENSOR@START-END``
         (metal distortion: bad METAL byte, pose still sent) (seconds after start)."""
         plan = cls()
@@ -180,6 +186,11 @@ class FaultPlan:
                 elif kind == "stall":
                     every, _, duration = value.partition(":")
                     plan.stall_every_s, plan.stall_s = float(every), float(duration or 0.2)
+                elif kind == "late":
+                    probability, _, delay = value.partition(":")
+                    plan.late, plan.late_s = float(probability), float(delay or 0.2)
+                    if not (0.0 <= plan.late <= 1.0 and plan.late_s >= 0.0):
+                        raise ValueError(kind)
                 elif kind in ("unplug", "out-of-range", "distort"):
                     sensor, _, window = value.partition("@")
                     start, _, end = window.partition("-")
@@ -190,7 +201,8 @@ class FaultPlan:
                     raise ValueError(kind)
             except ValueError:
                 raise EMRegError(
-                    f"--fault {item!r}: use drop=P, flip=P, stall=EVERY_S:DURATION_S, unplug=SENSOR@START-END, "
+                    f"--fault {item!r}: use drop=P, flip=P, corrupt=P, stall=EVERY_S:DURATION_S, late=P:DELAY_S, "
+                    "unplug=SENSOR@START-END, "
                     "out-of-range=SENSOR@START-END or distort=SENSOR@START-END") from None
         return plan
 
@@ -325,6 +337,7 @@ class TrackerSimulator(PtyDevice):
         self.records_sent = 0
         self.skipped_measurements = 0
         self.dropped_writes = 0
+        self.late_replies = 0  # POINT replies sent late (fault ``late``)
         self.sensors = tuple(self.scene.sensors)
         self._manual_unplugged: set[int] = set() if attached is None else set(self.sensors) - set(attached)
         self._manual_out_of_range: set[int] = set()
@@ -578,6 +591,10 @@ class TrackerSimulator(PtyDevice):
     def _point(self) -> None:
         sensors = list(range(1, tp.MAX_SENSORS + 1)) if self.group_mode else [self._target or 1]
         t_s = self._elapsed_s()
+        after_ns = 0
+        if self.faults.late > 0 and self.rng.random() < self.faults.late:
+            after_ns = time.monotonic_ns() + int(self.faults.late_s * 1e9)  # the whole reply comes late
+            self.late_replies += 1
         for sensor in sensors:
             if isinstance(self.scene, ReplayScene):
                 pose = self.scene.next_point(sensor)
@@ -585,7 +602,7 @@ class TrackerSimulator(PtyDevice):
                 pose = self.scene.pose(sensor, t_s) if sensor in self.sensors else None
             if self.sleeping:
                 continue
-            self._record(sensor, pose, t_s, self.group_mode)
+            self._record(sensor, pose, t_s, self.group_mode, after_ns=after_ns)
 
     # -- commands ------------------------------------------------------------------------
     def _handle_commands(self) -> None:

@@ -27,6 +27,7 @@ Protocol facts and their sources are in :mod:`.trakstar_protocol`. What the driv
 from __future__ import annotations
 
 import contextlib
+import select
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -74,6 +75,8 @@ class TrakstarDriver:
         self._last_end: int | None = None
         self._last_arrival_end: tuple[int, int] | None = None
         self.error: str | None = None
+        #: POINT replies discarded because the line carried more or less than one clean reply (see ``_request``)
+        self.discarded_replies = 0
         #: ports with a sensor when the stream started; samples of other ports are always "not attached"
         self.attached: frozenset[int] | None = None
 
@@ -92,8 +95,9 @@ class TrakstarDriver:
         with contextlib.suppress(Exception):
             self.serial.rts = False
         self._write(bytes([tp.POINT]))  # ends a stream left running by a previous program
-        time.sleep(0.05)
-        self._purge()
+        # its reply (or the stream's last records) must not be read as the reply to EXAMINE VALUE:
+        # wait until the line is silent, not a fixed time
+        self._drain_until_silent(max(0.05, min(self.timeout_s, 0.2)))
         self.scale_inches = 72 if self.examine_word(tp.PARAM_POSITION_SCALING) == 1 else 36
         self.rate_hz = self.examine_word(tp.PARAM_MEASUREMENT_RATE) / 256.0 or tp.POWER_ON_RATE_HZ
         return self
@@ -230,9 +234,7 @@ class TrakstarDriver:
         sensor = sensor or 1
         self._ensure_not_streaming()
         self.parser.configure(self.record_length(sensor), None)
-        self.serial.reset_input_buffer()
-        self._write(self._prefix(sensor) + bytes([tp.POINT]))
-        records = self._read_records(1, self.record_length(sensor))
+        records = self._request(self._prefix(sensor) + bytes([tp.POINT]), 1, self.record_length(sensor))
         if not records:
             return None
         data, t_ns = records[0]
@@ -245,16 +247,60 @@ class TrakstarDriver:
         self._ensure_not_streaming()
         length = self._group_length()
         self.parser.configure(length, self.group_sensors)
-        self.serial.reset_input_buffer()
-        self._write(bytes([tp.POINT]))
         samples = []
         first = True
-        for data, t_ns in self._read_records(len(self.group_sensors), length):
+        for data, t_ns in self._request(bytes([tp.POINT]), len(self.group_sensors), length):
             sample = self._sample(data, None, t_ns, new_frame=first)
             first = False
             if sample is not None:
                 samples.append(sample)
         return samples
+
+    def _request(self, command: bytes, count: int, length: int) -> list[tuple[bytes, int]]:
+        """Send a POINT request and read the ``count`` records of ``length`` bytes that answer it.
+
+        The protocol has no request id: a record is only known to answer this request when nothing
+        else can be on the line. So the bytes already waiting are discarded before the request; after
+        a reply that timed out, came short or failed framing, the line is drained until it has been
+        silent for ``timeout_s`` (a late reply to this request arrives meanwhile and is thrown away,
+        never taken as the reply to the next request); and a reply followed by more bytes within two
+        record times is discarded whole (its first records may have been a late reply to an earlier
+        request, the rest this one's), then the line is drained. Counted in ``discarded_replies``.
+        """
+        self.serial.reset_input_buffer()
+        self.parser.reset()
+        stats = self.parser.stats
+        failed_before = stats.rejected + stats.stray_bytes
+        self._write(command)
+        records = self._read_records(count, length)
+        clean = len(records) == count and stats.rejected + stats.stray_bytes == failed_before
+        if clean and self._more_bytes_within(max(0.002, 2 * length * tp.BITS_PER_BYTE / self.baud)):
+            records, clean = [], False  # more than one reply on the line: none of it can be trusted
+        if not clean:
+            self.discarded_replies += 1
+            self._drain_until_silent(self.timeout_s)
+        return records
+
+    def _more_bytes_within(self, seconds: float) -> bool:
+        """True when a byte arrives (or is already waiting) within ``seconds``."""
+        return bool(self.serial.in_waiting) or self._readable_within(seconds)
+
+    def _readable_within(self, seconds: float) -> bool:
+        try:
+            readable, _, _ = select.select([self.serial.fileno()], [], [], seconds)
+        except (OSError, ValueError):
+            return False
+        return bool(readable)
+
+    def _drain_until_silent(self, quiet_s: float, max_s: float | None = None) -> None:
+        """Read and discard until the line has been silent for ``quiet_s`` (at most ``max_s``,
+        default 10 x ``quiet_s``: a device that never stops talking is left to the next request's
+        framing)."""
+        deadline = time.monotonic() + (10 * quiet_s if max_s is None else max_s)
+        while time.monotonic() < deadline and self._more_bytes_within(quiet_s):
+            self.serial.read(max(1, min(self.serial.in_waiting, 4096)))
+        self.serial.reset_input_buffer()
+        self.parser.reset()
 
     def _read_records(self, count: int, length: int) -> list[tuple[bytes, int]]:
         deadline = time.monotonic() + self.timeout_s

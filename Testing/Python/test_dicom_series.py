@@ -245,15 +245,15 @@ def test_uncompressed_slices_are_read_directly_and_match_gdcm(tmp_path, monkeypa
     direct: list[bool] = []
     original = dicom_series._read_uncompressed
 
-    def spied(header, out) -> bool:
-        direct.append(original(header, out))
+    def spied(header, data, out) -> bool:
+        direct.append(original(header, data, out))
         return direct[-1]
 
     monkeypatch.setattr(dicom_series, "_read_uncompressed", spied)
     image = read_ct(tmp_path)
     assert direct == [True] * len(files)
     np.testing.assert_array_equal(_voxels(image), _voxels(_series_reader(files)).astype(float))
-    monkeypatch.setattr(dicom_series, "_read_uncompressed", lambda h, out: False)  # GDCM for every slice
+    monkeypatch.setattr(dicom_series, "_read_uncompressed", lambda h, data, out: False)  # GDCM for every slice
     np.testing.assert_array_equal(_voxels(read_ct(tmp_path)), _voxels(image))
 
 
@@ -295,3 +295,25 @@ def test_quick_header_reader_agrees_with_pydicom_on_every_syntax(tmp_path, monke
             np.testing.assert_allclose(fast.position, slow.position)
             np.testing.assert_allclose(fast.orientation, slow.orientation)
     assert quick_used >= 3 * 6  # plain and the little-endian compressed syntaxes take the quick walk
+
+
+def test_the_folder_sha256_comes_from_the_read_and_equals_a_pass_of_its_own(tmp_path):
+    """The provenance's sha256 of a DICOM folder is made from the bytes each slice is decoded from, plus the
+    folder's other files (another series, a README): the same value as ``file_sha256`` of the folder."""
+    import hashlib
+
+    from EMRegModule.provenance import file_sha256, folder_sha256
+
+    _export(tmp_path)
+    convert(sorted((tmp_path / "S2").iterdir()), "jpeg-lossless")  # chunks decoded by GDCM
+    (tmp_path / ".hidden").write_bytes(b"part of the folder too")
+    fill, _ = open_dicom_series(tmp_path)
+    fill.result()
+    expected = {p.relative_to(tmp_path).as_posix(): hashlib.sha256(p.read_bytes()).digest()
+                for p in tmp_path.rglob("*") if p.is_file()}
+    assert fill.sha256.result() == folder_sha256(expected) == file_sha256(tmp_path)
+    fill, _ = open_dicom_series(tmp_path, series=uid(20))  # the compressed series read
+    fill.result()
+    assert fill.sha256.result() == file_sha256(tmp_path)
+    (tmp_path / "README.txt").write_text("changed")
+    assert file_sha256(tmp_path) != folder_sha256(expected)

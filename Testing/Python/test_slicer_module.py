@@ -739,9 +739,10 @@ def test_run_writes_a_bundle_that_slicer_imports_matching_the_outputs(run_output
 
 
 def test_bundle_volume_is_gzip_nrrd_holding_the_cts_voxels(run_output, standard_case):
-    """The CT in the bundle is an attached gzip NRRD (Slicer's header, voxels gzip-compressed by EMReg with
-    ISA-L): ``encoding: gzip``, the CT's sizes, its inflated bytes are the CT's voxels, and the scene keeps
-    Slicer's default (compressed) for a re-save. (Slicer's import of the same bundle is checked above.)"""
+    """The CT in the bundle is an attached gzip NRRD (Slicer's header; the case's ct.nrrd is a gzip NRRD, so
+    its gzip stream is copied as it is, byte for byte): ``encoding: gzip``, the CT's sizes, its inflated
+    bytes are the CT's voxels, and the scene keeps Slicer's default (compressed) for a re-save. (Slicer's
+    import of the same bundle is checked above.)"""
     import gzip
     import re
     import zipfile
@@ -765,9 +766,61 @@ def test_bundle_volume_is_gzip_nrrd_holding_the_cts_voxels(run_output, standard_
     voxels = np.frombuffer(gzip.decompress(body), dtype="<i2")
     assert np.array_equal(voxels, ct.astype("<i2").reshape(-1))
     assert len(body) < 0.8 * ct.nbytes  # compressed, not merely wrapped
+    stored = (standard_case / "ct.nrrd").read_bytes()
+    assert body == stored[stored.index(b"\n\n") + 2:]  # the case's own gzip stream: nothing compressed again
     storage = re.search(r'<VolumeArchetypeStorage\s[^>]*fileName="[^"]*EMReg%20CT\.nrrd"[^>]*>', scene) or \
         re.search(r'<VolumeArchetypeStorage\s[^>]*fileName="[^"]*EMReg CT\.nrrd"[^>]*>', scene)
     assert storage is not None and 'useCompression="1"' in storage.group(0)
+
+
+@pytest.mark.parametrize("name, compress", [("ct.nrrd", True), ("ct.nrrd", False), ("ct.mha", True)])
+def test_bundle_volume_from_the_file_or_from_memory_loads_in_slicer_with_the_cts_voxels(slicer_core, tmp_path,
+                                                                                         name, compress):
+    """A gzip NRRD's stream is copied, a raw NRRD's voxels are compressed from the file (neither is read into
+    memory: the node holds a one-voxel placeholder), any other CT is compressed from memory; Slicer's reader
+    imports each bundle with the CT's geometry and voxels."""
+    import SimpleITK as sitk
+    import slicer.util
+
+    from EMRegModule.io.slicer_scene import SlicerScene, show_stored_volume, show_volume, stored_voxels
+
+    rng = np.random.default_rng(7)
+    image = sitk.GetImageFromArray(rng.integers(-1000, 3000, size=(7, 9, 11)).astype(np.int16))
+    image.SetSpacing((0.5, 0.6, 0.7))
+    image.SetOrigin((10.0, -20.0, 30.0))
+    image.SetDirection((0.0, 1.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+    ct = tmp_path / name
+    sitk.WriteImage(image, str(ct), compress)
+    stored = stored_voxels(ct)
+    mrml = SlicerScene()
+    if name.endswith(".nrrd"):
+        assert stored is not None and stored.encoding == ("gzip" if compress else "raw")
+        node = show_stored_volume(mrml.scene, stored)
+        assert node.GetImageData().GetDimensions() == (1, 1, 1)  # the CT is not in memory
+        mrml.write_bundle(tmp_path / "EMReg.mrb", {node.GetID(): stored})
+    else:
+        assert stored is None  # not a plain NRRD: the bundle compresses the CT from memory
+        show_volume(mrml.scene, image)
+        mrml.write_bundle(tmp_path / "EMReg.mrb")
+    imported = SlicerScene()
+    imported.read_bundle(tmp_path / "EMReg.mrb")
+    volume = imported.node("EMReg CT")
+    _check_volume_matches_ct(volume, ct)
+    assert np.array_equal(slicer.util.arrayFromVolume(volume), sitk.GetArrayViewFromImage(image))
+    assert volume.GetDisplayNode().GetWindow() == pytest.approx(2000.0)
+
+
+def test_stored_voxels_only_for_plain_nrrd_in_the_machines_byte_order(tmp_path):
+    """A big-endian NRRD, detached data or an .nhdr are read into memory for the bundle, never copied."""
+    from EMRegModule.io.slicer_scene import stored_voxels
+
+    header = "NRRD0004\ntype: short\ndimension: 3\nsizes: 2 2 2\nencoding: raw\nendian: {}\n\n"
+    little, big = tmp_path / "little.nrrd", tmp_path / "big.nrrd"
+    little.write_bytes(header.format("little").encode() + bytes(16))
+    big.write_bytes(header.format("big").encode() + bytes(16))
+    assert stored_voxels(little) is not None and stored_voxels(little).offset == len(header.format("little"))
+    assert stored_voxels(big) is None
+    assert stored_voxels(tmp_path / "missing.nrrd") is None and stored_voxels(None) is None
 
 
 def test_volume_node_shares_the_images_voxels_and_keeps_the_image_alive(slicer_core):

@@ -320,3 +320,37 @@ def test_distorted_sensor_reports_bad_metal_byte(sim, driver):
     samples = driver.point_all()
     assert samples[1].quality == DISTORTED_METAL and samples[1].valid and samples[0].quality == 0
     assert matches(samples[1], sim.truth[-3], 36)
+
+
+def test_point_never_takes_a_late_reply_for_the_next_request():
+    """POINT has no request id: a reply that comes after the driver gave up on it must never be taken
+    as the reply to the next request. The simulator answers 30 % of the requests 1.6 timeouts late
+    (the same bytes, later; the next replies queue behind it on the line, as on the cable); every pose
+    the driver returns must be the one the simulator sent for that very request (its emit log)."""
+    recording = _small_recording(80)  # random poses: a reply to another request is told apart at once
+    with TrackerSimulator(ReplayScene(recording), keep_truth=True, seed=3) as sim, \
+            TrakstarDriver(sim.path, timeout_s=0.05) as driver:
+        sim.truth.clear()  # what open() asked for
+        sim.faults = FaultPlan.parse(["late=0.3:0.08"])
+        results = [driver.point(2) for _ in range(60)]
+        truth = [t for t in sim.truth if t.sensor == 2]
+        late = sim.late_replies
+    assert late >= 8 and len(truth) == 60  # one record per request, some of them late
+    answered = [(k, sample) for k, sample in enumerate(results) if sample is not None]
+    stale = [k for k, sample in answered if not matches(sample, truth[k], 36)]
+    assert not stale, f"requests {stale} returned the reply to another request"
+    assert len(answered) >= 60 - late - 5  # the requests answered in time still get their pose
+    assert driver.discarded_replies >= late
+
+
+def test_point_discards_a_reply_with_more_bytes_behind_it():
+    """A stale reply already on its way when the request goes out: the two replies arrive back to back,
+    and the driver returns neither (it cannot tell which one answers its request)."""
+    recording = _small_recording(20)
+    with TrackerSimulator(ReplayScene(recording), keep_truth=True) as sim, TrakstarDriver(sim.path) as driver:
+        driver.serial.write(bytes([tp.address_byte(2), tp.POINT]))  # a request the driver does not know of
+        assert wait_for(lambda: len(sim.truth) == 1)  # its reply is being sent (or already waits)
+        sample = driver.point(2)
+        assert sample is None or matches(sample, sim.truth[1], 36)
+        follow = driver.point(2)
+        assert follow is not None and matches(follow, sim.truth[-1], 36)
