@@ -37,6 +37,10 @@ MIN_PROBE_SPREAD_MM = 2.0
 SWAP_SPREAD_FACTOR = 3.0
 SWAP_MIN_SPREAD_MM = 10.0
 
+#: Every sensor position of a recording within this distance (mm) of the tracker's origin means the file is in
+#: metres: a sensor cannot sit inside the transmitter (it is tens of millimetres or more away).
+METRES_LIKE_MM = 5.0
+
 
 @dataclass
 class TrackingRecording:
@@ -266,6 +270,13 @@ def _check_roles(source: str, reference: TrackingRecording, probe: TrackingRecor
                  probe_idx: np.ndarray, reference_port: int, probe_port: int) -> None:
     spreads = role_spreads(reference.position_mm[ref_idx], reference.rotation[ref_idx], probe.position_mm[probe_idx])
     problem = role_problem(spreads, reference_port, probe_port)
+    extent = float(max(np.max(np.abs(reference.position_mm)), np.max(np.abs(probe.position_mm))))
+    if problem is not None and problem[0] == "still" and extent < METRES_LIKE_MM:  # not a port mistake: the unit
+        raise EMRegError(
+            f"{source}: every position lies within {extent:.3g} of the tracker's origin: the recording looks like "
+            "metres, and EMReg reads millimetres (a sensor sits tens of millimetres or more from the transmitter); "
+            "scale the positions by 1000"
+        )
     if problem is not None:
         raise EMRegError(f"{source}: {problem[1]}")
 

@@ -6,6 +6,8 @@ at the command line on small simulated cases made here.
   ``evaluation.json`` and stderr like any other part that cannot be evaluated.
 - A run without a calibration recording ended "finished" after detection without a word about the
   missing registration; it now says so in its summary (run.json) and on stderr.
+- A recording in metres was refused as a port mistake ("the probe never moves relative to the
+  reference"); it is now named as metres.
 """
 
 from __future__ import annotations
@@ -71,3 +73,18 @@ def test_a_run_without_a_calibration_recording_says_nothing_was_registered(small
     run = _json(out / "run.json")
     assert run["status"] == "finished" and any("no calibration recording" in line for line in run["summary"])
     assert (out / "markers.json").is_file() and not (out / "registration.json").exists()
+
+
+def test_a_recording_in_metres_is_named_as_such(small_case, tmp_path, capsys):
+    """Positions in metres (a habit of other tools) once read as "the probe never moves relative to the
+    reference ... check the sensor ports", which sends the user after the wrong mistake."""
+    from EMRegModule.io.tracking_csv import read_tracking_csv, write_tracking_csv
+
+    recording = read_tracking_csv(small_case / "calibration.csv")
+    recording.position_mm = recording.position_mm / 1000.0
+    path = tmp_path / "calibration.csv"
+    write_tracking_csv(recording, path)
+    capsys.readouterr()
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(path) in err[0] and "metres" in err[0] and "millimetres" in err[0]
