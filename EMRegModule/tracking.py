@@ -227,25 +227,46 @@ def _spread_mm(points: np.ndarray) -> float:
     return float(np.percentile(np.linalg.norm(points - np.median(points, axis=0), axis=1), 95))
 
 
+def role_spreads(reference_position_mm: np.ndarray, reference_rotation: np.ndarray,
+                 probe_position_mm: np.ndarray) -> tuple[float, float, float]:
+    """How far each sensor travels (mm, 95th percentile distance from the median) at moments paired by time:
+    the probe in the Reference frame, the reference in the Tracker frame, the probe in the Tracker frame.
+
+    ``reference_position_mm`` (N, 3) and ``reference_rotation`` (N, 3, 3): ``ReferenceToTracker``;
+    ``probe_position_mm`` (N, 3): the probe's origin in the Tracker frame at the same moments."""
+    rotation_t = np.swapaxes(np.asarray(reference_rotation, dtype=float), 1, 2)
+    reference_position_mm = np.asarray(reference_position_mm, dtype=float)
+    probe_position_mm = np.asarray(probe_position_mm, dtype=float)
+    relative = np.einsum("nij,nj->ni", rotation_t, probe_position_mm - reference_position_mm)
+    return _spread_mm(relative), _spread_mm(reference_position_mm), _spread_mm(probe_position_mm)
+
+
+def role_problem(spreads: tuple[float, float, float], reference_port: int, probe_port: int) -> tuple[str, str] | None:
+    """The port mistake the spreads of :func:`role_spreads` show, as ``(kind, one-line message)``, or None.
+
+    ``"still"``: the probe never moves relative to the reference (``MIN_PROBE_SPREAD_MM``): a second sensor on
+    the frame, or the same sensor twice. ``"swapped"``: the "reference" moves far more than the "probe" in the
+    Tracker frame (``SWAP_SPREAD_FACTOR``, ``SWAP_MIN_SPREAD_MM``). Offline recordings and live navigation
+    judge with this one rule."""
+    relative_spread, reference_spread, probe_spread = spreads
+    if relative_spread < MIN_PROBE_SPREAD_MM:
+        return "still", (
+            f"the probe (port {probe_port}) never moves relative to the reference (port {reference_port}): "
+            f"spread {relative_spread:.2f} mm < {MIN_PROBE_SPREAD_MM:g} mm; check the sensor ports")
+    if reference_spread > SWAP_MIN_SPREAD_MM and reference_spread > SWAP_SPREAD_FACTOR * probe_spread:
+        return "swapped", (
+            f"the reference sensor (port {reference_port}) moves {reference_spread:.0f} mm in the tracker "
+            f"frame, the probe (port {probe_port}) only {probe_spread:.0f} mm: the ports look swapped; check "
+            "--reference-sensor / --probe-sensor or case.toml [sensors]")
+    return None
+
+
 def _check_roles(source: str, reference: TrackingRecording, probe: TrackingRecording, ref_idx: np.ndarray,
                  probe_idx: np.ndarray, reference_port: int, probe_port: int) -> None:
-    reference_position = reference.position_mm[ref_idx]
-    probe_position = probe.position_mm[probe_idx]
-    rotation_t = np.swapaxes(reference.rotation[ref_idx], 1, 2)
-    relative = np.einsum("nij,nj->ni", rotation_t, probe_position - reference_position)
-    relative_spread = _spread_mm(relative)
-    if relative_spread < MIN_PROBE_SPREAD_MM:
-        raise EMRegError(
-            f"{source}: the probe (port {probe_port}) never moves relative to the reference (port {reference_port}): "
-            f"spread {relative_spread:.2f} mm < {MIN_PROBE_SPREAD_MM:g} mm; check the sensor ports"
-        )
-    reference_spread, probe_spread = _spread_mm(reference_position), _spread_mm(probe_position)
-    if reference_spread > SWAP_MIN_SPREAD_MM and reference_spread > SWAP_SPREAD_FACTOR * probe_spread:
-        raise EMRegError(
-            f"{source}: the reference sensor (port {reference_port}) moves {reference_spread:.0f} mm in the tracker "
-            f"frame, the probe (port {probe_port}) only {probe_spread:.0f} mm: the ports look swapped; check "
-            "--reference-sensor / --probe-sensor or case.toml [sensors]"
-        )
+    spreads = role_spreads(reference.position_mm[ref_idx], reference.rotation[ref_idx], probe.position_mm[probe_idx])
+    problem = role_problem(spreads, reference_port, probe_port)
+    if problem is not None:
+        raise EMRegError(f"{source}: {problem[1]}")
 
 
 def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "recording",
