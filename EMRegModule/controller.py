@@ -29,7 +29,7 @@ from .io.case import Case
 from .marker_model import MarkerModel
 from .outputs import STAGE_OUTPUTS, OutputFolder, all_output_names, check_outputs, refuse_out_over_inputs
 from .progress import QUIET, Progress
-from .provenance import BackgroundHash, Provenance, check_belongs, check_inputs_match, file_sha256
+from .provenance import InputDigest, Provenance, check_belongs, check_inputs_match, file_sha256
 from .settings import Settings
 
 if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only when used
@@ -85,7 +85,7 @@ class EMRegController:
         self.evaluation: Evaluation | None = None
         #: The command this controller serves (in warnings and provenance).
         self.command = "emreg"
-        self._inputs: dict[str, tuple[str, str | BackgroundHash]] = {}  # role -> (path, sha256)
+        self._inputs: dict[str, tuple[str, str | InputDigest]] = {}  # role -> (path, sha256)
         self._made_from: dict[str, Provenance] = {}  # output name -> provenance of the result held
         self._output_sha: dict[str, str] = {}  # output name -> sha256 of the file written or read
         self._report_image: sitk.Image | None = None  # the CT the report read, for the Slicer bundle
@@ -330,12 +330,13 @@ class EMRegController:
 
     def note_inputs(self, **paths: str | os.PathLike[str] | None) -> None:
         """Record input files by role (``ct``, ``calibration``, ``navigation``, ``targets``, ``board``) for the
-        provenance of the outputs made from them; a CT is hashed on a thread while other work goes on."""
+        provenance of the outputs made from them; a CT's sha256 is the one its read computes in the same pass
+        (:class:`~EMRegModule.provenance.InputDigest`)."""
         for role, path in paths.items():
             if path is None:
                 continue
             path = Path(path)
-            digest: str | BackgroundHash = BackgroundHash(path) if role == "ct" else file_sha256(path)
+            digest: str | InputDigest = InputDigest(path) if role == "ct" else file_sha256(path)
             self._inputs[role] = (str(path), digest)
 
     def _provenance(self, roles: tuple[str, ...], uses: tuple[str, ...]) -> Provenance:
@@ -577,7 +578,11 @@ class EMRegController:
         summary.append(f"detect: {len(detection.markers)} markers, {len(detection.rejected)} rejected")
 
     def _run_calibrate(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
-        if case.calibration is None:
+        if case.calibration is None:  # a detection-only run: say so, a forgotten file is the likelier story
+            note = (f"no calibration recording in {case.folder} (calibration.csv or calibration.seq.mha): the "
+                    "markers are detected, nothing is registered")
+            self.warn([note])
+            summary.append(f"calibrate: {note}")
             return
         self.load_calibration_recording(case.calibration)
         calibration = self.calibrate_frame()
@@ -616,12 +621,19 @@ class EMRegController:
     def _run_evaluate(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
         """The optional evaluation: a part that cannot be made is "not evaluated" with its reason in
         ``run.json``, ``evaluation.json``, the report and on stderr; the run goes on."""
-        if self.registration is None or (case.navigation is None and case.board is None):
+        if self.registration is None or (case.navigation is None and case.board is None and case.targets is None):
             return
         unreadable: dict[str, str] = {}
         inputs: dict[str, Any] = {}
+        if (case.navigation is None) != (case.targets is None):  # the TRE needs both: say which one is missing
+            unreadable["tre"] = (f"{case.folder}: a navigation recording but no targets.mrk.json"
+                                 if case.targets is None else
+                                 f"{case.folder}: targets.mrk.json but no navigation recording (navigation.csv or "
+                                 "navigation.seq.mha)")
         for part, read in (("tre", lambda: (case.read_recording("navigation"), case.read_targets())),
                            ("board", lambda: case.read_recording("board"))):
+            if part in unreadable or (part == "board" and case.board is None):
+                continue
             try:
                 inputs[part] = read()
             except NoSafeAnswerError:

@@ -33,50 +33,113 @@ _CHUNK = 1 << 22
 
 
 def file_sha256(path: str | os.PathLike[str]) -> str:
-    """sha256 of a file's bytes; of a folder (a DICOM series), over every file's relative name and bytes
-    in sorted order. Unreadable inputs are an :class:`EMRegError`."""
+    """sha256 of a file's bytes; of a folder (a DICOM series), :func:`folder_sha256` of its files' sha256.
+
+    Unreadable inputs are an :class:`EMRegError`.
+    """
     path = Path(path)
-    digest = hashlib.sha256()
     try:
         if path.is_dir():
-            for member in sorted(p for p in path.rglob("*") if p.is_file()):
-                digest.update(member.relative_to(path).as_posix().encode("utf-8") + b"\0")
-                _update(digest, member)
-        else:
-            _update(digest, path)
+            return folder_sha256({name: _digest(member) for name, member in folder_members(path)})
+        return _digest(path).hex()
     except OSError as exc:
         raise EMRegError(f"{path}: cannot be read to record its provenance ({exc.strerror or exc})") from None
+
+
+def folder_members(folder: Path) -> list[tuple[str, Path]]:
+    """The files a folder's sha256 covers: (relative POSIX name, path), sorted by name (hidden ones too)."""
+    return sorted((p.relative_to(folder).as_posix(), p) for p in folder.rglob("*") if p.is_file())
+
+
+def folder_sha256(digests: Mapping[str, bytes]) -> str:
+    """The sha256 of a folder from its files' own: over each relative name (sorted), a NUL, its 32-byte sha256.
+
+    Each file's sha256 can so be computed where its bytes are read anyway (a DICOM slice as it is
+    decoded, on any thread, in any order): no second pass over the folder.
+    """
+    digest = hashlib.sha256()
+    for name in sorted(digests):
+        digest.update(name.encode("utf-8") + b"\0" + digests[name])
     return digest.hexdigest()
 
 
-def _update(digest: Any, path: Path) -> None:
+def _digest(path: Path) -> bytes:
+    digest = hashlib.sha256()
     with path.open("rb") as f:
         while chunk := f.read(_CHUNK):
             digest.update(chunk)
+    return digest.digest()
 
 
-class BackgroundHash:
-    """:func:`file_sha256` of a (large) input computed on a thread while other work goes on."""
+class Digest:
+    """A sha256 (hex) that another thread delivers: the one computed while reading a CT in a single pass."""
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
-        self.path = Path(path)
+    def __init__(self) -> None:
+        self._event = threading.Event()
         self._value: str | None = None
         self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name=f"sha256 {self.path.name}", daemon=True)
-        self._thread.start()
 
-    def _run(self) -> None:
-        try:
-            self._value = file_sha256(self.path)
-        except BaseException as exc:  # noqa: BLE001 - handed to the caller of result()
-            self._error = exc
+    def set(self, value: str) -> None:
+        self._value = value
+        self._event.set()
+
+    def fail(self, error: BaseException) -> None:
+        self._error = error
+        self._event.set()
+
+    def done(self) -> bool:
+        return self._event.is_set()
 
     def result(self) -> str:
-        self._thread.join()
+        self._event.wait()
         if self._error is not None:
             raise self._error
         assert self._value is not None
         return self._value
+
+
+class BackgroundHash(Digest):
+    """:func:`file_sha256` of a (large) input computed on a thread while other work goes on."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        super().__init__()
+        self.path = Path(path)
+        threading.Thread(target=self._run, name=f"sha256 {self.path.name}", daemon=True).start()
+
+    def _run(self) -> None:
+        try:
+            self.set(file_sha256(self.path))
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller of result()
+            self.fail(exc)
+
+
+_READ_DIGESTS: dict[Path, Digest] = {}
+_READ_DIGESTS_LOCK = threading.Lock()
+
+
+def note_read_digest(path: str | os.PathLike[str], digest: Digest) -> None:
+    """Say that a read of ``path`` (a CT file or DICOM folder) computes its sha256 as it goes (the latest read wins)."""
+    with _READ_DIGESTS_LOCK:
+        _READ_DIGESTS[Path(path).resolve()] = digest
+
+
+class InputDigest:
+    """The sha256 of an input CT for provenance: the one its read computed in the same pass over the bytes
+    (:func:`note_read_digest`, looked up when asked, so the read may start after this is made), else a
+    pass of its own over the file."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+
+    def result(self) -> str:
+        with _READ_DIGESTS_LOCK:
+            read = _READ_DIGESTS.get(self.path.resolve())
+        if read is not None:
+            try:
+                return read.result()
+            except Exception:  # noqa: BLE001 - the read failed (or was cancelled): hash the file on its own
+                pass
+        return file_sha256(self.path)
 
 
 @dataclass

@@ -10,6 +10,7 @@ dwells changes nothing.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,6 +36,10 @@ MIN_PROBE_SPREAD_MM = 2.0
 #: "probe" and by more than ``SWAP_MIN_SPREAD_MM``.
 SWAP_SPREAD_FACTOR = 3.0
 SWAP_MIN_SPREAD_MM = 10.0
+
+#: Every sensor position of a recording within this distance (mm) of the tracker's origin means the file is in
+#: metres: a sensor cannot sit inside the transmitter (it is tens of millimetres or more away).
+METRES_LIKE_MM = 5.0
 
 
 @dataclass
@@ -227,39 +232,73 @@ def _spread_mm(points: np.ndarray) -> float:
     return float(np.percentile(np.linalg.norm(points - np.median(points, axis=0), axis=1), 95))
 
 
+def role_spreads(reference_position_mm: np.ndarray, reference_rotation: np.ndarray,
+                 probe_position_mm: np.ndarray) -> tuple[float, float, float]:
+    """How far each sensor travels (mm, 95th percentile distance from the median) at moments paired by time:
+    the probe in the Reference frame, the reference in the Tracker frame, the probe in the Tracker frame.
+
+    ``reference_position_mm`` (N, 3) and ``reference_rotation`` (N, 3, 3): ``ReferenceToTracker``;
+    ``probe_position_mm`` (N, 3): the probe's origin in the Tracker frame at the same moments."""
+    rotation_t = np.swapaxes(np.asarray(reference_rotation, dtype=float), 1, 2)
+    reference_position_mm = np.asarray(reference_position_mm, dtype=float)
+    probe_position_mm = np.asarray(probe_position_mm, dtype=float)
+    relative = np.einsum("nij,nj->ni", rotation_t, probe_position_mm - reference_position_mm)
+    return _spread_mm(relative), _spread_mm(reference_position_mm), _spread_mm(probe_position_mm)
+
+
+def role_problem(spreads: tuple[float, float, float], reference_port: int, probe_port: int) -> tuple[str, str] | None:
+    """The port mistake the spreads of :func:`role_spreads` show, as ``(kind, one-line message)``, or None.
+
+    ``"still"``: the probe never moves relative to the reference (``MIN_PROBE_SPREAD_MM``): a second sensor on
+    the frame, or the same sensor twice. ``"swapped"``: the "reference" moves far more than the "probe" in the
+    Tracker frame (``SWAP_SPREAD_FACTOR``, ``SWAP_MIN_SPREAD_MM``). Offline recordings and live navigation
+    judge with this one rule."""
+    relative_spread, reference_spread, probe_spread = spreads
+    if relative_spread < MIN_PROBE_SPREAD_MM:
+        return "still", (
+            f"the probe (port {probe_port}) never moves relative to the reference (port {reference_port}): "
+            f"spread {relative_spread:.2f} mm < {MIN_PROBE_SPREAD_MM:g} mm; check the sensor ports")
+    if reference_spread > SWAP_MIN_SPREAD_MM and reference_spread > SWAP_SPREAD_FACTOR * probe_spread:
+        return "swapped", (
+            f"the reference sensor (port {reference_port}) moves {reference_spread:.0f} mm in the tracker "
+            f"frame, the probe (port {probe_port}) only {probe_spread:.0f} mm: the ports look swapped; check "
+            "--reference-sensor / --probe-sensor or case.toml [sensors]")
+    return None
+
+
 def _check_roles(source: str, reference: TrackingRecording, probe: TrackingRecording, ref_idx: np.ndarray,
                  probe_idx: np.ndarray, reference_port: int, probe_port: int) -> None:
-    reference_position = reference.position_mm[ref_idx]
-    probe_position = probe.position_mm[probe_idx]
-    rotation_t = np.swapaxes(reference.rotation[ref_idx], 1, 2)
-    relative = np.einsum("nij,nj->ni", rotation_t, probe_position - reference_position)
-    relative_spread = _spread_mm(relative)
-    if relative_spread < MIN_PROBE_SPREAD_MM:
+    spreads = role_spreads(reference.position_mm[ref_idx], reference.rotation[ref_idx], probe.position_mm[probe_idx])
+    problem = role_problem(spreads, reference_port, probe_port)
+    extent = float(max(np.max(np.abs(reference.position_mm)), np.max(np.abs(probe.position_mm))))
+    if problem is not None and problem[0] == "still" and extent < METRES_LIKE_MM:  # not a port mistake: the unit
         raise EMRegError(
-            f"{source}: the probe (port {probe_port}) never moves relative to the reference (port {reference_port}): "
-            f"spread {relative_spread:.2f} mm < {MIN_PROBE_SPREAD_MM:g} mm; check the sensor ports"
+            f"{source}: every position lies within {extent:.3g} of the tracker's origin: the recording looks like "
+            "metres, and EMReg reads millimetres (a sensor sits tens of millimetres or more from the transmitter); "
+            "scale the positions by 1000"
         )
-    reference_spread, probe_spread = _spread_mm(reference_position), _spread_mm(probe_position)
-    if reference_spread > SWAP_MIN_SPREAD_MM and reference_spread > SWAP_SPREAD_FACTOR * probe_spread:
-        raise EMRegError(
-            f"{source}: the reference sensor (port {reference_port}) moves {reference_spread:.0f} mm in the tracker "
-            f"frame, the probe (port {probe_port}) only {probe_spread:.0f} mm: the ports look swapped; check "
-            "--reference-sensor / --probe-sensor or case.toml [sensors]"
-        )
+    if problem is not None:
+        raise EMRegError(f"{source}: {problem[1]}")
 
 
 def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "recording",
-                        first_line: int = 2) -> tuple[np.ndarray, list[str]]:
+                        first_line: int = 2, where: Callable[[int], str] | None = None
+                        ) -> tuple[np.ndarray, list[str]]:
     """Segments of a recording in file order, and the warnings that say where and why it was split.
 
-    A new segment starts where a sensor's time goes back (a clock reset: the rows after it are
-    kept, not merged with the earlier ones by time) and where nothing was recorded for more than
+    The one rule for every recording format (tracking CSV, PLUS / Slicer sequence file): a new
+    segment starts where a sensor's time goes back (a clock reset: the rows after it are kept, not
+    merged with the earlier ones by time) and where nothing was recorded for more than
     ``MAX_GAP_S``. Within a segment each sensor's time must increase; a repeated or decreasing time
-    that is not a reset of the whole recording is an :class:`EMRegError` naming the line
-    (``first_line`` is the file line of row 0).
+    that is not a reset of the whole recording is an :class:`EMRegError` naming the place.
+    ``where(row)`` names a row's place in its file (default ``line {row + first_line}``; a sequence
+    file says ``frame N``).
     """
     time_s = np.asarray(time_s, dtype=float)
     sensor = np.asarray(sensor, dtype=int)
+    if where is None:
+        def where(row: int) -> str:
+            return f"line {row + first_line}"
     n = len(time_s)
     segment = np.zeros(n, dtype=int)
     warnings: list[str] = []
@@ -272,7 +311,7 @@ def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "r
         for i, (t, s) in enumerate(zip(time_s.tolist(), sensor.tolist(), strict=True)):
             if s in last and t < last[s]:
                 current += 1
-                warnings.append(f"{source}: time goes back from {last[s]:.3f} s to {t:.3f} s at line {i + first_line} "
+                warnings.append(f"{source}: time goes back from {last[s]:.3f} s to {t:.3f} s at {where(i)} "
                                 "(a clock reset): the rows after it are a separate time segment")
                 last = {}
             last[s] = t
@@ -300,7 +339,7 @@ def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "r
     bad = np.nonzero(same & (np.diff(time_s[order]) <= 0))[0]
     if len(bad):
         row = int(order[bad[0] + 1])
-        raise EMRegError(f"{source}: line {row + first_line}: time {time_s[row]:.4f} s of sensor {sensor[row]} "
+        raise EMRegError(f"{source}: {where(row)}: time {time_s[row]:.4f} s of sensor {sensor[row]} "
                          "does not increase (each sensor's time must increase within a recording)")
     return segment, warnings
 

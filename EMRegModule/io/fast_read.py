@@ -12,11 +12,15 @@ Only the plain layouts are taken: 3D, scalar, the voxels in the same file, raw o
 no intensity rescaling. Anything else (detached data, a NIfTI slope, NIfTI-2, a pixel type the
 header and SimpleITK disagree on, a missing ``isal``) returns ``None`` and the caller reads
 the file with SimpleITK. The tests compare both readers voxel for voxel.
+
+The file's sha256 (for provenance) is computed from the bytes as they are read, in that same single
+pass: ``fill.sha256``.
 """
 
 from __future__ import annotations
 
 import ctypes
+import hashlib
 import threading
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -27,6 +31,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from ..errors import EMRegError
+from ..provenance import Digest
 from .ct_checks import NonFiniteCounter
 
 try:  # a declared dependency; without it SimpleITK reads the file (slower, same result)
@@ -90,6 +95,7 @@ class VolumeFill:
         self._condition = threading.Condition()
         self.series: dict | None = None  # a DICOM folder: the series read and the others (``dicom_series``)
         self.is_complete = False  # True when made by ``complete`` (read in full before it existed)
+        self.sha256: Digest | None = None  # the source's sha256 (provenance), computed as it is read
 
     @classmethod
     def complete(cls, image: sitk.Image) -> VolumeFill:
@@ -177,6 +183,7 @@ def start_fast_read(path: Path) -> VolumeFill | None:
     if storage is None or _SITK_TYPES.get(storage.dtype.newbyteorder("=").name) != info.GetPixelID():
         return None
     fill = VolumeFill(info.GetSize()[2])
+    fill.sha256 = Digest()
     threading.Thread(target=_read_voxels, args=(path, info, storage, fill), name="emreg-ct-read").start()
     return fill
 
@@ -209,35 +216,78 @@ def stored_nrrd_voxels(path: Path) -> tuple[sitk.ImageFileReader, np.dtype, int,
 
 
 def _read_voxels(path: Path, info: sitk.ImageFileReader, storage: _Storage, fill: VolumeFill) -> None:
-    """The reading thread: allocate the image, fill it, announce whole slices as they are done."""
+    """The reading thread: allocate the image, fill it, announce whole slices as they are done.
+
+    Every byte of the file goes through one :class:`_HashingReader`, in order, so that its sha256
+    comes out of this same pass (``fill.sha256``).
+    """
     try:
         image, voxels = _new_image(info)  # SimpleITK allocates without the GIL: the imports go on meanwhile
         fill._set_image(image)
         slices = _SliceAnnouncer(voxels, storage.dtype, fill)
-        with path.open("rb") as stream:
+        with path.open("rb") as file:
+            stream = _HashingReader(file)
+            if storage.compression == "raw" or not storage.whole_file:
+                stream.skip(storage.data_offset)  # the header: hashed, not used
             if storage.compression == "raw":
-                stream.seek(storage.data_offset)
                 filled = _read_raw(stream, voxels, slices)
                 if filled == voxels.nbytes and stream.read(1):
                     extra = path.stat().st_size - storage.data_offset - voxels.nbytes
                     raise EMRegError(_too_much_data(path, info, voxels.nbytes, extra))
             else:
-                stream.seek(0 if storage.whole_file else storage.data_offset)
                 skip = storage.data_offset if storage.whole_file else 0
                 blocks = _inflated(stream, storage.compression == "gzip", path, skip + voxels.nbytes)
                 filled, extra = _fill(voxels, blocks, skip, slices)
                 if extra:
                     raise EMRegError(_too_much_data(path, info, voxels.nbytes, extra))
-        if filled != voxels.nbytes:
-            raise EMRegError(f"{path}: cannot read CT (file is truncated: {filled} of {voxels.nbytes} voxel bytes)")
-        slices(filled)
-        slices.non_finite.check(path)
+            if filled != voxels.nbytes:
+                raise EMRegError(f"{path}: cannot read CT (file is truncated: {filled} of {voxels.nbytes} voxel "
+                                 f"bytes)")
+            slices(filled)
+            slices.non_finite.check(path)
+            stream.skip(None)  # whatever follows the data (nothing, normally): hashed too
+        fill.sha256.set(stream.hexdigest())
     except _CancelledError:
-        fill._finish(_CancelledReadError(f"{path}: reading the CT was cancelled"))
+        error = _CancelledReadError(f"{path}: reading the CT was cancelled")
+        fill.sha256.fail(error)
+        fill._finish(error)
     except BaseException as exc:  # handed to the waiting thread
+        fill.sha256.fail(exc)
         fill._finish(exc)
     else:
         fill._finish()
+
+
+class _HashingReader:
+    """A file read front to back once: ``read``/``readinto`` as the file's, the sha256 of every byte read."""
+
+    def __init__(self, file: BinaryIO) -> None:
+        self.file = file
+        self.digest = hashlib.sha256()
+
+    def read(self, size: int = -1) -> bytes:
+        data = self.file.read(size)
+        self.digest.update(data)
+        return data
+
+    def readinto(self, buffer: np.ndarray) -> int:
+        count = self.file.readinto(buffer)
+        if count:
+            self.digest.update(buffer[:count])
+        return count
+
+    def skip(self, size: int | None) -> None:
+        """Read (and hash) ``size`` bytes, or everything left when None."""
+        while size is None or size > 0:
+            chunk = self.file.read(_CHUNK_BYTES if size is None else min(size, _CHUNK_BYTES))
+            if not chunk:
+                return
+            self.digest.update(chunk)
+            if size is not None:
+                size -= len(chunk)
+
+    def hexdigest(self) -> str:
+        return self.digest.hexdigest()
 
 
 class _CancelledError(Exception):
@@ -280,7 +330,7 @@ class _SliceAnnouncer:
             self.fill._set_ready(whole)
 
 
-def _read_raw(stream: BinaryIO, out: np.ndarray, announce: Callable[[int], None]) -> int:
+def _read_raw(stream: _HashingReader, out: np.ndarray, announce: Callable[[int], None]) -> int:
     """Read uncompressed voxels into ``out`` chunk by chunk; the bytes read."""
     filled = 0
     while filled < out.nbytes:
@@ -312,7 +362,7 @@ def _writable_bytes(image: sitk.Image) -> np.ndarray:
     return np.frombuffer((ctypes.c_char * view.nbytes).from_address(address), dtype=np.uint8)
 
 
-def _inflated(stream: BinaryIO, gzip: bool, path: Path, expected: int) -> Iterator[bytes]:
+def _inflated(stream: _HashingReader, gzip: bool, path: Path, expected: int) -> Iterator[bytes]:
     """The inflated rest of ``stream``, block by block (at most ``_MAX_OUT_BYTES`` each).
 
     The stream is inflated to its end, so that its checksums (gzip CRC-32, zlib Adler-32) are

@@ -14,6 +14,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from ..errors import EMRegError
+from ..provenance import BackgroundHash, note_read_digest
 from .case import CT_FILE_NAMES, CT_FOLDER_NAME, find_ct  # noqa: F401  (re-exported: CT naming lives with the case)
 from .ct_checks import check_ct_geometry, check_ct_image
 from .fast_read import VolumeFill, check_data_length, start_fast_read
@@ -37,6 +38,7 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None) -> Vo
     (:mod:`.dicom_series`, which also chooses the series: ``fill.series`` names it); anything
     else is read by SimpleITK before this returns. The geometry is
     checked (:func:`check_ct`) before returning; ``result()`` raises the read's own errors.
+    ``fill.sha256`` is the source's sha256 (provenance), computed from the bytes this read takes.
     """
     path = Path(path)
     if not path.exists():
@@ -52,7 +54,11 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None) -> Vo
             fill = start_fast_read(path)
             if fill is None:
                 check_data_length(path)  # SimpleITK reads what the header asks for and ignores the rest
+                digest = BackgroundHash(path)  # SimpleITK's read is a pass of its own: hash beside it
                 fill = VolumeFill.complete(sitk.ReadImage(str(path)))
+                fill.sha256 = digest
+        if fill.sha256 is not None:
+            note_read_digest(path, fill.sha256)  # the provenance's sha256 of the CT, from this read
         image = fill.image
     except RuntimeError as exc:
         reason = str(exc).strip().splitlines()

@@ -25,6 +25,7 @@ from ..transforms import is_rigid
 from . import trakstar_protocol as tp
 from .igtl_server import DEFAULT_PORT
 from .link_quality import guard_for
+from .port_check import SensorPortsError
 
 # --- shared helpers ---------------------------------------------------------------------------
 
@@ -412,9 +413,10 @@ def run_live_navigate(args: argparse.Namespace) -> int:
         if server is not None:
             server.close()
         raise
+    link = guard_for(source)
     navigator = LiveNavigator(reference_to_image, reference, probe, server, writer, source.period_s,
                               args.stale_periods, _max_quality(args), out=None if args.quiet else sys.stderr,
-                              link=guard_for(source))
+                              link=link, check_ports=link is not None)  # a tracker's ports are judged live
     navigator.max_frames = args.max_samples
     where = f"OpenIGTLink {args.host}:{server.port} (ProbeToImage, RAS)" if server else ""
     if writer:
@@ -430,8 +432,10 @@ def run_live_navigate(args: argparse.Namespace) -> int:
                     left = None if deadline is None else max(0.0, deadline - time.monotonic())
                     why = _run_loop(source, stop, left,
                                     lambda: args.max_samples is not None and navigator.frames >= args.max_samples,
-                                    navigator.tick)
+                                    lambda: _tick_or_refuse(navigator))
                     break
+                except SensorPortsError:
+                    raise  # the ports are wrong: exit 2 (clients already have the not-OK STATUS)
                 except EMRegError as exc:  # the device failed: cable pulled, tracker switched off or killed
                     source.stop()
                     navigator.device_lost(f"tracker lost: {exc}")  # the last STATUS a client sees is not OK
@@ -453,6 +457,13 @@ def run_live_navigate(args: argparse.Namespace) -> int:
           f"({why}{again})")
     _report_framing(args, source)
     return 0
+
+
+def _tick_or_refuse(navigator) -> None:
+    """The watchdog's tick; raises :class:`SensorPortsError` once the port check found swapped ports."""
+    navigator.tick()
+    if navigator.fatal:
+        raise SensorPortsError(navigator.fatal)
 
 
 def _reconnect(args: argparse.Namespace, reference: int, probe: int, stop: _StopFlag, cause: Exception):

@@ -37,6 +37,7 @@ from ..transforms import LPS_TO_RAS
 from . import igtl_status as st
 from .igtl_server import TRANSFORM_INVALID, TRANSFORM_OK
 from .igtl_status import StatusMessage
+from .port_check import PORT_REASONS, PortRoleCheck
 from .samples import STATUS_NOT_ATTACHED, STATUS_OUT_OF_RANGE, SensorSample  # noqa: F401
 
 #: Status of a sample whose pose the link guard's jump test refused (moved faster than a hand can).
@@ -78,6 +79,7 @@ class Watchdog:
         self.reference_sensor = reference_sensor
         self.link = link  # a link_quality.LinkGuard for a raw tracker link, or None
         self.lost: str | None = None  # set when the device is gone (no more samples will come)
+        self.port_check = None  # a port_check.PortRoleCheck while the sensor ports are judged, or None
         self.probe_sensor = probe_sensor
         self.nominal_period_s = period_s
         self.stale_periods = stale_periods
@@ -152,6 +154,9 @@ class Watchdog:
                 if not np.isnan(quality) and quality > self.max_quality:
                     return Verdict(False, "bad_quality", f"{role} sensor (port {sensor}) quality {quality:g} "
                                    f"worse than {self.max_quality:g}", st.STATUS_UNKNOWN_ERROR, "BadQuality")
+        ports = None if self.port_check is None else self.port_check.verdict()
+        if ports is not None:  # last: the ports are judged only from cycles every other check passed
+            return Verdict(False, ports.reason, ports.message, ports.code, ports.error_name)
         return OK
 
 
@@ -240,13 +245,15 @@ class LiveNavigator(_WatchedPublisher):
 
     Feed it with ``on_sample`` (any thread) and call ``tick()`` regularly (it notices staleness
     when no samples come at all). ``server``: an :class:`~.igtl_server.IGTLServer` or None;
-    ``writer``: a :class:`~.writers.NavigationWriter` or None.
+    ``writer``: a :class:`~.writers.NavigationWriter` or None. ``check_ports``: judge the sensor ports
+    from the first cycles before publishing (:mod:`.port_check`; for raw tracker links).
     """
 
     def __init__(self, reference_to_image: np.ndarray, reference_sensor: int = 1, probe_sensor: int = 2,
                  server=None, writer=None, period_s: float | None = None, stale_periods: float = 3.0,
                  max_quality: float | None = DEFAULT_MAX_QUALITY, out: TextIO | None = sys.stderr,
-                 device_name: str = "ProbeToImage", status_name: str = "Navigation", link=None) -> None:
+                 device_name: str = "ProbeToImage", status_name: str = "Navigation", link=None,
+                 check_ports: bool = False) -> None:
         self.reference_to_image = np.asarray(reference_to_image, dtype=float)
         self.reference_sensor = reference_sensor
         self.probe_sensor = probe_sensor
@@ -254,6 +261,10 @@ class LiveNavigator(_WatchedPublisher):
         self.writer = writer
         self.device_name = device_name
         self.watchdog = Watchdog(reference_sensor, probe_sensor, period_s, stale_periods, max_quality, link)
+        if check_ports:
+            self.watchdog.port_check = PortRoleCheck(reference_sensor, probe_sensor)
+        #: why the ports are wrong (the port check's latched verdict): live navigation ends with exit 2
+        self.fatal: str | None = None
         self.announcer = _Announcer(server, status_name, out, device_name, on_paused=self._send_invalid)
         self.jump_rejected = 0
         self._latest: dict[int, SensorSample] = {}
@@ -278,6 +289,8 @@ class LiveNavigator(_WatchedPublisher):
         with self._lock:  # the new connection numbers its frames from 0 again
             self._latest.clear()
             self._done_frame = None
+            if self.watchdog.port_check is not None:  # the sensors may have been plugged anew: judged afresh
+                self.watchdog.port_check = PortRoleCheck(self.reference_sensor, self.probe_sensor)
 
     def on_sample(self, sample: SensorSample) -> None:
         now = time.monotonic()
@@ -299,6 +312,12 @@ class LiveNavigator(_WatchedPublisher):
                 return  # --max-samples reached: the reader may deliver more before the command loop stops it
             self._done_frame = probe.frame
             self.frames += 1
+            check = self.watchdog.port_check
+            if check is not None and verdict.reason in PORT_REASONS and reference.valid and probe.valid:
+                check.add(reference.transform(), probe.transform())  # a cycle every other check passed
+                verdict = self.watchdog.evaluate(now)
+                self.announcer.update(verdict, now)
+                self.fatal = check.fatal
             if not (verdict.ok and reference.valid and probe.valid):
                 self.withheld += 1
                 self._send_invalid(verdict)

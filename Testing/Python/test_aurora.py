@@ -553,3 +553,24 @@ def test_quality_limit_defaults_to_the_sources_scale():
     assert _max_quality(argparse.Namespace(max_quality=None, source_max_quality=None)) == 20.0  # trakSTAR METAL
     assert _max_quality(argparse.Namespace(max_quality=-1, source_max_quality=1.0)) is None
     assert _max_quality(argparse.Namespace(max_quality=0.5, source_max_quality=1.0)) == 0.5
+
+
+def test_live_navigate_from_the_aurora_refuses_swapped_ports(tmp_path, replay):
+    """The port check is the trakSTAR's (the offline rule, judged on the first cycles): with the replay's
+    hand-held tool on the "reference" port the Aurora path also ends with exit 2 and publishes nothing."""
+    path, _ = replay
+    sim = _Simulator(tmp_path, "--replay", str(path))
+    try:
+        registration = tmp_path / "registration.json"
+        registration.write_text(json.dumps({"ReferenceToImage": np.eye(4).tolist(), "sensor_offset_l_mm": 14.0,
+                                            "fre_mm": 0.5, "pairs": []}))
+        nav = subprocess.run([*EMREG, "navigate", "--registration", str(registration), "--source",
+                              f"aurora://{sim.link}", "--out", str(tmp_path / "out"), "--duration", "60",
+                              "--reference-sensor", "2", "--probe-sensor", "1", "--stale-periods", "8"],
+                             capture_output=True, text=True, env=ENV, timeout=120)
+    finally:
+        sim.stop()
+    assert nav.returncode == 2, nav.stderr
+    errors = [line for line in nav.stderr.splitlines() if line.startswith("emreg navigate: error")]
+    assert len(errors) == 1 and "look swapped" in errors[0]
+    assert (tmp_path / "out" / "navigation.csv").read_text().splitlines()[1:] == []

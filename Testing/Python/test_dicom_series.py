@@ -245,15 +245,15 @@ def test_uncompressed_slices_are_read_directly_and_match_gdcm(tmp_path, monkeypa
     direct: list[bool] = []
     original = dicom_series._read_uncompressed
 
-    def spied(header, out) -> bool:
-        direct.append(original(header, out))
+    def spied(header, data, out) -> bool:
+        direct.append(original(header, data, out))
         return direct[-1]
 
     monkeypatch.setattr(dicom_series, "_read_uncompressed", spied)
     image = read_ct(tmp_path)
     assert direct == [True] * len(files)
     np.testing.assert_array_equal(_voxels(image), _voxels(_series_reader(files)).astype(float))
-    monkeypatch.setattr(dicom_series, "_read_uncompressed", lambda h, out: False)  # GDCM for every slice
+    monkeypatch.setattr(dicom_series, "_read_uncompressed", lambda h, data, out: False)  # GDCM for every slice
     np.testing.assert_array_equal(_voxels(read_ct(tmp_path)), _voxels(image))
 
 
@@ -295,3 +295,64 @@ def test_quick_header_reader_agrees_with_pydicom_on_every_syntax(tmp_path, monke
             np.testing.assert_allclose(fast.position, slow.position)
             np.testing.assert_allclose(fast.orientation, slow.orientation)
     assert quick_used >= 3 * 6  # plain and the little-endian compressed syntaxes take the quick walk
+
+
+def test_the_folder_sha256_comes_from_the_read_and_equals_a_pass_of_its_own(tmp_path):
+    """The provenance's sha256 of a DICOM folder is made from the bytes each slice is decoded from, plus the
+    folder's other files (another series, a README): the same value as ``file_sha256`` of the folder."""
+    import hashlib
+
+    from EMRegModule.provenance import file_sha256, folder_sha256
+
+    _export(tmp_path)
+    convert(sorted((tmp_path / "S2").iterdir()), "jpeg-lossless")  # chunks decoded by GDCM
+    (tmp_path / ".hidden").write_bytes(b"part of the folder too")
+    fill, _ = open_dicom_series(tmp_path)
+    fill.result()
+    expected = {p.relative_to(tmp_path).as_posix(): hashlib.sha256(p.read_bytes()).digest()
+                for p in tmp_path.rglob("*") if p.is_file()}
+    assert fill.sha256.result() == folder_sha256(expected) == file_sha256(tmp_path)
+    fill, _ = open_dicom_series(tmp_path, series=uid(20))  # the compressed series read
+    fill.result()
+    assert fill.sha256.result() == file_sha256(tmp_path)
+    (tmp_path / "README.txt").write_text("changed")
+    assert file_sha256(tmp_path) != folder_sha256(expected)
+
+
+def test_enhanced_multiframe_ct_is_chosen_and_placed_from_its_functional_groups(tmp_path):
+    """An Enhanced CT file (frames stored top down) beside a thick classic series: it is the volume used,
+    its frames ordered along the normal, its geometry that of the same volume exported slice by slice."""
+    from dicom_files import write_enhanced_ct
+
+    volume = make_volume(seed=12)
+    count = volume.GetSize()[2]
+    write_enhanced_ct(volume, tmp_path / "EN" / "ENHANCED.dcm", uid(50), frame_order=range(count - 1, -1, -1))
+    write_series(volume[:, :, ::3], tmp_path / "THICK", uid(51), number=3, description="thick")
+    classic = write_series(volume, tmp_path.parent / f"{tmp_path.name}-classic" / "S", uid(52))
+    chosen = choose_series(scan_series(tmp_path), tmp_path)
+    assert chosen.uid == uid(50) and chosen.multiframe and chosen.size == volume.GetSize()
+    image = read_ct(tmp_path)
+    reference = _series_reader(classic)  # the classic export of the same volume, as SimpleITK reads it
+    np.testing.assert_allclose(image.GetOrigin(), reference.GetOrigin(), atol=1e-5)
+    np.testing.assert_allclose(image.GetSpacing(), reference.GetSpacing(), atol=1e-5)
+    np.testing.assert_allclose(image.GetDirection(), reference.GetDirection(), atol=1e-6)
+    np.testing.assert_array_equal(_voxels(image), _voxels(volume).astype(np.int32) - 1024)
+    np.testing.assert_array_equal(_voxels(image), _voxels(reference) - 1024)
+
+
+def test_enhanced_ct_with_a_missing_frame_or_unreadable_pixels_is_refused_in_one_line(tmp_path, capsys):
+    from dicom_files import write_enhanced_ct
+
+    volume = make_volume(seed=13)
+    positions = [volume.TransformIndexToPhysicalPoint((0, 0, k + (k >= 6))) for k in range(volume.GetSize()[2])]
+    write_enhanced_ct(volume, tmp_path / "gap" / "EN.dcm", uid(53), positions=positions)  # frame 7 is one too far
+    assert main(["detect", str(tmp_path / "gap"), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "EN.dcm frame 6" in err and "EN.dcm frame 7" in err, err
+    path = write_enhanced_ct(volume, tmp_path / "cut" / "EN.dcm", uid(54))
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) - 3000])  # pixel data cut short: GDCM cannot decode it
+    assert main(["detect", str(tmp_path / "cut"), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "EN.dcm" in err, err
+    assert not (tmp_path / "out" / "markers.json").exists()

@@ -1,6 +1,7 @@
 """The fast CT reader gives exactly what SimpleITK gives, and falls back to it for anything unusual."""
 
 import gzip
+import hashlib
 import zlib
 
 import numpy as np
@@ -11,6 +12,7 @@ from EMRegModule import transforms as tf
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.fast_read import start_fast_read
 from EMRegModule.io.image import read_ct
+from EMRegModule.provenance import file_sha256
 
 SIZE_IJK = (37, 29, 23)  # odd sizes: no axis can be swapped unnoticed
 
@@ -50,9 +52,11 @@ def _assert_same(fast: sitk.Image, reference: sitk.Image) -> None:
 def test_fast_read_equals_simpleitk(tmp_path, name, compress, dtype):
     path = tmp_path / name
     sitk.WriteImage(_oblique_image(dtype), str(path), compress)
-    fast = read_fast(path)
-    assert fast is not None, "the plain layout must take the fast path"
-    _assert_same(fast, sitk.ReadImage(str(path)))
+    fill = start_fast_read(path)
+    assert fill is not None, "the plain layout must take the fast path"
+    _assert_same(fill.result(), sitk.ReadImage(str(path)))
+    # the provenance's sha256 comes out of the same pass: the plain sha256 of the file's bytes
+    assert fill.sha256.result() == hashlib.sha256(path.read_bytes()).hexdigest() == file_sha256(path)
 
 
 def _hand_written_nrrd(path, array_zyx: np.ndarray, header_lines: list[str], encoding: str) -> None:
@@ -72,8 +76,10 @@ def test_big_endian_right_anterior_superior_nrrd(tmp_path, encoding):
         "type: short", "dimension: 3", "space: right-anterior-superior", "sizes: " + " ".join(map(str, SIZE_IJK)),
         "space directions: (0,0.6,0) (-0.5,0,0) (0,0,1.5)", "kinds: domain domain domain", "endian: big",
         "space origin: (10.5,-20,30)", "scanner:=ct-01"], encoding)
-    fast = read_fast(path)
-    assert fast is not None
+    fill = start_fast_read(path)
+    assert fill is not None
+    fast = fill.result()
+    assert fill.sha256.result() == hashlib.sha256(path.read_bytes()).hexdigest()  # hashed before the byte swap
     reference = sitk.ReadImage(str(path))
     _assert_same(fast, reference)
     assert reference.GetOrigin() == (-10.5, 20.0, 30.0)  # RAS -> LPS, as ITK reads it

@@ -315,3 +315,109 @@ def test_live_navigate_refuses_a_port_without_a_sensor(tmp_path):
     assert nav.returncode == 2
     lines = [line for line in err.splitlines() if "error" in line]
     assert len(lines) == 1 and "no sensor on the probe port 3 (sensors on ports 1, 2)" in lines[0]
+
+
+# --- the sensor ports, judged live with the offline rule -------------------------------------------
+
+
+def _replay_csv(path: Path, still_s: float, move_s: float, rate_hz: float = 50.0) -> Path:
+    """A tracking CSV: the reference at rest; the probe fixed relative to it for ``still_s`` seconds, then
+    moving 40 mm away over ``move_s`` seconds (``move_s`` 0: a probe that never moves)."""
+    from EMRegModule.io.tracking_csv import write_tracking_csv
+    from EMRegModule.tracking import TrackingRecording
+
+    rng = np.random.default_rng(12)
+    reference = make_transform(random_rotation(rng, 40), [250.0, 30.0, 100.0])
+    probe_rotation = random_rotation(rng, 60)
+    rows = []
+    for k in range(int((still_s + move_s) * rate_hz)):
+        t = k / rate_hz
+        shift = 0.0 if t < still_s else 40.0 * (t - still_s) / move_s  # never back at rest
+        probe = make_transform(probe_rotation, [310.0 + shift, 60.0, 90.0 + 0.5 * shift])
+        rows += [(t, 1, reference), (t, 2, probe)]
+    recording = TrackingRecording(np.array([r[0] for r in rows]), np.array([r[1] for r in rows]),
+                                  np.array([r[2][:3, 3] for r in rows]), np.array([r[2][:3, :3] for r in rows]),
+                                  np.zeros(len(rows)), np.array([""] * len(rows), dtype=object))
+    write_tracking_csv(recording, path)
+    return path
+
+
+def test_live_navigate_ends_with_exit_2_when_the_ports_are_swapped(tmp_path):
+    """The built-in scene's hand-held probe is on port 2, its frame sensor on port 1: navigating with the
+    ports the other way round is the offline 'look swapped' rule, applied to the first cycles: nothing is
+    published, the clients get a not-OK STATUS, the terminal one line, and navigate ends with exit 2."""
+    link = tmp_path / "trakstar"
+    sim = _start_sim(link, "--seed", "3", "--attached", "1,2")
+    port = _free_port()
+    try:
+        nav = _navigate(tmp_path, link, port, 60.0, "--reference-sensor", "2", "--probe-sensor", "1")
+        listener = _connect_listener(port)
+        try:
+            out, err = nav.communicate(timeout=90)
+            assert _wait(lambda: "PortsSwapped" in listener.statuses(), 10), listener.statuses()
+        finally:
+            listener.close()
+    finally:
+        sim.send_signal(signal.SIGTERM)
+        sim.communicate(timeout=20)
+    assert nav.returncode == 2, err
+    errors = [line for line in err.splitlines() if line.startswith("emreg navigate: error")]
+    assert len(errors) == 1 and "look swapped" in errors[0] and "reference sensor (port 2)" in errors[0], err
+    assert "not publishing ProbeToImage: sensor ports:" in err  # the watchdog's line while it happened
+    assert len(listener.poses()) == 0 and "OK" not in listener.statuses()
+    assert (tmp_path / "out" / "navigation.csv").read_text().splitlines()[1:] == []
+
+
+def test_live_navigate_pauses_while_the_probe_has_not_moved_relative_to_the_reference(tmp_path):
+    """A probe fixed relative to the reference (a second sensor on the frame, or a probe at rest): paused
+    with STATUS ProbeNotMoving and one terminal line, as long as it lasts; it is not an error (a probe
+    put down on the table looks the same), so navigate runs on and ends normally."""
+    csv = _replay_csv(tmp_path / "still.csv", still_s=4.0, move_s=0.0)
+    link = tmp_path / "trakstar"
+    sim = _start_sim(link, "--replay", str(csv))
+    port = _free_port()
+    try:
+        nav = _navigate(tmp_path, link, port, 4.0)
+        listener = _connect_listener(port)
+        try:
+            out, err = nav.communicate(timeout=60)
+        finally:
+            listener.close()
+    finally:
+        sim.send_signal(signal.SIGTERM)
+        sim.communicate(timeout=20)
+    assert nav.returncode == 0, err
+    assert "ProbeNotMoving" in listener.statuses() and "OK" not in listener.statuses()
+    assert len(listener.poses()) == 0 and out.startswith("0 probe poses published")
+    lines = [line for line in err.splitlines() if "has not moved relative to the reference (port 1)" in line]
+    assert len(lines) == 1, err
+
+
+def test_live_navigate_starts_publishing_once_the_probe_moves(tmp_path):
+    """The same probe, still for 3 s and then moving: nothing published while it was still, then every
+    published pose is one the simulator sent (its emit log)."""
+    csv = _replay_csv(tmp_path / "moves.csv", still_s=3.0, move_s=3.0)
+    link = tmp_path / "trakstar"
+    sim = _start_sim(link, "--replay", str(csv), "--emit-log", str(tmp_path / "truth.csv"))
+    port = _free_port()
+    try:
+        nav = _navigate(tmp_path, link, port, 60.0, "--max-samples", "280")  # 5.6 s of the 6 s recording
+        listener = _connect_listener(port)
+        try:
+            out, err = nav.communicate(timeout=90)
+        finally:
+            listener.close()
+    finally:
+        sim.send_signal(signal.SIGTERM)
+        sim.communicate(timeout=20)
+    assert nav.returncode == 0, err
+    statuses = [s for s in listener.statuses() if s != "NoData"]
+    assert statuses[0] == "ProbeNotMoving" and "OK" in statuses, statuses
+    published = listener.poses()
+    assert len(published) > 50, out
+    truth = _truth_probe_in_image(tmp_path / "truth.csv", _reference_to_image())
+    errors = np.array([np.linalg.norm(truth - p, axis=1).min() for p in published])
+    assert np.all(errors < WRONG_MM)
+    # none of them while the probe was still: its resting position is never among the published poses
+    rest = truth[0]
+    assert np.linalg.norm(published - rest, axis=1).min() > 1.0
