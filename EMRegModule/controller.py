@@ -553,7 +553,11 @@ class EMRegController:
         summary.append(f"detect: {len(detection.markers)} markers, {len(detection.rejected)} rejected")
 
     def _run_calibrate(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
-        if case.calibration is None:
+        if case.calibration is None:  # a detection-only run: say so, a forgotten file is the likelier story
+            note = (f"no calibration recording in {case.folder} (calibration.csv or calibration.seq.mha): the "
+                    "markers are detected, nothing is registered")
+            self.warn([note])
+            summary.append(f"calibrate: {note}")
             return
         self.load_calibration_recording(case.calibration)
         calibration = self.calibrate_frame()
@@ -592,12 +596,19 @@ class EMRegController:
     def _run_evaluate(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
         """The optional evaluation: a part that cannot be made is "not evaluated" with its reason in
         ``run.json``, ``evaluation.json``, the report and on stderr; the run goes on."""
-        if self.registration is None or (case.navigation is None and case.board is None):
+        if self.registration is None or (case.navigation is None and case.board is None and case.targets is None):
             return
         unreadable: dict[str, str] = {}
         inputs: dict[str, Any] = {}
+        if (case.navigation is None) != (case.targets is None):  # the TRE needs both: say which one is missing
+            unreadable["tre"] = (f"{case.folder}: a navigation recording but no targets.mrk.json"
+                                 if case.targets is None else
+                                 f"{case.folder}: targets.mrk.json but no navigation recording (navigation.csv or "
+                                 "navigation.seq.mha)")
         for part, read in (("tre", lambda: (case.read_recording("navigation"), case.read_targets())),
                            ("board", lambda: case.read_recording("board"))):
+            if part in unreadable or (part == "board" and case.board is None):
+                continue
             try:
                 inputs[part] = read()
             except NoSafeAnswerError:
