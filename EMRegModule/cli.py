@@ -292,11 +292,14 @@ def cmd_report(args: argparse.Namespace) -> int:
         folders = sorted(p for p in batch.iterdir() if p.is_dir())
         for folder in folders:
             check_outputs(folder)
-        bundles: list = []  # each job writes its case's bundle with the CT its report read
-        pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args), bundles=bundles)
-        print(f"{len(pages)} reports written under {args.batch}")
-        for _, (path, message) in bundles:
-            print(_bundle_line(path, message))
+        bundles: list = []  # each job writes its case's bundle (with the CT its report read, if it needs it)
+        try:
+            pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args), bundles=bundles)
+            print(f"{len(pages)} reports written under {args.batch}")
+        finally:  # the cases that did get their report and bundle say so even when others failed
+            for folder, (path, message) in bundles:
+                _record_batch_report(args, Path(folder), path is not None)
+                print(_bundle_line(path, message))
         return 0
     if not args.out:
         raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
@@ -353,6 +356,24 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(line)
     print(f"demo finished in {time.perf_counter() - start:.1f} s; outputs in {out / 'result'}")
     return 0
+
+
+def _record_batch_report(args: argparse.Namespace, folder: Path, bundle: bool) -> None:
+    """The report (and bundle) a batch job wrote into ``folder``, listed in its ``run.json``."""
+    from .io.atomic import read_json
+    from .outputs import OutputFolder
+
+    try:
+        case = read_json(folder / "run.json", "run record").get("case")
+    except (EMRegError, AttributeError):
+        case = None
+    case_dir = Path(case) if isinstance(case, str) and Path(case).is_dir() else None
+    try:
+        controller = _controller(args, _settings(args, case_dir))
+        controller.command = "emreg report --batch"
+        controller.record_report_outputs(OutputFolder(folder, controller.command), bundle)
+    except EMRegError as exc:
+        _warn("report", [f"{folder}: not recorded in run.json ({exc})"])
 
 
 def _bundle_line(path, message: str) -> str:

@@ -467,6 +467,19 @@ class EMRegController:
         self._recorded(folder, "report", self._provenance((), tuple(used)))
         return page
 
+    def record_report_outputs(self, folder: OutputFolder, bundle: bool) -> None:
+        """List a report written into ``folder`` by another process (``emreg report --batch``'s jobs) in its
+        ``run.json``, and its scene bundle when ``bundle``, with their sha256 and provenance."""
+        used = self._adopt_outputs(folder)
+        provenance = self._provenance((), tuple(used))
+        self._recorded(folder, "report", provenance)
+        if bundle:
+            self._recorded(folder, "bundle", provenance)
+            return
+        outputs = folder.manifest.get("outputs")  # an earlier bundle is gone (not renewed): no longer listed
+        if isinstance(outputs, dict) and any([outputs.pop(name, None) for name in STAGE_OUTPUTS["bundle"]]):
+            folder.save()
+
     def _adopt_outputs(self, folder: OutputFolder) -> list[str]:
         """The outputs present in ``folder``, checked to belong together; their sha256 kept for provenance."""
         used = check_outputs(folder.path)
