@@ -252,7 +252,7 @@ def _result(outcomes: list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]
         marker.id = f"I{i:02d}"
     rejected.sort(key=lambda r: (r.centroid[2], r.centroid[1], r.centroid[0]))
     if len(markers) < options.min_markers:
-        raise NoSafeAnswerError(_too_few_message(len(markers), options, rejected))
+        raise NoSafeAnswerError(_too_few_message(len(markers), options, rejected) + _intensity_hint(image))
     return DetectionResult(markers, rejected, image_geometry(image))
 
 
@@ -338,6 +338,25 @@ def _size_and_shape_problem(volume: float, spreads: np.ndarray, model: MarkerMod
         return ("principal spreads " + "/".join(f"{v:.1f}" for v in spreads) + " mm unlike the marker's "
                 + "/".join(f"{v:.1f}" for v in model_spreads) + " mm"), "shape"
     return None, ""
+
+
+def _intensity_hint(image: sitk.Image) -> str:
+    """A note for the too-few-markers message when the CT's air does not read near -1000 HU (its darkest
+    voxels, 2nd percentile of a sample): the values are then not Hounsfield units, typically stored pixel
+    values without their rescale intercept (HU + 1024). Empty otherwise."""
+    values = sitk.GetArrayViewFromImage(image)[::2, ::4, ::4]
+    if values.size == 0:
+        return ""
+    air = float(np.percentile(values, 2))
+    if air < _AIR_READS_BELOW_HU:
+        return ""
+    return (f"; the CT's darkest voxels read {air:.0f} where air reads -1000 HU: its values do not look like "
+            "Hounsfield units (stored pixel values without their rescale intercept, e.g. HU + 1024?); convert "
+            "the CT to HU")
+
+
+_AIR_READS_BELOW_HU = -500.0
+"""Air (around and inside the frame) reads -1000 HU; darkest voxels above this mean the values are not HU."""
 
 
 def _too_few_message(found: int, options: DetectionSettings, rejected: list[RejectedCandidate]) -> str:
