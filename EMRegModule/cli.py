@@ -307,9 +307,15 @@ def cmd_report(args: argparse.Namespace) -> int:
     controller = _controller(args, _settings(args))
     folder = OutputFolder(args.out, "emreg report")
     folder.start_stage("report")
-    path = controller.save_report(folder, case)
+    bundle = controller.start_bundle(folder, case)  # in a process of its own while the report renders
+    try:
+        path = controller.save_report(folder, case)
+    except BaseException:
+        if bundle is not None:
+            bundle.cancel()
+        raise
     print(f"report -> {path}")
-    print(controller.save_bundle(folder, case))
+    print(controller.save_bundle(folder, case, bundle))
     return 0
 
 

@@ -26,7 +26,7 @@ import hashlib
 import math
 import os
 import threading
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -152,11 +152,14 @@ class DicomSeries:
 # --- scanning ---------------------------------------------------------------------------------------
 
 
-def scan_series(folder: str | os.PathLike[str]) -> list[DicomSeries]:
+def scan_series(folder: str | os.PathLike[str],
+                first_image: Callable[[SliceHeader, int], None] | None = None) -> list[DicomSeries]:
     """Every image series in ``folder``, its subfolders and its ``DICOMDIR`` (headers only).
 
     Files that are not DICOM are ignored; a DICOM file whose header cannot be parsed, or a
     ``DICOMDIR`` entry whose file is missing, is an :class:`EMRegError` naming the file.
+    ``first_image(header, count)``, when given, is called with the first image's header and the
+    number of files beside it with the same suffix, as soon as it is read.
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -170,6 +173,9 @@ def scan_series(folder: str | os.PathLike[str]) -> list[DicomSeries]:
         header = read_header(path)
         if header is not None:
             groups.setdefault(header.series_uid, []).append(header)
+            if first_image is not None:
+                first_image(header, sum(p.parent == path.parent and p.suffix == path.suffix for p in paths.values()))
+                first_image = None
     series = [_describe(uid, headers) for uid, headers in groups.items()]
     series.sort(key=lambda s: (s.number if s.number is not None else 1 << 30, s.uid))
     return series
@@ -550,7 +556,8 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
     as they are read for decoding.
     """
     folder = Path(folder)
-    all_series = scan_series(folder)
+    early = _EarlyImage()
+    all_series = scan_series(folder, early.start)
     chosen = choose_series(all_series, folder, series)
     record = series_record(chosen, all_series, folder)
     if chosen.multiframe:
@@ -561,10 +568,49 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
         fill = VolumeFill(len(chosen.headers))
         fill.sha256 = Digest()
         workers = workers or max(1, min(8, os.cpu_count() or 1))
-        threading.Thread(target=_decode_series, args=(chosen, fill, workers, folder), name="emreg-dicom-read",
+        threading.Thread(target=_decode_series, args=(chosen, fill, workers, folder, early), name="emreg-dicom-read",
                          daemon=True).start()
     fill.series = record
     return fill, record
+
+
+class _EarlyImage:
+    """The volume allocated on a thread while the rest of the folder's headers are read.
+
+    Allocating (and so zeroing) a CT of a few hundred MB takes about as long as reading all the
+    headers; it does not hold the GIL. The size is guessed from the first image read and the
+    files beside it (a folder holding one series: the usual case); the image is used only when
+    the chosen series has exactly that size and voxel type, and dropped otherwise.
+    """
+
+    _MAX_SLICES = 4096
+
+    def __init__(self) -> None:
+        self._thread: threading.Thread | None = None
+        self._image: sitk.Image | None = None
+
+    def start(self, header: SliceHeader, count: int) -> None:
+        if header.frames != 1 or header.samples != 1 or not 3 <= count <= self._MAX_SLICES \
+                or header.modality.upper() != "CT" or header.rows < 1 or header.columns < 1:
+            return
+        size, pixel = [header.columns, header.rows, count], voxel_type([header])
+
+        def allocate() -> None:
+            self._image = sitk.Image(size, pixel)
+
+        self._thread = threading.Thread(target=allocate, name="emreg-dicom-allocate", daemon=True)
+        self._thread.start()
+
+    def take(self, series: DicomSeries) -> sitk.Image | None:
+        """The early image if it fits ``series`` (size, voxel type), else None (it is let go)."""
+        if self._thread is None:
+            return None
+        self._thread.join()
+        image, self._image = self._image, None
+        if image is None or series.multiframe or series.size is None or tuple(image.GetSize()) != series.size \
+                or image.GetPixelID() != voxel_type(series.headers):
+            return None
+        return image
 
 
 def _read_multiframe(series: DicomSeries) -> sitk.Image:
@@ -708,8 +754,10 @@ def _slice_tasks(headers: list[SliceHeader]) -> list[tuple[int, int]]:
     return tasks
 
 
-def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: Path) -> None:
-    """The reading thread: allocate, decode slices on a pool, announce the in-order prefix, then the sha256.
+def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: Path,
+                   early: _EarlyImage | None = None) -> None:
+    """The reading thread: allocate (or take the ``early`` image), decode slices on a pool, announce the
+    in-order prefix, then the sha256.
 
     Uncompressed slices are read whole (one read, which also gives their sha256) and converted by
     numpy; compressed ones are decoded by GDCM, a run of consecutive slices per
@@ -719,7 +767,9 @@ def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: 
     digests: dict[str, bytes] = {}
     names = {h.path: _relative(h.path, folder) for h in series.headers}
     try:
-        image = sitk.Image(list(series.size), voxel_type(series.headers))
+        image = early.take(series) if early is not None else None  # allocated while the headers were read
+        if image is None:
+            image = sitk.Image(list(series.size), voxel_type(series.headers))
         image.SetSpacing(series.spacing)
         image.SetOrigin(series.origin)
         image.SetDirection(series.direction)

@@ -356,3 +356,24 @@ def test_enhanced_ct_with_a_missing_frame_or_unreadable_pixels_is_refused_in_one
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "EN.dcm" in err, err
     assert not (tmp_path / "out" / "markers.json").exists()
+
+
+def test_the_volume_allocated_while_headers_are_read_is_used_only_when_it_fits(tmp_path, monkeypatch):
+    from EMRegModule.io import dicom_series
+
+    taken: list[bool] = []
+    original = dicom_series._EarlyImage.take
+
+    def spied(self, series):
+        image = original(self, series)
+        taken.append(image is not None)
+        return image
+
+    monkeypatch.setattr(dicom_series._EarlyImage, "take", spied)
+    volume = make_volume(seed=14)
+    files = write_series(volume, tmp_path / "one", uid(60))
+    np.testing.assert_array_equal(_voxels(read_ct(tmp_path / "one")), _voxels(_series_reader(files)))
+    write_series(volume[:, :, ::3], tmp_path / "two" / "A", uid(61), description="thick")  # read first: 4 slices
+    thin = write_series(volume, tmp_path / "two" / "B", uid(62), description="thin")
+    np.testing.assert_array_equal(_voxels(read_ct(tmp_path / "two")), _voxels(_series_reader(thin)))
+    assert taken == [True, False]
