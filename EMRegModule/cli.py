@@ -246,7 +246,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
     from .io.sequence_metafile import is_sequence_file, read_sequence_frames, recording_from_frames
     from .io.tracking_csv import read_tracking_csv
 
-    sensors = _settings(args).sensors
+    settings = _settings(args)
+    sensors = settings.sensors
     reference = args.reference_sensor or sensors.reference
     probe = args.probe_sensor or sensors.probe
     names = {"reference_transform": sensors.reference_transform or "ReferenceToTracker",
@@ -271,7 +272,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
         others = {n: p for n, p in ports.items() if n not in names.values()}
     else:
         recording, others = read_tracking_csv(source), {}
-    write_recording(recording, target, {"sensors": names}, reference, probe,
+    write_recording(recording, target, settings, reference, probe,
                     orientation="quaternion" if args.quaternion else None)
     _warn("convert", recording.warnings)
     extra = ("; other transforms as sensor ports " + ", ".join(f"{n} = {p}" for n, p in others.items())
@@ -306,9 +307,15 @@ def cmd_report(args: argparse.Namespace) -> int:
     controller = _controller(args, _settings(args))
     folder = OutputFolder(args.out, "emreg report")
     folder.start_stage("report")
-    path = controller.save_report(folder, case)
+    bundle = controller.start_bundle(folder, case)  # in a process of its own while the report renders
+    try:
+        path = controller.save_report(folder, case)
+    except BaseException:
+        if bundle is not None:
+            bundle.cancel()
+        raise
     print(f"report -> {path}")
-    print(controller.save_bundle(folder, case))
+    print(controller.save_bundle(folder, case, bundle))
     return 0
 
 

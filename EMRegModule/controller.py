@@ -352,8 +352,9 @@ class EMRegController:
         used = {name: self._output_sha[name] for name in uses if name in self._output_sha}
         return Provenance(inputs, used, self.settings.digest(), self.settings.source, made_by=self.command)
 
-    def _recorded(self, folder: OutputFolder, stage: str, provenance: Provenance) -> None:
-        folder.record(STAGE_OUTPUTS[stage], provenance)
+    def _recorded(self, folder: OutputFolder, stage: str, provenance: Provenance,
+                  sha256: dict[str, str] | None = None) -> None:
+        folder.record(STAGE_OUTPUTS[stage], provenance, sha256)
         for name in STAGE_OUTPUTS[stage]:
             if (folder.path / name).exists():
                 self._made_from[name] = provenance
@@ -456,11 +457,13 @@ class EMRegController:
     def save_report(self, folder: OutputFolder, case_dir: Path | None) -> Path:
         """The verification report of ``folder`` (its outputs checked to belong together first); the CT
         the report read is kept for the Slicer bundle (:meth:`save_bundle`)."""
+        from .io.slicer_scene import bundle_needs_ct_image
         from .report.writer import write_report_keeping_ct
 
         used = self._adopt_outputs(folder)
+        keep = bundle_needs_ct_image(_recorded_ct(folder.path))  # else the report streams a CT it reads itself
         page, self._report_image = write_report_keeping_ct(folder.path, case_dir=case_dir, progress=self.progress,
-                                                           image=self.image)
+                                                           image=self.image, keep_ct=keep)
         self._recorded(folder, "report", self._provenance((), tuple(used)))
         return page
 
@@ -471,11 +474,33 @@ class EMRegController:
             self._output_sha.setdefault(name, folder.sha256(name))
         return used
 
-    def save_bundle(self, folder: OutputFolder, case_dir: Path | None) -> str:
+    def start_bundle(self, folder: OutputFolder, case_dir: Path | None) -> Any:
+        """Start writing ``EMReg.mrb`` in a separate process, to go on while the report renders (pass the
+        result to :meth:`save_bundle`); None when it must be written here (no slicer-core, or a CT the bundle
+        cannot copy from its file)."""
+        from .io.slicer_scene import start_bundle_process
+
+        used = self._adopt_outputs(folder)
+        job = start_bundle_process(folder.path, case_dir)
+        if job is not None:
+            job.used = used
+        return job
+
+    def save_bundle(self, folder: OutputFolder, case_dir: Path | None, job: Any = None) -> str:
         """``EMReg.mrb``, the 3D Slicer scene of ``folder``'s outputs; a summary line. Optional: without
-        slicer-core, or when it cannot be written, the other outputs stand and a warning says why."""
+        slicer-core, or when it cannot be written, the other outputs stand and a warning says why.
+        ``job``: the bundle started by :meth:`start_bundle` (waited for here)."""
         from .io.slicer_scene import bundle_needs_ct_image, write_run_bundle
 
+        if job is not None:
+            with self.progress.step("writing the 3D Slicer scene bundle (in parallel)"):
+                path, message, sha = job.result()
+            if path is None:
+                self.warn([message])
+            else:
+                self._recorded(folder, "bundle", self._provenance((), tuple(job.used)),
+                               {path.name: sha} if sha else None)
+            return f"bundle: {message}"
         used = self._adopt_outputs(folder)
         image = self.image if self.image is not None else self._report_image  # the CT is not read again
         self._report_image = None
@@ -553,7 +578,11 @@ class EMRegController:
         summary.append(f"detect: {len(detection.markers)} markers, {len(detection.rejected)} rejected")
 
     def _run_calibrate(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
-        if case.calibration is None:
+        if case.calibration is None:  # a detection-only run: say so, a forgotten file is the likelier story
+            note = (f"no calibration recording in {case.folder} (calibration.csv or calibration.seq.mha): the "
+                    "markers are detected, nothing is registered")
+            self.warn([note])
+            summary.append(f"calibrate: {note}")
             return
         self.load_calibration_recording(case.calibration)
         calibration = self.calibrate_frame()
@@ -592,12 +621,19 @@ class EMRegController:
     def _run_evaluate(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
         """The optional evaluation: a part that cannot be made is "not evaluated" with its reason in
         ``run.json``, ``evaluation.json``, the report and on stderr; the run goes on."""
-        if self.registration is None or (case.navigation is None and case.board is None):
+        if self.registration is None or (case.navigation is None and case.board is None and case.targets is None):
             return
         unreadable: dict[str, str] = {}
         inputs: dict[str, Any] = {}
+        if (case.navigation is None) != (case.targets is None):  # the TRE needs both: say which one is missing
+            unreadable["tre"] = (f"{case.folder}: a navigation recording but no targets.mrk.json"
+                                 if case.targets is None else
+                                 f"{case.folder}: targets.mrk.json but no navigation recording (navigation.csv or "
+                                 "navigation.seq.mha)")
         for part, read in (("tre", lambda: (case.read_recording("navigation"), case.read_targets())),
                            ("board", lambda: case.read_recording("board"))):
+            if part in unreadable or (part == "board" and case.board is None):
+                continue
             try:
                 inputs[part] = read()
             except NoSafeAnswerError:

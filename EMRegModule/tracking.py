@@ -10,6 +10,7 @@ dwells changes nothing.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,6 +36,10 @@ MIN_PROBE_SPREAD_MM = 2.0
 #: "probe" and by more than ``SWAP_MIN_SPREAD_MM``.
 SWAP_SPREAD_FACTOR = 3.0
 SWAP_MIN_SPREAD_MM = 10.0
+
+#: Every sensor position of a recording within this distance (mm) of the tracker's origin means the file is in
+#: metres: a sensor cannot sit inside the transmitter (it is tens of millimetres or more away).
+METRES_LIKE_MM = 5.0
 
 
 @dataclass
@@ -265,22 +270,35 @@ def _check_roles(source: str, reference: TrackingRecording, probe: TrackingRecor
                  probe_idx: np.ndarray, reference_port: int, probe_port: int) -> None:
     spreads = role_spreads(reference.position_mm[ref_idx], reference.rotation[ref_idx], probe.position_mm[probe_idx])
     problem = role_problem(spreads, reference_port, probe_port)
+    extent = float(max(np.max(np.abs(reference.position_mm)), np.max(np.abs(probe.position_mm))))
+    if problem is not None and problem[0] == "still" and extent < METRES_LIKE_MM:  # not a port mistake: the unit
+        raise EMRegError(
+            f"{source}: every position lies within {extent:.3g} of the tracker's origin: the recording looks like "
+            "metres, and EMReg reads millimetres (a sensor sits tens of millimetres or more from the transmitter); "
+            "scale the positions by 1000"
+        )
     if problem is not None:
         raise EMRegError(f"{source}: {problem[1]}")
 
 
 def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "recording",
-                        first_line: int = 2) -> tuple[np.ndarray, list[str]]:
+                        first_line: int = 2, where: Callable[[int], str] | None = None
+                        ) -> tuple[np.ndarray, list[str]]:
     """Segments of a recording in file order, and the warnings that say where and why it was split.
 
-    A new segment starts where a sensor's time goes back (a clock reset: the rows after it are
-    kept, not merged with the earlier ones by time) and where nothing was recorded for more than
+    The one rule for every recording format (tracking CSV, PLUS / Slicer sequence file): a new
+    segment starts where a sensor's time goes back (a clock reset: the rows after it are kept, not
+    merged with the earlier ones by time) and where nothing was recorded for more than
     ``MAX_GAP_S``. Within a segment each sensor's time must increase; a repeated or decreasing time
-    that is not a reset of the whole recording is an :class:`EMRegError` naming the line
-    (``first_line`` is the file line of row 0).
+    that is not a reset of the whole recording is an :class:`EMRegError` naming the place.
+    ``where(row)`` names a row's place in its file (default ``line {row + first_line}``; a sequence
+    file says ``frame N``).
     """
     time_s = np.asarray(time_s, dtype=float)
     sensor = np.asarray(sensor, dtype=int)
+    if where is None:
+        def where(row: int) -> str:
+            return f"line {row + first_line}"
     n = len(time_s)
     segment = np.zeros(n, dtype=int)
     warnings: list[str] = []
@@ -293,7 +311,7 @@ def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "r
         for i, (t, s) in enumerate(zip(time_s.tolist(), sensor.tolist(), strict=True)):
             if s in last and t < last[s]:
                 current += 1
-                warnings.append(f"{source}: time goes back from {last[s]:.3f} s to {t:.3f} s at line {i + first_line} "
+                warnings.append(f"{source}: time goes back from {last[s]:.3f} s to {t:.3f} s at {where(i)} "
                                 "(a clock reset): the rows after it are a separate time segment")
                 last = {}
             last[s] = t
@@ -321,7 +339,7 @@ def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "r
     bad = np.nonzero(same & (np.diff(time_s[order]) <= 0))[0]
     if len(bad):
         row = int(order[bad[0] + 1])
-        raise EMRegError(f"{source}: line {row + first_line}: time {time_s[row]:.4f} s of sensor {sensor[row]} "
+        raise EMRegError(f"{source}: {where(row)}: time {time_s[row]:.4f} s of sensor {sensor[row]} "
                          "does not increase (each sensor's time must increase within a recording)")
     return segment, warnings
 

@@ -26,9 +26,9 @@ import hashlib
 import math
 import os
 import threading
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -85,6 +85,12 @@ class SliceHeader:
     instance: int | None
     bits_allocated: int = 16
     photometric: str = "MONOCHROME2"
+    frame: int | None = None  # a frame (0-based) of a multi-frame file; None for a single-image file
+
+    @property
+    def name(self) -> str:
+        """The file's name, and the frame's number (1-based, as DICOM counts them) in a multi-frame file."""
+        return self.path.name if self.frame is None else f"{self.path.name} frame {self.frame + 1}"
 
 
 @dataclass
@@ -107,6 +113,7 @@ class DicomSeries:
     direction: tuple[float, ...] | None = None  # 9 numbers, row-major, columns = i, j, k axes
     multiframe: bool = False
     notes: list[str] = field(default_factory=list)
+    frames: list[SliceHeader] = field(default_factory=list)  # a multi-frame file's frames, ordered along the normal
 
     @property
     def files(self) -> list[Path]:
@@ -145,11 +152,14 @@ class DicomSeries:
 # --- scanning ---------------------------------------------------------------------------------------
 
 
-def scan_series(folder: str | os.PathLike[str]) -> list[DicomSeries]:
+def scan_series(folder: str | os.PathLike[str],
+                first_image: Callable[[SliceHeader, int], None] | None = None) -> list[DicomSeries]:
     """Every image series in ``folder``, its subfolders and its ``DICOMDIR`` (headers only).
 
     Files that are not DICOM are ignored; a DICOM file whose header cannot be parsed, or a
     ``DICOMDIR`` entry whose file is missing, is an :class:`EMRegError` naming the file.
+    ``first_image(header, count)``, when given, is called with the first image's header and the
+    number of files beside it with the same suffix, as soon as it is read.
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -163,6 +173,9 @@ def scan_series(folder: str | os.PathLike[str]) -> list[DicomSeries]:
         header = read_header(path)
         if header is not None:
             groups.setdefault(header.series_uid, []).append(header)
+            if first_image is not None:
+                first_image(header, sum(p.parent == path.parent and p.suffix == path.suffix for p in paths.values()))
+                first_image = None
     series = [_describe(uid, headers) for uid, headers in groups.items()]
     series.sort(key=lambda s: (s.number if s.number is not None else 1 << 30, s.uid))
     return series
@@ -330,24 +343,32 @@ def _volume_problem(series: DicomSeries) -> str | None:
         return "not greyscale"
     if len(headers) == 1 and headers[0].frames > 1:
         return _multiframe_geometry(series)
+    if any(h.frames > 1 for h in headers):
+        return f"{len(headers)} files of which some hold several frames: one multi-frame file or single slices"
     if len(headers) < 3:
         return f"{len(headers)} slice(s), a volume needs 3 or more"
+    return _stack_geometry(series, headers)
+
+
+def _stack_geometry(series: DicomSeries, headers: list[SliceHeader]) -> str | None:
+    """Order ``headers`` (slices, or the frames of a multi-frame file) along their normal and set ``series``'
+    geometry from them; or why they are no volume (missing tags, uneven or duplicate positions, tilt)."""
     missing = next((h for h in headers if h.position is None or h.orientation is None or h.pixel_spacing is None),
                    None)
     if missing is not None:
-        return f"{missing.path.name} lacks Image Position/Orientation (Patient) or Pixel Spacing"
+        return f"{missing.name} lacks Image Position/Orientation (Patient) or Pixel Spacing"
     first = headers[0]
     for h in headers[1:]:
         if (h.rows, h.columns) != (first.rows, first.columns):
-            return f"slices of different sizes ({first.path.name}: {first.columns}x{first.rows}, " \
-                   f"{h.path.name}: {h.columns}x{h.rows})"
+            return f"slices of different sizes ({first.name}: {first.columns}x{first.rows}, " \
+                   f"{h.name}: {h.columns}x{h.rows})"
         if np.max(np.abs(h.orientation - first.orientation)) > 1e-4:
-            return f"slices of different orientations ({first.path.name}, {h.path.name})"
+            return f"slices of different orientations ({first.name}, {h.name})"
         if not np.allclose(h.pixel_spacing, first.pixel_spacing, rtol=1e-4, atol=1e-5):
-            return f"slices of different pixel spacings ({first.path.name}, {h.path.name})"
+            return f"slices of different pixel spacings ({first.name}, {h.name})"
     row, column = first.orientation[:3], first.orientation[3:]
     if abs(np.linalg.norm(row) - 1) > 1e-3 or abs(np.linalg.norm(column) - 1) > 1e-3 or abs(row @ column) > 1e-3:
-        return f"{first.path.name}: Image Orientation (Patient) is not two orthonormal vectors"
+        return f"{first.name}: Image Orientation (Patient) is not two orthonormal vectors"
     normal = np.cross(row, column)
     headers.sort(key=lambda h: (float(h.position @ normal), h.instance or 0))
     depth = np.array([float(h.position @ normal) for h in headers])
@@ -355,15 +376,15 @@ def _volume_problem(series: DicomSeries) -> str | None:
     spacing = float((depth[-1] - depth[0]) / (len(depth) - 1))
     for k, step in enumerate(steps):
         if step < max(1e-3, 0.01 * spacing):
-            return f"duplicate slice position: {headers[k].path.name} and {headers[k + 1].path.name} " \
+            return f"duplicate slice position: {headers[k].name} and {headers[k + 1].name} " \
                    f"are {step:.3f} mm apart"
     expected = depth[0] + spacing * np.arange(len(depth))
     tolerance = max(0.02, 0.1 * spacing)
     bad = int(np.argmax(np.abs(depth - expected)))
     if abs(depth[bad] - expected[bad]) > tolerance:
         k = int(np.argmax(steps))
-        return (f"uneven slice positions (a missing slice?): {steps[k]:.3f} mm between {headers[k].path.name} "
-                f"and {headers[k + 1].path.name}, {float(np.median(steps)):.3f} mm elsewhere")
+        return (f"uneven slice positions (a missing slice?): {steps[k]:.3f} mm between {headers[k].name} "
+                f"and {headers[k + 1].name}, {float(np.median(steps)):.3f} mm elsewhere")
     travel = headers[-1].position - headers[0].position
     sideways = travel - (travel @ normal) * normal
     tilt = math.degrees(math.atan2(float(np.linalg.norm(sideways)), abs(float(travel @ normal))))
@@ -378,8 +399,17 @@ def _volume_problem(series: DicomSeries) -> str | None:
 
 
 def _multiframe_geometry(series: DicomSeries) -> str | None:
-    """A single multi-frame (enhanced) CT file: its geometry as GDCM (SimpleITK) reads it."""
-    path = series.headers[0].path
+    """A multi-frame file: its frames' geometry from the functional groups (Enhanced CT), checked as slices are.
+
+    Each frame's Image Position (Patient) comes from its Per-frame Functional Groups (Plane Position),
+    its orientation, pixel spacing and rescale from its own groups or the Shared ones; the frames
+    must then make an evenly spaced, untilted stack, as the slices of a series must (a frame
+    missing, two at one position: refused, naming the frame). GDCM decodes the pixels; a file GDCM
+    cannot read, or whose frames rescale differently (GDCM applies one rescale to all), is refused.
+    A multi-frame file without functional groups takes GDCM's geometry.
+    """
+    header = series.headers[0]
+    path = header.path
     reader = sitk.ImageFileReader()
     reader.SetImageIO("GDCMImageIO")
     reader.SetFileName(str(path))
@@ -389,12 +419,64 @@ def _multiframe_geometry(series: DicomSeries) -> str | None:
         return f"{path.name}: a multi-frame file GDCM cannot read"
     if reader.GetDimension() != 3 or reader.GetSize()[2] < 3:
         return f"{path.name}: a multi-frame file without a 3D volume"
+    if tuple(reader.GetSize()) != (header.columns, header.rows, header.frames):
+        return f"{path.name}: GDCM reads {list(reader.GetSize())} voxels, the header says " \
+               f"{[header.columns, header.rows, header.frames]}"
+    frames = _functional_group_frames(header)
+    if isinstance(frames, str):
+        return frames
     series.multiframe = True
-    series.size = tuple(int(v) for v in reader.GetSize())
-    series.spacing = tuple(float(v) for v in reader.GetSpacing())
-    series.origin = tuple(float(v) for v in reader.GetOrigin())
-    series.direction = tuple(float(v) for v in reader.GetDirection())
-    return None
+    if frames is None:  # no functional groups (a legacy multi-frame file): GDCM's geometry
+        series.size = tuple(int(v) for v in reader.GetSize())
+        series.spacing = tuple(float(v) for v in reader.GetSpacing())
+        series.origin = tuple(float(v) for v in reader.GetOrigin())
+        series.direction = tuple(float(v) for v in reader.GetDirection())
+        return None
+    rescales = {(f.slope, f.intercept) for f in frames}
+    if len(rescales) > 1:
+        return f"{path.name}: frames with different rescale slopes/intercepts ({len(rescales)}), " \
+               f"which GDCM does not apply frame by frame"
+    problem = _stack_geometry(series, frames)
+    if problem is None:
+        series.frames = frames
+    return problem
+
+
+def _functional_group_frames(header: SliceHeader) -> list[SliceHeader] | str | None:
+    """One :class:`SliceHeader` per frame of an enhanced multi-frame file (pydicom, without pixel data),
+    None when it has no Per-frame Functional Groups, or why it cannot be read."""
+    import pydicom
+
+    try:
+        dataset = pydicom.dcmread(header.path, stop_before_pixels=True)
+        per_frame = dataset.get("PerFrameFunctionalGroupsSequence")
+        if not per_frame:
+            return None
+        shared = (dataset.get("SharedFunctionalGroupsSequence") or [None])[0]
+        if len(per_frame) != header.frames:
+            return f"{header.path.name}: {len(per_frame)} per-frame functional groups for {header.frames} frames"
+        frames = []
+        for index, groups in enumerate(per_frame):
+            def group(keyword: str, groups: Any = groups) -> Any:
+                for source in (groups, shared):
+                    items = source.get(keyword) if source is not None else None
+                    if items:
+                        return items[0]
+                return None
+
+            position, orientation = group("PlanePositionSequence"), group("PlaneOrientationSequence")
+            measures, rescale = group("PixelMeasuresSequence"), group("PixelValueTransformationSequence")
+            frames.append(replace(
+                header, frame=index, instance=index,
+                position=_vector(position.get("ImagePositionPatient") if position else None, 3),
+                orientation=_vector(orientation.get("ImageOrientationPatient") if orientation else None, 6),
+                pixel_spacing=_pair(measures.get("PixelSpacing") if measures else None),
+                slope=float(rescale.get("RescaleSlope", 1) if rescale else dataset.get("RescaleSlope", 1) or 1),
+                intercept=float(rescale.get("RescaleIntercept", 0) if rescale
+                                else dataset.get("RescaleIntercept", 0) or 0)))
+    except Exception as exc:  # noqa: BLE001 - pydicom raises many types for a broken file
+        return f"{header.path.name}: unreadable functional groups ({_short(exc)})"
+    return frames
 
 
 # --- choosing -----------------------------------------------------------------------------------------
@@ -474,21 +556,77 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
     as they are read for decoding.
     """
     folder = Path(folder)
-    all_series = scan_series(folder)
+    early = _EarlyImage()
+    all_series = scan_series(folder, early.start)
     chosen = choose_series(all_series, folder, series)
     record = series_record(chosen, all_series, folder)
     if chosen.multiframe:
         digest = BackgroundHash(folder)
-        fill = VolumeFill.complete(_read_one(chosen.headers[0].path))
+        fill = VolumeFill.complete(_read_multiframe(chosen))
         fill.sha256 = digest
     else:
         fill = VolumeFill(len(chosen.headers))
         fill.sha256 = Digest()
         workers = workers or max(1, min(8, os.cpu_count() or 1))
-        threading.Thread(target=_decode_series, args=(chosen, fill, workers, folder), name="emreg-dicom-read",
+        threading.Thread(target=_decode_series, args=(chosen, fill, workers, folder, early), name="emreg-dicom-read",
                          daemon=True).start()
     fill.series = record
     return fill, record
+
+
+class _EarlyImage:
+    """The volume allocated on a thread while the rest of the folder's headers are read.
+
+    Allocating (and so zeroing) a CT of a few hundred MB takes about as long as reading all the
+    headers; it does not hold the GIL. The size is guessed from the first image read and the
+    files beside it (a folder holding one series: the usual case); the image is used only when
+    the chosen series has exactly that size and voxel type, and dropped otherwise.
+    """
+
+    _MAX_SLICES = 4096
+
+    def __init__(self) -> None:
+        self._thread: threading.Thread | None = None
+        self._image: sitk.Image | None = None
+
+    def start(self, header: SliceHeader, count: int) -> None:
+        if header.frames != 1 or header.samples != 1 or not 3 <= count <= self._MAX_SLICES \
+                or header.modality.upper() != "CT" or header.rows < 1 or header.columns < 1:
+            return
+        size, pixel = [header.columns, header.rows, count], voxel_type([header])
+
+        def allocate() -> None:
+            self._image = sitk.Image(size, pixel)
+
+        self._thread = threading.Thread(target=allocate, name="emreg-dicom-allocate", daemon=True)
+        self._thread.start()
+
+    def take(self, series: DicomSeries) -> sitk.Image | None:
+        """The early image if it fits ``series`` (size, voxel type), else None (it is let go)."""
+        if self._thread is None:
+            return None
+        self._thread.join()
+        image, self._image = self._image, None
+        if image is None or series.multiframe or series.size is None or tuple(image.GetSize()) != series.size \
+                or image.GetPixelID() != voxel_type(series.headers):
+            return None
+        return image
+
+
+def _read_multiframe(series: DicomSeries) -> sitk.Image:
+    """A multi-frame file's volume: GDCM's pixels, frames in the order along the normal, the functional groups'
+    geometry (:func:`_multiframe_geometry`); GDCM's own image for a file without functional groups."""
+    path = series.headers[0].path
+    if not series.frames:
+        return _read_one(path)
+    decoded = _read_one(path, voxel_type(series.frames))
+    values = sitk.GetArrayViewFromImage(decoded)
+    order = [f.frame for f in series.frames]
+    image = sitk.GetImageFromArray(values[order] if order != sorted(order) else values)
+    image.SetSpacing(series.spacing)
+    image.SetOrigin(series.origin)
+    image.SetDirection(series.direction)
+    return image
 
 
 def _read_one(path: Path, pixel: int | None = None) -> sitk.Image:
@@ -591,7 +729,12 @@ def _read_uncompressed(header: SliceHeader, data: memoryview, out: np.ndarray) -
     elif unused:
         stored = stored & ((1 << header.bits_stored) - 1)
     if header.slope == 1.0 and out.dtype.kind in "iu" and float(header.intercept).is_integer():
-        np.add(stored, np.int32(header.intercept), out=out, casting="unsafe")  # int32 sums, then the output type
+        if out.dtype.itemsize == 2:
+            # modulo 2**16 in the output's own type: the same bits as int32 sums cast to it, one pass
+            intercept = np.array(int(header.intercept) % 65536, dtype=np.uint16).view(out.dtype)
+            np.add(stored.view(out.dtype), intercept, out=out)
+        else:
+            np.add(stored, np.int32(header.intercept), out=out, casting="unsafe")  # int32 sums, then the output type
     else:
         np.copyto(out, stored * np.float32(header.slope) + np.float32(header.intercept), casting="unsafe")
     return True
@@ -611,8 +754,10 @@ def _slice_tasks(headers: list[SliceHeader]) -> list[tuple[int, int]]:
     return tasks
 
 
-def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: Path) -> None:
-    """The reading thread: allocate, decode slices on a pool, announce the in-order prefix, then the sha256.
+def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: Path,
+                   early: _EarlyImage | None = None) -> None:
+    """The reading thread: allocate (or take the ``early`` image), decode slices on a pool, announce the
+    in-order prefix, then the sha256.
 
     Uncompressed slices are read whole (one read, which also gives their sha256) and converted by
     numpy; compressed ones are decoded by GDCM, a run of consecutive slices per
@@ -622,7 +767,9 @@ def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: 
     digests: dict[str, bytes] = {}
     names = {h.path: _relative(h.path, folder) for h in series.headers}
     try:
-        image = sitk.Image(list(series.size), voxel_type(series.headers))
+        image = early.take(series) if early is not None else None  # allocated while the headers were read
+        if image is None:
+            image = sitk.Image(list(series.size), voxel_type(series.headers))
         image.SetSpacing(series.spacing)
         image.SetOrigin(series.origin)
         image.SetDirection(series.direction)

@@ -53,10 +53,13 @@ def read_recording(path: str | os.PathLike[str], settings: Settings | Mapping[st
     return read_tracking_csv(path)
 
 
-def write_recording(recording: TrackingRecording, path: str | os.PathLike[str],
-                    settings: Settings | Mapping[str, Any] | None = None, reference_port: int | None = None,
-                    probe_port: int | None = None, orientation: str | None = None) -> None:
-    """Write a recording atomically as CSV or, for a sequence-metafile name, as a PLUS sequence metafile."""
+def write_recording(recording: TrackingRecording, path: str | os.PathLike[str], settings: Settings | None = None,
+                    reference_port: int | None = None, probe_port: int | None = None,
+                    orientation: str | None = None) -> None:
+    """Write a recording atomically as CSV or, for a sequence-metafile name, as a PLUS sequence metafile.
+
+    ``settings``: the typed ``case.toml`` (:class:`~EMRegModule.settings.Settings`), whose ``[sensors]``
+    names the transforms of a sequence file; the ports override ``[sensors] reference`` / ``probe``."""
     if is_sequence_file(path):
         write_sequence_metafile(recording, path, **_names(settings, reference_port, probe_port))
     else:

@@ -20,8 +20,12 @@ tracker's quality number) and ``Seq_FrameNNNN_<Name>TransformOrientation = MISSI
 position-only pose (the rotation written is the identity).
 
 Bad input (a broken header, a frame without its status or timestamp, a matrix that is not rigid
-within :data:`RIGID_TOLERANCE`, NaN values, timestamps going backwards) raises
-:class:`EMRegError` with one line naming the file and the frame.
+within :data:`RIGID_TOLERANCE`, NaN values, a sensor's time repeated) raises :class:`EMRegError`
+with one line naming the file and the frame. Timestamps that go back (a clock reset) or pause for
+more than 2 s split the recording into time segments with a warning naming the frame, by the same
+rule as a tracking CSV (:func:`EMRegModule.tracking.split_time_segments`): nothing is dropped and
+samples are never matched across a reset. Writing keeps the segments in order, each with its own
+timestamps, so a reset survives a conversion either way.
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EMRegError
-from ..tracking import SAME_MOMENT_S, TrackingRecording
+from ..tracking import SAME_MOMENT_S, TrackingRecording, split_time_segments
 from .atomic import atomic_path
 
 #: File name endings read and written as sequence metafiles.
@@ -57,7 +61,8 @@ def is_sequence_file(path: str | os.PathLike[str]) -> bool:
 @dataclass
 class SequenceFrames:
     """The transforms of a sequence metafile: per name, (F, 4, 4) matrices, a validity mask (F,),
-    the quality (F,) (NaN: unknown) and a position-only mask (F,); ``time_s`` (F,)."""
+    the quality (F,) (NaN: unknown) and a position-only mask (F,); ``time_s`` (F,) in file order
+    (it may go back: a clock reset); ``index`` (F,) the frame numbers of the file (None: 0..F-1)."""
 
     source: str
     time_s: np.ndarray
@@ -65,6 +70,7 @@ class SequenceFrames:
     valid: dict[str, np.ndarray]
     quality: dict[str, np.ndarray] = field(default_factory=dict)
     position_only: dict[str, np.ndarray] = field(default_factory=dict)
+    index: np.ndarray | None = None
 
     @property
     def names(self) -> list[str]:
@@ -162,8 +168,6 @@ def read_sequence_frames(path: str | os.PathLike[str]) -> SequenceFrames:
             raise EMRegError(f"{where}: Timestamp {stamp[:30]!r} is not a number") from None
         if not np.isfinite(time_s[k]):
             raise EMRegError(f"{where}: Timestamp is not a finite number")
-        if k and time_s[k] < time_s[k - 1]:
-            raise EMRegError(f"{where}: timestamp {time_s[k]:g} s goes backwards (previous frame {time_s[k - 1]:g} s)")
         for name in names:
             text = frame.get(f"{name}Transform")
             status = frame.get(f"{name}TransformStatus")
@@ -201,7 +205,7 @@ def read_sequence_frames(path: str | os.PathLike[str]) -> SequenceFrames:
                     quality[name][k] = float(q)
                 except ValueError:
                     raise EMRegError(f"{where}: {name}TransformQuality {q[:20]!r} is not a number") from None
-    return SequenceFrames(str(path), time_s, matrices, valid, quality, position_only)
+    return SequenceFrames(str(path), time_s, matrices, valid, quality, position_only, np.asarray(indices))
 
 
 def _check_rigid(matrix: np.ndarray, where: str) -> None:
@@ -236,11 +240,13 @@ def read_sequence_metafile(
 
 
 def recording_from_frames(frames: SequenceFrames, ports: dict[str, int]) -> TrackingRecording:
-    """Rows (sensor = the port of each transform name in ``ports``) of the frames' valid poses."""
-    time_parts, sensor_parts, matrix_parts, quality_parts, only_parts = [], [], [], [], []
+    """Rows (sensor = the port of each transform name in ``ports``) of the frames' valid poses, in frame
+    order; time resets and long pauses split them into segments (with a warning naming the frame)."""
+    time_parts, sensor_parts, matrix_parts, quality_parts, only_parts, frame_parts = [], [], [], [], [], []
     notes = []  # one line each, naming the file
     for name, port in ports.items():
         ok = frames.valid[name]
+        frame_parts.append(np.nonzero(ok)[0])
         time_parts.append(frames.time_s[ok])
         sensor_parts.append(np.full(int(ok.sum()), port))
         matrix_parts.append(frames.matrices[name][ok])
@@ -255,29 +261,39 @@ def recording_from_frames(frames: SequenceFrames, ports: dict[str, int]) -> Trac
     matrices = np.concatenate(matrix_parts)
     quality = np.concatenate(quality_parts)
     position_only = np.concatenate(only_parts)
+    frame = np.concatenate(frame_parts)
     if len(time_s) == 0:
         raise EMRegError(f"{frames.source}: no frame has a valid (OK) pose")
-    sort = np.lexsort((sensor, time_s))
+    sort = np.lexsort((sensor, frame))  # the file's frame order, ports in order within a frame
+    numbers = np.arange(len(frames.time_s)) if frames.index is None else np.asarray(frames.index)
+    frame_number = numbers[frame[sort]]
+    segment, time_notes = split_time_segments(time_s[sort], sensor[sort], frames.source,
+                                              where=lambda row: f"frame {int(frame_number[row])}")
     rotation = matrices[sort, :3, :3].copy()
     rotation[position_only[sort]] = np.nan
     return TrackingRecording(time_s[sort], sensor[sort], matrices[sort, :3, 3], rotation, quality[sort],
-                             np.full(len(sort), "", dtype=object), source=frames.source, warnings=notes)
+                             np.full(len(sort), "", dtype=object), source=frames.source, segment=segment,
+                             warnings=notes + time_notes)
 
 
 def _frames_of(recording: TrackingRecording) -> tuple[np.ndarray, np.ndarray]:
     """Frame number of each row (rows within ``SAME_MOMENT_S`` of a frame's first row share it, one
-    row per sensor: a sensor seen again starts a new frame) and each frame's time."""
-    order = np.argsort(recording.time_s, kind="stable")
+    row per sensor: a sensor seen again starts a new frame) and each frame's time. Time segments (a
+    clock reset) follow each other in order, each with its own times, never interleaved."""
+    order = np.lexsort((recording.time_s, recording.segment))
     times = recording.time_s[order]
     sensors = recording.sensor[order]
+    segments = recording.segment[order]
     frame = np.empty(len(times), dtype=int)
     starts: list[float] = []
     seen: set[int] = set()
-    for k, (t, s) in enumerate(zip(times.tolist(), sensors.tolist(), strict=True)):
-        if not starts or t - starts[-1] > SAME_MOMENT_S or s in seen:
+    previous_segment = None
+    for k, (t, s, g) in enumerate(zip(times.tolist(), sensors.tolist(), segments.tolist(), strict=True)):
+        if not starts or g != previous_segment or abs(t - starts[-1]) > SAME_MOMENT_S or s in seen:
             starts.append(float(t))
             seen = set()
         seen.add(s)
+        previous_segment = g
         frame[k] = len(starts) - 1
     out = np.empty(len(times), dtype=int)
     out[order] = frame

@@ -53,12 +53,13 @@ class SliceMarker:
 class CTSampler:
     """Samples a CT at physical points (LPS mm) with trilinear interpolation."""
 
-    def __init__(self, image: sitk.Image) -> None:
+    def __init__(self, image: sitk.Image, array: np.ndarray | None = None) -> None:
+        """``image``: the CT, or its geometry when ``array`` holds its voxels (k, j, i)."""
         import SimpleITK as sitk
 
         from ..io.image import index_to_physical_matrix
 
-        self.array = sitk.GetArrayViewFromImage(image)  # (k, j, i)
+        self.array = sitk.GetArrayViewFromImage(image) if array is None else array  # (k, j, i)
         self.image_to_index = np.linalg.inv(index_to_physical_matrix(image))
 
     def sample(self, points_image: np.ndarray) -> np.ndarray:
@@ -121,22 +122,27 @@ class StreamingMarkerViews:
     """
 
     def __init__(self, image: sitk.Image, markers: list[SliceMarker], model: MarkerModel, view_px: int = VIEW_PX,
-                 mm_per_px: float = MM_PER_PX) -> None:
-        self.sampler = CTSampler(image)
+                 mm_per_px: float = MM_PER_PX, array: np.ndarray | None = None) -> None:
+        self.sampler = CTSampler(image, array)
         self._views: list[list[np.ndarray] | None] = [None] * len(markers)
-        self._pending: list[tuple[int, int, np.ndarray]] = []
+        self._pending: list[tuple[int, int, np.ndarray, int]] = []
         slices = self.sampler.array.shape[0]
         for n, marker in enumerate(markers):
             points = marker_view_points(marker.marker_to_image, model, view_px, mm_per_px)
             k = apply_transform(self.sampler.image_to_index, points.reshape(-1, 3))[:, 2]
             stop = int(np.clip(np.floor(np.max(k)) + 2, 0, slices))  # trilinear: floor(k) and floor(k) + 1
-            self._pending.append((stop, n, points))
+            start = int(np.clip(np.floor(np.min(k)), 0, slices))
+            self._pending.append((stop, n, points, start))
         self._pending.sort(key=lambda item: item[0])
 
     def sample_ready(self, ready_slices: int) -> None:
         while self._pending and self._pending[0][0] <= ready_slices:
-            _, n, points = self._pending.pop(0)
+            _, n, points, _ = self._pending.pop(0)
             self._views[n] = list(self.sampler.sample(points))
+
+    def first_needed_slice(self) -> int:
+        """The lowest slice a marker still to be sampled reads (the slice count when none is left)."""
+        return min((start for *_, start in self._pending), default=self.sampler.array.shape[0])
 
     def views(self) -> list[list[np.ndarray]]:
         self.sample_ready(self.sampler.array.shape[0])

@@ -20,7 +20,7 @@ from ..calibration import CalibrationPoint
 from ..errors import EMRegError
 from ..progress import QUIET, Progress
 from ..rendering.colors import GREY, colorize, residual_range
-from ..rendering.context import ContextSurface, binned_ct, context_surface
+from ..rendering.context import ContextSurface, bin_factor, binned_ct, context_surface
 from ..rendering.error_views import error_budget_chart, tre_map_slices
 from ..rendering.images import encode_png
 from ..rendering.plots import bar_chart, line_chart
@@ -99,10 +99,21 @@ def prepare_context_surface(data: ReportData) -> None:
 
     if data.inputs.ct is None or data.surface is not None:
         return
+    ct = data.inputs.ct
     try:
         if data.rows:
-            data.marker_views = StreamingMarkerViews(data.inputs.ct.image, _slice_markers(data), data.inputs.model)
-        binned = binned_ct(data.inputs.ct, on_slices=data.marker_views.sample_ready if data.marker_views else None)
+            data.marker_views = StreamingMarkerViews(ct.image, _slice_markers(data), data.inputs.model,
+                                                     array=getattr(ct, "array", None))
+        views = data.marker_views
+        factor = bin_factor(ct.image.GetSize())
+
+        def on_slices(read: int) -> None:  # slices 0 .. read-1 are in; those below read - factor are binned
+            if views is not None:
+                views.sample_ready(read)
+            if hasattr(ct, "release_before"):  # a StreamedCT: slices used by nothing any more go back
+                ct.release_before(min(read - factor, views.first_needed_slice() if views is not None else read))
+
+        binned = binned_ct(ct, on_slices=on_slices)
     except EMRegError as exc:
         data.inputs.notes.append(str(exc))
         data.inputs.ct, data.marker_views = None, None

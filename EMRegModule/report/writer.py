@@ -28,23 +28,25 @@ FIGURE_DIR = "report_figures"
 
 def write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
                  progress: Progress | None = None, image: sitk.Image | None = None) -> Path:
-    """Render ``OUT/report.html`` (see :func:`write_report_keeping_ct`); returns the path of the page."""
-    return write_report_keeping_ct(out_dir, case_dir, progress, image)[0]
+    """Render ``OUT/report.html`` (see :func:`write_report_keeping_ct`); returns the path of the page.
+    A CT read here is streamed (never whole in memory)."""
+    return write_report_keeping_ct(out_dir, case_dir, progress, image, keep_ct=False)[0]
 
 
 def write_report_keeping_ct(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
-                            progress: Progress | None = None,
-                            image: sitk.Image | None = None) -> tuple[Path, sitk.Image | None]:
+                            progress: Progress | None = None, image: sitk.Image | None = None,
+                            keep_ct: bool = True) -> tuple[Path, sitk.Image | None]:
     """Render ``OUT/report.html`` (and ``OUT/report_figures/*.png``) from what the run left in OUT.
 
     ``case_dir`` is the case folder (for the CT and targets); by default the one recorded in
     ``OUT/run.json``. ``image``: the case's CT already in memory (``SimpleITK.Image``), which spares
     reading it again. Returns the path of the page and the CT the report used (None without one, or
-    when it could not be read), so that the caller can reuse it (the 3D Slicer bundle). Raises
-    :class:`EMRegError` when OUT holds nothing to report.
+    when it could not be read), so that the caller can reuse it (the 3D Slicer bundle). ``keep_ct=False``:
+    the caller does not need the CT, so a CT read here is streamed and never whole in memory (None is
+    returned for it). Raises :class:`EMRegError` when OUT holds nothing to report.
     """
     progress = progress or QUIET
-    inputs = load_report_inputs(out_dir, case_dir, image=image)
+    inputs = load_report_inputs(out_dir, case_dir, image=image, keep_ct=keep_ct)
     try:
         rows = marker_rows(inputs.detection, inputs.registration)
         points = calibration_points(inputs.frame_calibration)

@@ -126,3 +126,68 @@ def make_volume(size=(48, 40, 12), spacing=(0.5, 0.6, 0.8), seed: int = 0, pixel
     direction = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
     image.SetDirection(direction.ravel().tolist())
     return image
+
+
+def write_enhanced_ct(image: sitk.Image, path: Path, series_uid: str, number: int = 7,
+                      frame_order: Sequence[int] | None = None, positions: Sequence[Sequence[float]] | None = None,
+                      rescale: tuple[float, float] = (1.0, -1024.0)) -> Path:
+    """``image`` (3D, int16 stored values) as one Enhanced CT Image Storage file written with pydicom.
+
+    Geometry in the functional groups only, as scanners write them: Pixel Measures, Plane Orientation
+    and Pixel Value Transformation (``rescale``: slope, intercept) shared, Plane Position per frame;
+    frames stored in ``frame_order`` (k indices of ``image``; default 0, 1, ...), each at its
+    ``positions[k]`` (default: where ``image`` puts slice k). Stored values are ``image``'s.
+    """
+    import pydicom
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.sequence import Sequence as DicomSequence
+    from pydicom.uid import ExplicitVRLittleEndian
+
+    values = sitk.GetArrayFromImage(image).astype("<i2")
+    count, rows, columns = values.shape
+    order = list(range(count)) if frame_order is None else list(frame_order)
+    direction = np.asarray(image.GetDirection()).reshape(3, 3)
+    spacing = image.GetSpacing()
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.2.1"
+    meta.MediaStorageSOPInstanceUID = f"{series_uid}.1"
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    dataset = Dataset()
+    dataset.file_meta = meta
+    dataset.SOPClassUID, dataset.SOPInstanceUID = meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID
+    dataset.Modality, dataset.SeriesInstanceUID, dataset.SeriesNumber = "CT", series_uid, number
+    dataset.StudyInstanceUID, dataset.FrameOfReferenceUID = uid(1), uid(2)
+    dataset.SeriesDescription, dataset.ImageType = "enhanced", ["ORIGINAL", "PRIMARY", "AXIAL", "NONE"]
+    dataset.PatientName, dataset.PatientID = "Test^Frame", "EMREG-T1"
+    dataset.Rows, dataset.Columns, dataset.NumberOfFrames = rows, columns, len(order)
+    dataset.SamplesPerPixel, dataset.PhotometricInterpretation = 1, "MONOCHROME2"
+    dataset.BitsAllocated, dataset.BitsStored, dataset.HighBit, dataset.PixelRepresentation = 16, 16, 15, 1
+    measures = Dataset()
+    measures.PixelSpacing = [f"{spacing[1]:.6g}", f"{spacing[0]:.6g}"]
+    measures.SliceThickness = f"{spacing[2]:.6g}"
+    orientation = Dataset()
+    orientation.ImageOrientationPatient = [f"{v:.10g}" for v in (*direction[:, 0], *direction[:, 1])]
+    transformation = Dataset()
+    transformation.RescaleSlope, transformation.RescaleIntercept = (f"{v:.6g}" for v in rescale)
+    transformation.RescaleType = "HU"
+    shared = Dataset()
+    shared.PixelMeasuresSequence = DicomSequence([measures])
+    shared.PlaneOrientationSequence = DicomSequence([orientation])
+    shared.PixelValueTransformationSequence = DicomSequence([transformation])
+    dataset.SharedFunctionalGroupsSequence = DicomSequence([shared])
+    frames = []
+    for k in order:
+        plane = Dataset()
+        position = positions[k] if positions is not None else image.TransformIndexToPhysicalPoint((0, 0, k))
+        plane.ImagePositionPatient = [f"{v:.6f}" for v in position]
+        content = Dataset()
+        content.StackID, content.InStackPositionNumber = "1", k + 1
+        frame = Dataset()
+        frame.PlanePositionSequence = DicomSequence([plane])
+        frame.FrameContentSequence = DicomSequence([content])
+        frames.append(frame)
+    dataset.PerFrameFunctionalGroupsSequence = DicomSequence(frames)
+    dataset.PixelData = np.ascontiguousarray(values[order]).tobytes()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pydicom.dcmwrite(path, dataset, enforce_file_format=True)
+    return path

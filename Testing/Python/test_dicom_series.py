@@ -317,3 +317,63 @@ def test_the_folder_sha256_comes_from_the_read_and_equals_a_pass_of_its_own(tmp_
     assert fill.sha256.result() == file_sha256(tmp_path)
     (tmp_path / "README.txt").write_text("changed")
     assert file_sha256(tmp_path) != folder_sha256(expected)
+
+
+def test_enhanced_multiframe_ct_is_chosen_and_placed_from_its_functional_groups(tmp_path):
+    """An Enhanced CT file (frames stored top down) beside a thick classic series: it is the volume used,
+    its frames ordered along the normal, its geometry that of the same volume exported slice by slice."""
+    from dicom_files import write_enhanced_ct
+
+    volume = make_volume(seed=12)
+    count = volume.GetSize()[2]
+    write_enhanced_ct(volume, tmp_path / "EN" / "ENHANCED.dcm", uid(50), frame_order=range(count - 1, -1, -1))
+    write_series(volume[:, :, ::3], tmp_path / "THICK", uid(51), number=3, description="thick")
+    classic = write_series(volume, tmp_path.parent / f"{tmp_path.name}-classic" / "S", uid(52))
+    chosen = choose_series(scan_series(tmp_path), tmp_path)
+    assert chosen.uid == uid(50) and chosen.multiframe and chosen.size == volume.GetSize()
+    image = read_ct(tmp_path)
+    reference = _series_reader(classic)  # the classic export of the same volume, as SimpleITK reads it
+    np.testing.assert_allclose(image.GetOrigin(), reference.GetOrigin(), atol=1e-5)
+    np.testing.assert_allclose(image.GetSpacing(), reference.GetSpacing(), atol=1e-5)
+    np.testing.assert_allclose(image.GetDirection(), reference.GetDirection(), atol=1e-6)
+    np.testing.assert_array_equal(_voxels(image), _voxels(volume).astype(np.int32) - 1024)
+    np.testing.assert_array_equal(_voxels(image), _voxels(reference) - 1024)
+
+
+def test_enhanced_ct_with_a_missing_frame_or_unreadable_pixels_is_refused_in_one_line(tmp_path, capsys):
+    from dicom_files import write_enhanced_ct
+
+    volume = make_volume(seed=13)
+    positions = [volume.TransformIndexToPhysicalPoint((0, 0, k + (k >= 6))) for k in range(volume.GetSize()[2])]
+    write_enhanced_ct(volume, tmp_path / "gap" / "EN.dcm", uid(53), positions=positions)  # frame 7 is one too far
+    assert main(["detect", str(tmp_path / "gap"), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "EN.dcm frame 6" in err and "EN.dcm frame 7" in err, err
+    path = write_enhanced_ct(volume, tmp_path / "cut" / "EN.dcm", uid(54))
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) - 3000])  # pixel data cut short: GDCM cannot decode it
+    assert main(["detect", str(tmp_path / "cut"), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "EN.dcm" in err, err
+    assert not (tmp_path / "out" / "markers.json").exists()
+
+
+def test_the_volume_allocated_while_headers_are_read_is_used_only_when_it_fits(tmp_path, monkeypatch):
+    from EMRegModule.io import dicom_series
+
+    taken: list[bool] = []
+    original = dicom_series._EarlyImage.take
+
+    def spied(self, series):
+        image = original(self, series)
+        taken.append(image is not None)
+        return image
+
+    monkeypatch.setattr(dicom_series._EarlyImage, "take", spied)
+    volume = make_volume(seed=14)
+    files = write_series(volume, tmp_path / "one", uid(60))
+    np.testing.assert_array_equal(_voxels(read_ct(tmp_path / "one")), _voxels(_series_reader(files)))
+    write_series(volume[:, :, ::3], tmp_path / "two" / "A", uid(61), description="thick")  # read first: 4 slices
+    thin = write_series(volume, tmp_path / "two" / "B", uid(62), description="thin")
+    np.testing.assert_array_equal(_voxels(read_ct(tmp_path / "two")), _voxels(_series_reader(thin)))
+    assert taken == [True, False]

@@ -174,8 +174,8 @@ BAD_FILES = {
                   "frame 0: ProbeToTrackerTransform is not a rigid transform"),
     "nan": (lambda tmp: _file(tmp, [_frame_text(0), _frame_text(1, matrix="1 0 0 nan 0 1 0 2 0 0 1 3 0 0 0 1")]),
             "frame 1: ProbeToTrackerTransform holds NaN"),
-    "backwards": (lambda tmp: _file(tmp, [_frame_text(0, stamp=2.0), _frame_text(1, stamp=1.5)]),
-                  "frame 1: timestamp 1.5 s goes backwards"),
+    "repeated time": (lambda tmp: _file(tmp, [_frame_text(0, stamp=2.0), _frame_text(1, stamp=2.0)]),
+                      "frame 1: time 2.0000 s of sensor 1 does not increase"),
     "other names": (lambda tmp: _file(tmp, [_frame_text(0, name="StylusToTracker")]),
                     "no ProbeToTrackerTransform in the file; it holds ReferenceToTrackerTransform, "
                     "StylusToTrackerTransform"),
@@ -254,3 +254,68 @@ def test_the_plus_nrrd_header_variant_is_read(tmp_path):
     recording = read_recording(path)
     probe = recording.select(recording.sensor == 2)
     assert np.allclose(probe.position_mm[:, 0], [10.0, 11.5]) and np.allclose(probe.rotation[0][:, 0], [0, 1, 0])
+
+
+# --- one rule for time resets, CSV or sequence file -------------------------------------------------
+
+
+def _with_reset(recording):
+    """The recording with its clock restarting at 0.01 s half way (rows of one moment kept together)."""
+    half = len(recording) // 2
+    half -= half % 2
+    time_s = recording.time_s.copy()
+    time_s[half:] = time_s[half:] - time_s[half] + 0.01
+    reset = recording.select(np.arange(len(recording)))
+    reset.time_s = time_s
+    return reset, half
+
+
+def test_a_clock_reset_splits_a_sequence_file_into_segments_as_it_splits_a_csv(tmp_path, capsys):
+    """A PLUS / Slicer file whose timestamps go back is split there with a warning, like a CSV: nothing
+    dropped, never matched across the reset; converting either way keeps the reset where it was."""
+    frame = make_frame(22, n_markers=6)
+    recording, _ = calibration_recording(frame.pinholes_reference, frame.axes_reference, seed=22)
+    reset, half = _with_reset(recording)
+    csv_path, seq_path, back_path = tmp_path / "reset.csv", tmp_path / "reset.seq.mha", tmp_path / "back.csv"
+    write_tracking_csv(reset, csv_path)
+    assert main(["convert", str(csv_path), str(seq_path), "--quiet"]) == 0
+    stamps = [float(line.split("=")[1]) for line in seq_path.read_text().splitlines() if "_Timestamp =" in line]
+    assert np.count_nonzero(np.diff(stamps) < 0) == 1  # the segments follow each other, never interleaved
+    from_csv, from_seq = read_tracking_csv(csv_path), read_recording(seq_path)
+    for rec in (from_csv, from_seq):
+        assert len(rec) == len(recording)
+        assert np.bincount(rec.segment).tolist() == [half, len(recording) - half]
+        assert any("time goes back" in w and "separate time segment" in w for w in rec.warnings)
+    assert any(f"{seq_path}: time goes back" in w and "at frame" in w for w in from_seq.warnings)
+    order = np.lexsort((from_csv.sensor, from_csv.time_s, from_csv.segment))
+    assert np.allclose(from_seq.time_s, from_csv.time_s[order], atol=1e-6)
+    assert np.allclose(from_seq.position_mm, from_csv.position_mm[order], atol=1e-6)
+    assert np.array_equal(from_seq.segment, from_csv.segment[order])
+    assert main(["convert", str(seq_path), str(back_path), "--quiet"]) == 0
+    assert np.array_equal(read_tracking_csv(back_path).segment, from_seq.segment)
+    capsys.readouterr()
+    counts = []
+    for path in (csv_path, seq_path):
+        assert main(["calibrate", str(path), "--out", str(tmp_path / path.name.replace(".", "_"))]) == 0
+        captured = capsys.readouterr()
+        assert "time goes back" in captured.err and "Traceback" not in captured.err
+        counts.append(int(captured.out.split()[0]))
+    assert counts[0] == counts[1] == 6
+
+
+def test_convert_names_the_transforms_from_the_typed_settings(recording, tmp_path):
+    """``emreg convert --settings case.toml`` writes the ``[sensors]`` transform names and ports (read as the
+    typed settings every command uses) and reads them back."""
+    toml = tmp_path / "case.toml"
+    toml.write_text('[sensors]\nreference = 3\nprobe = 4\nreference_transform = "FrameToTracker"\n'
+                    'probe_transform = "StylusToTracker"\n')
+    csv_in, seq, csv_out = tmp_path / "rec.csv", tmp_path / "rec.seq.mha", tmp_path / "back.csv"
+    moved = recording.select(np.arange(len(recording)))
+    moved.sensor = np.where(recording.sensor == 1, 3, 4)
+    write_tracking_csv(moved, csv_in)
+    assert main(["convert", str(csv_in), str(seq), "--settings", str(toml), "--quiet"]) == 0
+    assert read_sequence_frames(seq).names == ["FrameToTracker", "StylusToTracker"]
+    assert main(["convert", str(seq), str(csv_out), "--settings", str(toml), "--quiet"]) == 0
+    before, back = read_tracking_csv(csv_in), read_tracking_csv(csv_out)
+    assert np.array_equal(back.sensor, before.sensor) and set(back.sensor.tolist()) == {3, 4}
+    assert np.allclose(back.position_mm, before.position_mm, atol=1e-6)

@@ -891,6 +891,31 @@ def test_without_slicer_core_the_report_succeeds_and_says_why_no_bundle(run_outp
     assert (copy / "report.html").is_file() and not (copy / "EMReg.mrb").exists()
 
 
+def test_report_writes_the_bundle_in_a_process_of_its_own_recorded_in_run_json(run_output, tmp_path, capsys):
+    """``emreg report`` on a run whose CT is a gzip NRRD writes EMReg.mrb in a separate process while the
+    report renders (slicer-core is never imported by the report's process); the bundle imports in Slicer
+    with the CT's voxels, and run.json lists it with its true sha256."""
+    import hashlib
+    import json
+    import shutil
+    import subprocess
+
+    _, out = run_output
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy, ignore=shutil.ignore_patterns("report.html", "EMReg.mrb"))
+    probe = ("import sys; from EMRegModule.cli import main; code = main(['report', sys.argv[1], '--quiet']); "
+             "print('slicer imported:', 'slicer' in sys.modules); sys.exit(code)")
+    done = subprocess.run([sys.executable, "-c", probe, str(copy)], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert f"bundle: {copy / 'EMReg.mrb'}" in done.stdout and "slicer imported: False" in done.stdout
+    recorded = json.loads((copy / "run.json").read_text())["outputs"]["EMReg.mrb"]
+    assert recorded["sha256"] == hashlib.sha256((copy / "EMReg.mrb").read_bytes()).hexdigest()
+    assert recorded["provenance"]["made_by"] == "emreg report"
+    assert not any(p.name.startswith(".EMReg") for p in copy.iterdir())
+    mrml = _import_bundle(copy / "EMReg.mrb")
+    _check_volume_matches_ct(mrml.node("EMReg CT"), Path(json.loads((copy / "run.json").read_text())["ct"]))
+
+
 # --- source compatibility with 3D Slicer's Python ---------------------------------------------------
 
 #: Standard-library modules removed in Python 3.12 and 3.13 (3D Slicer 5.10 runs 3.12; later releases newer).

@@ -1,0 +1,127 @@
+"""Defects an acceptance sweep found (many case variations run through the spec's commands), each checked
+at the command line on small simulated cases made here.
+
+- A run whose case has a navigation recording but no targets (or targets but no navigation recording)
+  said nothing about the TRE: ``evaluation.json`` was ``{}``; the reason now goes to ``run.json``,
+  ``evaluation.json`` and stderr like any other part that cannot be evaluated.
+- A run without a calibration recording ended "finished" after detection without a word about the
+  missing registration; it now says so in its summary (run.json) and on stderr.
+- A recording in metres was refused as a port mistake ("the probe never moves relative to the
+  reference"); it is now named as metres.
+- A CT stored as raw pixel values (HU + 1024, no rescale) found no marker and blamed the [detection]
+  thresholds; the message now says its air does not read -1000 HU.
+- A CT whose spacing and origin are in metres or centimetres did the same; the message now says how
+  small the CT is and that EMReg reads millimetres.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from EMRegModule.cli import main
+from EMRegModule.simulation import simulate_case
+
+SMALL = {"frame_size_mm": (200.0, 200.0, 110.0), "n_markers": 8, "navigation_rounds": 2, "board_rounds": 3,
+         "n_targets": 3}
+
+
+@pytest.fixture(scope="module")
+def small_case(tmp_path_factory) -> Path:
+    """A small, coarse simulated case (1 mm voxels, 8 markers): a run takes a few seconds."""
+    folder = tmp_path_factory.mktemp("sweep_case")
+    simulate_case(folder, seed=5, spacing_mm=1.0, **SMALL)
+    return folder
+
+
+def _variant(case: Path, target: Path, drop: tuple[str, ...]) -> Path:
+    shutil.copytree(case, target)
+    for name in drop:
+        (target / name).unlink()
+    return target
+
+
+def _json(path: Path) -> dict:
+    return json.loads(path.read_text())
+
+
+@pytest.mark.parametrize("drop,needle", [
+    (("targets.mrk.json",), "no targets.mrk.json"),
+    (("targets.mrk.json", "board.csv"), "no targets.mrk.json"),
+    (("navigation.csv",), "no navigation recording"),
+])
+def test_a_run_says_why_the_tre_was_not_evaluated(small_case, tmp_path, capsys, drop, needle):
+    case = _variant(small_case, tmp_path / "case", drop)
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(["run", str(case), "--out", str(out), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "TRE not evaluated" in err and needle in err
+    run = _json(out / "run.json")
+    assert needle in run["not_evaluated"]["tre"]
+    evaluation = _json(out / "evaluation.json")
+    assert "tre" not in evaluation and evaluation["not_evaluated"]["tre"] == run["not_evaluated"]["tre"]
+    assert ("board" in evaluation) == (case / "board.csv").exists()
+
+
+def test_a_run_without_a_calibration_recording_says_nothing_was_registered(small_case, tmp_path, capsys):
+    case = _variant(small_case, tmp_path / "case", ("calibration.csv",))
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(["run", str(case), "--out", str(out), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "no calibration recording" in captured.err and "nothing is registered" in captured.out
+    run = _json(out / "run.json")
+    assert run["status"] == "finished" and any("no calibration recording" in line for line in run["summary"])
+    assert (out / "markers.json").is_file() and not (out / "registration.json").exists()
+
+
+def test_a_recording_in_metres_is_named_as_such(small_case, tmp_path, capsys):
+    """Positions in metres (a habit of other tools) once read as "the probe never moves relative to the
+    reference ... check the sensor ports", which sends the user after the wrong mistake."""
+    from EMRegModule.io.tracking_csv import read_tracking_csv, write_tracking_csv
+
+    recording = read_tracking_csv(small_case / "calibration.csv")
+    recording.position_mm = recording.position_mm / 1000.0
+    path = tmp_path / "calibration.csv"
+    write_tracking_csv(recording, path)
+    capsys.readouterr()
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(path) in err[0] and "metres" in err[0] and "millimetres" in err[0]
+
+
+def test_a_ct_stored_without_its_rescale_intercept_is_named(small_case, tmp_path, capsys):
+    """A CT whose voxels are stored values (HU + 1024, unsigned, no rescale in the file) found no marker and
+    blamed the [detection] thresholds; the message now says that air does not read -1000 HU."""
+    import SimpleITK as sitk
+
+    image = sitk.ReadImage(str(small_case / "ct.nrrd"))
+    stored = sitk.Cast(sitk.Cast(image, sitk.sitkInt32) + 1024, sitk.sitkUInt16)
+    path = tmp_path / "ct.nrrd"
+    sitk.WriteImage(stored, str(path), True)
+    capsys.readouterr()
+    assert main(["detect", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "air" in err[0] and "-1000 HU" in err[0] and "1024" in err[0]
+    assert not (tmp_path / "out" / "markers.json").exists()
+
+
+@pytest.mark.parametrize("scale", [1e-3, 0.1])
+def test_a_ct_whose_geometry_is_not_in_millimetres_is_named(small_case, tmp_path, capsys, scale):
+    """A CT whose spacing and origin are in metres (or centimetres) found no marker and blamed the
+    [detection] thresholds; the message now says how small the CT is and asks for millimetres."""
+    import SimpleITK as sitk
+
+    image = sitk.ReadImage(str(small_case / "ct.nrrd"))
+    image.SetSpacing([s * scale for s in image.GetSpacing()])
+    image.SetOrigin([o * scale for o in image.GetOrigin()])
+    path = tmp_path / "ct.nrrd"
+    sitk.WriteImage(image, str(path), True)
+    capsys.readouterr()
+    assert main(["detect", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "millimetres" in err[0] and "spacing" in err[0]
