@@ -8,6 +8,10 @@ at the command line on small simulated cases made here.
   missing registration; it now says so in its summary (run.json) and on stderr.
 - A recording in metres was refused as a port mistake ("the probe never moves relative to the
   reference"); it is now named as metres.
+- A CT stored as raw pixel values (HU + 1024, no rescale) found no marker and blamed the [detection]
+  thresholds; the message now says its air does not read -1000 HU.
+- A CT whose spacing and origin are in metres or centimetres did the same; the message now says how
+  small the CT is and that EMReg reads millimetres.
 """
 
 from __future__ import annotations
@@ -88,3 +92,36 @@ def test_a_recording_in_metres_is_named_as_such(small_case, tmp_path, capsys):
     assert main(["calibrate", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(path) in err[0] and "metres" in err[0] and "millimetres" in err[0]
+
+
+def test_a_ct_stored_without_its_rescale_intercept_is_named(small_case, tmp_path, capsys):
+    """A CT whose voxels are stored values (HU + 1024, unsigned, no rescale in the file) found no marker and
+    blamed the [detection] thresholds; the message now says that air does not read -1000 HU."""
+    import SimpleITK as sitk
+
+    image = sitk.ReadImage(str(small_case / "ct.nrrd"))
+    stored = sitk.Cast(sitk.Cast(image, sitk.sitkInt32) + 1024, sitk.sitkUInt16)
+    path = tmp_path / "ct.nrrd"
+    sitk.WriteImage(stored, str(path), True)
+    capsys.readouterr()
+    assert main(["detect", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "air" in err[0] and "-1000 HU" in err[0] and "1024" in err[0]
+    assert not (tmp_path / "out" / "markers.json").exists()
+
+
+@pytest.mark.parametrize("scale", [1e-3, 0.1])
+def test_a_ct_whose_geometry_is_not_in_millimetres_is_named(small_case, tmp_path, capsys, scale):
+    """A CT whose spacing and origin are in metres (or centimetres) found no marker and blamed the
+    [detection] thresholds; the message now says how small the CT is and asks for millimetres."""
+    import SimpleITK as sitk
+
+    image = sitk.ReadImage(str(small_case / "ct.nrrd"))
+    image.SetSpacing([s * scale for s in image.GetSpacing()])
+    image.SetOrigin([o * scale for o in image.GetOrigin()])
+    path = tmp_path / "ct.nrrd"
+    sitk.WriteImage(image, str(path), True)
+    capsys.readouterr()
+    assert main(["detect", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "millimetres" in err[0] and "spacing" in err[0]
