@@ -272,6 +272,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
         others = {n: p for n, p in ports.items() if n not in names.values()}
     else:
         recording, others = read_tracking_csv(source), {}
+        if is_sequence_file(target):
+            _check_convert_ports(recording, reference, probe, names)
     write_recording(recording, target, settings, reference, probe,
                     orientation="quaternion" if args.quaternion else None)
     _warn("convert", recording.warnings)
@@ -279,6 +281,21 @@ def cmd_convert(args: argparse.Namespace) -> int:
              if others else "")
     print(f"{len(recording)} sensor samples converted -> {target}{extra}")
     return 0
+
+
+def _check_convert_ports(recording, reference: int, probe: int, names: dict[str, str]) -> None:
+    """A sequence file names each sensor by its role: refuse (exit 2) a recording in which a role's port is
+    absent while other ports are present, which would write another sensor under a role's name (a probe
+    on port 1 as ``ReferenceToTracker``) and leave the role's transform INVALID in every frame."""
+    present = recording.sensors
+    roles = {"reference": (reference, names["reference_transform"]), "probe": (probe, names["probe_transform"])}
+    missing = [(role, port, name) for role, (port, name) in roles.items() if port not in present]
+    strangers = [p for p in present if p not in (reference, probe)]
+    if missing and strangers:
+        role, port, name = missing[0]
+        raise EMRegError(f"{recording.source}: no samples on port {port}, the {role} sensor written as "
+                         f"{name}Transform (ports present: {present}); name the ports with --reference-sensor / "
+                         "--probe-sensor (or --settings case.toml)")
 
 
 def cmd_report(args: argparse.Namespace) -> int:
