@@ -352,8 +352,9 @@ class EMRegController:
         used = {name: self._output_sha[name] for name in uses if name in self._output_sha}
         return Provenance(inputs, used, self.settings.digest(), self.settings.source, made_by=self.command)
 
-    def _recorded(self, folder: OutputFolder, stage: str, provenance: Provenance) -> None:
-        folder.record(STAGE_OUTPUTS[stage], provenance)
+    def _recorded(self, folder: OutputFolder, stage: str, provenance: Provenance,
+                  sha256: dict[str, str] | None = None) -> None:
+        folder.record(STAGE_OUTPUTS[stage], provenance, sha256)
         for name in STAGE_OUTPUTS[stage]:
             if (folder.path / name).exists():
                 self._made_from[name] = provenance
@@ -456,13 +457,28 @@ class EMRegController:
     def save_report(self, folder: OutputFolder, case_dir: Path | None) -> Path:
         """The verification report of ``folder`` (its outputs checked to belong together first); the CT
         the report read is kept for the Slicer bundle (:meth:`save_bundle`)."""
+        from .io.slicer_scene import bundle_needs_ct_image
         from .report.writer import write_report_keeping_ct
 
         used = self._adopt_outputs(folder)
+        keep = bundle_needs_ct_image(_recorded_ct(folder.path))  # else the report streams a CT it reads itself
         page, self._report_image = write_report_keeping_ct(folder.path, case_dir=case_dir, progress=self.progress,
-                                                           image=self.image)
+                                                           image=self.image, keep_ct=keep)
         self._recorded(folder, "report", self._provenance((), tuple(used)))
         return page
+
+    def record_report_outputs(self, folder: OutputFolder, bundle: bool) -> None:
+        """List a report written into ``folder`` by another process (``emreg report --batch``'s jobs) in its
+        ``run.json``, and its scene bundle when ``bundle``, with their sha256 and provenance."""
+        used = self._adopt_outputs(folder)
+        provenance = self._provenance((), tuple(used))
+        self._recorded(folder, "report", provenance)
+        if bundle:
+            self._recorded(folder, "bundle", provenance)
+            return
+        outputs = folder.manifest.get("outputs")  # an earlier bundle is gone (not renewed): no longer listed
+        if isinstance(outputs, dict) and any([outputs.pop(name, None) for name in STAGE_OUTPUTS["bundle"]]):
+            folder.save()
 
     def _adopt_outputs(self, folder: OutputFolder) -> list[str]:
         """The outputs present in ``folder``, checked to belong together; their sha256 kept for provenance."""
@@ -471,11 +487,33 @@ class EMRegController:
             self._output_sha.setdefault(name, folder.sha256(name))
         return used
 
-    def save_bundle(self, folder: OutputFolder, case_dir: Path | None) -> str:
+    def start_bundle(self, folder: OutputFolder, case_dir: Path | None) -> Any:
+        """Start writing ``EMReg.mrb`` in a separate process, to go on while the report renders (pass the
+        result to :meth:`save_bundle`); None when it must be written here (no slicer-core, or a CT the bundle
+        cannot copy from its file)."""
+        from .io.slicer_scene import start_bundle_process
+
+        used = self._adopt_outputs(folder)
+        job = start_bundle_process(folder.path, case_dir)
+        if job is not None:
+            job.used = used
+        return job
+
+    def save_bundle(self, folder: OutputFolder, case_dir: Path | None, job: Any = None) -> str:
         """``EMReg.mrb``, the 3D Slicer scene of ``folder``'s outputs; a summary line. Optional: without
-        slicer-core, or when it cannot be written, the other outputs stand and a warning says why."""
+        slicer-core, or when it cannot be written, the other outputs stand and a warning says why.
+        ``job``: the bundle started by :meth:`start_bundle` (waited for here)."""
         from .io.slicer_scene import bundle_needs_ct_image, write_run_bundle
 
+        if job is not None:
+            with self.progress.step("writing the 3D Slicer scene bundle (in parallel)"):
+                path, message, sha = job.result()
+            if path is None:
+                self.warn([message])
+            else:
+                self._recorded(folder, "bundle", self._provenance((), tuple(job.used)),
+                               {path.name: sha} if sha else None)
+            return f"bundle: {message}"
         used = self._adopt_outputs(folder)
         image = self.image if self.image is not None else self._report_image  # the CT is not read again
         self._report_image = None

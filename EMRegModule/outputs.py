@@ -172,12 +172,15 @@ class OutputFolder:
 
     # --- writing --------------------------------------------------------------------------------
 
-    def record(self, names: Iterable[str], provenance: Provenance) -> None:
-        """List files just written (atomically, by their stage's writer) in ``run.json`` with their sha256."""
+    def record(self, names: Iterable[str], provenance: Provenance, sha256: dict[str, str] | None = None) -> None:
+        """List files just written (atomically, by their stage's writer) in ``run.json`` with their sha256
+        (``sha256``: those already computed by their writer, by name)."""
         outputs = self.manifest.setdefault("outputs", {})
+        known = sha256 or {}
         for name in names:
             if (self.path / name).exists():
-                outputs[name] = {"sha256": file_sha256(self.path / name), "provenance": provenance.to_json()}
+                digest = known.get(name) or file_sha256(self.path / name)
+                outputs[name] = {"sha256": digest, "provenance": provenance.to_json()}
         inputs = self.manifest.setdefault("inputs", {})
         for role, entry in provenance.inputs.items():
             inputs.setdefault(role, dict(entry))

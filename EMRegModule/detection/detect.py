@@ -83,7 +83,7 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
             outcomes, too_large, options = again, again_large, scaled
             band = {"low_hu": scaled.low_hu, "high_hu": scaled.high_hu,
                     "source": f"estimated from the markers' intensity ({estimate:.0f} HU in the default band)"}
-    result = _result(outcomes, too_large, index_to_image, options, image)
+    result = _result(outcomes, too_large, index_to_image, options, image, model)
     final = _marker_hu_estimate(outcomes, model, options, markers_only=True)
     band["marker_hu"] = None if final is None else round(final, 1)
     result.band = band
@@ -235,7 +235,8 @@ def _region_key(region: Region) -> tuple[int, ...]:
 
 
 def _result(outcomes: list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]], too_large: list[TooLarge],
-            index_to_image: np.ndarray, options: DetectionSettings, image: sitk.Image) -> DetectionResult:
+            index_to_image: np.ndarray, options: DetectionSettings, image: sitk.Image,
+            model: MarkerModel) -> DetectionResult:
     """Markers and rejected candidates, each blob once (overlapping regions can reach the same blob)."""
     markers: list[DetectedMarker] = []
     rejected = [RejectedCandidate(apply_transform(index_to_image, t.centroid_zyx[::-1].astype(float)), t.volume_mm3,
@@ -252,7 +253,8 @@ def _result(outcomes: list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]
         marker.id = f"I{i:02d}"
     rejected.sort(key=lambda r: (r.centroid[2], r.centroid[1], r.centroid[0]))
     if len(markers) < options.min_markers:
-        raise NoSafeAnswerError(_too_few_message(len(markers), options, rejected))
+        raise NoSafeAnswerError(_too_few_message(len(markers), options, rejected) + _size_hint(image, model)
+                                + _intensity_hint(image))
     return DetectionResult(markers, rejected, image_geometry(image))
 
 
@@ -338,6 +340,37 @@ def _size_and_shape_problem(volume: float, spreads: np.ndarray, model: MarkerMod
         return ("principal spreads " + "/".join(f"{v:.1f}" for v in spreads) + " mm unlike the marker's "
                 + "/".join(f"{v:.1f}" for v in model_spreads) + " mm"), "shape"
     return None, ""
+
+
+def _size_hint(image: sitk.Image, model: MarkerModel) -> str:
+    """A note for the too-few-markers message when the whole CT is smaller than two markers side by side:
+    its spacing and origin are then not millimetres (metres or centimetres, e.g.). Empty otherwise."""
+    extent_mm = np.asarray(image.GetSize(), dtype=float) * np.asarray(image.GetSpacing(), dtype=float)
+    marker_mm = max(model.height_mm, model.bottom_diameter_mm)
+    if np.max(extent_mm) >= 2 * marker_mm:
+        return ""
+    return (f"; the whole CT spans only {' x '.join(f'{v:.3g}' for v in extent_mm)} mm (spacing "
+            f"{', '.join(f'{v:.3g}' for v in image.GetSpacing())}), less than two markers of {marker_mm:g} mm: "
+            "EMReg reads spacing and origin in millimetres (is the file in metres or centimetres?)")
+
+
+def _intensity_hint(image: sitk.Image) -> str:
+    """A note for the too-few-markers message when the CT's air does not read near -1000 HU (its darkest
+    voxels, 2nd percentile of a sample): the values are then not Hounsfield units, typically stored pixel
+    values without their rescale intercept (HU + 1024). Empty otherwise."""
+    values = sitk.GetArrayViewFromImage(image)[::2, ::4, ::4]
+    if values.size == 0:
+        return ""
+    air = float(np.percentile(values, 2))
+    if air < _AIR_READS_BELOW_HU:
+        return ""
+    return (f"; the CT's darkest voxels read {air:.0f} where air reads -1000 HU: its values do not look like "
+            "Hounsfield units (stored pixel values without their rescale intercept, e.g. HU + 1024?); convert "
+            "the CT to HU")
+
+
+_AIR_READS_BELOW_HU = -500.0
+"""Air (around and inside the frame) reads -1000 HU; darkest voxels above this mean the values are not HU."""
 
 
 def _too_few_message(found: int, options: DetectionSettings, rejected: list[RejectedCandidate]) -> str:

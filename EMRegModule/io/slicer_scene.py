@@ -818,6 +818,99 @@ def write_run_bundle(out_dir: str | os.PathLike[str], case_dir: str | os.PathLik
     return path, f"{path}{notes}"
 
 
+class BundleProcess:
+    """:func:`write_run_bundle` in a process of its own, started by :func:`start_bundle_process` so that it goes
+    on while this one renders the report; :meth:`result` waits for it.
+
+    The child imports slicer-core (not this process), writes ``OUT/EMReg.mrb`` atomically and hashes it
+    (sha256, for ``run.json``). Interrupting this process interrupts the child (no temporary left behind).
+    """
+
+    def __init__(self, out_dir: Path, case_dir: Path | None) -> None:
+        import subprocess
+        import sys
+
+        package_root = str(Path(__file__).resolve().parents[2])  # the EMRegModule this process runs
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (package_root, os.environ.get("PYTHONPATH"))
+                                                            if p)}
+        command = [sys.executable, "-c", "from EMRegModule.io.slicer_scene import _bundle_child; _bundle_child()",
+                   str(out_dir), str(case_dir) if case_dir is not None else ""]
+        self.process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+
+    def result(self) -> tuple[Path | None, str, str | None]:
+        """``(path, message, sha256 of the bundle)`` as :func:`write_run_bundle` gives them (path None: no
+        bundle, and the message says why)."""
+        import json
+
+        try:
+            stdout, stderr = self.process.communicate()
+        except BaseException:
+            self.cancel()
+            raise
+        try:
+            answer = json.loads(stdout.decode("utf-8").strip().splitlines()[-1])
+            path = Path(answer["path"]) if answer.get("path") else None
+            return path, str(answer["message"]), answer.get("sha256")
+        except (ValueError, IndexError, KeyError, TypeError):
+            detail = stderr.decode("utf-8", "replace").strip().splitlines()
+            return None, f"no {BUNDLE_FILE} written: its writer failed ({(detail or ['no output'])[-1][:200]})", None
+
+    def cancel(self) -> None:
+        """Interrupt the child (it removes its temporary files) and wait for it."""
+        import signal
+        import subprocess
+
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+
+
+def start_bundle_process(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None
+                         ) -> BundleProcess | None:
+    """Start writing ``OUT/EMReg.mrb`` in a separate process when it needs nothing from this one: Slicer's MRML
+    is there and the run's CT is a file the bundle copies (:func:`stored_voxels`). None otherwise (write it
+    with :func:`write_run_bundle`, with the CT in memory if needed)."""
+    import importlib.util
+
+    from .atomic import read_json
+
+    out = Path(out_dir)
+    try:  # not imported here: slicer-core's libraries stay out of this process
+        if importlib.util.find_spec("slicer") is None:
+            return None
+    except (ImportError, ValueError):
+        return None
+    try:
+        ct = read_json(out / "run.json", "run record").get("ct")
+    except (EMRegError, OSError, AttributeError):
+        return None
+    if not isinstance(ct, str) or bundle_needs_ct_image(ct):
+        return None
+    return BundleProcess(out, Path(case_dir) if case_dir is not None else None)
+
+
+def _bundle_child() -> None:
+    """The bundle process: ``write_run_bundle(OUT, CASE)``, then one JSON line: path, message, sha256."""
+    import json
+    import sys
+
+    from ..provenance import file_sha256
+
+    out, case = sys.argv[1], sys.argv[2] or None
+    try:
+        path, message = write_run_bundle(out, case)
+        sha = file_sha256(path) if path is not None else None
+    except KeyboardInterrupt:
+        sys.exit(130)
+    except EMRegError as exc:
+        path, message, sha = None, f"no {BUNDLE_FILE} written: {exc}", None
+    print(json.dumps({"path": str(path) if path is not None else None, "message": message, "sha256": sha}))
+
+
 def _remove_stale_bundle(out: Path) -> None:
     """A bundle of an earlier run beside this run's outputs would mislead: remove it (if it is a file)."""
     with contextlib.suppress(OSError):

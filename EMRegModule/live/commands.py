@@ -346,7 +346,7 @@ def run_serve(args: argparse.Namespace) -> int:
     _check_ports_attached(source, reference, probe)
     args.source_max_quality = getattr(source, "default_max_quality", None)
     try:
-        server = IGTLServer(args.host, args.igtl_port)
+        server = IGTLServer(args.host, args.igtl_port, log=None if args.quiet else sys.stderr)
     except BaseException:
         source.stop()
         raise
@@ -405,7 +405,7 @@ def run_live_navigate(args: argparse.Namespace) -> int:
     server = writer = None
     try:
         if args.igtl_port is not None:
-            server = IGTLServer(args.host, args.igtl_port)
+            server = IGTLServer(args.host, args.igtl_port, log=None if args.quiet else sys.stderr)
         if args.out:
             writer = NavigationWriter(Path(args.out) / "navigation.csv")
     except BaseException:

@@ -9,12 +9,22 @@ a stalled client would stall the tracker loop. This server keeps pyigtl for the 
   socket cannot take now waits in that client's own queue, flushed by the server thread when the
   socket becomes writable;
 - a queued message older than ``STALE_AFTER_S`` is replaced by a newer one of the same type and device
-  name (a newer TRANSFORM ``ProbeToImage`` supersedes it), so a client that stops reading gets the
-  latest pose when it reads again, not a backlog - once the kernel's socket buffers are full. What those
-  buffers took before (the client's receive buffer grows by autotuning; ``send_buffer_bytes`` bounds the
-  server's side) still arrives first: only the client can shed that (read everything, keep the newest).
-  Beyond that, a client whose queue exceeds ``max_pending_bytes``
-  loses its oldest whole queued messages - it is never allowed to block anyone;
+  name (a newer TRANSFORM ``ProbeToImage`` supersedes it); a client whose queue exceeds
+  ``max_pending_bytes`` loses its oldest whole queued messages - it is never allowed to block anyone;
+- a client that stops reading is *held*: the server measures how far behind each client is - the age of
+  the oldest message it has not read yet, from the bytes still in the kernels (our unacknowledged send
+  queue, ``SIOCOUTQ``, and, for a client on this host, its unread receive queue through Linux's
+  ``sock_diag``: see :mod:`.tcp_backlog`). More than ``hold_after_s`` (default ``STALE_AFTER_S``) behind,
+  nothing more is handed to its socket and its queue keeps only the newest message of each type and
+  device name; once it has read everything it was handed it gets those newest messages and is fed
+  normally again (both moments logged). So a client that stops for 30 s at 100 Hz reads, when it
+  resumes, the few poses handed to it in the first ``hold_after_s`` of its stall (plus one poll
+  interval), then the latest - not 3000. The oldest of those few is as old as the stall: a byte the
+  client's kernel has accepted is the client's (a reset does not discard it), so no server can bound
+  that age, only how many such poses there are. A client on another host: only a closed receive window
+  is visible (Linux clients keep it open while they buffer), so its own buffer may still hold a backlog;
+  ``TCP_NOTSENT_LOWAT`` keeps the server's kernel from queueing more than ``notsent_lowat`` bytes for it.
+  A client is never disconnected for being slow;
 - clients that disconnect are dropped; what they send is read and ignored;
 - the last STATUS message of each device name is replayed to every new client, so a client that
   connects while the watchdog holds poses back learns why.
@@ -30,12 +40,14 @@ import socket
 import threading
 import time
 from collections import deque
+from typing import TextIO
 
 import numpy as np
 from pyigtl.messages import MessageBase, TransformMessage
 
 from ..errors import EMRegError
 from .igtl_status import StatusMessage
+from .tcp_backlog import PeerBacklog, unsent_or_unacked_bytes
 
 DEFAULT_PORT = 18944
 #: ``TransformStatus`` of a valid pose (PLUS's tool status names: ``OK``, ``INVALID``, ``MISSING`` ...).
@@ -70,6 +82,12 @@ def transform_status(message) -> str:
 #: within this time loses nothing.
 STALE_AFTER_S = 0.5
 
+#: How often (s) the server thread measures how far behind each client is.
+POLL_S = 0.05
+#: Default ``TCP_NOTSENT_LOWAT`` (bytes): the socket counts as writable only while less than this waits unsent.
+NOTSENT_LOWAT = 16384
+_TCP_NOTSENT_LOWAT = getattr(socket, "TCP_NOTSENT_LOWAT", 25)
+
 
 class _Client:
     def __init__(self, sock: socket.socket, address: tuple) -> None:
@@ -82,14 +100,37 @@ class _Client:
         self.partial = False  # the head of ``pending`` is a message already partly sent
         self.dropped_messages = 0
         self.alive = True
+        #: held: more than ``hold_after_s`` behind, fed nothing but the newest message per key until it has read up
+        self.held = False
+        self.times_held = 0
+        self.handed = 0  # bytes handed to the kernel so far
+        #: (stream offset just past bytes handed, when their message was offered) - the age of what is unread
+        self.marks: deque[tuple[int, float]] = deque()
+        self.observable: bool | None = None  # its unread receive queue is visible (same host), once known
+        self.lag_s = 0.0  # how far behind it was at the last poll (s)
+
+    @property
+    def name(self) -> str:
+        return f"{self.address[0]}:{self.address[1]}"
+
+    def handed_over(self, n: int, offered_s: float) -> None:
+        if n > 0:
+            self.handed += n
+            self.marks.append((self.handed, offered_s))
 
 
 class IGTLServer:
     """OpenIGTLink TCP server: ``send(message)`` to every connected client."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, max_pending_bytes: int = 1 << 20,
-                 stale_after_s: float | None = None, send_buffer_bytes: int | None = None) -> None:
+                 stale_after_s: float | None = None, send_buffer_bytes: int | None = None,
+                 hold_after_s: float | None = None, notsent_lowat: int | None = NOTSENT_LOWAT,
+                 log: TextIO | None = None) -> None:
         self.host = host
+        #: a client further behind than this (s) is held (see the module docstring); None: never held
+        self.hold_after_s = STALE_AFTER_S if hold_after_s is None else hold_after_s
+        self.notsent_lowat = notsent_lowat
+        self.log = log  # one line when a client is held and when it is fed again
         self.max_pending_bytes = max_pending_bytes
         #: queued messages older than this are superseded by newer ones of the same type and device name
         self.stale_after_s = STALE_AFTER_S if stale_after_s is None else stale_after_s
@@ -191,7 +232,8 @@ class IGTLServer:
         """Send now if nothing is queued, else queue. Returns True if the server thread must watch
         the socket for writability. A queued, not yet started message of the same ``key`` is
         replaced by this one: a slow client gets the latest pose, not a backlog of stale ones."""
-        if not client.pending:
+        now = time.monotonic()
+        if not client.pending and not client.held:
             try:
                 n = client.sock.send(data)
             except (BlockingIOError, InterruptedError):
@@ -199,17 +241,17 @@ class IGTLServer:
             except OSError:
                 self._drop(client)
                 return False
+            client.handed_over(n, now)
             if n == len(data):
                 return False
             client.pending.append(data[n:])
             client.keys.append(key if n == 0 else "")
-            client.times.append(time.monotonic())
+            client.times.append(now)
             client.pending_bytes += len(data) - n
             client.partial = n > 0
             return True
-        now = time.monotonic()
-        stale = now - self.stale_after_s
-        if key and client.times and client.times[0] < stale:  # the client is behind: latest only
+        stale = now + 1.0 if client.held else now - self.stale_after_s  # held: every queued one is superseded
+        if key and client.times and (client.held or client.times[0] < stale):  # behind: latest only
             start = 1 if client.partial else 0
             for index in range(len(client.keys) - 1, start - 1, -1):
                 if client.keys[index] == key and client.times[index] < stale:
@@ -232,10 +274,10 @@ class IGTLServer:
             del client.times[index]
             client.pending_bytes -= len(dropped)
             client.dropped_messages += 1
-        return True
+        return not client.held
 
     def _flush(self, client: _Client) -> None:
-        while client.pending:
+        while client.pending and not client.held:
             head = client.pending[0]
             try:
                 n = client.sock.send(head)
@@ -244,6 +286,7 @@ class IGTLServer:
             except OSError:
                 self._drop(client)
                 return
+            client.handed_over(n, client.times[0])
             client.pending_bytes -= n
             if n < len(head):
                 client.pending[0] = head[n:]
@@ -260,9 +303,38 @@ class IGTLServer:
         client.pending.clear()
         client.keys.clear()
         client.times.clear()
+        client.marks.clear()
         client.pending_bytes = 0
         with contextlib.suppress(OSError):
             client.sock.close()
+
+    def _poll(self, backlog: PeerBacklog) -> None:
+        """Measure how far behind each client is; hold it, or feed it again (see the module docstring)."""
+        now = time.monotonic()
+        for client in self._clients:
+            if not client.alive:
+                continue
+            unread = None if client.observable is False else backlog.peer_unread_bytes(client.sock)
+            if client.observable is None:
+                client.observable = unread is not None
+            read_up_to = client.handed - unsent_or_unacked_bytes(client.sock) - (unread or 0)
+            while client.marks and client.marks[0][0] <= read_up_to:
+                client.marks.popleft()
+            client.lag_s = now - client.marks[0][1] if client.marks else 0.0
+            if not client.held and self.hold_after_s is not None and client.lag_s > self.hold_after_s:
+                client.held = True
+                client.times_held += 1
+                self._say(f"OpenIGTLink client {client.name} stopped reading ({client.lag_s:.1f} s behind): "
+                          "holding its messages, the newest of each device only, until it reads again")
+            elif client.held and not client.marks:  # it has read everything it was handed
+                client.held = False
+                self._say(f"OpenIGTLink client {client.name} reads again: sending it the newest messages")
+                self._flush(client)
+
+    def _say(self, line: str) -> None:
+        if self.log is not None:
+            with contextlib.suppress(OSError, ValueError):
+                print(f"[emreg] {line}", file=self.log, flush=True)
 
     # -- server thread -------------------------------------------------------------------------
     def _serve(self) -> None:
@@ -270,9 +342,14 @@ class IGTLServer:
         sel.register(self._listener, selectors.EVENT_READ, "accept")
         sel.register(self._wake_r, selectors.EVENT_READ, "wake")
         registered: dict[_Client, int] = {}
+        backlog = PeerBacklog()
+        next_poll = time.monotonic()
         try:
             while not self._stop.is_set():
                 with self._lock:
+                    if self._clients and time.monotonic() >= next_poll:
+                        next_poll = time.monotonic() + POLL_S
+                        self._poll(backlog)
                     for client in list(registered):
                         if not client.alive:
                             with contextlib.suppress(KeyError, ValueError):
@@ -280,14 +357,15 @@ class IGTLServer:
                             del registered[client]
                     self._clients = [c for c in self._clients if c.alive]
                     for client in self._clients:
-                        events = selectors.EVENT_READ | (selectors.EVENT_WRITE if client.pending else 0)
+                        writing = client.pending and not client.held
+                        events = selectors.EVENT_READ | (selectors.EVENT_WRITE if writing else 0)
                         if client not in registered:
                             sel.register(client.sock, events, client)
                             registered[client] = events
                         elif registered[client] != events:
                             sel.modify(client.sock, events, client)
                             registered[client] = events
-                for key, mask in sel.select(timeout=0.2):
+                for key, mask in sel.select(timeout=POLL_S if registered else 0.2):
                     if key.data == "wake":
                         with contextlib.suppress(OSError):
                             self._wake_r.recv(4096)
@@ -302,6 +380,7 @@ class IGTLServer:
                                 self._flush(client)
         finally:
             sel.close()
+            backlog.close()
 
     def _accept(self) -> None:
         while True:
@@ -317,6 +396,9 @@ class IGTLServer:
             if self.send_buffer_bytes:
                 with contextlib.suppress(OSError):
                     sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.send_buffer_bytes)
+            if self.notsent_lowat:
+                with contextlib.suppress(OSError):
+                    sock.setsockopt(socket.IPPROTO_TCP, _TCP_NOTSENT_LOWAT, self.notsent_lowat)
             client = _Client(sock, address)
             with self._lock:
                 self._clients.append(client)

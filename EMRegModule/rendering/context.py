@@ -99,14 +99,16 @@ def binned_ct(source: sitk.Image | VolumeFill, max_voxels: int = MAX_CONTEXT_VOX
     """Average a CT over ``f x f x f`` blocks (see module docstring); a CT still being read is followed.
 
     ``source``: a ``SimpleITK.Image`` or a :class:`VolumeFill` (waited on slice block by slice
-    block; its read errors propagate). No full-size copy is made. ``on_slices(n)`` is called
+    block; its read errors propagate; a :class:`~EMRegModule.io.ct_stream.StreamedCT` too, whose
+    slices ``on_slices`` may release once binned). No full-size copy is made. ``on_slices(n)`` is called
     whenever slices ``0 .. n-1`` are known to be read (other work on them can follow the read too).
     """
     import SimpleITK as sitk
 
     fill = source if hasattr(source, "wait_for_slices") and not source.is_complete else None
     image = source.image if hasattr(source, "wait_for_slices") else source
-    array = sitk.GetArrayViewFromImage(image)  # (k, j, i); voxels may still be arriving
+    array = source.array if hasattr(source, "array") else sitk.GetArrayViewFromImage(image)  # (k, j, i); voxels
+    # may still be arriving (a StreamedCT: its voxels, the image being its geometry)
     factor = bin_factor(image.GetSize(), max_voxels)
     nk, nj, ni = (s // factor for s in array.shape)
     values = np.empty((nk, nj, ni), dtype=np.float32)

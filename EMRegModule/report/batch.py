@@ -90,11 +90,24 @@ def memory_limited_jobs(folders: Sequence[str], jobs: int, progress: Progress = 
     return fitting
 
 
+def _bundle_needs_ct(folder: Path) -> bool:
+    """Whether the run's scene bundle needs its CT in memory (not when it copies the CT from its file)."""
+    from ..io.atomic import read_json
+    from ..io.slicer_scene import bundle_needs_ct_image
+
+    try:
+        ct = read_json(folder / "run.json", "run record").get("ct")
+    except (EMRegError, OSError, AttributeError):
+        return True
+    return bundle_needs_ct_image(ct if isinstance(ct, str) else None)
+
+
 def _batch_worker(folder: str, bundle: bool = False) -> tuple[str, str | None, str | None, BundleResult | None]:
     from .writer import write_report_keeping_ct
 
     try:
-        page, ct = write_report_keeping_ct(Path(folder))
+        keep = bundle and _bundle_needs_ct(Path(folder))  # else the CT is streamed, never whole in memory
+        page, ct = write_report_keeping_ct(Path(folder), keep_ct=keep)
     except EMRegError as exc:
         return folder, None, str(exc), None
     except Exception as exc:  # noqa: BLE001 - one broken folder must not stop the batch; reported below
@@ -155,7 +168,7 @@ def write_reports_batch(folders: Sequence[str | os.PathLike[str]], jobs: int = 1
                     if bundle is not None:
                         written[folder] = bundle
                     step.advance()
-    if bundles is not None:
+    if bundles is not None:  # also when other folders failed: these bundles were written
         bundles.extend((folder, written[folder]) for folder in selected if folder in written)
     failures = [f"{folder}: {error}" for folder in selected for path, error in [results[folder]] if error]
     if failures:

@@ -25,6 +25,7 @@ import numpy as np
 from ..calibration import FrameCalibration, read_frame_calibration
 from ..detection.result import DetectionResult, read_detection
 from ..errors import EMRegError
+from ..evaluation import Evaluation, read_evaluation
 from ..io.atomic import read_json
 from ..io.case import open_case
 from ..io.markups import read_markups
@@ -56,7 +57,7 @@ class ReportInputs:
     detection: DetectionResult | None = None
     frame_calibration: FrameCalibration | None = None
     registration: RegistrationResult | None = None
-    evaluation: dict | None = None
+    evaluation: Evaluation | None = None
     navigation_positions: np.ndarray | None = None
     navigation_labels: list[str] | None = None
     ct: VolumeFill | None = None
@@ -157,7 +158,8 @@ def _read_case(inputs: ReportInputs) -> None:
             inputs.notes.append(str(exc))
 
 
-def _start_ct(inputs: ReportInputs, image: sitk.Image | None, read_image: bool) -> None:
+def _start_ct(inputs: ReportInputs, image: sitk.Image | None, read_image: bool, keep_ct: bool) -> None:
+    from ..io.ct_stream import start_streamed_read
     from ..io.fast_read import VolumeFill
     from ..io.image import open_ct
 
@@ -167,18 +169,21 @@ def _start_ct(inputs: ReportInputs, image: sitk.Image | None, read_image: bool) 
         used = (inputs.run or {}).get("ct_series") or {}  # a DICOM folder: the series the run detected in
         series = used.get("series_instance_uid") or inputs.settings.ct.series
         try:
-            inputs.ct = open_ct(inputs.ct_path, series)
+            streamed = None if keep_ct or inputs.ct_path.is_dir() else start_streamed_read(inputs.ct_path)
+            inputs.ct = streamed if streamed is not None else open_ct(inputs.ct_path, series)
         except EMRegError as exc:
             inputs.notes.append(str(exc))
 
 
 def load_report_inputs(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
-                       read_image: bool = True, image: sitk.Image | None = None) -> ReportInputs:
+                       read_image: bool = True, image: sitk.Image | None = None, keep_ct: bool = True) -> ReportInputs:
     """Gather what exists in OUT and the case folder. Unreadable files become notes, not errors.
 
     ``image`` (a ``SimpleITK.Image``) is the case's CT when the caller already holds it in memory
     (``emreg run``); otherwise, when ``read_image``, the CT starts being read from the case folder
-    in the background (``inputs.image`` waits for it).
+    in the background (``inputs.image`` waits for it). ``keep_ct=False``: nothing needs the whole CT
+    afterwards, so a plain CT file is streamed (:mod:`EMRegModule.io.ct_stream`: its slices are let
+    go once binned and sampled, and ``inputs.image`` is then None).
 
     Raises :class:`EMRegError` when OUT is missing or holds none of the run's outputs, or
     when an explicitly given ``case_dir`` does not exist.
@@ -199,10 +204,10 @@ def load_report_inputs(out_dir: str | os.PathLike[str], case_dir: str | os.PathL
         # A registration that cannot be trusted (corrupt, non-finite, not rigid, FRE above the limit) is
         # never drawn as if it were: the report is refused (exit 2, or 3 for the FRE), not annotated.
         inputs.registration = read_registration(out / "registration.json", _max_fre_mm(inputs.settings))
-    _start_ct(inputs, image, read_image)
+    _start_ct(inputs, image, read_image, keep_ct)
     inputs.detection = _read_optional(out / "markers.json", read_detection, notes)
     inputs.frame_calibration = _read_optional(out / "frame_calibration.json", read_frame_calibration, notes)
-    inputs.evaluation = _read_optional(out / "evaluation.json", _read_json_object("evaluation file"), notes)
+    inputs.evaluation = _read_optional(out / "evaluation.json", read_evaluation, notes)
     navigation = _read_optional(out / "navigation.csv", read_navigation_csv, notes)
     if navigation is not None:
         inputs.navigation_positions, inputs.navigation_labels = navigation

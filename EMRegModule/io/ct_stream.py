@@ -1,0 +1,135 @@
+"""A CT read once, slice by slice, for work that needs each slice only for a while.
+
+The report needs of the CT only a block-averaged copy (the 3D view's context surface) and small
+planes around each marker, both made as the slices arrive. :func:`start_streamed_read` reads a
+plain NRRD/MetaImage/NIfTI file (the layouts of :mod:`.fast_read`, integer voxels) on a thread into
+an anonymous memory mapping that is only touched where voxels have arrived, and its user hands
+slices back to the system (``madvise(MADV_DONTNEED)``) once it is done with them
+(:meth:`StreamedCT.release_before`): the whole CT is never resident, so a report that reads its
+own CT needs a fraction of the CT's bytes. The voxels are those of :func:`~EMRegModule.io.image.read_ct`
+(the same inflater and checks: truncated, corrupt or over-long data is an error).
+
+Frames: index space (k, j, i) of the CT; ``geometry`` gives its LPS physical space as SimpleITK does.
+"""
+
+from __future__ import annotations
+
+import mmap
+import threading
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+
+from ..errors import EMRegError
+from . import fast_read
+from .fast_read import VolumeFill
+
+
+class CTGeometry:
+    """A CT's header reading (``sitk.ImageFileReader`` after ``ReadImageInformation``) answering as an image
+    does for its geometry: size, spacing, origin, direction, dimension and pixel type."""
+
+    def __init__(self, info: sitk.ImageFileReader) -> None:
+        self._info = info
+
+    def __getattr__(self, name: str):
+        return getattr(self._info, name)
+
+    def GetNumberOfComponentsPerPixel(self) -> int:  # noqa: N802 - SimpleITK's name
+        return self._info.GetNumberOfComponents()
+
+    def GetPixelIDTypeAsString(self) -> str:  # noqa: N802 - SimpleITK's name
+        return sitk.GetPixelIDValueAsString(self._info.GetPixelID())
+
+
+class StreamedCT(VolumeFill):
+    """A :class:`VolumeFill` whose ``image`` is the CT's geometry (SimpleITK's header reading: size,
+    spacing, origin, direction) and whose voxels are ``array`` (k, j, i), valid for the slices read and
+    not yet released. ``result()`` waits for the read and returns None: no image is kept."""
+
+    def __init__(self, info: sitk.ImageFileReader, dtype: np.dtype) -> None:
+        super().__init__(info.GetSize()[2])
+        size = info.GetSize()
+        self.dtype = dtype
+        self.slice_bytes = int(size[0]) * int(size[1]) * dtype.itemsize
+        # private: given-back pages are freed (in a shared mapping they would stay in memory)
+        self._mapping = mmap.mmap(-1, max(1, self.slice_bytes * self.slice_count), flags=mmap.MAP_PRIVATE)
+        self.bytes = np.frombuffer(self._mapping, dtype=np.uint8, count=self.slice_bytes * self.slice_count)
+        self.array = self.bytes.view(dtype.newbyteorder("=")).reshape(self.slice_count, size[1], size[0])
+        self._released = 0
+        self._image = CTGeometry(info)  # the geometry, known before any voxel
+        self.is_complete = False
+
+    def release_before(self, stop: int) -> None:
+        """Give slices ``0 .. stop-1`` back to the system (reading them afterwards gives zeros)."""
+        start = self._released
+        stop = min(stop, self._ready)
+        first, last = (start * self.slice_bytes) // mmap.PAGESIZE, (stop * self.slice_bytes) // mmap.PAGESIZE
+        if last > first:
+            self._mapping.madvise(mmap.MADV_DONTNEED, first * mmap.PAGESIZE, (last - first) * mmap.PAGESIZE)
+        self._released = max(start, stop)
+
+    def result(self) -> None:
+        super().result()
+        return None
+
+
+def start_streamed_read(path: str | Path) -> StreamedCT | None:
+    """Start reading a CT file as :class:`StreamedCT`, or None when it is not a plain layout of integer voxels
+    (then read it with :func:`~EMRegModule.io.image.open_ct`)."""
+    path = Path(path)
+    if fast_read.igzip_lib is None or not path.is_file() or not hasattr(mmap, "MADV_DONTNEED"):
+        return None
+    name = path.name.lower()
+    kind = next((k for k, ends in fast_read._KINDS.items() if name.endswith(ends)), None)
+    if kind is None:
+        return None
+    info = sitk.ImageFileReader()
+    info.SetFileName(str(path))
+    try:
+        info.ReadImageInformation()
+        with path.open("rb") as stream:
+            storage = fast_read._STORAGE_READERS[kind](stream)
+    except (RuntimeError, OSError):
+        return None
+    if (storage is None or info.GetDimension() != 3 or info.GetNumberOfComponents() != 1
+            or storage.dtype.kind not in "iu"
+            or fast_read._SITK_TYPES.get(storage.dtype.newbyteorder("=").name) != info.GetPixelID()):
+        return None
+    from .ct_checks import check_ct_geometry
+
+    check_ct_geometry(CTGeometry(info), path)
+    ct = StreamedCT(info, storage.dtype)
+    threading.Thread(target=_read, args=(path, info, storage, ct), name="emreg-ct-stream", daemon=True).start()
+    return ct
+
+
+def _read(path: Path, info: sitk.ImageFileReader, storage: fast_read._Storage, ct: StreamedCT) -> None:
+    """The reading thread (as :func:`EMRegModule.io.fast_read._read_voxels`, into the mapping)."""
+    voxels = ct.bytes
+    try:
+        slices = fast_read._SliceAnnouncer(voxels, storage.dtype, ct)
+        with path.open("rb") as stream:
+            if storage.compression == "raw":
+                stream.seek(storage.data_offset)
+                filled = fast_read._read_raw(stream, voxels, slices)
+                if filled == voxels.nbytes and stream.read(1):
+                    extra = path.stat().st_size - storage.data_offset - voxels.nbytes
+                    raise EMRegError(fast_read._too_much_data(path, info, voxels.nbytes, extra))
+            else:
+                stream.seek(0 if storage.whole_file else storage.data_offset)
+                skip = storage.data_offset if storage.whole_file else 0
+                blocks = fast_read._inflated(stream, storage.compression == "gzip", path, skip + voxels.nbytes)
+                filled, extra = fast_read._fill(voxels, blocks, skip, slices)
+                if extra:
+                    raise EMRegError(fast_read._too_much_data(path, info, voxels.nbytes, extra))
+        if filled != voxels.nbytes:
+            raise EMRegError(f"{path}: cannot read CT (file is truncated: {filled} of {voxels.nbytes} voxel bytes)")
+        slices(filled)
+    except fast_read._CancelledError:
+        ct._finish(fast_read._CancelledReadError(f"{path}: reading the CT was cancelled"))
+    except BaseException as exc:  # handed to the waiting thread
+        ct._finish(exc)
+    else:
+        ct._finish()
