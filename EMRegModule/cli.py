@@ -109,6 +109,16 @@ def _output_folder(args: argparse.Namespace, stage: str, inputs: Sequence[Path],
     return folder
 
 
+def _ports_given(args: argparse.Namespace, settings: Settings) -> tuple[int | None, int | None]:
+    """The ports the user chose (reference, probe): ``--reference-sensor`` / ``--probe-sensor``, else those
+    ``case.toml [sensors]`` names; None where neither gives one (a registration's own ports then apply)."""
+    from .settings import sensor_ports_given
+
+    in_file = sensor_ports_given(settings)
+    flags = (getattr(args, "reference_sensor", None), getattr(args, "probe_sensor", None))
+    return tuple(f if f is not None else t for f, t in zip(flags, in_file, strict=True))  # type: ignore[return-value]
+
+
 def _controller(args: argparse.Namespace, settings: Settings) -> EMRegController:
     from .controller import EMRegController
 
@@ -203,6 +213,7 @@ def cmd_navigate(args: argparse.Namespace) -> int:
     recording_path = Path(args.source[len("replay:"):])
     controller = _controller(args, _settings(args))
     controller.load_registration(args.registration)
+    _warn("navigate", controller.use_ports(*_ports_given(args, controller.settings), args.registration))
     recording = read_recording(recording_path, controller.settings, controller.reference_sensor,
                                controller.probe_sensor)
     folder = _output_folder(args, "navigate", [recording_path, Path(args.registration)])
@@ -227,11 +238,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                          "(and no board.csv)")
     if args.settings:
         case.settings = _settings(args)
+    given = _ports_given(args, case.settings)
     case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # sequence files' ports
     controller = _controller(args, case.settings)
     inputs = [p for p in (case.navigation, case.targets, case.board) if p is not None]
     folder = _output_folder(args, "evaluate", [*inputs, Path(args.registration)], case.folder)
     controller.load_registration(args.registration)
+    _warn("evaluate", controller.use_ports(*given, args.registration))
+    case.settings = case.settings.with_sensors(controller.reference_sensor, controller.probe_sensor)
     controller.check_case_inputs("registration.json", args.registration, case)
     controller.note_inputs(navigation=case.navigation, targets=case.targets, board=case.board)
     result = controller.evaluate(case.read_recording("navigation"), case.read_targets(), case.read_recording("board"))
@@ -272,6 +286,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
         others = {n: p for n, p in ports.items() if n not in names.values()}
     else:
         recording, others = read_tracking_csv(source), {}
+        if is_sequence_file(target):
+            _check_convert_ports(recording, reference, probe, names)
     write_recording(recording, target, settings, reference, probe,
                     orientation="quaternion" if args.quaternion else None)
     _warn("convert", recording.warnings)
@@ -279,6 +295,21 @@ def cmd_convert(args: argparse.Namespace) -> int:
              if others else "")
     print(f"{len(recording)} sensor samples converted -> {target}{extra}")
     return 0
+
+
+def _check_convert_ports(recording, reference: int, probe: int, names: dict[str, str]) -> None:
+    """A sequence file names each sensor by its role: refuse (exit 2) a recording in which a role's port is
+    absent while other ports are present, which would write another sensor under a role's name (a probe
+    on port 1 as ``ReferenceToTracker``) and leave the role's transform INVALID in every frame."""
+    present = recording.sensors
+    roles = {"reference": (reference, names["reference_transform"]), "probe": (probe, names["probe_transform"])}
+    missing = [(role, port, name) for role, (port, name) in roles.items() if port not in present]
+    strangers = [p for p in present if p not in (reference, probe)]
+    if missing and strangers:
+        role, port, name = missing[0]
+        raise EMRegError(f"{recording.source}: no samples on port {port}, the {role} sensor written as "
+                         f"{name}Transform (ports present: {present}); name the ports with --reference-sensor / "
+                         "--probe-sensor (or --settings case.toml)")
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -292,11 +323,14 @@ def cmd_report(args: argparse.Namespace) -> int:
         folders = sorted(p for p in batch.iterdir() if p.is_dir())
         for folder in folders:
             check_outputs(folder)
-        bundles: list = []  # each job writes its case's bundle with the CT its report read
-        pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args), bundles=bundles)
-        print(f"{len(pages)} reports written under {args.batch}")
-        for _, (path, message) in bundles:
-            print(_bundle_line(path, message))
+        bundles: list = []  # each job writes its case's bundle (with the CT its report read, if it needs it)
+        try:
+            pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args), bundles=bundles)
+            print(f"{len(pages)} reports written under {args.batch}")
+        finally:  # the cases that did get their report and bundle say so even when others failed
+            for folder, (path, message) in bundles:
+                _record_batch_report(args, Path(folder), path is not None)
+                print(_bundle_line(path, message))
         return 0
     if not args.out:
         raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
@@ -353,6 +387,24 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(line)
     print(f"demo finished in {time.perf_counter() - start:.1f} s; outputs in {out / 'result'}")
     return 0
+
+
+def _record_batch_report(args: argparse.Namespace, folder: Path, bundle: bool) -> None:
+    """The report (and bundle) a batch job wrote into ``folder``, listed in its ``run.json``."""
+    from .io.atomic import read_json
+    from .outputs import OutputFolder
+
+    try:
+        case = read_json(folder / "run.json", "run record").get("case")
+    except (EMRegError, AttributeError):
+        case = None
+    case_dir = Path(case) if isinstance(case, str) and Path(case).is_dir() else None
+    try:
+        controller = _controller(args, _settings(args, case_dir))
+        controller.command = "emreg report --batch"
+        controller.record_report_outputs(OutputFolder(folder, controller.command), bundle)
+    except EMRegError as exc:
+        _warn("report", [f"{folder}: not recorded in run.json ({exc})"])
 
 
 def _bundle_line(path, message: str) -> str:

@@ -7,7 +7,13 @@ file it prints the best of ``--repeat`` wall times of both readers, their ratio,
 that both give the same voxels and geometry. ``read_ct`` inflates with ISA-L straight into the
 image's buffer; SimpleITK inflates with zlib.
 
-Usage: ``.venv/bin/python scripts/bench_read_ct.py [--work DIR] [--repeat 3]``
+DICOM (issue 13): the same CT written as a series of slices (SimpleITK's GDCM writer, one file per
+slice, 16-bit stored values with a rescale intercept) and re-encoded JPEG lossless by ``gdcmconv``,
+read by ``read_ct`` (series scan and choice, slices decoded on a thread pool, the folder's sha256
+made in the same pass) against ``SimpleITK.ImageSeriesReader`` (``GetGDCMSeriesFileNames`` +
+``Execute``); ``--dicom FOLDER`` adds a series of your own (e.g. ``bench_detect.py --dicom``'s).
+
+Usage: ``.venv/bin/python scripts/bench_read_ct.py [--work DIR] [--repeat 3] [--dicom FOLDER ...] [--no-dicom]``
 """
 
 from __future__ import annotations
@@ -22,6 +28,34 @@ import numpy as np
 import SimpleITK as sitk
 
 from EMRegModule.io.image import read_ct
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def series_reader(folder: Path) -> sitk.Image:
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder)))
+    return reader.Execute()
+
+
+def dicom_copies(image: sitk.Image, work: Path) -> list[Path]:
+    """``image`` as an uncompressed DICOM series and as a JPEG-lossless one (reused when already there)."""
+    sys.path.insert(0, str(ROOT / "Testing" / "Python"))
+    from dicom_files import uid, write_series
+
+    plain, jpeg = work / "read-ct" / "dicom", work / "read-ct" / "dicom-jpeg-lossless"
+    if not (plain / ".complete").is_file():
+        print(f"writing the CT as a DICOM series into {plain} ...", flush=True)
+        hu = sitk.Cast(image, sitk.sitkInt32) + 1024  # stored values; the files' intercept -1024 gives the HU back
+        write_series(sitk.Cast(hu, sitk.sitkInt16), plain, uid(900), rescale=[(1.0, -1024.0)] * image.GetSize()[2])
+        (plain / ".complete").write_text("")
+    if not (jpeg / ".complete").is_file():
+        print(f"re-encoding it as JPEG lossless into {jpeg} ...", flush=True)
+        jpeg.mkdir(parents=True, exist_ok=True)
+        for path in sorted(plain.glob("*.dcm")):
+            subprocess.run(["gdcmconv", "--jpeg", str(path), str(jpeg / path.name)], check=True)
+        (jpeg / ".complete").write_text("")
+    return [plain, jpeg]
 
 
 def best_time(read, path: Path, repeat: int) -> tuple[float, sitk.Image]:
@@ -38,6 +72,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--work", default="/tmp/emreg-bench-detect", help="folder for the case (kept for reuse)")
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--dicom", type=Path, nargs="*", default=[], help="more DICOM series folders to read")
+    parser.add_argument("--no-dicom", action="store_true", help="leave out the DICOM copies of the CT")
     args = parser.parse_args()
     case = Path(args.work) / "sim-0.6"
     if not (case / "truth.json").is_file():
@@ -53,15 +89,25 @@ def main() -> None:
             path.parent.mkdir(parents=True, exist_ok=True)
             sitk.WriteImage(image, str(path), compress)
         files.append(path)
+    folders = [] if args.no_dicom else dicom_copies(image, Path(args.work))
+    folders += list(args.dicom)
     del image
-    print(f"{'file':<14} {'MB on disk':>10} {'read_ct':>9} {'SimpleITK':>10} {'speed-up':>9}")
-    for path in files:
+    print(f"{'file':<22} {'MB on disk':>10} {'read_ct':>9} {'SimpleITK':>10} {'speed-up':>9}")
+    for path in [*files, *folders]:
+        dicom = path.is_dir()
+        baseline = series_reader if dicom else (lambda p: sitk.ReadImage(str(p)))
         t_fast, fast = best_time(read_ct, path, args.repeat)
-        t_sitk, plain = best_time(lambda p: sitk.ReadImage(str(p)), path, args.repeat)
-        same = (fast.GetOrigin() == plain.GetOrigin() and fast.GetDirection() == plain.GetDirection()
-                and fast.GetSpacing() == plain.GetSpacing()
-                and np.array_equal(sitk.GetArrayViewFromImage(fast), sitk.GetArrayViewFromImage(plain)))
-        print(f"{path.name:<14} {path.stat().st_size / 1e6:>10.0f} {t_fast:>8.2f}s {t_sitk:>9.2f}s "
+        t_sitk, plain = best_time(baseline, path, args.repeat)
+        same = (np.allclose(fast.GetOrigin(), plain.GetOrigin(), atol=1e-4)
+                and np.allclose(fast.GetDirection(), plain.GetDirection(), atol=1e-6)
+                and np.allclose(fast.GetSpacing(), plain.GetSpacing(), rtol=1e-5) if dicom  # z from all positions
+                else fast.GetOrigin() == plain.GetOrigin() and fast.GetDirection() == plain.GetDirection()
+                and fast.GetSpacing() == plain.GetSpacing())
+        same = same and np.array_equal(sitk.GetArrayViewFromImage(fast), sitk.GetArrayViewFromImage(plain))
+        del fast, plain
+        size = sum(p.stat().st_size for p in path.iterdir()) if dicom else path.stat().st_size
+        name = f"{path.name}/ (DICOM)" if dicom else path.name
+        print(f"{name:<22} {size / 1e6:>10.0f} {t_fast:>8.2f}s {t_sitk:>9.2f}s "
               f"{t_sitk / t_fast:>8.2f}x  {'identical' if same else 'DIFFERENT'}", flush=True)
         if not same:
             sys.exit(f"{path}: read_ct and SimpleITK disagree")

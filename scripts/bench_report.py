@@ -1,28 +1,30 @@
 #!/usr/bin/env python3
-"""Benchmark ``emreg report`` and ``emreg run`` at full-frame scan sizes against today's report and detection.
+"""Benchmark ``emreg report`` and ``emreg run`` at full-frame scan sizes against ``emreg detect`` and a baseline.
 
-Measured in one run, each command in its own process so that peak memory (``ru_maxrss``) is its own:
+Measured in one run, each command in its own process:
 
 (a) ``emreg detect CASE`` (the detection alone: read the CT, find and pose the markers);
-(b) ``emreg report OUT`` on the outputs of an ``emreg run`` (reads the CT itself);
-(c) the baseline: the same ``emreg report`` of the EMReg revision before the report package
-    (``--baseline-rev``, extracted with ``git archive``), on a copy of the same outputs;
-    (b') and (c') the report page alone (``write_report``), without the 3D Slicer bundle
-    ``EMReg.mrb`` that ``emreg report`` writes too when ``slicer-core`` is installed;
+(b) ``emreg report OUT`` on the outputs of an ``emreg run`` (it reads the CT itself and writes the
+    3D Slicer bundle ``EMReg.mrb`` too when ``slicer-core`` is installed);
+(c) the baseline: the same ``emreg report`` of an earlier EMReg revision (``--baseline-rev``, by
+    default main before the lean-report work of issue 17's second round; extracted with
+    ``git archive``), on a copy of the same outputs;
 (d) ``emreg run CASE`` end to end, and (e) the baseline revision's ``emreg run``.
 
-Printed per case: times and peaks, the CT's voxel bytes, and the goals of issue 17:
-report time / detect time <= 1.0; report peak and run peak / CT bytes <= 1.3; with the ratios
-against the baseline measured in the same run. It also compares every figure the two reports
-wrote, pixel for pixel (the 3D views differ on purpose: the artefact sheets are gone).
+Peak memory is the largest of the process's own ``ru_maxrss`` and the summed RSS of the process and
+its children sampled every 20 ms (``emreg report`` writes the bundle in a child process while it
+renders: both count). Printed per case: times and peaks, the CT's voxel bytes, and the goals of
+issue 17: report time / detect time <= 1.0; report peak and run peak / CT bytes <= 1.3; the same
+ratios for the baseline, measured in the same run. It also compares every figure the two reports
+wrote, pixel for pixel.
 
-Cases come from ``emreg simulate`` (reused when present in ``--work``): ``--spacing 0.6`` and
-the paper's scan size; the simulator refuses 0.3 mm for the full frame (1.7 G voxels, above its
+Cases come from ``emreg simulate`` (reused when present in ``--work``), or ``--case``: ``--spacing 0.6``
+and the paper's scan size; the simulator refuses 0.3 mm for the full frame (1.7 G voxels, above its
 limit of 1.5 G), so the finest default is 0.32 mm (1.40 G voxels, 2.8 GB as int16, the size of
 the 0.3 mm scan of issue 17: 1.37 G voxels). Simulating that case needs about 10 GB once.
 
-Usage: ``.venv/bin/python scripts/bench_report.py [--spacing 0.6 0.32] [--work DIR] [--baseline-rev REV]``
-(run it under ``flock /work/heavy.lock`` on a shared machine).
+Usage: ``.venv/bin/python scripts/bench_report.py [--spacing 0.6 0.32 | --case DIR ...] [--work DIR]
+[--baseline-rev REV]`` (run it under ``flock /work/heavy.lock`` on a shared machine).
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ import subprocess
 import sys
 import tarfile
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -43,33 +46,57 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 PYTHON = sys.executable
-#: The last revision with ``EMRegModule/report.py`` (before the report package of issues 10 and 17).
-DEFAULT_BASELINE_REV = "c81b885"
-FIGURES = ("scene_oblique", "scene_top", "marker_slices", "residuals", "fre_curve", "tre_targets")
+#: main before the second round of issue 17 (the report streaming its CT, the bundle copying it from its file).
+#: ``c81b885`` is the last revision before the report package of issues 10 and 17 (the first round's baseline).
+DEFAULT_BASELINE_REV = "c6c5ab6"
+FIGURES = ("scene_oblique", "scene_top", "marker_slices", "residuals", "fre_curve", "tre_targets", "error_budget",
+           "tre_map")
 
 
 def run_child(command: list[str], env: dict[str, str] | None = None, cwd: Path | None = None
-              ) -> tuple[float, float, str]:
-    """Run ``command``; wall time (s) and its own peak RSS (bytes) from ``os.wait4``; raises on failure."""
+              ) -> tuple[float, float]:
+    """Run ``command``; wall time (s) and its peak memory (bytes): the larger of its own ``ru_maxrss``
+    (``os.wait4``) and the summed RSS of it and its children, sampled every 20 ms. Raises on failure."""
+    peak = [0.0]
     start = time.perf_counter()
     with tempfile.TemporaryFile() as err:
         process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err, env=env, cwd=cwd)
+        done = threading.Event()
+
+        def sample() -> None:
+            while not done.is_set():
+                peak[0] = max(peak[0], tree_rss(process.pid))
+                done.wait(0.02)
+
+        sampler = threading.Thread(target=sample, daemon=True)
+        sampler.start()
         _, status, usage = os.wait4(process.pid, 0)
         wall = time.perf_counter() - start
+        done.set()
+        sampler.join()
         if os.waitstatus_to_exitcode(status) != 0:
             err.seek(0)
             raise SystemExit(f"{' '.join(command)} failed: {err.read().decode(errors='replace')[-600:]}")
-    return wall, usage.ru_maxrss * 1024.0, ""
+    return wall, max(usage.ru_maxrss * 1024.0, peak[0])
+
+
+def tree_rss(pid: int) -> float:
+    """Resident bytes of a process and all its descendants (0 once it is gone)."""
+    total, pending = 0.0, [pid]
+    while pending:
+        current = pending.pop()
+        try:
+            with open(f"/proc/{current}/status", encoding="ascii") as f:
+                total += next((float(line.split()[1]) * 1024.0 for line in f if line.startswith("VmRSS:")), 0.0)
+            with open(f"/proc/{current}/task/{current}/children", encoding="ascii") as f:
+                pending += [int(child) for child in f.read().split()]
+        except (OSError, ValueError):
+            continue
+    return total
 
 
 def emreg(*args: str) -> list[str]:
     return [PYTHON, "-m", "EMRegModule", *args, "--quiet"]
-
-
-def report_page(out: Path) -> list[str]:
-    """The report page alone (``write_report``), without the Slicer bundle ``emreg report`` also writes."""
-    return [PYTHON, "-c", "import sys; from EMRegModule.report import write_report; write_report(sys.argv[1])",
-            str(out)]
 
 
 def baseline_tree(rev: str, work: Path) -> Path:
@@ -131,51 +158,42 @@ def same_figures(a: Path, b: Path) -> dict[str, str]:
     return verdicts
 
 
-def bench_case(case: Path, work: Path, baseline: Path) -> None:
+def bench_case(case: Path, work: Path, baseline: Path, rev: str) -> None:
     size = ct_bytes(case)
     base_env = {**os.environ, "PYTHONPATH": str(baseline)}
     tag = case.name
-    outs = {name: work / f"{tag}-{name}" for name in ("run", "run-base", "run-nobundle", "detect", "report",
-                                                       "report-base", "page", "page-base")}
+    outs = {name: work / f"{tag}-{name}" for name in ("run", "run-base", "detect", "report", "report-base")}
     for folder in outs.values():
         shutil.rmtree(folder, ignore_errors=True)
     results: dict[str, tuple[float, float]] = {}
-    print(f"\n{case} (CT {size / 1e9:.2f} GB)", flush=True)
-    results["run"] = run_child(emreg("run", str(case), "--out", str(outs["run"])), cwd=ROOT)[:2]
+    print(f"\n{case} (CT {size / 1e9:.2f} GB; load {os.getloadavg()[0]:.1f})", flush=True)
+    # warm-up (not timed): the CT in the page cache and every module compiled, for whichever runs first
+    run_child(emreg("detect", str(case), "--out", str(outs["detect"])), cwd=ROOT)
+    run_child(emreg("detect", str(case), "--out", str(outs["detect"])), env=base_env, cwd=baseline)
+    results["run"] = run_child(emreg("run", str(case), "--out", str(outs["run"])), cwd=ROOT)
     results["run (baseline)"] = run_child(emreg("run", str(case), "--out", str(outs["run-base"])), env=base_env,
-                                          cwd=baseline)[:2]
-    if importlib.util.find_spec("slicer") is not None:  # the same run without writing EMReg.mrb
-        no_slicer = ("import sys; sys.modules['slicer'] = None; from EMRegModule.cli import main; "
-                     "sys.exit(main(sys.argv[1:]))")
-        results["run, no EMReg.mrb"] = run_child([PYTHON, "-c", no_slicer, "run", str(case), "--out",
-                                                  str(outs["run-nobundle"]), "--quiet"], cwd=ROOT)[:2]
-    results["detect"] = run_child(emreg("detect", str(case), "--out", str(outs["detect"])), cwd=ROOT)[:2]
-    for name in ("report", "report-base", "page", "page-base"):
+                                          cwd=baseline)
+    results["detect"] = run_child(emreg("detect", str(case), "--out", str(outs["detect"])), cwd=ROOT)
+    for name in ("report", "report-base"):
         copy_outputs(outs["run"], outs[name])
     results["report (baseline)"] = run_child(emreg("report", str(outs["report-base"])), env=base_env,
-                                             cwd=baseline)[:2]
-    results["report"] = run_child(emreg("report", str(outs["report"])), cwd=ROOT)[:2]
-    results["page (baseline)"] = run_child(report_page(outs["page-base"]), env=base_env, cwd=baseline)[:2]
-    results["page"] = run_child(report_page(outs["page"]), cwd=ROOT)[:2]
+                                             cwd=baseline)
+    results["report"] = run_child(emreg("report", str(outs["report"])), cwd=ROOT)
     print(f"{'command':<20} {'time (s)':>9} {'peak (GB)':>10} {'peak / CT':>10}")
     for name, (wall, peak) in results.items():
         print(f"{name:<20} {wall:9.2f} {peak / 1e9:10.2f} {peak / size:10.2f}")
-    detect, run, run_base = results["detect"], results["run"], results["run (baseline)"]
+    detect = results["detect"]
     for what, new, base in (("emreg report", results["report"], results["report (baseline)"]),
-                            ("report page alone", results["page"], results["page (baseline)"])):
-        print(f"{what}: time / detect time {new[0] / detect[0]:.2f} (goal <= 1.0; baseline {base[0] / detect[0]:.2f}),"
-              f" peak / CT bytes {new[1] / size:.2f} (goal <= 1.3; baseline {base[1] / size:.2f}); against the "
-              f"baseline: time {new[0] / base[0]:.2f}x, peak {new[1] / base[1]:.2f}x")
-    print(f"emreg run: peak / CT bytes {run[1] / size:.2f} (goal <= 1.3; baseline {run_base[1] / size:.2f}); against "
-          f"the baseline: time {run[0] / run_base[0]:.2f}x, peak {run[1] / run_base[1]:.2f}x")
-    if "run, no EMReg.mrb" in results:
-        print(f"emreg run without EMReg.mrb: peak / CT bytes {results['run, no EMReg.mrb'][1] / size:.2f} "
-              "(goal <= 1.3)")
+                            ("emreg run", results["run"], results["run (baseline)"])):
+        timing = (f"time / detect time {new[0] / detect[0]:.2f} (goal <= 1.0; baseline {base[0] / detect[0]:.2f}), "
+                  if what == "emreg report" else "")
+        print(f"{what}: {timing}peak / CT bytes {new[1] / size:.2f} (goal <= 1.3; baseline {base[1] / size:.2f}); "
+              f"against the baseline: time {new[0] / base[0]:.2f}x, peak {new[1] / base[1]:.2f}x")
     bundle = "" if importlib.util.find_spec("slicer") is None else \
         " (slicer-core is installed: emreg run and emreg report also write EMReg.mrb, the CT included)"
-    print("baseline: EMReg before the report package" + bundle)
+    print(f"baseline: EMReg at {rev}" + bundle)
     for name, verdict in same_figures(outs["report"], outs["report-base"]).items():
-        print(f"  {name:<15} {verdict}")
+        print(f"  {name:<15} {verdict} (against the baseline's)")
 
 
 def main() -> None:
@@ -193,7 +211,7 @@ def main() -> None:
     print(f"baseline: EMReg at {args.baseline_rev} ({baseline}); {os.cpu_count()} CPUs; load "
           f"{os.getloadavg()[0]:.1f}", flush=True)
     for case in cases:
-        bench_case(case.resolve(), args.work, baseline)
+        bench_case(case.resolve(), args.work, baseline, args.baseline_rev)
 
 
 if __name__ == "__main__":

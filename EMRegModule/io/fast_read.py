@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import queue
 import threading
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -221,12 +222,13 @@ def _read_voxels(path: Path, info: sitk.ImageFileReader, storage: _Storage, fill
     Every byte of the file goes through one :class:`_HashingReader`, in order, so that its sha256
     comes out of this same pass (``fill.sha256``).
     """
+    stream: _HashingReader | None = None
     try:
         image, voxels = _new_image(info)  # SimpleITK allocates without the GIL: the imports go on meanwhile
         fill._set_image(image)
         slices = _SliceAnnouncer(voxels, storage.dtype, fill)
         with path.open("rb") as file:
-            stream = _HashingReader(file)
+            stream = _HashingReader(file, in_place=storage.compression == "raw" and not storage.dtype.isnative)
             if storage.compression == "raw" or not storage.whole_file:
                 stream.skip(storage.data_offset)  # the header: hashed, not used
             if storage.compression == "raw":
@@ -246,7 +248,6 @@ def _read_voxels(path: Path, info: sitk.ImageFileReader, storage: _Storage, fill
             slices(filled)
             slices.non_finite.check(path)
             stream.skip(None)  # whatever follows the data (nothing, normally): hashed too
-        fill.sha256.set(stream.hexdigest())
     except _CancelledError:
         error = _CancelledReadError(f"{path}: reading the CT was cancelled")
         fill.sha256.fail(error)
@@ -256,37 +257,72 @@ def _read_voxels(path: Path, info: sitk.ImageFileReader, storage: _Storage, fill
         fill._finish(exc)
     else:
         fill._finish()
+        fill.sha256.set(stream.hexdigest())  # its last chunks may still be being hashed
+    finally:
+        if stream is not None:
+            stream.close()
 
 
 class _HashingReader:
-    """A file read front to back once: ``read``/``readinto`` as the file's, the sha256 of every byte read."""
+    """A file read front to back once: ``read``/``readinto`` as the file's, and the sha256 of every byte read.
 
-    def __init__(self, file: BinaryIO) -> None:
+    The bytes are hashed on a thread of their own as they come (hashlib lets go of the GIL), so the
+    hash costs the read no time where a second core is free. ``in_place``: the caller rewrites
+    what ``readinto`` filled (a byte swap), so the bytes are hashed at once, before that.
+    """
+
+    _QUEUED = 8  # chunks waiting to be hashed at most (a few tens of MB)
+
+    def __init__(self, file: BinaryIO, in_place: bool = False) -> None:
         self.file = file
         self.digest = hashlib.sha256()
+        self._chunks: queue.Queue | None = None
+        self._thread: threading.Thread | None = None
+        if not in_place:
+            self._chunks = queue.Queue(self._QUEUED)
+            self._thread = threading.Thread(target=self._hash, name="emreg-ct-sha256", daemon=True)
+            self._thread.start()
+
+    def _hash(self) -> None:
+        while (chunk := self._chunks.get()) is not None:
+            self.digest.update(chunk)
+
+    def _add(self, data: bytes | np.ndarray) -> None:
+        if self._chunks is None:
+            self.digest.update(data)
+        else:
+            self._chunks.put(data)  # not written again: hashed while the next chunk is read
 
     def read(self, size: int = -1) -> bytes:
         data = self.file.read(size)
-        self.digest.update(data)
+        if data:
+            self._add(data)
         return data
 
     def readinto(self, buffer: np.ndarray) -> int:
         count = self.file.readinto(buffer)
         if count:
-            self.digest.update(buffer[:count])
+            self._add(buffer[:count])
         return count
 
     def skip(self, size: int | None) -> None:
         """Read (and hash) ``size`` bytes, or everything left when None."""
         while size is None or size > 0:
-            chunk = self.file.read(_CHUNK_BYTES if size is None else min(size, _CHUNK_BYTES))
+            chunk = self.read(_CHUNK_BYTES if size is None else min(size, _CHUNK_BYTES))
             if not chunk:
                 return
-            self.digest.update(chunk)
             if size is not None:
                 size -= len(chunk)
 
+    def close(self) -> None:
+        """Wait until every byte read so far is hashed; the hashing thread ends."""
+        if self._thread is not None:
+            self._chunks.put(None)
+            self._thread.join()
+            self._thread = None
+
     def hexdigest(self) -> str:
+        self.close()
         return self.digest.hexdigest()
 
 

@@ -104,7 +104,11 @@ def parse_tracking_csv(text: str, source: str = "recording") -> TrackingRecordin
         raise EMRegError(f"{source}: empty tracking recording (no header row)") from None
     except csv.Error as exc:
         raise EMRegError(f"{source}: line 1: malformed CSV header ({str(exc)[:80]})") from None
-    columns = {name: i for i, name in enumerate(header)}
+    columns = {name.lower(): i for i, name in reversed(list(enumerate(header)))}  # Time_s reads as time_s
+    if len(header) == 1 and any(sep in header[0] for sep in ";\t"):
+        word = "semicolons" if ";" in header[0] else "tabs"
+        raise EMRegError(f"{source}: line 1: the fields are separated by {word}; a tracking CSV separates them by "
+                         "commas (time_s,sensor,x_mm,...)")
     missing = [c for c in ("time_s", "sensor", *POSITION_COLUMNS) if c not in columns]
     if all(c in columns for c in ANGLE_COLUMNS):
         orientation, orientation_columns = "angles", ANGLE_COLUMNS

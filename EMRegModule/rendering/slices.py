@@ -62,12 +62,14 @@ class CTSampler:
         self.array = sitk.GetArrayViewFromImage(image) if array is None else array  # (k, j, i)
         self.image_to_index = np.linalg.inv(index_to_physical_matrix(image))
 
-    def sample(self, points_image: np.ndarray) -> np.ndarray:
-        """Values at points (..., 3); NaN outside the volume."""
+    def sample(self, points_image: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
+        """Values at points (..., 3); NaN outside the volume. ``index``: the points' continuous (i, j, k)
+        indices when already computed (``apply_transform(image_to_index, points)``)."""
         from scipy.ndimage import map_coordinates
 
         points_image = np.asarray(points_image, dtype=float)
-        index = apply_transform(self.image_to_index, points_image.reshape(-1, 3))
+        if index is None:
+            index = apply_transform(self.image_to_index, points_image.reshape(-1, 3))
         values = map_coordinates(self.array, index[:, ::-1].T, order=1, mode="constant", cval=np.nan,
                                  output=np.float32)
         return values.reshape(points_image.shape[:-1])
@@ -125,24 +127,25 @@ class StreamingMarkerViews:
                  mm_per_px: float = MM_PER_PX, array: np.ndarray | None = None) -> None:
         self.sampler = CTSampler(image, array)
         self._views: list[list[np.ndarray] | None] = [None] * len(markers)
-        self._pending: list[tuple[int, int, np.ndarray, int]] = []
+        self._pending: list[tuple[int, int, np.ndarray, int, np.ndarray]] = []
         slices = self.sampler.array.shape[0]
         for n, marker in enumerate(markers):
             points = marker_view_points(marker.marker_to_image, model, view_px, mm_per_px)
-            k = apply_transform(self.sampler.image_to_index, points.reshape(-1, 3))[:, 2]
+            index = apply_transform(self.sampler.image_to_index, points.reshape(-1, 3))  # sampled with these
+            k = index[:, 2]
             stop = int(np.clip(np.floor(np.max(k)) + 2, 0, slices))  # trilinear: floor(k) and floor(k) + 1
             start = int(np.clip(np.floor(np.min(k)), 0, slices))
-            self._pending.append((stop, n, points, start))
+            self._pending.append((stop, n, points, start, index))
         self._pending.sort(key=lambda item: item[0])
 
     def sample_ready(self, ready_slices: int) -> None:
         while self._pending and self._pending[0][0] <= ready_slices:
-            _, n, points, _ = self._pending.pop(0)
-            self._views[n] = list(self.sampler.sample(points))
+            _, n, points, _, index = self._pending.pop(0)
+            self._views[n] = list(self.sampler.sample(points, index))
 
     def first_needed_slice(self) -> int:
         """The lowest slice a marker still to be sampled reads (the slice count when none is left)."""
-        return min((start for *_, start in self._pending), default=self.sampler.array.shape[0])
+        return min((item[3] for item in self._pending), default=self.sampler.array.shape[0])
 
     def views(self) -> list[list[np.ndarray]]:
         self.sample_ready(self.sampler.array.shape[0])

@@ -168,7 +168,7 @@ def write_reports_batch(folders: Sequence[str | os.PathLike[str]], jobs: int = 1
                     if bundle is not None:
                         written[folder] = bundle
                     step.advance()
-    if bundles is not None:
+    if bundles is not None:  # also when other folders failed: these bundles were written
         bundles.extend((folder, written[folder]) for folder in selected if folder in written)
     failures = [f"{folder}: {error}" for folder in selected for path, error in [results[folder]] if error]
     if failures:

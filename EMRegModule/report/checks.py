@@ -53,7 +53,7 @@ def stage_warnings(inputs: ReportInputs) -> list[ReportWarning]:
         texts += inputs.frame_calibration.warnings
     if inputs.registration is not None:
         texts += inputs.registration.warnings
-    texts += [str(w) for w in (inputs.evaluation or {}).get("warnings", []) or []]
+    texts += list(inputs.evaluation.warnings) if inputs.evaluation is not None else []
     found = [ReportWarning("warning", str(text)) for text in texts]
     axis = inputs.registration.probe_axis if inputs.registration is not None else None
     if axis:

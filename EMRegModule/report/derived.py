@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -17,8 +18,19 @@ from ..registration import RegistrationResult
 from ..transforms import apply_transform
 from .inputs import ReportInputs
 
+if TYPE_CHECKING:
+    from ..evaluation import Evaluation
+
 #: Samples of the FRE(l) curve over the pinhole range [a, b] when the registration stored none.
 FRE_CURVE_SAMPLES = 151
+
+
+def tre_figures(evaluation: Evaluation | None) -> dict[str, Any]:
+    """The TRE block of ``evaluation.json`` as the evaluation writes it (:meth:`TargetEvaluation.to_json`:
+    overall mean, std, n, RMS, max and predicted RMS over the dwell errors as written, and per target its
+    statistics, RMS and prediction); empty without a TRE or without dwells."""
+    tre = evaluation.tre if evaluation is not None else None
+    return tre.to_json() if tre is not None and tre.dwells else {}
 
 
 def finite_or_none(value: object) -> float | None:

@@ -26,7 +26,7 @@ from ..rendering.images import encode_png
 from ..rendering.plots import bar_chart, line_chart
 from ..transforms import apply_transform
 from .checks import ReportWarning
-from .derived import MarkerRow, calibration_points_in_image, finite_or_none
+from .derived import MarkerRow, calibration_points_in_image, finite_or_none, tre_figures
 from .inputs import ReportInputs
 
 #: Navigated probe positions drawn in the 3D view at most (a longer path is thinned evenly).
@@ -233,14 +233,14 @@ def render_fre_curve(data: ReportData) -> list[Figure]:
 
 def render_tre_targets(data: ReportData) -> list[Figure]:
     """Measured TRE per target (mean and spread) with the predicted end-to-end RMS TRE when there is one."""
-    tre = data.inputs.evaluation["tre"]
-    targets = tre["targets"]
-    labels = list(targets)
-    means = [float(targets[t].get("mean_mm", np.nan)) for t in labels]
-    stds = [float(targets[t].get("std_mm") or 0.0) for t in labels]
-    mean = finite_or_none(tre.get("mean_mm"))
+    tre = data.inputs.evaluation.tre
+    labels = list(tre.targets)
+    means = [np.nan if s.mean_mm is None else float(s.mean_mm) for s in tre.targets.values()]
+    stds = [float(s.std_mm or 0.0) for s in tre.targets.values()]
+    mean = finite_or_none(tre_figures(data.inputs.evaluation).get("mean_mm"))
     lines = [(mean, f"mean {mean:.2f} mm")] if mean is not None else []
-    predicted = [finite_or_none(targets[t].get("predicted_rms_mm")) for t in labels]
+    predicted = [finite_or_none(tre.predictions[t].predicted_rms_mm) if t in tre.predictions else None
+                 for t in labels]
     overlay = [np.nan if p is None else p for p in predicted] if any(p is not None for p in predicted) else None
     chart = bar_chart(labels, means, errors=stds, title="Target registration error", y_label="TRE (mm)",
                       reference_lines=lines, overlay=overlay, overlay_label="predicted RMS" if overlay else "")
@@ -250,20 +250,25 @@ def render_tre_targets(data: ReportData) -> list[Figure]:
                    + " (paper: 1.38 +/- 0.32 mm over 6 targets x 15 placements).", encode_png(chart))]
 
 
+def _has_tre(data: ReportData) -> bool:
+    evaluation = data.inputs.evaluation
+    return evaluation is not None and evaluation.tre is not None and bool(evaluation.tre.targets)
+
+
 def _has_budget(data: ReportData) -> bool:
-    targets = ((data.inputs.evaluation or {}).get("tre") or {}).get("targets") or {}
-    return any("budget_rms_mm" in t for t in targets.values())
+    return _has_tre(data) and bool(data.inputs.evaluation.tre.predictions)
 
 
 def render_error_budget(data: ReportData) -> list[Figure]:
     """The predicted error budget per target, stacked, beside the measured RMS TRE."""
-    targets = {k: t for k, t in data.inputs.evaluation["tre"]["targets"].items() if "budget_rms_mm" in t}
-    labels = list(targets)
-    terms = list(next(iter(targets.values()))["budget_rms_mm"])
-    budget = {term: [np.nan if (v := targets[t]["budget_rms_mm"].get(term)) is None else v for t in labels]
-              for term in terms}
-    chart = error_budget_chart(labels, budget, [targets[t].get("rms_mm", np.nan) for t in labels])
-    source = data.inputs.evaluation["tre"].get("tracking_source") or "calibration"
+    tre = data.inputs.evaluation.tre
+    labels = [t for t in tre.targets if t in tre.predictions]
+    terms = list(tre.predictions[labels[0]].budget_rms_mm)
+    budget = {term: [v if (v := tre.predictions[t].budget_rms_mm.get(term, np.nan)) is not None and np.isfinite(v)
+                     else np.nan for t in labels] for term in terms}
+    measured = tre_figures(data.inputs.evaluation)["targets"]
+    chart = error_budget_chart(labels, budget, [measured[t].get("rms_mm", np.nan) for t in labels])
+    source = tre.tracking_source or "calibration"
     return [Figure("error_budget", "Error budget per target",
                    "The predicted end-to-end RMS TRE at each target split into its terms (they add in quadrature: "
                    "each segment is what its term adds): the registration (fiducial errors of both spaces through "
@@ -310,8 +315,7 @@ FIGURES: tuple[FigureSpec, ...] = (
     FigureSpec(("residuals",), lambda d: d.inputs.registration is not None and bool(d.inputs.registration.pairs),
                render_residuals),
     FigureSpec(("fre_curve",), lambda d: d.curve is not None, render_fre_curve),
-    FigureSpec(("tre_targets",), lambda d: bool(((d.inputs.evaluation or {}).get("tre") or {}).get("targets")),
-               render_tre_targets),
+    FigureSpec(("tre_targets",), _has_tre, render_tre_targets),
     FigureSpec(("error_budget",), _has_budget, render_error_budget),
     FigureSpec(("tre_map",), lambda d: (d.inputs.out_dir / "tre_map.nrrd").is_file(), render_tre_map),
 )

@@ -25,6 +25,7 @@ import numpy as np
 from ..calibration import FrameCalibration, read_frame_calibration
 from ..detection.result import DetectionResult, read_detection
 from ..errors import EMRegError
+from ..evaluation import Evaluation, read_evaluation
 from ..io.atomic import read_json
 from ..io.case import open_case
 from ..io.markups import read_markups
@@ -56,7 +57,7 @@ class ReportInputs:
     detection: DetectionResult | None = None
     frame_calibration: FrameCalibration | None = None
     registration: RegistrationResult | None = None
-    evaluation: dict | None = None
+    evaluation: Evaluation | None = None
     navigation_positions: np.ndarray | None = None
     navigation_labels: list[str] | None = None
     ct: VolumeFill | None = None
@@ -206,7 +207,7 @@ def load_report_inputs(out_dir: str | os.PathLike[str], case_dir: str | os.PathL
     _start_ct(inputs, image, read_image, keep_ct)
     inputs.detection = _read_optional(out / "markers.json", read_detection, notes)
     inputs.frame_calibration = _read_optional(out / "frame_calibration.json", read_frame_calibration, notes)
-    inputs.evaluation = _read_optional(out / "evaluation.json", _read_json_object("evaluation file"), notes)
+    inputs.evaluation = _read_optional(out / "evaluation.json", read_evaluation, notes)
     navigation = _read_optional(out / "navigation.csv", read_navigation_csv, notes)
     if navigation is not None:
         inputs.navigation_positions, inputs.navigation_labels = navigation

@@ -7,13 +7,17 @@ no timestamps: the same inputs give the same bytes.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..io.image import image_geometry
-from .derived import finite_or_none, predicted_tre_by_target
+from .derived import finite_or_none, predicted_tre_by_target, tre_figures
 from .figures import Figure, ReportData
 from .html import CSS, DASH, esc, figure_html, note, num, table, vec
+
+if TYPE_CHECKING:
+    from ..evaluation import BoardEdge
 
 
 def _figures(figures: dict[str, Figure], *names: str) -> str:
@@ -57,7 +61,7 @@ def summary_section(data: ReportData, figures: dict[str, Figure]) -> str:
                                         f"{model.pinhole_bottom_mm:.1f} to {model.pinhole_top_mm:.1f} mm)"))
     if inputs.navigation_positions is not None:
         rows.append(("navigated probe samples", str(len(inputs.navigation_positions))))
-    tre = (inputs.evaluation or {}).get("tre")
+    tre = tre_figures(inputs.evaluation)
     if tre:
         rows.append(("TRE", f"{num(tre.get('mean_mm'))} &plusmn; {num(tre.get('std_mm'))} mm"))
     return "<h2>Summary</h2>" + table(("item", "value"), rows, left_columns=2)
@@ -153,7 +157,7 @@ def calibration_section(data: ReportData, figures: dict[str, Figure]) -> str:
 
 def tre_section(data: ReportData, figures: dict[str, Figure]) -> str:
     """Measured TRE per target and over all, beside the predicted end-to-end RMS TRE and its budget."""
-    tre = (data.inputs.evaluation or {}).get("tre")
+    tre = tre_figures(data.inputs.evaluation)
     if not tre:
         return "<h2>Target registration error</h2>\n" + note(
             "Not shown: no TRE in evaluation.json (needs navigation.csv and targets.mrk.json in the case).")
@@ -172,32 +176,32 @@ def tre_section(data: ReportData, figures: dict[str, Figure]) -> str:
                            "reference sensor, placement); the registration's share alone is far smaller.")])
 
 
-def _board_row(i: int, name: str, edge: dict, nominal: list) -> tuple[str, ...]:
-    reference = finite_or_none(edge.get("nominal_mm", edge.get("reference_mm")))
+def _board_row(i: int, name: str, edge: BoardEdge, nominal: list) -> tuple[str, ...]:
+    reference = finite_or_none(edge.nominal_mm)
     if reference is None and i < len(nominal):
         reference = finite_or_none(nominal[i])
-    mean = finite_or_none(edge.get("mean_mm"))
+    mean = finite_or_none(edge.length.mean_mm)
     error = f"{mean - reference:+.2f}" if reference is not None and mean is not None else DASH
-    if "abs_error_mean_mm" in edge:
-        absolute = f"{num(edge.get('abs_error_mean_mm'))} &plusmn; {num(edge.get('abs_error_std_mm'))}"
-        relative = f"{num(edge.get('rel_error_mean_percent'))}% &plusmn; {num(edge.get('rel_error_std_percent'))}%"
+    if edge.abs_error_mean_mm is not None:
+        absolute = f"{num(edge.abs_error_mean_mm)} &plusmn; {num(edge.abs_error_std_mm)}"
+        relative = f"{num(edge.rel_error_mean_percent)}% &plusmn; {num(edge.rel_error_std_percent)}%"
     else:
         absolute = DASH
         relative = f"{100 * (mean - reference) / reference:+.2f}%" \
             if reference is not None and mean is not None and reference else DASH
-    holes = DASH.join(esc(h) for h in edge.get("holes", []))
-    return (esc(name), holes, num(mean), num(edge.get("std_mm")), esc(edge.get("n", "")), num(reference), error,
+    holes = DASH.join(esc(h) for h in edge.holes)
+    return (esc(name), holes, num(mean), num(edge.length.std_mm), esc(edge.length.n), num(reference), error,
             absolute, relative)
 
 
 def board_section(data: ReportData, figures: dict[str, Figure]) -> str:
     """The board phantom's edge lengths against their nominal lengths (paper Table 1)."""
-    board = (data.inputs.evaluation or {}).get("board")
-    if not board or not board.get("edges"):
+    board = data.inputs.evaluation.board if data.inputs.evaluation is not None else None
+    if board is None or not board.edges:
         return "<h2>Board phantom</h2>\n" + note(
             "Not shown: no board table in evaluation.json (needs board.csv in the case).")
     nominal = list(data.inputs.settings.board.edges_mm or [])
-    rows = [_board_row(i, name, edge, nominal) for i, (name, edge) in enumerate(board["edges"].items())]
+    rows = [_board_row(i, name, edge, nominal) for i, (name, edge) in enumerate(board.edges.items())]
     return "\n".join([
         "<h2>Board phantom</h2>",
         table(("edge", "holes", "mean length (mm)", "std (mm)", "n", "nominal (mm)", "mean - nominal (mm)",

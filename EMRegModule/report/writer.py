@@ -6,7 +6,9 @@ rendered meanwhile; the 3D view's context surface is binned from the CT as its s
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -45,7 +47,53 @@ def write_report_keeping_ct(out_dir: str | os.PathLike[str], case_dir: str | os.
     the caller does not need the CT, so a CT read here is streamed and never whole in memory (None is
     returned for it). Raises :class:`EMRegError` when OUT holds nothing to report.
     """
-    progress = progress or QUIET
+    with _one_blas_thread():
+        return _write_report(out_dir, case_dir, progress or QUIET, image, keep_ct)
+
+
+@contextlib.contextmanager
+def _one_blas_thread() -> Iterator[None]:
+    """numpy's OpenBLAS on one thread while the report renders, then as it was.
+
+    The report's matrix products are small (points of N x 3 by 3 x 3 matrices), where OpenBLAS's
+    thread pool is slower than one thread (measured 7x for the marker planes' points) and its
+    spinning threads take the second core from the CT's read and the bundle's process. Where
+    numpy's BLAS is not the OpenBLAS it ships with, nothing changes.
+    """
+    calls = _openblas_thread_calls()
+    before = calls[0]() if calls else None
+    if calls:
+        calls[1](1)
+    try:
+        yield
+    finally:
+        if calls and before:
+            calls[1](before)
+
+
+def _openblas_thread_calls() -> tuple | None:
+    """(get, set) of the number of threads of the OpenBLAS numpy loaded, or None."""
+    import ctypes
+
+    import numpy  # noqa: F401 - loads its BLAS
+
+    try:
+        with open("/proc/self/maps", encoding="utf-8", errors="replace") as maps:
+            paths = sorted({line.split()[-1] for line in maps if "scipy_openblas" in line and "numpy" in line})
+        library = ctypes.CDLL(paths[0]) if paths else None
+    except (OSError, IndexError):
+        return None
+    for suffix in ("64_", ""):
+        get = getattr(library, f"scipy_openblas_get_num_threads{suffix}", None)
+        put = getattr(library, f"scipy_openblas_set_num_threads{suffix}", None)
+        if get is not None and put is not None:
+            get.restype, put.argtypes = ctypes.c_int, [ctypes.c_int]
+            return get, put
+    return None
+
+
+def _write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None, progress: Progress,
+                  image: sitk.Image | None, keep_ct: bool) -> tuple[Path, sitk.Image | None]:
     inputs = load_report_inputs(out_dir, case_dir, image=image, keep_ct=keep_ct)
     try:
         rows = marker_rows(inputs.detection, inputs.registration)

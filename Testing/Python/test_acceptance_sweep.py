@@ -12,6 +12,8 @@ at the command line on small simulated cases made here.
   thresholds; the message now says its air does not read -1000 HU.
 - A CT whose spacing and origin are in metres or centimetres did the same; the message now says how
   small the CT is and that EMReg reads millimetres.
+- A recording separated by semicolons or tabs was told its header lacked every column; the separator is
+  now named. Capitalised header names (``Time_s``) are read as the spec's.
 """
 
 from __future__ import annotations
@@ -125,3 +127,25 @@ def test_a_ct_whose_geometry_is_not_in_millimetres_is_named(small_case, tmp_path
     assert main(["detect", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 3
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "millimetres" in err[0] and "spacing" in err[0]
+
+
+def test_a_csv_with_another_separator_or_capitalised_header(small_case, tmp_path, capsys):
+    """A recording saved with semicolons or tabs (a spreadsheet's habit) was told its header "lacks column(s)
+    time_s, sensor, ..." although they are all there; now the separator is named. A header whose names are
+    capitalised (``Time_s``) is read like the spec's."""
+    text = (small_case / "calibration.csv").read_text()
+    for name, separator, word in (("semicolon.csv", ";", "semicolons"), ("tab.csv", "\t", "tabs")):
+        path = tmp_path / name
+        path.write_text(text.replace(",", separator))
+        capsys.readouterr()
+        assert main(["calibrate", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and str(path) in err[0] and word in err[0] and "comma" in err[0]
+    header, body = text.split("\n", 1)
+    capitalised = tmp_path / "capitalised.csv"
+    capitalised.write_text(",".join(h[:1].upper() + h[1:] for h in header.split(",")) + "\n" + body)
+    assert main(["calibrate", str(capitalised), "--out", str(tmp_path / "cap"), "--quiet"]) == 0
+    assert main(["calibrate", str(small_case / "calibration.csv"), "--out", str(tmp_path / "ref"), "--quiet"]) == 0
+    points = [[p["position"] for p in json.loads((tmp_path / out / "frame_calibration.json").read_text())["points"]]
+              for out in ("cap", "ref")]
+    assert points[0] == points[1]

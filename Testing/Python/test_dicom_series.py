@@ -377,3 +377,19 @@ def test_the_volume_allocated_while_headers_are_read_is_used_only_when_it_fits(t
     thin = write_series(volume, tmp_path / "two" / "B", uid(62), description="thin")
     np.testing.assert_array_equal(_voxels(read_ct(tmp_path / "two")), _voxels(_series_reader(thin)))
     assert taken == [True, False]
+
+
+@pytest.mark.skipif(bool(tools_available()), reason=f"DICOM tools missing: {tools_available()} (scripts/setup)")
+def test_compressed_runs_of_slices_keep_each_slices_own_rescale(tmp_path):
+    """GDCM decodes compressed slices a run at a time: each slice keeps its own slope and intercept, as
+    GDCM gives them file by file; one bad file in a run is still the one named."""
+    files = write_series(make_volume(seed=15, size=(48, 40, 19)), tmp_path, uid(16), bits_stored=12,
+                         rescale=[(1.0, -1024.0), (2.0, -7.0), (1.0, 5.0)] * 6 + [(3.0, 1.0)])
+    convert(files, "jpeg-lossless")
+    one_by_one = np.stack([_voxels(sitk.ReadImage(str(f), imageIO="GDCMImageIO")) for f in files])
+    np.testing.assert_array_equal(_voxels(read_ct(tmp_path)), one_by_one.reshape(len(files), 40, 48))
+    data = files[10].read_bytes()
+    files[10].write_bytes(data[: len(data) // 2])  # inside the second run of eight
+    with pytest.raises(EMRegError) as info:
+        read_ct(tmp_path)
+    assert files[10].name in str(info.value) and "\n" not in str(info.value)

@@ -319,3 +319,25 @@ def test_convert_names_the_transforms_from_the_typed_settings(recording, tmp_pat
     before, back = read_tracking_csv(csv_in), read_tracking_csv(csv_out)
     assert np.array_equal(back.sensor, before.sensor) and set(back.sensor.tolist()) == {3, 4}
     assert np.allclose(back.position_mm, before.position_mm, atol=1e-6)
+
+
+def test_convert_refuses_to_write_a_sensor_under_another_roles_name(recording, tmp_path, capsys):
+    """A CSV whose reference is port 3 and probe port 1, converted without naming the ports, once became a file
+    whose ReferenceToTracker was the probe and whose ProbeToTracker was INVALID in every frame (exit 0). The
+    default ports missing while other ports are present is now refused, naming the ports the file holds."""
+    moved = recording.select(np.arange(len(recording)))
+    moved.sensor = np.where(recording.sensor == 1, 3, 1)
+    csv_in, seq = tmp_path / "ports.csv", tmp_path / "ports.seq.mha"
+    write_tracking_csv(moved, csv_in)
+    capsys.readouterr()
+    assert main(["convert", str(csv_in), str(seq), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(csv_in) in err[0] and "port 2" in err[0] and "[1, 3]" in err[0]
+    assert not seq.exists()
+    assert main(["convert", str(csv_in), str(seq), "--reference-sensor", "3", "--probe-sensor", "1", "--quiet"]) == 0
+    back = read_recording(seq, None, reference_port=3, probe_port=1)
+    assert np.array_equal(np.bincount(back.sensor), np.bincount(read_tracking_csv(csv_in).sensor))
+    # a board recording without a reference (probe only) still converts
+    probe_only = recording.select(recording.sensor == 2)
+    write_tracking_csv(probe_only, tmp_path / "board.csv")
+    assert main(["convert", str(tmp_path / "board.csv"), str(tmp_path / "board.seq.mha"), "--quiet"]) == 0

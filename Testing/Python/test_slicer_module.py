@@ -847,6 +847,7 @@ def test_volume_node_shares_the_images_voxels_and_keeps_the_image_alive(slicer_c
 
 
 def test_report_batch_writes_one_bundle_per_case_and_an_unwritable_one_breaks_nothing(run_output, tmp_path, capsys):
+    import hashlib
     import json
     import shutil
 
@@ -873,6 +874,31 @@ def test_report_batch_writes_one_bundle_per_case_and_an_unwritable_one_breaks_no
     registration = json.loads((out / "registration.json").read_text())
     np.testing.assert_allclose(slicer.util.arrayFromTransformMatrix(mrml.node("ReferenceToImage")),
                                np.diag([-1.0, -1.0, 1.0, 1.0]) @ registration["ReferenceToImage"], atol=1e-4)
+    recorded_a = json.loads((batch / "a" / "run.json").read_text())["outputs"]
+    recorded_b = json.loads((batch / "b" / "run.json").read_text())["outputs"]
+    assert recorded_a["EMReg.mrb"]["sha256"] == hashlib.sha256((batch / "a" / "EMReg.mrb").read_bytes()).hexdigest()
+    assert recorded_a["EMReg.mrb"]["provenance"]["made_by"] == "emreg report --batch"
+    assert "report.html" in recorded_a and "report.html" in recorded_b and "EMReg.mrb" not in recorded_b
+
+
+def test_report_batch_with_a_failing_case_still_records_and_prints_the_others_bundles(run_output, tmp_path, capsys):
+    import json
+    import shutil
+
+    from EMRegModule.cli import main
+
+    _, out = run_output
+    batch = tmp_path / "batch"
+    for name in ("good", "bad"):
+        shutil.copytree(out, batch / name, ignore=shutil.ignore_patterns("EMReg.mrb", "report.html"))
+    (batch / "bad" / "report.html").mkdir()  # the page cannot be written there: this case fails
+    assert main(["report", "--batch", str(batch), "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert f"bundle: {batch / 'good' / 'EMReg.mrb'}" in captured.out
+    assert "1 of 2 reports failed" in captured.err and str(batch / "bad") in captured.err
+    recorded = json.loads((batch / "good" / "run.json").read_text())["outputs"]
+    assert "EMReg.mrb" in recorded and "report.html" in recorded
+    assert not (batch / "bad" / "EMReg.mrb").exists()
 
 
 def test_without_slicer_core_the_report_succeeds_and_says_why_no_bundle(run_output, tmp_path, monkeypatch, capsys):
