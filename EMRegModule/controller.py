@@ -215,6 +215,28 @@ class EMRegController:
             self.reference_sensor, self.probe_sensor = sensors.reference, sensors.probe
             self._invalidate(frame_calibration=True)
 
+    def use_ports(self, reference_given: int | None, probe_given: int | None,
+                  source: str = "registration.json") -> list[str]:
+        """The ports of a consumer of the current registration (navigate, evaluate): for each sensor the port the
+        user gave (command line, else ``case.toml [sensors]``; None: not given), else the port the
+        registration's calibration used, else the spec's default (reference 1, probe 2). A given port that
+        differs from the registration's is used (a re-cabled tracker) with a one-line warning, returned."""
+        self._require(registration=self.registration)
+        recorded = (self.registration.reference_sensor, self.registration.probe_sensor)
+        given = (reference_given, probe_given)
+        defaults = (1, 2)
+        chosen = tuple(g if g is not None else r if r is not None else d
+                       for g, r, d in zip(given, recorded, defaults, strict=True))
+        sensors = self.settings.with_sensors(*chosen).sensors  # checked as [sensors]; the registration stays
+        self.reference_sensor, self.probe_sensor = sensors.reference, sensors.probe
+        self.navigation = self.evaluation = None
+        warnings = []
+        if any(g is not None and r is not None and g != r for g, r in zip(given, recorded, strict=True)):
+            warnings.append(f"the ports given (reference {chosen[0]}, probe {chosen[1]}) differ from those of the "
+                            f"registration's calibration (reference {recorded[0]}, probe {recorded[1]}, {source}); "
+                            "using the ports given (a re-cabled tracker?)")
+        return warnings
+
     # --- stages -----------------------------------------------------------------------------
 
     def detect_markers(self) -> DetectionResult:
