@@ -27,7 +27,14 @@ from . import __version__
 from .errors import EMRegError, NoSafeAnswerError
 from .io.case import Case
 from .marker_model import MarkerModel
-from .outputs import STAGE_OUTPUTS, OutputFolder, all_output_names, check_outputs, refuse_out_over_inputs
+from .outputs import (
+    STAGE_OUTPUTS,
+    OutputFolder,
+    all_output_names,
+    check_outputs,
+    refuse_out_over_inputs,
+    signals_held,
+)
 from .progress import QUIET, Progress
 from .provenance import InputDigest, Provenance, check_belongs, check_inputs_match, file_sha256
 from .settings import Settings
@@ -594,9 +601,15 @@ class EMRegController:
             folder.finish("failed", f"{stage}: {exc}")
             raise
         except KeyboardInterrupt as exc:
-            folder.finish("interrupted", f"{stage}: {exc or 'interrupted'}")
+            with signals_held(redeliver=False):  # a second Ctrl-C does not cut the record short
+                folder.drop_unrecorded()  # an output written as the signal came, before run.json listed it
+                folder.finish("interrupted", f"{stage}: {exc or 'interrupted'}")
             raise
-        folder.finish("finished")
+        with signals_held() as pending:  # run.json says what the exit code says, even for a signal right now
+            folder.finish("finished")
+            if pending:
+                folder.finish("interrupted", f"{stage}: interrupted as the run recorded its end (every output "
+                                             "listed is complete)")
         return summary
 
     def _run_record(self, case: Case, summary: list[str]) -> dict[str, Any]:
