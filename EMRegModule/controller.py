@@ -487,12 +487,15 @@ class EMRegController:
         """The verification report of ``folder`` (its outputs checked to belong together first); the CT
         the report read is kept for the Slicer bundle (:meth:`save_bundle`)."""
         from .io.slicer_scene import bundle_needs_ct_image
-        from .report.writer import write_report_keeping_ct
+        from .report.writer import HandedCT, write_report_keeping_ct
 
         used = self._adopt_outputs(folder)
         keep = bundle_needs_ct_image(_recorded_ct(folder.path))  # else the report streams a CT it reads itself
+        image: Any = self.image
+        if image is not None and not keep and not self.keep_ct:  # nothing needs the CT after the report: it is
+            self.image, image = None, HandedCT(image)  # freed once used, before the rendering libraries load
         page, self._report_image = write_report_keeping_ct(folder.path, case_dir=case_dir, progress=self.progress,
-                                                           image=self.image, keep_ct=keep)
+                                                           image=image, keep_ct=keep)
         self._recorded(folder, "report", self._provenance((), tuple(used)))
         return page
 
