@@ -82,7 +82,9 @@ def read_sequence_folder(
         raise EMRegError(f"{folder}: tracking recording folder not found")
     files = sequence_files(folder)
     if not files:
-        raise EMRegError(f"{folder}: no sequence file ({', '.join(SEQUENCE_SUFFIXES)}) in the recording folder")
+        suffixes = ", ".join(SEQUENCE_SUFFIXES)
+        raise EMRegError(f"{folder}: is a folder with no sequence file ({suffixes}); give a tracking recording file, "
+                         "or a folder of 3D Slicer sequence files (one per transform)")
     roles: dict[str, list[tuple[Path, SequenceFrames, str]]] = {reference_transform: [], probe_transform: []}
     held = []
     for path in files:

@@ -192,4 +192,4 @@ def test_missing_or_mismatched_partner_files_are_refused(case, tmp_path, capsys)
     # an empty folder
     (tmp_path / "empty").mkdir()
     assert main(["calibrate", str(tmp_path / "empty"), "--out", str(tmp_path / "o4"), "--quiet"]) == 2
-    assert "no sequence file" in _error(capsys)
+    assert "is a folder with no sequence file" in _error(capsys)
