@@ -109,6 +109,16 @@ def _output_folder(args: argparse.Namespace, stage: str, inputs: Sequence[Path],
     return folder
 
 
+def _ports_given(args: argparse.Namespace, settings: Settings) -> tuple[int | None, int | None]:
+    """The ports the user chose (reference, probe): ``--reference-sensor`` / ``--probe-sensor``, else those
+    ``case.toml [sensors]`` names; None where neither gives one (a registration's own ports then apply)."""
+    from .settings import sensor_ports_given
+
+    in_file = sensor_ports_given(settings)
+    flags = (getattr(args, "reference_sensor", None), getattr(args, "probe_sensor", None))
+    return tuple(f if f is not None else t for f, t in zip(flags, in_file, strict=True))  # type: ignore[return-value]
+
+
 def _controller(args: argparse.Namespace, settings: Settings) -> EMRegController:
     from .controller import EMRegController
 
@@ -203,6 +213,7 @@ def cmd_navigate(args: argparse.Namespace) -> int:
     recording_path = Path(args.source[len("replay:"):])
     controller = _controller(args, _settings(args))
     controller.load_registration(args.registration)
+    _warn("navigate", controller.use_ports(*_ports_given(args, controller.settings), args.registration))
     recording = read_recording(recording_path, controller.settings, controller.reference_sensor,
                                controller.probe_sensor)
     folder = _output_folder(args, "navigate", [recording_path, Path(args.registration)])
@@ -227,11 +238,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                          "(and no board.csv)")
     if args.settings:
         case.settings = _settings(args)
+    given = _ports_given(args, case.settings)
     case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # sequence files' ports
     controller = _controller(args, case.settings)
     inputs = [p for p in (case.navigation, case.targets, case.board) if p is not None]
     folder = _output_folder(args, "evaluate", [*inputs, Path(args.registration)], case.folder)
     controller.load_registration(args.registration)
+    _warn("evaluate", controller.use_ports(*given, args.registration))
+    case.settings = case.settings.with_sensors(controller.reference_sensor, controller.probe_sensor)
     controller.check_case_inputs("registration.json", args.registration, case)
     controller.note_inputs(navigation=case.navigation, targets=case.targets, board=case.board)
     result = controller.evaluate(case.read_recording("navigation"), case.read_targets(), case.read_recording("board"))
@@ -270,6 +284,10 @@ def cmd_convert(args: argparse.Namespace) -> int:
                 ports[name] = int(port) if port.isdigit() and int(port) not in ports.values() else next(free)
         recording = recording_from_frames(frames, ports)
         others = {n: p for n, p in ports.items() if n not in names.values()}
+    elif source.is_dir():  # 3D Slicer's recording: one sequence file per transform, matched by timestamp
+        from .io.recording import read_recording
+
+        recording, others = read_recording(source, settings, reference, probe), {}
     else:
         recording, others = read_tracking_csv(source), {}
         if is_sequence_file(target):

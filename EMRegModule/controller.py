@@ -27,7 +27,14 @@ from . import __version__
 from .errors import EMRegError, NoSafeAnswerError
 from .io.case import Case
 from .marker_model import MarkerModel
-from .outputs import STAGE_OUTPUTS, OutputFolder, all_output_names, check_outputs, refuse_out_over_inputs
+from .outputs import (
+    STAGE_OUTPUTS,
+    OutputFolder,
+    all_output_names,
+    check_outputs,
+    refuse_out_over_inputs,
+    signals_held,
+)
 from .progress import QUIET, Progress
 from .provenance import InputDigest, Provenance, check_belongs, check_inputs_match, file_sha256
 from .settings import Settings
@@ -214,6 +221,28 @@ class EMRegController:
         if (sensors.reference, sensors.probe) != (self.reference_sensor, self.probe_sensor):
             self.reference_sensor, self.probe_sensor = sensors.reference, sensors.probe
             self._invalidate(frame_calibration=True)
+
+    def use_ports(self, reference_given: int | None, probe_given: int | None,
+                  source: str = "registration.json") -> list[str]:
+        """The ports of a consumer of the current registration (navigate, evaluate): for each sensor the port the
+        user gave (command line, else ``case.toml [sensors]``; None: not given), else the port the
+        registration's calibration used, else the spec's default (reference 1, probe 2). A given port that
+        differs from the registration's is used (a re-cabled tracker) with a one-line warning, returned."""
+        self._require(registration=self.registration)
+        recorded = (self.registration.reference_sensor, self.registration.probe_sensor)
+        given = (reference_given, probe_given)
+        defaults = (1, 2)
+        chosen = tuple(g if g is not None else r if r is not None else d
+                       for g, r, d in zip(given, recorded, defaults, strict=True))
+        sensors = self.settings.with_sensors(*chosen).sensors  # checked as [sensors]; the registration stays
+        self.reference_sensor, self.probe_sensor = sensors.reference, sensors.probe
+        self.navigation = self.evaluation = None
+        warnings = []
+        if any(g is not None and r is not None and g != r for g, r in zip(given, recorded, strict=True)):
+            warnings.append(f"the ports given (reference {chosen[0]}, probe {chosen[1]}) differ from those of the "
+                            f"registration's calibration (reference {recorded[0]}, probe {recorded[1]}, {source}); "
+                            "using the ports given (a re-cabled tracker?)")
+        return warnings
 
     # --- stages -----------------------------------------------------------------------------
 
@@ -458,12 +487,15 @@ class EMRegController:
         """The verification report of ``folder`` (its outputs checked to belong together first); the CT
         the report read is kept for the Slicer bundle (:meth:`save_bundle`)."""
         from .io.slicer_scene import bundle_needs_ct_image
-        from .report.writer import write_report_keeping_ct
+        from .report.writer import HandedCT, write_report_keeping_ct
 
         used = self._adopt_outputs(folder)
         keep = bundle_needs_ct_image(_recorded_ct(folder.path))  # else the report streams a CT it reads itself
+        image: Any = self.image
+        if image is not None and not keep and not self.keep_ct:  # nothing needs the CT after the report: it is
+            self.image, image = None, HandedCT(image)  # freed once used, before the rendering libraries load
         page, self._report_image = write_report_keeping_ct(folder.path, case_dir=case_dir, progress=self.progress,
-                                                           image=self.image, keep_ct=keep)
+                                                           image=image, keep_ct=keep)
         self._recorded(folder, "report", self._provenance((), tuple(used)))
         return page
 
@@ -572,9 +604,15 @@ class EMRegController:
             folder.finish("failed", f"{stage}: {exc}")
             raise
         except KeyboardInterrupt as exc:
-            folder.finish("interrupted", f"{stage}: {exc or 'interrupted'}")
+            with signals_held(redeliver=False):  # a second Ctrl-C does not cut the record short
+                folder.drop_unrecorded()  # an output written as the signal came, before run.json listed it
+                folder.finish("interrupted", f"{stage}: {exc or 'interrupted'}")
             raise
-        folder.finish("finished")
+        with signals_held() as pending:  # run.json says what the exit code says, even for a signal right now
+            folder.finish("finished")
+            if pending:
+                folder.finish("interrupted", f"{stage}: interrupted as the run recorded its end (every output "
+                                             "listed is complete)")
         return summary
 
     def _run_record(self, case: Case, summary: list[str]) -> dict[str, Any]:

@@ -86,6 +86,9 @@ class RegistrationResult:
     pairing: dict[str, Any] = field(default_factory=dict)
     probe_axis: dict[str, Any] = field(default_factory=dict)
     provenance: dict[str, Any] | None = None  # what it was made from (``EMRegModule.provenance``)
+    #: The tracker ports of the calibration the registration was made from (None: an older file without them).
+    reference_sensor: int | None = None
+    probe_sensor: int | None = None
 
     @property
     def outliers(self) -> list[str]:
@@ -101,6 +104,8 @@ class RegistrationResult:
             "pairs": [{**p, "residual_mm": round(float(p["residual_mm"]), 4)} for p in self.pairs],
             "unpaired_image_markers": list(self.unpaired_image_markers),
             "unpaired_calibration_points": list(self.unpaired_calibration_points),
+            **({"reference_sensor": int(self.reference_sensor)} if self.reference_sensor is not None else {}),
+            **({"probe_sensor": int(self.probe_sensor)} if self.probe_sensor is not None else {}),
             "transform_file": TRANSFORM_FILE,
             "transform_file_note": ("ITK file: stores ImageToReference (the resampling direction, LPS); "
                                     "3D Slicer loads it as the ReferenceToImage linear transform"),
@@ -161,9 +166,21 @@ class RegistrationResult:
                 pairing=dict(document.get("pairing", {})),
                 probe_axis=dict(document.get("probe_axis") or {}),
                 provenance=document["provenance"] if isinstance(document.get("provenance"), dict) else None,
+                reference_sensor=_port(document, "reference_sensor", source),
+                probe_sensor=_port(document, "probe_sensor", source),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise EMRegError(f"{source}: not a registration file ({exc!s:.100})") from None
+
+
+def _port(document: Mapping[str, Any], key: str, source: str) -> int | None:
+    """A recorded tracker port (1..4), or None when the file predates the key."""
+    value = document.get(key)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 4:
+        raise EMRegError(f"{source}: {key} must be a tracker port 1..4, got {value!r:.30}")
+    return value
 
 
 def _round(value: float, digits: int = 4) -> float | None:
@@ -257,6 +274,8 @@ def register(
     ]
     paired_images = set(image_index.tolist())
     paired_cal = set(cal_index.tolist())
+    warnings += _unpaired_warnings([m for k, m in enumerate(image_ids) if k not in paired_images],
+                                   [p for k, p in enumerate(labels) if k not in paired_cal])
     return RegistrationResult(
         reference_to_image=solution.reference_to_image,
         sensor_offset_l_mm=solution.l_mm,
@@ -279,7 +298,28 @@ def register(
                  "point_tolerance_mm": round(config.pairing.point_tolerance_mm, 3),
                  "distance_tolerance_mm": round(config.pairing.distance_tolerance_mm, 3)},
         probe_axis=axis_report.to_json(),
+        reference_sensor=_calibration_port(frame_calibration, "reference_sensor"),
+        probe_sensor=_calibration_port(frame_calibration, "probe_sensor"),
     )
+
+
+def _unpaired_warnings(image_markers: list[str], calibration_points: list[str]) -> list[str]:
+    """One line per kind of point left out of the registration, naming them and the likely reason."""
+    lines = []
+    if calibration_points:
+        lines.append(f"calibration point(s) {', '.join(calibration_points)} paired with no marker of the CT, left "
+                     "out of the registration: the probe was likely not in a pinhole while recorded there, or that "
+                     "marker was not found in the CT (see 'rejected' in markers.json)")
+    if image_markers:
+        lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
+                     "registration: their pinholes were likely not recorded in the calibration (or their dwells "
+                     "not found)")
+    return lines
+
+
+def _calibration_port(frame_calibration: FrameCalibration, key: str) -> int | None:
+    value = getattr(frame_calibration, key, None)
+    return int(value) if value is not None else None
 
 
 def _offset_range(config: RegistrationSettings, model: MarkerModel) -> tuple[float, float]:

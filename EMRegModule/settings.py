@@ -347,6 +347,23 @@ class Settings:
         return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
+def sensor_ports_given(settings: Settings) -> tuple[int | None, int | None]:
+    """The ports (reference, probe) that the settings file itself gives in ``[sensors]`` (None where it gives
+    none, or when the settings are the defaults): a port left out there is not a user's choice, so a
+    consumer may take it from the registration (:meth:`EMRegModule.controller.EMRegController.use_ports`)."""
+    if not settings.source or not Path(settings.source).is_file():
+        return None, None
+    try:
+        with Path(settings.source).open("rb") as f:
+            sensors = tomllib.load(f).get("sensors") or {}
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return None, None
+    if not isinstance(sensors, dict):
+        return None, None
+    return (settings.sensors.reference if "reference" in sensors else None,
+            settings.sensors.probe if "probe" in sensors else None)
+
+
 def with_series(settings: Settings, series: str | int | None) -> Settings:
     """``settings`` with ``[ct] series`` overridden (``--series UID|NUMBER``); unchanged when ``series`` is None."""
     if series is None:

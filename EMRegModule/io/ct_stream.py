@@ -43,6 +43,41 @@ class CTGeometry:
         return sitk.GetPixelIDValueAsString(self._info.GetPixelID())
 
 
+class ReleasedCT:
+    """A CT that was used and let go: its geometry (``image``: size, spacing, origin, direction, pixel type)
+    answers as a :class:`VolumeFill` does; ``result()`` is None (no voxels are kept)."""
+
+    is_complete = True
+
+    def __init__(self, image: sitk.Image) -> None:
+        self.image = _FixedGeometry(image)
+
+    def result(self) -> None:
+        return None
+
+    def read_error(self) -> None:
+        return None
+
+    def cancel(self) -> None:
+        return None
+
+
+class _FixedGeometry:
+    """An image's geometry, without its voxels."""
+
+    def __init__(self, image: sitk.Image) -> None:
+        self._values = {name: getattr(image, name)() for name in (
+            "GetSize", "GetSpacing", "GetOrigin", "GetDirection", "GetPixelID", "GetDimension",
+            "GetNumberOfComponentsPerPixel", "GetPixelIDTypeAsString")}
+
+    def __getattr__(self, name: str):
+        try:
+            value = self._values[name]
+        except KeyError:
+            raise AttributeError(name) from None
+        return lambda: value
+
+
 class StreamedCT(VolumeFill):
     """A :class:`VolumeFill` whose ``image`` is the CT's geometry (SimpleITK's header reading: size,
     spacing, origin, direction) and whose voxels are ``array`` (k, j, i), valid for the slices read and

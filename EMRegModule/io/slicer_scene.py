@@ -901,6 +901,8 @@ def _bundle_child() -> None:
     from ..provenance import file_sha256
 
     out, case = sys.argv[1], sys.argv[2] or None
+    with contextlib.suppress(OSError, AttributeError):
+        os.nice(5)  # the report's CT read, which the report waits for, goes first on a busy machine
     try:
         path, message = write_run_bundle(out, case)
         sha = file_sha256(path) if path is not None else None

@@ -11,19 +11,20 @@ a stalled client would stall the tracker loop. This server keeps pyigtl for the 
 - a queued message older than ``STALE_AFTER_S`` is replaced by a newer one of the same type and device
   name (a newer TRANSFORM ``ProbeToImage`` supersedes it); a client whose queue exceeds
   ``max_pending_bytes`` loses its oldest whole queued messages - it is never allowed to block anyone;
-- a client that stops reading is *held*: the server measures how far behind each client is - the age of
-  the oldest message it has not read yet, from the bytes still in the kernels (our unacknowledged send
-  queue, ``SIOCOUTQ``, and, for a client on this host, its unread receive queue through Linux's
-  ``sock_diag``: see :mod:`.tcp_backlog`). More than ``hold_after_s`` (default ``STALE_AFTER_S``) behind,
-  nothing more is handed to its socket and its queue keeps only the newest message of each type and
-  device name; once it has read everything it was handed it gets those newest messages and is fed
-  normally again (both moments logged). So a client that stops for 30 s at 100 Hz reads, when it
-  resumes, the few poses handed to it in the first ``hold_after_s`` of its stall (plus one poll
-  interval), then the latest - not 3000. The oldest of those few is as old as the stall: a byte the
-  client's kernel has accepted is the client's (a reset does not discard it), so no server can bound
-  that age, only how many such poses there are. A client on another host: only a closed receive window
-  is visible (Linux clients keep it open while they buffer), so its own buffer may still hold a backlog;
-  ``TCP_NOTSENT_LOWAT`` keeps the server's kernel from queueing more than ``notsent_lowat`` bytes for it.
+- a client that stops reading is *held*: the server measures how far behind each client is - how long
+  ago the oldest bytes it has not read yet were handed to its socket, from the bytes still in the
+  kernels (our unacknowledged send queue, ``SIOCOUTQ``, and, for a client on this host, its unread
+  receive queue through Linux's ``sock_diag``: see :mod:`.tcp_backlog`). More than ``hold_after_s``
+  (default ``STALE_AFTER_S``) behind, nothing more is handed to its socket and its queue keeps only the
+  newest message of each type and device name; once it has read everything it was handed it gets those
+  newest messages and is fed normally again (both moments logged). So a client that stops for 30 s at
+  100 Hz reads, when it resumes, the few poses handed to it in the first ``hold_after_s`` of its stall
+  (plus one poll interval), then the latest - not 3000. The oldest of those few is as old as the stall:
+  a byte the client's kernel has accepted is the client's (a reset does not discard it), so no server
+  can bound that age, only how many such poses there are. A client on another host: only a closed
+  receive window is visible (Linux clients keep it open while they buffer), so its own buffer may still
+  hold a backlog; ``TCP_NOTSENT_LOWAT`` keeps the server's kernel from queueing more than
+  ``notsent_lowat`` bytes for it.
   A client is never disconnected for being slow;
 - clients that disconnect are dropped; what they send is read and ignored;
 - the last STATUS message of each device name is replayed to every new client, so a client that
@@ -104,7 +105,7 @@ class _Client:
         self.held = False
         self.times_held = 0
         self.handed = 0  # bytes handed to the kernel so far
-        #: (stream offset just past bytes handed, when their message was offered) - the age of what is unread
+        #: (stream offset just past bytes handed, when they were handed) - how long the client leaves them unread
         self.marks: deque[tuple[int, float]] = deque()
         self.observable: bool | None = None  # its unread receive queue is visible (same host), once known
         self.lag_s = 0.0  # how far behind it was at the last poll (s)
@@ -286,7 +287,7 @@ class IGTLServer:
             except OSError:
                 self._drop(client)
                 return
-            client.handed_over(n, client.times[0])
+            client.handed_over(n, time.monotonic())  # the client's lag counts from the hand-over
             client.pending_bytes -= n
             if n < len(head):
                 client.pending[0] = head[n:]

@@ -137,6 +137,12 @@ class StreamingMarkerViews:
             start = int(np.clip(np.floor(np.min(k)), 0, slices))
             self._pending.append((stop, n, points, start, index))
         self._pending.sort(key=lambda item: item[0])
+        self._slices = slices
+
+    def release(self) -> None:
+        """Sample what is left, then let go of the CT (the views stay)."""
+        self.views()
+        self.sampler.array = None
 
     def sample_ready(self, ready_slices: int) -> None:
         while self._pending and self._pending[0][0] <= ready_slices:
@@ -145,10 +151,10 @@ class StreamingMarkerViews:
 
     def first_needed_slice(self) -> int:
         """The lowest slice a marker still to be sampled reads (the slice count when none is left)."""
-        return min((item[3] for item in self._pending), default=self.sampler.array.shape[0])
+        return min((item[3] for item in self._pending), default=self._slices)
 
     def views(self) -> list[list[np.ndarray]]:
-        self.sample_ready(self.sampler.array.shape[0])
+        self.sample_ready(self._slices)
         return self._views
 
 

@@ -56,6 +56,7 @@ class ReportData:
     surface: ContextSurface | None = None
     scene_renderer: object | None = None  # a FrameSceneRenderer built before the CT is read
     marker_views: object | None = None  # StreamingMarkerViews: the slices sampled as the CT is read
+    binned: object | None = None  # the block-averaged CT (BinnedCT) the context surface is contoured from
 
     @property
     def l_mm(self) -> float | None:
@@ -95,9 +96,17 @@ def prepare_context_surface(data: ReportData) -> None:
 
     A CT that fails to read becomes a note (and no CT figure).
     """
+    prepare_ct_products(data)
+    if data.binned is not None and data.surface is None:
+        data.surface = context_surface(data.binned, data.inputs.settings.report.iso_value)
+
+
+def prepare_ct_products(data: ReportData) -> None:
+    """What the figures take from the CT's voxels: the block-averaged CT and the marker planes (made as the CT
+    is read; no rendering library is needed). A CT that fails to read becomes a note (and no CT figure)."""
     from ..rendering.slices import StreamingMarkerViews
 
-    if data.inputs.ct is None or data.surface is not None:
+    if data.inputs.ct is None or data.binned is not None:
         return
     ct = data.inputs.ct
     try:
@@ -113,13 +122,10 @@ def prepare_context_surface(data: ReportData) -> None:
             if hasattr(ct, "release_before"):  # a StreamedCT: slices used by nothing any more go back
                 ct.release_before(min(read - factor, views.first_needed_slice() if views is not None else read))
 
-        binned = binned_ct(ct, on_slices=on_slices)
+        data.binned = binned_ct(ct, on_slices=on_slices)
     except EMRegError as exc:
         data.inputs.notes.append(str(exc))
         data.inputs.ct, data.marker_views = None, None
-        return
-    iso_value = data.inputs.settings.report.iso_value
-    data.surface = context_surface(binned, iso_value)
 
 
 def prepare_scenes(data: ReportData) -> None:

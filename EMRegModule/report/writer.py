@@ -18,7 +18,7 @@ from ..progress import QUIET, Progress
 from . import sections
 from .checks import collect_warnings
 from .derived import calibration_points, marker_rows, report_fre_curve
-from .figures import FIGURE_NAMES, ReportData, render_figures
+from .figures import FIGURE_NAMES, ReportData, prepare_ct_products, render_figures
 from .inputs import load_report_inputs
 
 if TYPE_CHECKING:
@@ -36,19 +36,32 @@ def write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[st
 
 
 def write_report_keeping_ct(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
-                            progress: Progress | None = None, image: sitk.Image | None = None,
+                            progress: Progress | None = None, image: sitk.Image | HandedCT | None = None,
                             keep_ct: bool = True) -> tuple[Path, sitk.Image | None]:
     """Render ``OUT/report.html`` (and ``OUT/report_figures/*.png``) from what the run left in OUT.
 
     ``case_dir`` is the case folder (for the CT and targets); by default the one recorded in
     ``OUT/run.json``. ``image``: the case's CT already in memory (``SimpleITK.Image``), which spares
-    reading it again. Returns the path of the page and the CT the report used (None without one, or
+    reading it again (a :class:`HandedCT`: the report lets it go as soon as it has used it). Returns the path
+    of the page and the CT the report used (None without one, or
     when it could not be read), so that the caller can reuse it (the 3D Slicer bundle). ``keep_ct=False``:
     the caller does not need the CT, so a CT read here is streamed and never whole in memory (None is
     returned for it). Raises :class:`EMRegError` when OUT holds nothing to report.
     """
     with _one_blas_thread():
         return _write_report(out_dir, case_dir, progress or QUIET, image, keep_ct)
+
+
+def _use_and_release_ct(data: ReportData) -> None:
+    """Take from a handed CT what the figures need, then let it go (its geometry stays)."""
+    from ..io.ct_stream import ReleasedCT
+
+    geometry = data.inputs.ct.image
+    prepare_ct_products(data)
+    if data.marker_views is not None:
+        data.marker_views.release()
+    if data.inputs.ct is not None:
+        data.inputs.ct = ReleasedCT(geometry)
 
 
 @contextlib.contextmanager
@@ -92,9 +105,26 @@ def _openblas_thread_calls() -> tuple | None:
     return None
 
 
+class HandedCT:
+    """A CT handed to the report to use and let go: the caller keeps no reference to it, so once the report has
+    taken what it needs (the block-averaged CT, the marker planes) the CT's memory is freed before the
+    rendering libraries load (``emreg run``: the report's peak then does not add to the detection's)."""
+
+    def __init__(self, image: sitk.Image) -> None:
+        self._image: sitk.Image | None = image
+
+    def take(self) -> sitk.Image | None:
+        image, self._image = self._image, None
+        return image
+
+
 def _write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None, progress: Progress,
-                  image: sitk.Image | None, keep_ct: bool) -> tuple[Path, sitk.Image | None]:
+                  image: sitk.Image | HandedCT | None, keep_ct: bool) -> tuple[Path, sitk.Image | None]:
+    handed = isinstance(image, HandedCT)
+    if handed:
+        image = image.take()
     inputs = load_report_inputs(out_dir, case_dir, image=image, keep_ct=keep_ct)
+    del image  # held by ``inputs.ct`` alone (a handed CT is let go below)
     try:
         rows = marker_rows(inputs.detection, inputs.registration)
         points = calibration_points(inputs.frame_calibration)
@@ -104,6 +134,8 @@ def _write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[s
             inputs.ct.cancel()
         raise EMRegError(f"{inputs.out_dir}: an output file does not follow the spec ({exc!s:.120})") from None
     data = ReportData(inputs, rows, points, curve, stored)
+    if handed and inputs.ct is not None:
+        _use_and_release_ct(data)
     try:
         figures = render_figures(data, progress)
     except BaseException:

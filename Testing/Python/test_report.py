@@ -331,3 +331,32 @@ def test_emreg_run_writes_the_report_with_all_figures(request, tmp_path):
             assert "fig-tre_targets" in text
         if "board" in evaluation:
             assert "absolute error (mm)" in text
+
+
+@pytest.mark.parametrize("how", ["given", "handed", "streamed"])
+def test_the_ct_given_handed_over_or_streamed_gives_the_same_page_and_figures(sample_run, tmp_path, how):
+    """The report from a CT in memory (``emreg run``), from one handed over to be let go once used, and from
+    one it streams itself: the same page and the same figures, byte for byte, as from a CT read whole."""
+    from EMRegModule.io.ct_stream import ReleasedCT
+    from EMRegModule.io.image import read_ct
+    from EMRegModule.report.writer import HandedCT, write_report_keeping_ct
+
+    root, _, _ = sample_run
+    out = _copy_run(sample_run, tmp_path)
+    for figure in (out / FIGURE_DIR).iterdir():
+        figure.unlink()
+    image = read_ct(root / "case" / "ct.nrrd")
+    if how == "given":
+        page, kept = write_report_keeping_ct(out, image=image)
+        assert kept is image
+    elif how == "handed":
+        handed = HandedCT(image)
+        page, kept = write_report_keeping_ct(out, image=handed, keep_ct=False)
+        assert kept is None and handed.take() is None  # the report took it and let it go
+        assert isinstance(ReleasedCT(image).image.GetSize(), tuple)
+    else:
+        page, kept = write_report_keeping_ct(out, keep_ct=False)
+        assert kept is None
+    assert _without_out_path(page) == _without_out_path(root / "out" / "report.html")
+    for figure in (root / "out" / FIGURE_DIR).iterdir():
+        assert (out / FIGURE_DIR / figure.name).read_bytes() == figure.read_bytes(), figure.name
