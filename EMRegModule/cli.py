@@ -284,6 +284,10 @@ def cmd_convert(args: argparse.Namespace) -> int:
                 ports[name] = int(port) if port.isdigit() and int(port) not in ports.values() else next(free)
         recording = recording_from_frames(frames, ports)
         others = {n: p for n, p in ports.items() if n not in names.values()}
+    elif source.is_dir():  # 3D Slicer's recording: one sequence file per transform, matched by timestamp
+        from .io.recording import read_recording
+
+        recording, others = read_recording(source, settings, reference, probe), {}
     else:
         recording, others = read_tracking_csv(source), {}
         if is_sequence_file(target):

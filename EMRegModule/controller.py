@@ -27,10 +27,17 @@ from . import __version__
 from .errors import EMRegError, NoSafeAnswerError
 from .io.case import Case
 from .marker_model import MarkerModel
-from .outputs import STAGE_OUTPUTS, OutputFolder, all_output_names, check_outputs, refuse_out_over_inputs
+from .outputs import (
+    STAGE_OUTPUTS,
+    OutputFolder,
+    all_output_names,
+    check_outputs,
+    refuse_out_over_inputs,
+    signals_held,
+)
 from .progress import QUIET, Progress
 from .provenance import InputDigest, Provenance, check_belongs, check_inputs_match, file_sha256
-from .settings import Settings
+from .settings import Settings, choose_ports
 
 if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only when used
     import SimpleITK as sitk
@@ -223,18 +230,10 @@ class EMRegController:
         differs from the registration's is used (a re-cabled tracker) with a one-line warning, returned."""
         self._require(registration=self.registration)
         recorded = (self.registration.reference_sensor, self.registration.probe_sensor)
-        given = (reference_given, probe_given)
-        defaults = (1, 2)
-        chosen = tuple(g if g is not None else r if r is not None else d
-                       for g, r, d in zip(given, recorded, defaults, strict=True))
+        chosen, warnings = choose_ports((reference_given, probe_given), recorded, source)
         sensors = self.settings.with_sensors(*chosen).sensors  # checked as [sensors]; the registration stays
         self.reference_sensor, self.probe_sensor = sensors.reference, sensors.probe
         self.navigation = self.evaluation = None
-        warnings = []
-        if any(g is not None and r is not None and g != r for g, r in zip(given, recorded, strict=True)):
-            warnings.append(f"the ports given (reference {chosen[0]}, probe {chosen[1]}) differ from those of the "
-                            f"registration's calibration (reference {recorded[0]}, probe {recorded[1]}, {source}); "
-                            "using the ports given (a re-cabled tracker?)")
         return warnings
 
     # --- stages -----------------------------------------------------------------------------
@@ -597,9 +596,15 @@ class EMRegController:
             folder.finish("failed", f"{stage}: {exc}")
             raise
         except KeyboardInterrupt as exc:
-            folder.finish("interrupted", f"{stage}: {exc or 'interrupted'}")
+            with signals_held(redeliver=False):  # a second Ctrl-C does not cut the record short
+                folder.drop_unrecorded()  # an output written as the signal came, before run.json listed it
+                folder.finish("interrupted", f"{stage}: {exc or 'interrupted'}")
             raise
-        folder.finish("finished")
+        with signals_held() as pending:  # run.json says what the exit code says, even for a signal right now
+            folder.finish("finished")
+            if pending:
+                folder.finish("interrupted", f"{stage}: interrupted as the run recorded its end (every output "
+                                             "listed is complete)")
         return summary
 
     def _run_record(self, case: Case, summary: list[str]) -> dict[str, Any]:

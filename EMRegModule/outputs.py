@@ -21,7 +21,9 @@ import contextlib
 import datetime
 import os
 import shutil
-from collections.abc import Iterable, Mapping
+import signal
+import threading
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -73,6 +75,35 @@ def outputs_from(stage: str) -> list[str]:
     return [name for later in (stage, *DEPENDENTS[stage]) for name in STAGE_OUTPUTS[later]]
 
 
+@contextlib.contextmanager
+def signals_held(redeliver: bool = True) -> Iterator[list[int]]:
+    """Hold SIGINT / SIGTERM back during a short piece of bookkeeping that must not be cut in two (``run.json``
+    and the files it lists must agree); yields the list of signals that arrived. On leaving, the handlers are
+    restored and, with ``redeliver``, the first held signal is delivered (KeyboardInterrupt / the SIGTERM
+    handler's exception). Only Python-level handlers are held (an ignored signal stays ignored); outside the
+    main thread nothing is held."""
+    pending: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield pending
+        return
+
+    def hold(signum: int, frame: object) -> None:
+        pending.append(signum)
+
+    previous: dict[int, Any] = {}
+    try:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            handler = signal.getsignal(signum)
+            if callable(handler):
+                previous[signum] = signal.signal(signum, hold)
+        yield pending
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        if redeliver and pending:
+            signal.raise_signal(pending[0])
+
+
 def _now() -> str:
     return datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
 
@@ -115,7 +146,12 @@ class OutputFolder:
     # --- starting -------------------------------------------------------------------------------
 
     def start_run(self, record: Mapping[str, Any]) -> None:
-        """Begin ``emreg run``: the previous run's outputs go to ``OUT/previous/``; ``run.json`` says "running"."""
+        """Begin ``emreg run``: the previous run's outputs go to ``OUT/previous/``; ``run.json`` says "running".
+        An interrupt waits until this is done (OUT never holds a previous run's file beside this run.json)."""
+        with signals_held():
+            self._start_run(record)
+
+    def _start_run(self, record: Mapping[str, Any]) -> None:
         old = dict(self.manifest)
         stale = self._present(set(all_output_names()) | set(old.get("outputs") or {}))
         previous = self.path / PREVIOUS_FOLDER
@@ -204,6 +240,20 @@ class OutputFolder:
         if isinstance(entry, Mapping) and entry.get("sha256"):
             return str(entry["sha256"])
         return file_sha256(self.path / name)
+
+    def drop_unrecorded(self) -> list[str]:
+        """Remove the outputs present in OUT but not listed in ``run.json`` (written in the instant an interrupt
+        came, before they could be listed, or a report's figures without their page); their names."""
+        listed = self.manifest.get("outputs") or {}
+        dropped = [name for name in self._present(all_output_names()) if name not in listed]
+        for name in dropped:
+            target = self.path / name
+            if target.is_dir() and not target.is_symlink():
+                shutil.rmtree(target, ignore_errors=True)
+            else:
+                with contextlib.suppress(FileNotFoundError):
+                    target.unlink()
+        return dropped
 
     def finish(self, status: str, message: str | None = None) -> None:
         """Record how the run ended: ``finished``, ``refused`` (exit 3), ``failed`` (exit 2), ``interrupted``."""

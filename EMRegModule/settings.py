@@ -364,6 +364,23 @@ def sensor_ports_given(settings: Settings) -> tuple[int | None, int | None]:
             settings.sensors.probe if "probe" in sensors else None)
 
 
+def choose_ports(given: tuple[int | None, int | None], recorded: tuple[int | None, int | None],
+                 source: str = "registration.json") -> tuple[tuple[int, int], list[str]]:
+    """The (reference, probe) ports of a consumer of a registration: for each sensor the port the user gave
+    (command line, else ``case.toml [sensors]``; None: not given), else the port the registration's
+    calibration used (``recorded``; None in files older than the keys), else the spec's default (1, 2).
+    A given port that differs from the recorded one is used (a re-cabled tracker) with a one-line warning,
+    returned with the ports."""
+    chosen = tuple(g if g is not None else r if r is not None else d
+                   for g, r, d in zip(given, recorded, (1, 2), strict=True))
+    warnings = []
+    if any(g is not None and r is not None and g != r for g, r in zip(given, recorded, strict=True)):
+        warnings.append(f"the ports given (reference {chosen[0]}, probe {chosen[1]}) differ from those of the "
+                        f"registration's calibration (reference {recorded[0]}, probe {recorded[1]}, {source}); "
+                        "using the ports given (a re-cabled tracker?)")
+    return chosen, warnings  # type: ignore[return-value]
+
+
 def with_series(settings: Settings, series: str | int | None) -> Settings:
     """``settings`` with ``[ct] series`` overridden (``--series UID|NUMBER``); unchanged when ``series`` is None."""
     if series is None:

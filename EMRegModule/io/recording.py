@@ -1,5 +1,6 @@
 """Tracking recordings in any of the formats EMReg accepts: the spec's CSV or a PLUS / 3D Slicer
-sequence metafile (``.seq.mha``, ``.mha``, ``.seq.nrrd``, ``.igs.nrrd``), chosen by the file name.
+sequence metafile (``.seq.mha``, ``.mha``, ``.seq.nrrd``, ``.igs.nrrd``), chosen by the file name, or a
+folder of sequence files with one transform each (3D Slicer's way: :mod:`.sequence_folder`).
 
 ``[sensors]`` settings used for sequence metafiles: ``reference`` / ``probe`` (the ports the two
 transforms become) and ``reference_transform`` / ``probe_transform`` (the transform names,
@@ -50,6 +51,10 @@ def read_recording(path: str | os.PathLike[str], settings: Settings | Mapping[st
     reference`` / ``probe``."""
     if is_sequence_file(path):
         return read_sequence_metafile(path, **_names(settings, reference_port, probe_port))
+    if Path(path).is_dir():  # 3D Slicer's recording: one sequence file per transform
+        from .sequence_folder import read_sequence_folder
+
+        return read_sequence_folder(path, **_names(settings, reference_port, probe_port))
     return read_tracking_csv(path)
 
 
@@ -68,10 +73,14 @@ def write_recording(recording: TrackingRecording, path: str | os.PathLike[str], 
 
 def find_recording(folder: str | os.PathLike[str], stem: str) -> Path | None:
     """A case folder's recording ``stem`` (``calibration``, ``navigation``, ``board``) under any accepted
-    name (``stem.csv`` first, then ``stem.seq.mha``, ``stem.mha``, ``stem.seq.nrrd``, ``stem.igs.nrrd``)."""
+    name (``stem.csv`` first, then ``stem.seq.mha``, ``stem.mha``, ``stem.seq.nrrd``, ``stem.igs.nrrd``),
+    else a folder ``stem/`` of sequence files, one transform each, as 3D Slicer saves a recording
+    (:mod:`EMRegModule.io.sequence_folder`)."""
     folder = Path(folder)
     for suffix in RECORDING_SUFFIXES:
         candidate = folder / f"{stem}{suffix}"
         if candidate.is_file():
             return candidate
-    return None
+    from .sequence_folder import is_sequence_folder
+
+    return folder / stem if is_sequence_folder(folder / stem) else None

@@ -17,6 +17,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -27,19 +28,41 @@ from .igtl_server import DEFAULT_PORT
 from .link_quality import guard_for
 from .port_check import SensorPortsError
 
+if TYPE_CHECKING:
+    from ..registration import RegistrationResult
+
 # --- shared helpers ---------------------------------------------------------------------------
 
 
-def _sensor_ports(args: argparse.Namespace) -> tuple[int, int]:
-    from ..settings import load_settings  # here, not at the top: `emreg --help` imports this module
+def _sensor_ports(args: argparse.Namespace, registration: RegistrationResult | None = None) -> tuple[int, int]:
+    """The (reference, probe) ports: the flags, else the settings file's ``[sensors]``, else (with a
+    registration) the ports of its calibration, else 1 / 2; a given port that differs from the
+    registration's is used with a warning on stderr."""
+    from ..settings import choose_ports, load_settings, sensor_ports_given  # here: `emreg --help` imports this module
 
     settings = load_settings(getattr(args, "settings", None), required=True)
+    if registration is not None:
+        in_file = sensor_ports_given(settings)
+        given = tuple(f if f is not None else t
+                      for f, t in zip((args.reference_sensor, args.probe_sensor), in_file, strict=True))
+        chosen, warnings = choose_ports(given, (registration.reference_sensor, registration.probe_sensor))
+        for warning in warnings:
+            print(f"emreg navigate: warning: {warning}", file=sys.stderr)
+        args = argparse.Namespace(**{**vars(args), "reference_sensor": chosen[0], "probe_sensor": chosen[1]})
     sensors = settings.with_sensors(args.reference_sensor, args.probe_sensor).sensors
     return sensors.reference, sensors.probe
 
 
 def _check_ports_attached(source, reference: int, probe: int) -> None:
-    """Refuse (exit 2) a reference or probe port without a sensor, when the source can tell."""
+    """Refuse (exit 2) a reference or probe port without a sensor, when the source can tell; a replay's
+    recording is judged whole, as the offline commands judge it (absent, still or swapped ports)."""
+    check = getattr(source, "check_ports", None)
+    if callable(check):
+        try:
+            check(reference, probe)
+        except EMRegError:
+            source.stop()
+            raise
     ports = getattr(source, "attached_ports", None)
     if not callable(ports):
         return
@@ -51,8 +74,8 @@ def _check_ports_attached(source, reference: int, probe: int) -> None:
                              f"{', '.join(map(str, attached)) or 'none'}); set --{role}-sensor")
 
 
-def load_reference_to_image(path: str, settings_path: str | None = None) -> np.ndarray:
-    """``ReferenceToImage`` (4x4, mm, LPS) from ``registration.json`` (via the registration module).
+def load_registration(path: str, settings_path: str | None = None) -> RegistrationResult:
+    """The registration of ``registration.json`` (``ReferenceToImage``: 4x4, mm, LPS), via the registration module.
 
     The file is checked as every consumer checks it (finite, rigid, FRE within ``max_fre_mm`` of
     the settings file when given, and belonging to the run recorded beside it: no stale registration).
@@ -62,11 +85,12 @@ def load_reference_to_image(path: str, settings_path: str | None = None) -> np.n
     from ..settings import load_settings
 
     settings = load_settings(settings_path, required=True)
-    matrix = np.asarray(read_registration(path, max_fre_from_settings(settings)).reference_to_image, dtype=float)
+    registration = read_registration(path, max_fre_from_settings(settings))
+    matrix = np.asarray(registration.reference_to_image, dtype=float)
     check_belongs(Path(path) / "registration.json" if Path(path).is_dir() else Path(path))
     if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)) or not is_rigid(matrix, 1e-4):
         raise EMRegError(f"{path}: ReferenceToImage is not a rigid 4x4 transform")
-    return matrix
+    return registration
 
 
 class _StopFlag:
@@ -397,8 +421,9 @@ def run_live_navigate(args: argparse.Namespace) -> int:
 
     if args.igtl_port is None and not args.out:
         raise EMRegError("navigate: a live source needs --igtl-port PORT (publish) and/or --out DIR (record)")
-    reference_to_image = load_reference_to_image(args.registration, getattr(args, "settings", None))
-    reference, probe = _sensor_ports(args)
+    registration = load_registration(args.registration, getattr(args, "settings", None))
+    reference_to_image = np.asarray(registration.reference_to_image, dtype=float)
+    reference, probe = _sensor_ports(args, registration)
     source = open_source(args.source, reference, probe, fast=args.fast, loop=args.loop)
     _check_ports_attached(source, reference, probe)
     args.source_max_quality = getattr(source, "default_max_quality", None)
@@ -510,4 +535,4 @@ SUBCOMMANDS = [
      ("publish every tracker sensor over OpenIGTLink (ReferenceToTracker, ProbeToTracker, STATUS)")),
 ]
 
-__all__ = ["SUBCOMMANDS", "add_live_navigate_arguments", "run_live_navigate", "load_reference_to_image"]
+__all__ = ["SUBCOMMANDS", "add_live_navigate_arguments", "run_live_navigate", "load_registration"]

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import EMRegError
 from ..io.recording import read_recording
-from ..tracking import SAME_MOMENT_S
+from ..tracking import SAME_MOMENT_S, sensor_pair
 from .device_url import DeviceURL, parse_device_url
 from .samples import STATUS_OK, SensorSample
 
@@ -148,6 +148,11 @@ class ReplaySource(SampleSource):
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.frames_sent = 0
+
+    def check_ports(self, reference_port: int, probe_port: int) -> None:
+        """Refuse (:class:`EMRegError`, exit 2) the port mistakes an offline command refuses on this recording:
+        the same port twice, an absent port, a probe that never moves relative to the reference, swapped ports."""
+        sensor_pair(self.recording, reference_port, probe_port)
 
     def start(self, callback: SampleCallback) -> None:
         self._thread = threading.Thread(target=self._run, args=(callback,), name="replay", daemon=True)

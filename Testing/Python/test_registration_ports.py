@@ -180,3 +180,28 @@ def test_unpaired_points_are_named_in_a_warning(cases, tmp_path, capsys):
     marker_lines = [line for line in err if "CT marker(s)" in line]
     assert len(marker_lines) == 1
     assert all(m in marker_lines[0] for m in registration["unpaired_image_markers"])
+
+
+def test_live_navigate_uses_the_registration_ports(cases, tmp_path, capsys):
+    """The live path (a replay published on OpenIGTLink) takes the registration's ports as the offline one does,
+    and says when the ports given differ."""
+    registration = cases / "reg" / "registration.json"
+    live = ["--igtl-port", "0", "--fast", "--duration", "60"]
+    capsys.readouterr()
+    assert _navigate(registration, cases / "cabled" / "navigation.csv", tmp_path / "live", *live) == 0
+    assert "warning" not in capsys.readouterr().err
+    offline = tmp_path / "offline"
+    assert _navigate(registration, cases / "cabled" / "navigation.csv", offline) == 0
+    rows = (tmp_path / "live" / "navigation.csv").read_text().splitlines()
+    expected = (offline / "navigation.csv").read_text().splitlines()
+    assert set(rows) <= set(expected) and len(rows) > 0.9 * len(expected) > 10  # live may skip a stale sample
+    # the ports given win, with the one-line warning (ports 1 / 2 are absent from this recording: exit 2)
+    code = _navigate(registration, cases / "cabled" / "navigation.csv", tmp_path / "given", *live,
+                     "--reference-sensor", "1", "--probe-sensor", "2")
+    err = capsys.readouterr().err
+    assert "differ from those of the registration's calibration (reference 3, probe 4" in err
+    assert code == 2
+    # swapped ports on a live replay: refused as offline, before anything is published
+    code = _navigate(registration, cases / "cabled" / "navigation.csv", tmp_path / "swapped", *live,
+                     "--reference-sensor", "4", "--probe-sensor", "3")
+    assert code == 2 and "swapped" in capsys.readouterr().err

@@ -18,7 +18,7 @@ from conftest import CI_CASE_OPTIONS
 from EMRegModule.cli import main
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.case import open_case
-from EMRegModule.outputs import refuse_out_over_inputs
+from EMRegModule.outputs import OutputFolder, refuse_out_over_inputs
 from EMRegModule.provenance import check_belongs, file_sha256
 from EMRegModule.simulation import simulate_case
 
@@ -186,15 +186,31 @@ def _wait_for(out: Path, process: subprocess.Popen, ready) -> None:
     raise AssertionError("the run never reached the moment to interrupt it")
 
 
-@pytest.mark.parametrize(("moment", "signum"), [
-    ("start", signal.SIGTERM), ("markers.json", signal.SIGINT), ("frame_calibration.json", signal.SIGTERM),
-])
-def test_an_interrupted_run_in_a_reused_folder(cases, tmp_path, moment, signum):
-    out = _reused_out(cases, tmp_path)
-    case = cases / "b"
+#: The stages of a run in order with the output each one lists last (``start``: before any stage).
+_RUN_STAGES = (("start", None), ("detect", "markers.json"), ("calibrate", "frame_calibration.json"),
+               ("register", "registration.json"))
+
+
+def _default_sigint() -> None:
+    """In the child before exec: SIGINT back to its default. A harness that starts pytest in the background
+    of a non-interactive shell makes it ignore SIGINT, and Python keeps an ignored SIGINT ignored: the run
+    would then never see the test's Ctrl-C (exit 0 instead of 130)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _interrupt_in_stage(out: Path, case: Path, moment: str,
+                        signum: int) -> tuple[subprocess.Popen, tuple[str, str]] | None:
+    """Start ``emreg run``, stop it (SIGSTOP) once ``moment`` is listed in run.json, and, if it is still in the
+    stage after ``moment`` (run.json "running", the next stage's output not listed), send ``signum`` and let it
+    go on: the signal lands in that stage, whatever the load (or in the last instructions of the stage that
+    listed ``moment``); the process and those two stages. None when the run had gone past that stage."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     process = subprocess.Popen([sys.executable, "-m", "EMRegModule.cli", "run", str(case), "--out", str(out),
-                                "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+                                "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                               preexec_fn=_default_sigint)
+    names = [name for name, _ in _RUN_STAGES]
+    after = _RUN_STAGES[names.index("start" if moment == "start" else
+                                    next(n for n, o in _RUN_STAGES if o == moment)) + 1]
 
     def ready(manifest: dict) -> bool:
         if manifest.get("case") != str(case.resolve()) or manifest.get("status") != "running":
@@ -202,7 +218,34 @@ def test_an_interrupted_run_in_a_reused_folder(cases, tmp_path, moment, signum):
         return moment == "start" or moment in manifest.get("outputs", {})
 
     _wait_for(out, process, ready)
+    process.send_signal(signal.SIGSTOP)
+    manifest = _manifest(out)  # frozen while the run is stopped (run.json is replaced atomically)
+    if manifest.get("status") != "running" or after[1] in manifest.get("outputs", {}):
+        process.send_signal(signal.SIGCONT)
+        process.communicate(timeout=600)
+        return None
     process.send_signal(signum)
+    process.send_signal(signal.SIGCONT)
+    return process, (names[names.index(after[0]) - 1], after[0])
+
+
+@pytest.mark.parametrize(("moment", "signum"), [
+    ("start", signal.SIGTERM), ("markers.json", signal.SIGINT), ("frame_calibration.json", signal.SIGTERM),
+])
+def test_an_interrupted_run_in_a_reused_folder(cases, tmp_path, moment, signum):
+    """An interrupt in the stage after ``moment``: exit 130 / 143, run.json "interrupted" naming that stage,
+    only this run's files (each listed) in OUT, the previous run in OUT/previous. The signal is sent while
+    the run is stopped in that stage (no race with the run's progress); a run that got past it before it
+    could be stopped (a starved test process) is tried again in a fresh folder."""
+    for attempt in range(5):
+        out = _reused_out(cases, tmp_path / f"attempt{attempt}")
+        case = cases / "b"
+        started = _interrupt_in_stage(out, case, moment, signum)
+        if started is not None:
+            break
+    else:
+        raise AssertionError(f"the run was never stopped in the stage after {moment} in 5 attempts")
+    process, stages = started
     _, err = process.communicate(timeout=600)
     name = "SIGTERM" if signum == signal.SIGTERM else "SIGINT"
     assert process.returncode == (143 if signum == signal.SIGTERM else 130), err
@@ -210,5 +253,44 @@ def test_an_interrupted_run_in_a_reused_folder(cases, tmp_path, moment, signum):
                                         "a complete one"]
     manifest = _assert_only_this_runs_files(out, case)
     assert manifest["status"] == "interrupted"
+    assert manifest["message"].split(":")[0] in stages, manifest["message"]
     assert not (out / "registration.json").exists() or "registration.json" in manifest["outputs"]
     assert json.loads((out / "previous" / "run.json").read_text())["case"] == str((cases / "a").resolve())
+
+
+def test_a_signal_as_the_run_records_its_end_is_told_in_run_json(cases, tmp_path, monkeypatch, capsys):
+    """SIGINT while run.json is written "finished": run.json ends "interrupted", as the exit code (130) says."""
+    original = OutputFolder.finish
+
+    def finish(self, status, message=None):
+        if status == "finished":
+            os.kill(os.getpid(), signal.SIGINT)  # lands inside the final write of run.json
+        original(self, status, message)
+
+    monkeypatch.setattr(OutputFolder, "finish", finish)
+    out = _reused_out(cases, tmp_path)
+    assert main(["run", str(cases / "b"), "--out", str(out), "--quiet"]) == 130
+    assert "interrupted (SIGINT)" in capsys.readouterr().err
+    manifest = _assert_only_this_runs_files(out, cases / "b")
+    assert manifest["status"] == "interrupted" and "recorded its end" in manifest["message"]
+    assert "EMReg.mrb" in manifest["outputs"] or "report.html" in manifest["outputs"]
+
+
+def test_an_output_written_as_the_signal_came_is_not_left_unlisted(cases, tmp_path, monkeypatch, capsys):
+    """SIGTERM between the atomic write of frame_calibration.json and its listing in run.json: the file is not
+    left in OUT unlisted (consumers would refuse the folder); run.json says interrupted in calibrate."""
+    original = OutputFolder.record
+
+    def record(self, names, provenance, sha256=None):
+        if "frame_calibration.json" in names:
+            assert (self.path / "frame_calibration.json").is_file()
+            os.kill(os.getpid(), signal.SIGTERM)
+        original(self, names, provenance, sha256)
+
+    monkeypatch.setattr(OutputFolder, "record", record)
+    out = _reused_out(cases, tmp_path)
+    assert main(["run", str(cases / "b"), "--out", str(out), "--quiet"]) == 143
+    assert "interrupted (SIGTERM)" in capsys.readouterr().err
+    manifest = _assert_only_this_runs_files(out, cases / "b")
+    assert manifest["status"] == "interrupted" and manifest["message"].startswith("calibrate:")
+    assert not (out / "frame_calibration.json").exists() and "markers.json" in manifest["outputs"]
