@@ -317,6 +317,7 @@ def _check_convert_ports(recording, reference: int, probe: int, names: dict[str,
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    early = _start_report_ct(args)  # the CT's read goes on while the report's libraries load
     from .outputs import OutputFolder, check_outputs
     from .report import write_reports_batch
 
@@ -347,10 +348,12 @@ def cmd_report(args: argparse.Namespace) -> int:
     folder.start_stage("report")
     bundle = controller.start_bundle(folder, case)  # in a process of its own while the report renders
     try:
-        path = controller.save_report(folder, case)
+        path = controller.save_report(folder, case, early)
     except BaseException:
         if bundle is not None:
             bundle.cancel()
+        if early is not None:
+            early.cancel()
         raise
     print(f"report -> {path}")
     print(controller.save_bundle(folder, case, bundle))
@@ -391,6 +394,24 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(line)
     print(f"demo finished in {time.perf_counter() - start:.1f} s; outputs in {out / 'result'}")
     return 0
+
+
+def _start_report_ct(args: argparse.Namespace):
+    """``emreg report OUT``: start streaming the CT that ``OUT/run.json`` names, when the report may stream it
+    (a plain file whose bundle copies it from the file); None otherwise. The report checks it is its CT."""
+    if args.batch or not args.out:
+        return None
+    from .controller import _recorded_ct
+    from .io.ct_stream import start_streamed_read
+    from .io.slicer_scene import bundle_needs_ct_image
+
+    ct = _recorded_ct(Path(args.out)) if Path(args.out).is_dir() else None
+    if ct is None or bundle_needs_ct_image(ct):
+        return None
+    try:
+        return start_streamed_read(ct)
+    except EMRegError:
+        return None  # the report reads it again and says what is wrong
 
 
 def _record_batch_report(args: argparse.Namespace, folder: Path, bundle: bool) -> None:

@@ -475,16 +475,17 @@ class EMRegController:
         write_evaluation(evaluation, folder.path / "evaluation.json")
         self._recorded(folder, "evaluate", provenance)
 
-    def save_report(self, folder: OutputFolder, case_dir: Path | None) -> Path:
+    def save_report(self, folder: OutputFolder, case_dir: Path | None, ct_read: Any = None) -> Path:
         """The verification report of ``folder`` (its outputs checked to belong together first); the CT
-        the report read is kept for the Slicer bundle (:meth:`save_bundle`)."""
+        the report read is kept for the Slicer bundle (:meth:`save_bundle`). ``ct_read``: a streamed read of the
+        CT started earlier (:func:`EMRegModule.io.ct_stream.start_streamed_read`), used when it is the report's CT."""
         from .io.slicer_scene import bundle_needs_ct_image
         from .report.writer import HandedCT, write_report_keeping_ct
 
         used = self._adopt_outputs(folder)
         keep = bundle_needs_ct_image(_recorded_ct(folder.path))  # else the report streams a CT it reads itself
-        image: Any = self.image
-        if image is not None and not keep and not self.keep_ct:  # nothing needs the CT after the report: it is
+        image: Any = self.image if self.image is not None else ct_read
+        if self.image is not None and not keep and not self.keep_ct:  # nothing needs the CT after the report: it is
             self.image, image = None, HandedCT(image)  # freed once used, before the rendering libraries load
         page, self._report_image = write_report_keeping_ct(folder.path, case_dir=case_dir, progress=self.progress,
                                                            image=image, keep_ct=keep)

@@ -93,6 +93,7 @@ class StreamedCT(VolumeFill):
         self.bytes = np.frombuffer(self._mapping, dtype=np.uint8, count=self.slice_bytes * self.slice_count)
         self.array = self.bytes.view(dtype.newbyteorder("=")).reshape(self.slice_count, size[1], size[0])
         self._released = 0
+        self.path: Path | None = None  # the file read
         self._image = CTGeometry(info)  # the geometry, known before any voxel
         self.is_complete = False
 
@@ -136,6 +137,7 @@ def start_streamed_read(path: str | Path) -> StreamedCT | None:
 
     check_ct_geometry(CTGeometry(info), path)
     ct = StreamedCT(info, storage.dtype)
+    ct.path = path.resolve()
     threading.Thread(target=_read, args=(path, info, storage, ct), name="emreg-ct-stream", daemon=True).start()
     return ct
 

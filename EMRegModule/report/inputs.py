@@ -159,12 +159,16 @@ def _read_case(inputs: ReportInputs) -> None:
 
 
 def _start_ct(inputs: ReportInputs, image: sitk.Image | None, read_image: bool, keep_ct: bool) -> None:
-    from ..io.ct_stream import start_streamed_read
+    from ..io.ct_stream import StreamedCT, start_streamed_read
     from ..io.fast_read import VolumeFill
     from ..io.image import open_ct
 
+    early = image if isinstance(image, StreamedCT) else None  # a read started before the report was
+    if early is not None and (keep_ct or inputs.ct_path is None or early.path != inputs.ct_path.resolve()):
+        early.cancel()  # not the CT this report shows (or the caller wants the whole CT): read that one
+        image = None
     if image is not None:
-        inputs.ct = VolumeFill.complete(image)
+        inputs.ct = image if early is not None else VolumeFill.complete(image)
     elif read_image and inputs.ct_path is not None:
         used = (inputs.run or {}).get("ct_series") or {}  # a DICOM folder: the series the run detected in
         series = used.get("series_instance_uid") or inputs.settings.ct.series

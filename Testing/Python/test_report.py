@@ -360,3 +360,24 @@ def test_the_ct_given_handed_over_or_streamed_gives_the_same_page_and_figures(sa
     assert _without_out_path(page) == _without_out_path(root / "out" / "report.html")
     for figure in (root / "out" / FIGURE_DIR).iterdir():
         assert (out / FIGURE_DIR / figure.name).read_bytes() == figure.read_bytes(), figure.name
+
+
+def test_an_early_ct_read_is_used_only_when_it_is_the_reports_ct(sample_run, tmp_path):
+    """``emreg report`` starts streaming run.json's CT before the report's libraries load; the report uses that
+    read only for its own CT (a read of another file is cancelled and the right CT read): same page either way."""
+    import SimpleITK as sitk
+
+    from EMRegModule.io.ct_stream import start_streamed_read
+    from EMRegModule.report.writer import write_report_keeping_ct
+
+    root, _, _ = sample_run
+    other = tmp_path / "other.nrrd"
+    image = sitk.ReadImage(str(root / "case" / "ct.nrrd"))
+    sitk.WriteImage(image * 0, str(other), True)  # the same grid, other voxels
+    for early in (start_streamed_read(root / "case" / "ct.nrrd"), start_streamed_read(other)):
+        out = _copy_run(sample_run, tmp_path / early.path.stem)
+        page, kept = write_report_keeping_ct(out, image=early, keep_ct=False)
+        assert kept is None
+        assert _without_out_path(page) == _without_out_path(root / "out" / "report.html")
+        for figure in (root / "out" / FIGURE_DIR).iterdir():
+            assert (out / FIGURE_DIR / figure.name).read_bytes() == figure.read_bytes(), figure.name
