@@ -115,24 +115,12 @@ def start_streamed_read(path: str | Path) -> StreamedCT | None:
     """Start reading a CT file as :class:`StreamedCT`, or None when it is not a plain layout of integer voxels
     (then read it with :func:`~EMRegModule.io.image.open_ct`)."""
     path = Path(path)
-    if fast_read.igzip_lib is None or not path.is_file() or not hasattr(mmap, "MADV_DONTNEED"):
+    if not hasattr(mmap, "MADV_DONTNEED"):
         return None
-    name = path.name.lower()
-    kind = next((k for k, ends in fast_read._KINDS.items() if name.endswith(ends)), None)
-    if kind is None:
+    plain = fast_read.plain_storage(path)
+    if plain is None or plain[1].dtype.kind not in "iu":
         return None
-    info = sitk.ImageFileReader()
-    info.SetFileName(str(path))
-    try:
-        info.ReadImageInformation()
-        with path.open("rb") as stream:
-            storage = fast_read._STORAGE_READERS[kind](stream)
-    except (RuntimeError, OSError):
-        return None
-    if (storage is None or info.GetDimension() != 3 or info.GetNumberOfComponents() != 1
-            or storage.dtype.kind not in "iu"
-            or fast_read._SITK_TYPES.get(storage.dtype.newbyteorder("=").name) != info.GetPixelID()):
-        return None
+    info, storage = plain
     from .ct_checks import check_ct_geometry
 
     check_ct_geometry(CTGeometry(info), path)

@@ -161,28 +161,40 @@ class VolumeFill:
             self._condition.notify_all()
 
 
+def plain_storage(path: Path, kinds: tuple[str, ...] | None = None
+                  ) -> tuple[sitk.ImageFileReader, _Storage] | None:
+    """SimpleITK's header reading of ``path`` (origin, spacing, direction, size, pixel type: those of
+    ``sitk.ReadImage``) and how the file stores its voxels, when it is a 3D scalar file of one of ``kinds`` (all)
+    whose voxel type SimpleITK agrees on; ``None`` for anything else (then SimpleITK's full read judges it)."""
+    name = path.name.lower()
+    kind = next((k for k in kinds or _KINDS if name.endswith(_KINDS[k])), None)
+    if igzip_lib is None or kind is None or not path.is_file():
+        return None
+    info = sitk.ImageFileReader()
+    info.SetFileName(str(path))
+    try:
+        info.ReadImageInformation()
+        if info.GetDimension() != 3 or info.GetNumberOfComponents() != 1:
+            return None
+        with path.open("rb") as stream:
+            storage = _STORAGE_READERS[kind](stream)
+    except (RuntimeError, OSError):
+        return None
+    if storage is None or _SITK_TYPES.get(storage.dtype.newbyteorder("=").name) != info.GetPixelID():
+        return None
+    return info, storage
+
+
 def start_fast_read(path: Path) -> VolumeFill | None:
     """Start reading ``path`` on a background thread, or ``None`` when the file is not a plain layout.
 
     The returned fill raises :class:`EMRegError` (one line) when the voxel data turns out
     truncated or corrupt.
     """
-    name = path.name.lower()
-    kind = next((k for k, ends in _KINDS.items() if name.endswith(ends)), None)
-    if igzip_lib is None or kind is None:
+    plain = plain_storage(path)
+    if plain is None:
         return None
-    info = sitk.ImageFileReader()
-    info.SetFileName(str(path))
-    try:
-        info.ReadImageInformation()  # ITK's own geometry: origin, spacing, direction as ReadImage gives them
-    except RuntimeError:
-        return None  # SimpleITK's full read reports the problem
-    if info.GetDimension() != 3 or info.GetNumberOfComponents() != 1:
-        return None
-    with path.open("rb") as stream:
-        storage = _STORAGE_READERS[kind](stream)
-    if storage is None or _SITK_TYPES.get(storage.dtype.newbyteorder("=").name) != info.GetPixelID():
-        return None
+    info, storage = plain
     fill = VolumeFill(info.GetSize()[2])
     fill.sha256 = Digest()
     threading.Thread(target=_read_voxels, args=(path, info, storage, fill), name="emreg-ct-read").start()
@@ -198,20 +210,11 @@ def stored_nrrd_voxels(path: Path) -> tuple[sitk.ImageFileReader, np.dtype, int,
     and a pixel type SimpleITK agrees on: then its data bytes are exactly the voxels the readers give
     (raw, or their gzip stream). ``None`` for anything else.
     """
-    path = Path(path)
-    if not path.name.lower().endswith(".nrrd") or not path.is_file():
+    plain = plain_storage(Path(path), ("nrrd",))
+    if plain is None:
         return None
-    info = sitk.ImageFileReader()
-    info.SetFileName(str(path))
-    try:
-        info.ReadImageInformation()
-        with path.open("rb") as stream:
-            storage = _nrrd_storage(stream)
-    except (RuntimeError, OSError):
-        return None
-    if (storage is None or storage.compression not in ("raw", "gzip") or info.GetDimension() != 3
-            or info.GetNumberOfComponents() != 1 or not storage.dtype.isnative
-            or _SITK_TYPES.get(storage.dtype.newbyteorder("=").name) != info.GetPixelID()):
+    info, storage = plain
+    if storage.compression not in ("raw", "gzip") or not storage.dtype.isnative:
         return None
     return info, storage.dtype.newbyteorder("="), storage.data_offset, storage.compression
 
