@@ -342,25 +342,36 @@ def _replay_csv(path: Path, still_s: float, move_s: float, rate_hz: float = 50.0
     return path
 
 
-def test_live_navigate_ends_with_exit_2_when_the_ports_are_swapped(tmp_path):
-    """The built-in scene's hand-held probe is on port 2, its frame sensor on port 1: navigating with the
-    ports the other way round is the offline 'look swapped' rule, applied to the first cycles: nothing is
-    published, the clients get a not-OK STATUS, the terminal one line, and navigate ends with exit 2."""
+def _navigate_the_simulator(tmp_path: Path, sim_args: tuple[str, ...], duration: float, *extra: str,
+                            timeout: float = 90, emit_log: Path | None = None, until=None):
+    """The trakSTAR simulator on a pty (``sim_args``), live navigate from it publishing to a listener, both
+    ended; ``until(listener)`` is waited for before the listener closes. Returns (returncode, out, err, listener)."""
     link = tmp_path / "trakstar"
-    sim = _start_sim(link, "--seed", "3", "--attached", "1,2")
+    sim = _start_sim(link, *sim_args, *(("--emit-log", str(emit_log)) if emit_log else ()))
     port = _free_port()
     try:
-        nav = _navigate(tmp_path, link, port, 60.0, "--reference-sensor", "2", "--probe-sensor", "1")
+        nav = _navigate(tmp_path, link, port, duration, *extra)
         listener = _connect_listener(port)
         try:
-            out, err = nav.communicate(timeout=90)
-            assert _wait(lambda: "PortsSwapped" in listener.statuses(), 10), listener.statuses()
+            out, err = nav.communicate(timeout=timeout)
+            if until is not None:
+                assert _wait(lambda: until(listener), 10), listener.statuses()
         finally:
             listener.close()
     finally:
         sim.send_signal(signal.SIGTERM)
         sim.communicate(timeout=20)
-    assert nav.returncode == 2, err
+    return nav.returncode, out, err, listener
+
+
+def test_live_navigate_ends_with_exit_2_when_the_ports_are_swapped(tmp_path):
+    """The built-in scene's hand-held probe is on port 2, its frame sensor on port 1: navigating with the
+    ports the other way round is the offline 'look swapped' rule, applied to the first cycles: nothing is
+    published, the clients get a not-OK STATUS, the terminal one line, and navigate ends with exit 2."""
+    code, out, err, listener = _navigate_the_simulator(
+        tmp_path, ("--seed", "3", "--attached", "1,2"), 60.0, "--reference-sensor", "2", "--probe-sensor", "1",
+        until=lambda listener: "PortsSwapped" in listener.statuses())
+    assert code == 2, err
     errors = [line for line in err.splitlines() if line.startswith("emreg navigate: error")]
     assert len(errors) == 1 and "look swapped" in errors[0] and "reference sensor (port 2)" in errors[0], err
     assert "not publishing ProbeToImage: sensor ports:" in err  # the watchdog's line while it happened
@@ -373,20 +384,8 @@ def test_live_navigate_pauses_while_the_probe_has_not_moved_relative_to_the_refe
     with STATUS ProbeNotMoving and one terminal line, as long as it lasts; it is not an error (a probe
     put down on the table looks the same), so navigate runs on and ends normally."""
     csv = _replay_csv(tmp_path / "still.csv", still_s=4.0, move_s=0.0)
-    link = tmp_path / "trakstar"
-    sim = _start_sim(link, "--replay", str(csv))
-    port = _free_port()
-    try:
-        nav = _navigate(tmp_path, link, port, 4.0)
-        listener = _connect_listener(port)
-        try:
-            out, err = nav.communicate(timeout=60)
-        finally:
-            listener.close()
-    finally:
-        sim.send_signal(signal.SIGTERM)
-        sim.communicate(timeout=20)
-    assert nav.returncode == 0, err
+    code, out, err, listener = _navigate_the_simulator(tmp_path, ("--replay", str(csv)), 4.0, timeout=60)
+    assert code == 0, err
     assert "ProbeNotMoving" in listener.statuses() and "OK" not in listener.statuses()
     assert len(listener.poses()) == 0 and out.startswith("0 probe poses published")
     lines = [line for line in err.splitlines() if "has not moved relative to the reference (port 1)" in line]
@@ -397,20 +396,10 @@ def test_live_navigate_starts_publishing_once_the_probe_moves(tmp_path):
     """The same probe, still for 3 s and then moving: nothing published while it was still, then every
     published pose is one the simulator sent (its emit log)."""
     csv = _replay_csv(tmp_path / "moves.csv", still_s=3.0, move_s=3.0)
-    link = tmp_path / "trakstar"
-    sim = _start_sim(link, "--replay", str(csv), "--emit-log", str(tmp_path / "truth.csv"))
-    port = _free_port()
-    try:
-        nav = _navigate(tmp_path, link, port, 60.0, "--max-samples", "280")  # 5.6 s of the 6 s recording
-        listener = _connect_listener(port)
-        try:
-            out, err = nav.communicate(timeout=90)
-        finally:
-            listener.close()
-    finally:
-        sim.send_signal(signal.SIGTERM)
-        sim.communicate(timeout=20)
-    assert nav.returncode == 0, err
+    code, out, err, listener = _navigate_the_simulator(
+        tmp_path, ("--replay", str(csv)), 60.0, "--max-samples", "280",  # 5.6 s of the 6 s recording
+        emit_log=tmp_path / "truth.csv")
+    assert code == 0, err
     statuses = [s for s in listener.statuses() if s != "NoData"]
     assert statuses[0] == "ProbeNotMoving" and "OK" in statuses, statuses
     published = listener.poses()
