@@ -114,6 +114,18 @@ def good_quality_mask(quality: np.ndarray, max_quality: float | None = None) -> 
     return ~known | (quality <= max_quality)
 
 
+def _usable_samples(time_s: np.ndarray, position_mm: np.ndarray, quality: np.ndarray | None,
+                    settings: DwellSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``time_s`` (N,) and ``position_mm`` (N, 3) as float arrays, and the mask of samples a dwell may use:
+    finite time and position, and an acceptable quality number (:func:`good_quality_mask`)."""
+    time_s = np.asarray(time_s, dtype=float)
+    position_mm = np.asarray(position_mm, dtype=float).reshape(-1, 3)
+    valid = np.all(np.isfinite(position_mm), axis=1) & np.isfinite(time_s)
+    if quality is not None:
+        valid &= good_quality_mask(quality, settings.max_quality)
+    return time_s, position_mm, valid
+
+
 def find_dwells(
     time_s: np.ndarray,
     position_mm: np.ndarray,
@@ -129,11 +141,7 @@ def find_dwells(
     automatically (:func:`still_periods`). Bad-quality samples are never part of a dwell.
     """
     settings = settings or DwellSettings()
-    time_s = np.asarray(time_s, dtype=float)
-    position_mm = np.asarray(position_mm, dtype=float).reshape(-1, 3)
-    valid = np.all(np.isfinite(position_mm), axis=1) & np.isfinite(time_s)
-    if quality is not None:
-        valid &= good_quality_mask(quality, settings.max_quality)
+    time_s, position_mm, valid = _usable_samples(time_s, position_mm, quality, settings)
     if labels is not None:
         labels = np.asarray(["" if v is None else str(v).strip() for v in labels], dtype=object)
         if any(labels[valid]):
@@ -235,11 +243,7 @@ def describe_still_periods(time_s: np.ndarray, position_mm: np.ndarray, quality:
     frame) and which ``[section]`` setting would accept them.
     """
     settings = settings or DwellSettings()
-    time_s = np.asarray(time_s, dtype=float)
-    position_mm = np.asarray(position_mm, dtype=float).reshape(-1, 3)
-    valid = np.all(np.isfinite(position_mm), axis=1) & np.isfinite(time_s)
-    if quality is not None:
-        valid &= good_quality_mask(quality, settings.max_quality)
+    time_s, position_mm, valid = _usable_samples(time_s, position_mm, quality, settings)
     loose = replace(settings, min_duration_s=1e-9, min_samples=3, max_drift_mm=np.inf)
     periods = still_periods(time_s, position_mm, valid, loose)
     rule = (f"a dwell must last {settings.min_duration_s:g} s ([{section}] min_duration_s) with the probe within "
