@@ -226,11 +226,7 @@ class OutputFolder:
         """Delete the outputs of ``stage`` and of the stages made from it (a refusal: nothing misleading stays)."""
         outputs = self.manifest.get("outputs") or {}
         for name in outputs_from(stage):
-            target = self.path / name
-            if target.is_dir():
-                shutil.rmtree(target, ignore_errors=True)
-            else:
-                target.unlink(missing_ok=True)
+            self._delete(name)
             outputs.pop(name, None)
         self.save()
 
@@ -247,13 +243,17 @@ class OutputFolder:
         listed = self.manifest.get("outputs") or {}
         dropped = [name for name in self._present(all_output_names()) if name not in listed]
         for name in dropped:
-            target = self.path / name
-            if target.is_dir() and not target.is_symlink():
-                shutil.rmtree(target, ignore_errors=True)
-            else:
-                with contextlib.suppress(FileNotFoundError):
-                    target.unlink()
+            self._delete(name)
         return dropped
+
+    def _delete(self, name: str) -> None:
+        """Delete the output ``name`` of OUT: a file, a folder (the report's figures), or a link (itself only)."""
+        target = self.path / name
+        if target.is_dir() and not target.is_symlink():
+            shutil.rmtree(target, ignore_errors=True)
+        else:
+            with contextlib.suppress(FileNotFoundError):
+                target.unlink()
 
     def finish(self, status: str, message: str | None = None) -> None:
         """Record how the run ended: ``finished``, ``refused`` (exit 3), ``failed`` (exit 2), ``interrupted``."""
