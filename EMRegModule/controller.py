@@ -483,7 +483,7 @@ class EMRegController:
         from .report.writer import HandedCT, write_report_keeping_ct
 
         used = self._adopt_outputs(folder)
-        keep = bundle_needs_ct_image(_recorded_ct(folder.path))  # else the report streams a CT it reads itself
+        keep = bundle_needs_ct_image(_manifest_ct(folder.manifest))  # else the report streams a CT it reads itself
         image: Any = self.image if self.image is not None else ct_read
         if self.image is not None and not keep and not self.keep_ct:  # nothing needs the CT after the report: it is
             self.image, image = None, HandedCT(image)  # freed once used, before the rendering libraries load
@@ -542,7 +542,7 @@ class EMRegController:
         used = self._adopt_outputs(folder)
         image = self.image if self.image is not None else self._report_image  # the CT is not read again
         self._report_image = None
-        if not bundle_needs_ct_image(_recorded_ct(folder.path)):
+        if not bundle_needs_ct_image(_manifest_ct(folder.manifest)):
             image = None  # the bundle copies the CT from its file: its memory is freed before slicer-core loads
             if not self.keep_ct:
                 self.image = None
@@ -737,6 +737,11 @@ def _recorded_ct(out: Path) -> str | None:
         run = read_json(out / "run.json", "run record")
     except (EMRegError, OSError):
         return None
+    return _manifest_ct(run)
+
+
+def _manifest_ct(run: Any) -> str | None:
+    """The CT path a run record (``run.json``'s content, e.g. an :class:`OutputFolder`'s manifest) names."""
     ct = run.get("ct") if isinstance(run, dict) else None
     return ct if isinstance(ct, str) else None
 
