@@ -13,7 +13,8 @@ Measured in one run, each command in its own process:
 
 Peak memory is the largest of the process's own ``ru_maxrss`` and the summed RSS of the process and
 its children sampled every 20 ms (``emreg report`` writes the bundle in a child process while it
-renders: both count). Printed per case: times and peaks, the CT's voxel bytes, and the goals of
+renders: both count); CPU time is the user + system time ``os.wait4`` reports for the process and the
+children it waited for. Printed per case: times, CPU times and peaks, the CT's voxel bytes, and the goals of
 issue 17: report time / detect time <= 1.0; report peak and run peak / CT bytes <= 1.3; the same
 ratios for the baseline, measured in the same run. It also compares every figure the two reports
 wrote, pixel for pixel.
@@ -54,9 +55,11 @@ FIGURES = ("scene_oblique", "scene_top", "marker_slices", "residuals", "fre_curv
 
 
 def run_child(command: list[str], env: dict[str, str] | None = None, cwd: Path | None = None
-              ) -> tuple[float, float]:
-    """Run ``command``; wall time (s) and its peak memory (bytes): the larger of its own ``ru_maxrss``
-    (``os.wait4``) and the summed RSS of it and its children, sampled every 20 ms. Raises on failure."""
+              ) -> tuple[float, float, float]:
+    """Run ``command``; wall time (s), its peak memory (bytes): the larger of its own ``ru_maxrss``
+    (``os.wait4``) and the summed RSS of it and its children, sampled every 20 ms, and its CPU time
+    (s, user + system, its own and its waited-for children's, as ``os.wait4`` reports it). Raises on
+    failure."""
     peak = [0.0]
     start = time.perf_counter()
     with tempfile.TemporaryFile() as err:
@@ -77,7 +80,7 @@ def run_child(command: list[str], env: dict[str, str] | None = None, cwd: Path |
         if os.waitstatus_to_exitcode(status) != 0:
             err.seek(0)
             raise SystemExit(f"{' '.join(command)} failed: {err.read().decode(errors='replace')[-600:]}")
-    return wall, max(usage.ru_maxrss * 1024.0, peak[0])
+    return wall, max(usage.ru_maxrss * 1024.0, peak[0]), usage.ru_utime + usage.ru_stime
 
 
 def tree_rss(pid: int) -> float:
@@ -165,7 +168,7 @@ def bench_case(case: Path, work: Path, baseline: Path, rev: str) -> None:
     outs = {name: work / f"{tag}-{name}" for name in ("run", "run-base", "detect", "report", "report-base")}
     for folder in outs.values():
         shutil.rmtree(folder, ignore_errors=True)
-    results: dict[str, tuple[float, float]] = {}
+    results: dict[str, tuple[float, float, float]] = {}
     print(f"\n{case} (CT {size / 1e9:.2f} GB; load {os.getloadavg()[0]:.1f})", flush=True)
     # warm-up (not timed): the CT in the page cache and every module compiled, for whichever runs first
     run_child(emreg("detect", str(case), "--out", str(outs["detect"])), cwd=ROOT)
@@ -179,13 +182,14 @@ def bench_case(case: Path, work: Path, baseline: Path, rev: str) -> None:
     results["report (baseline)"] = run_child(emreg("report", str(outs["report-base"])), env=base_env,
                                              cwd=baseline)
     results["report"] = run_child(emreg("report", str(outs["report"])), cwd=ROOT)
-    print(f"{'command':<20} {'time (s)':>9} {'peak (GB)':>10} {'peak / CT':>10}")
-    for name, (wall, peak) in results.items():
-        print(f"{name:<20} {wall:9.2f} {peak / 1e9:10.2f} {peak / size:10.2f}")
+    print(f"{'command':<20} {'time (s)':>9} {'CPU (s)':>8} {'peak (GB)':>10} {'peak / CT':>10}")
+    for name, (wall, peak, cpu) in results.items():
+        print(f"{name:<20} {wall:9.2f} {cpu:8.2f} {peak / 1e9:10.2f} {peak / size:10.2f}")
     detect = results["detect"]
     for what, new, base in (("emreg report", results["report"], results["report (baseline)"]),
                             ("emreg run", results["run"], results["run (baseline)"])):
         timing = (f"time / detect time {new[0] / detect[0]:.2f} (goal <= 1.0; baseline {base[0] / detect[0]:.2f}), "
+                  f"CPU / detect CPU {new[2] / detect[2]:.2f} (baseline {base[2] / detect[2]:.2f}), "
                   if what == "emreg report" else "")
         print(f"{what}: {timing}peak / CT bytes {new[1] / size:.2f} (goal <= 1.3; baseline {base[1] / size:.2f}); "
               f"against the baseline: time {new[0] / base[0]:.2f}x, peak {new[1] / base[1]:.2f}x")
