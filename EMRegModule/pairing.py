@@ -31,13 +31,16 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .errors import EMRegError, NoSafeAnswerError
 from .sensor_offset import fre_curve
 from .settings import PairingSettings
+
+if TYPE_CHECKING:  # scipy.spatial is imported where the tree is built: readers of registration.json skip its 0.1 s
+    from scipy.spatial import cKDTree
 
 
 @dataclass
@@ -265,6 +268,8 @@ class _Problem:
         A k-d tree over the segments' midpoints proposes the few markers that can be that
         close (segment distance >= midpoint distance - half the segment's length)."""
         if self._tree is None:
+            from scipy.spatial import cKDTree
+
             self._tree = cKDTree(self.origins + 0.5 * (self.a + self.b) * self.axes)
         k = min(3, self.n_image)
         mapped = np.einsum("tij,nj->tni", transforms[:, :3, :3], self.points) + transforms[:, None, :3, 3]

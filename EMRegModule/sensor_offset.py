@@ -18,7 +18,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.optimize import minimize_scalar
 
 from .transforms import fit_rigid_batch
 
@@ -116,6 +115,8 @@ def solve_sensor_offset(points_reference: np.ndarray, origins_image: np.ndarray,
     grid_sse = curve(grid).sse_mm2
     k = int(np.argmin(grid_sse))
     lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    from scipy.optimize import minimize_scalar  # here: readers of FRE(l) (the report) do not load scipy.optimize
+
     found = minimize_scalar(sse, bounds=(lo, hi), method="bounded", options={"xatol": 1e-5})
     l_best = float(found.x) if found.fun <= grid_sse[k] else float(grid[k])
     at_best = curve([l_best])
