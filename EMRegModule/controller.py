@@ -528,7 +528,7 @@ class EMRegController:
         """``EMReg.mrb``, the 3D Slicer scene of ``folder``'s outputs; a summary line. Optional: without
         slicer-core, or when it cannot be written, the other outputs stand and a warning says why.
         ``job``: the bundle started by :meth:`start_bundle` (waited for here)."""
-        from .io.slicer_scene import bundle_needs_ct_image, write_run_bundle
+        from .io.slicer_scene import bundle_needs_ct_image, write_run_bundle_hashed
 
         if job is not None:
             with self.progress.step("writing the 3D Slicer scene bundle (in parallel)"):
@@ -547,11 +547,11 @@ class EMRegController:
             if not self.keep_ct:
                 self.image = None
         with self.progress.step("writing the 3D Slicer scene bundle"):
-            path, message = write_run_bundle(folder.path, case_dir, image)
+            path, message, sha = write_run_bundle_hashed(folder.path, case_dir, image)
         if path is None:
             self.warn([message])
         else:
-            self._recorded(folder, "bundle", self._provenance((), tuple(used)))
+            self._recorded(folder, "bundle", self._provenance((), tuple(used)), {path.name: sha} if sha else None)
         return f"bundle: {message}"
 
     # --- a whole run ---------------------------------------------------------------------------

@@ -16,7 +16,6 @@ with their coordinates unchanged, as PLUS and SlicerIGT do for tracker-side fram
 from __future__ import annotations
 
 import contextlib
-import csv
 import os
 import shutil
 import tempfile
@@ -112,6 +111,8 @@ class SlicerScene:
         self.data_io.SetMRMLApplicationLogic(self.application_logic)
         self.data_io.SetAndObserveDataIOManager(self.remote_io.GetDataIOManager())
         self.remote_io.AddDataIOToScene()
+        #: The sha256 (hex) of the bundle :meth:`write_bundle` wrote last.
+        self.bundle_sha256: str | None = None
 
     def read_bundle(self, path: str | os.PathLike[str]) -> None:
         """Import a scene bundle (``.mrb``) with Slicer's reader (``vtkMRMLScene::ReadFromMRB``)."""
@@ -124,7 +125,7 @@ class SlicerScene:
     def write_bundle(self, path: str | os.PathLike[str], stored: dict[str, StoredVoxels] | None = None) -> Path:
         """Write the scene as a bundle (``.mrb``: the ``.mrml`` scene and its data files, zipped) with
         Slicer's writer (``vtkMRMLScene::WriteToMRB``), atomically: built in a private folder beside
-        ``path``, then renamed onto it.
+        ``path``, then renamed onto it. Its sha256 is then :attr:`bundle_sha256` (computed as it was written).
 
         ``stored``: volume node id -> :class:`StoredVoxels`, for volume nodes made by
         :func:`show_stored_volume` (a one-voxel placeholder with the CT's geometry): their entries get
@@ -172,7 +173,7 @@ class SlicerScene:
             if not saved or not folder.is_dir():
                 raise EMRegError(f"{path}: 3D Slicer's writer could not write the scene bundle "
                                  "(disk full or no permission?)")
-            _zip_bundle(folder, staged, sources)
+            self.bundle_sha256 = _zip_bundle(folder, staged, sources)
             os.replace(staged, path)
         finally:
             for storage_id, (node, data) in volumes.items():  # the scene as it was (Slicer's default: compressed)
@@ -249,6 +250,11 @@ class _MemoryVoxels:
         scalars = self.data.GetPointData().GetScalars()
         return scalars.GetNumberOfValues() * scalars.GetDataTypeSize()
 
+    def zip_parts(self, scratch: Path) -> list[Any]:
+        """The gzip stream of the voxels as parts of a zip entry (:mod:`EMRegModule.io.zip_store`): compressed
+        into the file ``scratch`` first (an entry's CRC comes before its data)."""
+        return _spooled(self, scratch)
+
 
 @dataclass(frozen=True)
 class StoredVoxels:
@@ -274,6 +280,15 @@ class StoredVoxels:
     def nbytes(self) -> int:
         return int(np.prod(self.dimensions)) * self.dtype.itemsize
 
+    def zip_parts(self, scratch: Path) -> list[Any]:
+        """The gzip stream of the voxels as parts of a zip entry (:mod:`EMRegModule.io.zip_store`): the file's own
+        (copied as it is), else compressed into the file ``scratch`` first."""
+        if self.encoding != "gzip":
+            return _spooled(self, scratch)
+        from .zip_store import FileRegion
+
+        return [FileRegion(self.path, self.offset, self.path.stat().st_size - self.offset)]
+
     def write_gzip(self, sink: Any) -> None:
         with self.path.open("rb") as source:
             source.seek(self.offset)
@@ -293,6 +308,15 @@ class StoredVoxels:
             sink.write(deflate.flush())
 
 
+def _spooled(voxels: _MemoryVoxels | StoredVoxels, scratch: Path) -> list[Any]:
+    """``voxels.write_gzip`` into the file ``scratch``, as the one part of a zip entry."""
+    from .zip_store import FileRegion
+
+    with scratch.open("wb") as sink:
+        voxels.write_gzip(sink)
+    return [FileRegion(scratch, 0, scratch.stat().st_size)]
+
+
 def stored_voxels(path: str | os.PathLike[str] | None) -> StoredVoxels | None:
     """The CT file's voxels as a bundle can copy them (a plain NRRD: attached raw or gzip data in the
     machine's byte order, see :func:`EMRegModule.io.fast_read.stored_nrrd_voxels`), or None (then the
@@ -310,22 +334,25 @@ def stored_voxels(path: str | os.PathLike[str] | None) -> StoredVoxels | None:
     return StoredVoxels(Path(path).resolve(), offset, encoding, geometry, dtype)
 
 
-def _zip_bundle(folder: Path, target: Path, sources: dict[str, Any]) -> None:
+def _zip_bundle(folder: Path, target: Path, sources: dict[str, Any]) -> str:
     """Zip a scene-bundle folder (Slicer's ``.mrb`` layout: ``NAME/NAME.mrml``, ``NAME/Data/...``, stored
-    entries) into ``target``.
+    entries) into ``target``; returns the sha256 of the archive (computed as it is written).
 
     ``sources``: storage node id -> the voxels (:class:`_MemoryVoxels` or :class:`StoredVoxels`) of
     the volumes Slicer saved as one-voxel raw NRRD placeholders (their files are found by the storage
     nodes' ``fileName`` in the ``.mrml``). Their entries are written from the placeholder's header
     (Slicer's fields and geometry) with ``sizes`` set to the volume's dimensions and ``encoding: gzip``,
-    followed by a gzip stream of the voxels (as Slicer's own compressed writer makes): compressed by
-    ISA-L at :data:`BUNDLE_GZIP_LEVEL` a chunk of :data:`_CHUNK_BYTES` at a time, or the CT file's own
-    gzip stream copied as it is. The ``.mrml`` says ``useCompression="1"`` again for the storage
-    nodes, so that a scene saved again from Slicer stays compressed.
+    followed by a gzip stream of the voxels (as Slicer's own compressed writer makes): the CT file's own
+    gzip stream copied as it is, or compressed by ISA-L at :data:`BUNDLE_GZIP_LEVEL` a chunk of
+    :data:`_CHUNK_BYTES` at a time into a scratch file beside ``target``. The ``.mrml`` says
+    ``useCompression="1"`` again for the storage nodes, so that a scene saved again from Slicer stays
+    compressed. The archive is written by :class:`~EMRegModule.io.zip_store.StoredZipWriter` (one forward
+    pass, large files copied by the kernel, hashed on the way).
     """
     import re
-    import zipfile
     from urllib.parse import unquote
+
+    from .zip_store import StoredZipWriter
 
     files_of: dict[Path, Any] = {}
     for scene_file in folder.glob("*.mrml"):
@@ -335,38 +362,46 @@ def _zip_bundle(folder: Path, target: Path, sources: dict[str, Any]) -> None:
             if found:  # relative to the scene's folder, URL-encoded
                 files_of[(folder / unquote(found.group(1))).resolve()] = source
     written = set()
-    with zipfile.ZipFile(target, "w", zipfile.ZIP_STORED, allowZip64=True) as out:
-        for current, dirs, files in os.walk(folder):
-            dirs.sort()
-            here = Path(current)
-            out.write(here, here.relative_to(folder.parent).as_posix() + "/")
-            for name in sorted(files):
-                path = here / name
-                arcname = path.relative_to(folder.parent).as_posix()
-                if name.endswith(".mrml"):
-                    scene = path.read_text(encoding="utf-8")
-                    for storage_id in sources:
-                        scene = re.sub(rf'(<\w+\s[^>]*\bid="{re.escape(storage_id)}"[^>]*\buseCompression=")0"',
-                                       r'\g<1>1"', scene)
-                    out.writestr(arcname, scene.encode("utf-8"))
-                    continue
-                if path.resolve() not in files_of:
-                    out.write(path, arcname)
-                    continue
-                with path.open("rb") as placeholder:
-                    header = _read_nrrd_header(placeholder)
-                if not (header.endswith(b"\n\n") and b"\nencoding: raw\n" in header and b"\nsizes: 1 1 1\n" in header):
-                    raise EMRegError(f"{arcname}: 3D Slicer wrote the volume in a form EMReg does not expect")
-                source = files_of[path.resolve()]
-                written.add(id(source))
-                sizes = " ".join(str(n) for n in source.dimensions).encode("ascii")
-                header = header.replace(b"\nencoding: raw\n", b"\nencoding: gzip\n", 1).replace(
-                    b"\nsizes: 1 1 1\n", b"\nsizes: " + sizes + b"\n", 1)
-                with out.open(arcname, "w", force_zip64=source.nbytes > 1 << 30) as sink:
-                    sink.write(header)
-                    source.write_gzip(sink)
+    scratch = target.with_name(f"{target.name}.voxels")
+    try:
+        with StoredZipWriter(target) as out:
+            for current, dirs, files in os.walk(folder):
+                dirs.sort()
+                here = Path(current)
+                status = here.stat()
+                out.add_directory(here.relative_to(folder.parent).as_posix(), status.st_mtime, status.st_mode)
+                for name in sorted(files):
+                    path = here / name
+                    arcname = path.relative_to(folder.parent).as_posix()
+                    status = path.stat()
+                    if name.endswith(".mrml"):
+                        scene = path.read_text(encoding="utf-8")
+                        for storage_id in sources:
+                            scene = re.sub(rf'(<\w+\s[^>]*\bid="{re.escape(storage_id)}"[^>]*\buseCompression=")0"',
+                                           r'\g<1>1"', scene)
+                        out.add(arcname, [scene.encode("utf-8")], status.st_mtime)
+                        continue
+                    if path.resolve() not in files_of:
+                        out.add(arcname, [path.read_bytes()], status.st_mtime, (status.st_mode & 0xFFFF) << 16)
+                        continue
+                    with path.open("rb") as placeholder:
+                        header = _read_nrrd_header(placeholder)
+                    if not (header.endswith(b"\n\n") and b"\nencoding: raw\n" in header
+                            and b"\nsizes: 1 1 1\n" in header):
+                        raise EMRegError(f"{arcname}: 3D Slicer wrote the volume in a form EMReg does not expect")
+                    source = files_of[path.resolve()]
+                    written.add(id(source))
+                    sizes = " ".join(str(n) for n in source.dimensions).encode("ascii")
+                    header = header.replace(b"\nencoding: raw\n", b"\nencoding: gzip\n", 1).replace(
+                        b"\nsizes: 1 1 1\n", b"\nsizes: " + sizes + b"\n", 1)
+                    out.add(arcname, [header, *source.zip_parts(scratch)], status.st_mtime)
+                    scratch.unlink(missing_ok=True)
+            digest = out.close()
+    finally:
+        scratch.unlink(missing_ok=True)
     if written != {id(source) for source in sources.values()}:  # a placeholder left as a volume: a wrong scene
         raise EMRegError("3D Slicer did not write every volume where its scene says")
+    return digest
 
 
 def _isal_available() -> bool:
@@ -397,6 +432,19 @@ def _named_node(scene: Any, class_name: str, name: str, existing: Any = None) ->
     return scene.AddNewNodeByClass(class_name, name)
 
 
+def vtk_matrix(matrix: Any) -> Any:
+    """A ``vtkMatrix4x4`` holding a 4x4 array (what ``slicer.util.vtkMatrixFromArray`` makes; made here from
+    ``vtkmodules`` so that writing a scene does not import the whole ``vtk`` package, 0.25 s)."""
+    from vtkmodules.vtkCommonMath import vtkMatrix4x4
+
+    values = np.asarray(matrix, dtype=float)
+    if values.shape != (4, 4):
+        raise EMRegError(f"a 4x4 matrix was expected, not {values.shape}")
+    result = vtkMatrix4x4()
+    result.DeepCopy([float(v) for v in values.ravel()])
+    return result
+
+
 def image_ijk_to_ras(image: Any) -> np.ndarray:
     """IJK-to-RAS 4x4 of a SimpleITK image (its index-to-LPS matrix, flipped to RAS)."""
     spacing = np.asarray(image.GetSpacing(), dtype=float)
@@ -423,7 +471,7 @@ def show_volume(scene: Any, image: Any, name: str = VOLUME_NODE_NAME, node: Any 
     if image.GetNumberOfComponentsPerPixel() != 1 or image.GetDimension() != 3:
         raise EMRegError("the CT must be a 3D scalar image to show it in 3D Slicer")
     node = _named_node(scene, "vtkMRMLScalarVolumeNode", name, node)
-    node.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(image_ijk_to_ras(image)))
+    node.SetIJKToRASMatrix(vtk_matrix(image_ijk_to_ras(image)))
     _ct_display(node)  # before the voxels: a display node made after them computes their histogram
     if copy_voxels:
         slicer.util.updateVolumeFromArray(node, sitk.GetArrayViewFromImage(image))
@@ -451,10 +499,8 @@ def show_stored_volume(scene: Any, stored: StoredVoxels, name: str = VOLUME_NODE
     The node has the CT's IJK-to-RAS and a one-voxel placeholder of its pixel type; pass
     ``{node.GetID(): stored}`` to :meth:`SlicerScene.write_bundle`, which writes the file's voxels
     into the bundle (3D Slicer then loads the whole CT from it)."""
-    import slicer.util
-
     node = _named_node(scene, "vtkMRMLScalarVolumeNode", name, node)
-    node.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(image_ijk_to_ras(stored.geometry)))
+    node.SetIJKToRASMatrix(vtk_matrix(image_ijk_to_ras(stored.geometry)))
     _ct_display(node)
     node.SetAndObserveImageData(_placeholder_of(stored.dtype))
     return node
@@ -464,8 +510,8 @@ def _image_data_sharing_voxels(image: Any) -> Any:
     """A ``vtkImageData`` (origin 0, spacing 1: Slicer keeps the geometry in IJK-to-RAS) whose scalars
     are the SimpleITK image's own voxel buffer, not a copy."""
     import SimpleITK as sitk
-    import vtk
-    from vtk.util import numpy_support
+    from vtkmodules.util import numpy_support
+    from vtkmodules.vtkCommonDataModel import vtkImageData
 
     voxels = sitk.GetArrayViewFromImage(image).reshape(-1)  # (k, j, i) C order = VTK's point order
     scalars = numpy_support.numpy_to_vtk(voxels, deep=False)  # keeps ``voxels`` alive, not the image
@@ -474,7 +520,7 @@ def _image_data_sharing_voxels(image: Any) -> Any:
     # numpy_support's own ``_numpy_reference`` does.
     scalars._emreg_image = image
     scalars.SetName("ImageScalars")
-    data = vtk.vtkImageData()
+    data = vtkImageData()
     data.SetDimensions(*(int(n) for n in image.GetSize()))
     data.GetPointData().SetScalars(scalars)
     return data
@@ -485,7 +531,7 @@ def show_points(scene: Any, name: str, labels: Sequence[str], positions: Any, co
                 parent_transform: Any = None) -> Any:
     """A locked markups point list; ``positions`` (N, 3) in the node's own coordinates (RAS, or the
     parent transform's frame when ``parent_transform`` is given)."""
-    import vtk
+    from vtkmodules.vtkCommonDataModel import vtkVector3d
 
     node = _named_node(scene, "vtkMRMLMarkupsFiducialNode", name, node)
     node.RemoveAllControlPoints()
@@ -494,7 +540,7 @@ def show_points(scene: Any, name: str, labels: Sequence[str], positions: Any, co
     if not (len(labels) == len(positions) == len(texts)):
         raise EMRegError(f"{name}: {len(labels)} labels, {len(positions)} positions, {len(texts)} descriptions")
     for label, position, text in zip(labels, positions, texts):  # noqa: B905 - lengths checked (Python 3.9 in old Slicer)
-        index = node.AddControlPoint(vtk.vtkVector3d(*(float(v) for v in position)), str(label))
+        index = node.AddControlPoint(vtkVector3d(*(float(v) for v in position)), str(label))
         if text:
             node.SetNthControlPointDescription(index, str(text))
     node.SetLocked(True)
@@ -529,10 +575,9 @@ def show_curve(scene: Any, name: str, positions_ras: Any, color: Sequence[float]
 
 def show_transform(scene: Any, name: str, to_parent: Any, parent: Any = None, node: Any = None) -> Any:
     """A linear transform node with matrix ``to_parent`` (4x4), under ``parent`` (or the world)."""
-    import slicer.util
-
+    matrix = vtk_matrix(to_parent)
     node = _named_node(scene, "vtkMRMLLinearTransformNode", name, node)
-    slicer.util.updateTransformMatrixFromArray(node, np.asarray(to_parent, dtype=float))
+    node.SetMatrixTransformToParent(matrix)
     node.SetAndObserveTransformNodeID(parent.GetID() if parent is not None else None)
     return node
 
@@ -547,12 +592,13 @@ def show_residual_spheres(scene: Any, centres_ras: Any, residuals_mm: Sequence[f
                           name: str = RESIDUALS_NODE_NAME, node: Any = None) -> Any:
     """A model of one sphere per paired marker, coloured by its registration residual (mm) with
     Slicer's built-in ``ReverseRainbow`` table (blue at 0 mm to red at the largest residual)."""
-    import vtk
-    from vtk.util import numpy_support
+    from vtkmodules.util import numpy_support
+    from vtkmodules.vtkFiltersCore import vtkAppendPolyData, vtkAssignAttribute
+    from vtkmodules.vtkFiltersSources import vtkSphereSource
 
-    append = vtk.vtkAppendPolyData()
+    append = vtkAppendPolyData()
     for centre, residual in zip(np.asarray(centres_ras, dtype=float).reshape(-1, 3), residuals_mm):  # noqa: B905
-        sphere = vtk.vtkSphereSource()
+        sphere = vtkSphereSource()
         sphere.SetCenter(*centre)
         sphere.SetRadius(radius_mm)
         sphere.SetThetaResolution(16)
@@ -569,7 +615,7 @@ def show_residual_spheres(scene: Any, centres_ras: Any, residuals_mm: Sequence[f
     node.CreateDefaultDisplayNodes()
     display = node.GetDisplayNode()
     if display is not None:
-        display.SetActiveScalar("residual_mm", vtk.vtkAssignAttribute.POINT_DATA)
+        display.SetActiveScalar("residual_mm", vtkAssignAttribute.POINT_DATA)
         colors = scene.GetFirstNodeByName("ReverseRainbow")
         if colors is not None:
             display.SetAndObserveColorNodeID(colors.GetID())
@@ -628,12 +674,9 @@ class RunScene:
 
 
 def _read_navigation_positions(path: Path) -> np.ndarray:
-    with path.open(newline="", encoding="utf-8") as handle:
-        rows = [(row["x_mm"], row["y_mm"], row["z_mm"]) for row in csv.DictReader(handle)]
-    try:
-        return np.array(rows, dtype=float).reshape(-1, 3)
-    except ValueError:
-        raise EMRegError(f"{path}: navigation positions are not numbers") from None
+    from .navigation_csv import read_navigation_csv
+
+    return read_navigation_csv(path)[0]
 
 
 def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
@@ -797,33 +840,40 @@ def write_run_bundle(out_dir: str | os.PathLike[str], case_dir: str | os.PathLik
     disk full, no permission): ``path`` is then ``None`` and ``message`` says why; the run's
     other outputs are untouched and a previous bundle is removed only when this one replaces it.
     """
+    return write_run_bundle_hashed(out_dir, case_dir, image)[:2]
+
+
+def write_run_bundle_hashed(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
+                            image: Any = None) -> tuple[Path | None, str, str | None]:
+    """:func:`write_run_bundle`, and the sha256 of the bundle written (None without one), computed as it was
+    written (for ``run.json``: the bundle is not read again)."""
     out = Path(out_dir)
     missing = slicer_mrml_missing()
     if missing:
         _remove_stale_bundle(out)
-        return None, f"no {BUNDLE_FILE} written: {missing}"
+        return None, f"no {BUNDLE_FILE} written: {missing}", None
     try:
         content = collect_run(out, case_dir, image)
         if not content.marker_ids and not content.calibration_labels:
             _remove_stale_bundle(out)
-            return None, f"no {BUNDLE_FILE} written: no markers or calibration in {out}"
+            return None, f"no {BUNDLE_FILE} written: no markers or calibration in {out}", None
         holder = SlicerScene()
         built = build_run_scene(holder.scene, content)
         stored = {built[VOLUME_NODE_NAME].GetID(): content.stored_ct} if content.stored_ct is not None else {}
         path = holder.write_bundle(out / BUNDLE_FILE, stored)
     except (EMRegError, OSError, KeyError, ValueError, TypeError) as exc:
         _remove_stale_bundle(out)
-        return None, f"no {BUNDLE_FILE} written: {exc}"
+        return None, f"no {BUNDLE_FILE} written: {exc}", None
     notes = f" ({'; '.join(content.notes)})" if content.notes else ""
-    return path, f"{path}{notes}"
+    return path, f"{path}{notes}", holder.bundle_sha256
 
 
 class BundleProcess:
     """:func:`write_run_bundle` in a process of its own, started by :func:`start_bundle_process` so that it goes
     on while this one renders the report; :meth:`result` waits for it.
 
-    The child imports slicer-core (not this process), writes ``OUT/EMReg.mrb`` atomically and hashes it
-    (sha256, for ``run.json``). Interrupting this process interrupts the child (no temporary left behind).
+    The child imports slicer-core (not this process), writes ``OUT/EMReg.mrb`` atomically and hashes it as it
+    writes it (sha256, for ``run.json``). Interrupting this process interrupts the child (no temporary left behind).
     """
 
     def __init__(self, out_dir: Path, case_dir: Path | None) -> None:
@@ -898,14 +948,11 @@ def _bundle_child() -> None:
     import json
     import sys
 
-    from ..provenance import file_sha256
-
     out, case = sys.argv[1], sys.argv[2] or None
     with contextlib.suppress(OSError, AttributeError):
         os.nice(5)  # the report's CT read, which the report waits for, goes first on a busy machine
     try:
-        path, message = write_run_bundle(out, case)
-        sha = file_sha256(path) if path is not None else None
+        path, message, sha = write_run_bundle_hashed(out, case)
     except KeyboardInterrupt:
         sys.exit(130)
     except EMRegError as exc:

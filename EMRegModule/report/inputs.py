@@ -13,7 +13,6 @@ Frames: positions are image space (CT LPS, mm) unless they say Reference.
 
 from __future__ import annotations
 
-import csv
 import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -29,6 +28,7 @@ from ..evaluation import Evaluation, read_evaluation
 from ..io.atomic import read_json
 from ..io.case import open_case
 from ..io.markups import read_markups
+from ..io.navigation_csv import read_navigation_csv
 from ..marker_model import MarkerModel
 from ..registration import RegistrationResult, read_registration
 from ..settings import Settings
@@ -78,25 +78,6 @@ def has_report_inputs(folder: str | os.PathLike[str]) -> bool:
     """True when a folder holds at least one output of a run (something to report)."""
     folder = Path(folder)
     return folder.is_dir() and any((folder / name).is_file() for name in INPUT_NAMES)
-
-
-def read_navigation_csv(path: Path) -> tuple[np.ndarray, list[str]]:
-    """Probe positions (N, 3, image LPS mm) and labels of an ``OUT/navigation.csv``."""
-    with path.open(newline="", encoding="utf-8") as f:
-        reader = csv.reader(f)
-        header = [name.strip() for name in next(reader, [])]
-        missing = {"x_mm", "y_mm", "z_mm"} - set(header)
-        if missing:
-            raise EMRegError(f"{path}: navigation CSV lacks column(s) {', '.join(sorted(missing))}")
-        rows = [row for row in reader if row]
-    columns = [header.index(name) for name in ("x_mm", "y_mm", "z_mm")]
-    label = header.index("label") if "label" in header else None
-    try:
-        positions = np.array([[row[i] for i in columns] for row in rows], dtype=float).reshape(-1, 3)
-    except (ValueError, IndexError):
-        raise EMRegError(f"{path}: navigation CSV holds a non-numeric position") from None
-    labels = [row[label].strip() if label is not None and label < len(row) else "" for row in rows]
-    return positions, labels
 
 
 def _read_optional(path: Path, read: Callable[[Path], Any], notes: list[str]) -> Any:

@@ -1,0 +1,52 @@
+"""Reading ``OUT/navigation.csv`` (``time_s,x_mm,y_mm,z_mm,label``; positions in image space, LPS mm).
+
+Written by :func:`EMRegModule.navigation.write_navigation_csv`; read by the report and the 3D Slicer bundle.
+The numbers are parsed by ``numpy.loadtxt`` (a full recording: ~20 ms instead of ~0.1 s row by row); a file
+it cannot take (quoted labels, ragged rows) is read row by row with :mod:`csv`, with the same result.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import EMRegError
+
+POSITION_COLUMNS = ("x_mm", "y_mm", "z_mm")
+
+
+def read_navigation_csv(path: Path) -> tuple[np.ndarray, list[str]]:
+    """Probe positions (N, 3, image LPS mm) and labels of an ``OUT/navigation.csv``."""
+    path = Path(path)
+    text = path.read_text(encoding="utf-8")
+    header_line, _, body = text.partition("\n")
+    header = [name.strip() for name in next(csv.reader([header_line]), [])]
+    missing = set(POSITION_COLUMNS) - set(header)
+    if missing:
+        raise EMRegError(f"{path}: navigation CSV lacks column(s) {', '.join(sorted(missing))}")
+    columns = [header.index(name) for name in POSITION_COLUMNS]
+    label = header.index("label") if "label" in header else None
+    if '"' not in body:  # no quoted field: every line splits at its commas
+        lines = [line for line in body.splitlines() if line]
+        try:
+            positions = np.loadtxt(lines, delimiter=",", usecols=columns, dtype=float, ndmin=2).reshape(-1, 3)
+        except ValueError:
+            pass  # something loadtxt does not take: the row-by-row reading below says what
+        else:
+            labels = [""] * len(lines) if label is None else [_field(line, label) for line in lines]
+            return positions, labels
+    rows = [row for row in csv.reader(io.StringIO(body)) if row]
+    try:
+        positions = np.array([[row[i] for i in columns] for row in rows], dtype=float).reshape(-1, 3)
+    except (ValueError, IndexError):
+        raise EMRegError(f"{path}: navigation CSV holds a non-numeric position") from None
+    labels = [row[label].strip() if label is not None and label < len(row) else "" for row in rows]
+    return positions, labels
+
+
+def _field(line: str, index: int) -> str:
+    fields = line.split(",")
+    return fields[index].strip() if index < len(fields) else ""
