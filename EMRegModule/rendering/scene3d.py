@@ -80,9 +80,14 @@ class FrameScene:
 
 
 def prepare_offscreen() -> None:
-    """Without a display, ask VTK for its EGL render window (no X server, no Xvfb needed)."""
+    """Without a display, ask VTK for its EGL render window (no X server, no Xvfb needed).
+
+    pyvista's first ``Plotter`` would then probe for a display (``xset``) and, finding none, make a throwaway
+    render window and OpenGL context only to decide whether to warn that plotting may fail (``ALLOW_PLOTTING``
+    skips that probe): EMReg renders offscreen, where a missing OpenGL fails at the first render anyway."""
     if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+        os.environ.setdefault("ALLOW_PLOTTING", "true")
 
 
 def marker_mesh(model: MarkerModel, marker_to_image: np.ndarray, resolution: int = 64):
@@ -212,9 +217,12 @@ class FrameSceneRenderer:
 
 
 def _add_context_surface(plotter, surface) -> bool:
+    """Add the CT surface; not drawn here (pyvista draws a frame per mesh added after the first one): the views
+    that follow draw it."""
     if surface is None or not surface.n_points:
         return False
-    plotter.add_mesh(surface, color=(0.93, 0.91, 0.86), opacity=0.22, smooth_shading=False, name="ct_surface")
+    plotter.add_mesh(surface, color=(0.93, 0.91, 0.86), opacity=0.22, smooth_shading=False, name="ct_surface",
+                     render=False)
     return True
 
 
