@@ -318,36 +318,23 @@ def _check_convert_ports(recording, reference: int, probe: int, names: dict[str,
 
 def cmd_report(args: argparse.Namespace) -> int:
     early = _start_report_ct(args)  # the CT's read goes on while the report's libraries load
-    from .outputs import OutputFolder, check_outputs
-    from .report import write_reports_batch
-
-    if args.batch:
-        batch = Path(args.batch)
-        if not batch.is_dir():
-            raise EMRegError(f"{batch}: folder of run outputs not found")
-        folders = sorted(p for p in batch.iterdir() if p.is_dir())
-        for folder in folders:
-            check_outputs(folder)
-        bundles: list = []  # each job writes its case's bundle (with the CT its report read, if it needs it)
-        try:
-            pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args), bundles=bundles)
-            print(f"{len(pages)} reports written under {args.batch}")
-        finally:  # the cases that did get their report and bundle say so even when others failed
-            for folder, (path, message) in bundles:
-                _record_batch_report(args, Path(folder), path is not None)
-                print(_bundle_line(path, message))
-        return 0
-    if not args.out:
-        raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
-    _out_folder(args.out, create=False)  # the run's folder: the report is written into it
-    if not Path(args.out).is_dir():
-        raise EMRegError(f"{args.out}: output folder not found")
-    case = Path(args.case) if args.case else None
-    controller = _controller(args, _settings(args))
-    folder = OutputFolder(args.out, "emreg report")
-    folder.start_stage("report")
-    bundle = controller.start_bundle(folder, case)  # in a process of its own while the report renders
+    bundle = early_bundle = _start_report_bundle(args)  # held: writes nothing into OUT until released below
     try:
+        from .outputs import OutputFolder, check_outputs
+        from .report import write_reports_batch
+
+        if args.batch:
+            return _report_batch(args, check_outputs, write_reports_batch)
+        if not args.out:
+            raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
+        _out_folder(args.out, create=False)  # the run's folder: the report is written into it
+        if not Path(args.out).is_dir():
+            raise EMRegError(f"{args.out}: output folder not found")
+        case = Path(args.case) if args.case else None
+        controller = _controller(args, _settings(args))
+        folder = OutputFolder(args.out, "emreg report")
+        folder.start_stage("report")
+        bundle = controller.start_bundle(folder, case, early_bundle)  # goes on while the report renders
         path = controller.save_report(folder, case, early)
     except BaseException:
         if bundle is not None:
@@ -357,6 +344,25 @@ def cmd_report(args: argparse.Namespace) -> int:
         raise
     print(f"report -> {path}")
     print(controller.save_bundle(folder, case, bundle))
+    return 0
+
+
+def _report_batch(args: argparse.Namespace, check_outputs, write_reports_batch) -> int:
+    """``emreg report --batch DIR``: every run folder under DIR, each with its bundle."""
+    batch = Path(args.batch)
+    if not batch.is_dir():
+        raise EMRegError(f"{batch}: folder of run outputs not found")
+    folders = sorted(p for p in batch.iterdir() if p.is_dir())
+    for folder in folders:
+        check_outputs(folder)
+    bundles: list = []  # each job writes its case's bundle (with the CT its report read, if it needs it)
+    try:
+        pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args), bundles=bundles)
+        print(f"{len(pages)} reports written under {args.batch}")
+    finally:  # the cases that did get their report and bundle say so even when others failed
+        for folder, (path, message) in bundles:
+            _record_batch_report(args, Path(folder), path is not None)
+            print(_bundle_line(path, message))
     return 0
 
 
@@ -412,6 +418,17 @@ def _start_report_ct(args: argparse.Namespace):
         return start_streamed_read(ct)
     except EMRegError:
         return None  # the report reads it again and says what is wrong
+
+
+def _start_report_bundle(args: argparse.Namespace):
+    """``emreg report OUT``: the bundle's process, started held (:class:`~EMRegModule.io.slicer_scene.BundleProcess`)
+    so that its start-up (Python, numpy, slicer-core: ~1 s of CPU) runs beside this command's own, on the core
+    that leaves idle; None when it cannot be written in a process of its own (or for ``--batch``)."""
+    if args.batch or not args.out or not Path(args.out).is_dir():
+        return None
+    from .io.slicer_scene import start_bundle_process
+
+    return start_bundle_process(args.out, Path(args.case) if args.case else None, held=True)
 
 
 def _record_batch_report(args: argparse.Namespace, folder: Path, bundle: bool) -> None:

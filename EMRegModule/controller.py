@@ -512,16 +512,19 @@ class EMRegController:
             self._output_sha.setdefault(name, folder.sha256(name))
         return used
 
-    def start_bundle(self, folder: OutputFolder, case_dir: Path | None) -> Any:
+    def start_bundle(self, folder: OutputFolder, case_dir: Path | None, started: Any = None) -> Any:
         """Start writing ``EMReg.mrb`` in a separate process, to go on while the report renders (pass the
         result to :meth:`save_bundle`); None when it must be written here (no slicer-core, or a CT the bundle
-        cannot copy from its file)."""
+        cannot copy from its file). ``started``: a bundle process started earlier for ``folder`` and held
+        (:func:`~EMRegModule.io.slicer_scene.start_bundle_process`), released here once the outputs are checked
+        (the caller cancels it if this raises)."""
         from .io.slicer_scene import start_bundle_process
 
         used = self._adopt_outputs(folder)
-        job = start_bundle_process(folder.path, case_dir)
+        job = started if started is not None else start_bundle_process(folder.path, case_dir)
         if job is not None:
             job.used = used
+            job.release()
         return job
 
     def save_bundle(self, folder: OutputFolder, case_dir: Path | None, job: Any = None) -> str:

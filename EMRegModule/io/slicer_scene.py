@@ -19,7 +19,7 @@ import contextlib
 import os
 import shutil
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -844,26 +844,42 @@ def write_run_bundle(out_dir: str | os.PathLike[str], case_dir: str | os.PathLik
 
 
 def write_run_bundle_hashed(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
-                            image: Any = None) -> tuple[Path | None, str, str | None]:
+                            image: Any = None, may_write: Callable[[], bool] | None = None
+                            ) -> tuple[Path | None, str, str | None]:
     """:func:`write_run_bundle`, and the sha256 of the bundle written (None without one), computed as it was
-    written (for ``run.json``: the bundle is not read again)."""
+    written (for ``run.json``: the bundle is not read again).
+
+    ``may_write``: asked (once) before anything in OUT is written or removed; False: nothing is, and the
+    message says the bundle was not wanted (a bundle process started ahead of its command's checks)."""
     out = Path(out_dir)
+    allowed: list[bool] = []
+
+    def allowed_to_write() -> bool:
+        if not allowed:
+            allowed.append(may_write is None or may_write())
+        return allowed[0]
+
+    def no_bundle(reason: str) -> tuple[None, str, None]:
+        if allowed_to_write():
+            _remove_stale_bundle(out)
+            return None, f"no {BUNDLE_FILE} written: {reason}", None
+        return None, f"no {BUNDLE_FILE} written: not wanted any more", None
+
     missing = slicer_mrml_missing()
     if missing:
-        _remove_stale_bundle(out)
-        return None, f"no {BUNDLE_FILE} written: {missing}", None
+        return no_bundle(missing)
     try:
         content = collect_run(out, case_dir, image)
         if not content.marker_ids and not content.calibration_labels:
-            _remove_stale_bundle(out)
-            return None, f"no {BUNDLE_FILE} written: no markers or calibration in {out}", None
+            return no_bundle(f"no markers or calibration in {out}")
         holder = SlicerScene()
         built = build_run_scene(holder.scene, content)
         stored = {built[VOLUME_NODE_NAME].GetID(): content.stored_ct} if content.stored_ct is not None else {}
+        if not allowed_to_write():
+            return None, f"no {BUNDLE_FILE} written: not wanted any more", None
         path = holder.write_bundle(out / BUNDLE_FILE, stored)
     except (EMRegError, OSError, KeyError, ValueError, TypeError) as exc:
-        _remove_stale_bundle(out)
-        return None, f"no {BUNDLE_FILE} written: {exc}", None
+        return no_bundle(str(exc))
     notes = f" ({'; '.join(content.notes)})" if content.notes else ""
     return path, f"{path}{notes}", holder.bundle_sha256
 
@@ -874,9 +890,14 @@ class BundleProcess:
 
     The child imports slicer-core (not this process), writes ``OUT/EMReg.mrb`` atomically and hashes it as it
     writes it (sha256, for ``run.json``). Interrupting this process interrupts the child (no temporary left behind).
+
+    ``held``: the child reads the outputs and builds the scene but writes nothing into OUT until
+    :meth:`release` (its command has checked OUT and moved the stale bundle aside); a child never released (its
+    command failed, or :meth:`cancel`) writes nothing. So the bundle's imports can start with the command,
+    on a core its own start-up leaves idle.
     """
 
-    def __init__(self, out_dir: Path, case_dir: Path | None) -> None:
+    def __init__(self, out_dir: Path, case_dir: Path | None, held: bool = False) -> None:
         import subprocess
         import sys
 
@@ -884,8 +905,17 @@ class BundleProcess:
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (package_root, os.environ.get("PYTHONPATH"))
                                                             if p)}
         command = [sys.executable, "-c", "from EMRegModule.io.slicer_scene import _bundle_child; _bundle_child()",
-                   str(out_dir), str(case_dir) if case_dir is not None else ""]
-        self.process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+                   str(out_dir), str(case_dir) if case_dir is not None else "", "held" if held else ""]
+        self.held = held
+        self.process = subprocess.Popen(command, stdin=subprocess.PIPE if held else subprocess.DEVNULL,
+                                        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+
+    def release(self) -> None:
+        """Let a held child write the bundle into OUT (nothing for a child not held)."""
+        if self.held and self.process.stdin is not None and not self.process.stdin.closed:
+            with contextlib.suppress(OSError):  # a child that died already: result() says why
+                self.process.stdin.write(_GO)
+                self.process.stdin.flush()  # (closed by result(), which must find it open)
 
     def result(self) -> tuple[Path | None, str, str | None]:
         """``(path, message, sha256 of the bundle)`` as :func:`write_run_bundle` gives them (path None: no
@@ -910,6 +940,9 @@ class BundleProcess:
         import signal
         import subprocess
 
+        if self.process.stdin is not None and not self.process.stdin.closed:  # never released: it may not write
+            with contextlib.suppress(OSError):
+                self.process.stdin.close()
         if self.process.poll() is None:
             self.process.send_signal(signal.SIGINT)
             try:
@@ -919,11 +952,11 @@ class BundleProcess:
                 self.process.wait()
 
 
-def start_bundle_process(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None
-                         ) -> BundleProcess | None:
+def start_bundle_process(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
+                         held: bool = False) -> BundleProcess | None:
     """Start writing ``OUT/EMReg.mrb`` in a separate process when it needs nothing from this one: Slicer's MRML
     is there and the run's CT is a file the bundle copies (:func:`stored_voxels`). None otherwise (write it
-    with :func:`write_run_bundle`, with the CT in memory if needed)."""
+    with :func:`write_run_bundle`, with the CT in memory if needed). ``held``: see :class:`BundleProcess`."""
     import importlib.util
 
     from .atomic import read_json
@@ -940,19 +973,29 @@ def start_bundle_process(out_dir: str | os.PathLike[str], case_dir: str | os.Pat
         return None
     if not isinstance(ct, str) or bundle_needs_ct_image(ct):
         return None
-    return BundleProcess(out, Path(case_dir) if case_dir is not None else None)
+    return BundleProcess(out, Path(case_dir) if case_dir is not None else None, held)
+
+
+#: What a held bundle process waits for on its standard input before it writes into OUT.
+_GO = b"go\n"
 
 
 def _bundle_child() -> None:
-    """The bundle process: ``write_run_bundle(OUT, CASE)``, then one JSON line: path, message, sha256."""
+    """The bundle process: ``write_run_bundle(OUT, CASE)``, then one JSON line: path, message, sha256.
+    Held (third argument ``held``): nothing is written into OUT before ``go`` arrives on standard input."""
     import json
     import sys
 
     out, case = sys.argv[1], sys.argv[2] or None
+    held = len(sys.argv) > 3 and sys.argv[3] == "held"
     with contextlib.suppress(OSError, AttributeError):
         os.nice(5)  # the report's CT read, which the report waits for, goes first on a busy machine
+
+    def released() -> bool:
+        return sys.stdin.buffer.readline() == _GO  # end of input (the command ended or gave up): no
+
     try:
-        path, message, sha = write_run_bundle_hashed(out, case)
+        path, message, sha = write_run_bundle_hashed(out, case, may_write=released if held else None)
     except KeyboardInterrupt:
         sys.exit(130)
     except EMRegError as exc:
