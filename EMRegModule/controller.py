@@ -149,7 +149,7 @@ class EMRegController:
         """Read the CT (file or DICOM folder); drops detection and everything after it."""
         from .io.image import open_ct
 
-        _import_in_background("EMRegModule.detection")  # overlaps the import with the file read
+        _import_in_background("EMRegModule.detection.detect")  # overlaps the import with the file read
         with self.progress.step("reading CT"):
             fill = open_ct(path, self.ct_series_choice)
             image = fill.result()
@@ -164,7 +164,7 @@ class EMRegController:
         """
         from .io.image import open_ct
 
-        _import_in_background("EMRegModule.detection")  # overlaps the import with the start of the read
+        _import_in_background("EMRegModule.detection.detect")  # overlaps the import with the start of the read
         with self.progress.step("opening CT"):
             fill = open_ct(path, self.ct_series_choice)
         from .detection import detect_markers
