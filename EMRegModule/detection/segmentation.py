@@ -402,20 +402,31 @@ def with_fragments(volume_zyx: np.ndarray, blob: Blob, index_to_image: np.ndarra
     main = int(np.argmax(counts))
     if main == 0:
         return None
-    union = segmented.labels == main
-    near = dilate_ball(union, gap_mm, segmented.work_spacing)
     voxel_volume = float(np.prod(segmented.work_spacing))
     sizes = np.bincount(segmented.labels.ravel(), minlength=segmented.count + 1)
+    small = sizes * voxel_volume <= 0.5 * model.volume_mm3
+    small[[0, main]] = False
+    if not small.any():
+        return None  # nothing that could be a piece of this marker
+    union = segmented.labels == main
+    box = _box_around(union, np.array(ball(gap_mm, segmented.work_spacing).shape) // 2)  # all the ball can reach
+    near = dilate_ball(union[box], gap_mm, segmented.work_spacing)
     longest = float(np.hypot(model.height_mm, model.bottom_diameter_mm)) + 2 * float(np.max(segmented.work_spacing))
     joined = False
-    for label_value in np.unique(segmented.labels[near]):
-        if label_value in (0, main) or sizes[label_value] * voxel_volume > 0.5 * model.volume_mm3:
+    for label_value in np.unique(segmented.labels[box][near]):
+        if not small[label_value]:
             continue
         candidate = union | (segmented.labels == label_value)
         if _diameter_mm(candidate, segmented.work_to_image) > longest:
             continue
         union, joined = candidate, True
     return segmented.blob(union) if joined else None
+
+
+def _box_around(mask: np.ndarray, margin: np.ndarray) -> tuple[slice, ...]:
+    """The bounding box of ``mask``'s voxels grown by ``margin`` voxels (z, y, x), within the array."""
+    occupied = [np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != axis))) for axis in range(3)]
+    return tuple(slice(max(0, int(o[0] - m)), int(o[-1] + m + 1)) for o, m in zip(occupied, margin, strict=True))
 
 
 def _diameter_mm(mask: np.ndarray, local_to_image: np.ndarray) -> float:
