@@ -149,7 +149,7 @@ class EMRegController:
         """Read the CT (file or DICOM folder); drops detection and everything after it."""
         from .io.image import open_ct
 
-        _import_in_background("EMRegModule.detection")  # overlaps the import with the file read
+        _import_in_background("EMRegModule.detection.detect")  # overlaps the import with the file read
         with self.progress.step("reading CT"):
             fill = open_ct(path, self.ct_series_choice)
             image = fill.result()
@@ -161,12 +161,23 @@ class EMRegController:
         """``load_ct`` then ``detect_markers``, detecting on the slices already read while the rest arrives.
 
         The same result as the two calls, sooner. Nothing changes when reading or detection fails.
+        A DICOM series is read compact (int16 where its headers would take int32: half the memory to
+        fill, the same values), and read again exactly in the rare CT whose values do not fit.
         """
+        from .io.dicom_series import NarrowVoxelsError
+
+        _import_in_background("EMRegModule.detection.detect")  # overlaps the import with the start of the read
+        try:
+            return self._load_ct_and_detect(path, compact=True)
+        except NarrowVoxelsError as exc:
+            self.progress.message(f"[emreg] {exc}: reading the CT again with int32 voxels")
+            return self._load_ct_and_detect(path, compact=False)
+
+    def _load_ct_and_detect(self, path: str | os.PathLike[str], compact: bool) -> DetectionResult:
         from .io.image import open_ct
 
-        _import_in_background("EMRegModule.detection")  # overlaps the import with the start of the read
         with self.progress.step("opening CT"):
-            fill = open_ct(path, self.ct_series_choice)
+            fill = open_ct(path, self.ct_series_choice, compact=compact)
         from .detection import detect_markers
 
         try:

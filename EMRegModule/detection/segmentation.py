@@ -19,9 +19,8 @@ import numpy as np
 from scipy import ndimage
 
 from ..marker_model import MarkerModel
+from .components import CONNECTIVITY_26, Component, GrowingComponents
 from .settings import DetectionSettings
-
-_CONNECTIVITY_26 = np.ones((3, 3, 3), dtype=bool)
 
 
 @dataclass
@@ -96,12 +95,11 @@ class CoarseScan:
     """The coarse candidate search, fed with the slices (numpy axis 0) as they are read.
 
     ``advance(slices)`` samples the coarse rows that the first ``slices`` slices hold, labels
-    the in-band samples of the rows where a component may still be growing, and returns the
-    components that are now complete (they do not reach the newest row): each becomes a
-    full-resolution :class:`Region` or, when too large for a marker, a :class:`TooLarge`. Every
-    component is returned exactly once, and the same whether the volume arrives at once or in
-    many steps: a component that reaches the newest row is left for a later step, whose
-    labelling starts at the first row any such component occupies.
+    their in-band samples (:class:`~.components.GrowingComponents`: each row once, joined to the
+    components of the rows before) and returns the components that are now complete (they do
+    not reach the newest row): each becomes a full-resolution :class:`Region` or, when too large
+    for a marker, a :class:`TooLarge`. Every component is returned exactly once, and the same
+    whether the volume arrives at once or in many steps.
     """
 
     def __init__(self, volume_zyx: np.ndarray, spacing_zyx: np.ndarray, model: MarkerModel,
@@ -116,7 +114,7 @@ class CoarseScan:
         self._metal_hu = settings.metal_hu
         self._metal: list[np.ndarray] = []
         self._rows = 0  # coarse rows sampled so far
-        self._open_from = 0  # first row that a component still growing may occupy
+        self._components = GrowingComponents()
         self._sample_volume = float(np.prod(self.spacing_zyx * self.strides))
         self._model_volume = model.volume_mm3
         self._max_extent_mm = 1.5 * float(np.hypot(model.height_mm, model.bottom_diameter_mm))
@@ -135,42 +133,27 @@ class CoarseScan:
         if rows <= self._rows:
             return [], []
         self._sample_rows(self._rows, rows)
-        previous, self._rows = self._rows, rows
-        last = rows == total_rows
-        offset = self._open_from
-        labels, count = ndimage.label(self._band[offset:rows], structure=_CONNECTIVITY_26)
-        open_from = rows
+        block, self._rows = self._band[self._rows:rows], rows
         regions: list[Region] = []
         too_large: list[TooLarge] = []
-        for label_value, box in enumerate(ndimage.find_objects(labels) if count else [], start=1):
-            if box is None:
-                continue
-            first, stop = box[0].start + offset, box[0].stop + offset
-            if stop == rows and not last:  # reaches the newest row: may grow into rows not read yet
-                open_from = min(open_from, first)
-                continue
-            if stop < previous:
-                continue  # complete in an earlier step already, and returned then
-            outcome = self._component(labels, label_value, box, offset)
+        for component in self._components.add(block, last=rows == total_rows):
+            outcome = self._component(component)
             if isinstance(outcome, Region):
                 regions.append(outcome)
             elif outcome is not None:
                 too_large.append(outcome)
-        self._open_from = open_from
         return regions, too_large
 
-    def _component(self, labels: np.ndarray, label_value: int, box: tuple[slice, ...],
-                   offset: int) -> Region | TooLarge | None:
-        if np.prod([s.stop - s.start for s in box]) * self._sample_volume < 0.3 * self._model_volume:
+    def _component(self, component: Component) -> Region | TooLarge | None:
+        if np.prod(component.stop_zyx - component.start_zyx) * self._sample_volume < 0.3 * self._model_volume:
             return None
-        members = np.argwhere(labels[box] == label_value)  # bincount would make an int64 copy of labels
-        volume = len(members) * self._sample_volume
+        volume = component.count * self._sample_volume
         if volume < 0.3 * self._model_volume:
             return None  # specks: noise, thin partial-volume shells of bone
-        lo = (np.array([s.start for s in box]) + [offset, 0, 0]) * self.strides
-        hi = (np.array([s.stop for s in box]) + [offset, 0, 0] - 1) * self.strides + 1
+        lo = component.start_zyx * self.strides
+        hi = (component.stop_zyx - 1) * self.strides + 1
         extent_mm = (hi - lo) * self.spacing_zyx
-        centroid = members.mean(axis=0) * self.strides + lo
+        centroid = component.mean_zyx * self.strides
         if volume > 3.0 * self._model_volume or np.max(extent_mm) > self._max_extent_mm:
             return TooLarge(centroid, volume, float(np.max(extent_mm)))
         start = np.maximum(lo - self._margin, 0)
@@ -372,7 +355,7 @@ def _segment(volume_zyx: np.ndarray, region: Region, index_to_image: np.ndarray,
     mask = (smoothed >= settings.low_hu) & (smoothed < settings.high_hu)
     if settings.opening_radius_mm > 0:
         mask = open_ball(mask, settings.opening_radius_mm, work_spacing)
-    labels, count = ndimage.label(mask, structure=_CONNECTIVITY_26)
+    labels, count = ndimage.label(mask, structure=CONNECTIVITY_26)
     return _Segmented(values, smoothed, labels, count, start, stop, factors, work_spacing, full_values,
                       local_to_image(index_to_image, start, factors),
                       local_to_image(index_to_image, start, np.ones(3, dtype=int)), image_shape)
@@ -419,20 +402,31 @@ def with_fragments(volume_zyx: np.ndarray, blob: Blob, index_to_image: np.ndarra
     main = int(np.argmax(counts))
     if main == 0:
         return None
-    union = segmented.labels == main
-    near = dilate_ball(union, gap_mm, segmented.work_spacing)
     voxel_volume = float(np.prod(segmented.work_spacing))
     sizes = np.bincount(segmented.labels.ravel(), minlength=segmented.count + 1)
+    small = sizes * voxel_volume <= 0.5 * model.volume_mm3
+    small[[0, main]] = False
+    if not small.any():
+        return None  # nothing that could be a piece of this marker
+    union = segmented.labels == main
+    box = _box_around(union, np.array(ball(gap_mm, segmented.work_spacing).shape) // 2)  # all the ball can reach
+    near = dilate_ball(union[box], gap_mm, segmented.work_spacing)
     longest = float(np.hypot(model.height_mm, model.bottom_diameter_mm)) + 2 * float(np.max(segmented.work_spacing))
     joined = False
-    for label_value in np.unique(segmented.labels[near]):
-        if label_value in (0, main) or sizes[label_value] * voxel_volume > 0.5 * model.volume_mm3:
+    for label_value in np.unique(segmented.labels[box][near]):
+        if not small[label_value]:
             continue
         candidate = union | (segmented.labels == label_value)
         if _diameter_mm(candidate, segmented.work_to_image) > longest:
             continue
         union, joined = candidate, True
     return segmented.blob(union) if joined else None
+
+
+def _box_around(mask: np.ndarray, margin: np.ndarray) -> tuple[slice, ...]:
+    """The bounding box of ``mask``'s voxels grown by ``margin`` voxels (z, y, x), within the array."""
+    occupied = [np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != axis))) for axis in range(3)]
+    return tuple(slice(max(0, int(o[0] - m)), int(o[-1] + m + 1)) for o, m in zip(occupied, margin, strict=True))
 
 
 def _diameter_mm(mask: np.ndarray, local_to_image: np.ndarray) -> float:

@@ -546,7 +546,7 @@ def series_record(chosen: DicomSeries, all_series: list[DicomSeries], folder: Pa
 
 
 def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None = None,
-                      workers: int | None = None) -> tuple[VolumeFill, dict[str, Any]]:
+                      workers: int | None = None, compact: bool = False) -> tuple[VolumeFill, dict[str, Any]]:
     """Start reading the chosen CT series of ``folder``; its fill and its ``ct_series`` record.
 
     Slices are decoded on ``workers`` threads (default: the CPU count, at most 8) and announced
@@ -554,9 +554,13 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
     header, ends the read with an :class:`EMRegError` naming the file. ``fill.sha256`` is the
     folder's sha256 (:func:`~EMRegModule.provenance.file_sha256`), made from each slice's bytes
     as they are read for decoding.
+
+    ``compact``: voxels of :func:`compact_voxel_type` (int16 where the headers allow values beyond
+    it but the CT's own values, as CTs' do, fit), half the memory to fill; a slice holding a value
+    beyond it ends the read with :class:`NarrowVoxelsError` (read again without ``compact``).
     """
     folder = Path(folder)
-    early = _EarlyImage()
+    early = _EarlyImage(compact)
     all_series = scan_series(folder, early.start)
     chosen = choose_series(all_series, folder, series)
     record = series_record(chosen, all_series, folder)
@@ -568,8 +572,8 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
         fill = VolumeFill(len(chosen.headers))
         fill.sha256 = Digest()
         workers = workers or max(1, min(8, os.cpu_count() or 1))
-        threading.Thread(target=_decode_series, args=(chosen, fill, workers, folder, early), name="emreg-dicom-read",
-                         daemon=True).start()
+        threading.Thread(target=_decode_series, args=(chosen, fill, workers, folder, early, compact),
+                         name="emreg-dicom-read", daemon=True).start()
     fill.series = record
     return fill, record
 
@@ -585,15 +589,16 @@ class _EarlyImage:
 
     _MAX_SLICES = 4096
 
-    def __init__(self) -> None:
+    def __init__(self, compact: bool = False) -> None:
         self._thread: threading.Thread | None = None
         self._image: sitk.Image | None = None
+        self._voxel_type = compact_voxel_type if compact else voxel_type
 
     def start(self, header: SliceHeader, count: int) -> None:
         if header.frames != 1 or header.samples != 1 or not 3 <= count <= self._MAX_SLICES \
                 or header.modality.upper() != "CT" or header.rows < 1 or header.columns < 1:
             return
-        size, pixel = [header.columns, header.rows, count], voxel_type([header])
+        size, pixel = [header.columns, header.rows, count], self._voxel_type([header])
 
         def allocate() -> None:
             self._image = sitk.Image(size, pixel)
@@ -608,7 +613,7 @@ class _EarlyImage:
         self._thread.join()
         image, self._image = self._image, None
         if image is None or series.multiframe or series.size is None or tuple(image.GetSize()) != series.size \
-                or image.GetPixelID() != voxel_type(series.headers):
+                or image.GetPixelID() != self._voxel_type(series.headers):
             return None
         return image
 
@@ -643,23 +648,70 @@ def _read_one(path: Path, pixel: int | None = None) -> sitk.Image:
         raise EMRegError(f"{path}: cannot decode the DICOM image ({detail})") from None
 
 
+class NarrowVoxelsError(Exception):
+    """A slice of a ``compact`` read holds a value beyond :func:`compact_voxel_type`: read the series again
+    without ``compact`` (not an input error: nothing is wrong with the file)."""
+
+
+def _stored_range(header: SliceHeader) -> tuple[int, int]:
+    """The values ``header``'s stored bits can hold (before its rescale)."""
+    bits = min(max(header.bits_stored, 1), 32)
+    return (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if header.signed else (0, (1 << bits) - 1)
+
+
+def _rescaled_range(header: SliceHeader) -> tuple[float, float]:
+    """The values ``header``'s slice can hold after its rescale (HU)."""
+    stored = _stored_range(header)
+    low, high = sorted((stored[0] * header.slope + header.intercept, stored[1] * header.slope + header.intercept))
+    return low, high
+
+
+def _integral(header: SliceHeader) -> bool:
+    return float(header.slope).is_integer() and float(header.intercept).is_integer()
+
+
 def voxel_type(headers: list[SliceHeader]) -> int:
     """The SimpleITK pixel type holding every slice's rescaled values exactly (int16 if it can)."""
-    lows, highs, integral = [], [], True
-    for h in headers:
-        bits = min(max(h.bits_stored, 1), 32)
-        stored = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if h.signed else (0, (1 << bits) - 1)
-        values = sorted((stored[0] * h.slope + h.intercept, stored[1] * h.slope + h.intercept))
-        lows.append(values[0])
-        highs.append(values[1])
-        integral &= float(h.slope).is_integer() and float(h.intercept).is_integer()
-    low, high = min(lows), max(highs)
-    if integral:
+    ranges = [_rescaled_range(h) for h in headers]
+    low, high = min(r[0] for r in ranges), max(r[1] for r in ranges)
+    if all(_integral(h) for h in headers):
         for dtype, pixel in ((np.int16, sitk.sitkInt16), (np.uint16, sitk.sitkUInt16), (np.int32, sitk.sitkInt32)):
             info = np.iinfo(dtype)
             if info.min <= low and high <= info.max:
                 return pixel
     return sitk.sitkFloat32
+
+
+def compact_voxel_type(headers: list[SliceHeader]) -> int:
+    """int16 where :func:`voxel_type` is int32 only because the stored bits could hold more than CT values do.
+
+    Scanners often store 16 bits with an intercept of -1024 (unsigned: -1024 .. 64511 HU; signed:
+    -33792 .. 31743), which takes int32 to hold exactly, while the CT's values (air -1000, bone a
+    few thousand, metal often clipped at 3071 or at most some 30000 HU) fit int16. A compact read
+    checks every slice (:class:`NarrowVoxelsError` when one does not fit).
+    """
+    exact = voxel_type(headers)
+    if exact == sitk.sitkInt32 and all(h.bits_allocated == 16 for h in headers):
+        return sitk.sitkInt16
+    return exact
+
+
+def _check_fits(values: np.ndarray, header: SliceHeader, dtype: np.dtype, stored: bool) -> None:
+    """Raise :class:`NarrowVoxelsError` when some of ``values`` (the slice's stored values if ``stored``, else
+    its rescaled ones) would not fit ``dtype`` once rescaled; nothing is checked where the header's range fits."""
+    if dtype.kind not in "iu":
+        return
+    info = np.iinfo(dtype)
+    low, high = _rescaled_range(header)
+    if info.min <= low and high <= info.max:
+        return
+    if stored:  # the stored values whose rescaled values fit (slope and intercept are integers here)
+        bounds = sorted(((info.min - header.intercept) / header.slope, (info.max - header.intercept) / header.slope))
+        allowed, held = (math.ceil(bounds[0]), math.floor(bounds[1])), _stored_range(header)
+    else:
+        allowed, held = (info.min, info.max), (low, high)
+    if (held[0] < allowed[0] and values.min() < allowed[0]) or (held[1] > allowed[1] and values.max() > allowed[1]):
+        raise NarrowVoxelsError(f"{header.name}: values beyond {dtype.name}")
 
 
 _UNCOMPRESSED = {"1.2.840.10008.1.2": "<", "1.2.840.10008.1.2.1": "<", "1.2.840.10008.1.2.2": ">"}
@@ -699,7 +751,7 @@ def _file_bytes(path: Path) -> tuple[memoryview, bytes]:
 
 def _read_uncompressed(header: SliceHeader, data: memoryview, out: np.ndarray) -> bool:
     """Decode an uncompressed 16-bit slice from its file's bytes into ``out`` (HU after its rescale); False if
-    not that simple.
+    not that simple; :class:`NarrowVoxelsError` when its values do not fit ``out``'s type.
 
     Taken only when the file ends with its Pixel Data element (checked from its tag) holding
     exactly rows x columns 16-bit values of a MONOCHROME2 image; the stored bits are masked
@@ -728,6 +780,7 @@ def _read_uncompressed(header: SliceHeader, data: memoryview, out: np.ndarray) -
         stored = (stored << unused) >> unused  # sign-extend the stored bits
     elif unused:
         stored = stored & ((1 << header.bits_stored) - 1)
+    _check_fits(stored, header, out.dtype, stored=True)
     if header.slope == 1.0 and out.dtype.kind in "iu" and float(header.intercept).is_integer():
         if out.dtype.itemsize == 2:
             # modulo 2**16 in the output's own type: the same bits as int32 sums cast to it, one pass
@@ -755,9 +808,9 @@ def _slice_tasks(headers: list[SliceHeader]) -> list[tuple[int, int]]:
 
 
 def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: Path,
-                   early: _EarlyImage | None = None) -> None:
+                   early: _EarlyImage | None = None, compact: bool = False) -> None:
     """The reading thread: allocate (or take the ``early`` image), decode slices on a pool, announce the
-    in-order prefix, then the sha256.
+    in-order prefix, then the sha256. ``compact``: see :func:`open_dicom_series`.
 
     Uncompressed slices are read whole (one read, which also gives their sha256) and converted by
     numpy; compressed ones are decoded by GDCM, a run of consecutive slices per
@@ -769,7 +822,7 @@ def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: 
     try:
         image = early.take(series) if early is not None else None  # allocated while the headers were read
         if image is None:
-            image = sitk.Image(list(series.size), voxel_type(series.headers))
+            image = sitk.Image(list(series.size), (compact_voxel_type if compact else voxel_type)(series.headers))
         image.SetSpacing(series.spacing)
         image.SetOrigin(series.origin)
         image.SetDirection(series.direction)
@@ -778,7 +831,7 @@ def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: 
         voxels = raw.view(view.dtype).reshape(view.shape)
         fill._set_image(image)
         expected = (series.size[1], series.size[0])
-        pixel = image.GetPixelID()
+        pixel = voxel_type(series.headers)  # GDCM's output, checked where it is narrowed to the image's type
 
         def decode(start: int, stop: int) -> None:
             if fill._cancelled:
@@ -816,8 +869,8 @@ def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: 
 
 
 def _decode_gdcm(headers: list[SliceHeader], out: np.ndarray, expected: tuple[int, int], pixel: int) -> None:
-    """Decode consecutive slices with GDCM into ``out`` (one ImageSeriesReader call; file by file on an error,
-    to name the file)."""
+    """Decode consecutive slices with GDCM as ``pixel`` into ``out`` (one ImageSeriesReader call; file by file on
+    an error, to name the file); :class:`NarrowVoxelsError` when a slice's values do not fit ``out``'s type."""
     if len(headers) > 1:
         reader = sitk.ImageSeriesReader()
         reader.SetImageIO("GDCMImageIO")
@@ -831,6 +884,8 @@ def _decode_gdcm(headers: list[SliceHeader], out: np.ndarray, expected: tuple[in
         if chunk is not None and chunk.GetNumberOfComponentsPerPixel() == 1:
             values = sitk.GetArrayViewFromImage(chunk)
             if values.shape == (len(headers), *expected):
+                for header, slice_values in zip(headers, values, strict=True):
+                    _check_fits(slice_values, header, out.dtype, stored=False)
                 np.copyto(out, values, casting="unsafe")
                 return
     for k, header in enumerate(headers):
@@ -840,6 +895,7 @@ def _decode_gdcm(headers: list[SliceHeader], out: np.ndarray, expected: tuple[in
         if values.shape != expected or slice_image.GetNumberOfComponentsPerPixel() != 1:
             raise EMRegError(f"{header.path}: the decoded image ({values.shape[-1]}x{values.shape[-2]}) disagrees "
                              f"with its header ({expected[1]}x{expected[0]})")
+        _check_fits(values, header, out.dtype, stored=False)
         np.copyto(out[k], values, casting="unsafe")
 
 

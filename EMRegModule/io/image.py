@@ -29,7 +29,7 @@ def read_ct(path: str | os.PathLike[str], series: str | int | None = None) -> si
     return open_ct(path, series).result()
 
 
-def open_ct(path: str | os.PathLike[str], series: str | int | None = None) -> VolumeFill:
+def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compact: bool = False) -> VolumeFill:
     """Start reading a CT as :func:`read_ct` does; the voxels may still be arriving when this returns.
 
     Plain NRRD, MetaImage and NIfTI files take the fast path of :mod:`.fast_read` (the same
@@ -39,6 +39,8 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None) -> Vo
     else is read by SimpleITK before this returns. The geometry is
     checked (:func:`check_ct`) before returning; ``result()`` raises the read's own errors.
     ``fill.sha256`` is the source's sha256 (provenance), computed from the bytes this read takes.
+    ``compact``: a DICOM series whose headers call for int32 voxels is read as int16 (half the memory to fill)
+    and ends with :class:`~EMRegModule.io.dicom_series.NarrowVoxelsError` if a slice does not fit it.
     """
     path = Path(path)
     if not path.exists():
@@ -47,7 +49,7 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None) -> Vo
         if path.is_dir():
             from .dicom_series import open_dicom_series
 
-            fill, _ = open_dicom_series(path, series)
+            fill, _ = open_dicom_series(path, series, compact=compact)
         else:
             if path.stat().st_size == 0:
                 raise EMRegError(f"{path}: CT file is empty")

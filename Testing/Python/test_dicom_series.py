@@ -7,6 +7,7 @@ the values written and against ``SimpleITK.ImageSeriesReader``.
 
 from __future__ import annotations
 
+import io
 import json
 import shutil
 from pathlib import Path
@@ -393,3 +394,46 @@ def test_compressed_runs_of_slices_keep_each_slices_own_rescale(tmp_path):
     with pytest.raises(EMRegError) as info:
         read_ct(tmp_path)
     assert files[10].name in str(info.value) and "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("syntax", ["uncompressed", "jpeg-lossless"])
+def test_a_compact_read_holds_int16_and_a_slice_beyond_it_is_read_again_exactly(tmp_path, syntax):
+    """16 stored bits with intercept -1024 take int32 to hold what the headers allow; detection reads such a
+    series as int16 (the CT's own values fit), and reads it again as int32 when one slice does not fit."""
+    from EMRegModule.controller import EMRegController
+    from EMRegModule.errors import NoSafeAnswerError
+    from EMRegModule.io.dicom_series import NarrowVoxelsError
+    from EMRegModule.progress import Progress
+
+    if syntax != "uncompressed" and tools_available():
+        pytest.skip(f"DICOM tools missing: {tools_available()} (scripts/setup)")
+    stored = make_volume(pixel=sitk.sitkUInt16, seed=16)  # 0 .. 3000 stored, all 16 bits in the header
+    files = write_series(stored, tmp_path / "fits", uid(70), rescale=[(1.0, -1024.0)] * 12, bits_stored=16)
+    if syntax != "uncompressed":
+        convert(files, syntax)
+    exact = _voxels(_series_reader(files))
+    assert exact.dtype == np.int32  # what SimpleITK gives: -1024 .. 64511 HU needs int32
+    fill, _ = open_dicom_series(tmp_path / "fits", compact=True)
+    compact = fill.result()
+    assert compact.GetPixelID() == sitk.sitkInt16
+    np.testing.assert_array_equal(_voxels(compact), exact)
+    assert read_ct(tmp_path / "fits").GetPixelID() == sitk.sitkInt32  # a plain read keeps the exact type
+
+    values = _voxels(stored)
+    values[7, 5, 6] = 40000  # 38976 HU: beyond int16, in the middle of the series
+    beyond = sitk.GetImageFromArray(values)
+    beyond.CopyInformation(stored)
+    files = write_series(beyond, tmp_path / "beyond", uid(71), rescale=[(1.0, -1024.0)] * 12, bits_stored=16)
+    if syntax != "uncompressed":
+        convert(files, syntax)
+    fill, _ = open_dicom_series(tmp_path / "beyond", compact=True)
+    with pytest.raises(NarrowVoxelsError) as info:
+        fill.result()
+    assert files[7].name in str(info.value)
+    log = io.StringIO()
+    controller = EMRegController(progress=Progress(log))
+    with pytest.raises(NoSafeAnswerError):  # no marker in this volume: the answer of the whole, exact image
+        controller.load_ct_and_detect(tmp_path / "beyond")
+    assert "reading the CT again with int32 voxels" in log.getvalue()
+    image = read_ct(tmp_path / "beyond")
+    assert image.GetPixelID() == sitk.sitkInt32 and int(_voxels(image).max()) == 38976

@@ -13,10 +13,12 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 from fixtures import phantom as ph
+from scipy import ndimage
 
 from EMRegModule.controller import EMRegController
 from EMRegModule.detection import detect as detect_module
 from EMRegModule.detection import detect_markers
+from EMRegModule.detection.components import GrowingComponents
 from EMRegModule.detection.segmentation import CoarseScan
 from EMRegModule.detection.settings import DetectionSettings, settings_from_dict
 from EMRegModule.errors import EMRegError
@@ -51,6 +53,34 @@ def test_coarse_scan_returns_each_component_once_whatever_the_steps(seed):
         assert _components(steps, volume) == whole, f"steps of {step} slices"
     uneven = sorted(set(rng.integers(1, volume.shape[0], size=12).tolist())) + [volume.shape[0]]
     assert _components(uneven, volume) == whole
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_growing_components_equal_the_labels_of_the_whole_volume(seed):
+    """Blocks of rows joined through their boundary give scipy's 26-connected components of the whole: count,
+    mean index and bounding box of each, every component once (arms that meet rows later, one-row blocks)."""
+    rng = np.random.default_rng(seed)
+    volume = rng.random((60, 35, 40)) < 0.03
+    if seed % 2:
+        volume = ndimage.binary_dilation(volume)
+    volume[5:50, 3, 3:30] = volume[5:50, 30, 3:30] = True  # a U: two arms, joined only at row 49
+    volume[49, 3:31, 3] = True
+    labels, _ = ndimage.label(volume, structure=np.ones((3, 3, 3), dtype=bool))
+    expected = []
+    for label, box in enumerate(ndimage.find_objects(labels), start=1):
+        members = np.argwhere(labels == label)
+        expected.append((len(members), tuple(members.mean(axis=0)), tuple(s.start for s in box),
+                         tuple(s.stop for s in box)))
+    components, row = GrowingComponents(), 0
+    found = []
+    while row < len(volume):
+        step = int(rng.integers(1, 7))
+        last = row + step >= len(volume)
+        complete = components.add(volume[row:row + step], last=last)
+        found += [(c.count, tuple(c.mean_zyx), tuple(c.start_zyx), tuple(c.stop_zyx)) for c in complete]
+        assert last or all(c.stop_zyx[0] < row + step for c in complete)  # never one the newest row touches
+        row += step
+    assert sorted(found) == sorted(expected) and len(found) > 20
 
 
 def _scene_with_metal_ahead() -> sitk.Image:
