@@ -90,6 +90,8 @@ class StreamedCT(VolumeFill):
         self.slice_bytes = int(size[0]) * int(size[1]) * dtype.itemsize
         # private: given-back pages are freed (in a shared mapping they would stay in memory)
         self._mapping = mmap.mmap(-1, max(1, self.slice_bytes * self.slice_count), flags=mmap.MAP_PRIVATE)
+        if hasattr(mmap, "MADV_HUGEPAGE"):  # 2 MB pages: the read faults 512x less (0.32 mm: 0.3 s of kernel
+            self._mapping.madvise(mmap.MADV_HUGEPAGE)  # time instead of 1.1 s); released slices split them
         self.bytes = np.frombuffer(self._mapping, dtype=np.uint8, count=self.slice_bytes * self.slice_count)
         self.array = self.bytes.view(dtype.newbyteorder("=")).reshape(self.slice_count, size[1], size[0])
         self._released = 0
