@@ -42,42 +42,53 @@ class GrowingComponents:
         self._start = np.zeros((1, 3), dtype=np.int64)
         self._stop = np.zeros((1, 3), dtype=np.int64)
         self._last_row: np.ndarray | None = None  # labels of the newest row
-        self._open: set[int] = set()  # roots of components not yet complete
+        self._open = np.zeros(0, dtype=np.int64)  # roots of components not yet complete
 
-    def add(self, block: np.ndarray, last: bool = False) -> list[Component]:
+    def add(self, block: np.ndarray, last: bool = False, min_count: int = 0) -> list[Component]:
         """Add the next rows (``block``, boolean z, y, x); the components they complete, ordered by their first
-        sample. ``last``: no rows follow, so every component still open is complete too."""
+        sample. ``last``: no rows follow, so every component still open is complete too. ``min_count``: complete
+        components of fewer samples are dropped unseen (noise specks: thousands of them in a noisy scan)."""
         labels, count = ndimage.label(block, structure=CONNECTIVITY_26)
         base = len(self._parent) - 1
         if count:
             self._grow(labels, count, base)
             np.add(labels, base, out=labels, where=labels > 0)
-        new = set(range(base + 1, base + count + 1))
         if count and self._last_row is not None and len(block):
             for a, b in _touching(self._last_row, labels[0]):
                 self._union(int(a), int(b))
         if len(block):
             self._last_row = labels[-1].copy()
         self._rows += len(block)
-        pending = {self._find(label) for label in self._open | new}
-        still_open = set() if last or self._last_row is None else \
-            {self._find(int(label)) for label in np.unique(self._last_row) if label}
-        self._open = still_open
-        complete = sorted(pending - still_open, key=lambda root: (tuple(self._start[root]), root))
+        pending = np.unique(self._roots(np.concatenate([self._open, np.arange(base + 1, base + count + 1)])))
+        self._open = np.zeros(0, dtype=np.int64) if last or self._last_row is None else \
+            np.unique(self._roots(np.unique(self._last_row[self._last_row > 0])))
+        complete = np.setdiff1d(pending, self._open, assume_unique=True)
+        complete = complete[self._count[complete] >= min_count]
+        start = self._start[complete]
+        complete = complete[np.lexsort((complete, start[:, 2], start[:, 1], start[:, 0]))]
         return [Component(int(self._count[root]), self._sums[root] / self._count[root], self._start[root].copy(),
                           self._stop[root].copy()) for root in complete]
 
+    def _roots(self, labels: np.ndarray) -> np.ndarray:
+        """The union-find roots of ``labels`` (all at once: parents are followed until none changes)."""
+        roots = self._parent[labels]
+        while True:
+            up = self._parent[roots]
+            if np.array_equal(up, roots):
+                return roots
+            roots = up
+
     def _grow(self, labels: np.ndarray, count: int, base: int) -> None:
         """Append the statistics of a block's ``count`` new labels (numbered ``base + 1 ..``)."""
-        inside = np.flatnonzero(labels)
+        inside = np.flatnonzero(labels)  # raster order
         members = labels.ravel()[inside]
-        counts = np.bincount(members, minlength=count + 1)[1:]
-        coordinates = np.unravel_index(inside, labels.shape)
-        sums = np.column_stack([np.bincount(members, weights=axis, minlength=count + 1)[1:] for axis in coordinates])
-        sums[:, 0] += self._rows * counts
-        boxes = ndimage.find_objects(labels, max_label=count)
-        start = np.array([[s.start for s in box] for box in boxes], dtype=np.int64) + [self._rows, 0, 0]
-        stop = np.array([[s.stop for s in box] for box in boxes], dtype=np.int64) + [self._rows, 0, 0]
+        order = np.argsort(members, kind="stable")  # by label (each of 1 .. count has samples)
+        first = np.flatnonzero(np.r_[True, members[order][1:] != members[order][:-1]])
+        counts = np.diff(np.r_[first, len(order)])
+        coordinates = np.column_stack(np.unravel_index(inside[order], labels.shape)) + [self._rows, 0, 0]
+        sums = np.add.reduceat(coordinates, first, axis=0).astype(float)  # integers: exact
+        start = np.minimum.reduceat(coordinates, first, axis=0)
+        stop = np.maximum.reduceat(coordinates, first, axis=0) + 1
         self._parent = np.concatenate([self._parent, np.arange(base + 1, base + count + 1)])
         self._count = np.concatenate([self._count, counts])
         self._sums = np.concatenate([self._sums, sums])
@@ -102,7 +113,6 @@ class GrowingComponents:
         self._sums[keep] += self._sums[gone]
         self._start[keep] = np.minimum(self._start[keep], self._start[gone])
         self._stop[keep] = np.maximum(self._stop[keep], self._stop[gone])
-        self._open.discard(gone)
 
 
 def _touching(previous: np.ndarray, first: np.ndarray) -> np.ndarray:

@@ -117,6 +117,8 @@ class CoarseScan:
         self._components = GrowingComponents()
         self._sample_volume = float(np.prod(self.spacing_zyx * self.strides))
         self._model_volume = model.volume_mm3
+        # components of fewer samples are specks that _component drops (its exact test, one sample of margin)
+        self._min_count = max(0, int(np.floor(0.3 * self._model_volume / self._sample_volume)) - 1)
         self._max_extent_mm = 1.5 * float(np.hypot(model.height_mm, model.bottom_diameter_mm))
         self._margin = self.strides + np.ceil(3.0 / self.spacing_zyx).astype(int)
 
@@ -136,7 +138,7 @@ class CoarseScan:
         block, self._rows = self._band[self._rows:rows], rows
         regions: list[Region] = []
         too_large: list[TooLarge] = []
-        for component in self._components.add(block, last=rows == total_rows):
+        for component in self._components.add(block, last=rows == total_rows, min_count=self._min_count):
             outcome = self._component(component)
             if isinstance(outcome, Region):
                 regions.append(outcome)
