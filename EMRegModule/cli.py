@@ -360,8 +360,8 @@ def _report_batch(args: argparse.Namespace, check_outputs, write_reports_batch) 
         pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args), bundles=bundles)
         print(f"{len(pages)} reports written under {args.batch}")
     finally:  # the cases that did get their report and bundle say so even when others failed
-        for folder, (path, message) in bundles:
-            _record_batch_report(args, Path(folder), path is not None)
+        for folder, (path, message, sha) in bundles:
+            _record_batch_report(args, Path(folder), sha if path is not None else None)
             print(_bundle_line(path, message))
     return 0
 
@@ -431,8 +431,9 @@ def _start_report_bundle(args: argparse.Namespace):
     return start_bundle_process(args.out, Path(args.case) if args.case else None, held=True)
 
 
-def _record_batch_report(args: argparse.Namespace, folder: Path, bundle: bool) -> None:
-    """The report (and bundle) a batch job wrote into ``folder``, listed in its ``run.json``."""
+def _record_batch_report(args: argparse.Namespace, folder: Path, bundle_sha256: str | None) -> None:
+    """The report (and bundle, whose sha256 its job computed as it wrote it) a batch job wrote into ``folder``,
+    listed in its ``run.json``."""
     from .io.atomic import read_json
     from .outputs import OutputFolder
 
@@ -444,7 +445,7 @@ def _record_batch_report(args: argparse.Namespace, folder: Path, bundle: bool) -
     try:
         controller = _controller(args, _settings(args, case_dir))
         controller.command = "emreg report --batch"
-        controller.record_report_outputs(OutputFolder(folder, controller.command), bundle)
+        controller.record_report_outputs(OutputFolder(folder, controller.command), bundle_sha256)
     except EMRegError as exc:
         _warn("report", [f"{folder}: not recorded in run.json ({exc})"])
 

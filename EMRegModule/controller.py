@@ -503,14 +503,15 @@ class EMRegController:
         self._recorded(folder, "report", self._provenance((), tuple(used)))
         return page
 
-    def record_report_outputs(self, folder: OutputFolder, bundle: bool) -> None:
+    def record_report_outputs(self, folder: OutputFolder, bundle_sha256: str | None) -> None:
         """List a report written into ``folder`` by another process (``emreg report --batch``'s jobs) in its
-        ``run.json``, and its scene bundle when ``bundle``, with their sha256 and provenance."""
+        ``run.json``, with their sha256 and provenance, and its scene bundle when one was written
+        (``bundle_sha256``: its sha256, computed as it was written)."""
         used = self._adopt_outputs(folder)
         provenance = self._provenance((), tuple(used))
         self._recorded(folder, "report", provenance)
-        if bundle:
-            self._recorded(folder, "bundle", provenance)
+        if bundle_sha256 is not None:
+            self._recorded(folder, "bundle", provenance, dict.fromkeys(STAGE_OUTPUTS["bundle"], bundle_sha256))
             return
         outputs = folder.manifest.get("outputs")  # an earlier bundle is gone (not renewed): no longer listed
         if isinstance(outputs, dict) and any([outputs.pop(name, None) for name in STAGE_OUTPUTS["bundle"]]):

@@ -18,7 +18,7 @@ from ..progress import QUIET, Progress
 from .inputs import has_report_inputs
 
 #: A scene bundle written by a batch job: its path (None when none could be written) and its message.
-BundleResult = tuple[str | None, str]
+BundleResult = tuple[str | None, str, str | None]
 
 #: Peak memory of one report over its CT's bytes (the CT once, its binned copy, the slices).
 CT_MEMORY_FACTOR = 1.1
@@ -114,10 +114,10 @@ def _batch_worker(folder: str, bundle: bool = False) -> tuple[str, str | None, s
         return folder, None, f"{type(exc).__name__}: {exc}", None
     written = None
     if bundle:  # with the CT the report holds: not read a second time
-        from ..io.slicer_scene import write_run_bundle
+        from ..io.slicer_scene import write_run_bundle_hashed
 
-        path, message = write_run_bundle(folder, image=ct)
-        written = (None if path is None else str(path), message)
+        path, message, sha = write_run_bundle_hashed(folder, image=ct)
+        written = (None if path is None else str(path), message, sha)
     return folder, str(page), None, written
 
 
@@ -132,8 +132,8 @@ def write_reports_batch(folders: Sequence[str | os.PathLike[str]], jobs: int = 1
     others are still rendered, then :class:`EMRegError` lists the failures.
 
     ``bundles``: when a list is given, each job also writes its case's 3D Slicer scene bundle
-    (``write_run_bundle``, with the CT its report read) and ``(folder, (bundle path or None, message))``
-    is appended to it for every reported folder, in the order of ``folders``.
+    (``write_run_bundle_hashed``, with the CT its report read) and ``(folder, (bundle path or None, message,
+    its sha256 computed as it was written))`` is appended to it for every reported folder, in the order of ``folders``.
     """
     progress = progress or QUIET
     if jobs < 1:
