@@ -249,8 +249,8 @@ def test_serve_to_igtl_source_navigation_chain():
 
         try:
             consumer.start(navigator.on_sample)
-            assert consumer.receiver.connected.wait(5) and received.connected.wait(5)
-            assert server.wait_for_clients(1) and downstream.wait_for_clients(1)
+            assert consumer.receiver.connected.wait(30) and received.connected.wait(30)
+            assert server.wait_for_clients(1, 30.0) and downstream.wait_for_clients(1, 30.0)
             source.start(tee)
             deadline = time.monotonic() + 30  # wait on counts, not for a time: a loaded machine only takes longer
             while (navigator.published < 40 or sum(m.message_type == "TRANSFORM" for m in poses) < 40) \
@@ -299,7 +299,7 @@ def test_watchdog_with_the_simulator_stops_and_resumes():
                     time.sleep(0.005)
                 return True
 
-            def wait_for(reason: str, timeout: float = 2.0) -> bool:
+            def wait_for(reason: str, timeout: float = 30.0) -> bool:
                 end = time.monotonic() + timeout
                 while time.monotonic() < end:
                     if nav.tick().reason == reason:
@@ -319,8 +319,11 @@ def test_watchdog_with_the_simulator_stops_and_resumes():
             sim.set_unplugged(1, False)
             assert wait_for("ok")
             assert wait_for_count(lambda: nav.published > during)  # publishing again
-            sim.stall(0.6)
+            # silent until the watchdog has been seen to say so (a fixed stall could end before a late
+            # test thread looks), then the line resumes
+            sim.stall(60.0)
             assert wait_for("stale")
+            sim.stall(0.0)
             assert wait_for("ok")
             sim.set_out_of_range(2)
             assert wait_for("out_of_range")
