@@ -49,12 +49,12 @@ def test_pyigtl_client_receives_transform_and_status_over_tcp():
     with IGTLServer("127.0.0.1", 0) as server:
         client = pyigtl.OpenIGTLinkClient("127.0.0.1", server.port)
         try:
-            assert server.wait_for_clients(1, 5.0)
+            assert server.wait_for_clients(1, 30.0)
             matrix = np.array([[0, -1, 0, 10.5], [1, 0, 0, -2.25], [0, 0, 1, 3], [0, 0, 0, 1]], dtype=float)
             server.send_transform("ProbeToImage", matrix)
             server.send(StatusMessage(1, 0, "OK", "tracking data good", device_name="Tracker"))
-            transform = client.wait_for_message("ProbeToImage", timeout=5)
-            status = client.wait_for_message("Tracker", timeout=5)
+            transform = client.wait_for_message("ProbeToImage", timeout=30)
+            status = client.wait_for_message("Tracker", timeout=30)
         finally:
             client.stop()
     np.testing.assert_allclose(transform.matrix, matrix, atol=1e-6)
@@ -92,7 +92,7 @@ def test_many_clients_and_a_stalled_one_never_block_the_sender():
             return newest == last_x
 
         try:
-            assert server.wait_for_clients(4, 5.0)
+            assert server.wait_for_clients(4, 30.0)
             sender = threading.Thread(target=send_all, daemon=True)
             sender.start()
             # A sender blocked by the client that never reads would never finish: the stalled
@@ -125,10 +125,10 @@ def test_many_clients_and_a_stalled_one_never_block_the_sender():
 def test_disconnecting_client_is_dropped_and_new_client_gets_last_status():
     with IGTLServer("127.0.0.1", 0) as server:
         first = socket.create_connection(("127.0.0.1", server.port))
-        assert server.wait_for_clients(1, 5.0)
+        assert server.wait_for_clients(1, 30.0)
         first.close()
         server.send(StatusMessage(16, 0, "ReferenceMissing", "reference sensor missing", device_name="ProbeToImage"))
-        deadline = time.monotonic() + 5
+        deadline = time.monotonic() + 30
         while server.client_count and time.monotonic() < deadline:
             server.send_transform("ProbeToImage", np.eye(4))
             time.sleep(0.01)
@@ -136,7 +136,7 @@ def test_disconnecting_client_is_dropped_and_new_client_gets_last_status():
         messages: list[MessageBase] = []
         late = IGTLReceiver("127.0.0.1", server.port, messages.append)
         try:
-            deadline = time.monotonic() + 5
+            deadline = time.monotonic() + 30
             while not messages and time.monotonic() < deadline:
                 time.sleep(0.01)
         finally:
@@ -166,7 +166,7 @@ def test_a_client_that_stops_reading_is_held_and_then_gets_the_newest_pose_not_a
     log = io.StringIO()
     with IGTLServer("127.0.0.1", 0, log=log) as server:
         slow = socket.create_connection(("127.0.0.1", server.port))
-        assert server.wait_for_clients(1, 5.0)
+        assert server.wait_for_clients(1, 30.0)
         client = server._clients[0]
         sent = 0
 
@@ -227,7 +227,7 @@ def test_a_normal_pyigtl_client_gets_every_pose_at_100_hz():
     with IGTLServer("127.0.0.1", 0, log=log) as server:
         client = Client("127.0.0.1", server.port)
         try:
-            assert server.wait_for_clients(1, 5.0)
+            assert server.wait_for_clients(1, 30.0)
             for k in range(1, 301):
                 matrix = np.eye(4)
                 matrix[0, 3] = k
