@@ -371,7 +371,8 @@ class TrakstarDriver:
         self._reader.start()
 
     def stop_stream(self) -> None:
-        """End STREAM mode (POINT byte), stop the reader thread and discard what is still in flight."""
+        """End STREAM mode (POINT byte), stop the reader thread and discard what is still in flight (records
+        already read but not yet handed to the callback included: it is not called again)."""
         if self._reader is None:
             return
         self._stop_reader.set()
@@ -404,6 +405,11 @@ class TrakstarDriver:
                 t_ns = time.monotonic_ns()
                 records = self.parser.feed(chunk, t_ns, timed=not late)
                 for data, end in zip(records, self.parser.ends, strict=True):
+                    if self._stop_reader.is_set():
+                        # stop_stream() discards what is still in flight: a late reader may hold a whole input
+                        # buffer of records (4 KB, ~70 cycles), and delivering them all to a slow callback would
+                        # outlast the join; the callback is never called once stop_stream() has returned
+                        break
                     address = data[-1] & 0x7F if self.group_mode else 1
                     new_frame = self._starts_cycle(address, end, len(data))
                     arrival_ns = self._arrival_ns(t_ns, end)

@@ -171,10 +171,16 @@ def test_stream_cycles_stay_whole_when_the_reader_is_late(sim, driver):
 
     driver.start_stream(late_reader)
     assert wait_for(lambda: len(got) >= 4 * 40)
+    reader = driver._reader
     driver.stop_stream()
+    delivered = len(got)
+    # stopped for good, although the late reader held an input buffer of records for a slow callback (once
+    # the join gave up after 2 s while the callback went on, and these checks raced with it)
+    assert not reader.is_alive()
     assert driver.stats.rejected == 0
     assert assert_subsequence_of_truth(got, sim.truth, 36) == len(got)
     assert_whole_cycles(got)
+    assert len(got) == delivered  # nothing delivered after stop_stream() returned
 
 
 class _UsbChunks:
