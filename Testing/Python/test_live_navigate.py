@@ -415,6 +415,8 @@ def test_cli_serve_publishes_tracker_transforms_as_measured(tmp_path):
                 got.setdefault(message.device_name, message)
             time.sleep(0.01)
         runner.join(timeout=10)
+        for message in client.get_latest_messages():  # what arrived after this thread last looked
+            got.setdefault(message.device_name, message)
     finally:
         client.stop()
     assert result.get("code") == 0
