@@ -104,10 +104,21 @@ def prepare_context_surface(data: ReportData) -> None:
 def prepare_ct_products(data: ReportData) -> None:
     """What the figures take from the CT's voxels: the block-averaged CT and the marker planes (made as the CT
     is read; no rendering library is needed). A CT that fails to read becomes a note (and no CT figure)."""
-    from ..rendering.slices import StreamingMarkerViews
+    from ..io.dicom_series import NarrowVoxelsError
 
     if data.inputs.ct is None or data.binned is not None:
         return
+    try:
+        _sample_ct(data)
+    except NarrowVoxelsError:  # a compact DICOM read met a value beyond int16: the whole CT again, exactly
+        data.inputs.read_ct_exactly()
+        data.marker_views = None
+        _sample_ct(data)
+
+
+def _sample_ct(data: ReportData) -> None:
+    from ..rendering.slices import StreamingMarkerViews
+
     ct = data.inputs.ct
     try:
         if data.rows:

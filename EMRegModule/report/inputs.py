@@ -62,6 +62,7 @@ class ReportInputs:
     navigation_labels: list[str] | None = None
     ct: VolumeFill | None = None
     ct_path: Path | None = None
+    ct_series: str | int | None = None  # a DICOM folder's series, as ``--series`` takes it
     targets_labels: list[str] | None = None
     targets_positions: np.ndarray | None = None
     settings: Settings = field(default_factory=Settings)
@@ -72,6 +73,13 @@ class ReportInputs:
     def image(self) -> sitk.Image | None:
         """The whole CT (waits for its read to finish), or None without one."""
         return None if self.ct is None else self.ct.result()
+
+    def read_ct_exactly(self) -> None:
+        """Read the DICOM CT again at the voxel type its headers call for (int32), after its compact read
+        (int16) met a slice beyond int16 (:class:`~EMRegModule.io.dicom_series.NarrowVoxelsError`)."""
+        from ..io.image import open_ct
+
+        self.ct = open_ct(self.ct_path, self.ct_series)
 
 
 def has_report_inputs(folder: str | os.PathLike[str]) -> bool:
@@ -152,10 +160,12 @@ def _start_ct(inputs: ReportInputs, image: sitk.Image | None, read_image: bool, 
         inputs.ct = image if early is not None else VolumeFill.complete(image)
     elif read_image and inputs.ct_path is not None:
         used = (inputs.run or {}).get("ct_series") or {}  # a DICOM folder: the series the run detected in
-        series = used.get("series_instance_uid") or inputs.settings.ct.series
+        inputs.ct_series = used.get("series_instance_uid") or inputs.settings.ct.series
         try:
             streamed = None if keep_ct or inputs.ct_path.is_dir() else start_streamed_read(inputs.ct_path)
-            inputs.ct = streamed if streamed is not None else open_ct(inputs.ct_path, series)
+            # a DICOM series stored as 16 bits with an intercept is read as int16 (the detection's compact
+            # read: half the memory of int32, the same values); prepare_ct_products reads it again if need be
+            inputs.ct = streamed if streamed is not None else open_ct(inputs.ct_path, inputs.ct_series, compact=True)
         except EMRegError as exc:
             inputs.notes.append(str(exc))
 

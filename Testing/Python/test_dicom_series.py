@@ -437,3 +437,44 @@ def test_a_compact_read_holds_int16_and_a_slice_beyond_it_is_read_again_exactly(
     assert "reading the CT again with int32 voxels" in log.getvalue()
     image = read_ct(tmp_path / "beyond")
     assert image.GetPixelID() == sitk.sitkInt32 and int(_voxels(image).max()) == 38976
+
+
+def _unsigned_copy(hard_case: Path, folder: Path, series_uid: str, beyond_int16: bool) -> Path:
+    """The hard case with its CT stored the way many scanners store it: unsigned 16 bits, intercept -1024
+    (SimpleITK reads it as int32); ``beyond_int16``: one voxel far from the frame at 40000 stored (38976 HU)."""
+    shutil.copytree(hard_case, folder, ignore=shutil.ignore_patterns("ct"))
+    hu = read_ct(hard_case / "ct")
+    stored = np.clip(_voxels(hu).astype(np.int32) + 1024, 0, 65535).astype(np.uint16)
+    if beyond_int16:
+        stored[len(stored) // 2, 0, 0] = 40000
+    image = sitk.GetImageFromArray(stored)
+    image.CopyInformation(hu)
+    write_series(image, folder / "ct", series_uid, rescale=[(1.0, -1024.0)] * len(stored), bits_stored=16)
+    return folder
+
+
+@pytest.mark.parametrize("beyond_int16", [False, True])
+def test_report_reads_a_dicom_ct_compact_and_again_exactly_when_a_value_does_not_fit(hard_case, tmp_path,
+                                                                                      beyond_int16):
+    """``emreg report`` reads a 16-bit DICOM CT with an intercept as int16, like the detection (half the memory
+    of SimpleITK's int32), and reads it again as int32 when a slice does not fit: its figures are those the run
+    drew from the CT it held, byte for byte."""
+    from EMRegModule.report.figures import ReportData, prepare_ct_products
+    from EMRegModule.report.inputs import load_report_inputs
+
+    case = _unsigned_copy(hard_case, tmp_path / "case", uid(80 + beyond_int16), beyond_int16)
+    assert read_ct(case / "ct").GetPixelID() == sitk.sitkInt32  # what the headers call for
+    out = tmp_path / "out"
+    assert main(["run", str(case), "--out", str(out), "--quiet"]) == 0
+    figures = {p.name: p.read_bytes() for p in (out / "report_figures").glob("*.png")}
+    assert {"scene_oblique.png", "marker_slices.png"} <= set(figures)
+    assert main(["report", str(out), "--quiet"]) == 0
+    assert {p.name: p.read_bytes() for p in (out / "report_figures").glob("*.png")} == figures
+
+    inputs = load_report_inputs(out)
+    assert inputs.ct.image.GetPixelID() == sitk.sitkInt16  # the compact read, before any slice is in
+    data = ReportData(inputs, rows=[], points={})
+    prepare_ct_products(data)
+    image = inputs.image
+    assert image.GetPixelID() == (sitk.sitkInt32 if beyond_int16 else sitk.sitkInt16)
+    assert int(_voxels(image).max()) == (38976 if beyond_int16 else int(_voxels(read_ct(case / "ct")).max()))
