@@ -236,14 +236,12 @@ class _MemoryVoxels:
         return tuple(int(n) for n in self.data.GetDimensions())
 
     def write_gzip(self, sink: Any) -> None:
-        from isal import isal_zlib
         from vtkmodules.util import numpy_support
 
         flat = memoryview(numpy_support.vtk_to_numpy(self.data.GetPointData().GetScalars())).cast("B")
-        deflate = isal_zlib.compressobj(BUNDLE_GZIP_LEVEL, isal_zlib.DEFLATED, 31)  # 31: a gzip stream
-        for start in range(0, flat.nbytes, _CHUNK_BYTES):
-            sink.write(deflate.compress(flat[start:start + _CHUNK_BYTES]))
-        sink.write(deflate.flush())
+        with _parallel_gzip(sink) as gzip:
+            for start in range(0, flat.nbytes, _CHUNK_BYTES):
+                gzip.write(flat[start:start + _CHUNK_BYTES])
 
     @property
     def nbytes(self) -> int:
@@ -295,17 +293,26 @@ class StoredVoxels:
             if self.encoding == "gzip":
                 shutil.copyfileobj(source, sink, _CHUNK_BYTES)
                 return
-            from isal import isal_zlib
-
-            deflate = isal_zlib.compressobj(BUNDLE_GZIP_LEVEL, isal_zlib.DEFLATED, 31)
             left = self.nbytes
-            while left > 0:
-                chunk = source.read(min(_CHUNK_BYTES, left))
-                if not chunk:
-                    raise EMRegError(f"{self.path}: the CT file is shorter than its header says")
-                left -= len(chunk)
-                sink.write(deflate.compress(chunk))
-            sink.write(deflate.flush())
+            with _parallel_gzip(sink) as gzip:
+                while left > 0:
+                    chunk = source.read(min(_CHUNK_BYTES, left))
+                    if not chunk:
+                        raise EMRegError(f"{self.path}: the CT file is shorter than its header says")
+                    left -= len(chunk)
+                    gzip.write(chunk)
+
+
+def _parallel_gzip(sink: Any) -> Any:
+    """A writer of one gzip stream into ``sink``, compressed by ISA-L on every core (pigz's way: 1 MB blocks,
+    each with the last 32 kB of the one before as its dictionary). The bytes do not depend on the number of
+    threads, and the header has no time stamp: the same voxels give the same stream. ``sink`` stays open.
+
+    One thread compressed a 0.5 mm full-frame CT (955 MB) at about 250 MB/s: 4-5 s of ``emreg report`` on a
+    DICOM case, whose bundle compresses the CT from memory."""
+    from isal import igzip_threaded
+
+    return igzip_threaded.open(sink, "wb", compresslevel=BUNDLE_GZIP_LEVEL, threads=max(1, os.cpu_count() or 1))
 
 
 def _spooled(voxels: _MemoryVoxels | StoredVoxels, scratch: Path) -> list[Any]:
