@@ -129,8 +129,14 @@ def ct_bytes(case: Path) -> float:
 
     from EMRegModule.io.case import find_ct
 
+    ct = find_ct(case)
+    if ct.is_dir():  # a DICOM folder: the series the detection uses, as it stores its voxels
+        from EMRegModule.io.dicom_series import choose_series, scan_series
+
+        series = choose_series(scan_series(ct), ct)
+        return float(np.prod(series.size)) * series.headers[0].bits_allocated // 8
     reader = sitk.ImageFileReader()
-    reader.SetFileName(str(find_ct(case)))
+    reader.SetFileName(str(ct))
     reader.ReadImageInformation()
     pixel = sitk.Image([1, 1, 1], reader.GetPixelID())
     return float(np.prod(reader.GetSize())) * pixel.GetSizeOfPixelComponent()
