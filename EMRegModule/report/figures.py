@@ -111,8 +111,13 @@ def prepare_ct_products(data: ReportData) -> None:
     try:
         _sample_ct(data)
     except NarrowVoxelsError:  # a compact DICOM read met a value beyond int16: the whole CT again, exactly
-        data.inputs.read_ct_exactly()
         data.marker_views = None
+        try:
+            data.inputs.read_ct_exactly()
+        except EMRegError as exc:
+            data.inputs.notes.append(str(exc))
+            data.inputs.ct = None
+            return
         _sample_ct(data)
 
 
