@@ -20,6 +20,7 @@ x 15 dwells) and the board (60 rounds).
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import pytest
@@ -32,6 +33,21 @@ STANDARD_SEED = 11
 HARD_SEED = 12
 
 __all__ = ["CI_CASE_OPTIONS", "load_truth"]
+
+
+@pytest.fixture(autouse=True)
+def _signal_handlers_restored():
+    """Every test starts with the SIGINT / SIGTERM handlers the session started with.
+
+    Whatever a test leaves installed would otherwise meet later tests: pyigtl's server and client install
+    handlers of their own in the thread that makes them and never put the previous ones back, and
+    ``emreg`` commands run in-process install their SIGTERM handler. A test that sends itself SIGINT then met
+    a stale handler and the run it interrupted ended 0 (a full CI run, not reproduced alone)."""
+    saved = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    for signum, handler in saved.items():
+        if handler is not None and signal.getsignal(signum) is not handler:
+            signal.signal(signum, handler)
 
 
 @pytest.fixture(scope="session")

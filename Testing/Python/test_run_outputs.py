@@ -268,6 +268,9 @@ def test_a_signal_as_the_run_records_its_end_is_told_in_run_json(cases, tmp_path
         original(self, status, message)
 
     monkeypatch.setattr(OutputFolder, "finish", finish)
+    # SIGINT as an emreg started from a terminal has it (a pytest started in the background ignores SIGINT,
+    # and Python keeps it ignored); conftest puts the session's handler back afterwards
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     out = _reused_out(cases, tmp_path)
     assert main(["run", str(cases / "b"), "--out", str(out), "--quiet"]) == 130
     assert "interrupted (SIGINT)" in capsys.readouterr().err
