@@ -320,11 +320,10 @@ def cmd_report(args: argparse.Namespace) -> int:
     early = _start_report_ct(args)  # the CT's read goes on while the report's libraries load
     bundle = early_bundle = _start_report_bundle(args)  # held: writes nothing into OUT until released below
     try:
-        from .outputs import OutputFolder, check_outputs
-        from .report import write_reports_batch
+        from .outputs import OutputFolder
 
         if args.batch:
-            return _report_batch(args, check_outputs, write_reports_batch)
+            return _report_batch(args)
         if not args.out:
             raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
         _out_folder(args.out, create=False)  # the run's folder: the report is written into it
@@ -347,8 +346,11 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def _report_batch(args: argparse.Namespace, check_outputs, write_reports_batch) -> int:
+def _report_batch(args: argparse.Namespace) -> int:
     """``emreg report --batch DIR``: every run folder under DIR, each with its bundle."""
+    from .outputs import check_outputs
+    from .report import write_reports_batch
+
     batch = Path(args.batch)
     if not batch.is_dir():
         raise EMRegError(f"{batch}: folder of run outputs not found")

@@ -548,21 +548,17 @@ class EMRegController:
         if job is not None:
             with self.progress.step("writing the 3D Slicer scene bundle (in parallel)"):
                 path, message, sha = job.result()
-            if path is None:
-                self.warn([message])
-            else:
-                self._recorded(folder, "bundle", self._provenance((), tuple(job.used)),
-                               {path.name: sha} if sha else None)
-            return f"bundle: {message}"
-        used = self._adopt_outputs(folder)
-        image = self.image if self.image is not None else self._report_image  # the CT is not read again
-        self._report_image = None
-        if not bundle_needs_ct_image(_manifest_ct(folder.manifest)):
-            image = None  # the bundle copies the CT from its file: its memory is freed before slicer-core loads
-            if not self.keep_ct:
-                self.image = None
-        with self.progress.step("writing the 3D Slicer scene bundle"):
-            path, message, sha = write_run_bundle_hashed(folder.path, case_dir, image)
+            used = job.used
+        else:
+            used = self._adopt_outputs(folder)
+            image = self.image if self.image is not None else self._report_image  # the CT is not read again
+            self._report_image = None
+            if not bundle_needs_ct_image(_manifest_ct(folder.manifest)):
+                image = None  # the bundle copies the CT from its file: its memory is freed before slicer-core loads
+                if not self.keep_ct:
+                    self.image = None
+            with self.progress.step("writing the 3D Slicer scene bundle"):
+                path, message, sha = write_run_bundle_hashed(folder.path, case_dir, image)
         if path is None:
             self.warn([message])
         else:

@@ -111,21 +111,17 @@ def prepare_ct_products(data: ReportData) -> None:
     try:
         _sample_ct(data)
     except NarrowVoxelsError:  # a compact DICOM read met a value beyond int16: the whole CT again, exactly
-        data.marker_views = None
-        try:
-            data.inputs.read_ct_exactly()
-        except EMRegError as exc:
-            data.inputs.notes.append(str(exc))
-            data.inputs.ct = None
-            return
-        _sample_ct(data)
+        _sample_ct(data, read_exactly=True)
 
 
-def _sample_ct(data: ReportData) -> None:
+def _sample_ct(data: ReportData, read_exactly: bool = False) -> None:
     from ..rendering.slices import StreamingMarkerViews
 
-    ct = data.inputs.ct
     try:
+        if read_exactly:
+            data.inputs.read_ct_exactly()
+        ct = data.inputs.ct
+        data.marker_views = None
         if data.rows:
             data.marker_views = StreamingMarkerViews(ct.image, _slice_markers(data), data.inputs.model,
                                                      array=getattr(ct, "array", None))
