@@ -73,6 +73,10 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
     band = {"low_hu": options.low_hu, "high_hu": options.high_hu,
             "source": "case.toml [detection]" if explicit else "default"}
     estimate = _marker_hu_estimate(outcomes, model, options)
+    if not explicit and estimate is None:
+        with progress.step("few markers in the default band: measuring the markers with the band's top "
+                           "raised to the metal level"):
+            estimate = _bright_marker_estimate(volume, spacing_zyx, index_to_image, model, options, progress)
     if not explicit and estimate is not None and not _band_suits(estimate, options):
         scaled = _band_around(estimate, options)
         with progress.step(f"markers read {estimate:.0f} HU: detecting again with the band "
@@ -171,6 +175,21 @@ def _marker_hu_estimate(outcomes: list[_Outcome], model: MarkerModel, options: D
     bright = [o.marker_hu for _, o in outcomes if isinstance(o, RejectedCandidate) and o.code == "bone"
               and np.isfinite(o.marker_hu) and abs(o.volume_mm3 / model.volume_mm3 - 1) <= 2 * options.volume_tolerance]
     return float(np.median(bright)) if len(bright) >= 3 else None
+
+
+def _bright_marker_estimate(volume: np.ndarray, spacing_zyx: np.ndarray, index_to_image: np.ndarray,
+                            model: MarkerModel, options: DetectionSettings, progress: Progress) -> float | None:
+    """The intensity (HU) of markers brighter than the band's top, measured with the top raised to ``metal_hu``;
+    None unless at least three markers are found that way.
+
+    With coarse voxels (about 1 mm) such a marker leaves only its thin partial-volume shell in the default
+    band: the coarse search drops it as a speck, so no marker-sized candidate is turned down as bone for
+    :func:`_marker_hu_estimate` to measure. Called only when the default band found too little to measure.
+    """
+    wide = replace(options, high_hu=options.metal_hu)
+    outcomes, _ = _one_pass(volume, spacing_zyx, index_to_image, model, wide, progress, None)
+    markers = [o.marker_hu for _, o in outcomes if isinstance(o, DetectedMarker) and np.isfinite(o.marker_hu)]
+    return float(np.median(markers)) if len(markers) >= 3 else None
 
 
 def _band_suits(marker_hu: float, options: DetectionSettings) -> bool:

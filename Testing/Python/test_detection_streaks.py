@@ -79,3 +79,19 @@ def test_low_kvp_scan_band_is_estimated_from_the_markers(pvc_hu, seed, tmp_path)
     if pvc_hu == 1900.0:  # without the estimate the default band misses every marker
         (tmp_path / "case.toml").write_text("[detection]\nestimate_band = false\n")
         assert _detect(case / "ct.nrrd", tmp_path / "fixed", "--settings", str(tmp_path / "case.toml")) == 3
+
+
+@pytest.mark.parametrize(("pvc_hu", "seed"), [(1850.0, 12), (1900.0, 14)])
+def test_low_kvp_scan_with_1mm_voxels_finds_every_marker(pvc_hu, seed, tmp_path):
+    """With 1 mm voxels a marker reading above the default band's top leaves only its thin partial-volume
+    shell in the band: the coarse search drops it as a speck, no candidate is turned down as bone, and
+    the band must still be estimated from the markers (not "0 markers found", exit 3)."""
+    case = tmp_path / "case"
+    simulate_case(case, seed=seed, pvc_hu=pvc_hu, spacing_mm=1.0, **CI_CASE_OPTIONS)
+    assert _detect(case, tmp_path / "out") == 0
+    truth = load_truth(case)
+    origin_errors, axis_errors, false, missed = errors_against_truth(read_detection(tmp_path / "out"), truth)
+    assert not false and not missed, (false, missed)
+    assert np.median(origin_errors) < 0.25 and origin_errors.max() < 0.6, origin_errors
+    band = json.loads((tmp_path / "out" / "markers.json").read_text())["band"]
+    assert band["source"].startswith("estimated") and abs(band["marker_hu"] - pvc_hu) < 60
