@@ -140,6 +140,44 @@ def test_pose_from_a_poor_start_converges():
     assert np.abs(surface_distances(fit.marker_to_image[:3, 3][None], fit.marker_to_image, model)).max() < 1e-9
 
 
+def test_a_hopeless_fit_is_not_polished_and_is_rejected_as_it_would_be(monkeypatch):
+    """A decoy like a marker (a PVC cylinder of its volume) fits no start within the good RMS: no start gets the final
+    ICP, and the RMS it is rejected with is within 0.01 mm of the polished one; a marker's fit is polished."""
+    from EMRegModule.detection import pose
+
+    model = MarkerModel()
+    geometry = ph.make_image_geometry((64, 64, 64), (0.6, 0.6, 0.6))
+    centre = ph.center_of(geometry)
+    axis = np.array([0.3, -0.2, -0.93]) / np.linalg.norm([0.3, -0.2, -0.93])
+    radius = 0.45 * model.bottom_diameter_mm
+    decoy = ph.cylinder_object(centre, axis, radius, model.volume_mm3 / (np.pi * radius**2), ph.PVC_HU, kind="decoy")
+    marker = ph.marker_object(model, centre - axis * model.centroid_y_mm, axis, ph.PVC_HU)
+    polished = []
+    refine_with, hopeless_fraction = pose.refine_with, pose.HOPELESS_FRACTION
+
+    def counted(*args, **kwargs):
+        polished.append(kwargs.get("max_iterations") == 20)
+        return refine_with(*args, **kwargs)
+
+    monkeypatch.setattr(pose, "refine_with", counted)
+
+    def fit(obj, hopeless_fraction: float) -> pose.PoseFit:
+        monkeypatch.setattr(pose, "HOPELESS_FRACTION", hopeless_fraction)
+        polished.clear()
+        image = ph.render(geometry, [obj], noise_hu=20.0, blur_mm=0.45, seed=2)
+        values = sitk.GetArrayFromImage(image).astype(np.float32)
+        index_to_image = ph.index_to_image_of(image)
+        return fit_pose(values > 600, index_to_image, values, index_to_image, model, trim_mm=1.05, good_rms_mm=0.35)
+
+    always = fit(decoy, 1e-9)  # every start polished, as before
+    assert sum(polished) >= 4 and always.fit_rms_mm > 0.35
+    rejected = fit(decoy, hopeless_fraction)
+    assert sum(polished) == 0 and rejected.fit_rms_mm > 0.35
+    assert abs(rejected.fit_rms_mm - always.fit_rms_mm) < 0.01
+    found = fit(marker, hopeless_fraction)
+    assert sum(polished) >= 1 and found.fit_rms_mm < 0.1
+
+
 def test_another_marker_design_is_a_matter_of_numbers():
     model = MarkerModel(bottom_diameter_mm=12.0, bottom_height_mm=7.0, top_diameter_mm=5.0, top_height_mm=8.0)
     scene = ph.scene(model=model, decoys=False, metal=False, cut_marker=False, seed=4)
