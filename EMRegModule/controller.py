@@ -649,7 +649,12 @@ class EMRegController:
     def _run_register(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
         if self.detection is None or self.frame_calibration is None:
             return
-        targets = case.read_targets()
+        try:
+            targets = case.read_targets()
+        except NoSafeAnswerError:
+            raise
+        except EMRegError:  # optional: only the TRE and its prediction use them; the evaluation says why
+            targets = None
         registration = self.register(None if targets is None else targets[1])
         self.save_registration(folder)
         self.warn(registration.warnings)

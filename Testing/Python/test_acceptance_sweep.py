@@ -14,6 +14,8 @@ at the command line on small simulated cases made here.
   small the CT is and that EMReg reads millimetres.
 - A recording separated by semicolons or tabs was told its header lacked every column; the separator is
   now named. Capitalised header names (``Time_s``) are read as the spec's.
+- A malformed targets.mrk.json stopped ``emreg run`` at the registration (exit 2, nothing registered);
+  the targets are optional evidence, so the run now registers and says why the TRE was not evaluated.
 """
 
 from __future__ import annotations
@@ -149,3 +151,29 @@ def test_a_csv_with_another_separator_or_capitalised_header(small_case, tmp_path
     points = [[p["position"] for p in json.loads((tmp_path / out / "frame_calibration.json").read_text())["points"]]
               for out in ("cap", "ref")]
     assert points[0] == points[1]
+
+
+@pytest.mark.parametrize("content,needle", [
+    ('{"markups": [', "not a valid markups JSON"),
+    ('{"markups": [{"type": "Fiducial", "coordinateSystem": "LPS", "controlPoints": '
+     '[{"label": "T1", "position": [1, "x", 3]}]}]}', "not a Slicer markups file"),
+])
+def test_a_run_with_a_broken_targets_file_registers_and_says_why_the_tre_was_not_evaluated(
+        small_case, tmp_path, capsys, content, needle):
+    """A malformed targets.mrk.json (optional: only the TRE and its prediction use it) stopped the run at the
+    registration with exit 2 and no registration.json, while a targets file without points, or any
+    unreadable navigation recording, is "TRE not evaluated" in a run that finishes (spec: emreg run finishes
+    when registration succeeds even if an optional evaluation cannot be made)."""
+    case = _variant(small_case, tmp_path / "case", ())
+    (case / "targets.mrk.json").write_text(content)
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(["run", str(case), "--out", str(out), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "TRE not evaluated" in err and needle in err and "Traceback" not in err
+    run = _json(out / "run.json")
+    assert run["status"] == "finished"
+    assert needle in run["not_evaluated"]["tre"] and str(case / "targets.mrk.json") in run["not_evaluated"]["tre"]
+    assert (out / "registration.json").is_file() and (out / "navigation.csv").is_file()
+    evaluation = _json(out / "evaluation.json")
+    assert "tre" not in evaluation and "board" in evaluation
