@@ -11,7 +11,9 @@ the binned volume plus one slice.
 the frame and the patient, without the artefacts of the metal in the reference sensor:
 
 1. the iso-value is Otsu's threshold of the binned volume's histogram between its 0.5th and
-   99.5th percentiles (air against everything else; the metal's extreme values cannot move it);
+   99.5th percentiles (air against everything else; the metal's extreme values cannot move it),
+   with values below air (-1024 HU) counted as air: scanners write -2000 or -3024 outside their
+   field of view (DICOM's Pixel Padding Value), and that would otherwise be "air" against the rest;
 2. thin pieces are opened away: a morphological opening with a 3 x 3 x 3 cube removes every
    structure less than three binned voxels thick, which is what a streak through the metal
    becomes (a sheet in the scanner's axial planes), and keeps boxes, edges and corners whole;
@@ -41,6 +43,8 @@ if TYPE_CHECKING:
 
     from ..io.fast_read import VolumeFill
 
+#: CT values below this (HU) are counted as air by :func:`otsu_threshold` (padding outside the field of view).
+AIR_HU = -1024.0
 #: Largest number of binned voxels (the CT is averaged over blocks down to at most this).
 MAX_CONTEXT_VOXELS = 3_000_000
 #: Connected pieces smaller than this fraction of the largest kept piece are left out of the surface.
@@ -158,11 +162,13 @@ def _bin_block(block: np.ndarray, factor: int, accumulator: np.ndarray, columns:
 
 
 def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
-    """Otsu's threshold of the values between their 0.5th and 99.5th percentiles (metal cannot pull it)."""
+    """Otsu's threshold of CT values (HU) between their 0.5th and 99.5th percentiles (metal cannot pull it), values
+    below :data:`AIR_HU` counted as air (the padding outside the scanner's field of view cannot either)."""
     finite = values[np.isfinite(values)]
     if finite.size == 0:
         return 0.0
     low, high = np.percentile(finite, [0.5, 99.5])
+    low = max(float(low), AIR_HU) if high > AIR_HU else float(low)
     if high <= low:
         return float(low)
     counts, edges = np.histogram(np.clip(finite, low, high), bins=bins, range=(low, high))

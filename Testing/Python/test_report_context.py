@@ -83,6 +83,20 @@ def test_otsu_threshold_ignores_metal():
     assert -900 < otsu_threshold(values) < 200
 
 
+@pytest.mark.parametrize("padding_hu", [-2000.0, -3024.0])
+def test_padding_outside_the_field_of_view_is_air_to_the_surface(padding_hu):
+    """A scanner's padding outside its circular field of view (DICOM Pixel Padding Value) leaves the iso-value
+    between air and the frame, and the surface on the frame: no cylinder around the field of view."""
+    plain = _scene_volume(sheet=False)
+    k, j, i = np.indices(plain.values.shape)
+    padded = BinnedCT(plain.values.copy(), plain.index_to_image, 1)
+    padded.values[(j - 25) ** 2 + (i - 30) ** 2 > 24**2] = padding_hu
+    iso = otsu_threshold(padded.values)
+    assert iso == pytest.approx(otsu_threshold(plain.values), abs=60.0) and -900 < iso < 200
+    surface = context_surface(padded)
+    assert np.allclose(surface.surface.bounds, np.array([10, 39, 10, 39, 10, 29]) * 2.0, atol=2.1)
+
+
 def test_slices_sampled_while_the_ct_arrives_equal_those_of_the_whole_ct(tmp_path):
     model = MarkerModel()
     markers = samples.sample_markers()[:3]
