@@ -16,6 +16,8 @@ at the command line on small simulated cases made here.
   now named. Capitalised header names (``Time_s``) are read as the spec's.
 - A malformed targets.mrk.json stopped ``emreg run`` at the registration (exit 2, nothing registered);
   the targets are optional evidence, so the run now registers and says why the TRE was not evaluated.
+- A PVC disc of a marker's volume resting on the frame was listed as a marker (hard cases at 1-1.25 mm):
+  the edge fit's narrow top sat in the frame's plastic or in air; a marker's top must hold marker material.
 """
 
 from __future__ import annotations
@@ -177,3 +179,20 @@ def test_a_run_with_a_broken_targets_file_registers_and_says_why_the_tre_was_not
     assert (out / "registration.json").is_file() and (out / "navigation.csv").is_file()
     evaluation = _json(out / "evaluation.json")
     assert "tre" not in evaluation and "board" in evaluation
+
+
+def test_a_disc_resting_on_the_frame_is_not_taken_for_a_marker(tmp_path):
+    """A squat PVC disc of a marker's volume and width (a decoy of the hard cases) was listed as a marker in
+    about half of the hard sweep cases: the edge fit put the model's wide part on the disc and its narrow top
+    into the frame's plastic (or air), where no edge contradicts it. The top must hold marker material."""
+    from test_detection_cases import errors_against_truth
+
+    from EMRegModule.detection import read_detection
+
+    case = tmp_path / "case"
+    simulate_case(case, seed=5, difficulty="hard", spacing_mm=1.25, ct_format="nrrd", n_decoys=8,
+                  frame_size_mm=(220.0, 220.0, 140.0), n_markers=16)
+    assert main(["detect", str(case), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    truth = json.loads((case / "truth.json").read_text())
+    _, _, false, missed = errors_against_truth(read_detection(tmp_path / "out"), truth)
+    assert not false and not missed, (false, missed)
