@@ -13,7 +13,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from ..marker_model import MarkerModel
 from ..transforms import apply_transform
 from .segmentation import Blob, box_extreme, dilate_ball, erode_ball
 from .settings import DetectionSettings
@@ -91,36 +90,3 @@ def metal_distance_mm(centroid: np.ndarray, metal_zyx: np.ndarray, index_to_imag
     if not points:
         return float("inf")
     return float(np.min(np.linalg.norm(np.concatenate(points) - centroid, axis=1)))
-
-
-def top_levels_hu(blob: Blob, marker_to_image: np.ndarray, model: MarkerModel) -> tuple[float, float]:
-    """Median intensity (HU, linear interpolation of the blob's full-resolution values) inside the marker's
-    narrow top at the pose ``marker_to_image`` (Marker -> LPS mm), and just outside it.
-
-    Inside: a ring midway between the pinhole's wall and the top cylinder's, 1 mm clear of the shoulder
-    and of the top face; outside: the same heights 2 mm beyond the top cylinder's wall. An edge fit cannot
-    tell a marker from a squat lump of its wide part's size (a disc resting on the frame): the narrow top
-    then finds no edges, in air or plastic, so its RMS is as small. The image can: a marker's top holds PVC.
-    """
-    points = _top_rings(model)
-    image_to_local = np.linalg.inv(blob.full_to_image)
-    levels = []
-    for ring in points:
-        local = apply_transform(image_to_local @ marker_to_image, ring)
-        levels.append(float(np.median(ndimage.map_coordinates(blob.full_values, local[:, ::-1].T, order=1,
-                                                              mode="nearest"))))
-    return levels[0], levels[1]
-
-
-def _top_rings(model: MarkerModel, angles: int = 8, heights: int = 6) -> tuple[np.ndarray, np.ndarray]:
-    """Points (Marker frame, mm) inside the narrow top and just outside it (see :func:`top_levels_hu`)."""
-    low, high = model.bottom_height_mm + 1.0, model.height_mm - 1.0
-    if high <= low:
-        low = high = model.bottom_height_mm + model.top_height_mm / 2
-    y = np.linspace(low, high, heights)
-    theta = np.linspace(0.0, 2 * np.pi, angles, endpoint=False)
-    rings = []
-    for radius in (0.25 * (model.pinhole_diameter_mm + model.top_diameter_mm), 0.5 * model.top_diameter_mm + 2.0):
-        yy, tt = np.meshgrid(y, theta, indexing="ij")
-        rings.append(np.stack([radius * np.cos(tt).ravel(), yy.ravel(), radius * np.sin(tt).ravel()], axis=1))
-    return rings[0], rings[1]

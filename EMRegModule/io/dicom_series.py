@@ -553,7 +553,7 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
     in order (``wait_for_slices``). A slice GDCM cannot decode, or whose size disagrees with its
     header, ends the read with an :class:`EMRegError` naming the file. ``fill.sha256`` is the
     folder's sha256 (:func:`~EMRegModule.provenance.file_sha256`), made from each slice's bytes
-    as they are read for decoding.
+    as they are read for decoding (the first ones, read while the volume is allocated, are hashed then).
 
     ``compact``: voxels of :func:`compact_voxel_type` (int16 where the headers allow values beyond
     it but the CT's own values, as CTs' do, fit), half the memory to fill; a slice holding a value
@@ -605,6 +605,10 @@ class _EarlyImage:
 
         self._thread = threading.Thread(target=allocate, name="emreg-dicom-allocate", daemon=True)
         self._thread.start()
+
+    def allocating(self) -> bool:
+        """Whether the early image is still being allocated."""
+        return self._thread is not None and self._thread.is_alive()
 
     def take(self, series: DicomSeries) -> sitk.Image | None:
         """The early image if it fits ``series`` (size, voxel type), else None (it is let go)."""
@@ -726,8 +730,9 @@ def _direct(header: SliceHeader) -> bool:
         and header.samples == 1 and header.photometric == "MONOCHROME2" and 1 <= header.bits_stored <= 16
 
 
-def _file_bytes(path: Path) -> tuple[memoryview, bytes]:
-    """The whole file in this thread's reusable buffer, and its sha256 (one read, no allocation per slice)."""
+def _file_bytes(path: Path, hashed: bool = True) -> tuple[memoryview, bytes | None]:
+    """The whole file in this thread's reusable buffer, and its sha256 (one read, no allocation per slice; None
+    unless ``hashed``)."""
     try:
         with path.open("rb", buffering=0) as stream:
             size = os.fstat(stream.fileno()).st_size
@@ -746,7 +751,7 @@ def _file_bytes(path: Path) -> tuple[memoryview, bytes]:
     except OSError as exc:
         raise EMRegError(f"{path}: cannot read ({exc.strerror})") from None
     view = view[:filled]
-    return view, hashlib.sha256(view).digest()
+    return view, hashlib.sha256(view).digest() if hashed else None
 
 
 def _read_uncompressed(header: SliceHeader, data: memoryview, out: np.ndarray) -> bool:
@@ -819,7 +824,10 @@ def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: 
     """
     digests: dict[str, bytes] = {}
     names = {h.path: _relative(h.path, folder) for h in series.headers}
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="emreg-dicom-decode")
     try:
+        if early is not None:
+            _hash_while_allocating(series.headers, early, pool, workers, names, digests)
         image = early.take(series) if early is not None else None  # allocated while the headers were read
         if image is None:
             image = sitk.Image(list(series.size), (compact_voxel_type if compact else voxel_type)(series.headers))
@@ -839,14 +847,16 @@ def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: 
             headers = series.headers[start:stop]
             direct = False
             for k, header in enumerate(headers, start):
-                data, digest = _file_bytes(header.path)
-                digests[names[header.path]] = digest
+                hashed = names[header.path] not in digests
+                data, digest = _file_bytes(header.path, hashed)
+                if hashed:
+                    digests[names[header.path]] = digest
                 if stop - start == 1:
                     direct = _read_uncompressed(header, data, voxels[k])
             if not direct:
                 _decode_gdcm(headers, voxels[start:stop], expected, pixel)
 
-        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="emreg-dicom-decode") as pool:
+        with pool:
             tasks = _slice_tasks(series.headers)
             futures = [pool.submit(decode, start, stop) for start, stop in tasks]
             try:
@@ -861,11 +871,26 @@ def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: 
                 raise
             _finish_digest(fill, folder, digests, pool)
     except BaseException as exc:  # handed to the waiting thread
+        pool.shutdown(cancel_futures=True)
         if not fill.sha256.done():
             fill.sha256.fail(exc)
         fill._finish(exc)
     else:
         fill._finish()
+
+
+def _hash_while_allocating(headers: list[SliceHeader], early: _EarlyImage, pool: ThreadPoolExecutor, workers: int,
+                           names: dict[Path, str | None], digests: dict[str | None, bytes]) -> None:
+    """While the early volume is being allocated (zeroed, which keeps one core busy without the GIL), hash the
+    first slices' files on the pool into ``digests``: the decoding, which waits for the volume, then reads them
+    without hashing them (the slices' sha256 is the largest share of an uncompressed series' CPU)."""
+    k, width = 0, max(1, workers - 1)  # a core is zeroing the volume
+    while k < len(headers) and early.allocating():
+        batch = headers[k:k + width]
+        for path, digest in zip([h.path for h in batch],
+                                pool.map(lambda h: _file_bytes(h.path)[1], batch), strict=True):
+            digests[names[path]] = digest
+        k += len(batch)
 
 
 def _decode_gdcm(headers: list[SliceHeader], out: np.ndarray, expected: tuple[int, int], pixel: int) -> None:

@@ -320,6 +320,32 @@ def test_the_folder_sha256_comes_from_the_read_and_equals_a_pass_of_its_own(tmp_
     assert file_sha256(tmp_path) != folder_sha256(expected)
 
 
+def test_slices_hashed_while_the_volume_is_allocated_are_not_hashed_again_and_the_sha256_holds(tmp_path,
+                                                                                                 monkeypatch):
+    """The first slices are hashed while the volume is zeroed (here: for three rounds of the pool); their
+    decoding reads them without hashing them again, and the folder's sha256 and the voxels are those of a plain
+    read."""
+    from EMRegModule.io import dicom_series
+    from EMRegModule.provenance import file_sha256
+
+    _export(tmp_path)
+    rounds = iter([True, True, True])
+    monkeypatch.setattr(dicom_series._EarlyImage, "allocating", lambda self: next(rounds, False))
+    hashed: list[bool] = []
+    file_bytes = dicom_series._file_bytes
+
+    def counted(path, hashed_here=True):
+        hashed.append(hashed_here)
+        return file_bytes(path, hashed_here)
+
+    monkeypatch.setattr(dicom_series, "_file_bytes", counted)
+    fill, _ = open_dicom_series(tmp_path, workers=2)
+    image = fill.result()
+    assert hashed.count(True) == image.GetSize()[2] and hashed.count(False) == 3  # three rounds of one slice each
+    assert fill.sha256.result() == file_sha256(tmp_path)
+    np.testing.assert_array_equal(_voxels(image), _voxels(_series_reader(sorted((tmp_path / "S1").glob("*.dcm")))))
+
+
 def test_enhanced_multiframe_ct_is_chosen_and_placed_from_its_functional_groups(tmp_path):
     """An Enhanced CT file (frames stored top down) beside a thick classic series: it is the volume used,
     its frames ordered along the normal, its geometry that of the same volume exported slice by slice."""
