@@ -346,8 +346,8 @@ def edge_points(values_zyx: np.ndarray, local_to_image: np.ndarray, marker_to_im
     for depth in np.unique(samples.inner_mm):
         rows = samples.inner_mm == depth
         first = int(np.argmin(np.abs(s + depth)))
-        inner[rows] = np.median(profiles[rows, first:first + plateau + 1], axis=1)
-    outer = np.median(profiles[:, -plateau - 1:], axis=1)
+        inner[rows] = _row_medians(profiles[rows, first:first + plateau + 1])
+    outer = _row_medians(profiles[:, -plateau - 1:])
     level = (inner + outer) / 2
     usable = (inner - outer >= min_contrast_hu) & (inner >= min_inner_hu)
     above = profiles - level[:, None]
@@ -362,6 +362,13 @@ def edge_points(values_zyx: np.ndarray, local_to_image: np.ndarray, marker_to_im
     a0, a1 = above[rows, k], above[rows, k + 1]
     offsets = s[k] + step_mm * a0 / (a0 - a1)
     return EdgeHits(base[rows], direction[rows], offsets)
+
+
+def _row_medians(values: np.ndarray) -> np.ndarray:
+    """``np.median(values, axis=1)`` for short rows (the same values), without its general machinery: a sort."""
+    ordered = np.sort(values, axis=1)
+    n = ordered.shape[1]
+    return (ordered[:, (n - 1) // 2] + ordered[:, n // 2]) / 2
 
 
 def point_to_plane_step(hits: EdgeHits, marker_to_image: np.ndarray, keep: np.ndarray) -> np.ndarray:
