@@ -24,6 +24,10 @@ SAME_MOMENT_S = 1e-3
 #: A recording with nothing recorded for longer than this (s) is split there into segments (with a warning).
 MAX_GAP_S = 2.0
 
+#: More clock resets than this in one recording are not resets: its rows are out of time order (a file sorted by
+#: another column, or shuffled), and they are read by their time stamps instead (with a warning).
+MAX_CLOCK_RESETS = 10
+
 #: Consecutive segments are this far apart (s) on a recording's timeline (more than any dwell gap).
 SEGMENT_SEPARATION_S = 2.0
 
@@ -290,7 +294,10 @@ def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "r
     segment starts where a sensor's time goes back (a clock reset: the rows after it are kept, not
     merged with the earlier ones by time) and where nothing was recorded for more than
     ``MAX_GAP_S``. Within a segment each sensor's time must increase; a repeated or decreasing time
-    that is not a reset of the whole recording is an :class:`EMRegError` naming the place.
+    that is not a reset of the whole recording is an :class:`EMRegError` naming the place. A sensor
+    whose time goes back more than ``MAX_CLOCK_RESETS`` times is no clock being reset: the rows are
+    out of order (sorted by another column, shuffled), so they are taken in the order of their times
+    (a warning says so) and only a time seen twice for one sensor is refused.
     ``where(row)`` names a row's place in its file (default ``line {row + first_line}``; a sequence
     file says ``frame N``).
     """
@@ -306,7 +313,12 @@ def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "r
         return segment, warnings
     order = np.lexsort((np.arange(n), sensor))  # by sensor, file order within
     same = sensor[order][1:] == sensor[order][:-1]
-    if np.any(same & (np.diff(time_s[order]) < 0)):
+    backs = int(np.count_nonzero(same & (np.diff(time_s[order]) < 0)))
+    in_time_order = backs > MAX_CLOCK_RESETS  # not a clock: rows out of order, read by their time stamps
+    if in_time_order:
+        warnings.append(f"{source}: the rows are not in time order (a sensor's time goes back {backs} times, more "
+                        f"than {MAX_CLOCK_RESETS} clock resets): read in the order of time_s")
+    elif backs:
         current, last = 0, {}
         for i, (t, s) in enumerate(zip(time_s.tolist(), sensor.tolist(), strict=True)):
             if s in last and t < last[s]:
@@ -329,12 +341,13 @@ def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "r
         segment[rows] = segment[rows] * (n + 1) + np.searchsorted(times[gaps], time_s[rows], side="left")
     if warnings:
         segment = np.unique(segment, return_inverse=True)[1].reshape(n)
-        # keep the segments in file order of first appearance
-        first = {int(v): i for i, v in reversed(list(enumerate(segment.tolist())))}
+        # keep the segments in file order of first appearance (time order for rows out of order)
+        visit = np.argsort(time_s, kind="stable") if in_time_order else np.arange(n)
+        first = {int(segment[i]): k for k, i in reversed(list(enumerate(visit.tolist())))}
         rank = {v: r for r, v in enumerate(sorted(first, key=first.get))}
         segment = np.array([rank[int(v)] for v in segment.tolist()], dtype=int)
-    # within a segment, each sensor's time must increase
-    order = np.lexsort((np.arange(n), segment, sensor))
+    # within a segment, each sensor's time must increase (in file order; rows out of order: no time twice)
+    order = np.lexsort((time_s if in_time_order else np.arange(n), segment, sensor))
     same = (sensor[order][1:] == sensor[order][:-1]) & (segment[order][1:] == segment[order][:-1])
     bad = np.nonzero(same & (np.diff(time_s[order]) <= 0))[0]
     if len(bad):
