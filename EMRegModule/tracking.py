@@ -21,6 +21,14 @@ from .transforms import invert_rigid
 #: Reference and probe rows of one moment share ``time_s`` within this tolerance (spec).
 SAME_MOMENT_S = 1e-3
 
+#: Time stamps are decimal text read into binary floating point: two stamps written exactly 1 ms apart can read
+#: a little more than ``SAME_MOMENT_S`` apart (0.42 and 0.421: 1.0000000000000009 ms; near epoch times of
+#: 1.7e9 s, up to 2.4e-7 s more). Same-moment comparisons allow this much beyond ``SAME_MOMENT_S``.
+TIME_STAMP_SLACK_S = 1e-6
+
+#: The largest difference (s) of two time stamps of one moment, as compared: ``SAME_MOMENT_S`` plus the slack.
+SAME_MOMENT_LIMIT_S = SAME_MOMENT_S + TIME_STAMP_SLACK_S
+
 #: A recording with nothing recorded for longer than this (s) is split there into segments (with a warning).
 MAX_GAP_S = 2.0
 
@@ -166,7 +174,8 @@ def match_moments(
     """Index pairs (reference_index, probe_index) of rows taken at the same moment.
 
     Both inputs are time-sorted single-sensor recordings. Each probe row is paired with the
-    nearest reference row when they are within ``tolerance_s``; other probe rows are dropped.
+    nearest reference row when they are within ``tolerance_s`` (plus ``TIME_STAMP_SLACK_S``, the round-off of
+    decimal time stamps); other probe rows are dropped.
     """
     if len(reference) == 0 or len(probe) == 0:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
@@ -176,7 +185,8 @@ def match_moments(
     left = np.clip(right - 1, 0, len(reference) - 1)
     pick_left = np.abs(reference_time[left] - probe_time) <= np.abs(reference_time[right] - probe_time)
     nearest = np.where(pick_left, left, right)
-    ok = (np.abs(reference_time[nearest] - probe_time) <= tolerance_s) & (reference.segment[nearest] == probe.segment)
+    same_moment = np.abs(reference_time[nearest] - probe_time) <= tolerance_s + TIME_STAMP_SLACK_S
+    ok = same_moment & (reference.segment[nearest] == probe.segment)
     return nearest[ok], np.nonzero(ok)[0]
 
 
