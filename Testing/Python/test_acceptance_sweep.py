@@ -19,6 +19,8 @@ at the command line on small simulated cases made here.
 - A PVC disc of a marker's volume resting on the frame was listed as a marker (hard cases at 1-1.25 mm):
   the edge fit's narrow top sat in the frame's plastic or in air; a marker's top must hold marker material.
 - ``emreg simulate --spacing nan`` (and ``demo``) passed the range checks and ended in a traceback, exit 1.
+- A disk that filled up during ``emreg run`` gave "error: No space left on device" naming no file, left
+  run.json saying "running" and the report's figures without their page.
 """
 
 from __future__ import annotations
@@ -222,3 +224,32 @@ def test_simulation_options_that_are_not_finite_are_refused():
                         ("sensor_offset_l_mm", float("nan")), ("oblique_deg", float("nan"))):
         with pytest.raises(EMRegError, match=name):
             resolve_options("standard", None, {name: value})
+
+
+def test_a_full_disk_names_the_file_and_leaves_run_json_saying_failed(small_case, tmp_path, capsys, monkeypatch):
+    """A disk that fills up while the report is written (ENOSPC) ended the run with the bare line "error: No
+    space left on device" (no file named), left ``run.json`` saying "running" and the report's figures without
+    their page. Now the line names the file, run.json says the run failed and why, and the figures go."""
+    import errno
+    import pathlib
+
+    real_write_text = pathlib.Path.write_text
+
+    def full_disk(self, *args, **kwargs):
+        if self.suffix == ".html":
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write_text(self, *args, **kwargs)
+
+    monkeypatch.setattr(pathlib.Path, "write_text", full_disk)
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(["run", str(small_case), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(out / "report.html") in err[0] and "No space left on device" in err[0], err
+    monkeypatch.undo()
+    run = _json(out / "run.json")
+    assert run["status"] == "failed" and "report" in run["message"] and "No space left" in run["message"]
+    assert not (out / "report.html").exists() and not (out / "report_figures").exists()
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".")]  # no temporary left behind
+    assert set(run["outputs"]) <= {p.name for p in out.iterdir()}  # what run.json lists is there, complete
+    assert (out / "registration.json").is_file()
