@@ -604,8 +604,10 @@ class EMRegController:
             summary.append(f"{stage}: refused: {exc}")
             folder.finish("refused", f"{stage}: {exc}")
             raise
-        except EMRegError as exc:
-            folder.finish("failed", f"{stage}: {exc}")
+        except (EMRegError, OSError) as exc:
+            with contextlib.suppress(OSError):  # on a full disk even run.json may not be written
+                folder.drop_unrecorded()  # a stage's outputs written before it failed (figures without their page)
+                folder.finish("failed", f"{stage}: {exc}")
             raise
         except KeyboardInterrupt as exc:
             with signals_held(redeliver=False):  # a second Ctrl-C does not cut the record short

@@ -22,22 +22,31 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 
     The temporary name keeps the final suffix(es) so writers that choose the format by
     extension (SimpleITK, VTK, PNG) still work. On any exception the temporary is removed
-    and ``path`` is left untouched.
+    and ``path`` is left untouched; a file-system error (a full disk, a folder made read-only)
+    becomes an :class:`~EMRegModule.errors.EMRegError` naming ``path`` (the OS names none, or the
+    temporary).
     """
+    from ..errors import EMRegError
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    suffix = "".join(path.suffixes) or ".tmp"
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem.split('.')[0]}-", suffix=suffix, dir=path.parent)
-    os.close(fd)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        suffix = "".join(path.suffixes) or ".tmp"
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem.split('.')[0]}-", suffix=suffix, dir=path.parent)
+        os.close(fd)
+    except OSError as exc:
+        raise EMRegError(f"{path}: cannot write ({exc.strerror or exc})") from None
     tmp = Path(tmp_name)
     try:
         yield tmp
         if tmp.exists():  # mkstemp makes the file private; give it the usual umask-based mode
             os.chmod(tmp, 0o666 & ~_current_umask())
         os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
             tmp.unlink()
+        if isinstance(exc, OSError):
+            raise EMRegError(f"{path}: cannot write ({exc.strerror or exc})") from None
         raise
 
 

@@ -680,12 +680,6 @@ class RunScene:
     notes: list[str] = field(default_factory=list)
 
 
-def _read_navigation_positions(path: Path) -> np.ndarray:
-    from .navigation_csv import read_navigation_csv
-
-    return read_navigation_csv(path)[0]
-
-
 def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
                 image: Any = None) -> RunScene:
     """Read a run's outputs (``markers.json``, ``frame_calibration.json``, ``registration.json``,
@@ -711,7 +705,9 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
     if (out / "registration.json").is_file():
         content.registration = read_json(out / "registration.json", "registration JSON")
     if (out / "navigation.csv").is_file():
-        content.path = _read_navigation_positions(out / "navigation.csv")
+        from .navigation_csv import read_navigation_csv
+
+        content.path = read_navigation_csv(out / "navigation.csv")[0]
     if (out / TRE_MAP_FILE).is_file():
         content.tre_map_path = out / TRE_MAP_FILE
     if case_dir is not None:
@@ -866,11 +862,13 @@ def write_run_bundle_hashed(out_dir: str | os.PathLike[str], case_dir: str | os.
             allowed.append(may_write is None or may_write())
         return allowed[0]
 
+    unwanted = None, f"no {BUNDLE_FILE} written: not wanted any more", None
+
     def no_bundle(reason: str) -> tuple[None, str, None]:
         if allowed_to_write():
             _remove_stale_bundle(out)
             return None, f"no {BUNDLE_FILE} written: {reason}", None
-        return None, f"no {BUNDLE_FILE} written: not wanted any more", None
+        return unwanted
 
     missing = slicer_mrml_missing()
     if missing:
@@ -883,7 +881,7 @@ def write_run_bundle_hashed(out_dir: str | os.PathLike[str], case_dir: str | os.
         built = build_run_scene(holder.scene, content)
         stored = {built[VOLUME_NODE_NAME].GetID(): content.stored_ct} if content.stored_ct is not None else {}
         if not allowed_to_write():
-            return None, f"no {BUNDLE_FILE} written: not wanted any more", None
+            return unwanted
         path = holder.write_bundle(out / BUNDLE_FILE, stored)
     except (EMRegError, OSError, KeyError, ValueError, TypeError) as exc:
         return no_bundle(str(exc))

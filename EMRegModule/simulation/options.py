@@ -55,6 +55,11 @@ class SimulationOptions:
 
     def check(self) -> None:
         """Refuse impossible values with an :class:`EMRegError` naming the option."""
+        for option in fields(self):  # NaN slips through every range test below (its comparisons are false)
+            value = getattr(self, option.name)
+            numbers = value if isinstance(value, tuple) else (value,)
+            if any(isinstance(v, float) and not np.isfinite(v) for v in numbers):
+                raise EMRegError(f"simulate: {option.name} must be finite numbers, got {value}")
         size = np.asarray(self.frame_size_mm, dtype=float)
         if size.shape != (3,) or np.any(size < 80) or np.any(size > 1000):
             raise EMRegError(f"simulate: frame_size_mm must be three lengths of 80..1000 mm, got {self.frame_size_mm}")

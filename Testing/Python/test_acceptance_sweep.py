@@ -18,6 +18,9 @@ at the command line on small simulated cases made here.
   the targets are optional evidence, so the run now registers and says why the TRE was not evaluated.
 - A PVC disc of a marker's volume resting on the frame was listed as a marker (hard cases at 1-1.25 mm):
   the edge fit's narrow top sat in the frame's plastic or in air; a marker's top must hold marker material.
+- ``emreg simulate --spacing nan`` (and ``demo``) passed the range checks and ended in a traceback, exit 1.
+- A disk that filled up during ``emreg run`` gave "error: No space left on device" naming no file, left
+  run.json saying "running" and the report's figures without their page.
 """
 
 from __future__ import annotations
@@ -196,3 +199,57 @@ def test_a_disc_resting_on_the_frame_is_not_taken_for_a_marker(tmp_path):
     truth = json.loads((case / "truth.json").read_text())
     _, _, false, missed = errors_against_truth(read_detection(tmp_path / "out"), truth)
     assert not false and not missed, (false, missed)
+
+
+@pytest.mark.parametrize("command", ["simulate", "demo"])
+@pytest.mark.parametrize("spacing", ["nan", "NaN"])
+def test_a_spacing_that_is_not_a_number_is_a_one_line_usage_error(tmp_path, capsys, command, spacing):
+    """``--spacing nan`` passed the range check (every comparison with NaN is false) and ended in a numpy
+    traceback with exit 1; it is a bad value like any other out of range (exit 2, one line)."""
+    out = tmp_path / "out"
+    args = [command, str(out)] if command == "simulate" else [command, "--out", str(out)]
+    capsys.readouterr()
+    assert main([*args, "--spacing", spacing, "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "spacing" in err[0] and "Traceback" not in err[0]
+    assert not list(out.rglob("*.nrrd")) and not list(out.rglob("truth.json"))
+
+
+def test_simulation_options_that_are_not_finite_are_refused():
+    from EMRegModule.errors import EMRegError
+    from EMRegModule.simulation.options import resolve_options
+
+    for name, value in (("noise_hu", float("nan")), ("frame_size_mm", (200.0, float("nan"), 100.0)),
+                        ("psf_fwhm_mm", float("inf")), ("tracker_noise_scale", float("nan")),
+                        ("sensor_offset_l_mm", float("nan")), ("oblique_deg", float("nan"))):
+        with pytest.raises(EMRegError, match=name):
+            resolve_options("standard", None, {name: value})
+
+
+def test_a_full_disk_names_the_file_and_leaves_run_json_saying_failed(small_case, tmp_path, capsys, monkeypatch):
+    """A disk that fills up while the report is written (ENOSPC) ended the run with the bare line "error: No
+    space left on device" (no file named), left ``run.json`` saying "running" and the report's figures without
+    their page. Now the line names the file, run.json says the run failed and why, and the figures go."""
+    import errno
+    import pathlib
+
+    real_write_text = pathlib.Path.write_text
+
+    def full_disk(self, *args, **kwargs):
+        if self.suffix == ".html":
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write_text(self, *args, **kwargs)
+
+    monkeypatch.setattr(pathlib.Path, "write_text", full_disk)
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(["run", str(small_case), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(out / "report.html") in err[0] and "No space left on device" in err[0], err
+    monkeypatch.undo()
+    run = _json(out / "run.json")
+    assert run["status"] == "failed" and "report" in run["message"] and "No space left" in run["message"]
+    assert not (out / "report.html").exists() and not (out / "report_figures").exists()
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".")]  # no temporary left behind
+    assert set(run["outputs"]) <= {p.name for p in out.iterdir()}  # what run.json lists is there, complete
+    assert (out / "registration.json").is_file()
