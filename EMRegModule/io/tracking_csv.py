@@ -169,16 +169,19 @@ def _parse_fast(
     if body.count(",") != len(lines) * (n_columns - 1):  # some row has a field too many or too few
         return None
     try:
-        data = np.loadtxt(lines, delimiter=",", usecols=numeric_idx, ndmin=2)
+        # comments=None: numpy's default cuts every line at "#", which a label may hold ("Hole #1")
+        data = np.loadtxt(lines, delimiter=",", comments=None, usecols=numeric_idx, ndmin=2)
         if quality_idx is not None:
-            text = np.char.strip(np.loadtxt(lines, delimiter=",", usecols=[quality_idx], dtype=str, ndmin=1))
+            text = np.char.strip(np.loadtxt(lines, delimiter=",", comments=None, usecols=[quality_idx], dtype=str,
+                                            ndmin=1))
             quality = np.full(len(lines), np.nan)
             given = text != ""
             quality[given] = text[given].astype(float)
         else:
             quality = np.full(len(lines), np.nan)
         if label_idx is not None:
-            labels = np.char.strip(np.loadtxt(lines, delimiter=",", usecols=[label_idx], dtype=str, ndmin=1))
+            labels = np.char.strip(np.loadtxt(lines, delimiter=",", comments=None, usecols=[label_idx], dtype=str,
+                                              ndmin=1))
         else:
             labels = np.full(len(lines), "")
     except ValueError:

@@ -9,6 +9,9 @@ example), each checked at the command line on a small simulated case made here.
   samples without a word (70 % on a simulated case): time stamps read from decimal text differ by a little
   more than 1 ms in binary floating point (0.421 - 0.42 > 0.001). Same-moment comparisons now allow the
   round-off, and every probe sample is mapped.
+- A label holding ``#`` (``Hole #1``) was cut at the ``#`` by the fast CSV parser (numpy's comment
+  character): the board's four holes all read ``Hole`` and the board was "not evaluated: visits 1
+  hole(s)". Labels are now read whole.
 """
 
 from __future__ import annotations
@@ -95,3 +98,32 @@ def test_a_probe_stamped_1_ms_after_its_reference_keeps_every_sample(small_case,
     assert [p["samples"] for p in calibration["points"]] == [p["samples"] for p in expected["points"]]
     registration, expected = _json(out / "registration.json"), _json(ordered / "registration.json")
     assert np.allclose(registration["ReferenceToImage"], expected["ReferenceToImage"], atol=1e-6)
+
+
+def test_labels_holding_a_hash_sign_are_read_whole(small_case, tmp_path, capsys):
+    def hashed(rows):
+        out = []
+        for row in rows:
+            fields = row.split(",")
+            if fields[-1]:
+                fields[-1] = f"{fields[-1][0]} #{fields[-1][1:]}"  # H1 -> H #1, T2 -> T #2
+            out.append(",".join(fields))
+        return out
+
+    case = _rewrite_rows(small_case, tmp_path / "case", hashed)
+    targets = (small_case / "targets.mrk.json").read_text()
+    for k in range(1, 10):
+        targets = targets.replace(f'"T{k}"', f'"T #{k}"')
+    (case / "targets.mrk.json").write_text(targets)
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(["run", str(case), "--out", str(out), "--quiet"]) == 0, capsys.readouterr().err
+    evaluation, expected = _json(out / "evaluation.json"), _json(small_case.parent / "out" / "evaluation.json")
+    assert "not_evaluated" not in evaluation, evaluation.get("not_evaluated")
+    for edge in expected["board"]["edges"].values():
+        edge["holes"] = [f"{name[0]} #{name[1:]}" for name in edge["holes"]]
+    assert evaluation["board"]["edges"] == expected["board"]["edges"]
+    assert sorted(evaluation["tre"]["targets"]) == sorted(f"T #{name[1:]}" for name in expected["tre"]["targets"])
+    assert evaluation["tre"]["mean_mm"] == pytest.approx(expected["tre"]["mean_mm"], abs=1e-9)
+    labels = {line.rsplit(",", 1)[1] for line in (out / "navigation.csv").read_text().splitlines()[1:]}
+    assert {f"T #{name[1:]}" for name in expected["tre"]["targets"]} <= labels
