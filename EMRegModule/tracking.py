@@ -21,8 +21,20 @@ from .transforms import invert_rigid
 #: Reference and probe rows of one moment share ``time_s`` within this tolerance (spec).
 SAME_MOMENT_S = 1e-3
 
+#: Time stamps are decimal text read into binary floating point: two stamps written exactly 1 ms apart can read
+#: a little more than ``SAME_MOMENT_S`` apart (0.42 and 0.421: 1.0000000000000009 ms; near epoch times of
+#: 1.7e9 s, up to 2.4e-7 s more). Same-moment comparisons allow this much beyond ``SAME_MOMENT_S``.
+TIME_STAMP_SLACK_S = 1e-6
+
+#: The largest difference (s) of two time stamps of one moment, as compared: ``SAME_MOMENT_S`` plus the slack.
+SAME_MOMENT_LIMIT_S = SAME_MOMENT_S + TIME_STAMP_SLACK_S
+
 #: A recording with nothing recorded for longer than this (s) is split there into segments (with a warning).
 MAX_GAP_S = 2.0
+
+#: More clock resets than this in one recording are not resets: its rows are out of time order (a file sorted by
+#: another column, or shuffled), and they are read by their time stamps instead (with a warning).
+MAX_CLOCK_RESETS = 10
 
 #: Consecutive segments are this far apart (s) on a recording's timeline (more than any dwell gap).
 SEGMENT_SEPARATION_S = 2.0
@@ -162,7 +174,8 @@ def match_moments(
     """Index pairs (reference_index, probe_index) of rows taken at the same moment.
 
     Both inputs are time-sorted single-sensor recordings. Each probe row is paired with the
-    nearest reference row when they are within ``tolerance_s``; other probe rows are dropped.
+    nearest reference row when they are within ``tolerance_s`` (plus ``TIME_STAMP_SLACK_S``, the round-off of
+    decimal time stamps); other probe rows are dropped.
     """
     if len(reference) == 0 or len(probe) == 0:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
@@ -172,7 +185,8 @@ def match_moments(
     left = np.clip(right - 1, 0, len(reference) - 1)
     pick_left = np.abs(reference_time[left] - probe_time) <= np.abs(reference_time[right] - probe_time)
     nearest = np.where(pick_left, left, right)
-    ok = (np.abs(reference_time[nearest] - probe_time) <= tolerance_s) & (reference.segment[nearest] == probe.segment)
+    same_moment = np.abs(reference_time[nearest] - probe_time) <= tolerance_s + TIME_STAMP_SLACK_S
+    ok = same_moment & (reference.segment[nearest] == probe.segment)
     return nearest[ok], np.nonzero(ok)[0]
 
 
@@ -290,7 +304,10 @@ def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "r
     segment starts where a sensor's time goes back (a clock reset: the rows after it are kept, not
     merged with the earlier ones by time) and where nothing was recorded for more than
     ``MAX_GAP_S``. Within a segment each sensor's time must increase; a repeated or decreasing time
-    that is not a reset of the whole recording is an :class:`EMRegError` naming the place.
+    that is not a reset of the whole recording is an :class:`EMRegError` naming the place. A sensor
+    whose time goes back more than ``MAX_CLOCK_RESETS`` times is no clock being reset: the rows are
+    out of order (sorted by another column, shuffled), so they are taken in the order of their times
+    (a warning says so) and only a time seen twice for one sensor is refused.
     ``where(row)`` names a row's place in its file (default ``line {row + first_line}``; a sequence
     file says ``frame N``).
     """
@@ -306,7 +323,12 @@ def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "r
         return segment, warnings
     order = np.lexsort((np.arange(n), sensor))  # by sensor, file order within
     same = sensor[order][1:] == sensor[order][:-1]
-    if np.any(same & (np.diff(time_s[order]) < 0)):
+    backs = int(np.count_nonzero(same & (np.diff(time_s[order]) < 0)))
+    in_time_order = backs > MAX_CLOCK_RESETS  # not a clock: rows out of order, read by their time stamps
+    if in_time_order:
+        warnings.append(f"{source}: the rows are not in time order (a sensor's time goes back {backs} times, more "
+                        f"than {MAX_CLOCK_RESETS} clock resets): read in the order of time_s")
+    elif backs:
         current, last = 0, {}
         for i, (t, s) in enumerate(zip(time_s.tolist(), sensor.tolist(), strict=True)):
             if s in last and t < last[s]:
@@ -329,12 +351,13 @@ def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "r
         segment[rows] = segment[rows] * (n + 1) + np.searchsorted(times[gaps], time_s[rows], side="left")
     if warnings:
         segment = np.unique(segment, return_inverse=True)[1].reshape(n)
-        # keep the segments in file order of first appearance
-        first = {int(v): i for i, v in reversed(list(enumerate(segment.tolist())))}
+        # keep the segments in file order of first appearance (time order for rows out of order)
+        visit = np.argsort(time_s, kind="stable") if in_time_order else np.arange(n)
+        first = {int(segment[i]): k for k, i in reversed(list(enumerate(visit.tolist())))}
         rank = {v: r for r, v in enumerate(sorted(first, key=first.get))}
         segment = np.array([rank[int(v)] for v in segment.tolist()], dtype=int)
-    # within a segment, each sensor's time must increase
-    order = np.lexsort((np.arange(n), segment, sensor))
+    # within a segment, each sensor's time must increase (in file order; rows out of order: no time twice)
+    order = np.lexsort((time_s if in_time_order else np.arange(n), segment, sensor))
     same = (sensor[order][1:] == sensor[order][:-1]) & (segment[order][1:] == segment[order][:-1])
     bad = np.nonzero(same & (np.diff(time_s[order]) <= 0))[0]
     if len(bad):

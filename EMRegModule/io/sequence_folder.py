@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EMRegError
-from ..tracking import SAME_MOMENT_S, TrackingRecording
+from ..tracking import SAME_MOMENT_LIMIT_S, SAME_MOMENT_S, TrackingRecording
 from .sequence_metafile import (
     DEFAULT_PROBE_TRANSFORM,
     DEFAULT_REFERENCE_TRANSFORM,
@@ -141,7 +141,7 @@ def _match_frames(folder: Path, reference: tuple[Path, SequenceFrames, str, str]
         left = np.clip(right - 1, 0, len(times) - 1)
         nearest = np.where(np.abs(times[left] - probe.time_s[p]) <= np.abs(times[right] - probe.time_s[p]),
                            left, right)
-        ok = np.abs(times[nearest] - probe.time_s[p]) <= SAME_MOMENT_S
+        ok = np.abs(times[nearest] - probe.time_s[p]) <= SAME_MOMENT_LIMIT_S
         used: set[int] = set()
         for k in np.flatnonzero(ok):  # one probe frame per reference frame (the first, in file order)
             candidate = int(r_sorted[nearest[k]])

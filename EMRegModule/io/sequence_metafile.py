@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EMRegError
-from ..tracking import SAME_MOMENT_S, TrackingRecording, split_time_segments
+from ..tracking import SAME_MOMENT_LIMIT_S, TrackingRecording, split_time_segments
 from .atomic import atomic_path
 
 #: File name endings read and written as sequence metafiles.
@@ -289,7 +289,7 @@ def _frames_of(recording: TrackingRecording) -> tuple[np.ndarray, np.ndarray]:
     seen: set[int] = set()
     previous_segment = None
     for k, (t, s, g) in enumerate(zip(times.tolist(), sensors.tolist(), segments.tolist(), strict=True)):
-        if not starts or g != previous_segment or abs(t - starts[-1]) > SAME_MOMENT_S or s in seen:
+        if not starts or g != previous_segment or abs(t - starts[-1]) > SAME_MOMENT_LIMIT_S or s in seen:
             starts.append(float(t))
             seen = set()
         seen.add(s)

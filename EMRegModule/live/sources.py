@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import EMRegError
 from ..io.recording import read_recording
-from ..tracking import SAME_MOMENT_S, sensor_pair
+from ..tracking import SAME_MOMENT_LIMIT_S, sensor_pair
 from .device_url import DeviceURL, parse_device_url
 from .samples import STATUS_OK, SensorSample
 
@@ -137,7 +137,7 @@ class ReplaySource(SampleSource):
         order = np.argsort(rec.time_s, kind="stable")
         self._order = order
         times = rec.time_s[order]
-        starts = np.flatnonzero(np.concatenate([[True], np.diff(times) > SAME_MOMENT_S]))
+        starts = np.flatnonzero(np.concatenate([[True], np.diff(times) > SAME_MOMENT_LIMIT_S]))
         self._frames = [order[a:b] for a, b in zip(starts, list(starts[1:]) + [len(order)], strict=True)]
         self._frame_times = times[starts]
         steps = np.diff(self._frame_times)
@@ -229,7 +229,7 @@ class IGTLSource(SampleSource):
             if getattr(message, "message_type", "") != "TRANSFORM":
                 return
             stamp = float(message.timestamp)
-            if self._frame_stamp is None or abs(stamp - self._frame_stamp) > SAME_MOMENT_S:
+            if self._frame_stamp is None or abs(stamp - self._frame_stamp) > SAME_MOMENT_LIMIT_S:
                 self._frame += 1
                 self._frame_stamp = stamp
             matrix = np.asarray(message.matrix, dtype=float)
