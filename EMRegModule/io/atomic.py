@@ -6,6 +6,7 @@ An interrupted run never leaves a half-written file in place of a good one.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import tempfile
@@ -48,6 +49,17 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         if isinstance(exc, OSError):
             raise EMRegError(f"{path}: cannot write ({exc.strerror or exc})") from None
         raise
+
+
+@contextlib.contextmanager
+def itk_write_errors() -> Iterator[None]:
+    """Inside :func:`atomic_path`: a SimpleITK writer's failure (it raises RuntimeError, e.g. "couldn't write gzip
+    data" on a full disk, where the OS would raise OSError) is treated as the file-system error it is, so that it
+    ends as one line naming the file."""
+    try:
+        yield
+    except RuntimeError:
+        raise OSError(errno.EIO, "the ITK image writer failed: disk full or no permission?") from None
 
 
 def _current_umask() -> int:

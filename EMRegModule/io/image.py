@@ -109,7 +109,7 @@ def index_to_physical_matrix(image: sitk.Image) -> np.ndarray:
 
 def write_image(image: sitk.Image, path: str | os.PathLike[str], compress: bool = True) -> None:
     """Write an image atomically (format by extension)."""
-    from .atomic import atomic_path
+    from .atomic import atomic_path, itk_write_errors
 
-    with atomic_path(path) as tmp:
+    with atomic_path(path) as tmp, itk_write_errors():
         sitk.WriteImage(image, str(tmp), compress)

@@ -29,7 +29,7 @@ import SimpleITK as sitk
 
 from ..errors import EMRegError
 from ..transforms import LPS_TO_RAS, invert_rigid
-from .atomic import atomic_path
+from .atomic import atomic_path, itk_write_errors
 
 
 def write_slicer_linear_transform(path: str | os.PathLike[str], tracker_side_to_image: np.ndarray) -> None:
@@ -38,7 +38,7 @@ def write_slicer_linear_transform(path: str | os.PathLike[str], tracker_side_to_
     transform = sitk.AffineTransform(3)
     transform.SetMatrix(stored[:3, :3].ravel().tolist())
     transform.SetTranslation(stored[:3, 3].tolist())
-    with atomic_path(path) as tmp:
+    with atomic_path(path) as tmp, itk_write_errors():
         sitk.WriteTransform(transform, str(tmp))
 
 

@@ -39,7 +39,7 @@ import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage
 
-from ..io.atomic import atomic_path
+from ..io.atomic import atomic_path, itk_write_errors
 from ..progress import QUIET, Progress
 from .shapes import F32, Shape
 
@@ -341,7 +341,7 @@ def flip_to_right_handed(array_kji: np.ndarray, grid: Grid) -> tuple[np.ndarray,
 
 def write_nrrd(image: sitk.Image, path: Path) -> None:
     """Write a compressed NRRD atomically (fast zlib level)."""
-    with atomic_path(path) as tmp:
+    with atomic_path(path) as tmp, itk_write_errors():
         sitk.WriteImage(image, str(tmp), True, 1)
 
 

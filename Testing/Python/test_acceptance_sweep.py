@@ -20,7 +20,8 @@ at the command line on small simulated cases made here.
   the edge fit's narrow top sat in the frame's plastic or in air; a marker's top must hold marker material.
 - ``emreg simulate --spacing nan`` (and ``demo``) passed the range checks and ended in a traceback, exit 1.
 - A disk that filled up during ``emreg run`` gave "error: No space left on device" naming no file, left
-  run.json saying "running" and the report's figures without their page.
+  run.json saying "running" and the report's figures without their page; when SimpleITK's writer was the one
+  to fail (tre_map.nrrd, a RuntimeError), the run ended in a traceback.
 """
 
 from __future__ import annotations
@@ -253,3 +254,28 @@ def test_a_full_disk_names_the_file_and_leaves_run_json_saying_failed(small_case
     assert not [p.name for p in out.iterdir() if p.name.startswith(".")]  # no temporary left behind
     assert set(run["outputs"]) <= {p.name for p in out.iterdir()}  # what run.json lists is there, complete
     assert (out / "registration.json").is_file()
+
+
+def test_an_image_writer_failure_is_one_line_naming_the_file(small_case, tmp_path, capsys, monkeypatch):
+    """On a full disk SimpleITK's writer raises RuntimeError (its NRRD writer: "couldn't write gzip data"), not
+    OSError: emreg run ended in a traceback (exit 1) at tre_map.nrrd with run.json saying "running"."""
+    import SimpleITK as sitk
+
+    real_write = sitk.WriteImage
+
+    def full_disk(image, name, *args, **kwargs):
+        if "tre_map" in str(name):
+            raise RuntimeError(f"Exception thrown in SimpleITK ImageFileWriter_Execute: ITK ERROR: Write: Error "
+                               f"writing {name}:\n[nrrd] _nrrdEncodingGzip_write: expected to write 698368 bytes")
+        return real_write(image, name, *args, **kwargs)
+
+    monkeypatch.setattr(sitk, "WriteImage", full_disk)
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(["run", str(small_case), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(out / "tre_map.nrrd") in err[0] and "cannot write" in err[0], err
+    monkeypatch.undo()
+    run = _json(out / "run.json")
+    assert run["status"] == "failed" and "tre_map" in run["message"]
+    assert not (out / "tre_map.nrrd").exists() and not [p.name for p in out.iterdir() if p.name.startswith(".")]
