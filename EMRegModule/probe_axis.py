@@ -15,7 +15,8 @@ registration (:func:`pair_with_probe_axis`) decides against the CT's marker axes
   sign-invariant; a mapped direction may lie along or against the marker axis), then the sign
   read off the paired points; when the directions do not agree with the marker axes (or the
   direction-aided pairing finds nothing), the paper's distance-only pairing decides alone;
-- a forced sign: pairing with signed directions; when that finds no safe pairing, the
+- a forced sign: pairing with signed directions; when that finds no safe pairing, or fewer pairs
+  than the distances alone (a wrong sign can fit the few markers of one face, mirrored), the
   distance-only pairing is the fallback (with a warning saying what the data show);
 - ``none``: distance-only pairing.
 
@@ -179,12 +180,8 @@ def pair_with_probe_axis(
             note=f"detected: the probe's +X points {where} the pinhole ({agreeing} of {result.support} paired "
                  f"points, median angle {angle:.1f} deg)")
     # a forced sign
-    signed = directions if setting == stored_convention else -directions
-    try:
-        result = pair_markers(origins_image, axes_image, points, signed, l_range_mm, settings)
-    except NoSafeAnswerError as exc:
-        result, report = distance_only(
-            f"probe_axis = {setting} gave no safe pairing ({_short(exc)}): paired from distances only")
+    def contradicted(reason: str) -> tuple[PairingResult, ProbeAxisReport]:
+        result, report = distance_only(reason)
         if report.detected not in ("none", setting):
             report.warnings.append(f"probe_axis = {setting} is set, but the data show the probe's +X pointing "
                                    f"{'into' if report.detected == '+x_in' else 'out of'} the pinhole "
@@ -193,6 +190,22 @@ def pair_with_probe_axis(
             report.warnings.append(f"probe_axis = {setting}: the probe directions do not match the marker axes; "
                                    "paired from distances only")
         return result, report
+
+    signed = directions if setting == stored_convention else -directions
+    try:
+        result = pair_markers(origins_image, axes_image, points, signed, l_range_mm, settings)
+    except NoSafeAnswerError as exc:
+        return contradicted(f"probe_axis = {setting} gave no safe pairing ({_short(exc)}): paired from distances "
+                            "only")
+    # A wrong sign can still fit a few markers whose flipped directions agree (one face of the frame, mirrored):
+    # the distances, which pair every marker, then pair more, and they decide.
+    try:
+        by_distances = pair_markers(origins_image, axes_image, points, None, l_range_mm, settings)
+    except NoSafeAnswerError:
+        by_distances = None
+    if by_distances is not None and by_distances.support > result.support:
+        return contradicted(f"probe_axis = {setting} paired {result.support} points, the distances alone "
+                            f"{by_distances.support}: paired from distances only")
     _, agreeing, angle = _verdict(_signed_cosines(result, signed, axes), setting, cos_limit)
     return result, ProbeAxisReport(setting, setting, "directions", angle, agreeing, result.support,
                                    note=f"probe_axis = {setting} (forced); {agreeing} of {result.support} paired "

@@ -12,6 +12,11 @@ example), each checked at the command line on a small simulated case made here.
 - A label holding ``#`` (``Hole #1``) was cut at the ``#`` by the fast CSV parser (numpy's comment
   character): the board's four holes all read ``Hole`` and the board was "not evaluated: visits 1
   hole(s)". Labels are now read whole.
+- A forced ``probe_axis`` of the wrong sign (``+x_in`` for a probe whose +X points out of the pinhole)
+  paired only the few markers of one face that the flipped directions fit (5 of 28 on a simulated case);
+  the run then stopped (exit 3) blaming "the paired markers' axes are (nearly) parallel", and with a fixed
+  sensor offset that subset would have been registered. The forced sign is now checked against the
+  distances: when they pair more markers, the distances decide and a warning says what the data show.
 """
 
 from __future__ import annotations
@@ -127,3 +132,33 @@ def test_labels_holding_a_hash_sign_are_read_whole(small_case, tmp_path, capsys)
     assert evaluation["tre"]["mean_mm"] == pytest.approx(expected["tre"]["mean_mm"], abs=1e-9)
     labels = {line.rsplit(",", 1)[1] for line in (out / "navigation.csv").read_text().splitlines()[1:]}
     assert {f"T #{name[1:]}" for name in expected["tre"]["targets"]} <= labels
+
+
+@pytest.fixture(scope="module")
+def x_out_case(tmp_path_factory) -> Path:
+    """A full-frame simulated case (28 markers on several faces, 1 mm voxels) whose probe +X points out of
+    the pinhole, and its run (probe_axis auto). The small case does not show the defect: its wrong-sign
+    pairing finds nothing safe and falls back to the distances already."""
+    folder = tmp_path_factory.mktemp("x_out") / "case"
+    simulate_case(folder, seed=4, spacing_mm=1.0, probe_axis="+x_out")
+    assert main(["run", str(folder), "--out", str(folder.parent / "out"), "--quiet"]) == 0
+    return folder
+
+
+def test_a_forced_probe_axis_of_the_wrong_sign_does_not_pair_a_subset(x_out_case, tmp_path, capsys):
+    case = tmp_path / "case"
+    shutil.copytree(x_out_case, case)
+    toml = (case / "case.toml").read_text()
+    assert "[sensors]" in toml
+    (case / "case.toml").write_text(toml.replace("[sensors]", '[sensors]\nprobe_axis = "+x_in"', 1))
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(["run", str(case), "--out", str(out), "--quiet"]) == 0, capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "probe_axis = +x_in is set" in err and "probe_axis = +x_out" in err
+    registration, expected = _json(out / "registration.json"), _json(x_out_case.parent / "out" / "registration.json")
+    assert len(registration["pairs"]) == len(expected["pairs"])
+    assert sorted((p["image_marker"], p["calibration_point"]) for p in registration["pairs"]) == \
+        sorted((p["image_marker"], p["calibration_point"]) for p in expected["pairs"])
+    assert np.allclose(registration["ReferenceToImage"], expected["ReferenceToImage"], atol=1e-6)
+    assert registration["probe_axis"]["detected"] == "+x_out"
