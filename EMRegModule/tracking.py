@@ -36,6 +36,10 @@ MAX_GAP_S = 2.0
 #: another column, or shuffled), and they are read by their time stamps instead (with a warning).
 MAX_CLOCK_RESETS = 10
 
+#: A sensor with at least this many samples whose median step between samples exceeds ``MAX_GAP_S`` is not
+#: sampled in seconds (a tracker samples tens of times a second): ``time_s`` holds milliseconds (or finer).
+MIN_SAMPLES_FOR_RATE = 20
+
 #: Consecutive segments are this far apart (s) on a recording's timeline (more than any dwell gap).
 SEGMENT_SEPARATION_S = 2.0
 
@@ -309,7 +313,8 @@ def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "r
     out of order (sorted by another column, shuffled), so they are taken in the order of their times
     (a warning says so) and only a time seen twice for one sensor is refused.
     ``where(row)`` names a row's place in its file (default ``line {row + first_line}``; a sequence
-    file says ``frame N``).
+    file says ``frame N``). Time stamps that are not seconds (a sensor's median step longer than
+    ``MAX_GAP_S``: milliseconds) are refused with one line.
     """
     time_s = np.asarray(time_s, dtype=float)
     sensor = np.asarray(sensor, dtype=int)
@@ -321,6 +326,7 @@ def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "r
     warnings: list[str] = []
     if n == 0:
         return segment, warnings
+    _check_seconds(time_s, sensor, source)
     order = np.lexsort((np.arange(n), sensor))  # by sensor, file order within
     same = sensor[order][1:] == sensor[order][:-1]
     backs = int(np.count_nonzero(same & (np.diff(time_s[order]) < 0)))
@@ -365,6 +371,21 @@ def split_time_segments(time_s: np.ndarray, sensor: np.ndarray, source: str = "r
         raise EMRegError(f"{source}: {where(row)}: time {time_s[row]:.4f} s of sensor {sensor[row]} "
                          "does not increase (each sensor's time must increase within a recording)")
     return segment, warnings
+
+
+def _check_seconds(time_s: np.ndarray, sensor: np.ndarray, source: str) -> None:
+    """Refuse time stamps that are not seconds: a sensor sampled (median step) less often than every
+    ``MAX_GAP_S`` over ``MIN_SAMPLES_FOR_RATE`` samples or more (every step would be a pause)."""
+    for port in np.unique(sensor):
+        times = np.unique(time_s[sensor == port])
+        if len(times) < MIN_SAMPLES_FOR_RATE:
+            continue
+        step = float(np.median(np.diff(times)))
+        if step > MAX_GAP_S:
+            raise EMRegError(
+                f"{source}: the samples of sensor {int(port)} are {step:.4g} apart in time (median): the time "
+                f"stamps look like milliseconds, and EMReg reads seconds (a tracker samples tens of times a "
+                "second); divide the times by 1000")
 
 
 def invert_rigid_batch(a_to_b: np.ndarray) -> np.ndarray:

@@ -17,12 +17,16 @@ example), each checked at the command line on a small simulated case made here.
   the run then stopped (exit 3) blaming "the paired markers' axes are (nearly) parallel", and with a fixed
   sensor offset that subset would have been registered. The forced sign is now checked against the
   distances: when they pair more markers, the distances decide and a warning says what the data show.
+- A recording whose ``time_s`` holds milliseconds gave one warning per sample ("nothing recorded for
+  12.5 s ... a separate time segment", 7514 lines on a simulated calibration) and, without labels, twice
+  the pinholes there are; it is now refused in one line that names milliseconds, like a file in metres.
 """
 
 from __future__ import annotations
 
 import json
 import random
+import re
 import shutil
 from pathlib import Path
 
@@ -162,3 +166,26 @@ def test_a_forced_probe_axis_of_the_wrong_sign_does_not_pair_a_subset(x_out_case
         sorted((p["image_marker"], p["calibration_point"]) for p in expected["pairs"])
     assert np.allclose(registration["ReferenceToImage"], expected["ReferenceToImage"], atol=1e-6)
     assert registration["probe_axis"]["detected"] == "+x_out"
+
+
+@pytest.mark.parametrize("name", ["calibration.csv", "calibration.seq.mha"])
+def test_time_stamps_in_milliseconds_are_named_as_such(small_case, tmp_path, capsys, name):
+    def milliseconds(rows):
+        out = []
+        for row in rows:
+            fields = row.split(",")
+            fields[0] = f"{float(fields[0]) * 1000.0:.1f}"
+            out.append(",".join(fields))
+        return out
+
+    case = _rewrite_rows(small_case, tmp_path / "case", milliseconds)
+    path = case / name
+    if name.endswith(".seq.mha"):
+        assert main(["convert", str(small_case / "calibration.csv"), str(path), "--quiet"]) == 0
+        path.write_text(re.sub(r"(_Timestamp = )(\S+)", lambda m: f"{m.group(1)}{float(m.group(2)) * 1000.0:.3f}",
+                               path.read_text()))
+    capsys.readouterr()
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(path) in err[0] and "milliseconds" in err[0] and "seconds" in err[0], err[:3]
+    assert not (tmp_path / "out" / "frame_calibration.json").exists()
