@@ -489,7 +489,9 @@ def top_level(values_zyx: np.ndarray, image_to_local: np.ndarray, marker_to_imag
     averaging the base in as well only adds the noise of sampling it at other points, which outweighed
     a thin top blurred by coarse voxels (a 4 mm top at 1.25 mm voxels, 3 markers of 28 turned over).
     """
-    local = apply_transform(image_to_local @ marker_to_image, _interior_parts(model)[1])
+    top_points = _interior_parts(model)[1]
+    points = top_points if len(top_points) else interior_points(model)  # a top too thin for any: the whole solid
+    local = apply_transform(image_to_local @ marker_to_image, points)
     return float(np.mean(ndimage.map_coordinates(values_zyx, local[:, ::-1].T, order=1, mode="nearest")))
 
 
@@ -501,9 +503,12 @@ def top_contrast(values_zyx: np.ndarray, values_to_image: np.ndarray, marker_to_
     (:func:`interior_points`), ``around`` the median on a cylinder 2 mm outside the top's side, above the base.
     About 1 for a marker, 0.7 where 3 mm slices blur its top; about 0 for a solid as wide as the base with
     nothing above it, which the edges alone cannot tell from a marker (the top's profiles then find no edge,
-    as they find none on a marker's top blurred by coarse voxels).
+    as they find none on a marker's top blurred by coarse voxels). A top too thin to hold any interior point (a
+    design with a top under about 2 mm wide) cannot be judged so: 1.0.
     """
     base_points, top_points = _interior_parts(model)
+    if not len(top_points):
+        return 1.0
     above = model.bottom_height_mm
     angles, heights = np.meshgrid(np.linspace(0.0, 2 * np.pi, 24, endpoint=False),
                                   np.arange(above + 1.0, model.height_mm - 1.0 + 1e-9, 1.0))
