@@ -150,6 +150,7 @@ class EMRegController:
         from .io.image import open_ct
 
         _import_in_background("EMRegModule.detection.detect")  # overlaps the import with the file read
+        self._warn_series_unused(path)
         with self.progress.step("reading CT"):
             fill = open_ct(path, self.ct_series_choice)
             image = fill.result()
@@ -167,6 +168,7 @@ class EMRegController:
         from .io.dicom_series import NarrowVoxelsError
 
         _import_in_background("EMRegModule.detection.detect")  # overlaps the import with the start of the read
+        self._warn_series_unused(path)
         try:
             return self._load_ct_and_detect(path, compact=True)
         except NarrowVoxelsError as exc:
@@ -195,6 +197,13 @@ class EMRegController:
         self.ct_series = result.ct_series = fill.series
         self.set_detection(result)
         return result
+
+    def _warn_series_unused(self, path: str | os.PathLike[str]) -> None:
+        """A series forced (``--series``, ``[ct] series``) for a CT that is one image, not a DICOM folder, is said
+        to be ignored rather than silently ignored."""
+        if self.ct_series_choice is not None and not Path(path).is_dir():
+            self.warn([f"the series {self.ct_series_choice!r} was asked for, but {path} is one image, not a DICOM "
+                       "folder: it is read as it is"])
 
     @property
     def ct_series_choice(self) -> str | None:

@@ -83,6 +83,12 @@ def test_a_series_is_forced_by_number_or_uid(tmp_path):
         open_dicom_series(tmp_path, series="1")
 
 
+def test_a_series_asked_for_a_ct_that_is_one_image_is_said_to_be_ignored(standard_case, tmp_path, capsys):
+    assert main(["detect", str(standard_case), "--out", str(tmp_path / "out"), "--series", "3", "--quiet"]) == 0
+    warning = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+    assert len(warning) == 1 and "'3' was asked for" in warning[0] and "one image, not a DICOM folder" in warning[0]
+
+
 def test_equally_good_series_of_different_geometry_are_an_error_never_a_guess(tmp_path):
     volume = make_volume()
     write_series(volume, tmp_path / "A", uid(1), number=5, description="head")
