@@ -105,6 +105,9 @@ def parse_tracking_csv(text: str, source: str = "recording") -> TrackingRecordin
     except csv.Error as exc:
         raise EMRegError(f"{source}: line 1: malformed CSV header ({str(exc)[:80]})") from None
     columns = {name.lower(): i for i, name in reversed(list(enumerate(header)))}  # Time_s reads as time_s
+    if header and header[0].startswith("#"):
+        raise EMRegError(f"{source}: line 1 is a comment ({','.join(header)[:40]!r}); a tracking CSV starts with its "
+                         "header row (time_s,sensor,x_mm,...) and holds no comment lines: remove them")
     if len(header) == 1 and any(sep in header[0] for sep in ";\t"):
         word = "semicolons" if ";" in header[0] else "tabs"
         raise EMRegError(f"{source}: line 1: the fields are separated by {word}; a tracking CSV separates them by "

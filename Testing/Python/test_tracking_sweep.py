@@ -20,6 +20,8 @@ example), each checked at the command line on a small simulated case made here.
 - A recording whose ``time_s`` holds milliseconds gave one warning per sample ("nothing recorded for
   12.5 s ... a separate time segment", 7514 lines on a simulated calibration) and, without labels, twice
   the pinholes there are; it is now refused in one line that names milliseconds, like a file in metres.
+- A CSV that opens with a comment line (``# exported by ...``) was told its header lacks every column; the
+  message now says that line 1 is a comment and that the file must start with its header row.
 """
 
 from __future__ import annotations
@@ -188,4 +190,14 @@ def test_time_stamps_in_milliseconds_are_named_as_such(small_case, tmp_path, cap
     assert main(["calibrate", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(path) in err[0] and "milliseconds" in err[0] and "seconds" in err[0], err[:3]
+    assert not (tmp_path / "out" / "frame_calibration.json").exists()
+
+
+def test_a_comment_line_before_the_header_is_named(small_case, tmp_path, capsys):
+    path = tmp_path / "calibration.csv"
+    path.write_text("# exported by the tracker's tool, 2026-12-02\n" + (small_case / "calibration.csv").read_text())
+    capsys.readouterr()
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(path) in err[0] and "line 1 is a comment" in err[0] and "header row" in err[0], err
     assert not (tmp_path / "out" / "frame_calibration.json").exists()
