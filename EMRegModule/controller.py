@@ -316,11 +316,14 @@ class EMRegController:
     def navigate_recording(self, recording: TrackingRecording) -> NavigationResult:
         """Map every probe sample of a recording into image space (paper Eq. 11-12)."""
         self._require(registration=self.registration)
-        from .navigation import navigate_recording
+        from .navigation import navigate_recording, unpaired_probe_note
 
         result = navigate_recording(
             recording, self.registration.reference_to_image, self.reference_sensor, self.probe_sensor
         )
+        note = unpaired_probe_note(recording, result, self.probe_sensor)
+        if note and note not in recording.warnings:  # said with the recording's own warnings
+            recording.warnings.append(note)
         self.navigation = result
         return result
 

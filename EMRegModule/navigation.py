@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .io.atomic import atomic_path
-from .tracking import TrackingRecording, invert_rigid_batch, sensor_pair
+from .tracking import SAME_MOMENT_S, TrackingRecording, invert_rigid_batch, sensor_pair
 
 NAVIGATION_HEADER = "time_s,x_mm,y_mm,z_mm,label"
 
@@ -73,6 +73,18 @@ def navigate_recording(recording: TrackingRecording, reference_to_image: np.ndar
     mapped[:, 3, 3] = 1.0
     quality = np.fmax(reference.quality[ref_idx], probe.quality[probe_idx])
     return NavigationResult(probe.time_s[probe_idx], mapped, probe.label[probe_idx], quality)
+
+
+def unpaired_probe_note(recording: TrackingRecording, result: NavigationResult, probe_sensor: int = 2) -> str | None:
+    """One line when some probe samples of ``recording`` found no reference sample at the same moment (within
+    ``SAME_MOMENT_S``) and so are not in ``result`` (e.g. a probe sampled faster than the reference), else None."""
+    probe_rows = int(np.count_nonzero(recording.sensor == probe_sensor))
+    dropped = probe_rows - len(result)
+    if dropped <= 0:
+        return None
+    return (f"{recording.source}: {dropped} of {probe_rows} probe samples (port {probe_sensor}) have no reference "
+            f"sample within {SAME_MOMENT_S * 1000:g} ms of their time: not mapped (navigation.csv holds "
+            f"{len(result)} rows)")
 
 
 def format_navigation_csv(result: NavigationResult) -> str:

@@ -22,6 +22,8 @@ example), each checked at the command line on a small simulated case made here.
   the pinholes there are; it is now refused in one line that names milliseconds, like a file in metres.
 - A CSV that opens with a comment line (``# exported by ...``) was told its header lacks every column; the
   message now says that line 1 is a comment and that the file must start with its header row.
+- A probe sampled twice as fast as the reference lost every other sample from navigation.csv without a
+  word ("one row per probe sample" in the spec); the dropped samples are now counted in a warning.
 """
 
 from __future__ import annotations
@@ -201,3 +203,24 @@ def test_a_comment_line_before_the_header_is_named(small_case, tmp_path, capsys)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(path) in err[0] and "line 1 is a comment" in err[0] and "header row" in err[0], err
     assert not (tmp_path / "out" / "frame_calibration.json").exists()
+
+
+def test_probe_samples_without_a_reference_sample_are_counted(small_case, tmp_path, capsys):
+    header, *rows = (small_case / "navigation.csv").read_text().splitlines()
+    doubled = []
+    for row in rows:  # a second probe sample between every two moments: no reference sample within 1 ms
+        doubled.append(row)
+        fields = row.split(",")
+        if fields[1] == "2":
+            doubled.append(",".join([f"{float(fields[0]) + 0.006:.4f}", *fields[1:]]))
+    path = tmp_path / "navigation.csv"
+    path.write_text("\n".join([header, *doubled]) + "\n")
+    probe_rows = sum(row.split(",")[1] == "2" for row in doubled)
+    capsys.readouterr()
+    out = tmp_path / "nav"
+    assert main(["navigate", "--registration", str(small_case.parent / "out" / "registration.json"),
+                 "--source", f"replay:{path}", "--out", str(out), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    mapped = len((out / "navigation.csv").read_text().splitlines()) - 1
+    assert mapped == probe_rows // 2
+    assert f"{probe_rows - mapped} of {probe_rows} probe samples" in err and "no reference sample" in err, err
