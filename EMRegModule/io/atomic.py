@@ -27,8 +27,6 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     becomes an :class:`~EMRegModule.errors.EMRegError` naming ``path`` (the OS names none, or the
     temporary).
     """
-    from ..errors import EMRegError
-
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -36,7 +34,7 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem.split('.')[0]}-", suffix=suffix, dir=path.parent)
         os.close(fd)
     except OSError as exc:
-        raise EMRegError(f"{path}: cannot write ({exc.strerror or exc})") from None
+        raise _cannot_write(path, exc) from None
     tmp = Path(tmp_name)
     try:
         yield tmp
@@ -47,8 +45,15 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         with contextlib.suppress(OSError):
             tmp.unlink()
         if isinstance(exc, OSError):
-            raise EMRegError(f"{path}: cannot write ({exc.strerror or exc})") from None
+            raise _cannot_write(path, exc) from None
         raise
+
+
+def _cannot_write(path: Path, exc: OSError) -> Exception:
+    """The one-line error for a file-system failure writing ``path`` (the OS names no file, or the temporary)."""
+    from ..errors import EMRegError
+
+    return EMRegError(f"{path}: cannot write ({exc.strerror or exc})")
 
 
 @contextlib.contextmanager

@@ -887,9 +887,8 @@ def _hash_while_allocating(headers: list[SliceHeader], early: _EarlyImage, pool:
     k, width = 0, max(1, workers - 1)  # a core is zeroing the volume
     while k < len(headers) and early.allocating():
         batch = headers[k:k + width]
-        for path, digest in zip([h.path for h in batch],
-                                pool.map(lambda h: _file_bytes(h.path)[1], batch), strict=True):
-            digests[names[path]] = digest
+        for header, digest in zip(batch, pool.map(lambda h: _file_bytes(h.path)[1], batch), strict=True):
+            digests[names[header.path]] = digest
         k += len(batch)
 
 

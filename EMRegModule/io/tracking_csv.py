@@ -171,22 +171,18 @@ def _parse_fast(
         return np.zeros((0, len(numeric_idx))), np.zeros(0), np.zeros(0, dtype=object), np.zeros(0, dtype=bool)
     if body.count(",") != len(lines) * (n_columns - 1):  # some row has a field too many or too few
         return None
+    def text_column(index: int) -> np.ndarray:
+        return np.char.strip(np.loadtxt(lines, delimiter=",", comments=None, usecols=[index], dtype=str, ndmin=1))
+
     try:
         # comments=None: numpy's default cuts every line at "#", which a label may hold ("Hole #1")
         data = np.loadtxt(lines, delimiter=",", comments=None, usecols=numeric_idx, ndmin=2)
+        quality = np.full(len(lines), np.nan)
         if quality_idx is not None:
-            text = np.char.strip(np.loadtxt(lines, delimiter=",", comments=None, usecols=[quality_idx], dtype=str,
-                                            ndmin=1))
-            quality = np.full(len(lines), np.nan)
+            text = text_column(quality_idx)
             given = text != ""
             quality[given] = text[given].astype(float)
-        else:
-            quality = np.full(len(lines), np.nan)
-        if label_idx is not None:
-            labels = np.char.strip(np.loadtxt(lines, delimiter=",", comments=None, usecols=[label_idx], dtype=str,
-                                              ndmin=1))
-        else:
-            labels = np.full(len(lines), "")
+        labels = text_column(label_idx) if label_idx is not None else np.full(len(lines), "")
     except ValueError:
         return None
     return data, quality, labels.astype(object), np.zeros(len(data), dtype=bool)
