@@ -4,6 +4,10 @@ Orientation is either the trakSTAR angles (azimuth, elevation, roll in degrees,
 ``R = Rz @ Ry @ Rx``) or a unit quaternion ``qw,qx,qy,qz``. ``quality`` may be empty,
 ``label`` may be absent or empty. Poses are ``SensorToTracker``.
 
+An optional ``status`` column follows PLUS's transform status (as ``.seq.mha`` files carry it):
+``OK`` is a valid pose, anything else (``MISSING``, ``INVALID``, empty, ...) is none. Such rows
+are left out (their pose fields may be empty or stale) and counted in the recording's warnings.
+
 A row whose orientation fields are all empty is a position-only sample (a probe reported
 without angles): its rotation is NaN. A partly empty orientation is an error.
 """
@@ -13,6 +17,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +45,35 @@ MAX_FIELD_CHARS = 4096
 _FAST_LINE_CHARS = 512
 
 _READ_CHUNK = 1 << 20
+
+
+@dataclass
+class _Parsed:
+    """The samples a parser read: numeric fields (N, len(numeric)), quality (NaN: none), labels, which rows are
+    position only, each row's line in the file, and how many rows were left out for their status."""
+
+    data: np.ndarray
+    quality: np.ndarray
+    labels: np.ndarray
+    position_only: np.ndarray
+    lines: np.ndarray
+    not_ok: int = 0
+
+    @classmethod
+    def empty(cls, n_numeric: int, not_ok: int = 0) -> _Parsed:
+        return cls(np.zeros((0, n_numeric)), np.zeros(0), np.zeros(0, dtype=object), np.zeros(0, dtype=bool),
+                   np.zeros(0, dtype=int), not_ok)
+
+
+@dataclass(frozen=True)
+class _Columns:
+    """Where the fields are in a row: the numeric ones (time, sensor, position, orientation, in that order)
+    and the optional text ones (None: no such column)."""
+
+    numeric: list[int]
+    quality: int | None
+    label: int | None
+    status: int | None
 
 
 def read_tracking_csv(path: str | os.PathLike[str]) -> TrackingRecording:
@@ -122,20 +156,21 @@ def parse_tracking_csv(text: str, source: str = "recording") -> TrackingRecordin
     if missing:
         raise EMRegError(f"{source}: tracking CSV header lacks column(s) {', '.join(missing)}")
     numeric = ["time_s", "sensor", *POSITION_COLUMNS, *orientation_columns]
-    numeric_idx = [columns[c] for c in numeric]
-    quality_idx = columns.get("quality")
-    label_idx = columns.get("label")
+    fields = _Columns([columns[c] for c in numeric], columns.get("quality"), columns.get("label"),
+                      columns.get("status"))
     body = text.split("\n", 1)[1] if "\n" in text else ""
-    parsed = _parse_fast(body, len(header), numeric_idx, quality_idx, label_idx)
+    parsed = _parse_fast(body, len(header), fields)
     if parsed is None:
-        parsed = _parse_checked(reader, header, numeric_idx, quality_idx, label_idx, source)
-    data, quality, labels, position_only = parsed
+        parsed = _parse_checked(reader, header, fields, source)
+    data, position_only, lines, not_ok = parsed.data, parsed.position_only, parsed.lines, parsed.not_ok
     if len(data) == 0:
+        if not_ok:
+            raise EMRegError(f"{source}: none of its {not_ok} samples has the status OK (a valid pose)")
         raise EMRegError(f"{source}: tracking recording has a header but no samples")
     finite = np.isfinite(data)
     finite[position_only, 5:] = True  # empty orientation fields: position only
     if not np.all(finite):
-        bad = int(np.nonzero(~np.all(finite, axis=1))[0][0]) + 2
+        bad = int(lines[np.nonzero(~np.all(finite, axis=1))[0][0]])
         raise EMRegError(f"{source}: line {bad} holds a non-finite number")
     sensor = data[:, 1]
     if np.any(sensor != np.round(sensor)) or np.any(sensor < 1):
@@ -150,89 +185,116 @@ def parse_tracking_csv(text: str, source: str = "recording") -> TrackingRecordin
         quaternions[position_only] = [1.0, 0.0, 0.0, 0.0]
         rotation = quaternion_to_rotation(quaternions)
     rotation[position_only] = np.nan
-    segment, warnings = split_time_segments(data[:, 0], sensor.astype(int), source, first_line=2)
+    segment, warnings = split_time_segments(data[:, 0], sensor.astype(int), source,
+                                            where=lambda row: f"line {lines[row]}")
+    if not_ok:
+        warnings.insert(0, f"{source}: {not_ok} of {not_ok + len(data)} samples have a status other than OK "
+                           "(no valid pose): left out")
     return TrackingRecording(
         time_s=data[:, 0], sensor=sensor.astype(int), position_mm=data[:, 2:5], rotation=rotation,
-        quality=quality, label=labels, source=source,
+        quality=parsed.quality, label=parsed.labels, source=source,
         orientation_format=orientation, segment=segment, warnings=warnings,
     )
 
 
-def _parse_fast(
-    body: str, n_columns: int, numeric_idx: list[int], quality_idx: int | None, label_idx: int | None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+def _parse_fast(body: str, n_columns: int, fields: _Columns) -> _Parsed | None:
     """Vectorised parse of well-formed bodies (no quoting); None sends the caller to the checked path."""
     if '"' in body:
         return None
-    lines = [line for line in body.splitlines() if line.strip(" ,\r")]
+    numbered = [(n, line) for n, line in enumerate(body.splitlines(), start=2) if line.strip(" ,\r")]
+    lines = [line for _, line in numbered]
     if lines and max(map(len, lines)) > _FAST_LINE_CHARS:
         return None  # a long field: the checked parser bounds it (numpy would size every row by it)
     if not lines:
-        return np.zeros((0, len(numeric_idx))), np.zeros(0), np.zeros(0, dtype=object), np.zeros(0, dtype=bool)
+        return _Parsed.empty(len(fields.numeric))
     if body.count(",") != len(lines) * (n_columns - 1):  # some row has a field too many or too few
         return None
+
     def text_column(index: int) -> np.ndarray:
         return np.char.strip(np.loadtxt(lines, delimiter=",", comments=None, usecols=[index], dtype=str, ndmin=1))
 
     try:
+        line_numbers = np.array([n for n, _ in numbered])
+        not_ok = 0
+        if fields.status is not None:
+            ok = np.char.upper(text_column(fields.status)) == "OK"
+            not_ok = int(np.count_nonzero(~ok))
+            lines, line_numbers = [line for line, keep in zip(lines, ok, strict=True) if keep], line_numbers[ok]
+            if not lines:
+                return _Parsed.empty(len(fields.numeric), not_ok)
         # comments=None: numpy's default cuts every line at "#", which a label may hold ("Hole #1")
-        data = np.loadtxt(lines, delimiter=",", comments=None, usecols=numeric_idx, ndmin=2)
+        data = np.loadtxt(lines, delimiter=",", comments=None, usecols=fields.numeric, ndmin=2)
         quality = np.full(len(lines), np.nan)
-        if quality_idx is not None:
-            text = text_column(quality_idx)
+        if fields.quality is not None:
+            text = text_column(fields.quality)
             given = text != ""
             quality[given] = text[given].astype(float)
-        labels = text_column(label_idx) if label_idx is not None else np.full(len(lines), "")
+        labels = text_column(fields.label) if fields.label is not None else np.full(len(lines), "")
     except ValueError:
         return None
-    return data, quality, labels.astype(object), np.zeros(len(data), dtype=bool)
+    return _Parsed(data, quality, labels.astype(object), np.zeros(len(data), dtype=bool), line_numbers, not_ok)
 
 
-def _parse_checked(
-    reader, header: list[str], numeric_idx: list[int], quality_idx: int | None, label_idx: int | None, source: str
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _parse_checked(reader, header: list[str], fields: _Columns, source: str) -> _Parsed:
     """Row-by-row parse that names the first bad line; empty orientation fields mean position only."""
-    values: list[list[float]] = []
-    position_only: list[bool] = []
-    orientation_idx = numeric_idx[5:]
-    quality: list[float] = []
-    labels: list[str] = []
+    rows = _Rows()
     previous_limit = csv.field_size_limit(MAX_FIELD_CHARS)
     try:
-        _read_rows(reader, header, numeric_idx, quality_idx, label_idx, source, values, quality, labels,
-                   position_only, orientation_idx)
+        _read_rows(reader, header, fields, source, rows)
     except csv.Error as exc:
         raise EMRegError(f"{source}: line {reader.line_num}: malformed CSV ({str(exc)[:80]}; fields are at most "
                          f"{MAX_FIELD_CHARS} characters)") from None
     finally:
         csv.field_size_limit(previous_limit)
-    return (np.asarray(values, dtype=float).reshape(-1, len(numeric_idx)), np.asarray(quality, dtype=float),
-            np.asarray(labels, dtype=object), np.asarray(position_only, dtype=bool))
+    return _Parsed(np.asarray(rows.values, dtype=float).reshape(-1, len(fields.numeric)),
+                   np.asarray(rows.quality, dtype=float), np.asarray(rows.labels, dtype=object),
+                   np.asarray(rows.position_only, dtype=bool), np.asarray(rows.lines, dtype=int), rows.not_ok)
 
 
-def _read_rows(reader, header: list[str], numeric_idx: list[int], quality_idx: int | None, label_idx: int | None,
-               source: str, values: list[list[float]], quality: list[float], labels: list[str],
-               position_only: list[bool], orientation_idx: list[int]) -> None:
+@dataclass
+class _Rows:
+    """What the checked parser has read so far, a list per column."""
+
+    values: list[list[float]] = field(default_factory=list)
+    quality: list[float] = field(default_factory=list)
+    labels: list[str] = field(default_factory=list)
+    position_only: list[bool] = field(default_factory=list)
+    lines: list[int] = field(default_factory=list)
+    not_ok: int = 0
+
+
+def _read_rows(reader, header: list[str], fields: _Columns, source: str, rows: _Rows) -> None:
+    orientation_idx = fields.numeric[5:]
+    label_idx = fields.label
+
+    def text(row: list[str], index: int | None) -> str:
+        return row[index].strip() if index is not None and index < len(row) else ""
+
     for line_no, row in enumerate(reader, start=2):
         if not row or all(not cell.strip() for cell in row):
             continue
         if len(row) < len(header) - (1 if label_idx == len(header) - 1 else 0):
             raise EMRegError(f"{source}: line {line_no} has {len(row)} fields, the header has {len(header)}")
+        if fields.status is not None and text(row, fields.status).upper() != "OK":
+            rows.not_ok += 1  # no valid pose: whatever its pose fields hold is not read
+            continue
         empty = [i >= len(row) or not row[i].strip() for i in orientation_idx]
         if any(empty) and not all(empty):
             raise EMRegError(f"{source}: line {line_no} has some orientation fields empty and others not "
                              "(leave all of them empty for a position-only sample)")
-        position_only.append(all(empty))
         try:
-            values.append([float(row[i]) if not (all(empty) and i in orientation_idx) else np.nan
-                           for i in numeric_idx])
-            q = row[quality_idx].strip() if quality_idx is not None and quality_idx < len(row) else ""
-            quality.append(float(q) if q else np.nan)
+            values = [float(row[i]) if not (all(empty) and i in orientation_idx) else np.nan for i in fields.numeric]
+            q = text(row, fields.quality)
+            quality = float(q) if q else np.nan
         except (ValueError, IndexError):
             raise EMRegError(
                 f"{source}: line {line_no} has a non-numeric value where a number is expected"
             ) from None
-        labels.append(row[label_idx].strip() if label_idx is not None and label_idx < len(row) else "")
+        rows.values.append(values)
+        rows.quality.append(quality)
+        rows.position_only.append(all(empty))
+        rows.labels.append(text(row, label_idx))
+        rows.lines.append(line_no)
 
 
 def format_tracking_csv(recording: TrackingRecording, orientation: str | None = None) -> str:

@@ -24,6 +24,9 @@ example), each checked at the command line on a small simulated case made here.
   message now says that line 1 is a comment and that the file must start with its header row.
 - A probe sampled twice as fast as the reference lost every other sample from navigation.csv without a
   word ("one row per probe sample" in the spec); the dropped samples are now counted in a warning.
+- A ``status`` column (PLUS's transform status, as exporters write it: ``OK``, ``MISSING``) was ignored as
+  an extra column, so the zero or stale pose of a sample the tracker had marked missing was used as a
+  measurement. Such rows are now left out, as in a ``.seq.mha`` file, and counted in a warning.
 """
 
 from __future__ import annotations
@@ -224,3 +227,48 @@ def test_probe_samples_without_a_reference_sample_are_counted(small_case, tmp_pa
     mapped = len((out / "navigation.csv").read_text().splitlines()) - 1
     assert mapped == probe_rows // 2
     assert f"{probe_rows - mapped} of {probe_rows} probe samples" in err and "no reference sample" in err, err
+
+
+@pytest.mark.parametrize("missing_pose", ["zeros", "empty"])
+def test_samples_whose_status_is_not_ok_are_left_out(small_case, tmp_path, capsys, missing_pose):
+    """Every 7th row marked MISSING, its pose zeros or empty fields: the answer of the file without those rows.
+    (Empty fields and a quoted status go through the row-by-row parser, zeros through the vectorised one.)"""
+    with_status, without = tmp_path / "with_status", tmp_path / "without"
+    shutil.copytree(small_case, with_status)
+    shutil.copytree(small_case, without)
+    for name in RECORDINGS:
+        header, *rows = (small_case / name).read_text().splitlines()
+        marked, kept = [f"{header},status"], [header]
+        for k, row in enumerate(rows):
+            fields = row.split(",")
+            if k % 7 == 3:
+                fields[2:8] = ["0.0"] * 6 if missing_pose == "zeros" else [""] * 6
+                marked.append(",".join([*fields, "MISSING"]))
+            else:
+                marked.append(",".join([*fields, '"OK"' if missing_pose == "empty" else "OK"]))
+                kept.append(row)
+        (with_status / name).write_text("\n".join(marked) + "\n")
+        (without / name).write_text("\n".join(kept) + "\n")
+    capsys.readouterr()
+    assert main(["run", str(with_status), "--out", str(tmp_path / "out"), "--quiet"]) == 0, capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert re.search(r"calibration\.csv: \d+ of \d+ samples have a status other than OK", err), err
+    assert main(["run", str(without), "--out", str(tmp_path / "expected"), "--quiet"]) == 0
+    out, expected = tmp_path / "out", tmp_path / "expected"
+    registration, reference = _json(out / "registration.json"), _json(expected / "registration.json")
+    assert np.allclose(registration["ReferenceToImage"], reference["ReferenceToImage"], atol=1e-9)
+    assert registration["pairs"] == reference["pairs"]
+    evaluation, reference = _json(out / "evaluation.json"), _json(expected / "evaluation.json")
+    assert evaluation["tre"]["mean_mm"] == pytest.approx(reference["tre"]["mean_mm"], abs=1e-9)
+    assert (out / "navigation.csv").read_text() == (expected / "navigation.csv").read_text()
+
+
+def test_a_recording_with_no_sample_of_status_ok_is_refused_in_one_line(small_case, tmp_path, capsys):
+    header, *rows = (small_case / "calibration.csv").read_text().splitlines()
+    path = tmp_path / "calibration.csv"
+    path.write_text("\n".join([f"{header},status", *(f"{row},MISSING" for row in rows)]) + "\n")
+    capsys.readouterr()
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(path) in err[0] and f"none of its {len(rows)} samples has the status OK" in err[0]
+    assert not (tmp_path / "out" / "frame_calibration.json").exists()
