@@ -602,7 +602,8 @@ class EMRegController:
         folder = OutputFolder(out, self.command)
         summary: list[str] = []
         stage = "start"
-        steps = (("detect", self._run_detect), ("calibrate", self._run_calibrate), ("register", self._run_register),
+        steps = (("calibrate", self._run_read_calibration), ("detect", self._run_detect),
+                 ("calibrate", self._run_calibrate), ("register", self._run_register),
                  ("navigate", self._run_navigate), ("evaluate", self._run_evaluate), ("tre_map", self._run_tre_map))
         if report:
             steps += (("report", self._run_report), ("bundle", self._run_bundle))
@@ -646,6 +647,16 @@ class EMRegController:
             folder.manifest["ct_series"] = detection.ct_series
         summary.append(f"detect: {len(detection.markers)} markers, {len(detection.rejected)} rejected")
 
+    def _run_read_calibration(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
+        """Read the calibration recording and check its ports before the CT is: a malformed file or a wrong
+        port is refused at once rather than after a detection (seconds to minutes on a large scan)."""
+        if case.calibration is None:
+            return
+        from .tracking import sensor_pair
+
+        recording = self.load_calibration_recording(case.calibration)
+        sensor_pair(recording, self.reference_sensor, self.probe_sensor)
+
     def _run_calibrate(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
         if case.calibration is None:  # a detection-only run: say so, a forgotten file is the likelier story
             note = (f"no calibration recording in {case.folder} (calibration.csv or calibration.seq.mha): the "
@@ -653,8 +664,7 @@ class EMRegController:
             self.warn([note])
             summary.append(f"calibrate: {note}")
             return
-        self.load_calibration_recording(case.calibration)
-        calibration = self.calibrate_frame()
+        calibration = self.calibrate_frame()  # from the recording read before the CT
         self.save_frame_calibration(folder)
         if self.detection is None:  # otherwise the registration repeats them
             self.warn(calibration.warnings)

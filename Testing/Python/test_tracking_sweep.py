@@ -27,6 +27,9 @@ example), each checked at the command line on a small simulated case made here.
 - A ``status`` column (PLUS's transform status, as exporters write it: ``OK``, ``MISSING``) was ignored as
   an extra column, so the zero or stale pose of a sample the tracker had marked missing was used as a
   measurement. Such rows are now left out, as in a ``.seq.mha`` file, and counted in a warning.
+- ``emreg run`` with a wrong sensor port (or a malformed calibration recording) detected the markers first and
+  only then refused the recording: seconds to minutes lost on a large scan. The calibration recording is now
+  read and its ports checked before the CT is.
 """
 
 from __future__ import annotations
@@ -272,3 +275,15 @@ def test_a_recording_with_no_sample_of_status_ok_is_refused_in_one_line(small_ca
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(path) in err[0] and f"none of its {len(rows)} samples has the status OK" in err[0]
     assert not (tmp_path / "out" / "frame_calibration.json").exists()
+
+
+def test_run_refuses_a_wrong_port_before_reading_the_ct(small_case, tmp_path, capsys):
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(["run", str(small_case), "--out", str(out), "--probe-sensor", "3"]) == 2
+    err = capsys.readouterr().err
+    assert "no samples from the probe sensor on port 3" in err, err
+    assert "opening CT" not in err and "finding candidates" not in err, err  # the CT was never read
+    assert not (out / "markers.json").exists()
+    manifest = _json(out / "run.json")
+    assert manifest["status"] == "failed" and manifest["message"].startswith("calibrate:")
