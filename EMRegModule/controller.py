@@ -729,6 +729,8 @@ class EMRegController:
         for part, reason in evaluation.not_evaluated.items():
             folder.manifest["not_evaluated"][part] = reason
             self.warn([f"{'TRE' if part == 'tre' else part} not evaluated: {reason}"])
+        if evaluation.tre is not None:
+            self.warn(evaluation.tre.warnings)  # what the measured TRE says of the prediction
         self.save_evaluation(folder, evaluation)
         summary.extend(evaluation.summary())
 

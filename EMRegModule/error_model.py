@@ -31,6 +31,13 @@ sensor's error within a session (a bump between dwells).
 
 A configuration that does not determine the registration (fewer than 3 markers, collinear markers,
 parallel marker axes with l free) gives an infinite prediction, never a small number.
+
+**Checked against what was measured.** Errors the model has no term for (a probe tip that is not
+where the sensor reports it, a reference sensor that moved on the patient, a wrong fixed l, field
+distortion) are invisible to it: the prediction would stay small while the surgeon sees more.
+When dwells at targets were measured, :func:`optimism_limit` gives the largest ratio of measured to
+predicted mean-square TRE that the model's own randomness explains; a larger one means the
+prediction is optimistic and is said in a warning.
 """
 
 from __future__ import annotations
@@ -38,6 +45,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import brentq
+from scipy.stats import chi2
 
 from .transforms import apply_transform, invert_rigid
 
@@ -180,6 +189,78 @@ def repeated_dwell_ms(dwell_means_by_target: dict[str, np.ndarray]) -> tuple[flo
     return (squares / dof, dof) if dof else None
 
 
+def satterthwaite_dof(mean_squares: list[float], dofs: list[float]) -> float:
+    """Effective degrees of freedom of a sum of independent mean-square estimates (Welch-Satterthwaite):
+    ``(sum m)^2 / sum(m^2 / dof)``; infinite when every part is exact (infinite dof) or zero."""
+    parts = [(float(m), float(d)) for m, d in zip(mean_squares, dofs, strict=True) if m > 0]
+    spread = sum(m * m / d for m, d in parts if np.isfinite(d))
+    total = sum(m for m, _ in parts)
+    return total * total / spread if spread > 0 else float("inf")
+
+
+#: Quadrature nodes of the probability integrals in :func:`optimism_limit` (midpoints in probability).
+_NODES = 128
+
+
+def _ratio_survival(ratio: float, common_share: float, scatter_share: float, scatter_dof: float,
+                    prediction_scale: np.ndarray, prediction_weight: np.ndarray) -> float:
+    """P(measured / predicted mean square > ``ratio``) with the measured one ``common_share * X / 3 +
+    scatter_share * Y / scatter_dof`` (X ~ chi2(3), Y ~ chi2(scatter_dof), independent), averaged over
+    the prediction's own relative error: values ``prediction_scale`` with probabilities ``prediction_weight``."""
+    threshold = ratio * prediction_scale  # (W,): the measured share each prediction value must exceed
+    if scatter_share <= 0:
+        return float(prediction_weight @ chi2.sf(3.0 * threshold / common_share, 3))
+    if common_share <= 0:
+        return float(prediction_weight @ chi2.sf(threshold * scatter_dof / scatter_share, scatter_dof))
+    # integrate over X by its tail probability v = P(chi2(3) > X), on a log scale (the excess comes from
+    # the tail): v in (v0, 1), v0 = P(chi2(3) > 3 t / common_share); for X beyond, always exceeded
+    v0 = np.maximum(chi2.sf(3.0 * threshold / common_share, 3), 1e-300)  # (W,)
+    step = -np.log(v0) / _NODES
+    v = np.exp(np.log(v0)[:, None] + step[:, None] * (np.arange(_NODES) + 0.5))
+    rest = threshold[:, None] - common_share * chi2.isf(v, 3) / 3.0
+    weight = v * step[:, None]  # dv = v ds
+    inside = np.sum(weight * chi2.sf(np.maximum(rest, 0.0) * scatter_dof / scatter_share, scatter_dof), axis=1)
+    return float(prediction_weight @ (inside + v0))
+
+
+def optimism_limit(common_ms: float, independent_ms: float, n_dwells: int, prediction_dof: float = float("inf"),
+                   false_alarm: float = 1e-3) -> float:
+    """The largest ratio of measured to predicted mean-square TRE over ``n_dwells`` dwells that the model's own
+    randomness explains (exceeded by chance with probability ``false_alarm``).
+
+    ``common_ms`` (mm^2): the predicted mean square of the terms every dwell of one session shares
+    (registration, reference sensor), counted as one 3D error ``c`` (3 degrees of freedom: the fewest
+    it can have, so the limit errs high); ``independent_ms`` (mm^2): the terms drawn afresh per dwell
+    (tracking, placement), ``u_j``. The measured mean square ``mean |c + u_j|^2`` splits exactly into
+    two independent parts, ``|c + mean u|^2`` (3 degrees of freedom) and the dwells' scatter about
+    their mean (``3 (n - 1)``); its distribution is integrated numerically. The prediction itself
+    was estimated from ``prediction_dof`` degrees of freedom (residuals, dwell scatter; infinite
+    for an exact one): its relative error, ``chi2(dof) / dof``, is averaged over. Infinite without dwells.
+    """
+    total = common_ms + independent_ms
+    if n_dwells < 1 or total <= 0:
+        return float("inf")
+    common_share = (common_ms + independent_ms / n_dwells) / total
+    scatter_share = independent_ms * (n_dwells - 1) / n_dwells / total
+    scatter_dof = 3.0 * (n_dwells - 1)
+    if np.isfinite(prediction_dof):  # its probability on a logit scale, out to 6e-6 in either tail
+        z = np.linspace(-12.0, 12.0, _NODES)
+        u = 1.0 / (1.0 + np.exp(-z))
+        scale = chi2.ppf(u, prediction_dof) / prediction_dof
+        weight = u * (1.0 - u) * (z[1] - z[0])
+        weight /= weight.sum()
+    else:
+        scale, weight = np.ones(1), np.ones(1)
+
+    def excess(ratio: float) -> float:
+        return _ratio_survival(ratio, common_share, scatter_share, scatter_dof, scale, weight) - false_alarm
+
+    high = 2.0
+    while excess(high) > 0 and high < 1e6:
+        high *= 2.0
+    return float(brentq(excess, 1e-6, high, xtol=1e-6, rtol=1e-6))
+
+
 @dataclass(frozen=True)
 class ErrorBudget:
     """Predicted mean-square error (mm^2) per target of each term, and the predicted RMS TRE (mm)."""
@@ -205,11 +286,13 @@ class RegistrationError:
 
     ``covariance``: first-order covariance of the fitted ``ReferenceToImage`` (and l);
     ``probe_sigma_mm``: per-axis localisation error of one calibration dwell that the residuals
-    reveal (mm). Stored in ``registration.json`` under ``error_model``.
+    reveal (mm); ``probe_sigma_dof``: the residual degrees of freedom it was estimated from
+    (``3N - P``; infinite when unknown). Stored in ``registration.json`` under ``error_model``.
     """
 
     covariance: RegistrationCovariance
     probe_sigma_mm: float
+    probe_sigma_dof: float = float("inf")
 
     def to_json(self) -> dict:
         def number(value: float) -> float | None:
@@ -219,7 +302,7 @@ class RegistrationError:
                 "parameters": "rotation about centre_image (rad, 3), translation (mm, 3)"
                               + (", l (mm)" if len(self.covariance.parameters) > 6 else ""),
                 "centre_image": [float(v) for v in self.covariance.centre_image],
-                "probe_sigma_mm": number(self.probe_sigma_mm)}
+                "probe_sigma_mm": number(self.probe_sigma_mm), "probe_sigma_dof": number(self.probe_sigma_dof)}
 
     @classmethod
     def from_json(cls, document: dict) -> RegistrationError:
@@ -228,9 +311,9 @@ class RegistrationError:
                                for row in document["parameter_covariance"]], dtype=float)
         if parameters.ndim != 2 or parameters.shape[0] != parameters.shape[1] or parameters.shape[0] not in (6, 7):
             raise ValueError("parameter_covariance must be a 6x6 or 7x7 matrix")
-        sigma = document.get("probe_sigma_mm")
+        sigma, dof = document.get("probe_sigma_mm"), document.get("probe_sigma_dof")
         return cls(RegistrationCovariance(parameters, np.asarray(document["centre_image"], dtype=float).reshape(3)),
-                   float("inf") if sigma is None else float(sigma))
+                   float("inf") if sigma is None else float(sigma), float("inf") if dof is None else float(dof))
 
 
 def registration_error(points_reference: np.ndarray, origins_image: np.ndarray, axes_image: np.ndarray,
@@ -249,7 +332,9 @@ def registration_error(points_reference: np.ndarray, origins_image: np.ndarray, 
     image_var = np.zeros(n) if image_sigma_mm is None else np.square(np.asarray(image_sigma_mm, dtype=float))
     probe_sigma = estimate_isotropic_fle(residuals_mm, fiducials, axes, image_var[:, None, None] * np.eye(3))
     covariances = (probe_sigma**2 + image_var)[:, None, None] * np.eye(3)
-    return RegistrationError(registration_covariance(fiducials, covariances, axes), probe_sigma)
+    dof = 3 * n - (7 if l_solved else 6)
+    return RegistrationError(registration_covariance(fiducials, covariances, axes), probe_sigma,
+                             float(dof) if dof > 0 else float("inf"))
 
 
 @dataclass(frozen=True)

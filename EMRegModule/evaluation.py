@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from .dwell import Dwell, describe_still_periods, find_dwells, group_by_place, robust_mean
-from .error_model import ErrorModel, repeated_dwell_ms
+from .error_model import ErrorBudget, ErrorModel, optimism_limit, repeated_dwell_ms, satterthwaite_dof
 from .errors import EMRegError, NoSafeAnswerError
 from .io.atomic import atomic_write_json, read_json
 from .navigation import navigate_recording
@@ -115,7 +115,8 @@ class TargetEvaluation:
 
     ``predictions``: per target the predicted end-to-end RMS TRE and its budget, when the evaluation
     had the registration's error model; ``tracking_rms_mm`` and ``tracking_source``: the probe's
-    per-dwell error the predictions used and where it came from.
+    per-dwell error the predictions used and where it came from; ``warnings``: what the measured
+    errors say of the prediction (one that they show to be optimistic).
     """
 
     dwells: list[TargetDwell]
@@ -125,6 +126,7 @@ class TargetEvaluation:
     predictions: dict[str, TargetPrediction] = field(default_factory=dict)
     tracking_rms_mm: float | None = None
     tracking_source: str | None = None
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def errors_mm(self) -> np.ndarray:
@@ -352,6 +354,8 @@ def evaluate(
             navigation, labels, positions, reference_to_image, reference_sensor, probe_sensor, settings,
             settings.max_target_distance_mm, error_model))
         result.warnings += navigation.warnings
+        if result.tre is not None:
+            result.warnings += result.tre.warnings
     if board is not None:
         result.board = part("board", lambda: evaluate_board(board, reference_sensor, probe_sensor, nominal_edges_mm,
                                                             settings))
@@ -445,6 +449,36 @@ def _predict(result: TargetEvaluation, target_labels: Sequence[str], targets_ima
                                                          {name: float(v[k]) for name, v in terms.items()})
     result.tracking_rms_mm = float(np.sqrt(budget.tracking_ms[0]))
     result.tracking_source = "repeated dwells at the targets" if repeated is not None else "calibration"
+    calibration_dof = error_model.registration.probe_sigma_dof
+    tracking_dof = 3.0 * repeated[1] if repeated is not None else calibration_dof
+    warning = _optimism_warning(result, target_labels, budget, calibration_dof, tracking_dof)
+    if warning:
+        result.warnings.append(warning)
+
+
+def _optimism_warning(result: TargetEvaluation, target_labels: Sequence[str], budget: ErrorBudget,
+                      calibration_dof: float, tracking_dof: float) -> str | None:
+    """A warning when the measured RMS TRE is above the prediction by more than the model's own randomness
+    explains (:func:`EMRegModule.error_model.optimism_limit`, false alarm 1 in 1000), else None."""
+    row = {str(label): k for k, label in enumerate(target_labels)}
+    visited = np.array([row[d.target] for d in result.dwells])
+    common = budget.registration_ms[visited] + budget.reference_ms[visited]
+    independent = budget.tracking_ms[visited] + budget.placement_ms[visited]
+    predicted_ms = float(np.mean(common + independent))
+    if not np.isfinite(predicted_ms) or predicted_ms <= 0:
+        return None
+    measured_ms = float(np.mean(result.errors_mm**2))
+    prediction_dof = satterthwaite_dof(
+        [float(np.mean(common)), float(np.mean(budget.tracking_ms[visited])),
+         float(np.mean(budget.placement_ms[visited]))], [calibration_dof, tracking_dof, float("inf")])
+    limit = optimism_limit(float(np.mean(common)), float(np.mean(independent)), len(visited), prediction_dof)
+    if measured_ms <= limit * predicted_ms:
+        return None
+    return (f"measured RMS TRE {np.sqrt(measured_ms):.2f} mm over {len(visited)} dwells is "
+            f"{np.sqrt(measured_ms / predicted_ms):.1f} x the predicted {np.sqrt(predicted_ms):.2f} mm (the model's "
+            f"own scatter allows up to {np.sqrt(limit):.2f} x): the prediction is optimistic; an error it does not "
+            "model is present (probe tip not where its sensor reports it, reference sensor moved on the patient, wrong "
+            "fixed sensor offset l, field distortion): trust the measured TRE, not the prediction or tre_map.nrrd")
 
 
 # --- board phantom ---------------------------------------------------------------------------
