@@ -1,4 +1,5 @@
-"""NIfTI-1 files whose two placements of the voxels (sform and qform) disagree, refused before use.
+"""NIfTI-1 files (``.nii``, ``.nii.gz``, ``.hdr`` + ``.img``) whose two placements of the voxels (sform and
+qform) disagree, refused before use.
 
 A NIfTI-1 header can place the voxel grid twice: the ``sform`` (a 3x4 matrix, ``sform_code`` > 0) and the
 ``qform`` (a quaternion, pixdim and an offset, ``qform_code`` > 0), both from voxel index (i, j, k) to RAS
@@ -30,24 +31,42 @@ _RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0])
 _UNIT_MM = {1: 1000.0, 2: 1.0, 3: 0.001}  # xyzt_units' space unit (metre, mm, micron) in mm, as ITK scales it
 
 
+_NAMES = (".nii", ".nii.gz", ".hdr", ".hdr.gz", ".img", ".img.gz")
+
+
 def is_nifti(path: str | os.PathLike[str]) -> bool:
-    """True for a ``.nii`` or ``.nii.gz`` file name."""
-    return Path(path).name.lower().endswith((".nii", ".nii.gz"))
+    """True for a NIfTI-1 file name: ``.nii``, ``.nii.gz``, or either file of a ``.hdr`` / ``.img`` pair
+    (also Analyze 7.5's names: such a header has no NIfTI magic and passes)."""
+    return Path(path).name.lower().endswith(_NAMES)
+
+
+def _header_file(path: Path) -> Path | None:
+    """The file holding the 348-byte header: ``path`` itself, or the ``.hdr`` beside an ``.img``."""
+    name = path.name.lower()
+    for suffix in (".img", ".img.gz"):
+        if name.endswith(suffix):
+            stem = path.name[:-len(suffix)]
+            return next((h for h in (path.with_name(stem + e) for e in (".hdr", ".hdr.gz", ".HDR")) if h.is_file()),
+                        None)
+    return path
 
 
 def nifti_sform_lps(path: str | os.PathLike[str]) -> tuple[np.ndarray, int, int] | None:
     """The sform of a NIfTI-1 file as a 4x4 voxel index (i, j, k) -> LPS mm matrix (the header's space unit
     turned into mm, as ITK does), with the sform and qform codes; ``None`` when the file has no sform
     (``sform_code`` 0) or is not a readable NIfTI-1 header."""
+    header = _header_file(Path(path))
+    if header is None:
+        return None
     try:
-        with open(path, "rb") as stream:
+        with open(header, "rb") as stream:
             start = stream.read(2)
             stream.seek(0)
             head = gzip.GzipFile(fileobj=stream).read(348) if start == b"\x1f\x8b" else stream.read(348)
     except (OSError, EOFError):
         return None
-    if len(head) < 348:
-        return None
+    if len(head) < 348 or head[344:348] not in (b"n+1\0", b"ni1\0"):
+        return None  # not NIfTI-1 (Analyze 7.5 keeps other fields where the sform would be)
     order = next((o for o in "<>" if struct.unpack_from(o + "i", head, 0)[0] == 348), None)
     if order is None:
         return None  # NIfTI-2 (no such ambiguity handled here) or not NIfTI

@@ -15,9 +15,9 @@ compared with ``sitk.ReadImage`` (geometry and every voxel).
   Both now read the flags as MetaIO does.
 - A NIfTI whose sform (code 2, aligned, or 3-5) and qform (code 1) disagree was read at the qform's place
   (ITK's rule) while FSL and nibabel use the sform: with the sform right, all 8 markers came out 30 mm from
-  the truth without a word. Files whose sform places the voxels elsewhere than the geometry read (also a
-  sheared sform, which ITK passes over for the qform) are now refused in one line that says how to make
-  the two agree.
+  the truth without a word (a ``.hdr`` + ``.img`` pair likewise). Files whose sform places the voxels elsewhere
+  than the geometry read (also a sheared sform, which ITK passes over for the qform) are now refused in one
+  line that says how to make the two agree.
 
 Already right, tested here: dcm2niix's NIfTI of the simulator's DICOM series (RAS sform/qform, rows
 flipped, ``scl_inter`` -1024); NIfTI with ``scl_slope`` 0.5 or ``scl_inter`` -1024, with the qform only
@@ -268,6 +268,15 @@ def test_nifti_whose_aligned_sform_and_qform_disagree_is_refused(case, hu, tmp_p
     _assert_refused(path, case, capsys, reason)
     with pytest.raises(EMRegError, match=re.escape(reason)):  # the report's streamed read refuses it too
         start_streamed_read(path)
+    # the same header as a .hdr + .img pair (magic "ni1"), read by SimpleITK, named by either file
+    data = path.read_bytes()
+    header = bytearray(data[:348])
+    header[108:112], header[344:348] = struct.pack("<f", 0.0), b"ni1\0"
+    (tmp_path / "pair.hdr").write_bytes(bytes(header))
+    (tmp_path / "pair.img").write_bytes(data[352:])
+    for name in ("pair.hdr", "pair.img"):
+        with pytest.raises(EMRegError, match=re.escape(reason)):
+            read_ct(tmp_path / name)
 
 
 def test_dcm2niix_nifti_of_the_dicom_series(case, tmp_path, capsys):
