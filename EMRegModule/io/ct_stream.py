@@ -131,7 +131,10 @@ def start_streamed_read(path: str | Path) -> StreamedCT | None:
         return None
     info, storage = plain
     from .ct_checks import check_ct_geometry
+    from .nifti_header import check_nifti_placement, is_nifti
 
+    if is_nifti(path):
+        check_nifti_placement(CTGeometry(info), path)
     check_ct_geometry(CTGeometry(info), path)
     ct = StreamedCT(info, storage.dtype)
     ct.path = path.resolve()

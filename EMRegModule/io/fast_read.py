@@ -503,11 +503,22 @@ def _nrrd_storage(stream: BinaryIO) -> _Storage | None:
     fields, offset = parsed
     if {"data file", "datafile", "line skip", "lineskip", "byte skip", "byteskip"} & set(fields):
         return None  # detached or offset data: SimpleITK handles those
-    dtype_name = _NRRD_TYPES.get(fields.get("type", ""))
-    compression = {"raw": "raw", "gzip": "gzip", "gz": "gzip"}.get(fields.get("encoding", ""))
+    dtype_name = _NRRD_TYPES.get(_nrrd_word(fields, "type"))
+    compression = _nrrd_compression(fields)
     if dtype_name is None or compression is None:
         return None
-    return _Storage(_ordered(dtype_name, fields.get("endian", "little") == "big"), offset, compression)
+    return _Storage(_ordered(dtype_name, _nrrd_word(fields, "endian") == "big"), offset, compression)
+
+
+def _nrrd_word(fields: dict[str, str], key: str) -> str:
+    """A field whose value is a word of a fixed set (type, encoding, endian), in lower case: NRRD readers (teem,
+    hence SimpleITK and 3D Slicer) take ``endian: BIG`` or ``encoding: GZIP`` as ``big`` and ``gzip``."""
+    return fields.get(key, "").lower()
+
+
+def _nrrd_compression(fields: dict[str, str]) -> str | None:
+    """"raw" or "gzip" for the encodings read here, ``None`` for others (text, hex, bzip2)."""
+    return {"raw": "raw", "gzip": "gzip", "gz": "gzip"}.get(_nrrd_word(fields, "encoding"))
 
 
 def _mha_fields(stream: BinaryIO) -> tuple[dict[str, str], int] | None:
@@ -530,14 +541,24 @@ def _mha_storage(stream: BinaryIO) -> _Storage | None:
     if parsed is None:
         return None
     fields, offset = parsed
-    if fields.get("ElementDataFile") != "LOCAL" or fields.get("BinaryData", "True") != "True":
+    if fields.get("ElementDataFile") != "LOCAL" or not _meta_flag(fields, "BinaryData", True):
         return None
     dtype_name = _MET_TYPES.get(fields.get("ElementType", ""))
     if dtype_name is None:
         return None
-    big = fields.get("BinaryDataByteOrderMSB", fields.get("ElementByteOrderMSB", "False")) == "True"
-    compression = "zlib" if fields.get("CompressedData", "False") == "True" else "raw"
-    return _Storage(_ordered(dtype_name, big), offset, compression)
+    big = _meta_flag(fields, "BinaryDataByteOrderMSB", _meta_flag(fields, "ElementByteOrderMSB", False))
+    return _Storage(_ordered(dtype_name, big), offset, _meta_compression(fields))
+
+
+def _meta_flag(fields: dict[str, str], key: str, default: bool) -> bool:
+    """A MetaImage yes/no field as MetaIO (hence SimpleITK) reads it: true when its value starts with
+    ``T``, ``t`` or ``1`` (``True``, ``true``, ``1``), false otherwise; ``default`` when absent."""
+    value = fields.get(key)
+    return default if value is None else value[:1] in ("T", "t", "1")
+
+
+def _meta_compression(fields: dict[str, str]) -> str:
+    return "zlib" if _meta_flag(fields, "CompressedData", False) else "raw"
 
 
 def _nifti_storage(stream: BinaryIO) -> _Storage | None:
@@ -611,13 +632,13 @@ def check_data_length(path: Path) -> None:
         if {"line skip", "lineskip", "byte skip", "byteskip"} & set(fields):
             return
         detached = fields.get("data file", fields.get("datafile"))
-        compression = {"raw": "raw", "gzip": "gzip", "gz": "gzip"}.get(fields.get("encoding", ""))
+        compression = _nrrd_compression(fields)
     else:
-        if "HeaderSize" in fields or fields.get("BinaryData", "True") != "True":
+        if "HeaderSize" in fields or not _meta_flag(fields, "BinaryData", True):
             return
         detached = fields.get("ElementDataFile")
         detached = None if detached == "LOCAL" else detached
-        compression = "zlib" if fields.get("CompressedData", "False") == "True" else "raw"
+        compression = _meta_compression(fields)
     if compression is None:
         return
     if detached is not None:

@@ -18,6 +18,7 @@ from ..provenance import BackgroundHash, note_read_digest
 from .case import CT_FILE_NAMES, CT_FOLDER_NAME, find_ct  # noqa: F401  (re-exported: CT naming lives with the case)
 from .ct_checks import check_ct_geometry, check_ct_image
 from .fast_read import VolumeFill, check_data_length, start_fast_read
+from .nifti_header import check_nifti_placement, is_nifti
 
 
 def read_ct(path: str | os.PathLike[str], series: str | int | None = None) -> sitk.Image:
@@ -67,6 +68,8 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compa
         detail = next((line for line in reversed(reason) if line.strip()), "unreadable")
         raise EMRegError(f"{path}: cannot read CT ({detail.strip()[:200]})") from None
     try:
+        if is_nifti(path):
+            check_nifti_placement(image, path)  # sform and qform that disagree: readers differ on the answer
         if fill.is_complete:
             check_ct_image(image, path)  # geometry and voxel values of an image read in full
         else:

@@ -201,8 +201,8 @@ def _parse_fast(body: str, n_columns: int, fields: _Columns) -> _Parsed | None:
     """Vectorised parse of well-formed bodies (no quoting); None sends the caller to the checked path."""
     if '"' in body:
         return None
-    numbered = [(n, line) for n, line in enumerate(body.splitlines(), start=2) if line.strip(" ,\r")]
-    lines = [line for _, line in numbered]
+    every_line = body.splitlines()
+    lines = [line for line in every_line if line.strip(" ,\r")]
     if lines and max(map(len, lines)) > _FAST_LINE_CHARS:
         return None  # a long field: the checked parser bounds it (numpy would size every row by it)
     if not lines:
@@ -214,7 +214,8 @@ def _parse_fast(body: str, n_columns: int, fields: _Columns) -> _Parsed | None:
         return np.char.strip(np.loadtxt(lines, delimiter=",", comments=None, usecols=[index], dtype=str, ndmin=1))
 
     try:
-        line_numbers = np.array([n for n, _ in numbered])
+        line_numbers = np.arange(2, len(lines) + 2) if len(lines) == len(every_line) else \
+            np.array([n for n, line in enumerate(every_line, start=2) if line.strip(" ,\r")])  # blank lines left out
         not_ok = 0
         if fields.status is not None:
             ok = np.char.upper(text_column(fields.status)) == "OK"

@@ -62,6 +62,10 @@ def test_tracking_csv_without_labels_and_quality():
         (HEADER + "0,1,1,2,3,0,0,0,0,\n0,2,1,2\n", "line 3"),
         (HEADER + "0,1.5,1,2,3,0,0,0,0,\n", "port"),
         (HEADER + "0,1,nan,2,3,0,0,0,0,\n", "non-finite"),
+        # a blank line and a left-out row still count: the error names the file's own line
+        (HEADER + "0,1,1,2,3,0,0,0,0,\n\n0.1,1,nan,2,3,0,0,0,0,\n", "line 4 holds a non-finite"),
+        ("time_s,sensor,x_mm,y_mm,z_mm,azimuth_deg,elevation_deg,roll_deg,status\n0,1,,,,,,,MISSING\n"
+         "0.1,1,nan,2,3,0,0,0,OK\n", "line 3 holds a non-finite"),
     ],
 )
 def test_malformed_tracking_csv_is_one_clear_error(text, message):
