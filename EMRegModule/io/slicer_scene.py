@@ -685,7 +685,9 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
     """Read a run's outputs (``markers.json``, ``frame_calibration.json``, ``registration.json``,
     ``navigation.csv``), the case's targets and its CT: when the CT that ``run.json`` names is a
     plain NRRD (:func:`stored_voxels`) and ``image``, if given, has its grid, the file's stored voxels
-    (a bundle copies them, nothing is read into memory); otherwise ``image``, else the CT read."""
+    (a bundle copies them, nothing is read into memory); otherwise ``image``, else the CT read (of a
+    DICOM folder, the series the markers were detected in, as ``markers.json`` / ``run.json`` name it,
+    not the folder's default choice: the run may have forced another with ``--series``)."""
     from .atomic import read_json
 
     out = Path(out_dir)
@@ -693,8 +695,11 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
     if case_dir is None and run.get("case"):
         case_dir = run["case"]
     content = RunScene(image=image)
+    series = _series_uid(run)
     if (out / "markers.json").is_file():
-        markers = read_json(out / "markers.json", "markers JSON").get("markers", [])
+        detected = read_json(out / "markers.json", "markers JSON")
+        series = _series_uid(detected) or series  # the series whose space the markers are in
+        markers = detected.get("markers", [])
         content.marker_ids = [str(m["id"]) for m in markers]
         content.marker_origins = np.array([m["origin"] for m in markers], dtype=float).reshape(-1, 3)
         content.marker_axes = np.array([m["axis"] for m in markers], dtype=float).reshape(-1, 3)
@@ -726,12 +731,19 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
             from .image import read_ct
 
             try:
-                content.image = read_ct(ct)
+                content.image = read_ct(ct, series)
             except EMRegError as exc:
                 content.notes.append(f"CT not included ({exc})")
         else:
             content.notes.append("CT not included (run.json names no CT that exists)")
     return content
+
+
+def _series_uid(record: Any) -> str | None:
+    """The Series Instance UID a run record or ``markers.json`` names under ``ct_series`` (None: none named)."""
+    block = record.get("ct_series") if isinstance(record, dict) else None
+    uid = block.get("series_instance_uid") if isinstance(block, dict) else None
+    return str(uid) if uid else None
 
 
 def _same_grid(geometry: Any, image: Any) -> bool:
