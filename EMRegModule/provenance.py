@@ -32,8 +32,14 @@ RUN_JSON = "run.json"
 _CHUNK = 1 << 22
 
 
+#: Image headers whose voxels may be in a file of their own (``.nhdr``, ``.mhd``, ``.hdr`` + ``.img``).
+_DETACHED_HEADERS = (".nhdr", ".mhd", ".hdr")
+
+
 def file_sha256(path: str | os.PathLike[str]) -> str:
-    """sha256 of a file's bytes; of a folder (a DICOM series), :func:`folder_sha256` of its files' sha256.
+    """sha256 of a file's bytes; of a folder (a DICOM series), :func:`folder_sha256` of its files' sha256; of
+    an image header whose voxels are in a file beside it, :func:`folder_sha256` of the two (a change to the
+    voxels is a change to the image).
 
     Unreadable inputs are an :class:`EMRegError`.
     """
@@ -41,6 +47,12 @@ def file_sha256(path: str | os.PathLike[str]) -> str:
     try:
         if path.is_dir():
             return folder_sha256({name: _digest(member) for name, member in folder_members(path)})
+        if path.name.lower().endswith(_DETACHED_HEADERS):
+            from .io.fast_read import detached_data_file
+
+            data = detached_data_file(path)
+            if data is not None:
+                return folder_sha256({path.name: _digest(path), data.name: _digest(data)})
         return _digest(path).hex()
     except OSError as exc:
         raise EMRegError(f"{path}: cannot be read to record its provenance ({exc.strerror or exc})") from None

@@ -16,7 +16,7 @@ from ..settings import Settings, load_settings
 from ..tracking import TrackingRecording
 from .markups import read_markups
 
-CT_FILE_NAMES = ("ct.nrrd", "ct.nii.gz", "ct.nii", "ct.mha", "ct.mhd")
+CT_FILE_NAMES = ("ct.nrrd", "ct.nii.gz", "ct.nii", "ct.mha", "ct.mhd", "ct.nhdr")  # .nhdr: 3D Slicer's detached NRRD
 CT_FOLDER_NAME = "ct"
 
 

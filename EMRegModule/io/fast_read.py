@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import os
 import queue
 import threading
 from collections.abc import Callable, Iterable, Iterator
@@ -642,11 +643,9 @@ def check_data_length(path: Path) -> None:
     if compression is None:
         return
     if detached is not None:
-        if " " in detached.strip() or "%" in detached or detached.upper().startswith("LIST"):
-            return  # a file list or pattern: SimpleITK's business
-        data_path, offset = path.parent / detached, 0
-        if not data_path.is_file():
-            return
+        data_path, offset = _one_data_file(path, detached), 0
+        if data_path is None:
+            return  # a file list or pattern (SimpleITK's business), or missing
     else:
         data_path = path
     available = _data_bytes(data_path, offset, compression)
@@ -657,6 +656,36 @@ def check_data_length(path: Path) -> None:
                          f"header's size {list(info.GetSize())} needs ({expected} bytes): the header does not "
                          f"describe the data)")
     raise EMRegError(f"{path}: cannot read CT (file is truncated: {available} of {expected} voxel bytes)")
+
+
+def detached_data_file(path: str | os.PathLike[str]) -> Path | None:
+    """The file holding the voxels of a detached header (NRRD ``data file``, MetaImage ``ElementDataFile``, the
+    ``.img`` beside an Analyze / NIfTI ``.hdr``) when it is one existing file; None for an image in one file."""
+    path = Path(path)
+    name = path.name.lower()
+    if name.endswith(".hdr"):
+        data = path.with_name(path.name[:-4] + (".IMG" if path.name.endswith(".HDR") else ".img"))
+        return data if data.is_file() else None
+    if not name.endswith((".nhdr", ".mhd")):
+        return None
+    try:
+        with path.open("rb") as stream:
+            parsed = (_nrrd_fields if name.endswith(".nhdr") else _mha_fields)(stream)
+    except OSError:
+        return None
+    if parsed is None:
+        return None
+    fields = parsed[0]
+    detached = fields.get("data file", fields.get("datafile", fields.get("ElementDataFile")))
+    return None if detached is None or detached == "LOCAL" else _one_data_file(path, detached)
+
+
+def _one_data_file(header: Path, detached: str) -> Path | None:
+    """The data file a header names, when it names one that exists (not a list or a pattern of files)."""
+    if " " in detached.strip() or "%" in detached or detached.upper().startswith("LIST"):
+        return None
+    data = header.parent / detached
+    return data if data.is_file() else None
 
 
 def _data_bytes(path: Path, offset: int, compression: str) -> int | None:

@@ -169,6 +169,46 @@ def test_nrrd_as_slicer_writes_it(case, hu, tmp_path, capsys, space, endian, enc
     _assert_markers_at_truth(path, case, capsys)
 
 
+def test_a_case_folder_whose_ct_is_a_detached_nrrd_header(case, hu, tmp_path, capsys):
+    """``ct.nhdr`` + ``ct.raw.gz`` (3D Slicer's "detached header" NRRD) is the case's CT, as ``ct.nrrd`` is."""
+    folder = tmp_path / "case"
+    folder.mkdir()
+    shutil.copy2(case / "case.toml", folder / "case.toml")
+    _write_nrrd(folder / "ct.nhdr", hu, "RAS", "little", "gzip", "ct.raw.gz")
+    capsys.readouterr()
+    assert main(["detect", str(folder), "--out", str(tmp_path / "out"), "--quiet"]) == 0, capsys.readouterr().err
+    found = json.loads((tmp_path / "out" / "markers.json").read_text())
+    truth = _truth_origins(case)
+    origins = np.array([m["origin"] for m in found["markers"]]).reshape(-1, 3)
+    assert len(origins) == len(truth)
+    assert np.linalg.norm(truth[:, None] - origins[None], axis=2).min(axis=1).max() < ORIGIN_TOLERANCE_MM
+
+
+@pytest.mark.parametrize("header, data", [("ct.nhdr", "ct.raw.gz"), ("ct.mhd", "ct.raw"), ("ct.hdr", "ct.img")])
+def test_the_sha256_of_a_detached_header_covers_its_voxels(hu, tmp_path, header, data):
+    """Provenance: a CT whose voxels are in a file beside its header changes its sha256 when the voxels change
+    (it covered the header's bytes only, so outputs made from the earlier voxels still passed as this CT's)."""
+    from EMRegModule.provenance import file_sha256
+
+    small = hu[:40, :30, :20]
+    if header.endswith(".nhdr"):
+        _write_nrrd(tmp_path / header, small, "RAS", "little", "gzip", data)
+    else:
+        sitk.WriteImage(small, str(tmp_path / header))
+    assert (tmp_path / data).is_file()
+    before = file_sha256(tmp_path / header)
+    assert before == file_sha256(tmp_path / header)
+    changed = sitk.GetArrayFromImage(small)
+    changed[5, 5, 5] += 100
+    altered = sitk.GetImageFromArray(changed)
+    altered.CopyInformation(small)
+    if header.endswith(".nhdr"):
+        _write_nrrd(tmp_path / header, altered, "RAS", "little", "gzip", data)
+    else:
+        sitk.WriteImage(altered, str(tmp_path / header))
+    assert file_sha256(tmp_path / header) != before
+
+
 # --- MetaImage ---------------------------------------------------------------------------------------------
 
 
