@@ -4,10 +4,11 @@ A CT folder (``ct/`` of a case, or any folder given to ``emreg detect``) may hol
 (the volume, a scout/topogram, a thick reconstruction, dose reports...), in subfolders, with or
 without a ``DICOMDIR``. :func:`scan_series` reads the headers only (pydicom, no pixel data) and
 groups the files by Series Instance UID; :func:`choose_series` keeps the CT volumes (modality CT,
-3 or more slices, not a ``LOCALIZER``, one consistent, evenly spaced, untilted geometry) and picks
-the one best for marker detection: finest slice spacing, then finest in-plane spacing, then most
-slices. Two equally good candidates of different geometry are an error listing both (never a
-silent guess); ``series=UID|NUMBER`` (``--series``, ``[ct] series``) forces a choice.
+3 or more slices, not a ``LOCALIZER``, greyscale and not MONOCHROME1, one consistent, evenly
+spaced, untilted geometry) and picks the one best for marker detection: finest slice spacing, then
+finest in-plane spacing, then most slices. Two equally good candidates of different geometry
+are an error listing both (never a silent guess); ``series=UID|NUMBER`` (``--series``,
+``[ct] series``) forces a choice.
 
 :func:`open_dicom_series` allocates the image from the headers' geometry and decodes the slices
 on a thread pool (GDCM through SimpleITK, one file per task: every transfer syntax GDCM knows,
@@ -41,6 +42,7 @@ from .dicom_header import quick_header
 from .fast_read import VolumeFill, _writable_bytes
 
 _SOP_ENHANCED_CT = "1.2.840.10008.5.1.4.1.1.2.1"
+_PREAMBLE_PROBE_BYTES = 1 << 16  # the header of a file without its DICM marker, read to tell whether it is an image
 _LOCALIZER_TYPES = {"LOCALIZER", "SCOUT", "TOPOGRAM", "SURVIEW", "SCANOGRAM"}
 _TRANSFER_SYNTAX_NAMES = {
     "1.2.840.10008.1.2": "Implicit VR Little Endian",
@@ -231,7 +233,8 @@ def read_header(path: Path) -> SliceHeader | None:
 
     Plain little-endian files are walked by :func:`.dicom_header.quick_header`; the others (and
     anything it finds unusual) are read by pydicom. A file with the DICOM preamble whose header
-    cannot be parsed is an :class:`EMRegError`.
+    cannot be parsed, or a DICOM image after a preamble without its ``DICM`` marker, is an
+    :class:`EMRegError`.
     """
     quick = quick_header(path)
     if quick is not None:
@@ -249,15 +252,43 @@ def read_header(path: Path) -> SliceHeader | None:
     try:
         dataset = pydicom.dcmread(path, stop_before_pixels=True, force=not has_preamble)
     except InvalidDicomError:
-        return None
+        dataset = None
     except Exception as exc:  # noqa: BLE001 - pydicom raises many types for a broken file
-        if not has_preamble:
-            return None
-        raise EMRegError(f"{path}: unreadable DICOM file ({_short(exc)})") from None
+        if has_preamble:
+            raise EMRegError(f"{path}: unreadable DICOM file ({_short(exc)})") from None
+        dataset = None
+    if not has_preamble and (dataset is None or dataset.get("SeriesInstanceUID") is None):
+        _refuse_preamble_without_marker(path)
+    if dataset is None:
+        return None
     if dataset.get("DirectoryRecordSequence"):
         return None
     transfer = str(getattr(getattr(dataset, "file_meta", None), "TransferSyntaxUID", "") or "")
     return _slice_header(path, transfer, dataset.get)
+
+
+def _refuse_preamble_without_marker(path: Path) -> None:
+    """An :class:`EMRegError` when ``path`` is a DICOM image after a 128-byte preamble lacking its ``DICM`` marker.
+
+    Some exports write the preamble but neither the marker nor the file meta. GDCM does not read
+    such a file (its series reader leaves it out); ignoring it as "not DICOM" would silently drop
+    a slice (at the end of the stack: a shorter volume, no error), so it is named instead.
+    """
+    import io
+
+    import pydicom
+
+    try:
+        with path.open("rb") as stream:
+            stream.seek(128)
+            head = stream.read(_PREAMBLE_PROBE_BYTES)
+        dataset = pydicom.dcmread(io.BytesIO(head), stop_before_pixels=True, force=True)
+        image = dataset.get("SeriesInstanceUID") is not None and dataset.get("Rows") is not None
+    except Exception:  # noqa: BLE001 - not DICOM after a preamble either: the file is no DICOM image
+        return
+    if image:
+        raise EMRegError(f"{path}: a DICOM image with a 128-byte preamble but no 'DICM' marker (a broken export "
+                         f"GDCM does not read); export the series again")
 
 
 def _slice_header(path: Path, transfer: str, get: Any) -> SliceHeader | None:
@@ -339,8 +370,13 @@ def _volume_problem(series: DicomSeries) -> str | None:
         return f"modality {series.modality or 'unknown'}, not CT"
     if any(_LOCALIZER_TYPES & set(h.image_type) for h in headers):
         return "a localizer (scout/topogram)"
-    if any(h.samples != 1 for h in headers):
-        return "not greyscale"
+    colour = next((h for h in headers if h.samples != 1), None)
+    if colour is not None:
+        return f"{colour.name} has {colour.samples} samples per pixel (colour), not greyscale"
+    inverted = next((h for h in headers if h.photometric.strip().upper() == "MONOCHROME1"), None)
+    if inverted is not None:
+        return f"{inverted.name} is MONOCHROME1 (GDCM inverts its values, so they are no HU); " \
+               f"export it as MONOCHROME2"
     if len(headers) == 1 and headers[0].frames > 1:
         return _multiframe_geometry(series)
     if any(h.frames > 1 for h in headers):
