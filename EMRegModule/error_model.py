@@ -45,8 +45,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import brentq
-from scipy.stats import chi2
 
 from .transforms import apply_transform, invert_rigid
 
@@ -202,6 +200,27 @@ def satterthwaite_dof(mean_squares: list[float], dofs: list[float]) -> float:
 _NODES = 128
 
 
+# chi-square tail, inverse tail and quantile from the regularised incomplete gamma functions, imported where
+# used: scipy.stats and scipy.optimize at the top of this module added about a second of imports to every command
+# that reads a registration (the report's among them), for a check only the evaluation makes
+def _chi2_sf(x: np.ndarray | float, dof: float) -> np.ndarray:
+    from scipy.special import gammaincc
+
+    return gammaincc(dof / 2.0, np.asarray(x, dtype=float) / 2.0)
+
+
+def _chi2_isf(p: np.ndarray, dof: float) -> np.ndarray:
+    from scipy.special import gammainccinv
+
+    return 2.0 * gammainccinv(dof / 2.0, p)
+
+
+def _chi2_ppf(p: np.ndarray, dof: float) -> np.ndarray:
+    from scipy.special import gammaincinv
+
+    return 2.0 * gammaincinv(dof / 2.0, p)
+
+
 def _ratio_survival(ratio: float, common_share: float, scatter_share: float, scatter_dof: float,
                     prediction_scale: np.ndarray, prediction_weight: np.ndarray) -> float:
     """P(measured / predicted mean square > ``ratio``) with the measured one ``common_share * X / 3 +
@@ -209,17 +228,17 @@ def _ratio_survival(ratio: float, common_share: float, scatter_share: float, sca
     the prediction's own relative error: values ``prediction_scale`` with probabilities ``prediction_weight``."""
     threshold = ratio * prediction_scale  # (W,): the measured share each prediction value must exceed
     if scatter_share <= 0:
-        return float(prediction_weight @ chi2.sf(3.0 * threshold / common_share, 3))
+        return float(prediction_weight @ _chi2_sf(3.0 * threshold / common_share, 3))
     if common_share <= 0:
-        return float(prediction_weight @ chi2.sf(threshold * scatter_dof / scatter_share, scatter_dof))
+        return float(prediction_weight @ _chi2_sf(threshold * scatter_dof / scatter_share, scatter_dof))
     # integrate over X by its tail probability v = P(chi2(3) > X), on a log scale (the excess comes from
     # the tail): v in (v0, 1), v0 = P(chi2(3) > 3 t / common_share); for X beyond, always exceeded
-    v0 = np.maximum(chi2.sf(3.0 * threshold / common_share, 3), 1e-300)  # (W,)
+    v0 = np.maximum(_chi2_sf(3.0 * threshold / common_share, 3), 1e-300)  # (W,)
     step = -np.log(v0) / _NODES
     v = np.exp(np.log(v0)[:, None] + step[:, None] * (np.arange(_NODES) + 0.5))
-    rest = threshold[:, None] - common_share * chi2.isf(v, 3) / 3.0
+    rest = threshold[:, None] - common_share * _chi2_isf(v, 3) / 3.0
     weight = v * step[:, None]  # dv = v ds
-    inside = np.sum(weight * chi2.sf(np.maximum(rest, 0.0) * scatter_dof / scatter_share, scatter_dof), axis=1)
+    inside = np.sum(weight * _chi2_sf(np.maximum(rest, 0.0) * scatter_dof / scatter_share, scatter_dof), axis=1)
     return float(prediction_weight @ (inside + v0))
 
 
@@ -246,7 +265,7 @@ def optimism_limit(common_ms: float, independent_ms: float, n_dwells: int, predi
     if np.isfinite(prediction_dof):  # its probability on a logit scale, out to 6e-6 in either tail
         z = np.linspace(-12.0, 12.0, _NODES)
         u = 1.0 / (1.0 + np.exp(-z))
-        scale = chi2.ppf(u, prediction_dof) / prediction_dof
+        scale = _chi2_ppf(u, prediction_dof) / prediction_dof
         weight = u * (1.0 - u) * (z[1] - z[0])
         weight /= weight.sum()
     else:
@@ -255,10 +274,13 @@ def optimism_limit(common_ms: float, independent_ms: float, n_dwells: int, predi
     def excess(ratio: float) -> float:
         return _ratio_survival(ratio, common_share, scatter_share, scatter_dof, scale, weight) - false_alarm
 
-    high = 2.0
+    low, high = 1e-6, 2.0
     while excess(high) > 0 and high < 1e6:
-        high *= 2.0
-    return float(brentq(excess, 1e-6, high, xtol=1e-6, rtol=1e-6))
+        low, high = high, high * 2.0
+    while high - low > 1e-6 + 1e-7 * high:  # bisection: the tail probability falls as the ratio grows
+        middle = (low + high) / 2.0
+        low, high = (middle, high) if excess(middle) > 0 else (low, middle)
+    return float((low + high) / 2.0)
 
 
 @dataclass(frozen=True)
