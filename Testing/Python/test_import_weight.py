@@ -1,0 +1,41 @@
+"""The modules every command loads stay free of libraries only some stages use.
+
+An import at the top of a core module runs in every command that touches it: scipy.stats and
+scipy.optimize at the top of ``error_model`` (which ``registration`` imports) once added about a
+second of CPU to ``emreg report`` and ``emreg run`` at 0.6 mm (bench_report: the report's CPU from
+5.2 s to 6.2 s) for a check only the evaluation makes. pyvista (with matplotlib.pyplot) belongs to
+the rendering, slicer-core to the bundle's own process, pydicom to DICOM folders. Timings live in
+``scripts/bench_*``; this checks which modules are loaded, which does not depend on the machine.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+#: Modules each command imports before it knows what it will do (command line, controller, stage modules).
+CORE = ("EMRegModule.cli", "EMRegModule.controller", "EMRegModule.detection.detect", "EMRegModule.registration",
+        "EMRegModule.calibration", "EMRegModule.evaluation", "EMRegModule.navigation", "EMRegModule.report",
+        "EMRegModule.io.slicer_scene", "EMRegModule.io.image")
+
+#: Libraries none of them may load at import time.
+HEAVY = ("scipy.stats", "scipy.optimize", "matplotlib", "pyvista", "slicer", "vtkmodules.vtkRenderingCore",
+         "pydicom", "dask")
+
+
+def test_core_modules_load_no_stage_specific_library():
+    script = (
+        "import importlib, json, sys\n"
+        f"heavy = {HEAVY!r}\n"
+        "loaded = {}\n"
+        f"for name in {CORE!r}:\n"
+        "    importlib.import_module(name)\n"
+        "    loaded[name] = [h for h in heavy if h in sys.modules and h not in sum(loaded.values(), [])]\n"
+        "print(json.dumps(loaded))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    loaded = json.loads(result.stdout.strip().splitlines()[-1])
+    assert set(loaded) == set(CORE)
+    assert {name: found for name, found in loaded.items() if found} == {}
