@@ -1,0 +1,69 @@
+"""Defects a sweep of the live tracking paths found (the Aurora, the trakSTAR, ``emreg record`` and the
+OpenIGTLink stream in the situations an operating room brings), each checked over a real pseudo-terminal
+or real TCP, against outside code where it exists.
+
+- A tool unplugged and plugged back in during tracking never came back: on the Aurora the unplugged
+  tool's port handle goes stale and the replugged tool appears under a new handle that waits for PINIT /
+  PENA (which the Aurora takes only outside tracking), announced by system status 0x0040 in every BX/TX
+  reply. EMReg's driver polled the old handle for ever (the probe "not attached" for the rest of the
+  recording), and the simulator hid it by giving the replugged tool its old handle back. The simulator
+  now allocates a new handle as the Aurora does, and the driver, on that status bit, stops tracking,
+  frees the stale handle, initialises and enables the new one under the port's sensor number and starts
+  again, its frame numbers and times still increasing.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from EMRegModule.live.aurora_driver import AuroraDriver
+from EMRegModule.live.aurora_simulator import AuroraSimulator, parse_tools
+from EMRegModule.live.samples import STATUS_NOT_ATTACHED, STATUS_OK
+
+
+def _wait(condition, timeout_s: float = 30.0) -> bool:
+    """Wait for ``condition`` (an event or a count, polled); False if it never came (not a timing test)."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+# --- the Aurora ---------------------------------------------------------------------------------------------
+
+
+def test_aurora_tool_unplugged_and_plugged_back_is_tracked_again_under_a_new_handle(tmp_path):
+    link = tmp_path / "aurora"
+    with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof,3:6dof"), link=link) as sim:
+        driver = AuroraDriver(str(link), 115200).open()
+        samples = []
+        try:
+            assert [(t.handle, t.sensor) for t in driver.tools] == [(0x0A, 1), (0x0B, 2), (0x0C, 3)]
+            driver.start(samples.append)
+            assert _wait(lambda: len(samples) >= 30)
+            sim.set_state("unplug", 2)
+            assert _wait(lambda: sum(s.sensor == 2 and s.status == STATUS_NOT_ATTACHED for s in samples) >= 5)
+            mark = len(samples)
+            sim.set_state("unplug", 2, False)
+            back = _wait(lambda: any(s.sensor == 2 and s.status == STATUS_OK for s in samples[mark:]), 15.0)
+            driver.stop()
+        finally:
+            driver.close()
+    assert back, "the replugged probe never came back"
+    assert driver.stats.replugs == 1 and driver.error is None
+    assert "PHF" in sim.commands  # the stale handle was freed
+    handle = next(t.handle for t in driver.tools if t.sensor == 2)
+    assert handle not in (0x0A, 0x0B, 0x0C)
+    # every pose given out is the one the device measured for its frame, never another tool's or handle's
+    for s in samples:
+        if s.status == STATUS_OK:
+            q, p = sim.truth_for_frame(s.sensor, s.extra["device_frame"])
+            assert np.array_equal(np.float32(s.position_mm), np.float32(p))
+    # frame numbers and times keep increasing across the restart (the device counts anew from TSTART)
+    frames = [s.frame for s in samples if s.sensor == 1]
+    assert all(b > a for a, b in zip(frames, frames[1:], strict=False))
+    assert all(s.time_s == (s.frame - samples[0].frame) / 40.0 for s in samples)
