@@ -14,9 +14,9 @@ its physical port 1..4 read from PHINF's port location, +4 for channel 1 of a 5-
 spec's defaults reference = 1, probe = 2 mean ports 1 and 2), the polling loop (a new sample only
 for a new frame number; a reply ndicapi rejects - bad CRC, timeout - gives no sample at all), the
 mapping of NDI states to EMReg's (MISSING -> out of range, port unoccupied or DISABLED -> not
-attached, out-of-volume bit -> out of range; the RMS error -> ``quality``), a tool plugged in during
-tracking (system status ``SYSTEM_PORT_OCCUPIED``: a replugged tool has a new handle) initialised and
-tracked again under its port's sensor number, and counters.
+attached, out-of-volume or partially-out-of-volume bit -> out of range; the RMS error -> ``quality``),
+a tool plugged in during tracking (system status ``SYSTEM_PORT_OCCUPIED``: a replugged tool has a new
+handle) initialised and tracked again under its port's sensor number, and counters.
 
 ndicapi is called through ``ctypes`` on the very library the ``ndicapy`` module is built from, not
 through ``ndicapy``'s Python functions: ``ndicapy.ndiCommand`` returns every reply as a ``str``, and a
@@ -439,7 +439,8 @@ class AuroraDriver:
         status = STATUS_OK
         if result == 1 or not port_status & ndi.PORT_OCCUPIED:  # NDI_DISABLED, or the tool was unplugged
             status = STATUS_NOT_ATTACHED
-        elif result == 2 or port_status & ndi.PORT_OUT_OF_VOLUME:  # NDI_MISSING, or outside the volume
+        elif result == 2 or port_status & (ndi.PORT_OUT_OF_VOLUME | ndi.PORT_PARTIALLY_IN_VOLUME):
+            # NDI_MISSING, or (partly) outside the characterised volume: a transform without its accuracy
             status = STATUS_OUT_OF_RANGE
         if result == 0:
             quaternion = np.asarray(values[:4], dtype=float)

@@ -37,7 +37,8 @@ given the path: ``aurora://PATH`` for EMReg, ``{"serial port": PATH}`` for sciki
   choice; a replay uses its recording's rate), BX/TX answering the newest measured frame;
 - states on demand (``--fault`` windows in seconds after start, or the ``set_*`` methods): a tool
   ``missing`` (no solution: MISSING), ``out-of-range`` (outside the characterised volume: port
-  status bit 0x40, reported MISSING unless the reply mode has 0x0800), ``unplug`` (MISSING, port no
+  status bit 0x40, reported MISSING unless the reply mode has 0x0800), ``partly-out`` (partially
+  outside it: port status bit 0x80 on a transform reported as valid), ``unplug`` (MISSING, port no
   longer occupied, system status 0x0080; its handle stays unoccupied - listed by PHSR:01 until PHF
   frees it - and, plugged back in, the tool gets a new handle waiting for PINIT / PENA while BX/TX
   replies carry system status 0x0040, as on the Aurora: [CAPI] ``NDI_PORT_OCCUPIED``), ``distort``
@@ -142,7 +143,7 @@ class AuroraFaults:
     stall_s: float = 0.0
     windows: dict[str, list[tuple[int, float, float]]] = field(default_factory=dict)
 
-    KINDS = ("missing", "out-of-range", "unplug", "distort")
+    KINDS = ("missing", "out-of-range", "partly-out", "unplug", "distort")
 
     @classmethod
     def parse(cls, items: list[str]) -> AuroraFaults:
@@ -165,7 +166,8 @@ class AuroraFaults:
                     raise ValueError(kind)
             except ValueError:
                 raise EMRegError(f"--fault {item!r}: for the Aurora use drop=P, flip=P, crc=P, stall=EVERY_S:S, "
-                                 "missing=SENSOR@START-END, out-of-range=..., unplug=..., distort=...") from None
+                                 "missing=SENSOR@START-END, out-of-range=..., partly-out=..., unplug=..., "
+                                 "distort=...") from None
         return plan
 
 
@@ -241,7 +243,8 @@ class AuroraSimulator(PtyDevice):
 
     # -- public controls ------------------------------------------------------------------------
     def set_state(self, kind: str, sensor: int, on: bool = True) -> None:
-        """Turn a state on or off now for the tool of ``sensor``: missing, out-of-range, unplug, distort."""
+        """Turn a state on or off now for the tool of ``sensor``: missing, out-of-range, partly-out, unplug,
+        distort."""
         (self._manual[kind].add if on else self._manual[kind].discard)(sensor)
 
     def stall(self, seconds: float) -> None:
@@ -636,6 +639,8 @@ class AuroraSimulator(PtyDevice):
                 status |= ndi.PORT_OUT_OF_VOLUME
                 if not mode & ndi.REPLY_NOT_NORMALLY_REPORTED:
                     state = "missing"
+            elif self._active("partly-out", sensor, t_s):
+                status |= ndi.PORT_PARTIALLY_IN_VOLUME  # a transform, of accuracy the Aurora does not vouch for
             report = ndi.ToolReport(h.handle, state, port_status=status, frame=frame)
             if state == "valid":
                 report.quaternion, report.position_mm = truth

@@ -10,6 +10,10 @@ or real TCP, against outside code where it exists.
   now allocates a new handle as the Aurora does, and the driver, on that status bit, stops tracking,
   frees the stale handle, initialises and enables the new one under the port's sensor number and starts
   again, its frame numbers and times still increasing.
+- A tool partially out of the Aurora's characterised volume (port status bit 0x80 on a transform the
+  Aurora reports as valid) was taken as a good measurement, while one wholly out of it (bit 0x40) was
+  marked out of range: the same pose of unvouched accuracy was recorded and navigated on. Both bits now
+  mark the sample out of range; the simulator has the state (``--fault partly-out=SENSOR@START-END``).
 """
 
 from __future__ import annotations
@@ -18,9 +22,10 @@ import time
 
 import numpy as np
 
+from EMRegModule.live import ndi_protocol as ndi
 from EMRegModule.live.aurora_driver import AuroraDriver
 from EMRegModule.live.aurora_simulator import AuroraSimulator, parse_tools
-from EMRegModule.live.samples import STATUS_NOT_ATTACHED, STATUS_OK
+from EMRegModule.live.samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE
 
 
 def _wait(condition, timeout_s: float = 30.0) -> bool:
@@ -67,3 +72,25 @@ def test_aurora_tool_unplugged_and_plugged_back_is_tracked_again_under_a_new_han
     frames = [s.frame for s in samples if s.sensor == 1]
     assert all(b > a for a, b in zip(frames, frames[1:], strict=False))
     assert all(s.time_s == (s.frame - samples[0].frame) / 40.0 for s in samples)
+
+
+def test_aurora_tool_partially_out_of_volume_is_never_a_measurement(tmp_path):
+    link = tmp_path / "aurora"
+    with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof"), link=link) as sim:
+        driver = AuroraDriver(str(link), 115200).open()
+        samples = []
+        try:
+            driver.start(samples.append)
+            assert _wait(lambda: len(samples) >= 20)
+            sim.set_state("partly-out", 2)
+            flagged = lambda: [s for s in samples if s.extra["port_status"] & ndi.PORT_PARTIALLY_IN_VOLUME]  # noqa: E731
+            assert _wait(lambda: len(flagged()) >= 10)
+            sim.set_state("partly-out", 2, False)
+            mark = len(samples)
+            assert _wait(lambda: any(s.sensor == 2 and s.status == STATUS_OK for s in samples[mark:]))
+            driver.stop()
+        finally:
+            driver.close()
+    assert all(s.sensor == 2 for s in flagged())
+    assert {s.status for s in flagged()} == {STATUS_OUT_OF_RANGE}
+    assert not any(s.valid for s in flagged())
