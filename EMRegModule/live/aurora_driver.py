@@ -346,6 +346,8 @@ class AuroraDriver:
         last_out: int | None = None  # frame number (and its arrival) of the last samples given out
         last_out_ns = 0
         frame_offset = 0  # added to the device's frame numbers after a restart, so that they keep increasing
+        plug_handled = False  # the 'tool plugged in' bit was acted on and has not cleared since (choice: one
+        # restart per rise of the bit, so a device that kept it set could not make every poll a restart)
         st = self.stats
         errors_in_row = 0
         try:
@@ -389,10 +391,14 @@ class AuroraDriver:
                     last_out, last_out_ns = out_frame, t_ns
                 else:
                     st.repeated += 1
-                if self._system_status() & ndi.SYSTEM_PORT_OCCUPIED:
+                plugged = bool(self._system_status() & ndi.SYSTEM_PORT_OCCUPIED)
+                if plugged and not plug_handled:
                     self._reinitialise()
                     last_frame = None  # the device may count its frames anew from TSTART
-                elif not new_frame:
+                    plug_handled = True
+                    continue
+                plug_handled = plugged
+                if not new_frame:
                     self._stop.wait(IDLE_POLL_S)
         except EMRegError as exc:  # a tool plugged in cannot be initialised, or the line failed meanwhile
             self.error = str(exc)
@@ -517,4 +523,4 @@ class AuroraSource(DriverSource):
         st = self.driver.stats
         return (f"[emreg] Aurora replies: {st.frames} frames, {st.repeated} repeated polls, {st.missed_frames} frame "
                 f"numbers skipped; rejected {st.rejected} (CRC {st.crc_errors}, timeout {st.timeouts}, "
-                f"other {st.other_errors})")
+                f"other {st.other_errors}); {st.replugs} restart(s) for a tool plugged in")

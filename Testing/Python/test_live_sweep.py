@@ -9,7 +9,8 @@ or real TCP, against outside code where it exists.
   recording), and the simulator hid it by giving the replugged tool its old handle back. The simulator
   now allocates a new handle as the Aurora does, and the driver, on that status bit, stops tracking,
   frees the stale handle, initialises and enables the new one under the port's sensor number and starts
-  again, its frame numbers and times still increasing.
+  again, its frame numbers and times still increasing (once per rise of the bit). A tool without SROM
+  plugged in meanwhile ends tracking with the one-line error that names its port, as at start-up.
 - A tool partially out of the Aurora's characterised volume (port status bit 0x80 on a transform the
   Aurora reports as valid) was taken as a good measurement, while one wholly out of it (bit 0x40) was
   marked out of range: the same pose of unvouched accuracy was recorded and navigated on. Both bits now
@@ -85,6 +86,23 @@ def test_aurora_tool_unplugged_and_plugged_back_is_tracked_again_under_a_new_han
     frames = [s.frame for s in samples if s.sensor == 1]
     assert all(b > a for a, b in zip(frames, frames[1:], strict=False))
     assert all(s.time_s == (s.frame - samples[0].frame) / 40.0 for s in samples)
+
+
+def test_aurora_tool_without_srom_plugged_in_mid_recording_is_a_clear_error(tmp_path):
+    link = tmp_path / "aurora"
+    with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof,3:nosrom"), link=link) as sim:
+        sim.set_state("unplug", 3)  # not plugged in when tracking starts
+        driver = AuroraDriver(str(link), 115200).open()
+        samples = []
+        try:
+            assert [t.sensor for t in driver.tools] == [1, 2]
+            driver.start(samples.append)
+            assert _wait(lambda: len(samples) >= 20)
+            sim.set_state("unplug", 3, False)
+            assert _wait(lambda: driver.error is not None)
+        finally:
+            driver.close()
+    assert "port 3" in driver.error and "SROM" in driver.error and "\n" not in driver.error
 
 
 def test_aurora_tool_partially_out_of_volume_is_never_a_measurement(tmp_path):
