@@ -23,11 +23,14 @@ from ..rendering.colors import GREY, colorize, residual_range
 from ..rendering.context import ContextSurface, bin_factor, binned_ct, context_surface
 from ..rendering.error_views import error_budget_chart, tre_map_slices
 from ..rendering.images import encode_png
-from ..rendering.plots import bar_chart, line_chart
+from ..rendering.plots import bar_chart, fit_text, line_chart
 from ..transforms import apply_transform
 from .checks import ReportWarning
 from .derived import MarkerRow, calibration_points_in_image, finite_or_none, tre_figures
 from .inputs import ReportInputs
+
+#: The widest a pinhole's label is drawn in a marker's caption on the CT slices (pixels at the captions' font).
+CAPTION_LABEL_PX = 170
 
 #: Navigated probe positions drawn in the 3D view at most (a longer path is thinned evenly).
 MAX_PATH_POINTS = 2000
@@ -180,7 +183,7 @@ def _slice_markers(data: ReportData) -> list:
     for r in data.rows:
         caption, calibration_point = r.id, None
         if r.calibration_label is not None:
-            caption += f" -> {r.calibration_label}"
+            caption += f" -> {fit_text(r.calibration_label, CAPTION_LABEL_PX, 0.42)}"  # the residual stays in view
             if r.residual_mm is not None:
                 caption += f"  {r.residual_mm:.2f} mm"
             if registration is not None and r.calibration_label in data.points:
