@@ -54,7 +54,8 @@ def stage_warnings(inputs: ReportInputs) -> list[ReportWarning]:
     if inputs.registration is not None:
         texts += inputs.registration.warnings
     texts += list(inputs.evaluation.warnings) if inputs.evaluation is not None else []
-    found = [ReportWarning("warning", str(text)) for text in texts]
+    # once each: registration.json repeats the calibration's warnings (so that it tells them alone)
+    found = [ReportWarning("warning", text) for text in dict.fromkeys(map(str, texts))]
     axis = inputs.registration.probe_axis if inputs.registration is not None else None
     if axis:
         found.append(ReportWarning("note", f"probe orientation: {axis.get('note') or axis.get('detected')} "

@@ -9,6 +9,10 @@ more?), each checked on a small simulated case made here.
   registration (exit 3) said the case lacked its recordings. The page now gives the reason the outputs record
   (``not_evaluated`` in ``evaluation.json``/``run.json``, or the run's refusal in ``run.json``). The TRE table's
   note also claimed the registration's share is "far smaller" whatever the numbers; it now says what the column is.
+- A warning ``registration.json`` repeats from the calibration (rows of status MISSING in ``calibration.csv``)
+  was shown twice on the page, as if there were two problems; and ``emreg run`` did not print the board
+  recording's own warnings (rows left out, time segments) on stderr, though they were in ``evaluation.json`` and
+  on the page. Each is now said once in both places.
 - A long label (a target's or a pinhole's, 300 characters) broke the figures: drawn vertically under the TRE bar
   chart it took the whole height (no bar left to see), under the error budget it ran over the neighbouring
   targets' labels, and in a marker's caption on the CT slices it ran into the next marker's caption and hid
@@ -123,6 +127,25 @@ def test_a_run_refused_at_registration_is_the_reason_its_later_sections_give(sma
         body = text.split(f" {section} ", 1)[1]
         assert body.lstrip().startswith(said), (section, body[:300])
     assert "needs navigation.csv" not in text and "needs board.csv" not in text
+
+
+def test_every_warning_of_a_run_is_said_once_on_stderr_and_once_on_the_page(small_case, tmp_path, capsys):
+    """Rows of status MISSING in the calibration and board recordings (every 7th moment)."""
+    case = tmp_path / "case"
+    shutil.copytree(small_case, case)
+    for name in ("calibration.csv", "board.csv"):
+        header, *rows = (small_case / name).read_text().splitlines()
+        marked = [f"{row},{'MISSING' if (i // 2) % 7 == 3 else 'OK'}" for i, row in enumerate(rows)]
+        (case / name).write_text("\n".join([f"{header},status", *marked]) + "\n")
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(["run", str(case), "--out", str(out), "--quiet"]) == 0
+    said = [re.sub(r"^emreg run: warning: ", "", line) for line in capsys.readouterr().err.splitlines()]
+    assert any("board.csv" in line and "status other than OK" in line for line in said), said
+    assert any("calibration.csv" in line and "status other than OK" in line for line in said), said
+    page = _page_text(out)
+    for line in said:
+        assert page.count(re.sub(r"\s+", " ", line)) == 1, line
 
 
 def test_the_tre_note_claims_nothing_the_numbers_do_not_say(small_case):
