@@ -13,6 +13,11 @@ more?), each checked on a small simulated case made here.
   was shown twice on the page, as if there were two problems; and ``emreg run`` did not print the board
   recording's own warnings (rows left out, time segments) on stderr, though they were in ``evaluation.json`` and
   on the page. Each is now said once in both places.
+- A navigation recording the run could not use ("navigation not made: ...", on stderr and in ``run.json``'s
+  ``not_evaluated``) was not on the page, which showed no navigated path and no sample count without saying why.
+- The 3D view's caption named a reference sensor, calibration points, sensor points, targets and a probe path
+  whatever the run had: a detection-only run's view "showed" all of them. The caption now names what the scene
+  holds.
 - A long label (a target's or a pinhole's, 300 characters) broke the figures: drawn vertically under the TRE bar
   chart it took the whole height (no bar left to see), under the error budget it ran over the neighbouring
   targets' labels, and in a marker's caption on the CT slices it ran into the next marker's caption and hid
@@ -62,6 +67,11 @@ def _page_text(out: Path) -> str:
     text = re.sub(r"<figure.*?</figure>|<style>.*?</style>", " ", (out / "report.html").read_text(encoding="utf-8"),
                   flags=re.S)
     return re.sub(r"\s+", " ", html.unescape(re.sub(r"<[^>]+>", " ", text)))
+
+
+def _warnings_text(out: Path) -> str:
+    """The text of the page's Warnings section."""
+    return _page_text(out).split(" Warnings ", 1)[1].split(" Frame in 3D ", 1)[0]
 
 
 def _relabelled(case: Path, target: Path, names: dict[str, str]) -> Path:
@@ -143,9 +153,35 @@ def test_every_warning_of_a_run_is_said_once_on_stderr_and_once_on_the_page(smal
     said = [re.sub(r"^emreg run: warning: ", "", line) for line in capsys.readouterr().err.splitlines()]
     assert any("board.csv" in line and "status other than OK" in line for line in said), said
     assert any("calibration.csv" in line and "status other than OK" in line for line in said), said
-    page = _page_text(out)
+    warnings = _warnings_text(out)
     for line in said:
-        assert page.count(re.sub(r"\s+", " ", line)) == 1, line
+        assert warnings.count(re.sub(r"\s+", " ", line)) == 1, line
+
+
+def test_a_navigation_recording_that_could_not_be_used_is_said_on_the_page(small_case, tmp_path, capsys):
+    case = tmp_path / "case"
+    shutil.copytree(small_case, case)
+    (case / "navigation.csv").write_text("garbage\n")
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(["run", str(case), "--out", str(out), "--quiet"]) == 0
+    said = [re.sub(r"^emreg run: warning: ", "", line) for line in capsys.readouterr().err.splitlines()]
+    assert any(line.startswith("navigation not made: ") for line in said), said
+    warnings = _warnings_text(out)
+    for line in said:
+        assert warnings.count(re.sub(r"\s+", " ", line)) == 1, line
+    caption = re.search(r"<b>3D view of the frame\.</b>([^<]*)", (out / "report.html").read_text()).group(1)
+    assert "probe path" not in caption and "targets (red)" in caption
+
+
+def test_the_3d_views_caption_names_only_what_a_detection_only_run_has(small_case, tmp_path):
+    out = tmp_path / "out"
+    assert main(["detect", str(small_case), "--out", str(out), "--quiet"]) == 0
+    assert main(["report", str(out), "--quiet"]) == 0
+    caption = re.search(r"<b>3D view of the frame\.</b>([^<]*)", (out / "report.html").read_text()).group(1)
+    assert caption.strip().startswith("Fitted marker models (grey: no registration)"), caption
+    for absent in ("residual", "reference sensor", "calibration points", "sensor points", "targets", "probe path"):
+        assert absent not in caption, (absent, caption)
 
 
 def test_the_tre_note_claims_nothing_the_numbers_do_not_say(small_case):
