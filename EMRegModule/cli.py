@@ -348,15 +348,13 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def _report_batch(args: argparse.Namespace) -> int:
     """``emreg report --batch DIR``: every run folder under DIR, each with its bundle."""
-    from .outputs import check_outputs
     from .report import write_reports_batch
 
     batch = Path(args.batch)
     if not batch.is_dir():
         raise EMRegError(f"{batch}: folder of run outputs not found")
     folders = sorted(p for p in batch.iterdir() if p.is_dir())
-    for folder in folders:
-        check_outputs(folder)
+    # each job checks that its folder's outputs belong together: one mixed folder fails alone, the others are reported
     bundles: list = []  # each job writes its case's bundle (with the CT its report read, if it needs it)
     try:
         pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args), bundles=bundles)

@@ -731,6 +731,8 @@ class EMRegController:
             self.warn([f"{'TRE' if part == 'tre' else part} not evaluated: {reason}"])
         if evaluation.tre is not None:
             self.warn(evaluation.tre.warnings)  # what the measured TRE says of the prediction
+        if inputs.get("board") is not None:  # the navigation recording's were said when it was read
+            self.warn(inputs["board"].warnings)  # rows left out, time segments: kept in evaluation.json too
         self.save_evaluation(folder, evaluation)
         summary.extend(evaluation.summary())
 

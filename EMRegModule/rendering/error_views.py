@@ -18,7 +18,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from .colors import colorize
-from .plots import BLACK, WHITE, _Axes, _put, nice_ticks
+from .plots import BLACK, WHITE, _Axes, _put, fit_text, nice_ticks
 
 #: Segment colours of the budget's terms (RGB).
 TERM_COLORS = {"registration": (70, 120, 200), "tracking": (240, 160, 60), "reference": (120, 180, 110),
@@ -53,7 +53,7 @@ def error_budget_chart(labels: Sequence[str], budget_rms_mm: Mapping[str, Sequen
         if np.isfinite(measured[k]):
             y = int(round(axes.y(measured[k])))
             cv2.line(canvas, (x0 - 6, y), (x1 + 6, y), BLACK, 3)
-        _put(canvas, str(label), centre, axes.bottom + 17, 0.38, align="center")
+        _put(canvas, fit_text(str(label), slot - 4), centre, axes.bottom + 17, 0.38, align="center")
     x = axes.left + 4
     for term in terms:
         cv2.rectangle(canvas, (x, 32), (x + 14, 44), TERM_COLORS.get(term, (150, 150, 150)), -1)
@@ -62,6 +62,10 @@ def error_budget_chart(labels: Sequence[str], budget_rms_mm: Mapping[str, Sequen
     cv2.line(canvas, (x, 38), (x + 16, 38), BLACK, 3)
     _put(canvas, "measured", x + 20, 43, 0.38)
     return canvas
+
+
+#: The widest a target's label is drawn on the TRE map (pixels; a longer one is cut with "...").
+LABEL_WIDTH_PX = 110
 
 
 def _iso_levels(low: float, high: float) -> list[float]:
@@ -109,7 +113,7 @@ def _map_panel(plane: np.ndarray, value_range: tuple[float, float], target_index
         x, y = int(round(index[col_axis] * scale)), int(round(index[row_axis] * scale))
         cv2.drawMarker(rgb, (x, y), (0, 0, 0), cv2.MARKER_CROSS, 9, 2)
         if label:
-            _put(rgb, str(label), x + 6, y - 4, 0.35, (0, 0, 0))
+            _put(rgb, fit_text(str(label), LABEL_WIDTH_PX, 0.35), x + 6, y - 4, 0.35, (0, 0, 0))
     panel = np.full((panel_px, panel_px, 3), WHITE, dtype=np.uint8)
     panel[24:24 + rgb.shape[0], 4:4 + rgb.shape[1]] = rgb[: panel_px - 24, : panel_px - 4]
     _put(panel, title, panel_px / 2, 16, 0.4, align="center")

@@ -42,6 +42,22 @@ def _text_size(text: str, scale: float) -> tuple[int, int]:
     return width, height
 
 
+def fit_text(text: str, max_width_px: float, scale: float = 0.38) -> str:
+    """``text`` as it fits in ``max_width_px`` pixels at font ``scale``: whole when it fits, else cut and ended
+    with "..." (so that a cut shows; the report's tables hold the whole text). A user's label (a target's, a
+    pinhole's) of any length then never runs over its neighbours or squeezes a plot to nothing."""
+    if _text_size(text, scale)[0] <= max_width_px:
+        return text
+    low, high = 0, len(text)  # the longest prefix that fits with the ellipsis: text[:low]
+    while low < high:
+        middle = (low + high + 1) // 2
+        if _text_size(text[:middle].rstrip() + "...", scale)[0] <= max_width_px:
+            low = middle
+        else:
+            high = middle - 1
+    return text[:low].rstrip() + "..."
+
+
 def _put(canvas: np.ndarray, text: str, x: float, y: float, scale: float = 0.42, color=BLACK,
          align: str = "left", thickness: int = 1) -> None:
     width, _ = _text_size(text, scale)
@@ -139,7 +155,8 @@ def bar_chart(
     top_value = max([0.0, *np.nan_to_num(values + errors_arr).tolist(), *(v for v, _ in reference_lines),
                      *(np.nan_to_num(overlay_arr).tolist() if overlay_arr is not None else [])])
     ticks = nice_ticks(0.0, top_value * 1.12 if top_value > 0 else 1.0, 5)
-    longest = max((_text_size(str(lab), 0.38)[0] for lab in labels), default=0)
+    labels = [fit_text(str(lab), height / 3) for lab in labels]  # a vertical label takes at most a third
+    longest = max((_text_size(lab, 0.38)[0] for lab in labels), default=0)
     n = max(1, len(labels))
     slot = (width - 70 - 20) / n
     vertical_labels = longest > slot - 4

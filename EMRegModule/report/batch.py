@@ -103,9 +103,11 @@ def _bundle_needs_ct(folder: Path) -> bool:
 
 
 def _batch_worker(folder: str, bundle: bool = False) -> tuple[str, str | None, str | None, BundleResult | None]:
+    from ..outputs import check_outputs
     from .writer import write_report_keeping_ct
 
     try:
+        check_outputs(folder)  # outputs of two runs are refused, never reported together
         keep = bundle and _bundle_needs_ct(Path(folder))  # else the CT is streamed, never whole in memory
         page, ct = write_report_keeping_ct(Path(folder), keep_ct=keep)
     except EMRegError as exc:
@@ -128,8 +130,10 @@ def write_reports_batch(folders: Sequence[str | os.PathLike[str]], jobs: int = 1
 
     Folders without any run output are skipped (with a message); ``jobs`` is lowered to what the
     available memory holds (:func:`memory_limited_jobs`). Each report finds its CT through its
-    ``run.json``. Returns the written pages in the order of ``folders``; when a folder fails the
-    others are still rendered, then :class:`EMRegError` lists the failures.
+    ``run.json``; its outputs are first checked to belong together
+    (:func:`~EMRegModule.outputs.check_outputs`: a folder mixing two runs' outputs fails). Returns the written pages
+    in the order of ``folders``; when a folder fails the others are still rendered, then :class:`EMRegError` lists
+    the failures.
 
     ``bundles``: when a list is given, each job also writes its case's 3D Slicer scene bundle
     (``write_run_bundle_hashed``, with the CT its report read) and ``(folder, (bundle path or None, message,

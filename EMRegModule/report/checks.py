@@ -33,12 +33,18 @@ def _registration_settings(inputs: ReportInputs) -> RegistrationSettings:
 
 
 def run_checks(inputs: ReportInputs) -> list[ReportWarning]:
-    """Refused steps of ``run.json``, unreadable inputs, a registration missing for no stated reason."""
+    """Refused steps of ``run.json``, unreadable inputs, parts ``run.json`` records as not made (that
+    ``evaluation.json`` does not already say), a registration missing for no stated reason."""
     found: list[ReportWarning] = []
     summary = [str(line) for line in (inputs.run or {}).get("summary", [])]
     refused = [line for line in summary if ": refused:" in line]
     found.extend(ReportWarning("refused", line) for line in refused)
     found.extend(ReportWarning("warning", f"could not read: {note}") for note in inputs.notes)
+    said = set(inputs.evaluation.not_evaluated) if inputs.evaluation is not None else set()  # in its warnings
+    for part, reason in ((inputs.run or {}).get("not_evaluated") or {}).items():
+        if part not in said:  # as emreg run printed it
+            what = {"navigation": "navigation not made", "tre": "TRE not evaluated"}.get(part, f"{part} not evaluated")
+            found.append(ReportWarning("warning", f"{what}: {reason}"))
     if inputs.registration is None and inputs.detection is not None and inputs.frame_calibration is not None \
             and not refused:
         found.append(ReportWarning("warning", "no registration.json although markers and a frame calibration exist: "
@@ -54,7 +60,8 @@ def stage_warnings(inputs: ReportInputs) -> list[ReportWarning]:
     if inputs.registration is not None:
         texts += inputs.registration.warnings
     texts += list(inputs.evaluation.warnings) if inputs.evaluation is not None else []
-    found = [ReportWarning("warning", str(text)) for text in texts]
+    # once each: registration.json repeats the calibration's warnings (so that it tells them alone)
+    found = [ReportWarning("warning", text) for text in dict.fromkeys(map(str, texts))]
     axis = inputs.registration.probe_axis if inputs.registration is not None else None
     if axis:
         found.append(ReportWarning("note", f"probe orientation: {axis.get('note') or axis.get('detected')} "

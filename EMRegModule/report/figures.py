@@ -23,11 +23,14 @@ from ..rendering.colors import GREY, colorize, residual_range
 from ..rendering.context import ContextSurface, bin_factor, binned_ct, context_surface
 from ..rendering.error_views import error_budget_chart, tre_map_slices
 from ..rendering.images import encode_png
-from ..rendering.plots import bar_chart, line_chart
+from ..rendering.plots import bar_chart, fit_text, line_chart
 from ..transforms import apply_transform
 from .checks import ReportWarning
 from .derived import MarkerRow, calibration_points_in_image, finite_or_none, tre_figures
 from .inputs import ReportInputs
+
+#: The widest a pinhole's label is drawn in a marker's caption on the CT slices (pixels at the captions' font).
+CAPTION_LABEL_PX = 170
 
 #: Navigated probe positions drawn in the 3D view at most (a longer path is thinned evenly).
 MAX_PATH_POINTS = 2000
@@ -89,6 +92,26 @@ def _frame_scene(data: ReportData):
         target_labels=inputs.targets_labels,
         navigation_path=navigation,
     )
+
+
+def _scene_caption(scene) -> str:
+    """What the 3D view shows, as the scene holds it (a run without a registration, targets or navigation has
+    no reference sensor, calibration points, targets or probe path to name)."""
+    has = lambda points: points is not None and len(points) > 0  # noqa: E731
+    registered = scene.reference_to_image is not None
+    shown = [
+        ("fitted marker models coloured by registration residual (grey: unpaired)" if registered else
+         "fitted marker models (grey: no registration)") if scene.markers else "",
+        "the reference sensor with its axes (red X, green Y, blue Z)" if registered else "",
+        "calibration points mapped into the CT (magenta)" if has(scene.calibration_points) else "",
+        "sensor points at the solved l (yellow)" if has(scene.sensor_points) else "",
+        "targets (red)" if has(scene.targets) else "",
+        "the navigated probe path (cyan)" if has(scene.navigation_path) and len(scene.navigation_path) > 1 else ""]
+    shown = [text for text in shown if text]
+    if not shown:
+        return "The frame."
+    text = shown[0] if len(shown) == 1 else ", ".join(shown[:-1]) + " and " + shown[-1]
+    return text[0].upper() + text[1:] + "."
 
 
 def prepare_context_surface(data: ReportData) -> None:
@@ -160,10 +183,8 @@ def render_scenes(data: ReportData) -> list[Figure]:
         images = renderer.screenshots(("oblique", "top"))
     finally:
         renderer.close()
-    caption = ("Fitted marker models coloured by registration residual (grey: unpaired), the reference sensor with "
-               "its axes (red X, green Y, blue Z), calibration points mapped into the CT (magenta), sensor points at "
-               "the solved l (yellow), targets (red) and the navigated probe path (cyan)"
-               + (". " + data.surface.description() if data.surface is not None else "."))
+    caption = _scene_caption(_frame_scene(data)) + (" " + data.surface.description() if data.surface is not None
+                                                    else "")
     return [Figure("scene_oblique", "3D view of the frame", caption, encode_png(images[0])),
             Figure("scene_top", "3D view from above", caption, encode_png(images[1]))]
 
@@ -180,7 +201,7 @@ def _slice_markers(data: ReportData) -> list:
     for r in data.rows:
         caption, calibration_point = r.id, None
         if r.calibration_label is not None:
-            caption += f" -> {r.calibration_label}"
+            caption += f" -> {fit_text(r.calibration_label, CAPTION_LABEL_PX, 0.42)}"  # the residual stays in view
             if r.residual_mm is not None:
                 caption += f"  {r.residual_mm:.2f} mm"
             if registration is not None and r.calibration_label in data.points:

@@ -20,6 +20,22 @@ if TYPE_CHECKING:
     from ..evaluation import BoardEdge
 
 
+def _left_out(data: ReportData, part: str | None, absent: str) -> str:
+    """Why a section has nothing to show, as the run's outputs say it: the part's "not evaluated" reason
+    (``evaluation.json`` or ``run.json``), else the run's refusal or failure (``run.json`` ``status`` and
+    ``message``: the steps after it were not made), else ``absent`` (what is missing and what it needs)."""
+    run = data.inputs.run or {}
+    evaluation = data.inputs.evaluation
+    reasons = {**(run.get("not_evaluated") or {}), **(evaluation.not_evaluated if evaluation is not None else {})}
+    if part is not None and reasons.get(part):
+        return note(f"Not evaluated: {esc(reasons[part])}")
+    status = run.get("status")
+    if status in ("refused", "failed", "interrupted"):
+        said = f": {run['message']}" if run.get("message") else ""
+        return note(esc(f"Not shown: the run was {status}{said}; the steps after it were not made."))
+    return note(absent)
+
+
 def _figures(figures: dict[str, Figure], *names: str) -> str:
     return "".join(figure_html(figures[name]) for name in names if name in figures)
 
@@ -107,7 +123,8 @@ def registration_section(data: ReportData, figures: dict[str, Figure]) -> str:
     """Residuals, FRE(l), ReferenceToImage, the pairs, what stayed unpaired and the other figures."""
     registration = data.inputs.registration
     if registration is None:
-        return "<h2>Registration</h2>\n" + note("Not shown: no registration.json in the output folder.")
+        return "<h2>Registration</h2>\n" + _left_out(data, None, "Not shown: no registration.json in the output "
+                                                                 "folder.")
     matrix = np.asarray(registration.reference_to_image, dtype=float)
     parts = ["<h2>Registration</h2>", _figures(figures, "residuals"), _figures(figures, "fre_curve"),
              "<h3>ReferenceToImage</h3>" + table(("", "x", "y", "z", "t"),
@@ -148,7 +165,8 @@ def markers_section(data: ReportData, figures: dict[str, Figure]) -> str:
 def calibration_section(data: ReportData, figures: dict[str, Figure]) -> str:
     """The calibrated pinholes (Reference frame) with their dwell figures."""
     if not data.points:
-        return "<h2>Frame calibration</h2>\n" + note("Not shown: no frame_calibration.json in the output folder.")
+        return "<h2>Frame calibration</h2>\n" + _left_out(data, None, "Not shown: no frame_calibration.json in the "
+                                                                      "output folder.")
     rows = [(esc(label), vec(p.position), vec(p.direction, 3) if np.all(np.isfinite(p.direction)) else DASH,
              esc(p.samples) if p.samples else DASH, num(p.std_mm, 3)) for label, p in data.points.items()]
     return "<h2>Frame calibration</h2>\n" + table(
@@ -159,8 +177,9 @@ def tre_section(data: ReportData, figures: dict[str, Figure]) -> str:
     """Measured TRE per target and over all, beside the predicted end-to-end RMS TRE and its budget."""
     tre = tre_figures(data.inputs.evaluation)
     if not tre:
-        return "<h2>Target registration error</h2>\n" + note(
-            "Not shown: no TRE in evaluation.json (needs navigation.csv and targets.mrk.json in the case).")
+        return "<h2>Target registration error</h2>\n" + _left_out(
+            data, "tre", "Not shown: no TRE in evaluation.json (needs navigation.csv and targets.mrk.json in the "
+                         "case).")
     registration_only = predicted_tre_by_target(data.inputs)
     rows = [(esc(name), num(t.get("mean_mm")), num(t.get("std_mm")), esc(t.get("n", "")), num(t.get("rms_mm")),
              num(t.get("predicted_rms_mm")), num(registration_only.get(name)))
@@ -172,8 +191,9 @@ def tre_section(data: ReportData, figures: dict[str, Figure]) -> str:
     return "\n".join(["<h2>Target registration error</h2>", _figures(figures, "tre_targets", "error_budget", "tre_map"),
                       table(("target", "mean (mm)", "std (mm)", "n", "RMS (mm)", "predicted RMS (mm)",
                              "registration's share (mm)"), rows),
-                      note("Predicted: the end-to-end RMS TRE a user will see (registration, tracking at the target, "
-                           "reference sensor, placement); the registration's share alone is far smaller.")])
+                      note("Predicted: the end-to-end RMS TRE the error model predicts (registration, tracking at the "
+                           "target, reference sensor, placement); the registration's share: its registration term "
+                           "alone.")])
 
 
 def _board_row(i: int, name: str, edge: BoardEdge, nominal: list) -> tuple[str, ...]:
@@ -198,8 +218,8 @@ def board_section(data: ReportData, figures: dict[str, Figure]) -> str:
     """The board phantom's edge lengths against their nominal lengths (paper Table 1)."""
     board = data.inputs.evaluation.board if data.inputs.evaluation is not None else None
     if board is None or not board.edges:
-        return "<h2>Board phantom</h2>\n" + note(
-            "Not shown: no board table in evaluation.json (needs board.csv in the case).")
+        return "<h2>Board phantom</h2>\n" + _left_out(
+            data, "board", "Not shown: no board table in evaluation.json (needs board.csv in the case).")
     nominal = list(data.inputs.settings.board.edges_mm or [])
     rows = [_board_row(i, name, edge, nominal) for i, (name, edge) in enumerate(board.edges.items())]
     return "\n".join([
