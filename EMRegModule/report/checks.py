@@ -10,6 +10,7 @@ about (its ``warnings``) is shown once, in its own words.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -116,10 +117,14 @@ def registration_checks(inputs: ReportInputs, rows: list[MarkerRow],
     if np.isfinite(registration.fre_mm) and registration.fre_mm > settings.max_fre_mm:
         found.append(ReportWarning("warning", f"FRE {registration.fre_mm:.2f} mm is above "
                                               f"{settings.max_fre_mm:.1f} mm"))
-    for names, what in ((registration.unpaired_image_markers, "detected marker(s)"),
-                        (registration.unpaired_calibration_points, "calibration point(s)")):
+    said = [w for w in registration.warnings if "paired with no" in w]  # the registration's own, shown already
+    for names, what, its_words in ((registration.unpaired_image_markers, "detected marker(s)", "CT marker(s) "),
+                                   (registration.unpaired_calibration_points, "calibration point(s)",
+                                    "calibration point(s) ")):
+        names = [str(n) for n in names if not any(w.startswith(its_words) and re.search(
+            rf"(?<![\w-]){re.escape(str(n))}(?![\w-])", w.split(" paired with no", 1)[0]) for w in said)]
         if names:
-            found.append(ReportWarning("warning", f"{len(names)} {what} not paired: " + ", ".join(map(str, names))))
+            found.append(ReportWarning("warning", f"{len(names)} {what} not paired: " + ", ".join(names)))
     return found + offset_warnings(inputs, curve)
 
 

@@ -13,6 +13,9 @@ more?), each checked on a small simulated case made here.
   was shown twice on the page, as if there were two problems; and ``emreg run`` did not print the board
   recording's own warnings (rows left out, time segments) on stderr, though they were in ``evaluation.json`` and
   on the page. Each is now said once in both places.
+- A marker left unpaired was two warnings: the registration's own ("CT marker(s) I02 paired with no calibration
+  point ...") and the report's ("1 detected marker(s) not paired: I02"). The report now adds its line only for
+  names the registration's warnings do not give.
 - A navigation recording the run could not use ("navigation not made: ...", on stderr and in ``run.json``'s
   ``not_evaluated``) was not on the page, which showed no navigated path and no sample count without saying why.
 - The 3D view's caption named a reference sensor, calibration points, sensor points, targets and a probe path
@@ -156,6 +159,21 @@ def test_every_warning_of_a_run_is_said_once_on_stderr_and_once_on_the_page(smal
     warnings = _warnings_text(out)
     for line in said:
         assert warnings.count(re.sub(r"\s+", " ", line)) == 1, line
+
+
+def test_an_unpaired_marker_is_one_warning(small_case, tmp_path, capsys):
+    """The calibration recording cut before its last pinholes: a marker of the CT is left unpaired."""
+    case = tmp_path / "case"
+    shutil.copytree(small_case, case)
+    header, *rows = (small_case / "calibration.csv").read_text().splitlines()
+    (case / "calibration.csv").write_text("\n".join([header, *rows[: int(len(rows) * 0.87) // 2 * 2]]) + "\n")
+    out = tmp_path / "out"
+    assert main(["run", str(case), "--out", str(out), "--quiet"]) == 0
+    unpaired = json.loads((out / "registration.json").read_text())["unpaired_image_markers"]
+    assert unpaired
+    warnings = _warnings_text(out)
+    for name in unpaired:
+        assert len(re.findall(rf"(?<![\w-]){name}(?![\w-])", warnings)) == 1, warnings
 
 
 def test_a_navigation_recording_that_could_not_be_used_is_said_on_the_page(small_case, tmp_path, capsys):
