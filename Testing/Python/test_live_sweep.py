@@ -18,7 +18,8 @@ or real TCP, against outside code where it exists.
 
 Checked and held (tests here where no existing test covered it): ``emreg record`` killed (SIGKILL) or
 interrupted (Ctrl-C) mid-recording leaves a CSV that reads whole - rows reach the file in whole writes,
-Ctrl-C ends cleanly (exit 0) with every counted sample in the file.
+Ctrl-C ends cleanly (exit 0) with every counted sample in the file; a byte duplicated anywhere in a
+trakSTAR stream record never makes a wrong record, and the records after it are read again.
 """
 
 from __future__ import annotations
@@ -33,10 +34,11 @@ import numpy as np
 
 from EMRegModule.io.tracking_csv import read_tracking_csv
 from EMRegModule.live import ndi_protocol as ndi
+from EMRegModule.live import trakstar_protocol as tp
 from EMRegModule.live.aurora_driver import AuroraDriver
 from EMRegModule.live.aurora_simulator import AuroraSimulator, parse_tools
 from EMRegModule.live.samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE
-from EMRegModule.live.tracker_simulator import TrackerSimulator
+from EMRegModule.live.tracker_simulator import Pose, TrackerSimulator
 
 EMREG = [sys.executable, "-m", "EMRegModule"]
 ENV = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -157,3 +159,25 @@ def test_record_killed_or_interrupted_keeps_a_readable_recording(tmp_path):
             if how == signal.SIGINT:  # Ctrl-C: a clean end, every sample it counted is in the file
                 assert record.returncode == 0, stderr
                 assert f"{len(recording)} samples recorded -> {out} (interrupted)" in stdout
+
+
+# --- the trakSTAR line ----------------------------------------------------------------------------------------
+
+
+def test_trakstar_byte_duplicated_anywhere_never_makes_a_wrong_record():
+    rng = np.random.default_rng(11)
+    fmt = tp.FORMATS["POSITION/ANGLES"]
+    records = [tp.encode_record(fmt, Pose(rng.uniform(-300, 300, 3), np.array([10.0, 20.0, 30.0])), 36, metal=0,
+                                address=i % 4 + 1) for i in range(8)]
+    for damaged_index in range(1, 7):
+        for position in range(len(records[damaged_index])):
+            damaged = list(records)
+            record = damaged[damaged_index]
+            damaged[damaged_index] = record[:position + 1] + record[position:]  # the line repeated one byte
+            parser = tp.RecordParser(len(records[0]), frozenset({1, 2, 3, 4}))
+            got = parser.feed(b"".join(damaged), 0)
+            assert all(g in records for g in got), (damaged_index, position)  # never a record that was not sent
+            if position > 0:  # a repeated data byte: the record is one byte long and dropped
+                assert records[damaged_index] not in got
+            # resynchronised: every record but the damaged one and (follow check) the one before it is read
+            assert len(got) >= len(records) - 2, (damaged_index, position)
