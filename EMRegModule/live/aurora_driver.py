@@ -14,7 +14,9 @@ its physical port 1..4 read from PHINF's port location, +4 for channel 1 of a 5-
 spec's defaults reference = 1, probe = 2 mean ports 1 and 2), the polling loop (a new sample only
 for a new frame number; a reply ndicapi rejects - bad CRC, timeout - gives no sample at all), the
 mapping of NDI states to EMReg's (MISSING -> out of range, port unoccupied or DISABLED -> not
-attached, out-of-volume bit -> out of range; the RMS error -> ``quality``), and counters.
+attached, out-of-volume or partially-out-of-volume bit -> out of range; the RMS error -> ``quality``),
+a tool plugged in during tracking (system status ``SYSTEM_PORT_OCCUPIED``: a replugged tool has a new
+handle) initialised and tracked again under its port's sensor number, and counters.
 
 ndicapi is called through ``ctypes`` on the very library the ``ndicapy`` module is built from, not
 through ``ndicapy``'s Python functions: ``ndicapy.ndiCommand`` returns every reply as a ``str``, and a
@@ -143,6 +145,7 @@ class AuroraStats:
     crc_errors: int = 0
     timeouts: int = 0
     other_errors: int = 0
+    replugs: int = 0  # times tracking stopped to initialise a tool plugged in meanwhile
 
     @property
     def rejected(self) -> int:
@@ -338,8 +341,13 @@ class AuroraDriver:
 
     def _poll(self, callback: SampleCallback) -> None:
         text = f"{'BX' if self.use_bx else 'TX'}:{REPLY_OPTION:04X}"
-        last_frame: int | None = None
+        last_frame: int | None = None  # the device's frame number of the last reply used
         first_frame: int | None = None
+        last_out: int | None = None  # frame number (and its arrival) of the last samples given out
+        last_out_ns = 0
+        frame_offset = 0  # added to the device's frame numbers after a restart, so that they keep increasing
+        plug_handled = False  # the 'tool plugged in' bit was acted on and has not cleared since (choice: one
+        # restart per rise of the bit, so a device that kept it set could not make every poll a restart)
         st = self.stats
         errors_in_row = 0
         try:
@@ -363,22 +371,54 @@ class AuroraDriver:
                 errors_in_row = 0
                 samples = self._decode(t_ns)
                 frame = samples[0].frame if samples else None
-                if frame is None or frame == last_frame:
+                new_frame = frame is not None and frame != last_frame
+                if new_frame:
+                    if last_frame is not None and frame > last_frame + 1:
+                        st.missed_frames += frame - last_frame - 1
+                    if last_frame is None and last_out is not None:  # the first frame after a restart
+                        gap = max(1, round((t_ns - last_out_ns) * self.rate_hz / 1e9))
+                        frame_offset = last_out + gap - frame
+                    last_frame = frame
+                    st.frames += 1
+                    out_frame = frame + frame_offset  # the device's clock: its frame counter, kept increasing
+                    if first_frame is None:
+                        first_frame = out_frame
+                    for sample in samples:
+                        sample.extra["device_frame"] = frame
+                        sample.frame = out_frame
+                        sample.time_s = (out_frame - first_frame) / self.rate_hz
+                        callback(sample)
+                    last_out, last_out_ns = out_frame, t_ns
+                else:
                     st.repeated += 1
-                    self._stop.wait(IDLE_POLL_S)
+                plugged = bool(self._system_status() & ndi.SYSTEM_PORT_OCCUPIED)
+                if plugged and not plug_handled:
+                    self._reinitialise()
+                    last_frame = None  # the device may count its frames anew from TSTART
+                    plug_handled = True
                     continue
-                if last_frame is not None and frame > last_frame + 1:
-                    st.missed_frames += frame - last_frame - 1
-                last_frame = frame
-                st.frames += 1
-                if first_frame is None:
-                    first_frame = frame
-                time_s = (frame - first_frame) / self.rate_hz  # the device's clock: its frame counter
-                for sample in samples:
-                    sample.time_s = time_s
-                    callback(sample)
+                plug_handled = plugged
+                if not new_frame:
+                    self._stop.wait(IDLE_POLL_S)
+        except EMRegError as exc:  # a tool plugged in cannot be initialised, or the line failed meanwhile
+            self.error = str(exc)
         except Exception as exc:  # pragma: no cover - the callback or the library failed
             self.error = f"Aurora on {self.port}: {exc}"
+
+    def _system_status(self) -> int:
+        """System status of the last BX/TX reply ndicapi accepted."""
+        lib = self.api.lib
+        return int((lib.ndiGetBXSystemStatus if self.use_bx else lib.ndiGetTXSystemStatus)(self.pol))
+
+    def _reinitialise(self) -> None:
+        """A tool was plugged in (system status ``SYSTEM_PORT_OCCUPIED``): an unplugged tool's handle is
+        stale and a replugged one comes back under a new handle that waits for PINIT / PENA, which the Aurora
+        takes only outside tracking. So: TSTOP, free stale handles, initialise and enable the new ones (the
+        tool keeps its sensor number: its port), TSTART."""
+        self._command("TSTOP:")
+        self._initialise_tools()
+        self.command("TSTART:")
+        self.stats.replugs += 1
 
     def _decode(self, t_ns: int) -> list[SensorSample]:
         """Samples of every enabled tool from the last BX/TX reply ndicapi accepted."""
@@ -405,7 +445,8 @@ class AuroraDriver:
         status = STATUS_OK
         if result == 1 or not port_status & ndi.PORT_OCCUPIED:  # NDI_DISABLED, or the tool was unplugged
             status = STATUS_NOT_ATTACHED
-        elif result == 2 or port_status & ndi.PORT_OUT_OF_VOLUME:  # NDI_MISSING, or outside the volume
+        elif result == 2 or port_status & (ndi.PORT_OUT_OF_VOLUME | ndi.PORT_PARTIALLY_IN_VOLUME):
+            # NDI_MISSING, or (partly) outside the characterised volume: a transform without its accuracy
             status = STATUS_OUT_OF_RANGE
         if result == 0:
             quaternion = np.asarray(values[:4], dtype=float)
@@ -482,4 +523,4 @@ class AuroraSource(DriverSource):
         st = self.driver.stats
         return (f"[emreg] Aurora replies: {st.frames} frames, {st.repeated} repeated polls, {st.missed_frames} frame "
                 f"numbers skipped; rejected {st.rejected} (CRC {st.crc_errors}, timeout {st.timeouts}, "
-                f"other {st.other_errors})")
+                f"other {st.other_errors}); {st.replugs} restart(s) for a tool plugged in")

@@ -37,9 +37,12 @@ given the path: ``aurora://PATH`` for EMReg, ``{"serial port": PATH}`` for sciki
   choice; a replay uses its recording's rate), BX/TX answering the newest measured frame;
 - states on demand (``--fault`` windows in seconds after start, or the ``set_*`` methods): a tool
   ``missing`` (no solution: MISSING), ``out-of-range`` (outside the characterised volume: port
-  status bit 0x40, reported MISSING unless the reply mode has 0x0800), ``unplug`` (MISSING, port no
-  longer occupied, system status 0x0080; plugged back in it is tracked again, keeping its handle -
-  choice), ``distort`` (RMS error 2.5 mm, choice); line faults ``drop=P`` (bytes lost),
+  status bit 0x40, reported MISSING unless the reply mode has 0x0800), ``partly-out`` (partially
+  outside it: port status bit 0x80 on a transform reported as valid), ``unplug`` (MISSING, port no
+  longer occupied, system status 0x0080; its handle stays unoccupied - listed by PHSR:01 until PHF
+  frees it - and, plugged back in, the tool gets a new handle waiting for PINIT / PENA while BX/TX
+  replies carry system status 0x0040, as on the Aurora: [CAPI] ``NDI_PORT_OCCUPIED``), ``distort``
+  (RMS error 2.5 mm, choice); line faults ``drop=P`` (bytes lost),
   ``flip=P`` (a bit flipped in a byte), ``crc=P`` (a reply's CRC field wrong), ``stall=EVERY:S``.
 
 Tests compare what a client reads with :meth:`AuroraSimulator.truth_for_frame` (the pose the
@@ -103,6 +106,8 @@ class _Handle:
     enabled: bool = False
     mode: str = "D"
     freed: bool = False
+    #: the tool was unplugged from this handle: it stays unoccupied, a replugged tool gets a new handle
+    stale: bool = False
 
 
 def parse_tools(text: str) -> list[AuroraTool]:
@@ -138,7 +143,7 @@ class AuroraFaults:
     stall_s: float = 0.0
     windows: dict[str, list[tuple[int, float, float]]] = field(default_factory=dict)
 
-    KINDS = ("missing", "out-of-range", "unplug", "distort")
+    KINDS = ("missing", "out-of-range", "partly-out", "unplug", "distort")
 
     @classmethod
     def parse(cls, items: list[str]) -> AuroraFaults:
@@ -161,7 +166,8 @@ class AuroraFaults:
                     raise ValueError(kind)
             except ValueError:
                 raise EMRegError(f"--fault {item!r}: for the Aurora use drop=P, flip=P, crc=P, stall=EVERY_S:S, "
-                                 "missing=SENSOR@START-END, out-of-range=..., unplug=..., distort=...") from None
+                                 "missing=SENSOR@START-END, out-of-range=..., partly-out=..., unplug=..., "
+                                 "distort=...") from None
         return plan
 
 
@@ -237,7 +243,8 @@ class AuroraSimulator(PtyDevice):
 
     # -- public controls ------------------------------------------------------------------------
     def set_state(self, kind: str, sensor: int, on: bool = True) -> None:
-        """Turn a state on or off now for the tool of ``sensor``: missing, out-of-range, unplug, distort."""
+        """Turn a state on or off now for the tool of ``sensor``: missing, out-of-range, partly-out, unplug,
+        distort."""
         (self._manual[kind].add if on else self._manual[kind].discard)(sensor)
 
     def stall(self, seconds: float) -> None:
@@ -423,8 +430,26 @@ class AuroraSimulator(PtyDevice):
         self._reply(f"ERROR{code:02X}", command_bytes)
 
     # -- commands ------------------------------------------------------------------------------------
+    def _present(self, h: _Handle, t_s: float) -> bool:
+        return not h.stale and not self._active("unplug", h.tool.sensor, t_s)
+
+    def _refresh_handles(self) -> None:
+        """Plugging: a handle whose tool was unplugged turns stale; a tool present without a live handle
+        (plugged back in) gets a new handle, not yet initialised."""
+        t_s = (time.monotonic_ns() - self._start_ns) / 1e9
+        for h in self.handles.values():
+            if not h.freed and not h.stale and self._active("unplug", h.tool.sensor, t_s):
+                h.stale = True
+        for tool in self.tools:
+            if self._active("unplug", tool.sensor, t_s):
+                continue
+            if not any(h.tool is tool and not h.freed and not h.stale for h in self.handles.values()):
+                new = max(self.handles) + 1
+                self.handles[new] = _Handle(new, tool)
+
     def _execute(self, line: bytes) -> None:
         n = len(line) + 1
+        self._refresh_handles()
         self._garbled = False
         cmd = ndi.parse_command(line)
         self.commands.append(cmd.name)
@@ -487,7 +512,7 @@ class AuroraSimulator(PtyDevice):
 
     def _handle_status(self, h: _Handle) -> int:
         t_s = (time.monotonic_ns() - self._start_ns) / 1e9
-        status = 0 if self._active("unplug", h.tool.sensor, t_s) else ndi.PORT_OCCUPIED
+        status = ndi.PORT_OCCUPIED if self._present(h, t_s) else 0
         status |= ndi.PORT_INITIALIZED if h.initialized else 0
         status |= ndi.PORT_ENABLED if h.enabled else 0
         return status
@@ -505,7 +530,7 @@ class AuroraSimulator(PtyDevice):
         for h in self.handles.values():
             if h.freed:
                 continue
-            present = not self._active("unplug", h.tool.sensor, t_s)
+            present = self._present(h, t_s)
             keep = {ndi.PHSR_ALL: True, ndi.PHSR_STALE: not present,
                     ndi.PHSR_UNINITIALIZED: present and not h.initialized,
                     ndi.PHSR_UNENABLED: present and h.initialized and not h.enabled,
@@ -592,7 +617,11 @@ class AuroraSimulator(PtyDevice):
         reports = []
         system_status = 0
         for h in sorted(self.handles.values(), key=lambda x: x.handle):
-            if h.freed or not h.initialized:
+            if h.freed:
+                continue
+            if not h.initialized:
+                if self._present(h, t_s):
+                    system_status |= ndi.SYSTEM_PORT_OCCUPIED  # a tool plugged in waits for PINIT
                 continue
             if not h.enabled:
                 reports.append(ndi.ToolReport(h.handle, "disabled", port_status=self._handle_status(h), frame=frame))
@@ -610,6 +639,8 @@ class AuroraSimulator(PtyDevice):
                 status |= ndi.PORT_OUT_OF_VOLUME
                 if not mode & ndi.REPLY_NOT_NORMALLY_REPORTED:
                     state = "missing"
+            elif self._active("partly-out", sensor, t_s):
+                status |= ndi.PORT_PARTIALLY_IN_VOLUME  # a transform, of accuracy the Aurora does not vouch for
             report = ndi.ToolReport(h.handle, state, port_status=status, frame=frame)
             if state == "valid":
                 report.quaternion, report.position_mm = truth

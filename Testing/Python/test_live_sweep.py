@@ -1,0 +1,159 @@
+"""Defects a sweep of the live tracking paths found (the Aurora, the trakSTAR, ``emreg record`` and the
+OpenIGTLink stream in the situations an operating room brings), each checked over a real pseudo-terminal
+or real TCP, against outside code where it exists.
+
+- A tool unplugged and plugged back in during tracking never came back: on the Aurora the unplugged
+  tool's port handle goes stale and the replugged tool appears under a new handle that waits for PINIT /
+  PENA (which the Aurora takes only outside tracking), announced by system status 0x0040 in every BX/TX
+  reply. EMReg's driver polled the old handle for ever (the probe "not attached" for the rest of the
+  recording), and the simulator hid it by giving the replugged tool its old handle back. The simulator
+  now allocates a new handle as the Aurora does, and the driver, on that status bit, stops tracking,
+  frees the stale handle, initialises and enables the new one under the port's sensor number and starts
+  again, its frame numbers and times still increasing (once per rise of the bit). A tool without SROM
+  plugged in meanwhile ends tracking with the one-line error that names its port, as at start-up.
+- A tool partially out of the Aurora's characterised volume (port status bit 0x80 on a transform the
+  Aurora reports as valid) was taken as a good measurement, while one wholly out of it (bit 0x40) was
+  marked out of range: the same pose of unvouched accuracy was recorded and navigated on. Both bits now
+  mark the sample out of range; the simulator has the state (``--fault partly-out=SENSOR@START-END``).
+
+Checked and held (tests here where no existing test covered it): ``emreg record`` killed (SIGKILL) or
+interrupted (Ctrl-C) mid-recording leaves a CSV that reads whole - rows reach the file in whole writes,
+Ctrl-C ends cleanly (exit 0) with every counted sample in the file.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from EMRegModule.io.tracking_csv import read_tracking_csv
+from EMRegModule.live import ndi_protocol as ndi
+from EMRegModule.live.aurora_driver import AuroraDriver
+from EMRegModule.live.aurora_simulator import AuroraSimulator, parse_tools
+from EMRegModule.live.samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE
+from EMRegModule.live.tracker_simulator import TrackerSimulator
+
+EMREG = [sys.executable, "-m", "EMRegModule"]
+ENV = dict(os.environ, PYTHONUNBUFFERED="1")
+
+
+def _wait(condition, timeout_s: float = 30.0) -> bool:
+    """Wait for ``condition`` (an event or a count, polled); False if it never came (not a timing test)."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+# --- the Aurora ---------------------------------------------------------------------------------------------
+
+
+def test_aurora_tool_unplugged_and_plugged_back_is_tracked_again_under_a_new_handle(tmp_path):
+    link = tmp_path / "aurora"
+    with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof,3:6dof"), link=link) as sim:
+        driver = AuroraDriver(str(link), 115200).open()
+        samples = []
+        try:
+            assert [(t.handle, t.sensor) for t in driver.tools] == [(0x0A, 1), (0x0B, 2), (0x0C, 3)]
+            driver.start(samples.append)
+            assert _wait(lambda: len(samples) >= 30)
+            sim.set_state("unplug", 2)
+            assert _wait(lambda: sum(s.sensor == 2 and s.status == STATUS_NOT_ATTACHED for s in samples) >= 5)
+            mark = len(samples)
+            sim.set_state("unplug", 2, False)
+            back = _wait(lambda: any(s.sensor == 2 and s.status == STATUS_OK for s in samples[mark:]), 15.0)
+            driver.stop()
+        finally:
+            driver.close()
+    assert back, "the replugged probe never came back"
+    assert driver.stats.replugs == 1 and driver.error is None
+    assert "PHF" in sim.commands  # the stale handle was freed
+    handle = next(t.handle for t in driver.tools if t.sensor == 2)
+    assert handle not in (0x0A, 0x0B, 0x0C)
+    # every pose given out is the one the device measured for its frame, never another tool's or handle's
+    for s in samples:
+        if s.status == STATUS_OK:
+            q, p = sim.truth_for_frame(s.sensor, s.extra["device_frame"])
+            assert np.array_equal(np.float32(s.position_mm), np.float32(p))
+    # frame numbers and times keep increasing across the restart (the device counts anew from TSTART)
+    frames = [s.frame for s in samples if s.sensor == 1]
+    assert all(b > a for a, b in zip(frames, frames[1:], strict=False))
+    assert all(s.time_s == (s.frame - samples[0].frame) / 40.0 for s in samples)
+
+
+def test_aurora_tool_without_srom_plugged_in_mid_recording_is_a_clear_error(tmp_path):
+    link = tmp_path / "aurora"
+    with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof,3:nosrom"), link=link) as sim:
+        sim.set_state("unplug", 3)  # not plugged in when tracking starts
+        driver = AuroraDriver(str(link), 115200).open()
+        samples = []
+        try:
+            assert [t.sensor for t in driver.tools] == [1, 2]
+            driver.start(samples.append)
+            assert _wait(lambda: len(samples) >= 20)
+            sim.set_state("unplug", 3, False)
+            assert _wait(lambda: driver.error is not None)
+        finally:
+            driver.close()
+    assert "port 3" in driver.error and "SROM" in driver.error and "\n" not in driver.error
+
+
+def test_aurora_tool_partially_out_of_volume_is_never_a_measurement(tmp_path):
+    link = tmp_path / "aurora"
+    with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof"), link=link) as sim:
+        driver = AuroraDriver(str(link), 115200).open()
+        samples = []
+        try:
+            driver.start(samples.append)
+            assert _wait(lambda: len(samples) >= 20)
+            sim.set_state("partly-out", 2)
+            flagged = lambda: [s for s in samples if s.extra["port_status"] & ndi.PORT_PARTIALLY_IN_VOLUME]  # noqa: E731
+            assert _wait(lambda: len(flagged()) >= 10)
+            sim.set_state("partly-out", 2, False)
+            mark = len(samples)
+            assert _wait(lambda: any(s.sensor == 2 and s.status == STATUS_OK for s in samples[mark:]))
+            driver.stop()
+        finally:
+            driver.close()
+    assert all(s.sensor == 2 for s in flagged())
+    assert {s.status for s in flagged()} == {STATUS_OUT_OF_RANGE}
+    assert not any(s.valid for s in flagged())
+
+
+# --- emreg record ended abruptly ----------------------------------------------------------------------------
+
+
+def _lines_on_disk(path) -> int:
+    try:
+        with open(path, "rb") as f:
+            return f.read().count(b"\n")
+    except FileNotFoundError:
+        return 0
+
+
+def test_record_killed_or_interrupted_keeps_a_readable_recording(tmp_path):
+    with TrackerSimulator(seed=5, link=tmp_path / "trakstar") as sim:
+        for how in (signal.SIGKILL, signal.SIGINT):
+            out = tmp_path / f"rec-{how.name}.csv"
+            record = subprocess.Popen([*EMREG, "record", "--device", f"trakstar://{sim.link}?rate=80", "--out",
+                                       str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+            try:
+                assert _wait(lambda out=out: _lines_on_disk(out) > 400), record.stderr
+                record.send_signal(how)
+                stdout, stderr = record.communicate(timeout=30)
+            finally:
+                if record.poll() is None:
+                    record.kill()
+                    record.communicate()
+            recording = read_tracking_csv(out)  # the recording as the kill or the interrupt left it
+            assert len(recording) >= 400 and set(np.unique(recording.sensor)) == {1, 2, 3, 4}
+            if how == signal.SIGINT:  # Ctrl-C: a clean end, every sample it counted is in the file
+                assert record.returncode == 0, stderr
+                assert f"{len(recording)} samples recorded -> {out} (interrupted)" in stdout
