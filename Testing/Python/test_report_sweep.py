@@ -16,6 +16,9 @@ more?), each checked on a small simulated case made here.
 - A marker left unpaired was two warnings: the registration's own ("CT marker(s) I02 paired with no calibration
   point ...") and the report's ("1 detected marker(s) not paired: I02"). The report now adds its line only for
   names the registration's warnings do not give.
+- The FRE(l) plot's dot read "chosen l = 15.88 mm, FRE 0.33 mm" beside a registration of FRE 0.30 mm: the stored
+  curve is sampled every 0.25 mm and near a sharp minimum the straight line between two samples passes above the
+  FRE at the chosen l. The curve now goes through the registration's own point (l, FRE).
 - A navigation recording the run could not use ("navigation not made: ...", on stderr and in ``run.json``'s
   ``not_evaluated``) was not on the page, which showed no navigated path and no sample count without saying why.
 - The 3D view's caption named a reference sensor, calibration points, sensor points, targets and a probe path
@@ -200,6 +203,24 @@ def test_the_3d_views_caption_names_only_what_a_detection_only_run_has(small_cas
     assert caption.strip().startswith("Fitted marker models (grey: no registration)"), caption
     for absent in ("residual", "reference sensor", "calibration points", "sensor points", "targets", "probe path"):
         assert absent not in caption, (absent, caption)
+
+
+def test_the_fre_curves_dot_is_the_registrations_fre_at_its_l(small_case, monkeypatch):
+    from EMRegModule.report import figures
+    from EMRegModule.report.derived import calibration_points, marker_rows, report_fre_curve
+    from EMRegModule.report.inputs import load_report_inputs
+
+    inputs = load_report_inputs(small_case.parent / "out", read_image=False)
+    rows, points = marker_rows(inputs.detection, inputs.registration), calibration_points(inputs.frame_calibration)
+    curve, stored = report_fre_curve(inputs, rows, points)
+    drawn = {}
+    monkeypatch.setattr(figures, "line_chart", lambda x, y, *args, **kwargs: drawn.update(x=x, y=y, **kwargs)
+                        or np.zeros((2, 2, 3), np.uint8))
+    figures.render_fre_curve(figures.ReportData(inputs, rows, points, curve, stored))
+    registration = inputs.registration
+    said = float(np.interp(registration.sensor_offset_l_mm, drawn["x"], drawn["y"]))
+    assert stored and said == pytest.approx(registration.fre_mm, abs=0.005)
+    assert drawn["marker_label"].endswith(f"FRE {registration.fre_mm:.2f} mm"), drawn["marker_label"]
 
 
 def test_the_tre_note_claims_nothing_the_numbers_do_not_say(small_case):
