@@ -319,6 +319,7 @@ def _check_convert_ports(recording, reference: int, probe: int, names: dict[str,
 def cmd_report(args: argparse.Namespace) -> int:
     early = _start_report_ct(args)  # the CT's read goes on while the report's libraries load
     bundle = early_bundle = _start_report_bundle(args)  # held: writes nothing into OUT until released below
+    folder = None
     try:
         from .outputs import OutputFolder
 
@@ -331,8 +332,9 @@ def cmd_report(args: argparse.Namespace) -> int:
             raise EMRegError(f"{args.out}: output folder not found")
         case = Path(args.case) if args.case else None
         controller = _controller(args, _settings(args))
-        folder = OutputFolder(args.out, "emreg report")
-        folder.start_stage("report")
+        stage = OutputFolder(args.out, "emreg report")
+        stage.start_stage("report")
+        folder = stage
         bundle = controller.start_bundle(folder, case, early_bundle)  # goes on while the report renders
         path = controller.save_report(folder, case, early)
     except BaseException:
@@ -340,6 +342,8 @@ def cmd_report(args: argparse.Namespace) -> int:
             bundle.cancel()
         if early is not None:
             early.cancel()
+        if folder is not None:  # the bundle (released by then) or figures this failed report wrote: not left in OUT
+            folder.drop_unrecorded()
         raise
     print(f"report -> {path}")
     print(controller.save_bundle(folder, case, bundle))

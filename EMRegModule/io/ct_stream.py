@@ -7,7 +7,8 @@ an anonymous memory mapping that is only touched where voxels have arrived, and 
 slices back to the system (``madvise(MADV_DONTNEED)``) once it is done with them
 (:meth:`StreamedCT.release_before`): the whole CT is never resident, so a report that reads its
 own CT needs a fraction of the CT's bytes. The voxels are those of :func:`~EMRegModule.io.image.read_ct`
-(the same inflater and checks: truncated, corrupt or over-long data is an error).
+(the same inflater and checks: truncated, corrupt or over-long data is an error), and the file's
+sha256 comes out of the same pass (``sha256``), so that the report can check it is the run's CT.
 
 Frames: index space (k, j, i) of the CT; ``geometry`` gives its LPS physical space as SimpleITK does.
 """
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
-from ..errors import EMRegError
+from ..provenance import Digest
 from . import fast_read
 from .fast_read import VolumeFill
 
@@ -105,6 +106,7 @@ class StreamedCT(VolumeFill):
         self.path: Path | None = None  # the file read
         self._image = CTGeometry(info)  # the geometry, known before any voxel
         self.is_complete = False
+        self.sha256 = Digest()  # the file's, computed as it is read
 
     def release_before(self, stop: int) -> None:
         """Give slices ``0 .. stop-1`` back to the system (reading them afterwards gives zeros)."""
@@ -143,30 +145,14 @@ def start_streamed_read(path: str | Path) -> StreamedCT | None:
 
 
 def _read(path: Path, info: sitk.ImageFileReader, storage: fast_read._Storage, ct: StreamedCT) -> None:
-    """The reading thread (as :func:`EMRegModule.io.fast_read._read_voxels`, into the mapping)."""
-    voxels = ct.bytes
+    """The reading thread (as :func:`EMRegModule.io.fast_read._read_voxels`, into the mapping, every byte hashed)."""
     try:
-        slices = fast_read._SliceAnnouncer(voxels, storage.dtype, ct)
-        with path.open("rb") as stream:
-            if storage.compression == "raw":
-                stream.seek(storage.data_offset)
-                filled = fast_read._read_raw(stream, voxels, slices)
-                if filled == voxels.nbytes and stream.read(1):
-                    extra = path.stat().st_size - storage.data_offset - voxels.nbytes
-                    raise EMRegError(fast_read._too_much_data(path, info, voxels.nbytes, extra))
-            else:
-                stream.seek(0 if storage.whole_file else storage.data_offset)
-                skip = storage.data_offset if storage.whole_file else 0
-                blocks = fast_read._inflated(stream, storage.compression == "gzip", path, skip + voxels.nbytes)
-                filled, extra = fast_read._fill(voxels, blocks, skip, slices)
-                if extra:
-                    raise EMRegError(fast_read._too_much_data(path, info, voxels.nbytes, extra))
-        if filled != voxels.nbytes:
-            raise EMRegError(f"{path}: cannot read CT (file is truncated: {filled} of {voxels.nbytes} voxel bytes)")
-        slices(filled)
+        fast_read.read_and_hash(path, info, storage, ct.bytes, fast_read._SliceAnnouncer(ct.bytes, storage.dtype, ct),
+                                ct)
     except fast_read._CancelledError:
-        ct._finish(fast_read._CancelledReadError(f"{path}: reading the CT was cancelled"))
+        error = fast_read._CancelledReadError(f"{path}: reading the CT was cancelled")
+        ct.sha256.fail(error)
+        ct._finish(error)
     except BaseException as exc:  # handed to the waiting thread
+        ct.sha256.fail(exc)
         ct._finish(exc)
-    else:
-        ct._finish()

@@ -222,18 +222,29 @@ def stored_nrrd_voxels(path: Path) -> tuple[sitk.ImageFileReader, np.dtype, int,
 
 
 def _read_voxels(path: Path, info: sitk.ImageFileReader, storage: _Storage, fill: VolumeFill) -> None:
-    """The reading thread: allocate the image, fill it, announce whole slices as they are done.
-
-    Every byte of the file goes through one :class:`_HashingReader`, in order, so that its sha256
-    comes out of this same pass (``fill.sha256``).
-    """
-    stream: _HashingReader | None = None
+    """The reading thread: allocate the image, fill it, announce whole slices as they are done (the file's
+    sha256 from the same pass: ``fill.sha256``)."""
     try:
         image, voxels = _new_image(info)  # SimpleITK allocates without the GIL: the imports go on meanwhile
         fill._set_image(image)
-        slices = _SliceAnnouncer(voxels, storage.dtype, fill)
-        with path.open("rb") as file:
-            stream = _HashingReader(file, in_place=storage.compression == "raw" and not storage.dtype.isnative)
+        read_and_hash(path, info, storage, voxels, _SliceAnnouncer(voxels, storage.dtype, fill), fill)
+    except _CancelledError:
+        error = _CancelledReadError(f"{path}: reading the CT was cancelled")
+        fill.sha256.fail(error)
+        fill._finish(error)
+    except BaseException as exc:  # handed to the waiting thread
+        fill.sha256.fail(exc)
+        fill._finish(exc)
+
+
+def read_and_hash(path: Path, info: sitk.ImageFileReader, storage: _Storage, voxels: np.ndarray,
+                  slices: _SliceAnnouncer, fill: VolumeFill) -> None:
+    """Fill ``voxels`` (the image's bytes) from the file, announcing whole slices, then finish ``fill`` and set
+    ``fill.sha256``: every byte of the file goes through one :class:`_HashingReader`, in order, so that its
+    sha256 comes out of this same pass. Raises on a truncated, corrupt or over-long file."""
+    with path.open("rb") as file:
+        stream = _HashingReader(file, in_place=storage.compression == "raw" and not storage.dtype.isnative)
+        try:
             if storage.compression == "raw" or not storage.whole_file:
                 stream.skip(storage.data_offset)  # the header: hashed, not used
             if storage.compression == "raw":
@@ -253,18 +264,9 @@ def _read_voxels(path: Path, info: sitk.ImageFileReader, storage: _Storage, fill
             slices(filled)
             slices.non_finite.check(path)
             stream.skip(None)  # whatever follows the data (nothing, normally): hashed too
-    except _CancelledError:
-        error = _CancelledReadError(f"{path}: reading the CT was cancelled")
-        fill.sha256.fail(error)
-        fill._finish(error)
-    except BaseException as exc:  # handed to the waiting thread
-        fill.sha256.fail(exc)
-        fill._finish(exc)
-    else:
-        fill._finish()
-        fill.sha256.set(stream.hexdigest())  # its last chunks may still be being hashed
-    finally:
-        if stream is not None:
+            fill._finish()
+            fill.sha256.set(stream.hexdigest())  # its last chunks may still be being hashed
+        finally:
             stream.close()
 
 

@@ -19,7 +19,7 @@ from . import sections
 from .checks import collect_warnings
 from .derived import calibration_points, marker_rows, report_fre_curve
 from .figures import FIGURE_NAMES, ReportData, prepare_ct_products, render_figures
-from .inputs import load_report_inputs
+from .inputs import ReportInputs, load_report_inputs
 
 if TYPE_CHECKING:
     import SimpleITK as sitk
@@ -105,6 +105,24 @@ def _openblas_thread_calls() -> tuple | None:
     return None
 
 
+def _check_run_ct(inputs: ReportInputs) -> None:
+    """Refuse a report over a CT file that is not the one the run used (replaced since): its slices would be
+    drawn under the markers found in the other. Its sha256, computed as the report read it, against the one
+    ``run.json`` records; nothing to check for a CT handed over in memory (the run's own) or not read."""
+    recorded = ((((inputs.run or {}).get("inputs") or {}).get("ct")) or {}).get("sha256")
+    digest = getattr(inputs.ct, "sha256", None) if inputs.ct is not None else None
+    if not recorded or digest is None:
+        return
+    try:
+        actual = digest.result()
+    except Exception:  # noqa: BLE001 - a read that failed is said where the CT is used
+        return
+    if actual != recorded:
+        raise EMRegError(f"{inputs.ct_path}: not the CT this run used (its sha256 differs from the one "
+                         f"{inputs.out_dir / 'run.json'} records): the report would show another scan under the "
+                         "markers; give the run's CT with --case, or run again")
+
+
 class HandedCT:
     """A CT handed to the report to use and let go: the caller keeps no reference to it, so once the report has
     taken what it needs (the block-averaged CT, the marker planes) the CT's memory is freed before the
@@ -142,6 +160,7 @@ def _write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[s
         if inputs.ct is not None:
             inputs.ct.cancel()
         raise
+    _check_run_ct(inputs)
     data.warnings = collect_warnings(inputs, rows, curve)  # after the figures: a CT that failed to read is a note
     figure_dir = inputs.out_dir / FIGURE_DIR
     for figure in figures:

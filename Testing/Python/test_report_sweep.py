@@ -28,6 +28,10 @@ more?), each checked on a small simulated case made here.
   chart it took the whole height (no bar left to see), under the error budget it ran over the neighbouring
   targets' labels, and in a marker's caption on the CT slices it ran into the next marker's caption and hid
   that marker's residual. Labels are now cut to their room with a visible "..." (the tables hold them whole).
+- ``emreg report OUT`` read the CT ``run.json`` names without checking it was still the run's: a CT replaced
+  since (here shifted by 10 voxels, same grid) was drawn under the markers found in the other, and the page said
+  "No warnings". The report's own read of the CT now computes its sha256 in the same pass and refuses a CT whose
+  sha256 differs from the recorded one (exit 2, one line; no page, no figures and no bundle left in OUT).
 
 What held (checked here or by hand on the same cases): every number on the page equals its output file's, in
 the same rounding; labels and paths (``<b>T1</b>``, ``T&1 "quoted"``, ``Zielpunkt ä``, folders with spaces and
@@ -290,3 +294,21 @@ def test_a_long_pinhole_label_keeps_the_residual_in_the_markers_caption(labelled
     caption = captions[paired.id]
     assert caption.endswith(f"...  {paired.residual_mm:.2f} mm") and caption.startswith(f"{paired.id} -> Lxxx")
     assert _text_size(caption, 0.42)[0] < 3 * VIEW_PX, caption  # within its tile: three views
+
+
+def test_a_report_over_a_ct_replaced_since_the_run_is_refused(small_case, tmp_path, capsys):
+    import SimpleITK as sitk
+
+    case, out = tmp_path / "case", tmp_path / "out"
+    shutil.copytree(small_case, case)
+    assert main(["run", str(case), "--out", str(out), "--quiet"]) == 0
+    ct = sitk.ReadImage(str(case / "ct.nrrd"))
+    shifted = sitk.GetImageFromArray(np.roll(sitk.GetArrayFromImage(ct), 10, axis=2))  # another scan, same grid
+    shifted.CopyInformation(ct)
+    sitk.WriteImage(shifted, str(case / "ct.nrrd"), useCompression=True)
+    capsys.readouterr()
+    assert main(["report", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(case / "ct.nrrd") in err[0] and "not the CT this run used" in err[0], err
+    assert not (out / "report.html").exists() and not (out / "report_figures").exists()
+    assert not (out / "EMReg.mrb").exists()  # the bundle would hold the other scan too
