@@ -79,6 +79,12 @@ def _page_text(out: Path) -> str:
     return re.sub(r"\s+", " ", html.unescape(re.sub(r"<[^>]+>", " ", text)))
 
 
+def _scene_caption(out: Path) -> str:
+    """The caption of the page's 3D view (the page is UTF-8 whatever the locale)."""
+    page = (out / "report.html").read_text(encoding="utf-8")
+    return re.search(r"<b>3D view of the frame\.</b>([^<]*)", page).group(1)
+
+
 def _warnings_text(out: Path) -> str:
     """The text of the page's Warnings section."""
     return _page_text(out).split(" Warnings ", 1)[1].split(" Frame in 3D ", 1)[0]
@@ -195,7 +201,7 @@ def test_a_navigation_recording_that_could_not_be_used_is_said_on_the_page(small
     warnings = _warnings_text(out)
     for line in said:
         assert warnings.count(re.sub(r"\s+", " ", line)) == 1, line
-    caption = re.search(r"<b>3D view of the frame\.</b>([^<]*)", (out / "report.html").read_text()).group(1)
+    caption = _scene_caption(out)
     assert "probe path" not in caption and "targets (red)" in caption
 
 
@@ -203,7 +209,7 @@ def test_the_3d_views_caption_names_only_what_a_detection_only_run_has(small_cas
     out = tmp_path / "out"
     assert main(["detect", str(small_case), "--out", str(out), "--quiet"]) == 0
     assert main(["report", str(out), "--quiet"]) == 0
-    caption = re.search(r"<b>3D view of the frame\.</b>([^<]*)", (out / "report.html").read_text()).group(1)
+    caption = _scene_caption(out)
     assert caption.strip().startswith("Fitted marker models (grey: no registration)"), caption
     for absent in ("residual", "reference sensor", "calibration points", "sensor points", "targets", "probe path"):
         assert absent not in caption, (absent, caption)
