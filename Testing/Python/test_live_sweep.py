@@ -28,9 +28,9 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
+from polling import wait_for
 
 from EMRegModule.io.tracking_csv import read_tracking_csv
 from EMRegModule.live import ndi_protocol as ndi
@@ -44,16 +44,6 @@ EMREG = [sys.executable, "-m", "EMRegModule"]
 ENV = dict(os.environ, PYTHONUNBUFFERED="1")
 
 
-def _wait(condition, timeout_s: float = 30.0) -> bool:
-    """Wait for ``condition`` (an event or a count, polled); False if it never came (not a timing test)."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.01)
-    return True
-
-
 # --- the Aurora ---------------------------------------------------------------------------------------------
 
 
@@ -65,12 +55,12 @@ def test_aurora_tool_unplugged_and_plugged_back_is_tracked_again_under_a_new_han
         try:
             assert [(t.handle, t.sensor) for t in driver.tools] == [(0x0A, 1), (0x0B, 2), (0x0C, 3)]
             driver.start(samples.append)
-            assert _wait(lambda: len(samples) >= 30)
+            assert wait_for(lambda: len(samples) >= 30)
             sim.set_state("unplug", 2)
-            assert _wait(lambda: sum(s.sensor == 2 and s.status == STATUS_NOT_ATTACHED for s in samples) >= 5)
+            assert wait_for(lambda: sum(s.sensor == 2 and s.status == STATUS_NOT_ATTACHED for s in samples) >= 5)
             mark = len(samples)
             sim.set_state("unplug", 2, False)
-            back = _wait(lambda: any(s.sensor == 2 and s.status == STATUS_OK for s in samples[mark:]), 15.0)
+            back = wait_for(lambda: any(s.sensor == 2 and s.status == STATUS_OK for s in samples[mark:]), 15.0)
             driver.stop()
         finally:
             driver.close()
@@ -99,9 +89,9 @@ def test_aurora_tool_without_srom_plugged_in_mid_recording_is_a_clear_error(tmp_
         try:
             assert [t.sensor for t in driver.tools] == [1, 2]
             driver.start(samples.append)
-            assert _wait(lambda: len(samples) >= 20)
+            assert wait_for(lambda: len(samples) >= 20)
             sim.set_state("unplug", 3, False)
-            assert _wait(lambda: driver.error is not None)
+            assert wait_for(lambda: driver.error is not None)
         finally:
             driver.close()
     assert "port 3" in driver.error and "SROM" in driver.error and "\n" not in driver.error
@@ -114,13 +104,13 @@ def test_aurora_tool_partially_out_of_volume_is_never_a_measurement(tmp_path):
         samples = []
         try:
             driver.start(samples.append)
-            assert _wait(lambda: len(samples) >= 20)
+            assert wait_for(lambda: len(samples) >= 20)
             sim.set_state("partly-out", 2)
             flagged = lambda: [s for s in samples if s.extra["port_status"] & ndi.PORT_PARTIALLY_IN_VOLUME]  # noqa: E731
-            assert _wait(lambda: len(flagged()) >= 10)
+            assert wait_for(lambda: len(flagged()) >= 10)
             sim.set_state("partly-out", 2, False)
             mark = len(samples)
-            assert _wait(lambda: any(s.sensor == 2 and s.status == STATUS_OK for s in samples[mark:]))
+            assert wait_for(lambda: any(s.sensor == 2 and s.status == STATUS_OK for s in samples[mark:]))
             driver.stop()
         finally:
             driver.close()
@@ -147,7 +137,7 @@ def test_record_killed_or_interrupted_keeps_a_readable_recording(tmp_path):
             record = subprocess.Popen([*EMREG, "record", "--device", f"trakstar://{sim.link}?rate=80", "--out",
                                        str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
             try:
-                assert _wait(lambda out=out: _lines_on_disk(out) > 400), record.stderr
+                assert wait_for(lambda out=out: _lines_on_disk(out) > 400), record.stderr
                 record.send_signal(how)
                 stdout, stderr = record.communicate(timeout=30)
             finally:

@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 import pytest
+from polling import wait_for
 
 from EMRegModule.errors import EMRegError
 from EMRegModule.live import trakstar_protocol as tp
@@ -20,17 +21,6 @@ from EMRegModule.tracking import TrackingRecording
 from EMRegModule.transforms import make_transform, random_rotation, rotation_to_angles
 
 EPS = 1e-9
-
-
-def wait_for(condition, timeout_s: float = 30.0) -> bool:
-    """Poll ``condition()`` until it holds (True) or ``timeout_s`` passes (False): waits on counts and
-    events, never asserts how long something took."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.01)
-    return True
 
 
 def _step_mm(scale: float) -> float:
