@@ -140,19 +140,6 @@ def start_streamed_read(path: str | Path) -> StreamedCT | None:
     check_ct_geometry(CTGeometry(info), path)
     ct = StreamedCT(info, storage.dtype)
     ct.path = path.resolve()
-    threading.Thread(target=_read, args=(path, info, storage, ct), name="emreg-ct-stream", daemon=True).start()
+    threading.Thread(target=fast_read.read_and_hash, args=(path, info, storage, ct.bytes, ct), name="emreg-ct-stream",
+                     daemon=True).start()  # into the mapping, every byte hashed
     return ct
-
-
-def _read(path: Path, info: sitk.ImageFileReader, storage: fast_read._Storage, ct: StreamedCT) -> None:
-    """The reading thread (as :func:`EMRegModule.io.fast_read._read_voxels`, into the mapping, every byte hashed)."""
-    try:
-        fast_read.read_and_hash(path, info, storage, ct.bytes, fast_read._SliceAnnouncer(ct.bytes, storage.dtype, ct),
-                                ct)
-    except fast_read._CancelledError:
-        error = fast_read._CancelledReadError(f"{path}: reading the CT was cancelled")
-        ct.sha256.fail(error)
-        ct._finish(error)
-    except BaseException as exc:  # handed to the waiting thread
-        ct.sha256.fail(exc)
-        ct._finish(exc)

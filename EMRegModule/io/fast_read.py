@@ -222,52 +222,60 @@ def stored_nrrd_voxels(path: Path) -> tuple[sitk.ImageFileReader, np.dtype, int,
 
 
 def _read_voxels(path: Path, info: sitk.ImageFileReader, storage: _Storage, fill: VolumeFill) -> None:
-    """The reading thread: allocate the image, fill it, announce whole slices as they are done (the file's
-    sha256 from the same pass: ``fill.sha256``)."""
+    """The reading thread: allocate the image, then :func:`read_and_hash` the file into it."""
     try:
         image, voxels = _new_image(info)  # SimpleITK allocates without the GIL: the imports go on meanwhile
-        fill._set_image(image)
-        read_and_hash(path, info, storage, voxels, _SliceAnnouncer(voxels, storage.dtype, fill), fill)
-    except _CancelledError:
-        error = _CancelledReadError(f"{path}: reading the CT was cancelled")
-        fill.sha256.fail(error)
-        fill._finish(error)
     except BaseException as exc:  # handed to the waiting thread
-        fill.sha256.fail(exc)
-        fill._finish(exc)
+        _hand_over(fill, path, exc)
+        return
+    fill._set_image(image)
+    read_and_hash(path, info, storage, voxels, fill)
 
 
 def read_and_hash(path: Path, info: sitk.ImageFileReader, storage: _Storage, voxels: np.ndarray,
-                  slices: _SliceAnnouncer, fill: VolumeFill) -> None:
-    """Fill ``voxels`` (the image's bytes) from the file, announcing whole slices, then finish ``fill`` and set
-    ``fill.sha256``: every byte of the file goes through one :class:`_HashingReader`, in order, so that its
-    sha256 comes out of this same pass. Raises on a truncated, corrupt or over-long file."""
-    with path.open("rb") as file:
-        stream = _HashingReader(file, in_place=storage.compression == "raw" and not storage.dtype.isnative)
-        try:
-            if storage.compression == "raw" or not storage.whole_file:
-                stream.skip(storage.data_offset)  # the header: hashed, not used
-            if storage.compression == "raw":
-                filled = _read_raw(stream, voxels, slices)
-                if filled == voxels.nbytes and stream.read(1):
-                    extra = path.stat().st_size - storage.data_offset - voxels.nbytes
-                    raise EMRegError(_too_much_data(path, info, voxels.nbytes, extra))
-            else:
-                skip = storage.data_offset if storage.whole_file else 0
-                blocks = _inflated(stream, storage.compression == "gzip", path, skip + voxels.nbytes)
-                filled, extra = _fill(voxels, blocks, skip, slices)
-                if extra:
-                    raise EMRegError(_too_much_data(path, info, voxels.nbytes, extra))
-            if filled != voxels.nbytes:
-                raise EMRegError(f"{path}: cannot read CT (file is truncated: {filled} of {voxels.nbytes} voxel "
-                                 f"bytes)")
-            slices(filled)
-            slices.non_finite.check(path)
-            stream.skip(None)  # whatever follows the data (nothing, normally): hashed too
-            fill._finish()
-            fill.sha256.set(stream.hexdigest())  # its last chunks may still be being hashed
-        finally:
-            stream.close()
+                  fill: VolumeFill) -> None:
+    """Fill ``voxels`` (the image's bytes) from the file, announcing whole slices to ``fill``, then finish it and
+    set ``fill.sha256``: every byte of the file goes through one :class:`_HashingReader`, in order, so that its
+    sha256 comes out of this same pass. A truncated, corrupt or over-long file (or a cancel) ends ``fill`` with
+    the error, for the thread waiting on it."""
+    try:
+        slices = _SliceAnnouncer(voxels, storage.dtype, fill)
+        with path.open("rb") as file:
+            stream = _HashingReader(file, in_place=storage.compression == "raw" and not storage.dtype.isnative)
+            try:
+                if storage.compression == "raw" or not storage.whole_file:
+                    stream.skip(storage.data_offset)  # the header: hashed, not used
+                if storage.compression == "raw":
+                    filled = _read_raw(stream, voxels, slices)
+                    if filled == voxels.nbytes and stream.read(1):
+                        extra = path.stat().st_size - storage.data_offset - voxels.nbytes
+                        raise EMRegError(_too_much_data(path, info, voxels.nbytes, extra))
+                else:
+                    skip = storage.data_offset if storage.whole_file else 0
+                    blocks = _inflated(stream, storage.compression == "gzip", path, skip + voxels.nbytes)
+                    filled, extra = _fill(voxels, blocks, skip, slices)
+                    if extra:
+                        raise EMRegError(_too_much_data(path, info, voxels.nbytes, extra))
+                if filled != voxels.nbytes:
+                    raise EMRegError(f"{path}: cannot read CT (file is truncated: {filled} of {voxels.nbytes} voxel "
+                                     f"bytes)")
+                slices(filled)
+                slices.non_finite.check(path)
+                stream.skip(None)  # whatever follows the data (nothing, normally): hashed too
+                fill._finish()
+                fill.sha256.set(stream.hexdigest())  # its last chunks may still be being hashed
+            finally:
+                stream.close()
+    except BaseException as exc:  # handed to the waiting thread
+        _hand_over(fill, path, exc)
+
+
+def _hand_over(fill: VolumeFill, path: Path, exc: BaseException) -> None:
+    """End ``fill`` (and its sha256) with the read's error; a cancel is said as such."""
+    if isinstance(exc, _CancelledError):
+        exc = _CancelledReadError(f"{path}: reading the CT was cancelled")
+    fill.sha256.fail(exc)
+    fill._finish(exc)
 
 
 class _HashingReader:
