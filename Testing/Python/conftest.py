@@ -15,6 +15,11 @@ a 220 x 220 x 140 mm frame with 16 markers (the full frame is 350 x 350 x 200 mm
 Both have the patient, the couch, the reference sensor with streaks, navigation (6 targets
 x 15 dwells) and the board (60 rounds).
 
+``small_case`` (seed 6): a small, coarse case (1 mm voxels, a 200 x 200 x 110 mm frame with 8 markers, 3
+targets, 2 navigation and 3 board rounds) with its ``emreg run`` done into ``small_case.parent / "out"``; the
+sweeps of tracking recordings and of the report derive their variants from it and compare with that run
+(read only); about 4 s.
+
 ``load_truth(case_dir)`` returns the case's ``truth.json`` as a dict.
 """
 
@@ -25,12 +30,16 @@ from pathlib import Path
 
 import pytest
 
+from EMRegModule.cli import main
 from EMRegModule.simulation import load_truth, simulate_case
 
 #: Options of the CI-sized cases (shared so tests can state what they rely on).
 CI_CASE_OPTIONS = {"frame_size_mm": (220.0, 220.0, 140.0), "n_markers": 16}
 STANDARD_SEED = 11
 HARD_SEED = 12
+#: Options of the small case (``small_case``, 1 mm voxels).
+SMALL_CASE_OPTIONS = {"frame_size_mm": (200.0, 200.0, 110.0), "n_markers": 8, "navigation_rounds": 2,
+                      "board_rounds": 3, "n_targets": 3}
 
 __all__ = ["CI_CASE_OPTIONS", "load_truth"]
 
@@ -63,4 +72,13 @@ def hard_case(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A CI-sized hard simulated case folder (see module docstring)."""
     folder = tmp_path_factory.mktemp("hard_case")
     simulate_case(folder, seed=HARD_SEED, difficulty="hard", **CI_CASE_OPTIONS)
+    return folder
+
+
+@pytest.fixture(scope="session")
+def small_case(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The small case folder (see module docstring); its run's outputs are in ``small_case.parent / "out"``."""
+    folder = tmp_path_factory.mktemp("small_case") / "case"
+    simulate_case(folder, seed=6, spacing_mm=1.0, **SMALL_CASE_OPTIONS)
+    assert main(["run", str(folder), "--out", str(folder.parent / "out"), "--quiet"]) == 0
     return folder

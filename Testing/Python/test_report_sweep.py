@@ -54,20 +54,8 @@ import pytest
 from EMRegModule.cli import main
 from EMRegModule.rendering.error_views import error_budget_chart
 from EMRegModule.rendering.plots import BAR, bar_chart
-from EMRegModule.simulation import simulate_case
 
-SMALL = {"frame_size_mm": (200.0, 200.0, 110.0), "n_markers": 8, "navigation_rounds": 2, "board_rounds": 3,
-         "n_targets": 3}
 LONG = "L" + "x" * 298 + "Z"
-
-
-@pytest.fixture(scope="module")
-def small_case(tmp_path_factory) -> Path:
-    """A small, coarse simulated case (1 mm voxels, 8 markers) and its run's output folder."""
-    folder = tmp_path_factory.mktemp("report_sweep") / "case"
-    simulate_case(folder, seed=6, spacing_mm=1.0, **SMALL)
-    assert main(["run", str(folder), "--out", str(folder.parent / "out"), "--quiet"]) == 0
-    return folder
 
 
 def _page_text(out: Path) -> str:
