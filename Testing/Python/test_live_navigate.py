@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pyigtl
 import pytest
+from polling import wait_for
 
 from EMRegModule import cli
 from EMRegModule.io.tracking_csv import read_tracking_csv, write_tracking_csv
@@ -252,10 +253,8 @@ def test_serve_to_igtl_source_navigation_chain():
             assert consumer.receiver.connected.wait(30) and received.connected.wait(30)
             assert server.wait_for_clients(1, 30.0) and downstream.wait_for_clients(1, 30.0)
             source.start(tee)
-            deadline = time.monotonic() + 30  # wait on counts, not for a time: a loaded machine only takes longer
-            while (navigator.published < 40 or sum(m.message_type == "TRANSFORM" for m in poses) < 40) \
-                    and time.monotonic() < deadline:
-                time.sleep(0.01)
+            # wait on counts, not for a time: a loaded machine only takes longer
+            wait_for(lambda: navigator.published >= 40 and sum(m.message_type == "TRANSFORM" for m in poses) >= 40)
         finally:
             source.stop()
             consumer.stop()
@@ -291,47 +290,34 @@ def test_watchdog_with_the_simulator_stops_and_resumes():
 
             source.start(tee)
 
-            def wait_for_count(condition, timeout: float = 30.0) -> bool:
-                end = time.monotonic() + timeout
-                while not condition():
-                    if time.monotonic() > end:
-                        return False
-                    time.sleep(0.005)
-                return True
+            def reason_is(reason: str):
+                return lambda: nav.tick().reason == reason
 
-            def wait_for(reason: str, timeout: float = 30.0) -> bool:
-                end = time.monotonic() + timeout
-                while time.monotonic() < end:
-                    if nav.tick().reason == reason:
-                        return True
-                    time.sleep(0.005)
-                return False
-
-            assert wait_for("ok")
-            assert wait_for_count(lambda: nav.published > 10)
+            assert wait_for(reason_is("ok"))
+            assert wait_for(lambda: nav.published > 10)
             published = nav.published
             sim.set_unplugged(1)
-            assert wait_for("reference_missing")
+            assert wait_for(reason_is("reference_missing"))
             time.sleep(0.2)
             during = nav.published
             time.sleep(0.1)
             assert nav.published == during  # nothing published while the reference is missing
             sim.set_unplugged(1, False)
-            assert wait_for("ok")
-            assert wait_for_count(lambda: nav.published > during)  # publishing again
+            assert wait_for(reason_is("ok"))
+            assert wait_for(lambda: nav.published > during)  # publishing again
             # silent until the watchdog has been seen to say so (a fixed stall could end before a late
             # test thread looks), then the line resumes
             sim.stall(60.0)
-            assert wait_for("stale")
+            assert wait_for(reason_is("stale"))
             sim.stall(0.0)
-            assert wait_for("ok")
+            assert wait_for(reason_is("ok"))
             sim.set_out_of_range(2)
-            assert wait_for("out_of_range")
+            assert wait_for(reason_is("out_of_range"))
             sim.set_out_of_range(2, False)
             sim.set_distorted(1)  # metal distortion at the reference: METAL byte 90 > 20
-            assert wait_for("bad_quality")
+            assert wait_for(reason_is("bad_quality"))
             sim.set_distorted(1, False)
-            assert wait_for("ok")
+            assert wait_for(reason_is("ok"))
         finally:
             source.stop()
             server.close()
