@@ -613,6 +613,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return exc.exit_code
     except KeyboardInterrupt as exc:
         terminated = isinstance(exc, Terminated)
+        # CPython marks a KeyboardInterrupt that ends any string exec() (a dataclass or namedtuple being made
+        # while Ctrl-C lands) as unhandled even once caught, and `python -m` then kills itself with SIGINT
+        # instead of exiting 130 (bpo-41602's check in Py_RunMain). A string exec that ends normally clears it.
+        exec("")
         print(f"emreg {args.command}: interrupted ({'SIGTERM' if terminated else 'SIGINT'}); no partial file "
               "was left in place of a complete one", file=sys.stderr)
         return 143 if terminated else 130

@@ -1,5 +1,6 @@
 """The ``emreg`` command: usage errors, exit codes, one-line messages."""
 
+import os
 import subprocess
 import sys
 
@@ -57,3 +58,20 @@ def test_parser_knows_every_spec_option():
     assert (args.seed, args.difficulty, args.spacing) == (3, "hard", 0.8)
     args = parser.parse_args(["evaluate", "case", "--registration", "r.json", "--out", "o"])
     assert args.case == "case"
+
+
+@pytest.mark.parametrize("source", ["raise KeyboardInterrupt", 'exec("raise KeyboardInterrupt")'])
+def test_ctrl_c_inside_a_string_exec_still_exits_130_under_python_m(tmp_path, source):
+    """Ctrl-C landing while a library runs a string ``exec`` (dataclasses and namedtuples are made that way,
+    so any lazy import can be the place) made ``python -m EMRegModule.cli`` die by SIGINT (-2) after printing
+    its one line, although ``main`` returned 130: CPython then remembers the interrupt as unhandled."""
+    (tmp_path / "interrupted_cli.py").write_text(
+        "import sys\nfrom EMRegModule import cli\n"
+        f"def interrupted(args):\n    exec({source!r})\n"
+        "cli.cmd_detect = interrupted\n"
+        "sys.exit(cli.main(['detect', 'CT', '--out', 'OUT']))\n")
+    result = subprocess.run([sys.executable, "-m", "interrupted_cli"], cwd=tmp_path, capture_output=True,
+                            text=True, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    assert result.returncode == 130, result.stderr
+    assert result.stderr.splitlines() == ["emreg detect: interrupted (SIGINT); no partial file was left in place "
+                                          "of a complete one"]
