@@ -612,11 +612,23 @@ class EMRegTest(ScriptedLoadableModuleTest):
         from EMRegModule.simulation import simulate_case
 
         folder = Path(tempfile.mkdtemp(prefix="EMRegTest-")) / "case"
+        self._temporary.append(folder.parent)
         self.delayDisplay("Simulating a small case")
         simulate_case(folder, seed=11, difficulty="standard", frame_size_mm=(220.0, 220.0, 140.0), n_markers=16)
         return folder
 
     def test_EMReg_simulated_case(self):
+        """Runs in folders of its own under the temporary directory, removed afterwards (passed or not)."""
+        import shutil
+
+        self._temporary = []
+        try:
+            self._simulated_case()
+        finally:
+            for folder in self._temporary:
+                shutil.rmtree(folder, ignore_errors=True)
+
+    def _simulated_case(self):
         import tempfile
 
         import numpy as np
@@ -629,6 +641,7 @@ class EMRegTest(ScriptedLoadableModuleTest):
         truth = load_truth(case)
         logic = EMRegLogic()
         output = Path(tempfile.mkdtemp(prefix="EMRegTest-out-"))
+        self._temporary.append(output)
         logic.loadCase(str(case), str(output))
         self.assertIsNotNone(slicer.mrmlScene.GetFirstNodeByName(EMRegLogic.VOLUME_NODE_NAME))
 

@@ -24,6 +24,7 @@ import importlib.util
 import logging
 import os
 import sys
+import tempfile
 import types
 import unittest
 import xml.etree.ElementTree as ET
@@ -497,12 +498,15 @@ def test_self_test_runs_on_slicer_core_mrml(slicer_core, standard_case):
     """The module's own ScriptedLoadableModuleTest (simulated standard case, real controller, real MRML)."""
     module = slicer_core.load_module()
     module.EMRegTest.caseDirectory = str(standard_case)
+    temporary = Path(tempfile.gettempdir())
+    before = set(temporary.glob("EMRegTest-*"))
     try:
         result = unittest.TextTestRunner(stream=open(os.devnull, "w"), verbosity=0).run(  # noqa: SIM115
             module.EMRegTest("test_EMReg_simulated_case"))
     finally:
         module.EMRegTest.caseDirectory = None
     assert result.wasSuccessful(), [str(e) for _, e in result.failures + result.errors]
+    assert set(temporary.glob("EMRegTest-*")) == before, "the self-test left its output folder behind"
     names = {slicer_core.scene.GetNthNode(i).GetName() for i in range(slicer_core.scene.GetNumberOfNodes())}
     assert {"EMReg CT", "EMReg markers", "EMReg calibration points", "ReferenceToImage", "EMReg targets",
             "EMReg probe path", "ProbeToReference", "EMReg pinhole points", "EMReg marker residuals"} <= names
