@@ -319,7 +319,7 @@ def _check_convert_ports(recording, reference: int, probe: int, names: dict[str,
 def cmd_report(args: argparse.Namespace) -> int:
     early = _start_report_ct(args)  # the CT's read goes on while the report's libraries load
     bundle = early_bundle = _start_report_bundle(args)  # held: writes nothing into OUT until released below
-    folder = None
+    folder = kept = None
     try:
         from .outputs import OutputFolder
 
@@ -331,11 +331,17 @@ def cmd_report(args: argparse.Namespace) -> int:
         if not Path(args.out).is_dir():
             raise EMRegError(f"{args.out}: output folder not found")
         case = Path(args.case) if args.case else None
-        controller = _controller(args, _settings(args))
+        # the case's settings (those the figures use), so that the report's provenance names them
+        controller = _controller(args, _settings(args, case or _recorded_case(Path(args.out))))
         stage = OutputFolder(args.out, "emreg report")
-        stage.start_stage("report")
+        kept = controller.kept_bundle(stage, case)  # still the scene this report would write: it stays
+        stage.start_stage("report", keep=[kept.path.name] if kept is not None else ())
         folder = stage
-        bundle = controller.start_bundle(folder, case, early_bundle)  # goes on while the report renders
+        if kept is not None and early_bundle is not None:
+            early_bundle.cancel()
+            bundle = early_bundle = None
+        if kept is None:
+            bundle = controller.start_bundle(folder, case, early_bundle)  # goes on while the report renders
         path = controller.save_report(folder, case, early)
     except BaseException:
         if bundle is not None:
@@ -343,10 +349,12 @@ def cmd_report(args: argparse.Namespace) -> int:
         if early is not None:
             early.cancel()
         if folder is not None:  # the bundle (released by then) or figures this failed report wrote: not left in OUT
+            if kept is not None:  # nor the kept bundle: as a report that fails leaves none, it goes to previous/
+                folder.start_stage("bundle")
             folder.drop_unrecorded()
         raise
     print(f"report -> {path}")
-    print(controller.save_bundle(folder, case, bundle))
+    print(controller.save_bundle(folder, case, bundle, kept))
     return 0
 
 
@@ -416,12 +424,36 @@ def _start_report_ct(args: argparse.Namespace):
     from .io.slicer_scene import bundle_needs_ct_image
 
     ct = _recorded_ct(Path(args.out)) if Path(args.out).is_dir() else None
-    if ct is None or bundle_needs_ct_image(ct):
+    if ct is None or bundle_needs_ct_image(ct) or _ct_products_kept(Path(args.out), ct):
         return None
     try:
         return start_streamed_read(ct)
     except EMRegError:
         return None  # the report reads it again and says what is wrong
+
+
+def _recorded_case(out: Path) -> Path | None:
+    """The case folder ``OUT/run.json`` names, when it is there."""
+    from .io.atomic import read_json
+
+    try:
+        case = read_json(out / "run.json", "run record").get("case")
+    except (EMRegError, OSError, AttributeError):
+        return None
+    return Path(case) if isinstance(case, str) and Path(case).is_dir() else None
+
+
+def _ct_products_kept(out: Path, ct: str) -> bool:
+    """Whether an earlier report of this run kept the CT's products for this CT (then the report only hashes it)."""
+    from .io.atomic import read_json
+    from .report.ct_memo import kept_for, memo_candidates, recorded_ct_sha256
+
+    try:
+        run = read_json(out / "run.json", "run record")
+    except (EMRegError, OSError):
+        return False
+    recorded = recorded_ct_sha256(run, Path(ct))
+    return any(kept_for(path, recorded) for path in memo_candidates(out))
 
 
 def _start_report_bundle(args: argparse.Namespace):
@@ -430,9 +462,17 @@ def _start_report_bundle(args: argparse.Namespace):
     that leaves idle; None when it cannot be written in a process of its own (or for ``--batch``)."""
     if args.batch or not args.out or not Path(args.out).is_dir():
         return None
+    from .bundle_state import current_bundle
+    from .io.atomic import read_json
     from .io.slicer_scene import start_bundle_process
 
-    return start_bundle_process(args.out, Path(args.case) if args.case else None, held=True)
+    case = Path(args.case) if args.case else None
+    try:
+        if current_bundle(Path(args.out), read_json(Path(args.out) / "run.json", "run record"), case, None):
+            return None  # most likely kept (the settings are compared once read)
+    except (EMRegError, OSError, AttributeError):
+        pass
+    return start_bundle_process(args.out, case, held=True)
 
 
 def _record_batch_report(args: argparse.Namespace, folder: Path, bundle_sha256: str | None) -> None:

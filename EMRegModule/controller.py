@@ -551,12 +551,26 @@ class EMRegController:
             job.release()
         return job
 
-    def save_bundle(self, folder: OutputFolder, case_dir: Path | None, job: Any = None) -> str:
+    def kept_bundle(self, folder: OutputFolder, case_dir: Path | None) -> Any:
+        """``folder``'s ``EMReg.mrb`` when it is still the bundle :meth:`save_bundle` would write
+        (:mod:`EMRegModule.bundle_state`; pass it to :meth:`save_bundle`), else None."""
+        from .bundle_state import current_bundle
+
+        kept = current_bundle(folder.path, folder.manifest, case_dir, self.settings.digest())
+        return kept.start_check() if kept is not None else None
+
+    def save_bundle(self, folder: OutputFolder, case_dir: Path | None, job: Any = None, kept: Any = None) -> str:
         """``EMReg.mrb``, the 3D Slicer scene of ``folder``'s outputs; a summary line. Optional: without
         slicer-core, or when it cannot be written, the other outputs stand and a warning says why.
-        ``job``: the bundle started by :meth:`start_bundle` (waited for here)."""
+        ``job``: the bundle started by :meth:`start_bundle` (waited for here). ``kept``: the bundle
+        :meth:`kept_bundle` found up to date, kept when its file is confirmed unchanged (else written again)."""
+        import dataclasses
+
+        from .bundle_state import bundle_inputs
         from .io.slicer_scene import bundle_needs_ct_image, write_run_bundle_hashed
 
+        if kept is not None and kept.confirmed():
+            return f"bundle: {kept.path} (up to date: kept)"
         if job is not None:
             with self.progress.step("writing the 3D Slicer scene bundle (in parallel)"):
                 path, message, sha = job.result()
@@ -574,7 +588,10 @@ class EMRegController:
         if path is None:
             self.warn([message])
         else:
-            self._recorded(folder, "bundle", self._provenance((), tuple(used)), {path.name: sha} if sha else None)
+            provenance = self._provenance((), tuple(used))  # made from the CT and targets too: a later report
+            provenance = dataclasses.replace(  # keeps it while none of them changed (bundle_state)
+                provenance, inputs={**provenance.inputs, **bundle_inputs(folder.manifest, case_dir)})
+            self._recorded(folder, "bundle", provenance, {path.name: sha} if sha else None)
         return f"bundle: {message}"
 
     # --- a whole run ---------------------------------------------------------------------------

@@ -168,10 +168,11 @@ class OutputFolder:
             os.replace(self.path / name, previous / name)
         self._remove_temporaries()
 
-    def start_stage(self, stage: str) -> None:
+    def start_stage(self, stage: str, keep: Iterable[str] = ()) -> None:
         """Begin a per-stage command: the outputs of ``stage`` and of the stages made from it move to
-        ``previous/``."""
-        names = outputs_from(stage)
+        ``previous/``, except those in ``keep`` (still up to date: they stay, listed as they are)."""
+        kept = set(keep)
+        names = [name for name in outputs_from(stage) if name not in kept]
         stale = self._present(names)
         if stale:
             previous = self.path / PREVIOUS_FOLDER

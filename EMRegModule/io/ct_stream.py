@@ -18,6 +18,7 @@ from __future__ import annotations
 import mmap
 import threading
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import SimpleITK as sitk
@@ -51,7 +52,7 @@ class ReleasedCT:
     is_complete = True
 
     def __init__(self, image: sitk.Image) -> None:
-        self.image = _FixedGeometry(image)
+        self.image = FixedGeometry.of_image(image)
 
     def result(self) -> None:
         return None
@@ -63,17 +64,24 @@ class ReleasedCT:
         return None
 
 
-class _FixedGeometry:
-    """An image's geometry, without its voxels."""
+#: The getters of a ``SimpleITK.Image`` that its geometry answers.
+GEOMETRY_GETTERS = ("GetSize", "GetSpacing", "GetOrigin", "GetDirection", "GetPixelID", "GetDimension",
+                    "GetNumberOfComponentsPerPixel", "GetPixelIDTypeAsString")
 
-    def __init__(self, image: sitk.Image) -> None:
-        self._values = {name: getattr(image, name)() for name in (
-            "GetSize", "GetSpacing", "GetOrigin", "GetDirection", "GetPixelID", "GetDimension",
-            "GetNumberOfComponentsPerPixel", "GetPixelIDTypeAsString")}
+
+class FixedGeometry:
+    """An image's geometry, without its voxels: ``values`` by getter name (:data:`GEOMETRY_GETTERS`)."""
+
+    def __init__(self, values: dict[str, Any]) -> None:
+        self.values = values
+
+    @classmethod
+    def of_image(cls, image: Any) -> FixedGeometry:
+        return cls({name: getattr(image, name)() for name in GEOMETRY_GETTERS})
 
     def __getattr__(self, name: str):
         try:
-            value = self._values[name]
+            value = self.values[name]
         except KeyError:
             raise AttributeError(name) from None
         return lambda: value

@@ -11,6 +11,7 @@ and sampled on small planes around each marker for the slices.
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,12 +39,29 @@ MAX_PATH_POINTS = 2000
 
 @dataclass
 class Figure:
-    """A rendered figure: file name stem, title, caption and PNG bytes."""
+    """A rendered figure: file name stem, title, caption and its PNG bytes (``png``; ``encoded``: the bytes, or
+    their encoding still going on on a thread)."""
 
     name: str
     title: str
     caption: str
-    png: bytes
+    encoded: bytes | Future[bytes]
+
+    @property
+    def png(self) -> bytes:
+        if isinstance(self.encoded, Future):
+            self.encoded = self.encoded.result()
+        return self.encoded
+
+
+_ENCODER: list[ThreadPoolExecutor] = []
+
+
+def _png(image_rgb: np.ndarray) -> Future[bytes]:
+    """:func:`encode_png` on a thread of its own: OpenCV lets this one draw the next figure meanwhile."""
+    if not _ENCODER:
+        _ENCODER.append(ThreadPoolExecutor(1, thread_name_prefix="emreg-png"))
+    return _ENCODER[0].submit(encode_png, image_rgb)
 
 
 @dataclass
@@ -60,6 +78,7 @@ class ReportData:
     scene_renderer: object | None = None  # a FrameSceneRenderer built before the CT is read
     marker_views: object | None = None  # StreamingMarkerViews: the slices sampled as the CT is read
     binned: object | None = None  # the block-averaged CT (BinnedCT) the context surface is contoured from
+    kept_whole: bool = False  # every CT product came from the file an earlier report kept (report.ct_memo)
 
     @property
     def l_mm(self) -> float | None:
@@ -131,6 +150,20 @@ def prepare_ct_products(data: ReportData) -> None:
 
     if data.inputs.ct is None or data.binned is not None:
         return
+    memo = getattr(data.inputs.ct, "memo", None)  # kept by an earlier report of this run (report.ct_memo)
+    if memo is not None:
+        if memo.matches([r.marker_to_image for r in data.rows]):
+            from .ct_memo import KeptViews
+
+            data.binned, data.marker_views = memo.binned, KeptViews(memo.views) if data.rows else None
+            data.surface = memo.context_surface(data.inputs.settings.report.iso_value)  # None: made from binned
+            data.kept_whole = data.surface is not None
+            return
+        from .inputs import read_ct_again
+
+        read_ct_again(data.inputs)
+        if data.inputs.ct is None:
+            return
     try:
         _sample_ct(data)
     except NarrowVoxelsError:  # a compact DICOM read met a value beyond int16: the whole CT again, exactly
@@ -164,11 +197,18 @@ def _sample_ct(data: ReportData, read_exactly: bool = False) -> None:
 
 
 def prepare_scenes(data: ReportData) -> None:
-    """Build the 3D scene and draw it once, without the CT surface (this can go on while the CT is read)."""
+    """Build the 3D scene and, while the CT is still being read, draw it once without the CT surface (the
+    first frame's set-up then costs nothing later); with the CT's products at hand there is nothing to wait for."""
     from ..rendering.scene3d import FrameSceneRenderer
 
     data.scene_renderer = FrameSceneRenderer(_frame_scene(data), (960, 720))
-    data.scene_renderer.warm_up()
+    if not _ct_products_at_hand(data):
+        data.scene_renderer.warm_up()
+
+
+def _ct_products_at_hand(data: ReportData) -> bool:
+    """Whether the CT's products need no read: kept by an earlier report (report.ct_memo), made, or no CT."""
+    return data.inputs.ct is None or data.binned is not None or getattr(data.inputs.ct, "memo", None) is not None
 
 
 def render_scenes(data: ReportData) -> list[Figure]:
@@ -185,8 +225,8 @@ def render_scenes(data: ReportData) -> list[Figure]:
         renderer.close()
     caption = _scene_caption(_frame_scene(data)) + (" " + data.surface.description() if data.surface is not None
                                                     else "")
-    return [Figure("scene_oblique", "3D view of the frame", caption, encode_png(images[0])),
-            Figure("scene_top", "3D view from above", caption, encode_png(images[1]))]
+    return [Figure("scene_oblique", "3D view of the frame", caption, _png(images[0])),
+            Figure("scene_top", "3D view from above", caption, _png(images[1]))]
 
 
 # --- CT slices ------------------------------------------------------------------------------------
@@ -229,7 +269,7 @@ def render_marker_slices(data: ReportData) -> list[Figure]:
                    "Per marker: two planes through the marker axis (XY, ZY) and a cross-section of its base (XZ), "
                    "with the fitted model outline (green: paired, orange: unpaired), the sensor point at the solved "
                    "l (yellow dot) and the calibration point mapped by ReferenceToImage (magenta cross). "
-                   "0.2 mm per pixel.", encode_png(mosaic))]
+                   "0.2 mm per pixel.", _png(mosaic))]
 
 
 # --- plots ----------------------------------------------------------------------------------------
@@ -252,7 +292,7 @@ def render_residuals(data: ReportData) -> list[Figure]:
                       colors=colors or [GREY], reference_lines=lines)
     return [Figure("residuals", "Residual per marker",
                    "Distance between each calibration point mapped into the CT and its marker's sensor point at the "
-                   "solved l; the dashed line is the FRE (RMS).", encode_png(chart))]
+                   "solved l; the dashed line is the FRE (RMS).", _png(chart))]
 
 
 def render_fre_curve(data: ReportData) -> list[Figure]:
@@ -274,7 +314,7 @@ def render_fre_curve(data: ReportData) -> list[Figure]:
     source = "as the registration computed it" if data.curve_stored else "recomputed here from the reported pairs"
     return [Figure("fre_curve", "FRE as a function of the sensor offset l",
                    f"Paper Eq. 10, {source}: for each l in the pinhole range the rigid fit of the calibration points "
-                   "to the sensor points at l; the dot marks the l the registration chose.", encode_png(chart))]
+                   "to the sensor points at l; the dot marks the l the registration chose.", _png(chart))]
 
 
 def render_tre_targets(data: ReportData) -> list[Figure]:
@@ -293,7 +333,7 @@ def render_tre_targets(data: ReportData) -> list[Figure]:
     return [Figure("tre_targets", "TRE per target",
                    "Mean and standard deviation over the dwells at each target"
                    + (", with the end-to-end RMS TRE the error model predicts (red)" if overlay else "")
-                   + " (paper: 1.38 +/- 0.32 mm over 6 targets x 15 placements).", encode_png(chart))]
+                   + " (paper: 1.38 +/- 0.32 mm over 6 targets x 15 placements).", _png(chart))]
 
 
 def _has_tre(data: ReportData) -> bool:
@@ -320,7 +360,7 @@ def render_error_budget(data: ReportData) -> list[Figure]:
                    "each segment is what its term adds): the registration (fiducial errors of both spaces through "
                    "the fit, l included), the probe's tracking error at the target (measured from the "
                    f"{source}), the reference sensor's pose error during calibration and navigation (a prior) and "
-                   "the placement; the black line is the measured RMS TRE.", encode_png(chart))]
+                   "the placement; the black line is the measured RMS TRE.", _png(chart))]
 
 
 def render_tre_map(data: ReportData) -> list[Figure]:
@@ -331,7 +371,7 @@ def render_tre_map(data: ReportData) -> list[Figure]:
     return [Figure("tre_map", "Predicted TRE over the CT",
                    "tre_map.nrrd: the predicted end-to-end RMS TRE (mm) on index planes of the CT's grid through the "
                    "targets' centre, with iso-lines; it grows with the distance from the markers' centroid and from "
-                   "the reference sensor. Load it in 3D Slicer as a colour overlay on the CT.", encode_png(image))]
+                   "the reference sensor. Load it in 3D Slicer as a colour overlay on the CT.", _png(image))]
 
 
 # --- the registry ---------------------------------------------------------------------------------

@@ -161,6 +161,8 @@ def _start_ct(inputs: ReportInputs, image: sitk.Image | None, read_image: bool, 
     elif read_image and inputs.ct_path is not None:
         used = (inputs.run or {}).get("ct_series") or {}  # a DICOM folder: the series the run detected in
         inputs.ct_series = used.get("series_instance_uid") or inputs.settings.ct.series
+        if not keep_ct and _use_kept_ct_products(inputs):
+            return
         try:
             streamed = None if keep_ct or inputs.ct_path.is_dir() else start_streamed_read(inputs.ct_path)
             # a DICOM series stored as 16 bits with an intercept is read as int16 (the detection's compact
@@ -168,6 +170,32 @@ def _start_ct(inputs: ReportInputs, image: sitk.Image | None, read_image: bool, 
             inputs.ct = streamed if streamed is not None else open_ct(inputs.ct_path, inputs.ct_series, compact=True)
         except EMRegError as exc:
             inputs.notes.append(str(exc))
+
+
+def _use_kept_ct_products(inputs: ReportInputs) -> bool:
+    """Take the CT's products an earlier report of this run kept (:mod:`.ct_memo`) instead of reading the CT: its
+    file is only hashed (and checked against ``run.json`` before the page is written)."""
+    from .ct_memo import MemoCT, load_ct_memo, memo_candidates, recorded_ct_sha256
+
+    recorded = recorded_ct_sha256(inputs.run, inputs.ct_path)
+    memo = next(filter(None, (load_ct_memo(path, recorded, inputs.settings.marker)
+                              for path in memo_candidates(inputs.out_dir))), None)
+    if memo is None:
+        return False
+    inputs.ct = MemoCT(inputs.ct_path, memo)
+    return True
+
+
+def read_ct_again(inputs: ReportInputs) -> None:
+    """Read the CT after all (its kept products were made for other markers): streamed when it can be."""
+    from ..io.ct_stream import start_streamed_read
+    from ..io.image import open_ct
+
+    try:
+        inputs.ct = start_streamed_read(inputs.ct_path) or open_ct(inputs.ct_path, inputs.ct_series, compact=True)
+    except EMRegError as exc:
+        inputs.notes.append(str(exc))
+        inputs.ct = None
 
 
 def load_report_inputs(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,

@@ -123,6 +123,32 @@ def _check_run_ct(inputs: ReportInputs) -> None:
                          "markers; give the run's CT with --case, or run again")
 
 
+def _keep_ct_products(data: ReportData, handed: bool) -> None:
+    """Keep what the figures took from the CT for the next report of this run (:mod:`.ct_memo`), when they
+    were made from the bytes ``run.json`` records: a CT whose sha256 this report computed as it read it (or hashed,
+    its products kept but for the surface), or the CT this very run read and handed over in memory."""
+    from .ct_memo import carry_forward, memo_path, recorded_ct_sha256, save_ct_memo
+
+    inputs = data.inputs
+    if data.binned is None or inputs.ct is None:
+        return
+    if data.kept_whole:
+        carry_forward(inputs.ct.memo, inputs.out_dir)
+        return
+    recorded = recorded_ct_sha256(inputs.run, inputs.ct_path)
+    digest = getattr(inputs.ct, "sha256", None)
+    if recorded is None or (digest is None and not handed):
+        return
+    try:
+        if digest is not None and digest.result() != recorded:
+            return
+    except Exception:  # noqa: BLE001 - a read that failed keeps nothing
+        return
+    views = data.marker_views.views() if data.marker_views is not None else None
+    save_ct_memo(memo_path(inputs.out_dir), recorded, inputs.model, inputs.ct.image, data.binned, views,
+                 [r.marker_to_image for r in data.rows], data.surface, inputs.settings.report.iso_value)
+
+
 class HandedCT:
     """A CT handed to the report to use and let go: the caller keeps no reference to it, so once the report has
     taken what it needs (the block-averaged CT, the marker planes) the CT's memory is freed before the
@@ -165,6 +191,7 @@ def _write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[s
     figure_dir = inputs.out_dir / FIGURE_DIR
     for figure in figures:
         atomic_write_bytes(figure_dir / f"{figure.name}.png", figure.png)
+    _keep_ct_products(data, handed)
     produced = {f.name for f in figures}
     for name in FIGURE_NAMES:  # figures of an earlier run that this one did not produce are stale
         if name not in produced:
