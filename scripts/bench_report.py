@@ -4,8 +4,11 @@
 Measured in one run, each command in its own process:
 
 (a) ``emreg detect CASE`` (the detection alone: read the CT, find and pose the markers);
-(b) ``emreg report OUT`` on the outputs of an ``emreg run`` (it reads the CT itself and writes the
-    3D Slicer bundle ``EMReg.mrb`` too when ``slicer-core`` is installed);
+(b) ``emreg report OUT`` on the outputs of an ``emreg run``, as the run left them: the report finds the CT
+    products the run's report kept (``report_figures/ct_context.npz``) and an up-to-date 3D Slicer bundle
+    ``EMReg.mrb``, so it hashes the CT (checked against ``run.json``) instead of reading it and keeps the
+    bundle; (b') the same report as the first of its folder (no report, no bundle: nothing to reuse; it reads
+    the CT and writes the bundle when ``slicer-core`` is installed);
 (c) the baseline: the same ``emreg report`` of an earlier EMReg revision (``--baseline-rev``, by
     default main before the lean-report work of issue 17's second round; extracted with
     ``git archive``), on a copy of the same outputs;
@@ -142,10 +145,20 @@ def ct_bytes(case: Path) -> float:
     return float(np.prod(reader.GetSize())) * pixel.GetSizeOfPixelComponent()
 
 
-def copy_outputs(source: Path, target: Path) -> None:
-    """The run's outputs without any report (so that each report starts from the same state)."""
+def copy_outputs(source: Path, target: Path, as_left: bool = True) -> None:
+    """The run's outputs as the run left them (``as_left``: its report, the CT products that report kept and its
+    bundle included, as a user's ``emreg report OUT`` after ``emreg run`` finds them), or without any report or
+    bundle (a first report of the folder: nothing to reuse). Hard links where possible (a replaced file is a new
+    one: a report writes atomically)."""
+    def link_or_copy(src: str, dst: str) -> None:
+        try:
+            os.link(src, dst)
+        except OSError:
+            shutil.copy2(src, dst)
+
+    ignored = ("previous",) if as_left else ("previous", "report.html", "report_figures", "EMReg.mrb")
     shutil.rmtree(target, ignore_errors=True)
-    shutil.copytree(source, target, ignore=shutil.ignore_patterns("report.html", "report_figures"))
+    shutil.copytree(source, target, ignore=shutil.ignore_patterns(*ignored), copy_function=link_or_copy)
 
 
 def same_figures(a: Path, b: Path) -> dict[str, str]:
@@ -171,7 +184,8 @@ def bench_case(case: Path, work: Path, baseline: Path, rev: str) -> None:
     size = ct_bytes(case)
     base_env = {**os.environ, "PYTHONPATH": str(baseline)}
     tag = case.name
-    outs = {name: work / f"{tag}-{name}" for name in ("run", "run-base", "detect", "report", "report-base")}
+    outs = {name: work / f"{tag}-{name}" for name in ("run", "run-base", "detect", "report", "report-base",
+                                                       "report-first")}
     for folder in outs.values():
         shutil.rmtree(folder, ignore_errors=True)
     results: dict[str, tuple[float, float, float]] = {}
@@ -185,25 +199,29 @@ def bench_case(case: Path, work: Path, baseline: Path, rev: str) -> None:
     results["detect"] = run_child(emreg("detect", str(case), "--out", str(outs["detect"])), cwd=ROOT)
     for name in ("report", "report-base"):
         copy_outputs(outs["run"], outs[name])
+    copy_outputs(outs["run"], outs["report-first"], as_left=False)
     results["report (baseline)"] = run_child(emreg("report", str(outs["report-base"])), env=base_env,
                                              cwd=baseline)
     results["report"] = run_child(emreg("report", str(outs["report"])), cwd=ROOT)
+    results["report, first"] = run_child(emreg("report", str(outs["report-first"])), cwd=ROOT)
     print(f"{'command':<20} {'time (s)':>9} {'CPU (s)':>8} {'peak (GB)':>10} {'peak / CT':>10}")
     for name, (wall, peak, cpu) in results.items():
         print(f"{name:<20} {wall:9.2f} {cpu:8.2f} {peak / 1e9:10.2f} {peak / size:10.2f}")
     detect = results["detect"]
     for what, new, base in (("emreg report", results["report"], results["report (baseline)"]),
+                            ("emreg report, first", results["report, first"], results["report (baseline)"]),
                             ("emreg run", results["run"], results["run (baseline)"])):
         timing = (f"time / detect time {new[0] / detect[0]:.2f} (goal <= 1.0; baseline {base[0] / detect[0]:.2f}), "
                   f"CPU / detect CPU {new[2] / detect[2]:.2f} (baseline {base[2] / detect[2]:.2f}), "
-                  if what == "emreg report" else "")
+                  if what != "emreg run" else "")
         print(f"{what}: {timing}peak / CT bytes {new[1] / size:.2f} (goal <= 1.3; baseline {base[1] / size:.2f}); "
               f"against the baseline: time {new[0] / base[0]:.2f}x, peak {new[1] / base[1]:.2f}x")
     bundle = "" if importlib.util.find_spec("slicer") is None else \
         " (slicer-core is installed: emreg run and emreg report also write EMReg.mrb, the CT included)"
     print(f"baseline: EMReg at {rev}" + bundle)
+    first = same_figures(outs["report-first"], outs["report"])
     for name, verdict in same_figures(outs["report"], outs["report-base"]).items():
-        print(f"  {name:<15} {verdict} (against the baseline's)")
+        print(f"  {name:<15} {verdict} (against the baseline's); the first report's: {first[name]}")
 
 
 def main() -> None:
