@@ -6,7 +6,8 @@ names and the case's ``targets.mrk.json``; its entry in ``run.json`` records the
 now and the file is the one recorded (its sha256, computed on a thread while the report renders), writing it
 again would give the same scene: ``emreg report`` keeps it instead of copying the CT into a new one (a second
 of CPU and the CT's size written at 0.6 mm, several at 0.3 mm). The CT itself is checked by the report against
-``run.json`` (:func:`~EMRegModule.report.writer._check_run_ct`), before anything is kept.
+``run.json`` (:func:`~EMRegModule.report.writer._check_run_ct`), before anything is kept. Without slicer-core
+nothing is kept: a bundle that could not be renewed is removed, as before, and the report says why.
 """
 
 from __future__ import annotations
@@ -67,6 +68,8 @@ def current_bundle(out: Path, run: dict[str, Any], case_dir: Path | None,
     """The bundle in ``out`` when a new one would be the same (see the module's docstring), else None.
     ``settings_sha256`` None: the settings are not compared (a first look, before they are read)."""
     path = out / BUNDLE_NAME
+    if not _slicer_core_installed():  # the bundle cannot be renewed here: it goes, and the report says why
+        return None
     entry = (run.get("outputs") or {}).get(BUNDLE_NAME)
     if not path.is_file() or not isinstance(entry, dict) or not isinstance(entry.get("sha256"), str):
         return None
@@ -85,3 +88,13 @@ def current_bundle(out: Path, run: dict[str, Any], case_dir: Path | None,
     if "ct" not in inputs or any(recorded.get(role) != inputs.get(role) for role in ("ct", "targets")):
         return None
     return KeptBundle(path, entry["sha256"])
+
+
+def _slicer_core_installed() -> bool:
+    """Whether the slicer-core wheel is importable (found, not imported: its libraries stay out of this process)."""
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec("slicer") is not None
+    except (ImportError, ValueError):
+        return False
