@@ -666,5 +666,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_BAD_INPUT
 
 
+def run() -> int:
+    """The ``emreg`` console script (and ``python -m EMRegModule``): :func:`main`, in a process that ends with it.
+
+    Every object the command made is frozen out of the garbage collector before the interpreter exits: its
+    final collection would otherwise walk them all (0.12 s after a report with pyvista and VTK loaded, measured)
+    only to free memory the process is about to give back. Not in :func:`main`, which callers in a longer-lived
+    process (tests, the Slicer module) run too.
+    """
+    import gc
+
+    code = main()
+    gc.freeze()
+    return code
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run())

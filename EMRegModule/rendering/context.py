@@ -33,7 +33,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy import ndimage
 
 from ..io.image import index_to_physical_matrix
 from ..transforms import apply_transform
@@ -187,6 +186,7 @@ def context_surface(binned: BinnedCT, iso_value: float | None = None, clean: boo
                     min_piece_fraction: float = MIN_PIECE_FRACTION) -> ContextSurface:
     """The iso-surface of a binned CT in image space, without thin and small artefact pieces (module docstring)."""
     import pyvista as pv
+    from scipy import ndimage  # here: a report whose surface was kept (report.ct_memo) needs none of scipy
 
     values = binned.values
     if iso_value is None:
