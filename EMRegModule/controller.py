@@ -511,7 +511,7 @@ class EMRegController:
         if self.image is not None and not keep and not self.keep_ct:  # nothing needs the CT after the report: it is
             self.image, image = None, HandedCT(image)  # freed once used, before the rendering libraries load
         page, self._report_image = write_report_keeping_ct(folder.path, case_dir=case_dir, progress=self.progress,
-                                                           image=image, keep_ct=keep)
+                                                           image=image, keep_ct=keep, settings=self.settings)
         self._recorded(folder, "report", self._provenance((), tuple(used)))
         return page
 

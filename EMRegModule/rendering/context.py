@@ -79,6 +79,7 @@ class ContextSurface:
     dropped_pieces: int = 0
     voxel_mm: float = 0.0
     inside_voxels: int = 0
+    otsu: bool = True  # iso_value is Otsu's threshold (else the ``[report] iso_value`` setting)
 
     def description(self) -> str:
         """One sentence for the report's caption: what the grey surface shows."""
@@ -87,8 +88,10 @@ class ContextSurface:
             removed.append("thin sheets (metal streaks)")
         if self.dropped_pieces:
             removed.append(f"{self.dropped_pieces} small disconnected piece(s)")
-        text = (f"The grey surface is the CT at {self.iso_value:.0f} (Otsu's threshold between air and the frame "
-                f"and patient), on {self.voxel_mm:.1f} mm voxels, {self.pieces} connected piece(s)")
+        chosen = ("Otsu's threshold between air and the frame and patient" if self.otsu
+                  else "the [report] iso_value setting")
+        text = (f"The grey surface is the CT at {self.iso_value:.0f} ({chosen}), on {self.voxel_mm:.1f} mm voxels, "
+                f"{self.pieces} connected piece(s)")
         return text + ("; left out: " + " and ".join(removed) + "." if removed else ".")
 
 
@@ -189,10 +192,11 @@ def context_surface(binned: BinnedCT, iso_value: float | None = None, clean: boo
     from scipy import ndimage  # here: a report whose surface was kept (report.ct_memo) needs none of scipy
 
     values = binned.values
+    otsu = iso_value is None
     if iso_value is None:
         iso_value = otsu_threshold(values)
     result = ContextSurface(None, float(iso_value), voxel_mm=float(np.max(np.linalg.norm(
-        binned.index_to_image[:3, :3], axis=0))))
+        binned.index_to_image[:3, :3], axis=0))), otsu=otsu)
     if clean and values.size:
         inside = values > iso_value
         opened = ndimage.binary_opening(inside, structure=np.ones((3, 3, 3), dtype=bool))

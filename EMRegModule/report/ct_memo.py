@@ -38,7 +38,7 @@ if TYPE_CHECKING:
 
 MEMO_NAME = "ct_context.npz"
 #: Bumped whenever what is kept, or how the figures make it (binning, view size, sampling), changes.
-MEMO_FORMAT = 1
+MEMO_FORMAT = 2
 
 
 def _model_key(model: MarkerModel) -> str:
@@ -189,7 +189,7 @@ def save_ct_memo(path: Path, ct_sha256: str, model: MarkerModel, image: Any, bin
     if surface is not None and surface.surface is not None and surface.surface.is_all_triangles:
         polydata = surface.surface
         meta = {name: getattr(surface, name) for name in ("iso_value", "pieces", "dropped_thin_voxels",
-                                                          "dropped_pieces", "voxel_mm", "inside_voxels")}
+                                                          "dropped_pieces", "voxel_mm", "inside_voxels", "otsu")}
         extra = {"surface_points": np.asarray(polydata.points), "surface_faces": np.asarray(polydata.faces),
                  "surface_meta": np.array(json.dumps({**meta, "iso_setting": iso_setting}))}
         if "ct" in polydata.point_data:

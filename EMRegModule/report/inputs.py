@@ -199,14 +199,16 @@ def read_ct_again(inputs: ReportInputs) -> None:
 
 
 def load_report_inputs(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
-                       read_image: bool = True, image: sitk.Image | None = None, keep_ct: bool = True) -> ReportInputs:
+                       read_image: bool = True, image: sitk.Image | None = None, keep_ct: bool = True,
+                       settings: Settings | None = None) -> ReportInputs:
     """Gather what exists in OUT and the case folder. Unreadable files become notes, not errors.
 
     ``image`` (a ``SimpleITK.Image``) is the case's CT when the caller already holds it in memory
     (``emreg run``); otherwise, when ``read_image``, the CT starts being read from the case folder
     in the background (``inputs.image`` waits for it). ``keep_ct=False``: nothing needs the whole CT
     afterwards, so a plain CT file is streamed (:mod:`EMRegModule.io.ct_stream`: its slices are let
-    go once binned and sampled, and ``inputs.image`` is then None).
+    go once binned and sampled, and ``inputs.image`` is then None). ``settings``: the settings to report with
+    (the command's, e.g. from ``--settings``); by default the case's ``case.toml``.
 
     Raises :class:`EMRegError` when OUT is missing or holds none of the run's outputs, or
     when an explicitly given ``case_dir`` does not exist.
@@ -223,6 +225,8 @@ def load_report_inputs(out_dir: str | os.PathLike[str], case_dir: str | os.PathL
     inputs.case_dir = _resolve_case_dir(out, Path(case_dir) if case_dir is not None else None, inputs.run, notes)
     if inputs.case_dir is not None:
         _read_case(inputs)
+    if settings is not None:  # the command's own (``--settings``): those its provenance names
+        inputs.settings = settings
     if (out / "registration.json").exists():
         # A registration that cannot be trusted (corrupt, non-finite, not rigid, FRE above the limit) is
         # never drawn as if it were: the report is refused (exit 2, or 3 for the FRE), not annotated.

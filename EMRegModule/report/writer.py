@@ -24,6 +24,8 @@ from .inputs import ReportInputs, load_report_inputs
 if TYPE_CHECKING:
     import SimpleITK as sitk
 
+    from ..settings import Settings
+
 REPORT_NAME = "report.html"
 FIGURE_DIR = "report_figures"
 
@@ -37,7 +39,7 @@ def write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[st
 
 def write_report_keeping_ct(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
                             progress: Progress | None = None, image: sitk.Image | HandedCT | None = None,
-                            keep_ct: bool = True) -> tuple[Path, sitk.Image | None]:
+                            keep_ct: bool = True, settings: Settings | None = None) -> tuple[Path, sitk.Image | None]:
     """Render ``OUT/report.html`` (and ``OUT/report_figures/*.png``) from what the run left in OUT.
 
     ``case_dir`` is the case folder (for the CT and targets); by default the one recorded in
@@ -46,10 +48,11 @@ def write_report_keeping_ct(out_dir: str | os.PathLike[str], case_dir: str | os.
     of the page and the CT the report used (None without one, or
     when it could not be read), so that the caller can reuse it (the 3D Slicer bundle). ``keep_ct=False``:
     the caller does not need the CT, so a CT read here is streamed and never whole in memory (None is
-    returned for it). Raises :class:`EMRegError` when OUT holds nothing to report.
+    returned for it). ``settings``: those to report with (by default the case's ``case.toml``). Raises
+    :class:`EMRegError` when OUT holds nothing to report.
     """
     with _one_blas_thread():
-        return _write_report(out_dir, case_dir, progress or QUIET, image, keep_ct)
+        return _write_report(out_dir, case_dir, progress or QUIET, image, keep_ct, settings)
 
 
 def _use_and_release_ct(data: ReportData) -> None:
@@ -163,11 +166,12 @@ class HandedCT:
 
 
 def _write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None, progress: Progress,
-                  image: sitk.Image | HandedCT | None, keep_ct: bool) -> tuple[Path, sitk.Image | None]:
+                  image: sitk.Image | HandedCT | None, keep_ct: bool,
+                  settings: Settings | None = None) -> tuple[Path, sitk.Image | None]:
     handed = isinstance(image, HandedCT)
     if handed:
         image = image.take()
-    inputs = load_report_inputs(out_dir, case_dir, image=image, keep_ct=keep_ct)
+    inputs = load_report_inputs(out_dir, case_dir, image=image, keep_ct=keep_ct, settings=settings)
     del image  # held by ``inputs.ct`` alone (a handed CT is let go below)
     try:
         rows = marker_rows(inputs.detection, inputs.registration)

@@ -119,3 +119,23 @@ def test_the_bundle_is_written_again_when_what_it_shows_changed(small_case, tmp_
 
     assert file_sha256(out / "EMReg.mrb") == written["sha256"]
     assert written["provenance"]["inputs"]["ct"] == run["inputs"]["ct"]
+
+
+def test_a_report_uses_the_settings_it_names(small_case, tmp_path, capsys):
+    """``emreg report --settings FILE``: the figures are made with FILE's settings and the provenance names FILE
+    (before, the figures used the case's ``case.toml`` whatever the provenance said)."""
+    case, out = _own_copy(small_case, tmp_path)
+    settings = tmp_path / "other.toml"
+    settings.write_text((case / "case.toml").read_text(encoding="utf-8") + "\n[report]\niso_value = 300.0\n",
+                        encoding="utf-8")
+    code = main(["report", str(out), "--settings", str(settings), "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    page = (out / "report.html").read_text(encoding="utf-8")
+    assert "The grey surface is the CT at 300 (the [report] iso_value setting)" in page
+    from EMRegModule.settings import load_settings
+
+    run = json.loads((out / "run.json").read_text(encoding="utf-8"))
+    assert run["outputs"]["report.html"]["provenance"]["settings_sha256"] == load_settings(settings).digest()
+    assert main(["report", str(out), "--quiet"]) == 0  # the case's settings again: Otsu's threshold, said so
+    assert "(Otsu&#x27;s threshold between air and the frame and patient)" in (out / "report.html").read_text(
+        encoding="utf-8")
