@@ -328,8 +328,9 @@ def cmd_report(args: argparse.Namespace) -> int:
         if not args.out:
             raise EMRegError("report: give an output folder (emreg report OUT) or --batch DIR")
         _out_folder(args.out, create=False)  # the run's folder: the report is written into it
-        if not Path(args.out).is_dir():
-            raise EMRegError(f"{args.out}: output folder not found")
+        from .report.inputs import require_report_inputs
+
+        require_report_inputs(args.out)  # before run.json is written: a case folder is left as it is
         case = Path(args.case) if args.case else None
         # the case's settings (those the figures use), so that the report's provenance names them
         controller = _controller(args, _settings(args, case or _recorded_case(Path(args.out))))

@@ -523,7 +523,8 @@ class EMRegController:
         provenance = self._provenance((), tuple(used))
         self._recorded(folder, "report", provenance)
         if bundle_sha256 is not None:
-            self._recorded(folder, "bundle", provenance, dict.fromkeys(STAGE_OUTPUTS["bundle"], bundle_sha256))
+            self._recorded(folder, "bundle", self._bundle_provenance(provenance, folder, None),
+                           dict.fromkeys(STAGE_OUTPUTS["bundle"], bundle_sha256))
             return
         outputs = folder.manifest.get("outputs")  # an earlier bundle is gone (not renewed): no longer listed
         if isinstance(outputs, dict) and any([outputs.pop(name, None) for name in STAGE_OUTPUTS["bundle"]]):
@@ -564,9 +565,6 @@ class EMRegController:
         slicer-core, or when it cannot be written, the other outputs stand and a warning says why.
         ``job``: the bundle started by :meth:`start_bundle` (waited for here). ``kept``: the bundle
         :meth:`kept_bundle` found up to date, kept when its file is confirmed unchanged (else written again)."""
-        import dataclasses
-
-        from .bundle_state import bundle_inputs
         from .io.slicer_scene import bundle_needs_ct_image, write_run_bundle_hashed
 
         if kept is not None and kept.confirmed():
@@ -588,11 +586,19 @@ class EMRegController:
         if path is None:
             self.warn([message])
         else:
-            provenance = self._provenance((), tuple(used))  # made from the CT and targets too: a later report
-            provenance = dataclasses.replace(  # keeps it while none of them changed (bundle_state)
-                provenance, inputs={**provenance.inputs, **bundle_inputs(folder.manifest, case_dir)})
+            provenance = self._bundle_provenance(self._provenance((), tuple(used)), folder, case_dir)
             self._recorded(folder, "bundle", provenance, {path.name: sha} if sha else None)
         return f"bundle: {message}"
+
+    @staticmethod
+    def _bundle_provenance(provenance: Provenance, folder: OutputFolder, case_dir: Path | None) -> Provenance:
+        """A bundle is made from the CT and the targets too: named, a later report keeps it while none of what
+        it was made from changed (:mod:`EMRegModule.bundle_state`)."""
+        import dataclasses
+
+        from .bundle_state import bundle_inputs
+
+        return dataclasses.replace(provenance, inputs={**provenance.inputs, **bundle_inputs(folder.manifest, case_dir)})
 
     # --- a whole run ---------------------------------------------------------------------------
 

@@ -83,9 +83,29 @@ class ReportInputs:
 
 
 def has_report_inputs(folder: str | os.PathLike[str]) -> bool:
-    """True when a folder holds at least one output of a run (something to report)."""
+    """True when a folder holds at least one output of a run (something to report).
+
+    A case folder's ``navigation.csv`` is its tracking recording, not a run's mapped probe path: in a folder
+    that holds a case's CT it counts only beside another output (a run written into its case folder)."""
+    from ..io.case import find_ct
+
     folder = Path(folder)
-    return folder.is_dir() and any((folder / name).is_file() for name in INPUT_NAMES)
+    if not folder.is_dir():
+        return False
+    present = [name for name in INPUT_NAMES if (folder / name).is_file()]
+    return bool(present) and (present != ["navigation.csv"] or find_ct(folder) is None)
+
+
+def require_report_inputs(out_dir: str | os.PathLike[str]) -> Path:
+    """``out_dir`` as a path when it holds something to report (:func:`has_report_inputs`); else
+    :class:`EMRegError` saying what is missing."""
+    out = Path(out_dir)
+    if not out.is_dir():
+        raise EMRegError(f"{out}: output folder not found")
+    if not has_report_inputs(out):
+        raise EMRegError(f"{out}: nothing to report (none of {', '.join(INPUT_NAMES)}); run emreg run CASE --out "
+                         f"{out} first")
+    return out
 
 
 def _read_optional(path: Path, read: Callable[[Path], Any], notes: list[str]) -> Any:
@@ -213,12 +233,7 @@ def load_report_inputs(out_dir: str | os.PathLike[str], case_dir: str | os.PathL
     Raises :class:`EMRegError` when OUT is missing or holds none of the run's outputs, or
     when an explicitly given ``case_dir`` does not exist.
     """
-    out = Path(out_dir)
-    if not out.is_dir():
-        raise EMRegError(f"{out}: output folder not found")
-    if not has_report_inputs(out):
-        raise EMRegError(f"{out}: nothing to report (none of {', '.join(INPUT_NAMES)}); run emreg run CASE --out "
-                         f"{out} first")
+    out = require_report_inputs(out_dir)
     inputs = ReportInputs(out_dir=out)
     notes = inputs.notes
     inputs.run = _read_optional(out / "run.json", _read_json_object("run record"), notes)

@@ -139,3 +139,16 @@ def test_a_report_uses_the_settings_it_names(small_case, tmp_path, capsys):
     assert main(["report", str(out), "--quiet"]) == 0  # the case's settings again: Otsu's threshold, said so
     assert "(Otsu&#x27;s threshold between air and the frame and patient)" in (out / "report.html").read_text(
         encoding="utf-8")
+
+
+def test_a_bundle_written_by_a_batch_is_kept_by_the_next_report(small_case, tmp_path, capsys):
+    case, run_out = _own_copy(small_case, tmp_path)
+    out = tmp_path / "batch" / "out"
+    out.parent.mkdir()
+    shutil.move(run_out, out)
+    (out / "EMReg.mrb").unlink()
+    assert main(["report", "--batch", str(out.parent), "--quiet"]) == 0, capsys.readouterr().err
+    assert (out / "EMReg.mrb").is_file()
+    code, printed, err = _report(out, capsys)
+    assert code == 0, err
+    assert f"bundle: {out / 'EMReg.mrb'} (up to date: kept)" in printed

@@ -112,6 +112,23 @@ def test_batch_reports_the_good_folders_and_names_a_mixed_one(small_case, labell
     assert not (batch / "mixed" / "report.html").exists() and not (batch / "empty" / "report.html").exists()
 
 
+def test_batch_leaves_a_case_folder_beside_the_runs_alone(small_case, tmp_path, capsys):
+    """A case folder kept beside its run (its navigation.csv is a tracking recording, named like the run's
+    mapped probe path) is neither reported nor written into; asked for by name, there is nothing to report."""
+    batch = tmp_path / "batch"
+    shutil.copytree(small_case, batch / "case")
+    shutil.copytree(small_case.parent / "out", batch / "out")
+    (batch / "out" / "report.html").unlink()
+    before = sorted(p.name for p in (batch / "case").iterdir())
+    capsys.readouterr()
+    assert main(["report", "--batch", str(batch), "--quiet"]) == 0, capsys.readouterr().err
+    assert "1 reports written" in capsys.readouterr().out
+    assert sorted(p.name for p in (batch / "case").iterdir()) == before
+    assert "FRE" in _page_text(batch / "out")
+    assert main(["report", str(batch / "case"), "--quiet"]) == 2
+    assert "nothing to report" in capsys.readouterr().err
+
+
 def test_an_unreadable_board_recording_is_named_as_the_boards_reason(small_case, tmp_path, capsys):
     case = tmp_path / "case"
     shutil.copytree(small_case, case)
