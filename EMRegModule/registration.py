@@ -258,6 +258,9 @@ def register(
         warnings.append(f"outlier pair(s): {names}")
     fre_value = float(np.sqrt(np.mean(pair_residuals[used] ** 2)))
     warnings += _check_fre_and_offset(fre_value, solution, l_range, config)
+    if fixed:
+        warnings += _check_fixed_offset(points[cal_index[used]], origins[image_index[used]], axes[image_index[used]],
+                                        solution.l_mm, model)
     n_used = int(np.count_nonzero(used))
     fle = fre_value * np.sqrt(n_used / (n_used - 2)) if n_used > 2 else float("nan")
     error = registration_error(points[cal_index[used]], origins[image_index[used]], axes[image_index[used]],
@@ -363,6 +366,31 @@ def _fit_pairs(points_reference: np.ndarray, origins_image: np.ndarray, axes_ima
         pair_residuals = residuals_at(solution)
         warnings.append(f"{np.count_nonzero(outlier)} outlier pair(s) left out of the fit")
     return _PairFit(solution, pair_residuals, outlier, used, warnings)
+
+
+#: A fixed l is said to disagree with the markers when the l they give is further than this many of its
+#: standard errors away, and at least :data:`FIXED_L_TOLERANCE_MM`.
+FIXED_L_SIGMAS = 3.0
+FIXED_L_TOLERANCE_MM = 0.25
+
+
+def _check_fixed_offset(points_reference: np.ndarray, origins_image: np.ndarray, axes_image: np.ndarray,
+                        fixed_l_mm: float, model: MarkerModel) -> list[str]:
+    """A warning when the paired markers determine l themselves (axes on more than one face) and put it
+    elsewhere than the fixed ``[registration] sensor_offset_l_mm``: the predicted TRE takes the fixed l as exact,
+    so a wrong one would make it optimistic (1 mm off doubled the error with markers on one face)."""
+    if len(points_reference) < 4:
+        return []
+    free = solve_sensor_offset(points_reference, origins_image, axes_image,
+                               (model.pinhole_bottom_mm, model.pinhole_top_mm))
+    if not np.isfinite(free.l_std_mm):
+        return []
+    gap = abs(free.l_mm - fixed_l_mm)
+    if gap <= max(FIXED_L_SIGMAS * free.l_std_mm, FIXED_L_TOLERANCE_MM):
+        return []
+    return [f"the fixed sensor offset l = {fixed_l_mm:.2f} mm ([registration] sensor_offset_l_mm) disagrees with "
+            f"the markers, which put l at {free.l_mm:.2f} +/- {free.l_std_mm:.2f} mm: the predicted TRE takes the "
+            "fixed l as exact; check the value, or leave l free"]
 
 
 def _check_fre_and_offset(fre_value: float, solution: OffsetSolution, l_range: tuple[float, float],

@@ -218,3 +218,25 @@ def test_emreg_register_command_and_its_refusal_of_a_symmetric_frame(tmp_path, c
     assert code == 3
     assert "ambiguous pairing" in capsys.readouterr().err
     assert not (out / "registration.json").exists() and not (out / "ReferenceToImage.h5").exists()
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_a_fixed_l_the_markers_contradict_is_said(seed):
+    """Markers on several faces determine l themselves: a fixed l 1 mm off is named (the predicted TRE takes
+    it as exact); the true l is not; markers on one face cannot tell, and say nothing."""
+    problem = pairing_problem(seed + 700)
+    markers, calibration = _inputs(problem)
+
+    def fixed_l_warnings(l_mm):
+        result = register(markers, calibration, MODEL, RegistrationSettings.from_settings({"sensor_offset_l_mm": l_mm}))
+        return [w for w in result.warnings if "fixed sensor offset" in w]
+
+    assert fixed_l_warnings(problem.frame.l_mm) == []
+    (said,) = fixed_l_warnings(problem.frame.l_mm + 1.0)
+    assert f"l = {problem.frame.l_mm + 1.0:.2f} mm" in said and "disagrees with the markers" in said
+    frame = make_frame(seed)
+    top = np.nonzero(np.abs(frame.axes_image @ frame.axes_image[np.argmax(frame.axes_image[:, 2])]) > 0.99)[0]
+    one_face = pairing_problem(seed, frame=_subset(frame, top), missing_image=0, extra_image=0,
+                               missing_calibration=0, extra_calibration=0)
+    markers, calibration = _inputs(one_face)
+    assert fixed_l_warnings(one_face.frame.l_mm + 1.0) == []
