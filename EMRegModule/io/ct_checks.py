@@ -20,6 +20,7 @@ The length of the voxel data against the header's ``sizes`` is checked by the re
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
@@ -35,6 +36,22 @@ _SCALAR_TYPES = {
     sitk.sitkUInt32, sitk.sitkInt64, sitk.sitkUInt64, sitk.sitkFloat32, sitk.sitkFloat64,
 }
 _FLOAT_TYPES = {sitk.sitkFloat32, sitk.sitkFloat64}
+
+
+def check_space_units(path: str | os.PathLike[str]) -> None:
+    """Refuse a NRRD whose ``space units`` are not millimetres: SimpleITK (EMReg's reader) and 3D Slicer ignore
+    the field and read the numbers as mm, so a CT in cm would come out 10 times too small (its markers not
+    found, or found at the wrong size) instead of being said wrong."""
+    import re
+
+    from .fast_read import nrrd_header_fields
+
+    units = (nrrd_header_fields(Path(path)) or {}).get("space units")
+    named = [u.strip() for u in re.findall(r'"([^"]*)"', units or "")]
+    if any(u.lower() not in ("", "mm") for u in named):
+        raise EMRegError(f"{path}: CT space units {' '.join(named)}: EMReg reads CT geometry in millimetres (as "
+                         "SimpleITK and 3D Slicer do, whatever the field says); save the CT with spacing and origin "
+                         "in mm")
 
 
 def check_ct_geometry(image: sitk.Image, source: str | os.PathLike[str] = "CT") -> None:

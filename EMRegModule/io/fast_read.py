@@ -507,6 +507,18 @@ def _nrrd_fields(stream: BinaryIO) -> tuple[dict[str, str], int] | None:
     return fields, offset
 
 
+def nrrd_header_fields(path: Path) -> dict[str, str] | None:
+    """The fields of a NRRD header (``.nrrd`` or ``.nhdr``; lower-case keys), None when ``path`` is not one."""
+    if not path.name.lower().endswith((".nrrd", ".nhdr")):
+        return None
+    try:
+        with path.open("rb") as stream:
+            parsed = _nrrd_fields(stream)
+    except OSError:
+        return None
+    return parsed[0] if parsed is not None else None
+
+
 def _nrrd_storage(stream: BinaryIO) -> _Storage | None:
     parsed = _nrrd_fields(stream)
     if parsed is None:

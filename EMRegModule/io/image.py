@@ -16,7 +16,7 @@ import SimpleITK as sitk
 from ..errors import EMRegError
 from ..provenance import BackgroundHash, note_read_digest
 from .case import CT_FILE_NAMES, CT_FOLDER_NAME, find_ct  # noqa: F401  (re-exported: CT naming lives with the case)
-from .ct_checks import check_ct_geometry, check_ct_image
+from .ct_checks import check_ct_geometry, check_ct_image, check_space_units
 from .fast_read import VolumeFill, check_data_length, start_fast_read
 from .nifti_header import check_nifti_placement, is_nifti
 
@@ -70,6 +70,7 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compa
     try:
         if is_nifti(path):
             check_nifti_placement(image, path)  # sform and qform that disagree: readers differ on the answer
+        check_space_units(path)
         if fill.is_complete:
             check_ct_image(image, path)  # geometry and voxel values of an image read in full
         else:

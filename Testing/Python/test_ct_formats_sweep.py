@@ -184,6 +184,22 @@ def test_a_case_folder_whose_ct_is_a_detached_nrrd_header(case, hu, tmp_path, ca
     assert np.linalg.norm(truth[:, None] - origins[None], axis=2).min(axis=1).max() < ORIGIN_TOLERANCE_MM
 
 
+@pytest.mark.parametrize("units, refused", [('"mm" "mm" "mm"', False), ('"cm" "cm" "cm"', True),
+                                             ('"m" "m" "m"', True)])
+def test_nrrd_space_units_other_than_mm_are_refused(case, hu, tmp_path, capsys, units, refused):
+    """SimpleITK (and 3D Slicer) ignore ``space units`` and read the numbers as mm: a CT in cm would be a tenth of
+    its size, its markers missed. Refused in one line; ``mm`` is what every reader assumes and is read."""
+    path = _write_nrrd(tmp_path / "units.nrrd", hu, "LPS", "little", "gzip")
+    header, _, voxels = path.read_bytes().partition(b"\n\n")
+    path.write_bytes(header + f"\nspace units: {units}".encode("ascii") + b"\n\n" + voxels)
+    if refused:
+        _assert_refused(path, case, capsys, f"space units {units.split()[0].strip(chr(34))}")
+        with pytest.raises(EMRegError, match="space units"):
+            start_streamed_read(path)
+    else:
+        _assert_markers_at_truth(path, case, capsys)
+
+
 @pytest.mark.parametrize("header, data", [("ct.nhdr", "ct.raw.gz"), ("ct.mhd", "ct.raw"), ("ct.hdr", "ct.img")])
 def test_the_sha256_of_a_detached_header_covers_its_voxels(hu, tmp_path, header, data):
     """Provenance: a CT whose voxels are in a file beside its header changes its sha256 when the voxels change
