@@ -22,6 +22,7 @@ import hashlib
 import json
 import os
 import shutil
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -140,7 +141,7 @@ def kept_for(path: Path, ct_sha256: str | None) -> bool:
     try:
         with np.load(path, allow_pickle=False) as kept:
             return _key_matches(kept, ct_sha256, None)
-    except (OSError, ValueError, KeyError, TypeError, EOFError):
+    except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile):
         return False
 
 
@@ -166,7 +167,7 @@ def load_ct_memo(path: Path, ct_sha256: str | None, model: MarkerModel) -> CTMem
                            "meta": json.loads(str(kept["surface_meta"]))}
             return CTMemo(binned, np.asarray(kept["views"], dtype=np.float32),
                           np.asarray(kept["marker_to_image"], dtype=float), geometry, path, surface)
-    except (OSError, ValueError, KeyError, TypeError, EOFError):
+    except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile):
         return None
 
 

@@ -152,3 +152,20 @@ def test_a_bundle_written_by_a_batch_is_kept_by_the_next_report(small_case, tmp_
     code, printed, err = _report(out, capsys)
     assert code == 0, err
     assert f"bundle: {out / 'EMReg.mrb'} (up to date: kept)" in printed
+
+
+@pytest.mark.parametrize("damage", ["truncated", "not a zip", "empty"])
+def test_a_damaged_kept_file_is_read_past(small_case, tmp_path, capsys, damage):
+    """A kept file cut short (a full disk, a copy interrupted) or replaced is ignored: the CT is read, the figures
+    are the run's, and the products are kept again."""
+    case, out = _own_copy(small_case, tmp_path)
+    before = _figures(out)
+    memo = out / FIGURES / MEMO_NAME
+    data = memo.read_bytes()
+    memo.write_bytes({"truncated": data[: len(data) // 2], "not a zip": b"PK\x03\x04" + b"x" * 100,
+                      "empty": b""}[damage])
+    code, _, err = _report(out, capsys)
+    assert code == 0, err
+    assert _figures(out) == before
+    with np.load(out / FIGURES / MEMO_NAME) as kept:
+        assert "binned" in kept.files
