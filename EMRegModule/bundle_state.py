@@ -27,7 +27,8 @@ def bundle_inputs(run: dict[str, Any], case_dir: Path | None) -> dict[str, dict[
     """The inputs a bundle of this run is made from besides its outputs: the CT ``run.json`` records (path and
     sha256) and the case's targets file (path and sha256), where there are any."""
     inputs: dict[str, dict[str, str]] = {}
-    ct = (run.get("inputs") or {}).get("ct")
+    recorded = run.get("inputs")
+    ct = recorded.get("ct") if isinstance(recorded, dict) else None
     if isinstance(ct, dict) and ct.get("path") == run.get("ct") and isinstance(ct.get("sha256"), str):
         inputs["ct"] = {"path": str(ct["path"]), "sha256": str(ct["sha256"])}
     case = case_dir if case_dir is not None else (Path(run["case"]) if isinstance(run.get("case"), str) else None)
@@ -70,7 +71,10 @@ def current_bundle(out: Path, run: dict[str, Any], case_dir: Path | None,
     path = out / BUNDLE_NAME
     if not _slicer_core_installed():  # the bundle cannot be renewed here: it goes, and the report says why
         return None
-    entry = (run.get("outputs") or {}).get(BUNDLE_NAME)
+    outputs = run.get("outputs") if isinstance(run, dict) else None
+    if not isinstance(outputs, dict):
+        return None
+    entry = outputs.get(BUNDLE_NAME)
     if not path.is_file() or not isinstance(entry, dict) or not isinstance(entry.get("sha256"), str):
         return None
     provenance = entry.get("provenance")
@@ -78,14 +82,14 @@ def current_bundle(out: Path, run: dict[str, Any], case_dir: Path | None,
             settings_sha256 is not None and provenance.get("settings_sha256") != settings_sha256):
         return None
     later = {*STAGE_OUTPUTS["report"], *STAGE_OUTPUTS["bundle"]}
-    outputs = run.get("outputs") or {}
     listed = {name: outputs[name].get("sha256") for name in all_output_names()
               if name not in later and (out / name).is_file() and isinstance(outputs.get(name), dict)}
     if provenance.get("uses") != listed or len(listed) != sum(
             1 for name in all_output_names() if name not in later and (out / name).is_file()):
         return None
-    inputs, recorded = bundle_inputs(run, case_dir), provenance.get("inputs") or {}
-    if "ct" not in inputs or any(recorded.get(role) != inputs.get(role) for role in ("ct", "targets")):
+    inputs, recorded = bundle_inputs(run, case_dir), provenance.get("inputs")
+    if "ct" not in inputs or not isinstance(recorded, dict) or any(
+            recorded.get(role) != inputs.get(role) for role in ("ct", "targets")):
         return None
     return KeptBundle(path, entry["sha256"])
 
