@@ -366,11 +366,14 @@ def _report_batch(args: argparse.Namespace) -> int:
     batch = Path(args.batch)
     if not batch.is_dir():
         raise EMRegError(f"{batch}: folder of run outputs not found")
+    if args.settings:
+        _settings(args)  # a settings file that cannot be read is refused once, before any report
     folders = sorted(p for p in batch.iterdir() if p.is_dir())
     # each job checks that its folder's outputs belong together: one mixed folder fails alone, the others are reported
     bundles: list = []  # each job writes its case's bundle (with the CT its report read, if it needs it)
     try:
-        pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args), bundles=bundles)
+        pages = write_reports_batch(folders, jobs=args.jobs, progress=_progress(args), bundles=bundles,
+                                    settings_file=getattr(args, "settings", None))
         print(f"{len(pages)} reports written under {args.batch}")
     finally:  # the cases that did get their report and bundle say so even when others failed
         for folder, (path, message, sha) in bundles:

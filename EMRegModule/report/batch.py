@@ -102,14 +102,17 @@ def _bundle_needs_ct(folder: Path) -> bool:
     return bundle_needs_ct_image(ct if isinstance(ct, str) else None)
 
 
-def _batch_worker(folder: str, bundle: bool = False) -> tuple[str, str | None, str | None, BundleResult | None]:
+def _batch_worker(folder: str, bundle: bool = False,
+                  settings_file: str | None = None) -> tuple[str, str | None, str | None, BundleResult | None]:
     from ..outputs import check_outputs
+    from ..settings import load_settings
     from .writer import write_report_keeping_ct
 
     try:
         check_outputs(folder)  # outputs of two runs are refused, never reported together
         keep = bundle and _bundle_needs_ct(Path(folder))  # else the CT is streamed, never whole in memory
-        page, ct = write_report_keeping_ct(Path(folder), keep_ct=keep)
+        settings = load_settings(settings_file, required=True) if settings_file else None  # else each case's
+        page, ct = write_report_keeping_ct(Path(folder), keep_ct=keep, settings=settings)
     except EMRegError as exc:
         return folder, None, str(exc), None
     except Exception as exc:  # noqa: BLE001 - one broken folder must not stop the batch; reported below
@@ -125,7 +128,8 @@ def _batch_worker(folder: str, bundle: bool = False) -> tuple[str, str | None, s
 
 def write_reports_batch(folders: Sequence[str | os.PathLike[str]], jobs: int = 1,
                         progress: Progress | None = None,
-                        bundles: list[tuple[str, BundleResult]] | None = None) -> list[Path]:
+                        bundles: list[tuple[str, BundleResult]] | None = None,
+                        settings_file: str | os.PathLike[str] | None = None) -> list[Path]:
     """Render a report in every output folder, up to ``jobs`` processes at a time, with a progress bar.
 
     Folders without any run output are skipped (with a message); ``jobs`` is lowered to what the
@@ -138,7 +142,9 @@ def write_reports_batch(folders: Sequence[str | os.PathLike[str]], jobs: int = 1
     ``bundles``: when a list is given, each job also writes its case's 3D Slicer scene bundle
     (``write_run_bundle_hashed``, with the CT its report read) and ``(folder, (bundle path or None, message,
     its sha256 computed as it was written))`` is appended to it for every reported folder, in the order of ``folders``.
+    ``settings_file``: the settings every report is made with (``--settings``); by default each case's ``case.toml``.
     """
+    settings = str(settings_file) if settings_file else None
     progress = progress or QUIET
     if jobs < 1:
         raise EMRegError(f"report --jobs must be at least 1, got {jobs}")
@@ -154,7 +160,7 @@ def write_reports_batch(folders: Sequence[str | os.PathLike[str]], jobs: int = 1
     with progress.step("reports", total=len(selected), per_minute="cases") as step:
         if jobs == 1:
             for folder in selected:
-                _, path, error, bundle = _batch_worker(folder, bundles is not None)
+                _, path, error, bundle = _batch_worker(folder, bundles is not None, settings)
                 results[folder] = (path, error)
                 if bundle is not None:
                     written[folder] = bundle
@@ -165,7 +171,7 @@ def write_reports_batch(folders: Sequence[str | os.PathLike[str]], jobs: int = 1
 
             context = multiprocessing.get_context("spawn")  # VTK/EGL state must not be forked
             with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
-                futures = [pool.submit(_batch_worker, folder, bundles is not None) for folder in selected]
+                futures = [pool.submit(_batch_worker, folder, bundles is not None, settings) for folder in selected]
                 for future in as_completed(futures):
                     folder, path, error, bundle = future.result()
                     results[folder] = (path, error)

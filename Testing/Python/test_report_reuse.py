@@ -169,3 +169,25 @@ def test_a_damaged_kept_file_is_read_past(small_case, tmp_path, capsys, damage):
     assert _figures(out) == before
     with np.load(out / FIGURES / MEMO_NAME) as kept:
         assert "binned" in kept.files
+
+
+def test_batch_reports_use_the_settings_they_name(small_case, tmp_path, capsys):
+    """``emreg report --batch DIR --settings FILE``: every page made with FILE, as each provenance says."""
+    case, run_out = _own_copy(small_case, tmp_path)
+    out = tmp_path / "batch" / "out"
+    out.parent.mkdir()
+    shutil.move(run_out, out)
+    settings = tmp_path / "other.toml"
+    settings.write_text((case / "case.toml").read_text(encoding="utf-8") + "\n[report]\niso_value = 300.0\n",
+                        encoding="utf-8")
+    assert main(["report", "--batch", str(out.parent), "--settings", str(settings), "--quiet"]) == 0, \
+        capsys.readouterr().err
+    assert "The grey surface is the CT at 300 (the [report] iso_value setting)" in (out / "report.html").read_text(
+        encoding="utf-8")
+    from EMRegModule.settings import load_settings
+
+    run = json.loads((out / "run.json").read_text(encoding="utf-8"))
+    assert run["outputs"]["report.html"]["provenance"]["settings_sha256"] == load_settings(settings).digest()
+    (tmp_path / "broken.toml").write_text("[report\n", encoding="utf-8")
+    assert main(["report", "--batch", str(out.parent), "--settings", str(tmp_path / "broken.toml"), "--quiet"]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
