@@ -317,8 +317,9 @@ def _check_convert_ports(recording, reference: int, probe: int, names: dict[str,
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    early = _start_report_ct(args)  # the CT's read goes on while the report's libraries load
-    bundle = early_bundle = _start_report_bundle(args)  # held: writes nothing into OUT until released below
+    run = _run_record(args)
+    early = _start_report_ct(args, run)  # the CT's read goes on while the report's libraries load
+    bundle = early_bundle = _start_report_bundle(args, run)  # held: writes nothing into OUT until released below
     folder = kept = None
     try:
         from .outputs import OutputFolder
@@ -333,16 +334,16 @@ def cmd_report(args: argparse.Namespace) -> int:
         require_report_inputs(args.out)  # before run.json is written: a case folder is left as it is
         case = Path(args.case) if args.case else None
         # the case's settings (those the figures use), so that the report's provenance names them
-        controller = _controller(args, _settings(args, case or _recorded_case(Path(args.out))))
+        controller = _controller(args, _settings(args, case or _recorded_case(run)))
         stage = OutputFolder(args.out, "emreg report")
         kept = controller.kept_bundle(stage, case)  # still the scene this report would write: it stays
         stage.start_stage("report", keep=[kept.path.name] if kept is not None else ())
         folder = stage
-        if kept is not None and early_bundle is not None:
-            early_bundle.cancel()
-            bundle = early_bundle = None
         if kept is None:
             bundle = controller.start_bundle(folder, case, early_bundle)  # goes on while the report renders
+        elif early_bundle is not None:
+            early_bundle.cancel()
+            bundle = None
         path = controller.save_report(folder, case, early)
     except BaseException:
         if bundle is not None:
@@ -418,17 +419,30 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _start_report_ct(args: argparse.Namespace):
-    """``emreg report OUT``: start streaming the CT that ``OUT/run.json`` names, when the report may stream it
-    (a plain file whose bundle copies it from the file); None otherwise. The report checks it is its CT."""
-    if args.batch or not args.out:
+def _run_record(args: argparse.Namespace) -> dict | None:
+    """``OUT/run.json`` of ``emreg report OUT``, read once for what is decided before the report starts (None for
+    ``--batch``, or when there is none to read: the report then says what is wrong)."""
+    if args.batch or not args.out or not Path(args.out).is_dir():
         return None
-    from .controller import _recorded_ct
+    from .io.atomic import read_json
+
+    try:
+        run = read_json(Path(args.out) / "run.json", "run record")
+    except (EMRegError, OSError):
+        return None
+    return run if isinstance(run, dict) else None
+
+
+def _start_report_ct(args: argparse.Namespace, run: dict | None):
+    """``emreg report OUT``: start streaming the CT that ``OUT/run.json`` names, when the report may stream it
+    (a plain file whose bundle copies it from the file) and no earlier report kept its products; None otherwise.
+    The report checks it is its CT."""
+    from .controller import _manifest_ct
     from .io.ct_stream import start_streamed_read
     from .io.slicer_scene import bundle_needs_ct_image
 
-    ct = _recorded_ct(Path(args.out)) if Path(args.out).is_dir() else None
-    if ct is None or bundle_needs_ct_image(ct) or _ct_products_kept(Path(args.out), ct):
+    ct = _manifest_ct(run)
+    if ct is None or bundle_needs_ct_image(ct) or _ct_products_kept(Path(args.out), run, ct):
         return None
     try:
         return start_streamed_read(ct)
@@ -436,46 +450,33 @@ def _start_report_ct(args: argparse.Namespace):
         return None  # the report reads it again and says what is wrong
 
 
-def _recorded_case(out: Path) -> Path | None:
+def _recorded_case(run: dict | None) -> Path | None:
     """The case folder ``OUT/run.json`` names, when it is there."""
-    from .io.atomic import read_json
-
-    try:
-        case = read_json(out / "run.json", "run record").get("case")
-    except (EMRegError, OSError, AttributeError):
-        return None
+    case = (run or {}).get("case")
     return Path(case) if isinstance(case, str) and Path(case).is_dir() else None
 
 
-def _ct_products_kept(out: Path, ct: str) -> bool:
+def _ct_products_kept(out: Path, run: dict, ct: str) -> bool:
     """Whether an earlier report of this run kept the CT's products for this CT (then the report only hashes it)."""
-    from .io.atomic import read_json
     from .report.ct_memo import kept_for, memo_candidates, recorded_ct_sha256
 
-    try:
-        run = read_json(out / "run.json", "run record")
-    except (EMRegError, OSError):
-        return False
     recorded = recorded_ct_sha256(run, Path(ct))
     return any(kept_for(path, recorded) for path in memo_candidates(out))
 
 
-def _start_report_bundle(args: argparse.Namespace):
+def _start_report_bundle(args: argparse.Namespace, run: dict | None):
     """``emreg report OUT``: the bundle's process, started held (:class:`~EMRegModule.io.slicer_scene.BundleProcess`)
     so that its start-up (Python, numpy, slicer-core: ~1 s of CPU) runs beside this command's own, on the core
-    that leaves idle; None when it cannot be written in a process of its own (or for ``--batch``)."""
-    if args.batch or not args.out or not Path(args.out).is_dir():
+    that leaves idle; None when it cannot be written in a process of its own (or for ``--batch``), or when the
+    bundle there is most likely kept (the settings are compared once read)."""
+    if run is None:
         return None
     from .bundle_state import current_bundle
-    from .io.atomic import read_json
     from .io.slicer_scene import start_bundle_process
 
     case = Path(args.case) if args.case else None
-    try:
-        if current_bundle(Path(args.out), read_json(Path(args.out) / "run.json", "run record"), case, None):
-            return None  # most likely kept (the settings are compared once read)
-    except (EMRegError, OSError, AttributeError):
-        pass
+    if current_bundle(Path(args.out), run, case, None):
+        return None
     return start_bundle_process(args.out, case, held=True)
 
 

@@ -796,17 +796,6 @@ class EMRegController:
         return "; ".join(parts)
 
 
-def _recorded_ct(out: Path) -> str | None:
-    """The CT path ``OUT/run.json`` names (None when it names none or cannot be read)."""
-    from .io.atomic import read_json
-
-    try:
-        run = read_json(out / "run.json", "run record")
-    except (EMRegError, OSError):
-        return None
-    return _manifest_ct(run)
-
-
 def _manifest_ct(run: Any) -> str | None:
     """The CT path a run record (``run.json``'s content, e.g. an :class:`OutputFolder`'s manifest) names."""
     ct = run.get("ct") if isinstance(run, dict) else None
