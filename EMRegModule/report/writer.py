@@ -108,28 +108,31 @@ def _openblas_thread_calls() -> tuple | None:
     return None
 
 
-def _check_run_ct(inputs: ReportInputs) -> None:
+def _check_run_ct(inputs: ReportInputs) -> str | None:
     """Refuse a report over a CT file that is not the one the run used (replaced since): its slices would be
-    drawn under the markers found in the other. Its sha256, computed as the report read it, against the one
-    ``run.json`` records; nothing to check for a CT handed over in memory (the run's own) or not read."""
+    drawn under the markers found in the other. Its sha256, computed as the report read (or hashed) it, against
+    the one ``run.json`` records; returns that sha256 once checked. Nothing to check (None) for a CT handed over
+    in memory (the run's own), not read, or whose read failed (said where the CT is used)."""
     recorded = ((((inputs.run or {}).get("inputs") or {}).get("ct")) or {}).get("sha256")
     digest = getattr(inputs.ct, "sha256", None) if inputs.ct is not None else None
     if not recorded or digest is None:
-        return
+        return None
     try:
         actual = digest.result()
     except Exception:  # noqa: BLE001 - a read that failed is said where the CT is used
-        return
+        return None
     if actual != recorded:
         raise EMRegError(f"{inputs.ct_path}: not the CT this run used (its sha256 differs from the one "
                          f"{inputs.out_dir / 'run.json'} records): the report would show another scan under the "
                          "markers; give the run's CT with --case, or run again")
+    return actual
 
 
-def _keep_ct_products(data: ReportData, handed: bool) -> None:
+def _keep_ct_products(data: ReportData, checked_sha256: str | None, handed: bool) -> None:
     """Keep what the figures took from the CT for the next report of this run (:mod:`.ct_memo`), when they
-    were made from the bytes ``run.json`` records: a CT whose sha256 this report computed as it read it (or hashed,
-    its products kept but for the surface), or the CT this very run read and handed over in memory."""
+    were made from the bytes ``run.json`` records for this CT file: a CT whose sha256 :func:`_check_run_ct` checked
+    (``checked_sha256``; read, or hashed with its products kept but for the surface), or the CT this very run read
+    and handed over in memory."""
     from .ct_memo import carry_forward, memo_path, recorded_ct_sha256, save_ct_memo
 
     inputs = data.inputs
@@ -139,13 +142,7 @@ def _keep_ct_products(data: ReportData, handed: bool) -> None:
         carry_forward(inputs.ct.memo, inputs.out_dir)
         return
     recorded = recorded_ct_sha256(inputs.run, inputs.ct_path)
-    digest = getattr(inputs.ct, "sha256", None)
-    if recorded is None or (digest is None and not handed):
-        return
-    try:
-        if digest is not None and digest.result() != recorded:
-            return
-    except Exception:  # noqa: BLE001 - a read that failed keeps nothing
+    if recorded is None or (checked_sha256 != recorded and not handed):
         return
     views = data.marker_views.views() if data.marker_views is not None else None
     save_ct_memo(memo_path(inputs.out_dir), recorded, inputs.model, inputs.ct.image, data.binned, views,
@@ -190,12 +187,12 @@ def _write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[s
         if inputs.ct is not None:
             inputs.ct.cancel()
         raise
-    _check_run_ct(inputs)
+    checked = _check_run_ct(inputs)
     data.warnings = collect_warnings(inputs, rows, curve)  # after the figures: a CT that failed to read is a note
     figure_dir = inputs.out_dir / FIGURE_DIR
     for figure in figures:
         atomic_write_bytes(figure_dir / f"{figure.name}.png", figure.png)
-    _keep_ct_products(data, handed)
+    _keep_ct_products(data, checked, handed)
     produced = {f.name for f in figures}
     for name in FIGURE_NAMES:  # figures of an earlier run that this one did not produce are stale
         if name not in produced:
