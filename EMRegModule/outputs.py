@@ -104,6 +104,14 @@ def signals_held(redeliver: bool = True) -> Iterator[list[int]]:
             signal.raise_signal(pending[0])
 
 
+def recorded_series_uid(record: Any) -> str | None:
+    """The Series Instance UID of the DICOM series a run record (``run.json``) or ``markers.json`` names under
+    ``ct_series``: the series the markers were detected in (None: none named)."""
+    block = record.get("ct_series") if isinstance(record, dict) else None
+    uid = block.get("series_instance_uid") if isinstance(block, dict) else None
+    return str(uid) if uid else None
+
+
 def _now() -> str:
     return datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
 

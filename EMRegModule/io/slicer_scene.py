@@ -688,6 +688,7 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
     (a bundle copies them, nothing is read into memory); otherwise ``image``, else the CT read (of a
     DICOM folder, the series the markers were detected in, as ``markers.json`` / ``run.json`` name it,
     not the folder's default choice: the run may have forced another with ``--series``)."""
+    from ..outputs import recorded_series_uid
     from .atomic import read_json
 
     out = Path(out_dir)
@@ -695,10 +696,10 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
     if case_dir is None and run.get("case"):
         case_dir = run["case"]
     content = RunScene(image=image)
-    series = _series_uid(run)
+    series = recorded_series_uid(run)
     if (out / "markers.json").is_file():
         detected = read_json(out / "markers.json", "markers JSON")
-        series = _series_uid(detected) or series  # the series whose space the markers are in
+        series = recorded_series_uid(detected) or series  # the series whose space the markers are in
         markers = detected.get("markers", [])
         content.marker_ids = [str(m["id"]) for m in markers]
         content.marker_origins = np.array([m["origin"] for m in markers], dtype=float).reshape(-1, 3)
@@ -737,13 +738,6 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
         else:
             content.notes.append("CT not included (run.json names no CT that exists)")
     return content
-
-
-def _series_uid(record: Any) -> str | None:
-    """The Series Instance UID a run record or ``markers.json`` names under ``ct_series`` (None: none named)."""
-    block = record.get("ct_series") if isinstance(record, dict) else None
-    uid = block.get("series_instance_uid") if isinstance(block, dict) else None
-    return str(uid) if uid else None
 
 
 def _same_grid(geometry: Any, image: Any) -> bool:

@@ -159,9 +159,9 @@ def prepare_ct_products(data: ReportData) -> None:
             data.surface = memo.context_surface(data.inputs.settings.report.iso_value)  # None: made from binned
             data.kept_whole = data.surface is not None
             return
-        from .inputs import read_ct_again
+        from .inputs import open_report_ct
 
-        read_ct_again(data.inputs)
+        open_report_ct(data.inputs)
         if data.inputs.ct is None:
             return
     try:

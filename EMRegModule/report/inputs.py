@@ -168,9 +168,8 @@ def _read_case(inputs: ReportInputs) -> None:
 
 
 def _start_ct(inputs: ReportInputs, image: sitk.Image | None, read_image: bool, keep_ct: bool) -> None:
-    from ..io.ct_stream import StreamedCT, start_streamed_read
+    from ..io.ct_stream import StreamedCT
     from ..io.fast_read import VolumeFill
-    from ..io.image import open_ct
 
     early = image if isinstance(image, StreamedCT) else None  # a read started before the report was
     if early is not None and (keep_ct or inputs.ct_path is None or early.path != inputs.ct_path.resolve()):
@@ -179,17 +178,12 @@ def _start_ct(inputs: ReportInputs, image: sitk.Image | None, read_image: bool, 
     if image is not None:
         inputs.ct = image if early is not None else VolumeFill.complete(image)
     elif read_image and inputs.ct_path is not None:
-        used = (inputs.run or {}).get("ct_series") or {}  # a DICOM folder: the series the run detected in
-        inputs.ct_series = used.get("series_instance_uid") or inputs.settings.ct.series
-        if not keep_ct and _use_kept_ct_products(inputs):
-            return
-        try:
-            streamed = None if keep_ct or inputs.ct_path.is_dir() else start_streamed_read(inputs.ct_path)
-            # a DICOM series stored as 16 bits with an intercept is read as int16 (the detection's compact
-            # read: half the memory of int32, the same values); prepare_ct_products reads it again if need be
-            inputs.ct = streamed if streamed is not None else open_ct(inputs.ct_path, inputs.ct_series, compact=True)
-        except EMRegError as exc:
-            inputs.notes.append(str(exc))
+        from ..outputs import recorded_series_uid
+
+        # a DICOM folder: the series the run detected in
+        inputs.ct_series = recorded_series_uid(inputs.run) or inputs.settings.ct.series
+        if keep_ct or not _use_kept_ct_products(inputs):
+            open_report_ct(inputs, keep_ct)
 
 
 def _use_kept_ct_products(inputs: ReportInputs) -> bool:
@@ -206,13 +200,18 @@ def _use_kept_ct_products(inputs: ReportInputs) -> bool:
     return True
 
 
-def read_ct_again(inputs: ReportInputs) -> None:
-    """Read the CT after all (its kept products were made for other markers): streamed when it can be."""
+def open_report_ct(inputs: ReportInputs, keep_ct: bool = False) -> None:
+    """Start reading the case's CT into ``inputs.ct`` (also after all, when the products an earlier report kept
+    were made for other markers): streamed when nothing needs it whole and it is a plain file, else whole; a CT
+    that cannot be read becomes a note (and no CT)."""
     from ..io.ct_stream import start_streamed_read
     from ..io.image import open_ct
 
     try:
-        inputs.ct = start_streamed_read(inputs.ct_path) or open_ct(inputs.ct_path, inputs.ct_series, compact=True)
+        streamed = None if keep_ct or inputs.ct_path.is_dir() else start_streamed_read(inputs.ct_path)
+        # a DICOM series stored as 16 bits with an intercept is read as int16 (the detection's compact
+        # read: half the memory of int32, the same values); prepare_ct_products reads it again if need be
+        inputs.ct = streamed if streamed is not None else open_ct(inputs.ct_path, inputs.ct_series, compact=True)
     except EMRegError as exc:
         inputs.notes.append(str(exc))
         inputs.ct = None
