@@ -175,6 +175,7 @@ class FrameSceneRenderer:
         import pyvista as pv
 
         prepare_offscreen()
+        self.scene = scene
         self.window_size = window_size
         self.focus = focus
         self.plotter = pv.Plotter(off_screen=True, window_size=list(window_size), lighting="light kit")

@@ -223,8 +223,8 @@ def render_scenes(data: ReportData) -> list[Figure]:
         images = renderer.screenshots(("oblique", "top"))
     finally:
         renderer.close()
-    caption = _scene_caption(_frame_scene(data)) + (" " + data.surface.description() if data.surface is not None
-                                                    else "")
+    caption = _scene_caption(renderer.scene) + (" " + data.surface.description() if data.surface is not None
+                                                 else "")
     return [Figure("scene_oblique", "3D view of the frame", caption, _png(images[0])),
             Figure("scene_top", "3D view from above", caption, _png(images[1]))]
 
