@@ -38,7 +38,18 @@ _SCALAR_TYPES = {
 _FLOAT_TYPES = {sitk.sitkFloat32, sitk.sitkFloat64}
 
 
-def check_space_units(path: str | os.PathLike[str]) -> None:
+def check_file_placement(geometry: sitk.Image, path: str | os.PathLike[str]) -> None:
+    """Refuse a CT file whose header places its voxels where SimpleITK (EMReg's reader) and other tools disagree:
+    a NIfTI whose sform and qform differ (:mod:`.nifti_header`), an NRRD not in millimetres. ``geometry``: the
+    image, or its header reading."""
+    from .nifti_header import check_nifti_placement, is_nifti
+
+    if is_nifti(path):
+        check_nifti_placement(geometry, path)
+    _check_space_units(path)
+
+
+def _check_space_units(path: str | os.PathLike[str]) -> None:
     """Refuse a NRRD whose ``space units`` are not millimetres: SimpleITK (EMReg's reader) and 3D Slicer ignore
     the field and read the numbers as mm, so a CT in cm would come out 10 times too small (its markers not
     found, or found at the wrong size) instead of being said wrong."""

@@ -140,12 +140,9 @@ def start_streamed_read(path: str | Path) -> StreamedCT | None:
     if plain is None or plain[1].dtype.kind not in "iu":
         return None
     info, storage = plain
-    from .ct_checks import check_ct_geometry, check_space_units
-    from .nifti_header import check_nifti_placement, is_nifti
+    from .ct_checks import check_ct_geometry, check_file_placement
 
-    if is_nifti(path):
-        check_nifti_placement(CTGeometry(info), path)
-    check_space_units(path)
+    check_file_placement(CTGeometry(info), path)
     check_ct_geometry(CTGeometry(info), path)
     ct = StreamedCT(info, storage.dtype)
     ct.path = path.resolve()

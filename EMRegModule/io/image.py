@@ -16,9 +16,8 @@ import SimpleITK as sitk
 from ..errors import EMRegError
 from ..provenance import BackgroundHash, note_read_digest
 from .case import CT_FILE_NAMES, CT_FOLDER_NAME, find_ct  # noqa: F401  (re-exported: CT naming lives with the case)
-from .ct_checks import check_ct_geometry, check_ct_image, check_space_units
+from .ct_checks import check_ct_geometry, check_ct_image, check_file_placement
 from .fast_read import VolumeFill, check_data_length, start_fast_read
-from .nifti_header import check_nifti_placement, is_nifti
 
 
 def read_ct(path: str | os.PathLike[str], series: str | int | None = None) -> sitk.Image:
@@ -68,9 +67,7 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compa
         detail = next((line for line in reversed(reason) if line.strip()), "unreadable")
         raise EMRegError(f"{path}: cannot read CT ({detail.strip()[:200]})") from None
     try:
-        if is_nifti(path):
-            check_nifti_placement(image, path)  # sform and qform that disagree: readers differ on the answer
-        check_space_units(path)
+        check_file_placement(image, path)  # e.g. a NIfTI's sform and qform that disagree: readers differ
         if fill.is_complete:
             check_ct_image(image, path)  # geometry and voxel values of an image read in full
         else:
