@@ -507,16 +507,25 @@ def _nrrd_fields(stream: BinaryIO) -> tuple[dict[str, str], int] | None:
     return fields, offset
 
 
-def nrrd_header_fields(path: Path) -> dict[str, str] | None:
-    """The fields of a NRRD header (``.nrrd`` or ``.nhdr``; lower-case keys), None when ``path`` is not one."""
-    if not path.name.lower().endswith((".nrrd", ".nhdr")):
+def _header_fields(path: Path) -> tuple[str, dict[str, str], int] | None:
+    """The kind (``"nrrd"``: ``.nrrd``, ``.nhdr``; ``"mha"``: ``.mha``, ``.mhd``), fields and data offset of an
+    image header read by name; None for another file, one that cannot be read or a header not read here."""
+    name = path.name.lower()
+    kind = "nrrd" if name.endswith((".nrrd", ".nhdr")) else "mha" if name.endswith((".mha", ".mhd")) else None
+    if kind is None:
         return None
     try:
         with path.open("rb") as stream:
-            parsed = _nrrd_fields(stream)
+            parsed = (_nrrd_fields if kind == "nrrd" else _mha_fields)(stream)
     except OSError:
         return None
-    return parsed[0] if parsed is not None else None
+    return None if parsed is None else (kind, *parsed)
+
+
+def nrrd_header_fields(path: Path) -> dict[str, str] | None:
+    """The fields of a NRRD header (``.nrrd`` or ``.nhdr``; lower-case keys), None when ``path`` is not one."""
+    header = _header_fields(path)
+    return header[1] if header is not None and header[0] == "nrrd" else None
 
 
 def _nrrd_storage(stream: BinaryIO) -> _Storage | None:
@@ -628,13 +637,10 @@ def check_data_length(path: Path) -> None:
     SimpleITK reads when the fast path does not (detached data files, no ``isal``): raw or
     gzip/zlib data in one file, attached or detached. Other layouts are left to SimpleITK.
     """
-    name = path.name.lower()
-    if name.endswith((".nrrd", ".nhdr")):
-        kind = "nrrd"
-    elif name.endswith((".mha", ".mhd")):
-        kind = "mha"
-    else:
+    header = _header_fields(path)
+    if header is None:
         return
+    kind, fields, offset = header
     info = sitk.ImageFileReader()
     info.SetFileName(str(path))
     try:
@@ -646,11 +652,6 @@ def check_data_length(path: Path) -> None:
         return
     expected = int(np.prod(info.GetSize(), dtype=np.int64)) * info.GetNumberOfComponents() \
         * np.dtype(dtype_name).itemsize
-    with path.open("rb") as stream:
-        parsed = (_nrrd_fields if kind == "nrrd" else _mha_fields)(stream)
-    if parsed is None:
-        return
-    fields, offset = parsed
     if kind == "nrrd":
         if {"line skip", "lineskip", "byte skip", "byteskip"} & set(fields):
             return
@@ -688,16 +689,10 @@ def detached_data_file(path: str | os.PathLike[str]) -> Path | None:
     if name.endswith(".hdr"):
         data = path.with_name(path.name[:-4] + (".IMG" if path.name.endswith(".HDR") else ".img"))
         return data if data.is_file() else None
-    if not name.endswith((".nhdr", ".mhd")):
+    header = _header_fields(path) if name.endswith((".nhdr", ".mhd")) else None
+    if header is None:
         return None
-    try:
-        with path.open("rb") as stream:
-            parsed = (_nrrd_fields if name.endswith(".nhdr") else _mha_fields)(stream)
-    except OSError:
-        return None
-    if parsed is None:
-        return None
-    fields = parsed[0]
+    fields = header[1]
     detached = fields.get("data file", fields.get("datafile", fields.get("ElementDataFile")))
     return None if detached is None or detached == "LOCAL" else _one_data_file(path, detached)
 
