@@ -31,19 +31,17 @@ import shutil
 from pathlib import Path
 
 import pytest
+from conftest import SMALL_CASE_OPTIONS
 
 from EMRegModule.cli import main
 from EMRegModule.simulation import simulate_case
-
-SMALL = {"frame_size_mm": (200.0, 200.0, 110.0), "n_markers": 8, "navigation_rounds": 2, "board_rounds": 3,
-         "n_targets": 3}
 
 
 @pytest.fixture(scope="module")
 def small_case(tmp_path_factory) -> Path:
     """A small, coarse simulated case (1 mm voxels, 8 markers): a run takes a few seconds."""
     folder = tmp_path_factory.mktemp("sweep_case")
-    simulate_case(folder, seed=5, spacing_mm=1.0, **SMALL)
+    simulate_case(folder, seed=5, spacing_mm=1.0, **SMALL_CASE_OPTIONS)
     return folder
 
 

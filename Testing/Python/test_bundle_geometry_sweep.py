@@ -37,12 +37,12 @@ import pytest
 pytest.importorskip("slicer")
 
 import SimpleITK as sitk  # noqa: E402
+from conftest import SMALL_CASE_OPTIONS  # noqa: E402
 
 from EMRegModule.cli import main  # noqa: E402
 from EMRegModule.simulation import simulate_case  # noqa: E402
 
-SMALL = {"frame_size_mm": (200.0, 200.0, 110.0), "n_markers": 8, "navigation_rounds": 2, "board_rounds": 1,
-         "n_targets": 3}
+SMALL = {**SMALL_CASE_OPTIONS, "board_rounds": 1}
 RAS = np.array([-1.0, -1.0, 1.0])
 FAR_MM = np.array([3000.0, -2000.0, 1500.0])
 

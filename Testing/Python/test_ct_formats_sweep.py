@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from conftest import SMALL_CASE_OPTIONS
 from scipy.spatial.transform import Rotation
 
 from EMRegModule.cli import main
@@ -50,8 +51,6 @@ from EMRegModule.io.fast_read import plain_storage, start_fast_read
 from EMRegModule.io.image import read_ct
 from EMRegModule.simulation import simulate_case
 
-SMALL = {"frame_size_mm": (200.0, 200.0, 110.0), "n_markers": 8, "navigation_rounds": 2, "board_rounds": 3,
-         "n_targets": 3}
 ORIGIN_TOLERANCE_MM = 0.3  # well under the 1 mm voxel
 RAS_FROM_LPS = np.diag([-1.0, -1.0, 1.0])
 
@@ -60,7 +59,7 @@ RAS_FROM_LPS = np.diag([-1.0, -1.0, 1.0])
 def case(tmp_path_factory) -> Path:
     """A small simulated case (1 mm voxels, 8 markers) whose CT is a DICOM series (``case/ct``)."""
     folder = tmp_path_factory.mktemp("ct_formats_sweep") / "case"
-    simulate_case(folder, seed=6, spacing_mm=1.0, ct_format="dicom", **SMALL)
+    simulate_case(folder, seed=6, spacing_mm=1.0, ct_format="dicom", **SMALL_CASE_OPTIONS)
     return folder
 
 

@@ -36,7 +36,7 @@ import numpy as np
 import pydicom
 import pytest
 import SimpleITK as sitk
-from conftest import load_truth
+from conftest import SMALL_CASE_OPTIONS, load_truth
 from dicom_files import convert, make_volume, tools_available, uid, write_series
 from pydicom.dataelem import DataElement
 from test_detection_cases import errors_against_truth
@@ -47,8 +47,6 @@ from EMRegModule.errors import EMRegError
 from EMRegModule.io.image import open_ct, read_ct
 from EMRegModule.simulation.case import simulate_case
 
-SMALL = {"frame_size_mm": (200.0, 200.0, 110.0), "n_markers": 8, "navigation_rounds": 2, "board_rounds": 3,
-         "n_targets": 3}
 _TOOLS = tools_available()
 
 
@@ -264,7 +262,7 @@ def test_a_series_mixing_two_slice_sizes_is_refused_naming_both_files(tmp_path, 
 def dicom_case(tmp_path_factory) -> Path:
     """A small simulated case (1 mm voxels, 8 markers) whose CT is the simulator's DICOM series."""
     folder = tmp_path_factory.mktemp("dicom_vendors") / "case"
-    simulate_case(folder, seed=6, spacing_mm=1.0, ct_format="dicom", **SMALL)
+    simulate_case(folder, seed=6, spacing_mm=1.0, ct_format="dicom", **SMALL_CASE_OPTIONS)
     return folder
 
 
