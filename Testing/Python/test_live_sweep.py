@@ -24,6 +24,7 @@ trakSTAR stream record never makes a wrong record, and the records after it are 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -47,23 +48,33 @@ ENV = dict(os.environ, PYTHONUNBUFFERED="1")
 # --- the Aurora ---------------------------------------------------------------------------------------------
 
 
-def test_aurora_tool_unplugged_and_plugged_back_is_tracked_again_under_a_new_handle(tmp_path):
+@contextlib.contextmanager
+def _aurora(tmp_path, tools: str, unplugged: int | None = None):
+    """An Aurora simulator with ``tools`` (the tool of port ``unplugged`` out of its socket at start) and EMReg's
+    driver opened on it: ``(simulator, driver, samples)``, the samples the driver gives out once started; the
+    driver is closed afterwards."""
     link = tmp_path / "aurora"
-    with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof,3:6dof"), link=link) as sim:
+    with AuroraSimulator(tools=parse_tools(tools), link=link) as sim:
+        if unplugged is not None:
+            sim.set_state("unplug", unplugged)
         driver = AuroraDriver(str(link), 115200).open()
-        samples = []
         try:
-            assert [(t.handle, t.sensor) for t in driver.tools] == [(0x0A, 1), (0x0B, 2), (0x0C, 3)]
-            driver.start(samples.append)
-            assert wait_for(lambda: len(samples) >= 30)
-            sim.set_state("unplug", 2)
-            assert wait_for(lambda: sum(s.sensor == 2 and s.status == STATUS_NOT_ATTACHED for s in samples) >= 5)
-            mark = len(samples)
-            sim.set_state("unplug", 2, False)
-            back = wait_for(lambda: any(s.sensor == 2 and s.status == STATUS_OK for s in samples[mark:]), 15.0)
-            driver.stop()
+            yield sim, driver, []
         finally:
             driver.close()
+
+
+def test_aurora_tool_unplugged_and_plugged_back_is_tracked_again_under_a_new_handle(tmp_path):
+    with _aurora(tmp_path, "1:6dof,2:6dof,3:6dof") as (sim, driver, samples):
+        assert [(t.handle, t.sensor) for t in driver.tools] == [(0x0A, 1), (0x0B, 2), (0x0C, 3)]
+        driver.start(samples.append)
+        assert wait_for(lambda: len(samples) >= 30)
+        sim.set_state("unplug", 2)
+        assert wait_for(lambda: sum(s.sensor == 2 and s.status == STATUS_NOT_ATTACHED for s in samples) >= 5)
+        mark = len(samples)
+        sim.set_state("unplug", 2, False)
+        back = wait_for(lambda: any(s.sensor == 2 and s.status == STATUS_OK for s in samples[mark:]), 15.0)
+        driver.stop()
     assert back, "the replugged probe never came back"
     assert driver.stats.replugs == 1 and driver.error is None
     assert "PHF" in sim.commands  # the stale handle was freed
@@ -81,39 +92,26 @@ def test_aurora_tool_unplugged_and_plugged_back_is_tracked_again_under_a_new_han
 
 
 def test_aurora_tool_without_srom_plugged_in_mid_recording_is_a_clear_error(tmp_path):
-    link = tmp_path / "aurora"
-    with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof,3:nosrom"), link=link) as sim:
-        sim.set_state("unplug", 3)  # not plugged in when tracking starts
-        driver = AuroraDriver(str(link), 115200).open()
-        samples = []
-        try:
-            assert [t.sensor for t in driver.tools] == [1, 2]
-            driver.start(samples.append)
-            assert wait_for(lambda: len(samples) >= 20)
-            sim.set_state("unplug", 3, False)
-            assert wait_for(lambda: driver.error is not None)
-        finally:
-            driver.close()
+    with _aurora(tmp_path, "1:6dof,2:6dof,3:nosrom", unplugged=3) as (sim, driver, samples):  # 3: plugged later
+        assert [t.sensor for t in driver.tools] == [1, 2]
+        driver.start(samples.append)
+        assert wait_for(lambda: len(samples) >= 20)
+        sim.set_state("unplug", 3, False)
+        assert wait_for(lambda: driver.error is not None)
     assert "port 3" in driver.error and "SROM" in driver.error and "\n" not in driver.error
 
 
 def test_aurora_tool_partially_out_of_volume_is_never_a_measurement(tmp_path):
-    link = tmp_path / "aurora"
-    with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof"), link=link) as sim:
-        driver = AuroraDriver(str(link), 115200).open()
-        samples = []
-        try:
-            driver.start(samples.append)
-            assert wait_for(lambda: len(samples) >= 20)
-            sim.set_state("partly-out", 2)
-            flagged = lambda: [s for s in samples if s.extra["port_status"] & ndi.PORT_PARTIALLY_IN_VOLUME]  # noqa: E731
-            assert wait_for(lambda: len(flagged()) >= 10)
-            sim.set_state("partly-out", 2, False)
-            mark = len(samples)
-            assert wait_for(lambda: any(s.sensor == 2 and s.status == STATUS_OK for s in samples[mark:]))
-            driver.stop()
-        finally:
-            driver.close()
+    with _aurora(tmp_path, "1:6dof,2:6dof") as (sim, driver, samples):
+        driver.start(samples.append)
+        assert wait_for(lambda: len(samples) >= 20)
+        sim.set_state("partly-out", 2)
+        flagged = lambda: [s for s in samples if s.extra["port_status"] & ndi.PORT_PARTIALLY_IN_VOLUME]  # noqa: E731
+        assert wait_for(lambda: len(flagged()) >= 10)
+        sim.set_state("partly-out", 2, False)
+        mark = len(samples)
+        assert wait_for(lambda: any(s.sensor == 2 and s.status == STATUS_OK for s in samples[mark:]))
+        driver.stop()
     assert all(s.sensor == 2 for s in flagged())
     assert {s.status for s in flagged()} == {STATUS_OUT_OF_RANGE}
     assert not any(s.valid for s in flagged())
