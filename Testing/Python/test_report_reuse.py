@@ -20,15 +20,34 @@ from EMRegModule.report.ct_memo import MEMO_NAME
 FIGURES = "report_figures"
 
 
-def _own_copy(small_case: Path, tmp_path: Path) -> tuple[Path, Path]:
-    """The small case and its run's outputs copied under ``tmp_path``, ``run.json`` naming the copies."""
-    case, out = tmp_path / "case", tmp_path / "out"
+def _own_copy(small_case: Path, tmp_path: Path, out_name: str = "out") -> tuple[Path, Path]:
+    """The small case and its run's outputs copied under ``tmp_path`` (the outputs into ``out_name``, e.g.
+    ``batch/out`` for a folder of runs without the case in it), ``run.json`` naming the copies."""
+    case, out = tmp_path / "case", tmp_path / out_name
     shutil.copytree(small_case, case)
     shutil.copytree(small_case.parent / "out", out)
     shutil.rmtree(out / "previous", ignore_errors=True)
     text = (out / "run.json").read_text(encoding="utf-8")
     (out / "run.json").write_text(text.replace(str(small_case.resolve()), str(case.resolve())), encoding="utf-8")
     return case, out
+
+
+def _settings_with_iso_300(case: Path, tmp_path: Path) -> Path:
+    """The case's settings with ``[report] iso_value = 300``: a report made with them says so under its 3D view."""
+    settings = tmp_path / "other.toml"
+    settings.write_text((case / "case.toml").read_text(encoding="utf-8") + "\n[report]\niso_value = 300.0\n",
+                        encoding="utf-8")
+    return settings
+
+
+def _assert_made_with(out: Path, settings: Path) -> None:
+    """The page was made with ``settings`` (from :func:`_settings_with_iso_300`) and its provenance names them."""
+    from EMRegModule.settings import load_settings
+
+    page = (out / "report.html").read_text(encoding="utf-8")
+    assert "The grey surface is the CT at 300 (the [report] iso_value setting)" in page
+    run = json.loads((out / "run.json").read_text(encoding="utf-8"))
+    assert run["outputs"]["report.html"]["provenance"]["settings_sha256"] == load_settings(settings).digest()
 
 
 def _figures(out: Path) -> dict[str, bytes]:
@@ -125,27 +144,17 @@ def test_a_report_uses_the_settings_it_names(small_case, tmp_path, capsys):
     """``emreg report --settings FILE``: the figures are made with FILE's settings and the provenance names FILE
     (before, the figures used the case's ``case.toml`` whatever the provenance said)."""
     case, out = _own_copy(small_case, tmp_path)
-    settings = tmp_path / "other.toml"
-    settings.write_text((case / "case.toml").read_text(encoding="utf-8") + "\n[report]\niso_value = 300.0\n",
-                        encoding="utf-8")
+    settings = _settings_with_iso_300(case, tmp_path)
     code = main(["report", str(out), "--settings", str(settings), "--quiet"])
     assert code == 0, capsys.readouterr().err
-    page = (out / "report.html").read_text(encoding="utf-8")
-    assert "The grey surface is the CT at 300 (the [report] iso_value setting)" in page
-    from EMRegModule.settings import load_settings
-
-    run = json.loads((out / "run.json").read_text(encoding="utf-8"))
-    assert run["outputs"]["report.html"]["provenance"]["settings_sha256"] == load_settings(settings).digest()
+    _assert_made_with(out, settings)
     assert main(["report", str(out), "--quiet"]) == 0  # the case's settings again: Otsu's threshold, said so
     assert "(Otsu&#x27;s threshold between air and the frame and patient)" in (out / "report.html").read_text(
         encoding="utf-8")
 
 
 def test_a_bundle_written_by_a_batch_is_kept_by_the_next_report(small_case, tmp_path, capsys):
-    case, run_out = _own_copy(small_case, tmp_path)
-    out = tmp_path / "batch" / "out"
-    out.parent.mkdir()
-    shutil.move(run_out, out)
+    case, out = _own_copy(small_case, tmp_path, "batch/out")
     (out / "EMReg.mrb").unlink()
     assert main(["report", "--batch", str(out.parent), "--quiet"]) == 0, capsys.readouterr().err
     assert (out / "EMReg.mrb").is_file()
@@ -173,21 +182,11 @@ def test_a_damaged_kept_file_is_read_past(small_case, tmp_path, capsys, damage):
 
 def test_batch_reports_use_the_settings_they_name(small_case, tmp_path, capsys):
     """``emreg report --batch DIR --settings FILE``: every page made with FILE, as each provenance says."""
-    case, run_out = _own_copy(small_case, tmp_path)
-    out = tmp_path / "batch" / "out"
-    out.parent.mkdir()
-    shutil.move(run_out, out)
-    settings = tmp_path / "other.toml"
-    settings.write_text((case / "case.toml").read_text(encoding="utf-8") + "\n[report]\niso_value = 300.0\n",
-                        encoding="utf-8")
+    case, out = _own_copy(small_case, tmp_path, "batch/out")
+    settings = _settings_with_iso_300(case, tmp_path)
     assert main(["report", "--batch", str(out.parent), "--settings", str(settings), "--quiet"]) == 0, \
         capsys.readouterr().err
-    assert "The grey surface is the CT at 300 (the [report] iso_value setting)" in (out / "report.html").read_text(
-        encoding="utf-8")
-    from EMRegModule.settings import load_settings
-
-    run = json.loads((out / "run.json").read_text(encoding="utf-8"))
-    assert run["outputs"]["report.html"]["provenance"]["settings_sha256"] == load_settings(settings).digest()
+    _assert_made_with(out, settings)
     (tmp_path / "broken.toml").write_text("[report\n", encoding="utf-8")
     assert main(["report", "--batch", str(out.parent), "--settings", str(tmp_path / "broken.toml"), "--quiet"]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
