@@ -38,6 +38,7 @@ pytest.importorskip("slicer")
 
 import SimpleITK as sitk  # noqa: E402
 from conftest import SMALL_CASE_OPTIONS  # noqa: E402
+from ct_files import write_nrrd  # noqa: E402
 
 from EMRegModule.cli import main  # noqa: E402
 from EMRegModule.simulation import simulate_case  # noqa: E402
@@ -101,25 +102,6 @@ def _corners(size) -> np.ndarray:
                     dtype=float)
 
 
-def _write_nrrd_in_ras(image: sitk.Image, path: Path) -> None:
-    """A gzip NRRD whose header is in RAS space (``space: right-anterior-superior``), as some exporters write it."""
-    import gzip
-
-    columns = np.asarray(image.GetDirection()).reshape(3, 3) * np.asarray(image.GetSpacing()) * RAS[:, None]
-
-    def vector(values) -> str:
-        return "(" + ",".join(repr(float(v)) for v in values) + ")"
-
-    size = image.GetSize()
-    header = ("NRRD0004\ntype: int16\ndimension: 3\nspace: right-anterior-superior\n"
-              f"sizes: {size[0]} {size[1]} {size[2]}\n"
-              f"space directions: {' '.join(vector(columns[:, a]) for a in range(3))}\n"
-              "kinds: domain domain domain\nendian: little\nencoding: gzip\n"
-              f"space origin: {vector(np.asarray(image.GetOrigin()) * RAS)}\n\n")
-    voxels = sitk.GetArrayFromImage(image).astype("<i2").tobytes()
-    path.write_bytes(header.encode("ascii") + gzip.compress(voxels, compresslevel=1))
-
-
 def _write_dicom_series(image: sitk.Image, folder: Path) -> None:
     """``image`` as DICOM series 1, beside series 2: a thin-slice slab (0.5 mm, a few slices) that a folder's
     default choice prefers (finest slices), so that the run must be told ``--series 1``."""
@@ -154,7 +136,7 @@ def _make_case(base: Path, folder: Path, geometry: str) -> tuple[list[str], np.n
     if geometry == "left-handed-nrrd":
         sitk.WriteImage(_restored(ct, (0, 1, 2), (False, True, False)), str(folder / "ct.nrrd"), True)
     elif geometry == "sagittal-nrrd-ras":
-        _write_nrrd_in_ras(_restored(ct, (1, 2, 0), (True, False, True)), folder / "ct.nrrd")
+        write_nrrd(folder / "ct.nrrd", _restored(ct, (1, 2, 0), (True, False, True)), "RAS", "little", "gzip")
     elif geometry == "oblique-dicom":
         _write_dicom_series(_resampled(ct, _rotation((1, 2, 3), 30.0), np.ones(3)), folder / "ct")
         return ["--series", "1"], shift

@@ -29,7 +29,6 @@ endian, gzip or raw, attached or a detached ``.nhdr`` with ``.raw`` / ``.raw.gz`
 
 from __future__ import annotations
 
-import gzip
 import json
 import re
 import shutil
@@ -42,6 +41,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 from conftest import SMALL_CASE_OPTIONS
+from ct_files import RAS_FROM_LPS, index_to_lps, write_nrrd
 from scipy.spatial.transform import Rotation
 
 from EMRegModule.cli import main
@@ -52,7 +52,6 @@ from EMRegModule.io.image import read_ct
 from EMRegModule.simulation import simulate_case
 
 ORIGIN_TOLERANCE_MM = 0.3  # well under the 1 mm voxel
-RAS_FROM_LPS = np.diag([-1.0, -1.0, 1.0])
 
 
 @pytest.fixture(scope="module")
@@ -114,45 +113,7 @@ def _assert_fast_read_is_simpleitk(path: Path) -> None:
     np.testing.assert_array_equal(sitk.GetArrayViewFromImage(fast), sitk.GetArrayViewFromImage(reference))
 
 
-def _index_to_lps(image: sitk.Image) -> np.ndarray:
-    """4x4 voxel index (i, j, k) -> LPS mm."""
-    matrix = np.eye(4)
-    matrix[:3, :3] = np.asarray(image.GetDirection()).reshape(3, 3) * np.asarray(image.GetSpacing())[None, :]
-    matrix[:3, 3] = image.GetOrigin()
-    return matrix
-
-
-def _vector(values) -> str:
-    return "(" + ",".join(f"{v:.17g}" for v in values) + ")"
-
-
 # --- NRRD --------------------------------------------------------------------------------------------------
-
-
-def _write_nrrd(path: Path, image: sitk.Image, space: str = "RAS", endian: str = "big", encoding: str = "gzip",
-                data_file: str | None = None) -> Path:
-    """An NRRD as 3D Slicer writes one (``space``: "RAS" or "LPS"), by hand; ``data_file``: a detached
-    ``.nhdr`` whose voxels are in that file beside it (``.raw`` or ``.raw.gz``)."""
-    to_space = RAS_FROM_LPS if space == "RAS" else np.eye(3)
-    matrix = _index_to_lps(image)
-    columns = to_space @ matrix[:3, :3]
-    voxels = sitk.GetArrayViewFromImage(image).astype(">i2" if endian.lower() == "big" else "<i2").tobytes()
-    if encoding.lower() == "gzip":
-        voxels = gzip.compress(voxels, compresslevel=1)
-    header = [
-        "NRRD0004", "# Complete NRRD file format specification at:", "type: short", "dimension: 3",
-        "space: " + {"RAS": "right-anterior-superior", "LPS": "left-posterior-superior"}[space],
-        "sizes: " + " ".join(map(str, image.GetSize())),
-        "space directions: " + " ".join(_vector(columns[:, a]) for a in range(3)),
-        "kinds: domain domain domain", f"endian: {endian}", f"encoding: {encoding}",
-        "space origin: " + _vector(to_space @ matrix[:3, 3]),
-    ]
-    if data_file is None:
-        path.write_bytes(("\n".join(header) + "\n\n").encode("ascii") + voxels)
-    else:
-        (path.parent / data_file).write_bytes(voxels)
-        path.write_text("\n".join([*header, f"data file: {data_file}"]) + "\n")
-    return path
 
 
 @pytest.mark.parametrize("space, endian, encoding, name, data_file", [
@@ -163,7 +124,7 @@ def _write_nrrd(path: Path, image: sitk.Image, space: str = "RAS", endian: str =
     ("LPS", "Big", "GZIP", "capital_gzip.nrrd", None),
 ])
 def test_nrrd_as_slicer_writes_it(case, hu, tmp_path, capsys, space, endian, encoding, name, data_file):
-    path = _write_nrrd(tmp_path / name, hu, space, endian, encoding, data_file)
+    path = write_nrrd(tmp_path / name, hu, space, endian, encoding, data_file)
     _assert_fast_read_is_simpleitk(path)
     _assert_markers_at_truth(path, case, capsys)
 
@@ -173,7 +134,7 @@ def test_a_case_folder_whose_ct_is_a_detached_nrrd_header(case, hu, tmp_path, ca
     folder = tmp_path / "case"
     folder.mkdir()
     shutil.copy2(case / "case.toml", folder / "case.toml")
-    _write_nrrd(folder / "ct.nhdr", hu, "RAS", "little", "gzip", "ct.raw.gz")
+    write_nrrd(folder / "ct.nhdr", hu, "RAS", "little", "gzip", "ct.raw.gz")
     capsys.readouterr()
     assert main(["detect", str(folder), "--out", str(tmp_path / "out"), "--quiet"]) == 0, capsys.readouterr().err
     found = json.loads((tmp_path / "out" / "markers.json").read_text())
@@ -188,7 +149,7 @@ def test_a_case_folder_whose_ct_is_a_detached_nrrd_header(case, hu, tmp_path, ca
 def test_nrrd_space_units_other_than_mm_are_refused(case, hu, tmp_path, capsys, units, refused):
     """SimpleITK (and 3D Slicer) ignore ``space units`` and read the numbers as mm: a CT in cm would be a tenth of
     its size, its markers missed. Refused in one line; ``mm`` is what every reader assumes and is read."""
-    path = _write_nrrd(tmp_path / "units.nrrd", hu, "LPS", "little", "gzip")
+    path = write_nrrd(tmp_path / "units.nrrd", hu, "LPS", "little", "gzip")
     header, _, voxels = path.read_bytes().partition(b"\n\n")
     path.write_bytes(header + f"\nspace units: {units}".encode("ascii") + b"\n\n" + voxels)
     if refused:
@@ -207,7 +168,7 @@ def test_the_sha256_of_a_detached_header_covers_its_voxels(hu, tmp_path, header,
 
     small = hu[:40, :30, :20]
     if header.endswith(".nhdr"):
-        _write_nrrd(tmp_path / header, small, "RAS", "little", "gzip", data)
+        write_nrrd(tmp_path / header, small, "RAS", "little", "gzip", data)
     else:
         sitk.WriteImage(small, str(tmp_path / header))
     assert (tmp_path / data).is_file()
@@ -218,7 +179,7 @@ def test_the_sha256_of_a_detached_header_covers_its_voxels(hu, tmp_path, header,
     altered = sitk.GetImageFromArray(changed)
     altered.CopyInformation(small)
     if header.endswith(".nhdr"):
-        _write_nrrd(tmp_path / header, altered, "RAS", "little", "gzip", data)
+        write_nrrd(tmp_path / header, altered, "RAS", "little", "gzip", data)
     else:
         sitk.WriteImage(altered, str(tmp_path / header))
     assert file_sha256(tmp_path / header) != before
@@ -233,7 +194,7 @@ def _write_metaimage(path: Path, image: sitk.Image, orientation: str = "RAI", co
     (None: left out), ``flip_i`` stores the i axis reversed (a TransformMatrix with a flip), ``data_file``
     a detached ``.mhd`` whose voxels are in that file (``.raw`` or ``.zraw``)."""
     voxels = sitk.GetArrayFromImage(image)
-    matrix = _index_to_lps(image)
+    matrix = index_to_lps(image)
     if flip_i:
         voxels = voxels[:, :, ::-1]
         matrix = matrix @ np.array([[-1.0, 0, 0, image.GetSize()[0] - 1], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
@@ -281,7 +242,7 @@ def _write_nifti(path: Path, image: sitk.Image, slope: float = 1.0, intercept: f
                  qform_code: int = 1, qform_shift_mm: float = 0.0) -> Path:
     """A NIfTI-1 file (348-byte header by hand) of ``image``'s HU stored as int16 ``(HU - intercept) / slope``;
     sform and qform both the image's geometry (RAS), the qform moved ``qform_shift_mm`` along R when asked."""
-    index_to_ras = RAS_FROM_LPS @ _index_to_lps(image)[:3, :]
+    index_to_ras = RAS_FROM_LPS @ index_to_lps(image)[:3, :]
     spacing = np.asarray(image.GetSpacing())
     rotation = index_to_ras[:3, :3] / spacing[None, :]
     qfac = 1.0 if np.linalg.det(rotation) > 0 else -1.0
