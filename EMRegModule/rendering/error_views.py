@@ -18,7 +18,8 @@ import numpy as np
 import SimpleITK as sitk
 
 from .colors import colorize
-from .plots import BLACK, WHITE, _Axes, _put, fit_text, nice_ticks
+from .plots import BLACK, WHITE, _Axes, fit_text, nice_ticks
+from .text import put_text, text_size
 
 #: Segment colours of the budget's terms (RGB).
 TERM_COLORS = {"registration": (70, 120, 200), "tracking": (240, 160, 60), "reference": (120, 180, 110),
@@ -37,7 +38,7 @@ def error_budget_chart(labels: Sequence[str], budget_rms_mm: Mapping[str, Sequen
     highest = float(np.nanmax(np.r_[tops[-1] if len(tops) else [0.0], measured, 0.1]))
     axes = _Axes(canvas, 62, 56, width - 20, height - 28, (0.0, float(len(labels))),
                  nice_ticks(0.0, highest * 1.1, 5))
-    _put(canvas, "Predicted error budget and measured TRE per target", width / 2, 18, 0.5, align="center")
+    put_text(canvas, "Predicted error budget and measured TRE per target", width / 2, 18, 0.5, align="center")
     axes.draw_y_grid("RMS TRE (mm)")
     slot = (axes.right - axes.left) / max(1, len(labels))
     for k, label in enumerate(labels):
@@ -53,14 +54,14 @@ def error_budget_chart(labels: Sequence[str], budget_rms_mm: Mapping[str, Sequen
         if np.isfinite(measured[k]):
             y = int(round(axes.y(measured[k])))
             cv2.line(canvas, (x0 - 6, y), (x1 + 6, y), BLACK, 3)
-        _put(canvas, fit_text(str(label), slot - 4), centre, axes.bottom + 17, 0.38, align="center")
+        put_text(canvas, fit_text(str(label), slot - 4), centre, axes.bottom + 17, 0.38, align="center")
     x = axes.left + 4
     for term in terms:
         cv2.rectangle(canvas, (x, 32), (x + 14, 44), TERM_COLORS.get(term, (150, 150, 150)), -1)
-        _put(canvas, term, x + 18, 43, 0.38)
-        x += 26 + cv2.getTextSize(term, cv2.FONT_HERSHEY_SIMPLEX, 0.38, 1)[0][0]
+        put_text(canvas, term, x + 18, 43, 0.38)
+        x += 26 + text_size(term, 0.38)[0]
     cv2.line(canvas, (x, 38), (x + 16, 38), BLACK, 3)
-    _put(canvas, "measured", x + 20, 43, 0.38)
+    put_text(canvas, "measured", x + 20, 43, 0.38)
     return canvas
 
 
@@ -113,10 +114,10 @@ def _map_panel(plane: np.ndarray, value_range: tuple[float, float], target_index
         x, y = int(round(index[col_axis] * scale)), int(round(index[row_axis] * scale))
         cv2.drawMarker(rgb, (x, y), (0, 0, 0), cv2.MARKER_CROSS, 9, 2)
         if label:
-            _put(rgb, fit_text(str(label), LABEL_WIDTH_PX, 0.35), x + 6, y - 4, 0.35, (0, 0, 0))
+            put_text(rgb, fit_text(str(label), LABEL_WIDTH_PX, 0.35), x + 6, y - 4, 0.35, (0, 0, 0))
     panel = np.full((panel_px, panel_px, 3), WHITE, dtype=np.uint8)
     panel[24:24 + rgb.shape[0], 4:4 + rgb.shape[1]] = rgb[: panel_px - 24, : panel_px - 4]
-    _put(panel, title, panel_px / 2, 16, 0.4, align="center")
+    put_text(panel, title, panel_px / 2, 16, 0.4, align="center")
     return panel
 
 
@@ -127,9 +128,9 @@ def _colour_legend(low: float, high: float, width: int) -> np.ndarray:
     for tick in nice_ticks(low, high, 5):
         if low <= tick <= high:
             x = 60 + int(round((tick - low) / (high - low) * (ramp.shape[1] - 1)))
-            _put(legend, f"{tick:g}", x, 34, 0.35, align="center")
-    _put(legend, "mm", 60 + ramp.shape[1] + 10, 17, 0.38)
+            put_text(legend, f"{tick:g}", x, 34, 0.35, align="center")
+    put_text(legend, "mm", 60 + ramp.shape[1] + 10, 17, 0.38)
     levels = ", ".join(f"{v:g}" for v in _iso_levels(low, high))
-    _put(legend, f"predicted RMS TRE; white iso-lines at {levels} mm; + targets", width / 2, 52, 0.35,
+    put_text(legend, f"predicted RMS TRE; white iso-lines at {levels} mm; + targets", width / 2, 52, 0.35,
          align="center")
     return legend

@@ -14,9 +14,10 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-_FONT = cv2.FONT_HERSHEY_SIMPLEX
+from .text import INK, put_text, put_vertical_text, text_size
+
 WHITE = (255, 255, 255)
-BLACK = (30, 30, 30)
+BLACK = INK
 GRID = (225, 225, 225)
 AXIS = (90, 90, 90)
 BAR = (70, 120, 200)
@@ -37,53 +38,20 @@ def nice_ticks(low: float, high: float, count: int = 5) -> np.ndarray:
     return np.round(np.arange(start, stop + step / 2, step), 10)
 
 
-def _text_size(text: str, scale: float) -> tuple[int, int]:
-    (width, height), _ = cv2.getTextSize(text, _FONT, scale, 1)
-    return width, height
-
-
 def fit_text(text: str, max_width_px: float, scale: float = 0.38) -> str:
     """``text`` as it fits in ``max_width_px`` pixels at font ``scale``: whole when it fits, else cut and ended
     with "..." (so that a cut shows; the report's tables hold the whole text). A user's label (a target's, a
     pinhole's) of any length then never runs over its neighbours or squeezes a plot to nothing."""
-    if _text_size(text, scale)[0] <= max_width_px:
+    if text_size(text, scale)[0] <= max_width_px:
         return text
     low, high = 0, len(text)  # the longest prefix that fits with the ellipsis: text[:low]
     while low < high:
         middle = (low + high + 1) // 2
-        if _text_size(text[:middle].rstrip() + "...", scale)[0] <= max_width_px:
+        if text_size(text[:middle].rstrip() + "...", scale)[0] <= max_width_px:
             low = middle
         else:
             high = middle - 1
     return text[:low].rstrip() + "..."
-
-
-def _put(canvas: np.ndarray, text: str, x: float, y: float, scale: float = 0.42, color=BLACK,
-         align: str = "left", thickness: int = 1) -> None:
-    width, _ = _text_size(text, scale)
-    if align == "center":
-        x -= width / 2
-    elif align == "right":
-        x -= width
-    cv2.putText(canvas, text, (int(round(x)), int(round(y))), _FONT, scale, color, thickness, cv2.LINE_AA)
-
-
-def _put_vertical(canvas: np.ndarray, text: str, x_center: float, y_top: float, scale: float = 0.4,
-                  color=BLACK) -> None:
-    """Text rotated 90 degrees counter-clockwise, its right end at ``y_top``, centred on ``x_center``."""
-    width, height = _text_size(text, scale)
-    patch = np.full((height + 6, width + 4, 3), 255, dtype=np.uint8)
-    cv2.putText(patch, text, (2, height + 2), _FONT, scale, (0, 0, 0), 1, cv2.LINE_AA)
-    patch = cv2.rotate(patch, cv2.ROTATE_90_COUNTERCLOCKWISE)
-    h, w = patch.shape[:2]
-    x0 = int(round(x_center - w / 2))
-    y0 = int(round(y_top))
-    x1, y1 = min(canvas.shape[1], x0 + w), min(canvas.shape[0], y0 + h)
-    if x0 < 0 or y0 < 0 or x1 <= x0 or y1 <= y0:
-        return
-    ink = 1.0 - patch[: y1 - y0, : x1 - x0, :1].astype(float) / 255.0
-    region = canvas[y0:y1, x0:x1].astype(float)
-    canvas[y0:y1, x0:x1] = np.round(region * (1 - ink) + np.asarray(color, dtype=float) * ink).astype(np.uint8)
 
 
 def _format_tick(value: float, step: float) -> str:
@@ -116,22 +84,21 @@ class _Axes:
         for tick in self.y_ticks:
             y = int(round(self.y(tick)))
             cv2.line(self.canvas, (self.left, y), (self.right, y), GRID, 1)
-            _put(self.canvas, _format_tick(tick, step), self.left - 6, y + 4, 0.38, align="right")
+            put_text(self.canvas, _format_tick(tick, step), self.left - 6, y + 4, 0.38, align="right")
         cv2.line(self.canvas, (self.left, self.top), (self.left, self.bottom), AXIS, 1)
         cv2.line(self.canvas, (self.left, self.bottom), (self.right, self.bottom), AXIS, 1)
         if y_label:
-            _put_vertical(self.canvas, y_label, 14, (self.top + self.bottom) / 2 - _text_size(y_label, 0.4)[0] / 2,
-                          0.4)
+            put_vertical_text(self.canvas, y_label, 14, (self.top + self.bottom) / 2, 0.4, align="center")
 
     def dashed_hline(self, value: float, color, label: str = "") -> None:
         y = int(round(self.y(value)))
         for x in range(self.left, self.right, 10):
             cv2.line(self.canvas, (x, y), (min(x + 5, self.right), y), color, 1, cv2.LINE_AA)
         if label:
-            text_width, text_height = _text_size(label, 0.36)
+            text_width, text_height = text_size(label, 0.36)
             x1 = self.right - 4
             cv2.rectangle(self.canvas, (x1 - text_width - 3, y - text_height - 7), (x1 + 2, y - 2), WHITE, -1)
-            _put(self.canvas, label, x1, y - 5, 0.36, color, align="right")
+            put_text(self.canvas, label, x1, y - 5, 0.36, color, align="right")
 
 
 def bar_chart(
@@ -156,14 +123,14 @@ def bar_chart(
                      *(np.nan_to_num(overlay_arr).tolist() if overlay_arr is not None else [])])
     ticks = nice_ticks(0.0, top_value * 1.12 if top_value > 0 else 1.0, 5)
     labels = [fit_text(str(lab), height / 3) for lab in labels]  # a vertical label takes at most a third
-    longest = max((_text_size(lab, 0.38)[0] for lab in labels), default=0)
+    longest = max((text_size(lab, 0.38)[0] for lab in labels), default=0)
     n = max(1, len(labels))
     slot = (width - 70 - 20) / n
     vertical_labels = longest > slot - 4
     bottom_margin = (longest + 14) if vertical_labels else 26
     axes = _Axes(canvas, 62, 34, width - 20, height - bottom_margin, (0.0, float(n)), ticks)
     if title:
-        _put(canvas, title, width / 2, 20, 0.5, align="center")
+        put_text(canvas, title, width / 2, 20, 0.5, align="center")
     axes.draw_y_grid(y_label)
     bar_width = max(2.0, slot * 0.7)
     for i, value in enumerate(values):
@@ -180,14 +147,14 @@ def bar_chart(
                 cv2.line(canvas, (cx - 4, ya), (cx + 4, ya), BLACK, 1)
                 cv2.line(canvas, (cx - 4, yb), (cx + 4, yb), BLACK, 1)
             text = value_format.format(value)
-            if _text_size(text, 0.34)[0] < slot:
+            if text_size(text, 0.34)[0] < slot:
                 label_y = axes.y(value + errors_arr[i]) - 5
-                _put(canvas, text, centre, label_y, 0.34, align="center")
+                put_text(canvas, text, centre, label_y, 0.34, align="center")
         label = str(labels[i])
         if vertical_labels:
-            _put_vertical(canvas, label, centre, axes.bottom + 6, 0.38)
+            put_vertical_text(canvas, label, centre, axes.bottom + 6, 0.38)
         else:
-            _put(canvas, label, centre, axes.bottom + 17, 0.38, align="center")
+            put_text(canvas, label, centre, axes.bottom + 17, 0.38, align="center")
     if overlay_arr is not None:
         for i, value in enumerate(overlay_arr):
             if np.isfinite(value):
@@ -197,7 +164,7 @@ def bar_chart(
                          HIGHLIGHT, 3)
         if overlay_label:
             cv2.line(canvas, (axes.left + 10, axes.top + 8), (axes.left + 34, axes.top + 8), HIGHLIGHT, 3)
-            _put(canvas, overlay_label, axes.left + 40, axes.top + 12, 0.38, HIGHLIGHT)
+            put_text(canvas, overlay_label, axes.left + 40, axes.top + 12, 0.38, HIGHLIGHT)
     for value, text in reference_lines:
         axes.dashed_hline(value, REFERENCE, text)
     return canvas
@@ -220,7 +187,7 @@ def line_chart(
     ticks = nice_ticks(max(0.0, y_low - pad) if y_low >= 0 else y_low - pad, y_high + pad, 5)
     axes = _Axes(canvas, 62, 34, width - 20, height - 46, (float(x.min()), float(x.max())), ticks)
     if title:
-        _put(canvas, title, width / 2, 20, 0.5, align="center")
+        put_text(canvas, title, width / 2, 20, 0.5, align="center")
     axes.draw_y_grid(y_label)
     x_ticks = nice_ticks(float(x.min()), float(x.max()), 8)
     x_step = float(x_ticks[1] - x_ticks[0]) if len(x_ticks) > 1 else 1.0
@@ -228,9 +195,9 @@ def line_chart(
         if x.min() - 1e-9 <= tick <= x.max() + 1e-9:
             px = int(round(axes.x(tick)))
             cv2.line(canvas, (px, axes.bottom), (px, axes.bottom + 4), AXIS, 1)
-            _put(canvas, _format_tick(tick, x_step), px, axes.bottom + 17, 0.38, align="center")
+            put_text(canvas, _format_tick(tick, x_step), px, axes.bottom + 17, 0.38, align="center")
     if x_label:
-        _put(canvas, x_label, (axes.left + axes.right) / 2, height - 8, 0.4, align="center")
+        put_text(canvas, x_label, (axes.left + axes.right) / 2, height - 8, 0.4, align="center")
     points = np.stack([[axes.x(a), axes.y(b)] for a, b in zip(x[finite], y[finite], strict=True)])
     cv2.polylines(canvas, [np.round(points * 16).astype(np.int32)], False, LINE, 2, cv2.LINE_AA, 4)
     if marker_x is not None and np.isfinite(marker_x):
@@ -241,6 +208,6 @@ def line_chart(
         cv2.circle(canvas, (px, int(round(axes.y(marker_y)))), 5, HIGHLIGHT, -1, cv2.LINE_AA)
         if marker_label:
             align = "left" if px < (axes.left + axes.right) / 2 else "right"
-            _put(canvas, marker_label, px + (8 if align == "left" else -8), axes.top + 14, 0.4, HIGHLIGHT,
+            put_text(canvas, marker_label, px + (8 if align == "left" else -8), axes.top + 14, 0.4, HIGHLIGHT,
                  align=align)
     return canvas

@@ -24,13 +24,13 @@ import numpy as np
 from ..marker_model import MarkerModel
 from ..transforms import apply_transform, invert_rigid
 from .colors import CALIBRATION, PAIRED, SENSOR, UNPAIRED
+from .text import put_text, recorded_text, relay_text
 
 if TYPE_CHECKING:
     import SimpleITK as sitk
 
 _SHIFT = 4  # OpenCV sub-pixel drawing: coordinates in 1/16 pixel
 _SCALE = 1 << _SHIFT
-_FONT = cv2.FONT_HERSHEY_SIMPLEX
 BACKGROUND = (32, 32, 36)
 #: Pixels per side of one view and their size (mm) in the report's mosaic.
 VIEW_PX = 140
@@ -197,7 +197,7 @@ def draw_marker_overlay(
                  cv2.LINE_AA, _SHIFT)
         cv2.line(view_rgb, (int(cx - arm), int(cy + arm)), (int(cx + arm), int(cy - arm)), CALIBRATION, 1,
                  cv2.LINE_AA, _SHIFT)
-    cv2.putText(view_rgb, name, (3, view_px - 4), _FONT, 0.32, TEXT, 1, cv2.LINE_AA)
+    put_text(view_rgb, name, 3, view_px - 4, 0.32, TEXT)
 
 
 def _window(values: list[np.ndarray]) -> tuple[float, float]:
@@ -244,10 +244,12 @@ def marker_slices_mosaic(
         top = margin + (n // columns) * (tile_h + margin)
         left = margin + (n % columns) * (tile_w + margin)
         caption = marker.caption or marker.label
-        cv2.putText(mosaic, caption, (left + 2, top + 14), _FONT, 0.42, TEXT, 1, cv2.LINE_AA)
+        put_text(mosaic, caption, left + 2, top + 14, 0.42, TEXT)
         for k, values in enumerate(views):
             view_rgb = _to_grey_rgb(values, window)
-            draw_marker_overlay(view_rgb, k, marker, model, mm_per_px)
+            with recorded_text() as view_texts:
+                draw_marker_overlay(view_rgb, k, marker, model, mm_per_px)
             x0 = left + k * (view_px + gap)
+            relay_text(view_texts, x0, top + header)
             mosaic[top + header: top + header + view_px, x0: x0 + view_px] = view_rgb
     return mosaic

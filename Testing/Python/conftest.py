@@ -29,6 +29,7 @@ import signal
 from pathlib import Path
 
 import pytest
+from versions import report_header
 
 from EMRegModule.cli import main
 from EMRegModule.simulation import load_truth, simulate_case
@@ -42,6 +43,11 @@ SMALL_CASE_OPTIONS = {"frame_size_mm": (200.0, 200.0, 110.0), "n_markers": 8, "n
                       "board_rounds": 3, "n_targets": 3}
 
 __all__ = ["CI_CASE_OPTIONS", "load_truth"]
+
+
+def pytest_report_header(config) -> list[str]:
+    """The versions results depend on (Python distributions, DICOM tools, the lock), so a failure carries them."""
+    return report_header()
 
 
 @pytest.fixture(autouse=True)
