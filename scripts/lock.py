@@ -94,14 +94,14 @@ def requirement_block(name: str, lock: Path = LOCK) -> str:
     raise SystemExit(f"{lock.name} does not lock {name}")
 
 
-def check() -> int:
+def check(pyproject: Path = PYPROJECT, lock: Path = LOCK) -> int:
     """0 when the lock was resolved from pyproject.toml as it is now; else one line naming the fix."""
-    if not LOCK.is_file():
-        print(f"{LOCK.name} is missing: run {REFRESH_COMMAND} to make it from pyproject.toml", file=sys.stderr)
+    if not lock.is_file():
+        print(f"{lock.name} is missing: run {REFRESH_COMMAND} to make it from pyproject.toml", file=sys.stderr)
         return 1
-    if recorded_digest() != inputs_digest():
+    if recorded_digest(lock) != inputs_digest(pyproject):
         print(
-            f"{LOCK.name} is out of date with pyproject.toml's dependencies: run {REFRESH_COMMAND} to refresh it",
+            f"{lock.name} is out of date with pyproject.toml's dependencies: run {REFRESH_COMMAND} to refresh it",
             file=sys.stderr,
         )
         return 1
