@@ -18,8 +18,6 @@ import numpy as np
 
 from .settings import DwellSettings
 
-#: A chi-distributed 3D distance with per-axis sigma s has median about 1.538 s.
-_MEDIAN_CHI3 = 1.5382
 #: A still period's ends are trimmed to the samples within this many ``still_radius_mm`` of its median.
 TRIM_FACTOR = 1.5
 

@@ -29,7 +29,7 @@ FRE above ``max_fre_mm`` raises :class:`NoSafeAnswerError`: nothing is written.
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -45,7 +45,7 @@ from .marker_model import MarkerModel
 from .probe_axis import pair_with_probe_axis
 from .sensor_offset import OffsetSolution, solve_sensor_offset
 from .settings import RegistrationSettings, Settings
-from .transforms import apply_transform, is_rigid, residuals
+from .transforms import is_rigid, residuals
 
 #: Name of the ITK transform file written beside ``registration.json``.
 TRANSFORM_FILE = "ReferenceToImage.h5"
@@ -427,11 +427,6 @@ def flag_outliers(pair_residuals: np.ndarray, config: RegistrationSettings) -> n
         return np.zeros(len(pair_residuals), dtype=bool)
     robust_rms = float(np.sqrt(np.median(pair_residuals**2) * 3.0 / _CHI2_3_MEDIAN))
     return (pair_residuals > config.outlier_factor * robust_rms) & (pair_residuals > config.outlier_min_mm)
-
-
-def map_reference_points(result: RegistrationResult, points_reference: Sequence[Sequence[float]]) -> np.ndarray:
-    """Points (N, 3) from the Reference frame into image space with ``ReferenceToImage``."""
-    return apply_transform(result.reference_to_image, np.asarray(points_reference, dtype=float))
 
 
 # --- files -----------------------------------------------------------------------------------

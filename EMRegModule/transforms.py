@@ -113,18 +113,6 @@ def rotation_to_angles(rotation: ArrayLike) -> Array:
     return np.degrees(np.stack([azimuth, elevation, roll], axis=-1))
 
 
-def pose_to_transform(position_mm: ArrayLike, angles_deg: ArrayLike) -> Array:
-    """``SensorToTracker`` 4x4 (N x 4 x 4 for N poses) from trakSTAR position and angles."""
-    position_mm = np.asarray(position_mm, dtype=float)
-    angles_deg = np.asarray(angles_deg, dtype=float)
-    rotation = angles_to_rotation(angles_deg[..., 0], angles_deg[..., 1], angles_deg[..., 2])
-    transform = np.zeros(rotation.shape[:-2] + (4, 4))
-    transform[..., :3, :3] = rotation
-    transform[..., :3, 3] = position_mm
-    transform[..., 3, 3] = 1.0
-    return transform
-
-
 # --- quaternions (w, x, y, z) ------------------------------------------------------------
 
 
@@ -241,12 +229,6 @@ def residuals(a_to_b: ArrayLike, points_a: ArrayLike, points_b: ArrayLike) -> Ar
 def fre(a_to_b: ArrayLike, points_a: ArrayLike, points_b: ArrayLike) -> float:
     """Fiducial registration error: RMS of the pair residuals in mm (paper Eq. 7)."""
     return float(np.sqrt(np.mean(residuals(a_to_b, points_a, points_b) ** 2)))
-
-
-def rotation_angle_deg(rotation_a: ArrayLike, rotation_b: ArrayLike) -> float:
-    """Angle in degrees of the rotation taking ``rotation_a`` to ``rotation_b`` (3x3 each)."""
-    relative = np.asarray(rotation_a, dtype=float)[:3, :3].T @ np.asarray(rotation_b, dtype=float)[:3, :3]
-    return float(np.degrees(np.arccos(np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def angle_between_deg(u: ArrayLike, v: ArrayLike) -> Array:

@@ -140,8 +140,3 @@ def check_ct_image(image: sitk.Image, source: str | os.PathLike[str] = "CT") -> 
     """Every check of this module on an image read in full (geometry, then voxel values)."""
     check_ct_geometry(image, source)
     check_ct_voxels(image, source)
-
-
-def is_float_pixel(pixel_id: int) -> bool:
-    """True for float32 / float64 images (the only ones that can hold non-finite voxels)."""
-    return pixel_id in _FLOAT_TYPES

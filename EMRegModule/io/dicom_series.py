@@ -41,7 +41,6 @@ from ..provenance import BackgroundHash, Digest, file_sha256, folder_members, fo
 from .dicom_header import quick_header
 from .fast_read import VolumeFill, _writable_bytes
 
-_SOP_ENHANCED_CT = "1.2.840.10008.5.1.4.1.1.2.1"
 _PREAMBLE_PROBE_BYTES = 1 << 16  # the header of a file without its DICM marker, read to tell whether it is an image
 _LOCALIZER_TYPES = {"LOCALIZER", "SCOUT", "TOPOGRAM", "SURVIEW", "SCANOGRAM"}
 _TRANSFER_SYNTAX_NAMES = {

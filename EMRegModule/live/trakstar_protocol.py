@@ -25,7 +25,7 @@ and quaternion elements ``value / 32768``. EXAMINE VALUE replies are plain bytes
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -535,5 +535,3 @@ class RecordParser:
                 current.clear()
         return out
 
-
-RecordCallback = Callable[[DecodedRecord], None]

@@ -97,8 +97,6 @@ DEPENDENCIES = {
 #: Without these the workflow cannot run at all; the others only disable one feature.
 ESSENTIAL = ("python", "numpy", "scipy", "SimpleITK", "vtk")
 
-LPS_TO_RAS_DIAGONAL = (-1.0, -1.0, 1.0)
-
 #: EMReg's package needs Python 3.11 (tomllib, zip(strict=...)): 3D Slicer 5.10 and later (Python 3.12);
 #: Slicer 5.8 and older ship Python 3.9. This file itself stays Python 3.9 so old Slicers can say so.
 MINIMUM_PYTHON = (3, 11)
