@@ -30,6 +30,7 @@ from typing import Any
 from . import __version__
 from .errors import EMRegError
 from .io.atomic import atomic_write_json
+from .io.case import CASE_INPUT_NAMES
 from .provenance import RUN_JSON, Provenance, check_belongs, file_sha256, read_manifest
 
 #: The outputs of each stage, in workflow order (a later stage's outputs are stale when an earlier one changes).
@@ -47,10 +48,6 @@ STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
 OTHER_OUTPUTS: tuple[str, ...] = ()
 #: Where earlier outputs are moved.
 PREVIOUS_FOLDER = "previous"
-#: Names a case folder is read from (an output folder equal to the case must not write any of them).
-CASE_INPUT_NAMES = ("ct", "ct.nrrd", "ct.nii.gz", "ct.nii", "ct.mha", "ct.mhd", "calibration.csv", "navigation.csv",
-                    "board.csv", "targets.mrk.json", "case.toml", "calibration.seq.mha", "navigation.seq.mha",
-                    "board.seq.mha")
 
 
 def all_output_names() -> list[str]:

@@ -15,9 +15,17 @@ from ..errors import EMRegError
 from ..settings import Settings, load_settings
 from ..tracking import TrackingRecording
 from .markups import read_markups
+from .recording import RECORDING_SUFFIXES, find_recording
 
 CT_FILE_NAMES = ("ct.nrrd", "ct.nii.gz", "ct.nii", "ct.mha", "ct.mhd", "ct.nhdr")  # .nhdr: 3D Slicer's detached NRRD
 CT_FOLDER_NAME = "ct"
+RECORDING_ROLES = ("calibration", "navigation", "board")
+TARGETS_FILE = "targets.mrk.json"
+SETTINGS_FILE = "case.toml"
+#: Every name a case folder is read from (an output folder equal to the case must write none of them).
+CASE_INPUT_NAMES = (CT_FOLDER_NAME, *CT_FILE_NAMES,
+                    *(role + suffix for role in RECORDING_ROLES for suffix in RECORDING_SUFFIXES),
+                    TARGETS_FILE, SETTINGS_FILE)
 
 
 @dataclass
@@ -72,14 +80,12 @@ def open_case(folder: str | os.PathLike[str]) -> Case:
     def optional(name: str) -> Path | None:
         return folder / name if (folder / name).is_file() else None
 
-    from .recording import find_recording
-
     return Case(
         folder=folder,
         ct=find_ct(folder),
         calibration=find_recording(folder, "calibration"),
         navigation=find_recording(folder, "navigation"),
-        targets=optional("targets.mrk.json"),
+        targets=optional(TARGETS_FILE),
         board=find_recording(folder, "board"),
-        settings=load_settings(folder / "case.toml"),
+        settings=load_settings(folder / SETTINGS_FILE),
     )
