@@ -130,6 +130,32 @@ def _run_loop(source, stop: _StopFlag, duration_s: float | None, done: Callable[
             return "source finished"
 
 
+#: ``(option, attribute, what it must be)`` of the live commands' numeric options: zero or a negative value is
+#: a usage error (exit 2, one line), never a loop that ends at once or never (``--reconnect 0`` keeps its
+#: documented meaning, end at once; ``--max-quality`` -1 means "do not check").
+_POSITIVE_OPTIONS = (("--duration", "duration", "a positive number of seconds"),
+                     ("--max-samples", "max_samples", "a positive number of samples"),
+                     ("--max-records", "max_records", "a positive number of records"),
+                     ("--stale-periods", "stale_periods", "a positive number of sample periods"),
+                     ("--rate", "rate", "a positive rate in Hz"))
+
+
+def check_live_options(args: argparse.Namespace) -> None:
+    """Refuse (:class:`EMRegError`, exit 2, one line) a live command's option outside its range: ``--duration``,
+    ``--max-samples``, ``--max-records``, ``--stale-periods``, ``--rate`` not positive (or not finite), a negative
+    ``--reconnect``, an ``--igtl-port`` outside 0..65535 (0: any free port)."""
+    for option, name, what in _POSITIVE_OPTIONS:
+        value = getattr(args, name, None)
+        if value is not None and not (np.isfinite(value) and value > 0):
+            raise EMRegError(f"{option} {value:g}: give {what}")
+    reconnect = getattr(args, "reconnect", None)
+    if reconnect is not None and not (np.isfinite(reconnect) and reconnect >= 0):
+        raise EMRegError(f"--reconnect {reconnect:g}: give the seconds to try reconnecting (0: end at once)")
+    port = getattr(args, "igtl_port", None)
+    if port is not None and not 0 <= port <= 65535:
+        raise EMRegError(f"--igtl-port {port}: a TCP port is 1..65535 (0: any free port)")
+
+
 def _add_limits(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     parser.add_argument("--max-samples", type=int, default=None, metavar="N", help="stop after N samples / frames")
@@ -204,6 +230,7 @@ def add_sim_tracker_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_sim_tracker(args: argparse.Namespace) -> int:
+    check_live_options(args)
     if args.model == "aurora":
         return _run_aurora_simulator(args)
     from .tracker_simulator import BuiltinScene, FaultPlan, ReplayScene, TrackerSimulator
@@ -297,6 +324,7 @@ def add_record_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_record(args: argparse.Namespace) -> int:
+    check_live_options(args)
     from ..io.sequence_metafile import is_sequence_file
     from .sources import open_source
     from .writers import RecordingWriter, SequenceRecordingWriter
@@ -361,6 +389,7 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_serve(args: argparse.Namespace) -> int:
+    check_live_options(args)
     from .igtl_server import IGTLServer
     from .navigator import TrackerPublisher
     from .sources import open_source
@@ -535,4 +564,5 @@ SUBCOMMANDS = [
      ("publish every tracker sensor over OpenIGTLink (ReferenceToTracker, ProbeToTracker, STATUS)")),
 ]
 
-__all__ = ["SUBCOMMANDS", "add_live_navigate_arguments", "run_live_navigate", "load_registration"]
+__all__ = ["SUBCOMMANDS", "add_live_navigate_arguments", "check_live_options", "run_live_navigate",
+           "load_registration"]
