@@ -593,7 +593,12 @@ class TrackerSimulator(PtyDevice):
             period_ns = int(frame_bytes * self.byte_ns)
             tick_ns = max(tick_ns, self._line_free_ns)
         self._next_tick_ns = tick_ns + period_ns
-        if self._next_tick_ns < now - 10 * period_ns:  # fell far behind (descheduled): do not burst
+        # the device measures on its own clock whatever the host does: the cycles a descheduled simulator owes
+        # are sent late, in order, each with the pose of its own time (to the client, a reader that was late);
+        # only beyond MAX_CATCH_UP_S are they given up, and counted
+        behind = (now - self._next_tick_ns) // period_ns
+        if behind > MAX_CATCH_UP_S * 1e9 // period_ns:
+            self.skipped_measurements += int(behind) + 1
             self._next_tick_ns = now + period_ns
             tick_ns = now
         if self.sleeping or self._stall_active(now) or self._line_free_ns > tick_ns + period_ns // 2:
