@@ -315,8 +315,9 @@ class HoldBack:
     ``min_records`` records) and while a pose waits for the jump test's confirmation (a sensor's first pose,
     the first after a jump); they are passed on (``emit(sample)``) once the link is judged good and the next
     pose of that sensor confirmed them, and dropped when the jump test gives them up (the next pose agrees with
-    the old place: an outlier), when the next sample of the sensor has no pose, or when the link alarm goes off
-    (everything held then is dropped too). Samples without a pose (sensor not attached, out of range) pass as
+    the old place: an outlier), when the next sample of the sensor has no pose or ``max_queued`` samples of
+    other sensors queue behind it (its sensor stopped sending), or when the link alarm goes off (everything
+    held then is dropped too). Samples without a pose (sensor not attached, out of range) pass as
     they are, for the writer to judge. Nothing the guard refuses is ever passed on; what is still held at
     :meth:`close` is dropped.
     """
@@ -327,6 +328,9 @@ class HoldBack:
         self._queue: deque[list] = deque()  # [sample, ready, dropped] in arrival order
         self._held: dict[int, list[list]] = {}  # sensor -> its entries waiting for the jump test
         self.dropped = 0
+        #: samples queued behind a pose waiting for confirmation before it is given up: twice the records
+        #: the link needs to be judged
+        self.max_queued = 2 * guard.monitor.min_records
 
     def push(self, sample) -> LinkState:
         """Judge one sample, pass on what is ready; returns the link's state after it."""
@@ -344,7 +348,7 @@ class HoldBack:
             else:
                 for waiting in held:
                     waiting[1 if outcome == CONFIRMED else 2] = True
-                    self.dropped += outcome != CONFIRMED
+                self.dropped += 0 if outcome == CONFIRMED else len(held)
             if outcome in (NEW_CANDIDATE, MORE_CANDIDATE):
                 entry[1] = False
                 self._held.setdefault(sample.sensor, []).append(entry)
@@ -355,9 +359,19 @@ class HoldBack:
                 waiting[2] = True
                 self.dropped += 1
         self._queue.append(entry)
+        self._pop_dropped()
+        while len(self._queue) > self.max_queued and not self._queue[0][1]:  # a held pose blocks the queue
+            for waiting in self._held.pop(self._queue[0][0].sensor, []):  # its sensor has sent nothing since
+                waiting[2] = True
+                self.dropped += 1
+            self._pop_dropped()
         if state.ok:
             self._flush()
         return state
+
+    def _pop_dropped(self) -> None:
+        while self._queue and self._queue[0][2]:
+            self._queue.popleft()
 
     def _flush(self) -> None:
         while self._queue and (self._queue[0][1] or self._queue[0][2]):

@@ -94,11 +94,14 @@ def test_hold_back_passes_on_in_order_only_what_the_guard_confirmed():
         counts[0] += 2 if frame == 0 else 100  # the link judged from frame 1 on; one failure is no alarm
         held.push(_sample(1, frame, [300, 0, 0]))
         held.push(_sample(2, frame, probe))
+        if frame == 0:  # a sensor that sends one pose, then nothing: it must not block the others
+            held.push(_sample(3, frame, [-200, 0, 0]))
     held.close()
     # frames 0-1: held while the link is judged and the first probe pose waits, then passed on; 3: an outlier
-    # (frame 4 is back on the path) dropped; 5: a real jump, passed on once frame 6 confirmed it
+    # (frame 4 is back on the path) dropped; 5: a real jump, passed on once frame 6 confirmed it; port 3's
+    # unconfirmed pose given up once max_queued samples waited behind it
     assert written == [(f, s) for f in range(7) for s in (1, 2) if (f, s) != (3, 2)]
-    assert held.dropped == 1
+    assert held.dropped == 2 and held.max_queued < 14
 
 
 # --- an unusable recording is no success ------------------------------------------------------------------------
