@@ -200,9 +200,9 @@ def cmd_register(args: argparse.Namespace) -> int:
 
 
 def cmd_navigate(args: argparse.Namespace) -> int:
+    live.check_live_options(args)  # replay or live: a value out of range is refused before anything is made
     _out_folder(args.out)
-    live = args.igtl_port is not None or not args.source.startswith("replay:")
-    if live:
+    if args.igtl_port is not None or not args.source.startswith("replay:"):
         from .live.commands import run_live_navigate
 
         return run_live_navigate(args)

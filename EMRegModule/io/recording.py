@@ -10,10 +10,12 @@ default ``ReferenceToTracker`` / ``ProbeToTracker``).
 from __future__ import annotations
 
 import os
+import stat
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from ..errors import EMRegError
 from ..settings import Settings
 from ..tracking import TrackingRecording
 from .sequence_metafile import (
@@ -48,7 +50,9 @@ def read_recording(path: str | os.PathLike[str], settings: Settings | Mapping[st
                    reference_port: int | None = None, probe_port: int | None = None) -> TrackingRecording:
     """Read a tracking recording (CSV or sequence metafile, by its name). ``settings``: the parsed
     ``case.toml`` (its ``[sensors]`` table; typed or a mapping); the ports override ``[sensors]
-    reference`` / ``probe``."""
+    reference`` / ``probe``. A FIFO, device or socket is refused (:class:`EMRegError`) before it is
+    opened: reading one would wait for a writer, or never end."""
+    _refuse_special_file(path)
     if is_sequence_file(path):
         return read_sequence_metafile(path, **_names(settings, reference_port, probe_port))
     if Path(path).is_dir():  # 3D Slicer's recording: one sequence file per transform
@@ -56,6 +60,17 @@ def read_recording(path: str | os.PathLike[str], settings: Settings | Mapping[st
 
         return read_sequence_folder(path, **_names(settings, reference_port, probe_port))
     return read_tracking_csv(path)
+
+
+def _refuse_special_file(path: str | os.PathLike[str]) -> None:
+    """Refuse (one line, exit 2) a path that is neither a regular file nor a folder; a missing one is left to
+    the readers, which say so."""
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise EMRegError(f"{path}: not a regular file (a FIFO, device or socket); give the recording's file")
 
 
 def write_recording(recording: TrackingRecording, path: str | os.PathLike[str], settings: Settings | None = None,

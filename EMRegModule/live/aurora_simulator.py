@@ -66,7 +66,7 @@ import numpy as np
 from ..errors import EMRegError
 from ..transforms import rotation_to_quaternion
 from . import ndi_protocol as ndi
-from .tracker_simulator import BuiltinScene, PtyDevice, ReplayScene
+from .tracker_simulator import BuiltinScene, PtyDevice, ReplayScene, fault_probability, fault_stall, fault_window
 
 #: Measuring rate of the simulated Aurora (choice: 40 Hz, the Aurora's nominal update rate).
 DEFAULT_RATE_HZ = 40.0
@@ -132,6 +132,10 @@ def parse_tools(text: str) -> list[AuroraTool]:
     return tools
 
 
+#: Highest sensor number a fault window may name: port 1..4, +4 for channel 1 of a splitter.
+MAX_SENSOR = 2 * len(ndi.AURORA_PORTS)
+
+
 @dataclass
 class AuroraFaults:
     """Faults to inject (probabilities per byte or per reply; windows in seconds after start)."""
@@ -153,21 +157,18 @@ class AuroraFaults:
             kind = kind.strip().lower().replace("_", "-")
             try:
                 if kind in ("drop", "flip", "crc"):
-                    setattr(plan, kind, float(value))
+                    setattr(plan, kind, fault_probability(value))
                 elif kind == "stall":
-                    every, _, duration = value.partition(":")
-                    plan.stall_every_s, plan.stall_s = float(every), float(duration or 0.2)
+                    plan.stall_every_s, plan.stall_s = fault_stall(value)
                 elif kind in cls.KINDS:
-                    port, _, window = value.partition("@")
-                    start, _, end = window.partition("-")
-                    plan.windows.setdefault(kind, []).append(
-                        (int(port), float(start or 0.0), float(end) if end else float("inf")))
+                    plan.windows.setdefault(kind, []).append(fault_window(value, MAX_SENSOR))
                 else:
                     raise ValueError(kind)
             except ValueError:
                 raise EMRegError(f"--fault {item!r}: for the Aurora use drop=P, flip=P, crc=P, stall=EVERY_S:S, "
                                  "missing=SENSOR@START-END, out-of-range=..., partly-out=..., unplug=..., "
-                                 "distort=...") from None
+                                 f"distort=... (P a probability 0..1, seconds positive, SENSOR 1..{MAX_SENSOR}, "
+                                 "0 <= START < END)") from None
         return plan
 
 

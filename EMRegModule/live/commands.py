@@ -25,7 +25,7 @@ from ..errors import EMRegError
 from ..transforms import is_rigid
 from . import trakstar_protocol as tp
 from .igtl_server import DEFAULT_PORT
-from .link_quality import guard_for
+from .link_quality import HoldBack, guard_for
 from .port_check import SensorPortsError
 
 if TYPE_CHECKING:
@@ -130,6 +130,32 @@ def _run_loop(source, stop: _StopFlag, duration_s: float | None, done: Callable[
             return "source finished"
 
 
+#: ``(option, attribute, what it must be)`` of the live commands' numeric options: zero or a negative value is
+#: a usage error (exit 2, one line), never a loop that ends at once or never (``--reconnect 0`` keeps its
+#: documented meaning, end at once; ``--max-quality`` -1 means "do not check").
+_POSITIVE_OPTIONS = (("--duration", "duration", "a positive number of seconds"),
+                     ("--max-samples", "max_samples", "a positive number of samples"),
+                     ("--max-records", "max_records", "a positive number of records"),
+                     ("--stale-periods", "stale_periods", "a positive number of sample periods"),
+                     ("--rate", "rate", "a positive rate in Hz"))
+
+
+def check_live_options(args: argparse.Namespace) -> None:
+    """Refuse (:class:`EMRegError`, exit 2, one line) a live command's option outside its range: ``--duration``,
+    ``--max-samples``, ``--max-records``, ``--stale-periods``, ``--rate`` not positive (or not finite), a negative
+    ``--reconnect``, an ``--igtl-port`` outside 0..65535 (0: any free port)."""
+    for option, name, what in _POSITIVE_OPTIONS:
+        value = getattr(args, name, None)
+        if value is not None and not (np.isfinite(value) and value > 0):
+            raise EMRegError(f"{option} {value:g}: give {what}")
+    reconnect = getattr(args, "reconnect", None)
+    if reconnect is not None and not (np.isfinite(reconnect) and reconnect >= 0):
+        raise EMRegError(f"--reconnect {reconnect:g}: give the seconds to try reconnecting (0: end at once)")
+    port = getattr(args, "igtl_port", None)
+    if port is not None and not 0 <= port <= 65535:
+        raise EMRegError(f"--igtl-port {port}: a TCP port is 1..65535 (0: any free port)")
+
+
 def _add_limits(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     parser.add_argument("--max-samples", type=int, default=None, metavar="N", help="stop after N samples / frames")
@@ -161,16 +187,23 @@ def _say(args: argparse.Namespace, text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
 
-def _report_framing(args: argparse.Namespace, source) -> None:
+def _framing_text(source) -> str | None:
+    """The tracker driver's framing counters in one line (None for a source without a serial link)."""
     if hasattr(source, "framing_summary"):  # the Aurora's own counters
-        _say(args, source.framing_summary())
-        return
+        return source.framing_summary().removeprefix("[emreg] ")
     driver = getattr(source, "driver", None)
-    if driver is not None:
-        st = driver.stats
-        _say(args, f"[emreg] trakSTAR records: {st.records} accepted, {st.rejected} rejected "
-                   f"(phase {st.phase_errors}, address {st.address_errors}, follow {st.follow_errors}, "
-                   f"gap {st.gap_errors}, values {st.value_errors}), {st.stray_bytes} stray bytes")
+    if driver is None:
+        return None
+    st = driver.stats
+    return (f"trakSTAR records: {st.records} accepted, {st.rejected} rejected (phase {st.phase_errors}, address "
+            f"{st.address_errors}, follow {st.follow_errors}, gap {st.gap_errors}, values {st.value_errors}), "
+            f"{st.stray_bytes} stray bytes")
+
+
+def _report_framing(args: argparse.Namespace, source) -> None:
+    text = _framing_text(source)
+    if text is not None:
+        _say(args, f"[emreg] {text}")
 
 
 # --- emreg sim-tracker -------------------------------------------------------------------------
@@ -204,6 +237,7 @@ def add_sim_tracker_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_sim_tracker(args: argparse.Namespace) -> int:
+    check_live_options(args)
     if args.model == "aurora":
         return _run_aurora_simulator(args)
     from .tracker_simulator import BuiltinScene, FaultPlan, ReplayScene, TrackerSimulator
@@ -289,7 +323,9 @@ def add_record_arguments(parser: argparse.ArgumentParser) -> None:
                              "replay:FILE.csv")
     parser.add_argument("--out", required=True, metavar="rec.csv",
                         help="tracking CSV to write (flushed every second), or a PLUS sequence metafile "
-                             "rec.seq.mha (written at the end; samples kept meanwhile in rec.seq.mha.partial.csv)")
+                             "rec.seq.mha (written at the end; samples kept meanwhile in rec.seq.mha.partial.csv); "
+                             f"a recording whose reference or probe has under {100 * MIN_RECORDED_SHARE:g} %% of "
+                             "the expected samples exits 3 and is removed, or moved to OUT.incomplete")
     parser.add_argument("--reference-sensor", type=int, default=None, metavar="PORT")
     parser.add_argument("--probe-sensor", type=int, default=None, metavar="PORT")
     _add_limits(parser)
@@ -297,6 +333,7 @@ def add_record_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_record(args: argparse.Namespace) -> int:
+    check_live_options(args)
     from ..io.sequence_metafile import is_sequence_file
     from .sources import open_source
     from .writers import RecordingWriter, SequenceRecordingWriter
@@ -308,39 +345,90 @@ def run_record(args: argparse.Namespace) -> int:
     source = open_source(args.device, reference, probe, fast=args.fast, loop=args.loop)
     writer = (SequenceRecordingWriter(args.out, reference_port=reference, probe_port=probe)
               if is_sequence_file(args.out) else RecordingWriter(args.out))
+    rows = {reference: 0, probe: 0}
     count = [0]
-    guard = guard_for(source)
-    paused = [False]
     lock = threading.Lock()
+
+    def write(sample) -> None:
+        if args.max_samples is not None and count[0] >= args.max_samples:
+            return  # the reader may deliver more before the loop below stops it
+        if writer.write_sample(sample):
+            count[0] += 1
+            if sample.sensor in rows:
+                rows[sample.sensor] += 1
+
+    guard = guard_for(source)
+    held = HoldBack(guard, write) if guard is not None else None  # nothing a clean link delivered is lost
+    paused = [False]
 
     def on_sample(sample) -> None:
         with lock:
-            if args.max_samples is not None and count[0] >= args.max_samples:
-                return  # the reader may deliver more before the loop below stops it
-            if guard is not None:
-                admitted = guard.admit(sample)
-                state = guard.state()
-                alarm = guard.monitor.alarm
-                if alarm != paused[0]:  # the link went bad or came back
-                    paused[0] = alarm
-                    _say(args, f"[emreg] record: {'not recording' if alarm else 'recording again'}: {state.message}")
-                if not (admitted and state.ok):
-                    return
-            if writer.write_sample(sample):
-                count[0] += 1
+            if held is None:
+                write(sample)
+                return
+            state = held.push(sample)
+            if guard.monitor.alarm != paused[0]:  # the link went bad or came back
+                paused[0] = guard.monitor.alarm
+                _say(args, f"[emreg] record: {'not recording' if paused[0] else 'recording again'}: {state.message}")
 
     _say(args, f"[emreg] recording {source.description} -> {args.out}")
     try:
         with _StopFlag() as stop:
+            started = time.monotonic()
             source.start(on_sample)
             why = _run_loop(source, stop, args.duration,
                             lambda: args.max_samples is not None and count[0] >= args.max_samples)
+            elapsed_s = time.monotonic() - started
     finally:
         source.stop()
+        with lock:
+            if held is not None:
+                held.close()
         writer.close()
+    _refuse_short_recording(args.out, writer, source, guard, rows, (reference, probe),
+                            None if why == "sample limit reached" else elapsed_s)
     print(f"{writer.rows} samples recorded -> {args.out} ({why})")
     _report_framing(args, source)
     return 0
+
+
+#: Share of the expected samples (the frames a replay sent; else the measurement cycles the tracker's rate gives
+#: over the recording's time) that the reference and the probe must each reach for ``emreg record`` to succeed.
+#: A clean link delivers all of them (measured: 100 %); under the link alarm nothing is recorded, and a
+#: recording missing more than half its samples is more gap than recording (dwells cut short, motion unseen):
+#: exit 3, never a success.
+MIN_RECORDED_SHARE = 0.5
+
+
+def _refuse_short_recording(out: str, writer, source, guard, rows: dict[int, int], ports: tuple[int, int],
+                            elapsed_s: float | None) -> None:
+    """Exit 3 (:class:`NoSafeAnswerError`, one line with the link guard's figures) when the reference or the probe
+    has no sample or (``elapsed_s`` given: the recording was not ended by its sample limit) fewer than
+    :data:`MIN_RECORDED_SHARE` of those expected; the file at ``out`` is then removed (no usable row) or moved
+    aside to ``out.incomplete``."""
+    from ..errors import NoSafeAnswerError
+
+    expected = 0
+    if elapsed_s is not None:
+        period_s = getattr(source, "period_s", None)
+        expected = getattr(source, "frames_sent", None) or (int(elapsed_s / period_s) if period_s else 0)
+    fewest = min(rows[port] for port in ports)
+    if fewest > 0 and fewest >= MIN_RECORDED_SHARE * expected:
+        return
+    target = Path(getattr(writer, "target", writer.path))
+    kept = ""
+    if writer.rows:
+        target.replace(target.with_name(target.name + ".incomplete"))
+        kept = f"; what was recorded is kept as {target.name}.incomplete"
+    else:
+        target.unlink(missing_ok=True)
+    of = f" of {expected} expected ({100 * MIN_RECORDED_SHARE:g} % needed)" if expected else ""
+    cause = guard.summary() if guard is not None else f"as {source.description} delivered them (no link guard)"
+    framing = _framing_text(source)
+    reference, probe = ports
+    raise NoSafeAnswerError(f"{out}: not a usable recording: {rows[reference]} reference (port {reference}) and "
+                            f"{rows[probe]} probe (port {probe}) samples{of}; {cause}"
+                            + (f"; {framing}" if framing else "") + kept)
 
 
 # --- emreg serve ------------------------------------------------------------------------------
@@ -361,6 +449,7 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_serve(args: argparse.Namespace) -> int:
+    check_live_options(args)
     from .igtl_server import IGTLServer
     from .navigator import TrackerPublisher
     from .sources import open_source
@@ -535,4 +624,5 @@ SUBCOMMANDS = [
      ("publish every tracker sensor over OpenIGTLink (ReferenceToTracker, ProbeToTracker, STATUS)")),
 ]
 
-__all__ = ["SUBCOMMANDS", "add_live_navigate_arguments", "run_live_navigate", "load_registration"]
+__all__ = ["SUBCOMMANDS", "add_live_navigate_arguments", "check_live_options", "run_live_navigate",
+           "load_registration"]

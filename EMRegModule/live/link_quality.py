@@ -151,10 +151,19 @@ class LinkQualityMonitor:
         return LinkState(True, fraction, judged, f"tracker link good ({100 * fraction:.1f} % of records failed)")
 
 
+#: :attr:`JumpFilter.outcome` of the last :meth:`JumpFilter.check`: the pose follows the sensor's anchor (a
+#: candidate waiting for confirmation, if any, was an outlier); it confirmed the waiting candidate (whose poses
+#: are therefore genuine too); it starts a new candidate (an earlier one, if any, is given up); it adds to the
+#: waiting candidate (``confirm`` > 1); its numbers are not finite.
+ANCHORED, CONFIRMED, NEW_CANDIDATE, MORE_CANDIDATE, NOT_FINITE = "anchored", "confirmed", "new", "more", "not finite"
+
+
 class JumpFilter:
     """Rejects poses that move faster than a hand can (per sensor; see module docstring).
 
-    ``check(sensor, time_s, position_mm, rotation)`` returns True when the pose may be used.
+    ``check(sensor, time_s, position_mm, rotation)`` returns True when the pose may be used; ``outcome`` then
+    says why (one of :data:`ANCHORED`, :data:`CONFIRMED`, :data:`NEW_CANDIDATE`, :data:`MORE_CANDIDATE`,
+    :data:`NOT_FINITE`).
     """
 
     def __init__(self, max_speed_mm_s: float = DEFAULT_MAX_SPEED_MM_S, noise_mm: float = DEFAULT_NOISE_MM,
@@ -174,6 +183,7 @@ class JumpFilter:
         self.rejected = 0
         self.accepted = 0
         self.max_speed_seen_mm_s = 0.0
+        self.outcome = NOT_FINITE
 
     def anchored(self, sensor: int) -> bool:
         """True when the sensor has an accepted pose to compare the next one with."""
@@ -211,6 +221,7 @@ class JumpFilter:
     def check(self, sensor: int, time_s: float, position_mm: np.ndarray, rotation: np.ndarray | None) -> bool:
         """True when the pose is credible after the sensor's last accepted one (then it becomes the anchor)."""
         position = np.asarray(position_mm, dtype=float)
+        self.outcome = NOT_FINITE
         if not np.all(np.isfinite(position)):
             return False
         anchor = self._anchor.get(sensor)
@@ -224,6 +235,7 @@ class JumpFilter:
             self._anchor[sensor] = (time_s, position, rotation)
             self._candidate.pop(sensor, None)
             self.accepted += 1
+            self.outcome = ANCHORED
             return True
         # no anchor, or a jump: accept only once ``confirm`` later poses agree with this new place
         candidate = self._candidate.get(sensor)
@@ -234,10 +246,13 @@ class JumpFilter:
                 self._velocity.pop(sensor, None)  # a new anchor: no velocity to predict with yet
                 self._candidate.pop(sensor, None)
                 self.accepted += 1
+                self.outcome = CONFIRMED
                 return True
             self._candidate[sensor] = (time_s, position, rotation, count)
+            self.outcome = MORE_CANDIDATE
         else:
             self._candidate[sensor] = (time_s, position, rotation, 0)
+            self.outcome = NEW_CANDIDATE
         if anchor is not None:
             self.rejected += 1
         return False
@@ -281,6 +296,99 @@ class LinkGuard:
     def state(self) -> LinkState:
         self.refresh()
         return self.monitor.state()
+
+    def summary(self) -> str:
+        """The guard's figures in one line: its verdict now, the worst failed share of a window, the alarms and
+        the poses the jump test refused."""
+        monitor = self.monitor
+        return (f"link guard: {self.state().message}; at worst {100 * monitor.max_fraction:.0f} % of "
+                f"{monitor.window} records failed, {monitor.alarms} alarm(s), {self.jump.rejected} pose(s) "
+                "refused by the jump test")
+
+
+class HoldBack:
+    """Samples passed on in arrival order once a :class:`LinkGuard` has judged them, for a recording that must
+    not lose what a clean link delivered.
+
+    Publishing live, a pose the guard cannot judge yet is withheld for good; a recording can wait for the
+    verdict instead. So samples are held, in order, while the link is still being judged (its first
+    ``min_records`` records) and while a pose waits for the jump test's confirmation (a sensor's first pose,
+    the first after a jump); they are passed on (``emit(sample)``) once the link is judged good and the next
+    pose of that sensor confirmed them, and dropped when the jump test gives them up (the next pose agrees with
+    the old place: an outlier), when the next sample of the sensor has no pose or ``max_queued`` samples of
+    other sensors queue behind it (its sensor stopped sending), or when the link alarm goes off (everything
+    held then is dropped too). Samples without a pose (sensor not attached, out of range) pass as
+    they are, for the writer to judge. Nothing the guard refuses is ever passed on; what is still held at
+    :meth:`close` is dropped.
+    """
+
+    def __init__(self, guard: LinkGuard, emit) -> None:
+        self.guard = guard
+        self.emit = emit
+        self._queue: deque[list] = deque()  # [sample, ready, dropped] in arrival order
+        self._held: dict[int, list[list]] = {}  # sensor -> its entries waiting for the jump test
+        self.dropped = 0
+        #: samples queued behind a pose waiting for confirmation before it is given up: twice the records
+        #: the link needs to be judged
+        self.max_queued = 2 * guard.monitor.min_records
+
+    def push(self, sample) -> LinkState:
+        """Judge one sample, pass on what is ready; returns the link's state after it."""
+        admitted = self.guard.admit(sample)
+        state = self.guard.state()
+        if self.guard.monitor.alarm:  # a corrupt link: nothing held, nothing new
+            self._drop_all()
+            return state
+        entry = [sample, True, False]
+        if sample.valid:
+            outcome = self.guard.jump.outcome
+            held = self._held.pop(sample.sensor, [])
+            if outcome == MORE_CANDIDATE:
+                self._held[sample.sensor] = held
+            else:
+                for waiting in held:
+                    waiting[1 if outcome == CONFIRMED else 2] = True
+                self.dropped += 0 if outcome == CONFIRMED else len(held)
+            if outcome in (NEW_CANDIDATE, MORE_CANDIDATE):
+                entry[1] = False
+                self._held.setdefault(sample.sensor, []).append(entry)
+            elif not admitted:
+                return state
+        else:
+            for waiting in self._held.pop(sample.sensor, []):
+                waiting[2] = True
+                self.dropped += 1
+        self._queue.append(entry)
+        self._pop_dropped()
+        while len(self._queue) > self.max_queued and not self._queue[0][1]:  # a held pose blocks the queue
+            for waiting in self._held.pop(self._queue[0][0].sensor, []):  # its sensor has sent nothing since
+                waiting[2] = True
+                self.dropped += 1
+            self._pop_dropped()
+        if state.ok:
+            self._flush()
+        return state
+
+    def _pop_dropped(self) -> None:
+        while self._queue and self._queue[0][2]:
+            self._queue.popleft()
+
+    def _flush(self) -> None:
+        while self._queue and (self._queue[0][1] or self._queue[0][2]):
+            sample, _, dropped = self._queue.popleft()
+            if not dropped:
+                self.emit(sample)
+
+    def _drop_all(self) -> None:
+        self.dropped += sum(1 for entry in self._queue if not entry[2])
+        self._queue.clear()
+        self._held.clear()
+
+    def close(self) -> None:
+        """Pass on what is ready (the link judged good), drop what still waits."""
+        if self.guard.state().ok:
+            self._flush()
+        self._drop_all()
 
 
 def guard_for(source) -> LinkGuard | None:

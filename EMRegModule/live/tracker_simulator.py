@@ -144,6 +144,35 @@ class ReplayScene:
 # --- faults ---------------------------------------------------------------------------------
 
 
+def fault_probability(value: str) -> float:
+    """A ``--fault`` probability (per byte or per reply): a number in 0..1, else ValueError."""
+    probability = float(value)
+    if not 0.0 <= probability <= 1.0:
+        raise ValueError(value)
+    return probability
+
+
+def fault_stall(value: str) -> tuple[float, float]:
+    """``EVERY_S:DURATION_S`` of a ``--fault stall=``: both positive and finite (DURATION_S default 0.2), else
+    ValueError."""
+    every, _, duration = value.partition(":")
+    every_s, stall_s = float(every), float(duration or 0.2)
+    if not (0.0 < every_s < float("inf") and 0.0 < stall_s < float("inf")):
+        raise ValueError(value)
+    return every_s, stall_s
+
+
+def fault_window(value: str, max_sensor: int) -> tuple[int, float, float]:
+    """``SENSOR@START-END`` of a ``--fault`` (seconds after start; no END: to the end) as ``(sensor, start_s, end_s)``;
+    ValueError unless 1 <= SENSOR <= ``max_sensor`` and 0 <= START < END."""
+    sensor, _, window = value.partition("@")
+    start, _, end = window.partition("-")
+    entry = (int(sensor), float(start or 0.0), float(end) if end else float("inf"))
+    if not (1 <= entry[0] <= max_sensor and 0.0 <= entry[1] < entry[2]):
+        raise ValueError(value)
+    return entry
+
+
 @dataclass
 class FaultPlan:
     """Faults to inject. Probabilities are per byte sent; windows are seconds after start.
@@ -182,30 +211,29 @@ class FaultPlan:
             kind = kind.strip().lower().replace("_", "-")
             try:
                 if kind in ("drop", "flip", "corrupt"):
-                    setattr(plan, kind, float(value))
+                    setattr(plan, kind, fault_probability(value))
                 elif kind == "stall":
-                    every, _, duration = value.partition(":")
-                    plan.stall_every_s, plan.stall_s = float(every), float(duration or 0.2)
+                    plan.stall_every_s, plan.stall_s = fault_stall(value)
                 elif kind == "late":
                     probability, _, delay = value.partition(":")
-                    plan.late, plan.late_s = float(probability), float(delay or 0.2)
-                    if not (0.0 <= plan.late <= 1.0 and plan.late_s >= 0.0):
+                    plan.late, plan.late_s = fault_probability(probability), float(delay or 0.2)
+                    if not 0.0 <= plan.late_s < float("inf"):
                         raise ValueError(kind)
                 elif kind in ("unplug", "out-of-range", "distort"):
-                    sensor, _, window = value.partition("@")
-                    start, _, end = window.partition("-")
-                    entry = (int(sensor), float(start or 0.0), float(end) if end else float("inf"))
                     {"unplug": plan.unplugged, "out-of-range": plan.out_of_range,
-                     "distort": plan.distorted}[kind].append(entry)
+                     "distort": plan.distorted}[kind].append(fault_window(value, tp.MAX_SENSORS))
                 else:
                     raise ValueError(kind)
             except ValueError:
                 raise EMRegError(
                     f"--fault {item!r}: use drop=P, flip=P, corrupt=P, stall=EVERY_S:DURATION_S, late=P:DELAY_S, "
-                    "unplug=SENSOR@START-END, "
-                    "out-of-range=SENSOR@START-END or distort=SENSOR@START-END") from None
+                    "unplug=SENSOR@START-END, out-of-range=SENSOR@START-END or distort=SENSOR@START-END "
+                    f"(P a probability 0..1, seconds positive, SENSOR 1..{tp.MAX_SENSORS}, 0 <= START < END)") from None
         return plan
 
+
+#: Longest delay (s) of a descheduled simulator whose STREAM cycles are still sent late; older ones are skipped.
+MAX_CATCH_UP_S = 1.0
 
 #: METAL byte the simulator sends for a distorted sensor (the scale runs 0 = clean .. 127).
 DISTORTED_METAL = 90
@@ -270,7 +298,15 @@ class PtyDevice:
             self._close_fds()
             raise EMRegError(f"--link {self.link}: a file of that name exists and is not a symbolic link; "
                              "choose another path")
-        os.symlink(self.path, self.link)
+        folder = self.link.parent
+        if not folder.is_dir():
+            self._close_fds()
+            raise EMRegError(f"--link {self.link}: the folder {folder} does not exist; make it or choose another path")
+        try:
+            os.symlink(self.path, self.link)
+        except OSError as exc:  # named after the link, never the pty it points to
+            self._close_fds()
+            raise EMRegError(f"--link {self.link}: cannot make the link ({exc.strerror or exc})") from None
 
     def _close_fds(self) -> None:
         for fd in (self.master_fd, self.slave_fd):
@@ -557,7 +593,12 @@ class TrackerSimulator(PtyDevice):
             period_ns = int(frame_bytes * self.byte_ns)
             tick_ns = max(tick_ns, self._line_free_ns)
         self._next_tick_ns = tick_ns + period_ns
-        if self._next_tick_ns < now - 10 * period_ns:  # fell far behind (descheduled): do not burst
+        # the device measures on its own clock whatever the host does: the cycles a descheduled simulator owes
+        # are sent late, in order, each with the pose of its own time (to the client, a reader that was late);
+        # only beyond MAX_CATCH_UP_S are they given up, and counted
+        behind = (now - self._next_tick_ns) // period_ns
+        if behind > MAX_CATCH_UP_S * 1e9 // period_ns:
+            self.skipped_measurements += int(behind) + 1
             self._next_tick_ns = now + period_ns
             tick_ns = now
         if self.sleeping or self._stall_active(now) or self._line_free_ns > tick_ns + period_ns // 2:
