@@ -89,6 +89,15 @@ class RegistrationResult:
     #: The tracker ports of the calibration the registration was made from (None: an older file without them).
     reference_sensor: int | None = None
     probe_sensor: int | None = None
+    #: Registered onto fiducial points (``emreg register --fiducials``): where they came from, the points (mm, the
+    #: fiducials' frame) and how the calibration points were taken (:mod:`EMRegModule.fiducial_registration`);
+    #: None for the CT markers' pinhole route.
+    fiducials: dict[str, Any] | None = None
+
+    @property
+    def point_fit(self) -> bool:
+        """True for a plain rigid point fit onto fiducials (no sensor offset l: ``sensor_offset_l_mm`` is 0)."""
+        return self.fiducials is not None
 
     @property
     def outliers(self) -> list[str]:
@@ -125,6 +134,8 @@ class RegistrationResult:
             document["predicted_registration_tre_mm"] = [_round(v) for v in self.predicted_tre_mm]
         if self.error is not None:
             document["error_model"] = self.error.to_json()
+        if self.fiducials is not None:
+            document["fiducials"] = self.fiducials
         if self.provenance is not None:
             document["provenance"] = self.provenance
         return document
@@ -168,6 +179,7 @@ class RegistrationResult:
                 provenance=document["provenance"] if isinstance(document.get("provenance"), dict) else None,
                 reference_sensor=_port(document, "reference_sensor", source),
                 probe_sensor=_port(document, "probe_sensor", source),
+                fiducials=document["fiducials"] if isinstance(document.get("fiducials"), dict) else None,
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise EMRegError(f"{source}: not a registration file ({exc!s:.100})") from None
@@ -397,11 +409,7 @@ def _check_fre_and_offset(fre_value: float, solution: OffsetSolution, l_range: t
                           config: RegistrationSettings) -> list[str]:
     """Refuse (:class:`NoSafeAnswerError`) an FRE above ``max_fre_mm`` or a solved l whose standard error
     is above ``max_l_std_mm``; the warnings about l (poorly determined, at an end of the pinhole)."""
-    if fre_value > config.max_fre_mm:
-        raise NoSafeAnswerError(
-            f"registration FRE {fre_value:.2f} mm is above the limit of {config.max_fre_mm:g} mm "
-            f"([registration] max_fre_mm); check the calibration recording and the detected markers"
-        )
+    check_fre(fre_value, config, "the detected markers")
     if config.sensor_offset_l_mm is not None:
         return []
     warnings = []
@@ -419,6 +427,16 @@ def _check_fre_and_offset(fre_value: float, solution: OffsetSolution, l_range: t
         warnings.append(f"sensor offset l = {solution.l_mm:.2f} mm is at the end of the pinhole range "
                         f"[{a:g}, {b:g}] mm: check the marker model")
     return warnings
+
+
+def check_fre(fre_value: float, config: RegistrationSettings, image_side: str) -> None:
+    """Refuse (:class:`NoSafeAnswerError`) an FRE (mm) above ``[registration] max_fre_mm``; ``image_side`` names
+    what to check besides the calibration recording."""
+    if fre_value > config.max_fre_mm:
+        raise NoSafeAnswerError(
+            f"registration FRE {fre_value:.2f} mm is above the limit of {config.max_fre_mm:g} mm "
+            f"([registration] max_fre_mm); check the calibration recording and {image_side}"
+        )
 
 
 def flag_outliers(pair_residuals: np.ndarray, config: RegistrationSettings) -> np.ndarray:
