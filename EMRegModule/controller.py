@@ -485,9 +485,10 @@ class EMRegController:
         return registration
 
     def check_case_inputs(self, name: str, path: str | os.PathLike[str], case: Case) -> None:
-        """Refuse an upstream output (read with ``load_*``) made from another calibration recording or CT
-        than ``case``'s own."""
-        check_inputs_match(path, self._made_from.get(name), {"calibration": case.calibration, "ct": case.ct})
+        """Refuse an upstream output (read with ``load_*``) made from another calibration recording, CT or
+        fiducials file than ``case``'s own."""
+        check_inputs_match(path, self._made_from.get(name), {"calibration": case.calibration, "ct": case.ct,
+                                                             "fiducials": case.fiducials})
 
     def save_detection(self, folder: OutputFolder) -> None:
         """``markers.json`` and ``markers.mrk.json`` into ``folder`` (atomic, recorded with provenance)."""

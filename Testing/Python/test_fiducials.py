@@ -183,7 +183,7 @@ def test_fiducial_route_agrees_with_the_ct_route_against_the_truth(small_case, l
     fiducial_error = _target_errors(registration["ReferenceToImage"], truth)
     ct_error = _target_errors(ct_route["ReferenceToImage"], truth)
     assert np.max(fiducial_error) < 0.5 and np.max(ct_error) < 0.5, (fiducial_error, ct_error)
-    assert np.max(np.abs(fiducial_error - ct_error)) < 0.3, (fiducial_error, ct_error)
+    assert np.max(np.abs(fiducial_error - ct_error)) < 0.1, (fiducial_error, ct_error)  # measured 0.04 mm
     # the predicted TRE is the point fit's own: same order as the errors met at the targets
     predicted = np.asarray(registration["predicted_registration_tre_mm"], dtype=float)
     assert np.all(np.isfinite(predicted)) and np.all(predicted < 1.0)
@@ -421,3 +421,36 @@ def test_register_needs_one_image_side(tmp_path, capsys):
     for sides in ([], ["--markers", str(fiducials), "--fiducials", str(fiducials)]):
         assert main(["register", *sides, "--calibration", str(calibration), "--out", str(tmp_path / "r")]) == 2
         assert "give the image side once" in _error(capsys)
+
+
+def test_unknown_position_status_is_refused(tmp_path):
+    path = write_mrk_json(tmp_path / "f.mrk.json", LABELS, POINTS)
+    document = json.loads(path.read_text())
+    document["markups"][0]["controlPoints"][0]["positionStatus"] = "lost"
+    path.write_text(json.dumps(document))
+    with pytest.raises(EMRegError, match="control point 1 has an unknown positionStatus 'lost'"):
+        read_fiducials(path)
+
+
+def test_tool_tip_calibration_points_are_fitted_as_they_are():
+    """A calibration whose points are a tool's tips (``tool`` set, as the tool calibration leaves it) is fitted as
+    it is and says so; a pinhole-probe calibration is taken as a pointer whose tip is its sensor, with a warning."""
+    from EMRegModule.fiducial_registration import register_fiducials
+    from EMRegModule.io.fiducials import Fiducials
+
+    reference_to_image = np.eye(4)
+    reference_to_image[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    reference_to_image[:3, 3] = [5.0, -7.0, 100.0]
+    tips = apply_transform(invert_rigid(reference_to_image), POINTS)
+    points = [CalibrationPoint(f"T{k}", p, np.full(3, np.nan), 30, 0.1) for k, p in enumerate(tips)]
+    fiducials = Fiducials(LABELS, POINTS, "planned.mrk.json", FORMAT_MARKUPS)
+    probe = register_fiducials(fiducials, FrameCalibration(points))
+    assert probe.fiducials["calibration_points"] == "probe sensor (no tool tip applied)"
+    assert any("no tool tip applied" in w for w in probe.warnings)
+    calibration = FrameCalibration(points)
+    calibration.tool = {"TipToProbe": np.eye(4).tolist()}
+    tool = register_fiducials(fiducials, calibration)
+    assert tool.fiducials["calibration_points"] == "tool tip"
+    assert not any("no tool tip applied" in w for w in tool.warnings)
+    np.testing.assert_allclose(tool.reference_to_image, reference_to_image, atol=1e-9)
+    assert [p["image_marker"] for p in tool.pairs] == LABELS and tool.fre_mm < 1e-9
