@@ -29,7 +29,14 @@ from .calibration import FrameCalibration
 from .error_model import registration_error
 from .io.fiducials import Fiducials
 from .pairing import pair_markers
-from .registration import RegistrationResult, _calibration_port, _fit_pairs, check_fre
+from .registration import (
+    RegistrationResult,
+    _calibration_port,
+    _fit_pairs,
+    check_fre,
+    pairing_record,
+    predicted_registration_tre,
+)
 from .settings import RegistrationSettings
 
 #: The pinhole "range" of a fiducial: a point (the sensor offset l is not a parameter of a point fit).
@@ -77,10 +84,7 @@ def register_fiducials(fiducials: Fiducials, frame_calibration: FrameCalibration
     n_used = int(np.count_nonzero(used))
     error = registration_error(points[cal_index[used]], fiducial_points[fiducial_index[used]],
                                no_axes[fiducial_index[used]], 0.0, False, residuals[used])
-    targets = predicted = None
-    if targets_image is not None and len(np.atleast_2d(targets_image)):
-        targets = np.asarray(targets_image, dtype=float).reshape(-1, 3)
-        predicted = np.sqrt(np.trace(error.covariance.at(targets), axis1=-2, axis2=-1))
+    targets, predicted = predicted_registration_tre(error, targets_image)
     unpaired_fiducials = [m for k, m in enumerate(fiducials.labels) if k not in set(fiducial_index.tolist())]
     unpaired_points = [p for k, p in enumerate(labels) if k not in set(cal_index.tolist())]
     warnings += _unpaired_warnings(unpaired_fiducials, unpaired_points)
@@ -106,11 +110,7 @@ def register_fiducials(fiducials: Fiducials, frame_calibration: FrameCalibration
         predicted_tre_mm=predicted,
         error=error,
         warnings=warnings + list(frame_calibration.warnings),
-        pairing={"support": pairing.support, "rival_support": pairing.rival_support,
-                 "hypotheses": pairing.hypotheses, "seed_triangles": pairing.seeds,
-                 "ambiguity_margin": config.pairing.ambiguity_margin,
-                 "point_tolerance_mm": round(config.pairing.point_tolerance_mm, 3),
-                 "distance_tolerance_mm": round(config.pairing.distance_tolerance_mm, 3)},
+        pairing=pairing_record(pairing, config.pairing),
         probe_axis={"setting": "none", "detected": "none", "pairing": "distances only",
                     "note": "fiducials are points: there is no marker axis to compare the probe's with"},
         reference_sensor=_calibration_port(frame_calibration, "reference_sensor"),

@@ -42,9 +42,10 @@ from .errors import EMRegError, NoSafeAnswerError
 from .io.atomic import atomic_write_json, read_json
 from .io.itk_transform import write_slicer_linear_transform
 from .marker_model import MarkerModel
+from .pairing import PairingResult
 from .probe_axis import pair_with_probe_axis
 from .sensor_offset import OffsetSolution, solve_sensor_offset
-from .settings import RegistrationSettings, Settings
+from .settings import PairingSettings, RegistrationSettings, Settings
 from .transforms import apply_transform, is_rigid, residuals
 
 #: Name of the ITK transform file written beside ``registration.json``.
@@ -277,11 +278,7 @@ def register(
     fle = fre_value * np.sqrt(n_used / (n_used - 2)) if n_used > 2 else float("nan")
     error = registration_error(points[cal_index[used]], origins[image_index[used]], axes[image_index[used]],
                                solution.l_mm, not fixed, pair_residuals[used])
-    predicted = None
-    targets = None
-    if targets_image is not None and len(np.atleast_2d(targets_image)):
-        targets = np.asarray(targets_image, dtype=float).reshape(-1, 3)
-        predicted = np.sqrt(np.trace(error.covariance.at(targets), axis1=-2, axis2=-1))
+    targets, predicted = predicted_registration_tre(error, targets_image)
 
     pairs = [
         {"image_marker": image_ids[j], "calibration_point": labels[i], "residual_mm": float(r), "outlier": bool(o)}
@@ -307,15 +304,29 @@ def register(
         predicted_tre_mm=predicted,
         error=error,
         warnings=warnings + list(frame_calibration.warnings),
-        pairing={"support": pairing.support, "rival_support": pairing.rival_support,
-                 "hypotheses": pairing.hypotheses, "seed_triangles": pairing.seeds,
-                 "ambiguity_margin": config.pairing.ambiguity_margin,
-                 "point_tolerance_mm": round(config.pairing.point_tolerance_mm, 3),
-                 "distance_tolerance_mm": round(config.pairing.distance_tolerance_mm, 3)},
+        pairing=pairing_record(pairing, config.pairing),
         probe_axis=axis_report.to_json(),
         reference_sensor=_calibration_port(frame_calibration, "reference_sensor"),
         probe_sensor=_calibration_port(frame_calibration, "probe_sensor"),
     )
+
+
+def predicted_registration_tre(error: RegistrationError, targets_image: np.ndarray | None
+                               ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The targets (K, 3, image space mm) and the registration's own RMS error at each (mm), or (None, None)."""
+    if targets_image is None or not len(np.atleast_2d(targets_image)):
+        return None, None
+    targets = np.asarray(targets_image, dtype=float).reshape(-1, 3)
+    return targets, np.sqrt(np.trace(error.covariance.at(targets), axis1=-2, axis2=-1))
+
+
+def pairing_record(pairing: PairingResult, settings: PairingSettings) -> dict[str, Any]:
+    """The ``pairing`` block of ``registration.json``: how well the pairing was supported, and its tolerances."""
+    return {"support": pairing.support, "rival_support": pairing.rival_support,
+            "hypotheses": pairing.hypotheses, "seed_triangles": pairing.seeds,
+            "ambiguity_margin": settings.ambiguity_margin,
+            "point_tolerance_mm": round(settings.point_tolerance_mm, 3),
+            "distance_tolerance_mm": round(settings.distance_tolerance_mm, 3)}
 
 
 def _unpaired_warnings(image_markers: list[str], calibration_points: list[str]) -> list[str]:
