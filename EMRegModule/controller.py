@@ -653,7 +653,7 @@ class EMRegController:
         be made does not stop the run: the reason goes to ``run.json``, ``evaluation.json`` and stderr.
         ``report=False`` leaves out the report and the Slicer bundle (3D Slicer without pyvista).
         """
-        _check_case_image_side(case)
+        check_case_image_side(case)
         inputs = {"ct": case.ct, "calibration": case.calibration, "navigation": case.navigation,
                   "targets": case.targets, "board": case.board, "fiducials": case.fiducials}
         settings_file = Path(self.settings.source) if self.settings.source else None
@@ -850,7 +850,7 @@ def offset_summary(registration: RegistrationResult) -> str:
     return f"l = {registration.sensor_offset_l_mm:.2f} mm"
 
 
-def _check_case_image_side(case: Case) -> None:
+def check_case_image_side(case: Case) -> None:
     """A case registers onto its CT's markers or onto ``fiducials.mrk.json``: refused (one line) with neither
     or both."""
     if case.ct is None and case.fiducials is None:

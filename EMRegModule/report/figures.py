@@ -293,11 +293,14 @@ def render_residuals(data: ReportData) -> list[Figure]:
     colors = [tuple(int(c) for c in colorize([v], low, high)[0]) for v in values]
     fre_mm = finite_or_none(registration.fre_mm)
     lines = [(fre_mm, f"FRE {fre_mm:.2f} mm")] if fre_mm is not None else []
-    chart = bar_chart(labels, values, title="Registration residual per marker", y_label="residual (mm)",
+    what = "fiducial" if registration.point_fit else "marker"
+    chart = bar_chart(labels, values, title=f"Registration residual per {what}", y_label="residual (mm)",
                       colors=colors or [GREY], reference_lines=lines)
-    return [Figure("residuals", "Residual per marker",
-                   "Distance between each calibration point mapped into the CT and its marker's sensor point at the "
-                   "solved l; the dashed line is the FRE (RMS).", _png(chart))]
+    caption = ("Distance between each calibration point mapped into the fiducials' frame and its fiducial"
+               if registration.point_fit else
+               "Distance between each calibration point mapped into the CT and its marker's sensor point at the "
+               "solved l")
+    return [Figure("residuals", f"Residual per {what}", caption + "; the dashed line is the FRE (RMS).", _png(chart))]
 
 
 def render_fre_curve(data: ReportData) -> list[Figure]:

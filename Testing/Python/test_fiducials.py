@@ -454,3 +454,40 @@ def test_tool_tip_calibration_points_are_fitted_as_they_are():
     assert not any("no tool tip applied" in w for w in tool.warnings)
     np.testing.assert_allclose(tool.reference_to_image, reference_to_image, atol=1e-9)
     assert [p["image_marker"] for p in tool.pairs] == LABELS and tool.fre_mm < 1e-9
+
+
+# --- 3D Slicer: fiducials from a markups node -------------------------------------------------------------
+
+
+def test_slicer_logic_registers_onto_a_markups_node(small_case, landmarks, tmp_path, monkeypatch):
+    """A fiducial case opened in the Slicer module's Logic (no CT), registered onto a markups node of the scene
+    (world RAS) instead of its fiducials.mrk.json: the point fit, shown as the fiducials node, at the truth."""
+    from test_slicer_module import SlicerHarness
+
+    harness = SlicerHarness(monkeypatch, application=False)
+    module = harness.load_module()
+    labels, positions, truth = landmarks
+    case = tmp_path / "case"
+    case.mkdir()
+    for name in ("calibration.csv", "case.toml"):
+        shutil.copy(small_case / name, case / name)
+    write_mrk_json(case / "fiducials.mrk.json", ["A", "B", "C"], [[0, 0, 0], [90, 0, 0], [0, 70, 5]])
+    logic = module.EMRegLogic()
+    logic.loadCase(str(case), str(tmp_path / "out"))
+    assert logic.controller.image is None and len(logic.controller.fiducials) == 3
+    node = harness.scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "planned landmarks")
+    from vtkmodules.vtkCommonDataModel import vtkVector3d
+
+    for label, position in zip(labels, positions * RAS, strict=True):
+        node.AddControlPoint(vtkVector3d(*map(float, position)), label)
+    node.AddControlPoint(vtkVector3d(0.0, 0.0, 0.0), "not placed")
+    node.UnsetNthControlPointPosition(len(labels))  # a point not placed yet: left out
+    fiducials = logic.setFiducialsFromMarkupsNode(node)
+    assert fiducials.labels == labels
+    logic.calibrateFrame()
+    registration = logic.register()
+    assert registration.point_fit and len(registration.pairs) == len(labels) - 1
+    assert np.max(_target_errors(registration.reference_to_image, truth)) < 0.5
+    assert "point fit onto fiducials" in logic.resultsText()
+    shown = harness.scene.GetFirstNodeByName("EMReg fiducials")
+    assert shown is not None and shown.GetNumberOfControlPoints() == len(labels)
