@@ -6,9 +6,10 @@ in each marker, ``origin + l * axis``) are the planned landmarks, written in eve
 recording's points are used as they are (a pointer whose tip is its sensor: no tool tip applied). Its
 registration must agree with the ground truth as closely as the CT route's does.
 
-``Testing/Data/PlusLibData/`` holds two files of PLUS's public test data (PlusToolkit/PlusLibData, BSD-3, its
-LICENSE beside them): the device set of PLUS's phantom-landmark registration test, and PLUS's own result of that
-registration (``PhantomRegistration.results.xml``, ``PhantomToReference``).
+``Testing/Data/PlusLibData/`` holds files of PLUS's public test data (PlusToolkit/PlusLibData, BSD-3, its LICENSE
+beside them): the device set of PLUS's phantom-registration test (``vtkPhantomRegistrationTest``: fCal 1.2 phantom,
+fake tracker) with PLUS's own result of it (``PhantomRegistration.results.xml``, ``PhantomToReference``), and the
+fCal 2.0 device set of its landmark-detection test on a real stylus recording.
 """
 
 from __future__ import annotations
@@ -30,8 +31,9 @@ from EMRegModule.io.markups import markups_document
 from EMRegModule.transforms import apply_transform, invert_rigid
 
 PLUS_DATA = Path(__file__).resolve().parents[1] / "Data" / "PlusLibData"
-PLUS_DEVICE_SET = PLUS_DATA / "PlusDeviceSet_fCal_Sim_RecordPhantomLandmarks.xml"
-PLUS_RESULT = PLUS_DATA / "PhantomRegistration.results.xml"
+PLUS_DEVICE_SET = PLUS_DATA / "PlusDeviceSet_fCal_Sim_RecordPhantomLandmarks.xml"  # fCal 2.0
+PLUS_TEST_DEVICE_SET = PLUS_DATA / "PlusDeviceSet_fCal_Sim_RecordPhantomLandmarks_1.2.xml"  # vtkPhantomRegistrationTest
+PLUS_RESULT = PLUS_DATA / "PhantomRegistration.results.xml"  # that test's baseline
 RAS = np.array([-1.0, -1.0, 1.0])
 
 
@@ -262,13 +264,14 @@ def test_plus_device_set_landmarks_are_read_with_their_names():
     np.testing.assert_allclose(fiducials.positions[7], [-34.3, 45.0, 0.0])
 
 
-def _plus_touches(tmp_path: Path, touched_landmarks: list[int], seed: int) -> tuple[Path, np.ndarray, np.ndarray]:
-    """PLUS's phantom-registration test: the fake tracker touches the phantom's landmarks placed by PLUS's
-    ``PhantomToReference`` (PLUS's result, error 0.0002 mm). Here the touches (0-based landmark indices) arrive
-    shuffled, with a stylus's noise (0.15 mm per axis), and one more rest of the stylus away from the phantom.
-    Returns the frame calibration, the order of the touches and PhantomToReference."""
+def _plus_touches(tmp_path: Path, device_set: Path, touched_landmarks: list[int], seed: int
+                  ) -> tuple[Path, np.ndarray, np.ndarray]:
+    """PLUS's phantom-registration test: its fake tracker touches the phantom's landmarks placed where PLUS's result
+    ``PhantomToReference`` puts them (error 0.0002 mm). Here the touches (0-based landmark indices of
+    ``device_set``) arrive shuffled, with a stylus's noise (0.15 mm per axis), and one more rest of the stylus away
+    from the phantom. Returns the frame calibration, the order of the touches and PhantomToReference."""
     phantom_to_reference = _plus_matrix(PLUS_RESULT, "Phantom", "Reference")
-    landmarks = read_fiducials(PLUS_DEVICE_SET).positions
+    landmarks = read_fiducials(device_set).positions
     rng = np.random.default_rng(seed)
     order = rng.permutation(touched_landmarks)
     touched = apply_transform(phantom_to_reference, landmarks[order]) + rng.normal(0.0, 0.15, (len(order), 3))
@@ -281,8 +284,8 @@ def _plus_touches(tmp_path: Path, touched_landmarks: list[int], seed: int) -> tu
 def test_plus_landmark_registration_agrees_with_plus(tmp_path):
     """Every landmark touched: all 8 paired by name, the rest left out, and ReferenceToImage is PLUS's
     ReferenceToPhantom = inv(PhantomToReference) within the touches' noise."""
-    calibration, order, phantom_to_reference = _plus_touches(tmp_path, list(range(8)), seed=8)
-    assert main(["register", "--fiducials", str(PLUS_DEVICE_SET), "--calibration", str(calibration),
+    calibration, order, phantom_to_reference = _plus_touches(tmp_path, PLUS_TEST_DEVICE_SET, list(range(8)), seed=8)
+    assert main(["register", "--fiducials", str(PLUS_TEST_DEVICE_SET), "--calibration", str(calibration),
                  "--out", str(tmp_path / "r"), "--quiet"]) == 0
     registration = json.loads((tmp_path / "r" / "registration.json").read_text())
     assert {(p["image_marker"], p["calibration_point"]) for p in registration["pairs"]} == {
@@ -290,14 +293,14 @@ def test_plus_landmark_registration_agrees_with_plus(tmp_path):
     assert registration["unpaired_calibration_points"] == ["T9"]
     assert registration["fiducials"]["frame"] == "Phantom"
     error = _plus_points_error(registration["ReferenceToImage"], invert_rigid(phantom_to_reference),
-                               read_fiducials(PLUS_DEVICE_SET).positions)
+                               read_fiducials(PLUS_TEST_DEVICE_SET).positions)
     assert error < 0.3, error
 
 
 def test_plus_phantom_without_its_asymmetric_landmark_is_ambiguous(tmp_path, capsys):
     """PLUS's fCal phantom is symmetric but for landmarks #1 and #5: six of its landmarks map onto each other by a
     half turn. Without #1 touched, 7 touches fit two ways (7 and 6 points explained): refused, exit 3."""
-    calibration, _, _ = _plus_touches(tmp_path, [1, 2, 3, 4, 5, 6, 7], seed=9)
+    calibration, _, _ = _plus_touches(tmp_path, PLUS_DEVICE_SET, [1, 2, 3, 4, 5, 6, 7], seed=9)
     assert main(["register", "--fiducials", str(PLUS_DEVICE_SET), "--calibration", str(calibration),
                  "--out", str(tmp_path / "r"), "--quiet"]) == 3
     assert "ambiguous pairing" in _error(capsys)
