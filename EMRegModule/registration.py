@@ -32,7 +32,7 @@ import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -42,10 +42,9 @@ from .errors import EMRegError, NoSafeAnswerError
 from .io.atomic import atomic_write_json, read_json
 from .io.itk_transform import write_slicer_linear_transform
 from .marker_model import MarkerModel
-from .pairing import PairingResult
 from .probe_axis import pair_with_probe_axis
 from .sensor_offset import OffsetSolution, solve_sensor_offset
-from .settings import PairingSettings, RegistrationSettings, Settings
+from .settings import RegistrationSettings, Settings
 from .transforms import apply_transform, is_rigid, residuals
 
 #: Name of the ITK transform file written beside ``registration.json``.
@@ -57,6 +56,10 @@ RIGID_TOLERANCE = 1e-4
 
 #: Median of a chi-squared variable with 3 degrees of freedom (robust RMS of 3D residuals).
 _CHI2_3_MEDIAN = 2.3660
+
+if TYPE_CHECKING:
+    from .pairing import PairingResult
+    from .settings import PairingSettings
 
 
 @dataclass

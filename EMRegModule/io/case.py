@@ -80,10 +80,10 @@ def open_case(folder: str | os.PathLike[str]) -> Case:
     return Case(
         folder=folder,
         ct=find_ct(folder),
+        fiducials=optional(CASE_FIDUCIALS_NAME),
         calibration=find_recording(folder, "calibration"),
         navigation=find_recording(folder, "navigation"),
         targets=optional("targets.mrk.json"),
         board=find_recording(folder, "board"),
         settings=load_settings(folder / "case.toml"),
-        fiducials=optional(CASE_FIDUCIALS_NAME),
     )
