@@ -19,6 +19,7 @@ from .html import CSS, DASH, esc, figure_html, note, num, table, vec
 
 if TYPE_CHECKING:
     from ..evaluation import BoardEdge
+    from ..registration import RegistrationResult
 
 
 def _left_out(data: ReportData, part: str | None, absent: str) -> str:
@@ -271,12 +272,12 @@ SECTIONS: tuple[Callable[[ReportData, dict[str, Figure]], str], ...] = (
     tre_section, board_section, run_log_section)
 
 
-def _image_space(registration) -> str:
-    """What "image space" is in this report: the CT's, or (a point fit) the fiducials' frame."""
+def _image_space(registration: RegistrationResult | None) -> str:
+    """What "image space" is in this report (HTML): the CT's, or (a point fit) the fiducials' frame."""
     if registration is not None and registration.point_fit:
         block = registration.fiducials
-        return (f"Image space is the fiducials' frame ({block.get('frame', 'LPS')}, mm) of {block.get('file')}; "
-                "there is no CT.")
+        return esc(f"Image space is the fiducials' frame ({block.get('frame', 'LPS')}, mm) of {block.get('file')}; "
+                   "there is no CT.")
     return "Image space is the CT's LPS physical space (mm)."
 
 
@@ -289,7 +290,7 @@ def build_html(data: ReportData, figures: list[Figure]) -> str:
              f"<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
              f"<title>EMReg report: {esc(case_name)}</title><style>{CSS}</style></head><body><main>",
              f"<h1>EMReg verification report: {esc(case_name)}</h1>",
-             f"<p class=\"muted\">{esc(_image_space(inputs.registration))} ReferenceToImage maps points of the "
+             f"<p class=\"muted\">{_image_space(inputs.registration)} ReferenceToImage maps points of the "
              "reference sensor (Model 800) frame into it.</p>"]
     parts += [text for section in SECTIONS if (text := section(data, by_name))]
     parts.append("</main></body></html>\n")
