@@ -75,15 +75,6 @@ class Fiducials:
                 "points": [{"label": label, "position": [float(v) for v in position]}
                            for label, position in zip(self.labels, self.positions, strict=True)]}
 
-    @classmethod
-    def from_json(cls, document: dict[str, Any]) -> Fiducials:
-        """Inverse of :meth:`to_json` (``KeyError`` / ``TypeError`` / ``ValueError`` when malformed)."""
-        points = document["points"]
-        return cls([str(p["label"]) for p in points],
-                   np.asarray([p["position"] for p in points], dtype=float).reshape(-1, 3),
-                   str(document.get("file", "")), str(document.get("format", "")), str(document.get("frame", "LPS")),
-                   {str(k): str(v) for k, v in (document.get("declared") or {}).items()})
-
 
 def is_markers_file(path: str | os.PathLike[str]) -> bool:
     """True for a ``markers.json`` of ``emreg detect`` (a JSON object with a ``markers`` list and no ``markups``)."""
@@ -138,14 +129,14 @@ def check_fiducials(fiducials: Fiducials) -> None:
     positions = np.asarray(fiducials.positions, dtype=float)
     if positions.shape != (n, 3) or not np.all(np.isfinite(positions)):
         raise EMRegError(f"{where}: every fiducial needs a finite 3D position")
-    off_line = line_distances_mm(positions)
+    off_line = _line_distances_mm(positions)
     if float(np.max(off_line)) <= COLLINEAR_TOLERANCE_MM:
         raise EMRegError(f"{where}: the {n} fiducials lie on one line (all within {float(np.max(off_line)):.2f} mm "
                          f"of it; {COLLINEAR_TOLERANCE_MM:g} mm allowed): the rotation about that line is unknown; "
                          "add a fiducial off the line")
 
 
-def line_distances_mm(points: np.ndarray) -> np.ndarray:
+def _line_distances_mm(points: np.ndarray) -> np.ndarray:
     """Distance (mm) of each point (N, 3) from the least-squares line through them."""
     centred = np.asarray(points, dtype=float) - np.mean(points, axis=0)
     direction = np.linalg.svd(centred, full_matrices=False)[2][0]
