@@ -297,6 +297,30 @@ def test_plus_landmark_registration_agrees_with_plus(tmp_path):
     assert error < 0.3, error
 
 
+PLUS_RECORDING = PLUS_DATA / "EightLandmarkPointsTrackedForPhantomRegistration.igs.mha"
+PLUS_RECORDING_RESULT = PLUS_DATA / "PhantomRegistrationLandmarkDetection.results.xml"
+
+
+@pytest.mark.skipif(not (PLUS_RECORDING.is_file() and PLUS_RECORDING_RESULT.is_file()),
+                    reason="PLUS's real stylus recording and its result ship with the tool work (--tool)")
+def test_real_plus_recording_pairs_all_eight_landmarks_as_plus(tmp_path):
+    """PLUS's real recording (a stylus touching the fCal 2.0 phantom's 8 landmarks, pivoting, and lying still before
+    and after), its tip from the device set: every landmark paired, the rests left out, and the transform close to
+    PLUS's own PhantomToReference on that recording (PLUS reports 0.198 mm; measured 0.26 mm at most)."""
+    assert main(["calibrate", str(PLUS_RECORDING), "--tool", str(PLUS_DEVICE_SET), "--out", str(tmp_path / "c"),
+                 "--quiet"]) == 0
+    assert main(["register", "--fiducials", str(PLUS_DEVICE_SET), "--calibration",
+                 str(tmp_path / "c" / "frame_calibration.json"), "--out", str(tmp_path / "r"), "--quiet"]) == 0
+    registration = json.loads((tmp_path / "r" / "registration.json").read_text())
+    assert sorted(p["image_marker"] for p in registration["pairs"]) == [f"#{k}" for k in range(1, 9)]
+    assert len(registration["unpaired_calibration_points"]) == 2
+    assert registration["fiducials"]["calibration_points"] == "tool tip"
+    phantom_to_reference = _plus_matrix(PLUS_RECORDING_RESULT, "Phantom", "Reference")
+    error = _plus_points_error(registration["ReferenceToImage"], invert_rigid(phantom_to_reference),
+                               read_fiducials(PLUS_DEVICE_SET).positions)
+    assert error < 0.3, error
+
+
 def test_plus_phantom_without_its_asymmetric_landmark_is_ambiguous(tmp_path, capsys):
     """PLUS's fCal phantom is symmetric but for landmarks #1 and #5: six of its landmarks map onto each other by a
     half turn. Without #1 touched, 7 touches fit two ways (7 and 6 points explained): refused, exit 3."""
