@@ -177,9 +177,15 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def cmd_register(args: argparse.Namespace) -> int:
     _out_folder(args.out)
     controller = _controller(args, _settings(args))
-    inputs = [Path(p) for p in (args.markers, args.calibration, args.targets) if p]
+    inputs = [Path(p) for p in (args.markers, args.fiducials, args.calibration, args.targets) if p]
+    if (args.markers is None) == (args.fiducials is None):
+        raise EMRegError("register: give the image side once: --markers markers.json (CT markers) or --fiducials FILE "
+                         "(.mrk.json, .fcsv, a PLUS device-set XML with landmarks, or markers.json)")
     folder = _output_folder(args, "register", inputs)
-    controller.load_detection(args.markers)
+    if args.fiducials is not None:
+        controller.load_fiducials(args.fiducials)
+    else:
+        controller.load_detection(args.markers)
     controller.load_frame_calibration(args.calibration)
     targets = None
     if args.targets:
@@ -194,8 +200,9 @@ def cmd_register(args: argparse.Namespace) -> int:
         raise
     controller.save_registration(folder)
     controller.warn(result.warnings)
-    print(f"registered: FRE {result.fre_mm:.2f} mm, l = {result.sensor_offset_l_mm:.2f} mm, "
-          f"{len(result.pairs)} pairs -> {args.out}")
+    from .controller import offset_summary
+
+    print(f"registered: FRE {result.fre_mm:.2f} mm, {offset_summary(result)}, {len(result.pairs)} pairs -> {args.out}")
     return 0
 
 
@@ -579,7 +586,11 @@ def build_parser() -> argparse.ArgumentParser:
     _add_sensor_options(p)
 
     p = add("register", cmd_register, "pair, solve the sensor offset, register: OUT/registration.json")
-    p.add_argument("--markers", required=True, metavar="markers.json")
+    p.add_argument("--markers", metavar="markers.json", help="the CT markers of emreg detect")
+    p.add_argument("--fiducials", metavar="FILE",
+                   help="fiducial points instead of CT markers: a Slicer markups file (.mrk.json in LPS or RAS, "
+                        ".fcsv), a PLUS device-set XML with <PhantomDefinition> landmarks, or markers.json; "
+                        "a rigid point fit of the calibration points (tool tips) onto them, no sensor offset")
     p.add_argument("--calibration", required=True, metavar="frame_calibration.json")
     p.add_argument("--targets", metavar="targets.mrk.json", help="targets for the predicted TRE")
     p.add_argument("--out", required=True, metavar="OUT")

@@ -46,6 +46,7 @@ if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only wh
     from .detection import DetectionResult
     from .error_model import ErrorModel
     from .evaluation import Evaluation
+    from .io.fiducials import Fiducials
     from .navigation import NavigationResult
     from .registration import RegistrationResult
     from .tracking import TrackingRecording
@@ -86,6 +87,8 @@ class EMRegController:
         self.ct_series: dict[str, Any] | None = None  # a DICOM CT: the series used and the others
         self.calibration_recording: TrackingRecording | None = None
         self.detection: DetectionResult | None = None
+        #: Fiducial points instead of CT markers (``--fiducials``, a case's ``fiducials.mrk.json``), or None.
+        self.fiducials: Fiducials | None = None
         self.frame_calibration: FrameCalibration | None = None
         self.registration: RegistrationResult | None = None
         self.navigation: NavigationResult | None = None
@@ -114,13 +117,18 @@ class EMRegController:
             return WorkflowState.NAVIGATING
         if self.registration is not None:
             return WorkflowState.REGISTERED
-        if self.detection is not None and self.frame_calibration is not None:
+        if self._image_points is not None and self.frame_calibration is not None:
             return WorkflowState.READY_TO_REGISTER
-        if self.detection is not None:
+        if self._image_points is not None:
             return WorkflowState.MARKERS_DETECTED
         if self.frame_calibration is not None:
             return WorkflowState.FRAME_CALIBRATED
         return WorkflowState.EMPTY
+
+    @property
+    def _image_points(self) -> object:
+        """What the calibration points register onto: the detected CT markers, else fiducials (or None)."""
+        return self.detection if self.detection is not None else self.fiducials
 
     def _require(self, **needed: object) -> None:
         missing = [what for what, value in needed.items() if value is None]
@@ -128,7 +136,7 @@ class EMRegController:
             names = {
                 "image": "a CT (load_ct)",
                 "calibration_recording": "a calibration recording (load_calibration_recording)",
-                "detection": "detected markers (detect_markers or set_detection)",
+                "detection": "detected markers (detect_markers or set_detection) or fiducials (load_fiducials)",
                 "frame_calibration": "a frame calibration (calibrate_frame or set_frame_calibration)",
                 "registration": "a registration (register or set_registration)",
             }
@@ -269,9 +277,29 @@ class EMRegController:
         return result
 
     def set_detection(self, detection: DetectionResult) -> None:
-        """Use detected markers (e.g. read from ``markers.json``); drops the registration."""
+        """Use detected markers (e.g. read from ``markers.json``); drops the registration (and fiducials)."""
         self._invalidate()
         self.detection = detection
+        self.fiducials = None
+
+    def load_fiducials(self, path: str | os.PathLike[str]) -> DetectionResult | Fiducials:
+        """Use the fiducials of a Slicer markups file, a PLUS device-set XML's landmarks
+        (:func:`~EMRegModule.io.fiducials.read_fiducials`), or a ``markers.json`` (read as :meth:`load_detection`
+        does: the CT markers' pinhole route); drops the registration."""
+        from .io.fiducials import is_markers_file, read_fiducials
+
+        if is_markers_file(path):
+            return self.load_detection(path)
+        fiducials = read_fiducials(path)
+        self.note_inputs(fiducials=path)
+        self.set_fiducials(fiducials)
+        return fiducials
+
+    def set_fiducials(self, fiducials: Fiducials) -> None:
+        """Register onto fiducial points (a rigid point fit, no sensor offset) instead of CT markers; drops the
+        registration and the detected markers."""
+        self._invalidate(detection=True)
+        self.fiducials = fiducials
 
     def calibrate_frame(self) -> FrameCalibration:
         """One point per marker pinhole in the Reference frame from the calibration recording."""
@@ -294,9 +322,20 @@ class EMRegController:
     def register(self, targets_image: np.ndarray | None = None) -> RegistrationResult:
         """Pair markers with calibration points, solve the sensor offset l, fit ``ReferenceToImage``.
 
-        ``targets_image`` (N, 3, LPS mm), when given, gets a predicted TRE in the result.
+        ``targets_image`` (N, 3, LPS mm), when given, gets a predicted TRE in the result. With fiducials
+        (:meth:`load_fiducials`) the fit is a plain rigid point fit without l
+        (:func:`~EMRegModule.fiducial_registration.register_fiducials`).
         """
-        self._require(detection=self.detection, frame_calibration=self.frame_calibration)
+        self._require(detection=self._image_points, frame_calibration=self.frame_calibration)
+        if self.detection is None:
+            from .fiducial_registration import register_fiducials
+
+            with self.progress.step("pairing and registering onto the fiducials"):
+                result = register_fiducials(self.fiducials, self.frame_calibration, self.settings.registration,
+                                            targets_image)
+            self.registration = result
+            self.navigation = None
+            return result
         from .registration import register
 
         with self.progress.step("pairing and registering"):
@@ -446,9 +485,10 @@ class EMRegController:
         return registration
 
     def check_case_inputs(self, name: str, path: str | os.PathLike[str], case: Case) -> None:
-        """Refuse an upstream output (read with ``load_*``) made from another calibration recording or CT
-        than ``case``'s own."""
-        check_inputs_match(path, self._made_from.get(name), {"calibration": case.calibration, "ct": case.ct})
+        """Refuse an upstream output (read with ``load_*``) made from another calibration recording, CT or
+        fiducials file than ``case``'s own."""
+        check_inputs_match(path, self._made_from.get(name), {"calibration": case.calibration, "ct": case.ct,
+                                                             "fiducials": case.fiducials})
 
     def save_detection(self, folder: OutputFolder) -> None:
         """``markers.json`` and ``markers.mrk.json`` into ``folder`` (atomic, recorded with provenance)."""
@@ -475,7 +515,7 @@ class EMRegController:
         from .registration import write_registration
 
         self._require(registration=self.registration)
-        provenance = self._provenance(("targets",), ("markers.json", "frame_calibration.json"))
+        provenance = self._provenance(("targets", "fiducials"), ("markers.json", "frame_calibration.json"))
         self.registration.provenance = provenance.to_json()
         write_registration(self.registration, folder.path)
         self._recorded(folder, "register", provenance)
@@ -613,10 +653,9 @@ class EMRegController:
         be made does not stop the run: the reason goes to ``run.json``, ``evaluation.json`` and stderr.
         ``report=False`` leaves out the report and the Slicer bundle (3D Slicer without pyvista).
         """
-        if case.ct is None:
-            raise EMRegError(f"{case.folder}: no CT found (ct.nrrd, ct.nii.gz, ct.mha or a ct/ DICOM folder)")
+        check_case_image_side(case)
         inputs = {"ct": case.ct, "calibration": case.calibration, "navigation": case.navigation,
-                  "targets": case.targets, "board": case.board}
+                  "targets": case.targets, "board": case.board, "fiducials": case.fiducials}
         settings_file = Path(self.settings.source) if self.settings.source else None
         refuse_out_over_inputs(out, [p for p in (*inputs.values(), settings_file) if p],
                                all_output_names(), case.folder)
@@ -658,12 +697,18 @@ class EMRegController:
         return summary
 
     def _run_record(self, case: Case, summary: list[str]) -> dict[str, Any]:
-        return {"case": str(case.folder.resolve()), "ct": str(case.ct.resolve()), "emreg_version": __version__,
+        return {"case": str(case.folder.resolve()), "ct": str(case.ct.resolve()) if case.ct is not None else None,
+                **({"fiducials": str(case.fiducials.resolve())} if case.ct is None else {}),
+                "emreg_version": __version__,
                 "reference_sensor": self.reference_sensor, "probe_sensor": self.probe_sensor,
                 "summary": summary, "not_evaluated": {}, "settings_file": self.settings.source,
                 "settings_sha256": self.settings.digest(), "settings": self.settings.to_json()}
 
     def _run_detect(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
+        if case.ct is None:  # a fiducial case: the image side is read, nothing to detect
+            fiducials = self.load_fiducials(case.fiducials)
+            summary.append(f"detect: skipped (no CT): {len(fiducials)} fiducials from {case.fiducials.name}")
+            return
         detection = self.load_ct_and_detect(case.ct)
         self.save_detection(folder)
         if detection.ct_series is not None:
@@ -694,7 +739,7 @@ class EMRegController:
         summary.append(f"calibrate: {len(calibration.points)} pinholes")
 
     def _run_register(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
-        if self.detection is None or self.frame_calibration is None:
+        if self._image_points is None or self.frame_calibration is None:
             return
         try:
             targets = case.read_targets()
@@ -705,7 +750,7 @@ class EMRegController:
         registration = self.register(None if targets is None else targets[1])
         self.save_registration(folder)
         self.warn(registration.warnings)
-        summary.append(f"register: FRE {registration.fre_mm:.2f} mm, l = {registration.sensor_offset_l_mm:.2f} mm, "
+        summary.append(f"register: FRE {registration.fre_mm:.2f} mm, {offset_summary(registration)}, "
                        f"{len(registration.pairs)} pairs")
 
     def _run_navigate(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
@@ -761,7 +806,7 @@ class EMRegController:
 
     def _run_tre_map(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
         """``tre_map.nrrd``: the predicted RMS TRE over the CT's space (with the measured tracking error)."""
-        if self.error_model is None:
+        if self.error_model is None or self.detection is None:  # the map covers the CT's space: none without a CT
             return
         from .tre_map import write_tre_map
 
@@ -789,11 +834,31 @@ class EMRegController:
         parts = [f"state: {self.state.value}"]
         if self.detection is not None:
             parts.append(f"{len(self.detection.markers)} markers detected")
+        if self.fiducials is not None:
+            parts.append(f"{len(self.fiducials)} fiducials")
         if self.frame_calibration is not None:
             parts.append(f"{len(self.frame_calibration.points)} pinholes calibrated")
         if self.registration is not None:
-            parts.append(f"FRE {self.registration.fre_mm:.2f} mm, l = {self.registration.sensor_offset_l_mm:.2f} mm")
+            parts.append(f"FRE {self.registration.fre_mm:.2f} mm, {offset_summary(self.registration)}")
         return "; ".join(parts)
+
+
+def offset_summary(registration: RegistrationResult) -> str:
+    """The sensor offset of a summary line: ``l = 14.20 mm``, or that a point fit onto fiducials has none."""
+    if getattr(registration, "point_fit", False):  # (a registration-like object without it: the pinhole route)
+        return "point fit onto fiducials (no sensor offset)"
+    return f"l = {registration.sensor_offset_l_mm:.2f} mm"
+
+
+def check_case_image_side(case: Case) -> None:
+    """A case registers onto its CT's markers or onto ``fiducials.mrk.json``: refused (one line) with neither
+    or both."""
+    if case.ct is None and case.fiducials is None:
+        raise EMRegError(f"{case.folder}: no CT found (ct.nrrd, ct.nii.gz, ct.mha or a ct/ DICOM folder) and no "
+                         "fiducials.mrk.json")
+    if case.ct is not None and case.fiducials is not None:
+        raise EMRegError(f"{case.folder}: holds both a CT ({case.ct.name}) and fiducials.mrk.json: register onto one "
+                         "of them; move the other out of the case folder")
 
 
 def _manifest_ct(run: Any) -> str | None:

@@ -32,7 +32,7 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -56,6 +56,10 @@ RIGID_TOLERANCE = 1e-4
 
 #: Median of a chi-squared variable with 3 degrees of freedom (robust RMS of 3D residuals).
 _CHI2_3_MEDIAN = 2.3660
+
+if TYPE_CHECKING:
+    from .pairing import PairingResult
+    from .settings import PairingSettings
 
 
 @dataclass
@@ -89,6 +93,15 @@ class RegistrationResult:
     #: The tracker ports of the calibration the registration was made from (None: an older file without them).
     reference_sensor: int | None = None
     probe_sensor: int | None = None
+    #: Registered onto fiducial points (``emreg register --fiducials``): where they came from, the points (mm, the
+    #: fiducials' frame) and how the calibration points were taken (:mod:`EMRegModule.fiducial_registration`);
+    #: None for the CT markers' pinhole route.
+    fiducials: dict[str, Any] | None = None
+
+    @property
+    def point_fit(self) -> bool:
+        """True for a plain rigid point fit onto fiducials (no sensor offset l: ``sensor_offset_l_mm`` is 0)."""
+        return self.fiducials is not None
 
     @property
     def outliers(self) -> list[str]:
@@ -125,6 +138,8 @@ class RegistrationResult:
             document["predicted_registration_tre_mm"] = [_round(v) for v in self.predicted_tre_mm]
         if self.error is not None:
             document["error_model"] = self.error.to_json()
+        if self.fiducials is not None:
+            document["fiducials"] = self.fiducials
         if self.provenance is not None:
             document["provenance"] = self.provenance
         return document
@@ -168,6 +183,7 @@ class RegistrationResult:
                 provenance=document["provenance"] if isinstance(document.get("provenance"), dict) else None,
                 reference_sensor=_port(document, "reference_sensor", source),
                 probe_sensor=_port(document, "probe_sensor", source),
+                fiducials=document["fiducials"] if isinstance(document.get("fiducials"), dict) else None,
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise EMRegError(f"{source}: not a registration file ({exc!s:.100})") from None
@@ -265,11 +281,7 @@ def register(
     fle = fre_value * np.sqrt(n_used / (n_used - 2)) if n_used > 2 else float("nan")
     error = registration_error(points[cal_index[used]], origins[image_index[used]], axes[image_index[used]],
                                solution.l_mm, not fixed, pair_residuals[used])
-    predicted = None
-    targets = None
-    if targets_image is not None and len(np.atleast_2d(targets_image)):
-        targets = np.asarray(targets_image, dtype=float).reshape(-1, 3)
-        predicted = np.sqrt(np.trace(error.covariance.at(targets), axis1=-2, axis2=-1))
+    targets, predicted = predicted_registration_tre(error, targets_image)
 
     pairs = [
         {"image_marker": image_ids[j], "calibration_point": labels[i], "residual_mm": float(r), "outlier": bool(o)}
@@ -295,15 +307,29 @@ def register(
         predicted_tre_mm=predicted,
         error=error,
         warnings=warnings + list(frame_calibration.warnings),
-        pairing={"support": pairing.support, "rival_support": pairing.rival_support,
-                 "hypotheses": pairing.hypotheses, "seed_triangles": pairing.seeds,
-                 "ambiguity_margin": config.pairing.ambiguity_margin,
-                 "point_tolerance_mm": round(config.pairing.point_tolerance_mm, 3),
-                 "distance_tolerance_mm": round(config.pairing.distance_tolerance_mm, 3)},
+        pairing=pairing_record(pairing, config.pairing),
         probe_axis=axis_report.to_json(),
         reference_sensor=_calibration_port(frame_calibration, "reference_sensor"),
         probe_sensor=_calibration_port(frame_calibration, "probe_sensor"),
     )
+
+
+def predicted_registration_tre(error: RegistrationError, targets_image: np.ndarray | None
+                               ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The targets (K, 3, image space mm) and the registration's own RMS error at each (mm), or (None, None)."""
+    if targets_image is None or not len(np.atleast_2d(targets_image)):
+        return None, None
+    targets = np.asarray(targets_image, dtype=float).reshape(-1, 3)
+    return targets, np.sqrt(np.trace(error.covariance.at(targets), axis1=-2, axis2=-1))
+
+
+def pairing_record(pairing: PairingResult, settings: PairingSettings) -> dict[str, Any]:
+    """The ``pairing`` block of ``registration.json``: how well the pairing was supported, and its tolerances."""
+    return {"support": pairing.support, "rival_support": pairing.rival_support,
+            "hypotheses": pairing.hypotheses, "seed_triangles": pairing.seeds,
+            "ambiguity_margin": settings.ambiguity_margin,
+            "point_tolerance_mm": round(settings.point_tolerance_mm, 3),
+            "distance_tolerance_mm": round(settings.distance_tolerance_mm, 3)}
 
 
 def _unpaired_warnings(image_markers: list[str], calibration_points: list[str]) -> list[str]:
@@ -397,11 +423,7 @@ def _check_fre_and_offset(fre_value: float, solution: OffsetSolution, l_range: t
                           config: RegistrationSettings) -> list[str]:
     """Refuse (:class:`NoSafeAnswerError`) an FRE above ``max_fre_mm`` or a solved l whose standard error
     is above ``max_l_std_mm``; the warnings about l (poorly determined, at an end of the pinhole)."""
-    if fre_value > config.max_fre_mm:
-        raise NoSafeAnswerError(
-            f"registration FRE {fre_value:.2f} mm is above the limit of {config.max_fre_mm:g} mm "
-            f"([registration] max_fre_mm); check the calibration recording and the detected markers"
-        )
+    check_fre(fre_value, config, "the detected markers")
     if config.sensor_offset_l_mm is not None:
         return []
     warnings = []
@@ -419,6 +441,16 @@ def _check_fre_and_offset(fre_value: float, solution: OffsetSolution, l_range: t
         warnings.append(f"sensor offset l = {solution.l_mm:.2f} mm is at the end of the pinhole range "
                         f"[{a:g}, {b:g}] mm: check the marker model")
     return warnings
+
+
+def check_fre(fre_value: float, config: RegistrationSettings, image_side: str) -> None:
+    """Refuse (:class:`NoSafeAnswerError`) an FRE (mm) above ``[registration] max_fre_mm``; ``image_side`` names
+    what to check besides the calibration recording."""
+    if fre_value > config.max_fre_mm:
+        raise NoSafeAnswerError(
+            f"registration FRE {fre_value:.2f} mm is above the limit of {config.max_fre_mm:g} mm "
+            f"([registration] max_fre_mm); check the calibration recording and {image_side}"
+        )
 
 
 def flag_outliers(pair_residuals: np.ndarray, config: RegistrationSettings) -> np.ndarray:

@@ -1,5 +1,5 @@
-"""Case folders (spec: ``ct.*`` or ``ct/``, ``calibration.csv``, ``navigation.csv``,
-``targets.mrk.json``, ``board.csv``, ``case.toml``) and their settings. The recordings may also
+"""Case folders (spec: ``ct.*`` or ``ct/`` (or ``fiducials.mrk.json`` instead of a CT), ``calibration.csv``,
+``navigation.csv``, ``targets.mrk.json``, ``board.csv``, ``case.toml``) and their settings. The recordings may also
 be PLUS sequence metafiles (``calibration.seq.mha`` ...; :mod:`EMRegModule.io.recording`).
 """
 
@@ -14,6 +14,7 @@ import numpy as np
 from ..errors import EMRegError
 from ..settings import Settings, load_settings
 from ..tracking import TrackingRecording
+from .fiducials import CASE_FIDUCIALS_NAME
 from .markups import read_markups
 from .recording import RECORDING_SUFFIXES, find_recording
 
@@ -39,6 +40,8 @@ class Case:
     targets: Path | None
     board: Path | None
     settings: Settings = field(default_factory=Settings)
+    #: ``fiducials.mrk.json``: fiducial points instead of a CT (:mod:`EMRegModule.io.fiducials`), or None.
+    fiducials: Path | None = None
 
     @property
     def reference_sensor(self) -> int:
@@ -83,6 +86,7 @@ def open_case(folder: str | os.PathLike[str]) -> Case:
     return Case(
         folder=folder,
         ct=find_ct(folder),
+        fiducials=optional(CASE_FIDUCIALS_NAME),
         calibration=find_recording(folder, "calibration"),
         navigation=find_recording(folder, "navigation"),
         targets=optional(TARGETS_FILE),

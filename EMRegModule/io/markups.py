@@ -56,27 +56,66 @@ def write_markups(
 
 def read_markups(path: str | os.PathLike[str]) -> tuple[list[str], np.ndarray]:
     """Labels and LPS positions (N, 3) of every defined control point in a markups JSON file."""
+    labels, positions, _ = read_markups_with_frame(path)
+    return labels, positions
+
+
+def read_markups_with_frame(path: str | os.PathLike[str]) -> tuple[list[str], np.ndarray, dict[str, str]]:
+    """:func:`read_markups` plus what the file declared: ``{"coordinate_system": "RAS"|"LPS"|"RAS, LPS",
+    "units": "mm"|...}`` (the positions returned are LPS mm whatever it declared).
+
+    As 3D Slicer reads them (``vtkMRMLMarkupsJsonStorageNode``): ``coordinateSystem`` ``LPS`` (the default) or
+    ``RAS``; ``coordinateUnits`` a unit string or a coded entry ``[code, "UCUM", meaning]`` (default ``mm``;
+    ``um``, ``cm`` and ``m`` are scaled to mm, any other unit refused); control points whose ``positionStatus``
+    is ``undefined`` or ``preview`` are left out, an unknown status refused.
+    """
     document = read_json(path, "markups JSON")
     labels: list[str] = []
     positions: list[list[float]] = []
+    systems: list[str] = []
+    units_seen: list[str] = []
     try:
         for markup in document["markups"]:
-            system = str(markup.get("coordinateSystem", "LPS")).upper()
+            system = str(markup.get("coordinateSystem") or "LPS").upper()
             if system not in ("LPS", "RAS"):
-                raise EMRegError(f"{path}: unknown coordinateSystem {system!r}")
+                raise EMRegError(f"{path}: unknown coordinateSystem {system!r} (Slicer writes LPS or RAS)")
             flip = np.array([-1.0, -1.0, 1.0]) if system == "RAS" else np.ones(3)
-            units = str(markup.get("coordinateUnits", "mm"))
-            if units not in UNIT_TO_MM:
-                raise EMRegError(f"{path}: unknown coordinateUnits {units!r} (EMReg reads {', '.join(UNIT_TO_MM)})")
+            units = _markups_units(markup.get("coordinateUnits", "mm"), path)
             flip = flip * UNIT_TO_MM[units]
+            systems.append(system)
+            units_seen.append(units)
             for i, point in enumerate(markup.get("controlPoints", [])):
-                if point.get("positionStatus", "defined") != "defined":
+                status = point.get("positionStatus", "defined")
+                if status not in POSITION_STATUSES:
+                    raise EMRegError(f"{path}: control point {i + 1} has an unknown positionStatus {status!r:.30} "
+                                     f"(Slicer writes {', '.join(POSITION_STATUSES)})")
+                if status != "defined":
                     continue
                 position = np.asarray(point["position"], dtype=float)
                 if position.shape != (3,) or not np.all(np.isfinite(position)):
                     raise EMRegError(f"{path}: control point {i + 1} has no valid 3D position")
                 labels.append(str(point.get("label") or f"P{i + 1}"))
                 positions.append(list(position * flip))
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise EMRegError(f"{path}: not a Slicer markups file ({exc!s:.100})") from None
-    return labels, np.asarray(positions, dtype=float).reshape(-1, 3)
+    declared = {"coordinate_system": ", ".join(dict.fromkeys(systems)) or "LPS",
+                "units": ", ".join(dict.fromkeys(units_seen)) or "mm"}
+    return labels, np.asarray(positions, dtype=float).reshape(-1, 3), declared
+
+
+#: The ``positionStatus`` values of a Slicer control point (only ``defined`` points are read).
+POSITION_STATUSES = ("defined", "undefined", "preview")
+
+
+def _markups_units(value: object, path: str | os.PathLike[str]) -> str:
+    """The unit of a markup's ``coordinateUnits``: a string, or a coded entry ``[code, "UCUM", meaning]`` (the
+    only coding scheme Slicer reads); refused (:class:`EMRegError`) unless EMReg can scale it to mm."""
+    if isinstance(value, list):
+        if len(value) != 3 or str(value[1]).upper() != "UCUM":
+            raise EMRegError(f"{path}: coordinateUnits {value!r:.60} is not a UCUM coded entry [code, \"UCUM\", "
+                             "meaning]")
+        value = value[0]
+    units = str(value)
+    if units not in UNIT_TO_MM:
+        raise EMRegError(f"{path}: unknown coordinateUnits {units!r} (EMReg reads {', '.join(UNIT_TO_MM)})")
+    return units

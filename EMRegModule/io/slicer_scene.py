@@ -46,6 +46,7 @@ RESIDUALS_NODE_NAME = "EMReg marker residuals"
 TRANSFORM_NODE_NAME = "ReferenceToImage"
 PROBE_NODE_NAME = "ProbeToReference"
 TRE_MAP_NODE_NAME = "EMReg predicted TRE (mm)"
+FIDUCIALS_NODE_NAME = "EMReg fiducials"
 #: The predicted-TRE map of a run (``emreg run`` writes it beside registration.json when it can).
 TRE_MAP_FILE = "tre_map.nrrd"
 
@@ -735,6 +736,8 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
                 content.image = read_ct(ct, series)
             except EMRegError as exc:
                 content.notes.append(f"CT not included ({exc})")
+        elif not ct and run.get("fiducials"):
+            content.notes.append("no CT: a fiducial case (the fiducials are in the scene)")
         else:
             content.notes.append("CT not included (run.json names no CT that exists)")
     return content
@@ -817,6 +820,9 @@ def build_run_scene(scene: Any, content: RunScene, nodes: dict[str, Any] | None 
                  for m in paired], node=nodes.get(PINHOLES_NODE_NAME)))
             keep(RESIDUALS_NODE_NAME, show_residual_spheres(scene, pinholes, [pairs[m][1] for m in paired],
                                                             node=nodes.get(RESIDUALS_NODE_NAME)))
+        fiducials = content.registration.get("fiducials")
+        if isinstance(fiducials, dict) and fiducials.get("points"):  # a point fit: what the points were fitted onto
+            _show_fiducials(scene, fiducials, pairs, keep, nodes)
         if content.probe_to_reference is not None:
             keep(PROBE_NODE_NAME, show_transform(scene, PROBE_NODE_NAME, content.probe_to_reference, transform,
                                                  node=nodes.get(PROBE_NODE_NAME)))
@@ -839,6 +845,23 @@ def build_run_scene(scene: Any, content: RunScene, nodes: dict[str, Any] | None 
         if stale is not None and scene.GetNodeByID(stale.GetID()) is stale:
             scene.RemoveNode(stale)
     return built
+
+
+def _show_fiducials(scene: Any, fiducials: dict[str, Any], pairs: dict[str, tuple[str, float]], keep: Any,
+                    nodes: dict[str, Any]) -> None:
+    """The fiducials of a point fit (``registration.json`` ``fiducials``: image space, LPS) as a point list (RAS),
+    each described by its pair, with residual spheres at the paired ones."""
+    labels = [str(p["label"]) for p in fiducials["points"]]
+    positions = lps_to_ras_points(np.array([p["position"] for p in fiducials["points"]], dtype=float).reshape(-1, 3))
+    texts = [f"fiducial of {Path(str(fiducials.get('file', ''))).name}; " + (
+        f"paired with calibration point {pairs[m][0]}; residual {pairs[m][1]:.2f} mm" if m in pairs else "unpaired")
+        for m in labels]
+    keep(FIDUCIALS_NODE_NAME, show_points(scene, FIDUCIALS_NODE_NAME, labels, positions, (0.1, 0.6, 1.0), texts,
+                                          node=nodes.get(FIDUCIALS_NODE_NAME)))
+    paired = [k for k, m in enumerate(labels) if m in pairs]
+    if paired:
+        keep(RESIDUALS_NODE_NAME, show_residual_spheres(scene, positions[paired], [pairs[labels[k]][1] for k in paired],
+                                                        node=nodes.get(RESIDUALS_NODE_NAME)))
 
 
 def write_run_bundle(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,

@@ -69,6 +69,7 @@ class FrameScene:
     reference_to_image: np.ndarray | None = None
     calibration_points: np.ndarray | None = None
     sensor_points: np.ndarray | None = None
+    sensor_points_name: str = "sensor points at the solved l"  # "fiducials" for a point fit (no CT)
     targets: np.ndarray | None = None
     target_labels: list[str] | None = None
     navigation_path: np.ndarray | None = None

@@ -64,7 +64,7 @@ def stage_warnings(inputs: ReportInputs) -> list[ReportWarning]:
     # once each: registration.json repeats the calibration's warnings (so that it tells them alone)
     found = [ReportWarning("warning", text) for text in dict.fromkeys(map(str, texts))]
     axis = inputs.registration.probe_axis if inputs.registration is not None else None
-    if axis:
+    if axis and not inputs.registration.point_fit:  # fiducial points have no axis to compare the probe's with
         found.append(ReportWarning("note", f"probe orientation: {axis.get('note') or axis.get('detected')} "
                                            f"(probe_axis setting {axis.get('setting')}, detected "
                                            f"{axis.get('detected')}, pairing by {axis.get('pairing')})"))

@@ -94,7 +94,11 @@ def _frame_scene(data: ReportData):
 
     inputs, registration = data.inputs, data.inputs.registration
     sensor_points = None
-    if data.l_mm is not None:
+    sensor_points_name = "sensor points at the solved l"
+    if registration is not None and registration.point_fit:  # no CT: the fiducials are what the points fit onto
+        sensor_points = np.asarray([p["position"] for p in registration.fiducials.get("points") or []], dtype=float)
+        sensor_points_name = "fiducials"
+    elif data.l_mm is not None:
         paired = [r.sensor_point(data.l_mm) for r in data.rows if r.residual_mm is not None]
         sensor_points = np.stack(paired) if paired else None
     navigation = inputs.navigation_positions
@@ -107,6 +111,7 @@ def _frame_scene(data: ReportData):
         reference_to_image=registration.reference_to_image if registration is not None else None,
         calibration_points=calibration_points_in_image(inputs, data.points),
         sensor_points=sensor_points,
+        sensor_points_name=sensor_points_name,
         targets=inputs.targets_positions,
         target_labels=inputs.targets_labels,
         navigation_path=navigation,
@@ -123,7 +128,7 @@ def _scene_caption(scene) -> str:
          "fitted marker models (grey: no registration)") if scene.markers else "",
         "the reference sensor with its axes (red X, green Y, blue Z)" if registered else "",
         "calibration points mapped into the CT (magenta)" if has(scene.calibration_points) else "",
-        "sensor points at the solved l (yellow)" if has(scene.sensor_points) else "",
+        f"{scene.sensor_points_name} (yellow)" if has(scene.sensor_points) else "",
         "targets (red)" if has(scene.targets) else "",
         "the navigated probe path (cyan)" if has(scene.navigation_path) and len(scene.navigation_path) > 1 else ""]
     shown = [text for text in shown if text]
@@ -288,11 +293,14 @@ def render_residuals(data: ReportData) -> list[Figure]:
     colors = [tuple(int(c) for c in colorize([v], low, high)[0]) for v in values]
     fre_mm = finite_or_none(registration.fre_mm)
     lines = [(fre_mm, f"FRE {fre_mm:.2f} mm")] if fre_mm is not None else []
-    chart = bar_chart(labels, values, title="Registration residual per marker", y_label="residual (mm)",
+    what = "fiducial" if registration.point_fit else "marker"
+    chart = bar_chart(labels, values, title=f"Registration residual per {what}", y_label="residual (mm)",
                       colors=colors or [GREY], reference_lines=lines)
-    return [Figure("residuals", "Residual per marker",
-                   "Distance between each calibration point mapped into the CT and its marker's sensor point at the "
-                   "solved l; the dashed line is the FRE (RMS).", _png(chart))]
+    caption = ("Distance between each calibration point mapped into the fiducials' frame and its fiducial"
+               if registration.point_fit else
+               "Distance between each calibration point mapped into the CT and its marker's sensor point at the "
+               "solved l")
+    return [Figure("residuals", f"Residual per {what}", caption + "; the dashed line is the FRE (RMS).", _png(chart))]
 
 
 def render_fre_curve(data: ReportData) -> list[Figure]:

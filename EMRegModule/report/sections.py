@@ -7,6 +7,7 @@ no timestamps: the same inputs give the same bytes.
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -18,6 +19,7 @@ from .html import CSS, DASH, esc, figure_html, note, num, table, vec
 
 if TYPE_CHECKING:
     from ..evaluation import BoardEdge
+    from ..registration import RegistrationResult
 
 
 def _left_out(data: ReportData, part: str | None, absent: str) -> str:
@@ -73,8 +75,14 @@ def summary_section(data: ReportData, figures: dict[str, Figure]) -> str:
         rows.append(("pairs", str(len(registration.pairs))))
         rows.append(("FRE", f"{num(registration.fre_mm)} mm"))
         model = inputs.model
-        rows.append(("sensor offset l", f"{num(registration.sensor_offset_l_mm)} mm (pinhole range "
-                                        f"{model.pinhole_bottom_mm:.1f} to {model.pinhole_top_mm:.1f} mm)"))
+        if registration.point_fit:
+            block = registration.fiducials
+            rows.append(("registered onto", esc(f"{len(block.get('points') or [])} fiducials ({block.get('format')}, "
+                                                f"{Path(str(block.get('file', ''))).name}): rigid point fit, no "
+                                                "sensor offset; no CT")))
+        else:
+            rows.append(("sensor offset l", f"{num(registration.sensor_offset_l_mm)} mm (pinhole range "
+                                            f"{model.pinhole_bottom_mm:.1f} to {model.pinhole_top_mm:.1f} mm)"))
     if inputs.navigation_positions is not None:
         rows.append(("navigated probe samples", str(len(inputs.navigation_positions))))
     tre = tre_figures(inputs.evaluation)
@@ -146,6 +154,9 @@ def registration_section(data: ReportData, figures: dict[str, Figure]) -> str:
 def markers_section(data: ReportData, figures: dict[str, Figure]) -> str:
     """Slices through each marker, the detected markers and the rejected candidates."""
     detection = data.inputs.detection
+    registration = data.inputs.registration
+    if detection is None and registration is not None and registration.point_fit:
+        return fiducials_section(data)
     if detection is None:
         return "<h2>Markers in the CT</h2>\n" + note("Not shown: no markers.json in the output folder.")
     parts = ["<h2>Markers in the CT</h2>"]
@@ -160,6 +171,26 @@ def markers_section(data: ReportData, figures: dict[str, Figure]) -> str:
             ("centroid (LPS mm)", "volume (mm³)", "reason"),
             [(vec(c.centroid), num(c.volume_mm3, 0), esc(c.reason)) for c in detection.rejected], left_columns=(2,)))
     return "\n".join(parts)
+
+
+def fiducials_section(data: ReportData) -> str:
+    """The fiducials a point fit registered onto (no CT, nothing detected): each with its pair and residual."""
+    block = data.inputs.registration.fiducials
+    pairs = {str(p.get("image_marker")): p for p in data.inputs.registration.pairs}
+    declared = block.get("declared") or {}
+    rows = []
+    for point in block.get("points") or []:
+        pair = pairs.get(str(point.get("label")), {})
+        rows.append((esc(point.get("label")), vec(np.asarray(point.get("position"), dtype=float)),
+                     esc(pair.get("calibration_point")) if pair else DASH, num(pair.get("residual_mm"))))
+    said = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in declared.items())
+    return "\n".join([
+        "<h2>Fiducials</h2>",
+        note(esc(f"No CT: the calibration points were registered onto the fiducials of {block.get('file')} "
+                 f"({block.get('format')}{'; ' + said if said else ''}) by a rigid point fit, with no sensor offset; "
+                 "marker detection was skipped. Calibration points: "
+                 f"{block.get('calibration_points', 'the touched points')}.")),
+        table(("fiducial", f"position ({block.get('frame', 'LPS')} mm)", "paired with", "residual (mm)"), rows)])
 
 
 def calibration_section(data: ReportData, figures: dict[str, Figure]) -> str:
@@ -241,6 +272,15 @@ SECTIONS: tuple[Callable[[ReportData, dict[str, Figure]], str], ...] = (
     tre_section, board_section, run_log_section)
 
 
+def _image_space(registration: RegistrationResult | None) -> str:
+    """What "image space" is in this report (HTML): the CT's, or (a point fit) the fiducials' frame."""
+    if registration is not None and registration.point_fit:
+        block = registration.fiducials
+        return esc(f"Image space is the fiducials' frame ({block.get('frame', 'LPS')}, mm) of {block.get('file')}; "
+                   "there is no CT.")
+    return "Image space is the CT's LPS physical space (mm)."
+
+
 def build_html(data: ReportData, figures: list[Figure]) -> str:
     """The report page (one string, deterministic for the same inputs)."""
     inputs = data.inputs
@@ -250,7 +290,7 @@ def build_html(data: ReportData, figures: list[Figure]) -> str:
              f"<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
              f"<title>EMReg report: {esc(case_name)}</title><style>{CSS}</style></head><body><main>",
              f"<h1>EMReg verification report: {esc(case_name)}</h1>",
-             "<p class=\"muted\">Image space is the CT's LPS physical space (mm). ReferenceToImage maps points of the "
+             f"<p class=\"muted\">{_image_space(inputs.registration)} ReferenceToImage maps points of the "
              "reference sensor (Model 800) frame into it.</p>"]
     parts += [text for section in SECTIONS if (text := section(data, by_name))]
     parts.append("</main></body></html>\n")

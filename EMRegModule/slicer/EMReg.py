@@ -342,19 +342,19 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     # --- inputs -------------------------------------------------------------------------------------
 
     def loadCase(self, caseDirectory, outputDirectory=None):
-        """Open a case folder (spec layout): read its settings, CT and calibration recording; show the CT.
+        """Open a case folder (spec layout): read its settings, CT (or ``fiducials.mrk.json`` instead) and
+        calibration recording; show the CT.
 
         ``outputDirectory`` receives the result files (default: ``<case>/emreg-output``).
         """
-        from EMRegModule.controller import EMRegController
+        from EMRegModule.controller import EMRegController, check_case_image_side
         from EMRegModule.errors import EMRegError
         from EMRegModule.io.case import open_case
 
         if not caseDirectory:
             raise EMRegError("choose a case folder first")
         case = open_case(caseDirectory)
-        if case.ct is None:
-            raise EMRegError(f"{case.folder}: no CT found (ct.nrrd, ct.nii.gz, ct.mha or a ct/ DICOM folder)")
+        check_case_image_side(case)
         self.controller = EMRegController.for_case(case)  # sensor ports from case.toml (default 1 and 2)
         self.controller.command = self.COMMAND
         self.case = case
@@ -363,15 +363,43 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         self.reportPath = None
         self.evaluation = None
         self.probeToReference = None
-        self.controller.load_ct(case.ct)
+        if case.ct is not None:
+            self.controller.load_ct(case.ct)
+        else:  # a fiducial case: registered onto its fiducials, nothing to detect
+            self.controller.load_fiducials(case.fiducials)
         self.controller.note_inputs(ct=case.ct, calibration=case.calibration, navigation=case.navigation,
                                     targets=case.targets, board=case.board)  # provenance of the outputs
         if case.calibration is not None:
             self.controller.load_calibration_recording(case.calibration)
-        self.showVolume()
+        if case.ct is not None:
+            self.showVolume()
         self.showResults()
         logging.info("EMReg: case %s loaded; %s", case.folder, self.controller.describe())
         return case
+
+    def setFiducialsFromMarkupsNode(self, markupsNode):
+        """Register onto the defined control points of a markups node (world RAS, as Slicer shows them; kept
+        in LPS) instead of CT markers: a rigid point fit of the calibration points, no sensor offset. Checked as a
+        fiducials file is (at least 3, unique labels, not on one line); drops the registration."""
+        import numpy as np
+
+        from EMRegModule.io.fiducials import Fiducials, check_fiducials
+
+        labels, positions = [], []
+        for i in range(markupsNode.GetNumberOfControlPoints()):
+            if markupsNode.GetNthControlPointPositionStatus(i) != markupsNode.PositionDefined:
+                continue
+            ras = [0.0, 0.0, 0.0]
+            markupsNode.GetNthControlPointPositionWorld(i, ras)
+            labels.append(markupsNode.GetNthControlPointLabel(i) or f"F-{i + 1}")
+            positions.append([-ras[0], -ras[1], ras[2]])
+        fiducials = Fiducials(labels, np.asarray(positions, dtype=float).reshape(-1, 3),
+                              f"markups node {markupsNode.GetName()}", "3D Slicer markups node", "LPS",
+                              {"coordinate_system": "RAS (world)", "units": "mm"})
+        check_fiducials(fiducials)
+        self.controller.set_fiducials(fiducials)
+        self.showResults()
+        return fiducials
 
     def setSensors(self, referenceSensor, probeSensor):
         """Sensor ports (1..4); a change drops the frame calibration and what follows."""
@@ -566,8 +594,10 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         lines = []
         registration = self.controller.registration
         if registration is not None:
+            from EMRegModule.controller import offset_summary
+
             lines.append(f"FRE {registration.fre_mm:.2f} mm over {len(registration.pairs)} pairs; "
-                         f"sensor offset l = {registration.sensor_offset_l_mm:.2f} mm")
+                         f"{offset_summary(registration)}")
             if registration.unpaired_image_markers or registration.unpaired_calibration_points:
                 lines.append(f"unpaired: {len(registration.unpaired_image_markers)} markers, "
                              f"{len(registration.unpaired_calibration_points)} calibration points")
