@@ -26,7 +26,7 @@ SETTINGS_FILE = "case.toml"
 #: Every name a case folder is read from (an output folder equal to the case must write none of them).
 CASE_INPUT_NAMES = (CT_FOLDER_NAME, *CT_FILE_NAMES,
                     *(role + suffix for role in RECORDING_ROLES for suffix in RECORDING_SUFFIXES),
-                    TARGETS_FILE, SETTINGS_FILE)
+                    TARGETS_FILE, SETTINGS_FILE, CASE_FIDUCIALS_NAME)
 
 
 @dataclass
