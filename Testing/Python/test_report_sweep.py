@@ -291,7 +291,7 @@ def test_a_long_label_stays_under_its_own_target_in_the_error_budget():
 
 
 def test_a_long_pinhole_label_keeps_the_residual_in_the_markers_caption(labelled_run):
-    from EMRegModule.rendering.plots import _text_size
+    from EMRegModule.rendering.text import text_size
     from EMRegModule.rendering.slices import VIEW_PX
     from EMRegModule.report.derived import calibration_points, marker_rows
     from EMRegModule.report.figures import ReportData, _slice_markers
@@ -304,7 +304,7 @@ def test_a_long_pinhole_label_keeps_the_residual_in_the_markers_caption(labelled
     paired = next(r for r in rows if r.calibration_label == LONG)
     caption = captions[paired.id]
     assert caption.endswith(f"...  {paired.residual_mm:.2f} mm") and caption.startswith(f"{paired.id} -> Lxxx")
-    assert _text_size(caption, 0.42)[0] < 3 * VIEW_PX, caption  # within its tile: three views
+    assert text_size(caption, 0.42)[0] < 3 * VIEW_PX, caption  # within its tile: three views
 
 
 def test_a_report_over_a_ct_replaced_since_the_run_is_refused(small_case, tmp_path, capsys):
