@@ -38,8 +38,9 @@ import SimpleITK as sitk
 
 from ..errors import EMRegError
 from ..provenance import BackgroundHash, Digest, file_sha256, folder_members, folder_sha256
-from .dicom_header import quick_header
+from .dicom_header import PIXEL_DATA, quick_header
 from .fast_read import VolumeFill, _writable_bytes
+from .itk_messages import quiet_itk
 
 _SOP_ENHANCED_CT = "1.2.840.10008.5.1.4.1.1.2.1"
 _PREAMBLE_PROBE_BYTES = 1 << 16  # the header of a file without its DICM marker, read to tell whether it is an image
@@ -88,6 +89,8 @@ class SliceHeader:
     bits_allocated: int = 16
     photometric: str = "MONOCHROME2"
     frame: int | None = None  # a frame (0-based) of a multi-frame file; None for a single-image file
+    pixel_data: tuple[int, int | None] | None = None  # Pixel Data's value offset and declared length (None:
+    # undefined, encapsulated); None when unknown (a header read by pydicom)
 
     @property
     def name(self) -> str:
@@ -312,7 +315,8 @@ def _slice_header(path: Path, transfer: str, get: Any) -> SliceHeader | None:
             signed=int(get("PixelRepresentation", 0) or 0) == 1,
             samples=int(get("SamplesPerPixel", 1) or 1), instance=_int(get("InstanceNumber")),
             bits_allocated=int(get("BitsAllocated", 16) or 16),
-            photometric=str(get("PhotometricInterpretation", "MONOCHROME2") or "MONOCHROME2"))
+            photometric=str(get("PhotometricInterpretation", "MONOCHROME2") or "MONOCHROME2"),
+            pixel_data=pixel_data if isinstance(pixel_data := get(PIXEL_DATA), tuple) else None)
     except (TypeError, ValueError, AttributeError) as exc:
         raise EMRegError(f"{path}: malformed DICOM header ({_short(exc)})") from None
 
@@ -662,6 +666,7 @@ def _read_multiframe(series: DicomSeries) -> sitk.Image:
     """A multi-frame file's volume: GDCM's pixels, frames in the order along the normal, the functional groups'
     geometry (:func:`_multiframe_geometry`); GDCM's own image for a file without functional groups."""
     path = series.headers[0].path
+    check_pixel_data_length(series.headers[0], path.stat().st_size)
     if not series.frames:
         return _read_one(path)
     decoded = _read_one(path, voxel_type(series.frames))
@@ -674,6 +679,24 @@ def _read_multiframe(series: DicomSeries) -> sitk.Image:
     return image
 
 
+def check_pixel_data_length(header: SliceHeader, file_size: int) -> None:
+    """Refuse a file whose uncompressed Pixel Data holds fewer bytes than its image needs (rows x columns x frames
+    x samples x bits allocated), declared so or cut off by the file's end: GDCM decodes such a slice without an
+    error, its missing pixels made of whatever memory follows. Nothing is checked where the length is undefined
+    (a compressed image: its decoder finds a short stream) or unknown (a header read by pydicom)."""
+    if header.pixel_data is None or header.pixel_data[1] is None:
+        return
+    start, declared = header.pixel_data
+    pixels = header.rows * header.columns * header.frames * header.samples
+    needed = (pixels * header.bits_allocated + 7) // 8
+    held = max(0, min(declared, file_size - start))
+    if held < needed:
+        raise EMRegError(f"{header.path}: DICOM pixel data is cut short: {held} bytes where its {header.columns}x"
+                         f"{header.rows} image of {header.bits_allocated}-bit pixels"
+                         f"{f' x {header.frames} frames' if header.frames > 1 else ''} needs {needed}; export the "
+                         "series again")
+
+
 def _read_one(path: Path, pixel: int | None = None) -> sitk.Image:
     reader = sitk.ImageFileReader()
     reader.SetImageIO("GDCMImageIO")
@@ -681,7 +704,8 @@ def _read_one(path: Path, pixel: int | None = None) -> sitk.Image:
     if pixel is not None:
         reader.SetOutputPixelType(pixel)
     try:
-        return reader.Execute()
+        with quiet_itk():
+            return reader.Execute()
     except RuntimeError as exc:
         lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
         detail = lines[-1][:160] if lines else "unreadable"
@@ -887,6 +911,7 @@ def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: 
                 data, digest = _file_bytes(header.path, hashed)
                 if hashed:
                     digests[names[header.path]] = digest
+                check_pixel_data_length(header, len(data))
                 if stop - start == 1:
                     direct = _read_uncompressed(header, data, voxels[k])
             if not direct:
@@ -938,7 +963,8 @@ def _decode_gdcm(headers: list[SliceHeader], out: np.ndarray, expected: tuple[in
         reader.SetOutputPixelType(pixel)
         reader.SetNumberOfThreads(1)  # the pool's workers are the parallelism
         try:
-            chunk = reader.Execute()
+            with quiet_itk():
+                chunk = reader.Execute()
         except RuntimeError:
             chunk = None  # one of the files is bad: decoded one by one below, which names it
         if chunk is not None and chunk.GetNumberOfComponentsPerPixel() == 1:
