@@ -585,6 +585,13 @@ def series_record(chosen: DicomSeries, all_series: list[DicomSeries], folder: Pa
 # --- reading ------------------------------------------------------------------------------------------
 
 
+# The threads that run SimpleITK (the read, the early allocation) are no daemons. A daemon thread still inside
+# SimpleITK (a volume being allocated, a slice decoded) when the interpreter exits, e.g. right after a one-line
+# refusal, is ended by the interpreter from within that C++ code: the process then dies of SIGABRT ("FATAL:
+# exception not rethrown") or SIGSEGV instead of exiting 2. The interpreter waits for threads that are no
+# daemons before it exits; these end soon (an allocation within a second, a cancelled read at its next slice).
+
+
 def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None = None,
                       workers: int | None = None, compact: bool = False) -> tuple[VolumeFill, dict[str, Any]]:
     """Start reading the chosen CT series of ``folder``; its fill and its ``ct_series`` record.
@@ -613,7 +620,7 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
         fill.sha256 = Digest()
         workers = workers or max(1, min(8, os.cpu_count() or 1))
         threading.Thread(target=_decode_series, args=(chosen, fill, workers, folder, early, compact),
-                         name="emreg-dicom-read", daemon=True).start()
+                         name="emreg-dicom-read").start()  # no daemon: see above
     fill.series = record
     return fill, record
 
@@ -643,7 +650,7 @@ class _EarlyImage:
         def allocate() -> None:
             self._image = sitk.Image(size, pixel)
 
-        self._thread = threading.Thread(target=allocate, name="emreg-dicom-allocate", daemon=True)
+        self._thread = threading.Thread(target=allocate, name="emreg-dicom-allocate")  # no daemon (see above)
         self._thread.start()
 
     def allocating(self) -> bool:

@@ -3,14 +3,17 @@ input and what is wrong, no traceback, no plausible wrong answer, and nothing IT
 
 Classes: a NIfTI whose magic is damaged (ITK reads it as Analyze 7.5 and drops its geometry), a 2-D NIfTI,
 a header spacing of 1e300 (or an origin as far), a symbolic-link loop as the CT, a DICOM slice whose pixel
-data is 100 bytes short, ITK / MetaIO chatter before EMReg's line (a truncated MetaImage header).
+data is 100 bytes short, ITK / MetaIO chatter before EMReg's line (a truncated MetaImage header), and
+SIGABRT / SIGSEGV at exit after a correct DICOM refusal (threads still inside SimpleITK at teardown).
 """
 
 from __future__ import annotations
 
 import gzip
+import os
 import subprocess
 import sys
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -204,3 +207,56 @@ def test_itks_warning_display_is_restored_after_the_reads():
 
         assert not any(pool.map(lambda _: silenced(), range(8)))
     assert sitk.ProcessObject.GetGlobalWarningDisplay() == before
+
+
+# --- exit after a DICOM refusal -----------------------------------------------------------------
+
+
+def _refused_while_allocating(folder: Path) -> Path:
+    """A folder refused right after its header scan while a 300 MB volume is still being allocated for it: a
+    512 x 512 CT slice first (its size and the files beside it size the early allocation), then 600 tiny MR
+    slices (a quick scan; no CT volume among the series)."""
+    slice_ = sitk.GetImageFromArray(np.full((1, 512, 512), -1000, np.int16))
+    slice_.SetSpacing((0.5, 0.5, 0.8))
+    write_series(slice_, folder, uid(94), prefix="IM0")
+    write_series(sitk.GetImageFromArray(np.zeros((600, 2, 2), np.int16)), folder, uid(95), modality="MR",
+                 prefix="IM1")
+    return folder
+
+
+def test_many_dicom_refusals_two_at_a_time_all_exit_2(tmp_path):
+    """Each run ends with its one-line refusal and exit 2, never SIGABRT ("FATAL: exception not rethrown") or
+    SIGSEGV from a thread still allocating the volume in SimpleITK while the interpreter exits (about 1 run in
+    10 to 20 before)."""
+    folder = _refused_while_allocating(tmp_path / "ct")
+    env = dict(os.environ, PYTHONFAULTHANDLER="1")
+
+    def run(k: int) -> tuple[int, str]:
+        result = subprocess.run([*EMREG, "detect", str(folder), "--out", str(tmp_path / f"out{k}"), "--quiet"],
+                                capture_output=True, text=True, env=env, timeout=300)
+        return result.returncode, result.stderr
+
+    with ThreadPoolExecutor(2) as pool:
+        results = list(pool.map(run, range(20)))
+    for code, err in results:
+        assert code == 2, (code, err)
+        assert len(err.strip().splitlines()) == 1 and "no CT volume" in err, err
+
+
+def test_the_threads_that_run_simpleitk_are_no_daemons(tmp_path, monkeypatch):
+    """The interpreter waits for them at exit (a daemon inside SimpleITK is ended from within C++ code)."""
+    from EMRegModule.io.image import read_ct
+
+    started: list[threading.Thread] = []
+    original = threading.Thread.start
+
+    def start(thread: threading.Thread) -> None:
+        if thread.name.startswith("emreg-dicom"):
+            started.append(thread)
+        original(thread)
+
+    monkeypatch.setattr(threading.Thread, "start", start)
+    write_series(make_volume(), tmp_path / "ct", uid(96))
+    read_ct(tmp_path / "ct")
+    assert {t.name for t in started} >= {"emreg-dicom-read", "emreg-dicom-allocate"}
+    assert not [t.name for t in started if t.daemon]
