@@ -27,6 +27,7 @@ import hashlib
 import math
 import os
 import threading
+import warnings
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -253,7 +254,9 @@ def read_header(path: Path) -> SliceHeader | None:
         raise EMRegError(f"{path}: cannot read ({exc.strerror})") from None
     has_preamble = len(head) == 132 and head[128:132] == b"DICM"
     try:
-        dataset = pydicom.dcmread(path, stop_before_pixels=True, force=not has_preamble)
+        with warnings.catch_warnings():  # pydicom's complaints ("End of file reached...") would precede EMReg's line
+            warnings.simplefilter("ignore")
+            dataset = pydicom.dcmread(path, stop_before_pixels=True, force=not has_preamble)
     except InvalidDicomError:
         dataset = None
     except Exception as exc:  # noqa: BLE001 - pydicom raises many types for a broken file
@@ -285,7 +288,9 @@ def _refuse_preamble_without_marker(path: Path) -> None:
         with path.open("rb") as stream:
             stream.seek(128)
             head = stream.read(_PREAMBLE_PROBE_BYTES)
-        dataset = pydicom.dcmread(io.BytesIO(head), stop_before_pixels=True, force=True)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            dataset = pydicom.dcmread(io.BytesIO(head), stop_before_pixels=True, force=True)
         image = dataset.get("SeriesInstanceUID") is not None and dataset.get("Rows") is not None
     except Exception:  # noqa: BLE001 - not DICOM after a preamble either: the file is no DICOM image
         return

@@ -196,6 +196,19 @@ def test_an_analyze_pair_is_read_without_itks_deprecation_warning(tmp_path, capf
     assert capfd.readouterr().err == ""
 
 
+def test_a_slice_with_a_damaged_header_brings_no_pydicom_warning_before_the_line(tmp_path, capsys):
+    import warnings
+
+    files = write_series(make_volume(), tmp_path / "ct", uid(97))
+    data = bytearray(files[4].read_bytes())
+    data[132:400] = b"\xff" * 268  # the preamble kept, the header after it garbage
+    files[4].write_bytes(bytes(data))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _refused(capsys, _detect(tmp_path / "ct", tmp_path), "missing slice")
+    assert not [w for w in caught if "pydicom" in w.filename], [str(w.message) for w in caught]
+
+
 def test_itks_warning_display_is_restored_after_the_reads():
     from EMRegModule.io.itk_messages import quiet_itk
 
