@@ -183,6 +183,20 @@ def test_a_truncated_metaimage_header_is_emregs_line_alone_and_true(tmp_path):
     assert "No such file" not in lines[0]
 
 
+def test_the_batch_memory_estimate_reads_a_truncated_header_silently(tmp_path, capfd):
+    import json
+
+    from EMRegModule.report.batch import ct_bytes_of_run
+
+    source = tmp_path / "source.mha"
+    sitk.WriteImage(make_volume(), str(source))
+    (tmp_path / "ct.mha").write_bytes(source.read_bytes()[:150])
+    (tmp_path / "run.json").write_text(json.dumps({"ct": str(tmp_path / "ct.mha")}))
+    capfd.readouterr()
+    assert ct_bytes_of_run(tmp_path) == 0.0  # unknown: the report reading the CT says what is wrong
+    assert capfd.readouterr().err == ""
+
+
 def test_an_analyze_pair_is_read_without_itks_deprecation_warning(tmp_path, capfd):
     from EMRegModule.io.image import read_ct
 
