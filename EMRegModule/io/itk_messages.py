@@ -80,19 +80,18 @@ def _stderr_caught(captured: Captured) -> Iterator[None]:
         os.dup2(sink.fileno(), 2)
         try:
             yield
-        finally:
+        finally:  # also when the read raised: the caller may still name what was printed
             with contextlib.suppress(OSError, ValueError, AttributeError):
                 sys.stderr.flush()
             os.dup2(saved, 2)
             os.close(saved)
             sink.seek(0)
-            text = sink.read().decode("utf-8", "replace")
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    ours = [line for line in lines if line.startswith(("emreg ", "[emreg]"))]
-    captured.lines = [line for line in lines if line not in ours]
-    if ours:
-        with contextlib.suppress(OSError, ValueError, AttributeError):
-            print("\n".join(ours), file=sys.stderr, flush=True)
+            lines = [line.strip() for line in sink.read().decode("utf-8", "replace").splitlines() if line.strip()]
+            ours = [line for line in lines if line.startswith(("emreg ", "[emreg]"))]
+            captured.lines = [line for line in lines if line not in ours]
+            if ours:  # another thread's lines, written meanwhile
+                with contextlib.suppress(OSError, ValueError, AttributeError):
+                    print("\n".join(ours), file=sys.stderr, flush=True)
 
 
 def read_failure(exc: BaseException, printed: Captured | None = None,
