@@ -691,22 +691,54 @@ def _read_multiframe(series: DicomSeries) -> sitk.Image:
     return image
 
 
-def check_pixel_data_length(header: SliceHeader, file_size: int) -> None:
-    """Refuse a file whose uncompressed Pixel Data holds fewer bytes than its image needs (rows x columns x frames
-    x samples x bits allocated), declared so or cut off by the file's end: GDCM decodes such a slice without an
-    error, its missing pixels made of whatever memory follows. Nothing is checked where the length is undefined
-    (a compressed image: its decoder finds a short stream) or unknown (a header read by pydicom)."""
-    if header.pixel_data is None or header.pixel_data[1] is None:
+#: Transfer syntaxes whose Pixel Data is the pixels themselves (not encapsulated): uncompressed, or deflated as a
+#: whole dataset.
+_NATIVE_PIXELS = {"1.2.840.10008.1.2", "1.2.840.10008.1.2.1", "1.2.840.10008.1.2.2", "1.2.840.10008.1.2.1.99"}
+
+
+def check_pixel_data_length(header: SliceHeader, file_size: int, data: bytes | memoryview | None = None) -> None:
+    """Refuse a file whose native Pixel Data holds fewer bytes than its image needs (rows x columns x frames x
+    samples x bits allocated), declared so or cut off by the file's end: GDCM decodes such a slice without an
+    error, its missing pixels made of whatever memory follows. ``data``: the file's bytes, if read already.
+
+    The quick header walk gives where Pixel Data starts and its declared length; a header pydicom read (big
+    endian, deflate, no preamble) is measured by pydicom from the file's bytes. An undefined length (an
+    encapsulated, compressed image: its decoder finds a short stream) is not checked."""
+    if header.pixel_data is not None:
+        start, declared = header.pixel_data
+        if declared is None:
+            return
+        held = max(0, min(declared, file_size - start))
+    elif header.transfer_syntax in _NATIVE_PIXELS:
+        held = _pixel_bytes_by_pydicom(header.path, data)
+        if held is None:
+            return
+    else:
         return
-    start, declared = header.pixel_data
     pixels = header.rows * header.columns * header.frames * header.samples
     needed = (pixels * header.bits_allocated + 7) // 8
-    held = max(0, min(declared, file_size - start))
     if held < needed:
         raise EMRegError(f"{header.path}: DICOM pixel data is cut short: {held} bytes where its {header.columns}x"
                          f"{header.rows} image of {header.bits_allocated}-bit pixels"
                          f"{f' x {header.frames} frames' if header.frames > 1 else ''} needs {needed}; export the "
                          "series again")
+
+
+def _pixel_bytes_by_pydicom(path: Path, data: bytes | memoryview | None) -> int | None:
+    """The bytes of ``path``'s Pixel Data value as pydicom reads them (``data``: the file's bytes, if read), or
+    None when pydicom finds none (or cannot read the file: GDCM's decoding then says why)."""
+    import io
+
+    import pydicom
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            source = io.BytesIO(bytes(data)) if data is not None else path
+            value = pydicom.dcmread(source, force=True).get("PixelData")
+    except Exception:  # noqa: BLE001 - pydicom raises many types for a broken file
+        return None
+    return None if value is None else len(value)
 
 
 def _read_one(path: Path, pixel: int | None = None) -> sitk.Image:
@@ -923,7 +955,7 @@ def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: 
                 data, digest = _file_bytes(header.path, hashed)
                 if hashed:
                     digests[names[header.path]] = digest
-                check_pixel_data_length(header, len(data))
+                check_pixel_data_length(header, len(data), data)
                 if stop - start == 1:
                     direct = _read_uncompressed(header, data, voxels[k])
             if not direct:
