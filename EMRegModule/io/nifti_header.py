@@ -81,7 +81,9 @@ def check_nifti_magic(path: str | os.PathLike[str]) -> None:
         return
     if 540 in sizes and head[4:8] in (b"n+2\0", b"ni2\0"):
         return
-    if 348 in sizes and len(head) >= 348:
+    if 348 in sizes and len(head) < 348:
+        raise EMRegError(f"{path}: cannot read CT (its NIfTI header is truncated: {len(head)} of 348 bytes)")
+    if 348 in sizes:
         found = head[344:348]
         raise EMRegError(f"{path}: not a valid NIfTI file (its magic is {bytes(found)!r}, not 'n+1'): ITK would read "
                          "it as an Analyze 7.5 header and drop its orientation and origin; export the CT again")

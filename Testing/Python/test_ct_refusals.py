@@ -73,6 +73,8 @@ def test_a_file_named_nifti_without_any_nifti_header_is_refused(tmp_path, capfd)
     path = tmp_path / "ct.nii"
     path.write_bytes(b"\0" * 400)
     _refused(capfd, _detect(path, tmp_path), "ct.nii", "not a NIfTI file")
+    path.write_bytes(_nifti(tmp_path, "good.nii").read_bytes()[:200])
+    _refused(capfd, _detect(path, tmp_path), "ct.nii", "header is truncated: 200 of 348 bytes")
 
 
 @pytest.mark.parametrize("name", ["ct.nii", "ct.nii.gz"])
