@@ -113,14 +113,22 @@ def _now() -> str:
     return datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
 
 
+def _resolved(path: str | os.PathLike[str]) -> Path:
+    """``path`` made absolute with its links followed; a symbolic-link loop is an :class:`EMRegError` naming it."""
+    try:
+        return Path(path).resolve()
+    except (RuntimeError, OSError):  # RuntimeError: Python < 3.13's "Symlink loop"; OSError (ELOOP) after
+        raise EMRegError(f"{path}: is a symbolic-link loop; give the file or folder itself") from None
+
+
 def refuse_out_over_inputs(out: str | os.PathLike[str], inputs: Iterable[str | os.PathLike[str]],
                            written: Iterable[str], case_folder: str | os.PathLike[str] | None = None) -> None:
     """Refuse (exit 2) an output folder that could overwrite an input: one equal to or inside an input
     folder (a DICOM ``ct/``), or one equal to the folder of an input where a name it writes (``written``,
     plus ``run.json`` and ``previous``) is an input, or, for the case folder, a name a case is read from
     (``--out CASE`` would replace the patient's ``navigation.csv``)."""
-    out = Path(out).resolve()
-    paths = [Path(p).resolve() for p in inputs]
+    out = _resolved(out)
+    paths = [_resolved(p) for p in inputs]
     names = {*written, RUN_JSON, PREVIOUS_FOLDER}
     for path in paths:
         if path.is_dir() and (out == path or path in out.parents):

@@ -64,8 +64,14 @@ class Case:
 
 
 def find_ct(case_dir: str | os.PathLike[str]) -> Path | None:
-    """The CT of a case folder by the spec's names (a file, or a ``ct/`` DICOM folder), or None."""
+    """The CT of a case folder by the spec's names (a file, or a ``ct/`` DICOM folder), or None; one of those
+    names that is a broken symbolic link or a link loop is an :class:`EMRegError` naming it (never skipped)."""
+    from .ct_checks import check_ct_path
+
     case_dir = Path(case_dir)
+    for name in (*CT_FILE_NAMES, CT_FOLDER_NAME):
+        if (case_dir / name).is_symlink():
+            check_ct_path(case_dir / name)
     for name in CT_FILE_NAMES:
         if (case_dir / name).is_file():
             return case_dir / name

@@ -1,10 +1,13 @@
 """The checks every CT reader applies before EMReg uses an image (one place for all readers).
 
-- :func:`check_ct_geometry`: 3D, scalar, a supported pixel type, a non-degenerate size, finite
-  positive spacing, a finite origin, and **orthonormal direction cosines**. A sheared direction
-  matrix (non-orthogonal ``space directions`` / ``ImageOrientationPatient`` columns) has no exact
-  meaning for SimpleITK, which normalises the columns and keeps the shear: voxels would land up to
-  millimetres away from where the scanner put them, so such images are refused
+- :func:`check_ct_path` and :func:`check_ct_file`, before any read: the path exists and is no symbolic-link
+  loop; a ``.nii`` / ``.nii.gz`` carries NIfTI's magic (:func:`~.nifti_header.check_nifti_magic`: ITK reads a
+  damaged one as Analyze 7.5 and drops the file's geometry).
+- :func:`check_ct_geometry`: 3D, scalar, a supported pixel type, a non-degenerate size, a finite spacing
+  within ``SPACING_RANGE_MM``, a finite origin within ``ORIGIN_LIMIT_MM``, and **orthonormal direction
+  cosines**. A sheared direction matrix (non-orthogonal ``space directions`` / ``ImageOrientationPatient``
+  columns) has no exact meaning for SimpleITK, which normalises the columns and keeps the shear: voxels
+  would land up to millimetres away from where the scanner put them, so such images are refused
   (``ORTHONORMAL_TOLERANCE``).
 - :func:`check_ct_voxels`: every voxel value finite. NaN or +-inf voxels (a NaN slab, sprinkled
   non-finite values) make the band-pass segmentation silently wrong; the image is refused with the
@@ -31,11 +34,41 @@ from ..errors import EMRegError
 #: 0.03 mm over a 300 mm field; DICOM direction cosines written with 6 digits stay well inside).
 ORTHONORMAL_TOLERANCE = 1e-4
 
+#: Voxel spacings (mm) a CT may have. Far wider than any scanner's (a CT in metres, 0.0005, still passes and
+#: is named as such by detection), narrow enough that the geometry's arithmetic (voxel volumes, cross
+#: products of the axes) stays finite and non-zero: a header's ``1e300`` or ``1e-300`` is refused here.
+SPACING_RANGE_MM = (1e-6, 1e4)
+
+#: Largest |coordinate| (mm) of a CT's origin: a kilometre, where a scanner's are within a metre or two.
+ORIGIN_LIMIT_MM = 1e6
+
 _SCALAR_TYPES = {
     sitk.sitkInt8, sitk.sitkUInt8, sitk.sitkInt16, sitk.sitkUInt16, sitk.sitkInt32,
     sitk.sitkUInt32, sitk.sitkInt64, sitk.sitkUInt64, sitk.sitkFloat32, sitk.sitkFloat64,
 }
 _FLOAT_TYPES = {sitk.sitkFloat32, sitk.sitkFloat64}
+
+
+def check_ct_path(path: str | os.PathLike[str]) -> None:
+    """Refuse a CT path that does not exist, naming a symbolic-link loop or a broken link as such."""
+    path = Path(path)
+    try:
+        path.stat()
+    except OSError as exc:
+        if path.is_symlink():
+            import errno
+
+            what = "a symbolic-link loop" if exc.errno == errno.ELOOP else "a broken symbolic link"
+            raise EMRegError(f"{path}: CT path is {what}; give the CT file or DICOM folder itself") from None
+        raise EMRegError(f"{path}: CT not found") from None
+
+
+def check_ct_file(path: str | os.PathLike[str]) -> None:
+    """Refuse, before reading it, a CT file that SimpleITK would read wrongly: a ``.nii`` / ``.nii.gz`` without
+    NIfTI's magic (read as Analyze 7.5, its orientation and origin lost)."""
+    from .nifti_header import check_nifti_magic
+
+    check_nifti_magic(path)
 
 
 def check_file_placement(geometry: sitk.Image, path: str | os.PathLike[str]) -> None:
@@ -78,8 +111,15 @@ def check_ct_geometry(image: sitk.Image, source: str | os.PathLike[str] = "CT") 
     spacing = np.asarray(image.GetSpacing(), dtype=float)
     if not np.all(np.isfinite(spacing)) or np.min(spacing) <= 0:
         raise EMRegError(f"{source}: CT has a non-positive or non-finite spacing {image.GetSpacing()}")
+    low, high = SPACING_RANGE_MM
+    if np.min(spacing) < low or np.max(spacing) > high:
+        raise EMRegError(f"{source}: CT spacing {tuple(float(f'{v:.6g}') for v in spacing)} mm is outside "
+                         f"{low:g}..{high:g} mm, no CT's voxel size: the header's spacing is damaged")
     if not np.all(np.isfinite(image.GetOrigin())):
         raise EMRegError(f"{source}: CT has a non-finite origin {image.GetOrigin()}")
+    if np.max(np.abs(image.GetOrigin())) > ORIGIN_LIMIT_MM:
+        raise EMRegError(f"{source}: CT origin {tuple(float(f'{v:.6g}') for v in image.GetOrigin())} mm lies more "
+                         f"than {ORIGIN_LIMIT_MM:g} mm from the scanner's origin: the header's origin is damaged")
     direction = np.asarray(image.GetDirection(), dtype=float).reshape(3, 3)
     if not np.all(np.isfinite(direction)):
         raise EMRegError(f"{source}: CT has non-finite direction cosines")

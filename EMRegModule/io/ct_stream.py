@@ -136,14 +136,15 @@ def start_streamed_read(path: str | Path) -> StreamedCT | None:
     path = Path(path)
     if not hasattr(mmap, "MADV_DONTNEED"):
         return None
+    from .ct_checks import check_ct_file, check_ct_geometry, check_file_placement
+
+    check_ct_file(path)
     plain = fast_read.plain_storage(path)
     if plain is None or plain[1].dtype.kind not in "iu":
         return None
     info, storage = plain
-    from .ct_checks import check_ct_geometry, check_file_placement
-
+    check_ct_geometry(CTGeometry(info), path)  # 3D first: the placement check assumes it
     check_file_placement(CTGeometry(info), path)
-    check_ct_geometry(CTGeometry(info), path)
     ct = StreamedCT(info, storage.dtype)
     ct.path = path.resolve()
     threading.Thread(target=fast_read.read_and_hash, args=(path, info, storage, ct.bytes, ct), name="emreg-ct-stream",

@@ -36,6 +36,11 @@ WANTED = {
 }
 
 
+#: The key of ``quick_header``'s values holding where Pixel Data's value starts in the file and its declared
+#: length (None: undefined, an encapsulated, compressed image).
+PIXEL_DATA = "PixelData"
+
+
 class _UnusualError(Exception):
     """Something this reader does not handle: the caller falls back to pydicom."""
 
@@ -43,7 +48,8 @@ class _UnusualError(Exception):
 def quick_header(path: Path) -> tuple[str, dict[str, Any]] | None:
     """(transfer syntax UID, {keyword: value}) of a plain little-endian DICOM file, or None.
 
-    Values are strings (multi-valued ones split at ``\\``, a list) or ints for unsigned shorts;
+    Values are strings (multi-valued ones split at ``\\``, a list) or ints for unsigned shorts, and
+    ``values[PIXEL_DATA]`` = (offset of the Pixel Data value, its declared length or None when undefined);
     None also for a file that has a DICOMDIR's records or no Pixel Data within the first 64 KB.
     """
     try:
@@ -92,6 +98,8 @@ def _dataset(head: bytes, position: int, implicit: bool, whole: bool) -> dict[st
             raise _UnusualError("header longer than the buffer")
         group, element = struct.unpack_from("<HH", head, position)
         if (group, element) == _PIXEL_DATA:
+            length, start = _element_length(head, position, implicit)
+            values[PIXEL_DATA] = (start, None if length == _UNDEFINED else length)
             return values
         if (group, element) == (0x0004, 0x1220):
             raise _UnusualError("a DICOMDIR")

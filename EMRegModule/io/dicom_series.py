@@ -27,6 +27,7 @@ import hashlib
 import math
 import os
 import threading
+import warnings
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -38,8 +39,9 @@ import SimpleITK as sitk
 
 from ..errors import EMRegError
 from ..provenance import BackgroundHash, Digest, file_sha256, folder_members, folder_sha256
-from .dicom_header import quick_header
+from .dicom_header import PIXEL_DATA, quick_header
 from .fast_read import VolumeFill, _writable_bytes
+from .itk_messages import quiet_itk
 
 _PREAMBLE_PROBE_BYTES = 1 << 16  # the header of a file without its DICM marker, read to tell whether it is an image
 _LOCALIZER_TYPES = {"LOCALIZER", "SCOUT", "TOPOGRAM", "SURVIEW", "SCANOGRAM"}
@@ -87,6 +89,8 @@ class SliceHeader:
     bits_allocated: int = 16
     photometric: str = "MONOCHROME2"
     frame: int | None = None  # a frame (0-based) of a multi-frame file; None for a single-image file
+    pixel_data: tuple[int, int | None] | None = None  # Pixel Data's value offset and declared length (None:
+    # undefined, encapsulated); None when unknown (a header read by pydicom)
 
     @property
     def name(self) -> str:
@@ -249,7 +253,9 @@ def read_header(path: Path) -> SliceHeader | None:
         raise EMRegError(f"{path}: cannot read ({exc.strerror})") from None
     has_preamble = len(head) == 132 and head[128:132] == b"DICM"
     try:
-        dataset = pydicom.dcmread(path, stop_before_pixels=True, force=not has_preamble)
+        with warnings.catch_warnings():  # pydicom's complaints ("End of file reached...") would precede EMReg's line
+            warnings.simplefilter("ignore")
+            dataset = pydicom.dcmread(path, stop_before_pixels=True, force=not has_preamble)
     except InvalidDicomError:
         dataset = None
     except Exception as exc:  # noqa: BLE001 - pydicom raises many types for a broken file
@@ -281,7 +287,9 @@ def _refuse_preamble_without_marker(path: Path) -> None:
         with path.open("rb") as stream:
             stream.seek(128)
             head = stream.read(_PREAMBLE_PROBE_BYTES)
-        dataset = pydicom.dcmread(io.BytesIO(head), stop_before_pixels=True, force=True)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            dataset = pydicom.dcmread(io.BytesIO(head), stop_before_pixels=True, force=True)
         image = dataset.get("SeriesInstanceUID") is not None and dataset.get("Rows") is not None
     except Exception:  # noqa: BLE001 - not DICOM after a preamble either: the file is no DICOM image
         return
@@ -311,7 +319,8 @@ def _slice_header(path: Path, transfer: str, get: Any) -> SliceHeader | None:
             signed=int(get("PixelRepresentation", 0) or 0) == 1,
             samples=int(get("SamplesPerPixel", 1) or 1), instance=_int(get("InstanceNumber")),
             bits_allocated=int(get("BitsAllocated", 16) or 16),
-            photometric=str(get("PhotometricInterpretation", "MONOCHROME2") or "MONOCHROME2"))
+            photometric=str(get("PhotometricInterpretation", "MONOCHROME2") or "MONOCHROME2"),
+            pixel_data=pixel_data if isinstance(pixel_data := get(PIXEL_DATA), tuple) else None)
     except (TypeError, ValueError, AttributeError) as exc:
         raise EMRegError(f"{path}: malformed DICOM header ({_short(exc)})") from None
 
@@ -580,6 +589,13 @@ def series_record(chosen: DicomSeries, all_series: list[DicomSeries], folder: Pa
 # --- reading ------------------------------------------------------------------------------------------
 
 
+# The threads that run SimpleITK (the read, the early allocation) are no daemons. A daemon thread still inside
+# SimpleITK (a volume being allocated, a slice decoded) when the interpreter exits, e.g. right after a one-line
+# refusal, is ended by the interpreter from within that C++ code: the process then dies of SIGABRT ("FATAL:
+# exception not rethrown") or SIGSEGV instead of exiting 2. The interpreter waits for threads that are no
+# daemons before it exits; these end soon (an allocation within a second, a cancelled read at its next slice).
+
+
 def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None = None,
                       workers: int | None = None, compact: bool = False) -> tuple[VolumeFill, dict[str, Any]]:
     """Start reading the chosen CT series of ``folder``; its fill and its ``ct_series`` record.
@@ -608,7 +624,7 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
         fill.sha256 = Digest()
         workers = workers or max(1, min(8, os.cpu_count() or 1))
         threading.Thread(target=_decode_series, args=(chosen, fill, workers, folder, early, compact),
-                         name="emreg-dicom-read", daemon=True).start()
+                         name="emreg-dicom-read").start()  # no daemon: see above
     fill.series = record
     return fill, record
 
@@ -638,7 +654,7 @@ class _EarlyImage:
         def allocate() -> None:
             self._image = sitk.Image(size, pixel)
 
-        self._thread = threading.Thread(target=allocate, name="emreg-dicom-allocate", daemon=True)
+        self._thread = threading.Thread(target=allocate, name="emreg-dicom-allocate")  # no daemon (see above)
         self._thread.start()
 
     def allocating(self) -> bool:
@@ -661,6 +677,7 @@ def _read_multiframe(series: DicomSeries) -> sitk.Image:
     """A multi-frame file's volume: GDCM's pixels, frames in the order along the normal, the functional groups'
     geometry (:func:`_multiframe_geometry`); GDCM's own image for a file without functional groups."""
     path = series.headers[0].path
+    check_pixel_data_length(series.headers[0], path.stat().st_size)
     if not series.frames:
         return _read_one(path)
     decoded = _read_one(path, voxel_type(series.frames))
@@ -673,6 +690,56 @@ def _read_multiframe(series: DicomSeries) -> sitk.Image:
     return image
 
 
+#: Transfer syntaxes whose Pixel Data is the pixels themselves (not encapsulated): uncompressed, or deflated as a
+#: whole dataset.
+_NATIVE_PIXELS = {"1.2.840.10008.1.2", "1.2.840.10008.1.2.1", "1.2.840.10008.1.2.2", "1.2.840.10008.1.2.1.99"}
+
+
+def check_pixel_data_length(header: SliceHeader, file_size: int, data: bytes | memoryview | None = None) -> None:
+    """Refuse a file whose native Pixel Data holds fewer bytes than its image needs (rows x columns x frames x
+    samples x bits allocated), declared so or cut off by the file's end: GDCM decodes such a slice without an
+    error, its missing pixels made of whatever memory follows. ``data``: the file's bytes, if read already.
+
+    The quick header walk gives where Pixel Data starts and its declared length; a header pydicom read (big
+    endian, deflate, no preamble) is measured by pydicom from the file's bytes. An undefined length (an
+    encapsulated, compressed image: its decoder finds a short stream) is not checked."""
+    if header.pixel_data is not None:
+        start, declared = header.pixel_data
+        if declared is None:
+            return
+        held = max(0, min(declared, file_size - start))
+    elif header.transfer_syntax in _NATIVE_PIXELS:
+        held = _pixel_bytes_by_pydicom(header.path, data)
+        if held is None:
+            return
+    else:
+        return
+    pixels = header.rows * header.columns * header.frames * header.samples
+    needed = (pixels * header.bits_allocated + 7) // 8
+    if held < needed:
+        raise EMRegError(f"{header.path}: DICOM pixel data is cut short: {held} bytes where its {header.columns}x"
+                         f"{header.rows} image of {header.bits_allocated}-bit pixels"
+                         f"{f' x {header.frames} frames' if header.frames > 1 else ''} needs {needed}; export the "
+                         "series again")
+
+
+def _pixel_bytes_by_pydicom(path: Path, data: bytes | memoryview | None) -> int | None:
+    """The bytes of ``path``'s Pixel Data value as pydicom reads them (``data``: the file's bytes, if read), or
+    None when pydicom finds none (or cannot read the file: GDCM's decoding then says why)."""
+    import io
+
+    import pydicom
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            source = io.BytesIO(bytes(data)) if data is not None else path
+            value = pydicom.dcmread(source, force=True).get("PixelData")
+    except Exception:  # noqa: BLE001 - pydicom raises many types for a broken file
+        return None
+    return None if value is None else len(value)
+
+
 def _read_one(path: Path, pixel: int | None = None) -> sitk.Image:
     reader = sitk.ImageFileReader()
     reader.SetImageIO("GDCMImageIO")
@@ -680,7 +747,8 @@ def _read_one(path: Path, pixel: int | None = None) -> sitk.Image:
     if pixel is not None:
         reader.SetOutputPixelType(pixel)
     try:
-        return reader.Execute()
+        with quiet_itk():
+            return reader.Execute()
     except RuntimeError as exc:
         lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
         detail = lines[-1][:160] if lines else "unreadable"
@@ -886,6 +954,7 @@ def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: 
                 data, digest = _file_bytes(header.path, hashed)
                 if hashed:
                     digests[names[header.path]] = digest
+                check_pixel_data_length(header, len(data), data)
                 if stop - start == 1:
                     direct = _read_uncompressed(header, data, voxels[k])
             if not direct:
@@ -937,7 +1006,8 @@ def _decode_gdcm(headers: list[SliceHeader], out: np.ndarray, expected: tuple[in
         reader.SetOutputPixelType(pixel)
         reader.SetNumberOfThreads(1)  # the pool's workers are the parallelism
         try:
-            chunk = reader.Execute()
+            with quiet_itk():
+                chunk = reader.Execute()
         except RuntimeError:
             chunk = None  # one of the files is bad: decoded one by one below, which names it
         if chunk is not None and chunk.GetNumberOfComponentsPerPixel() == 1:

@@ -35,6 +35,7 @@ import SimpleITK as sitk
 from ..errors import EMRegError
 from ..provenance import Digest
 from .ct_checks import NonFiniteCounter
+from .itk_messages import quiet_itk
 
 try:  # a declared dependency; without it SimpleITK reads the file (slower, same result)
     from isal import igzip_lib
@@ -175,7 +176,8 @@ def plain_storage(path: Path, kinds: tuple[str, ...] | None = None
     info = sitk.ImageFileReader()
     info.SetFileName(str(path))
     try:
-        info.ReadImageInformation()
+        with quiet_itk(capture=True):  # a failure is judged (and said) by SimpleITK's full read
+            info.ReadImageInformation()
         if info.GetDimension() != 3 or info.GetNumberOfComponents() != 1:
             return None
         with path.open("rb") as stream:
@@ -644,7 +646,8 @@ def check_data_length(path: Path) -> None:
     info = sitk.ImageFileReader()
     info.SetFileName(str(path))
     try:
-        info.ReadImageInformation()
+        with quiet_itk(capture=True):
+            info.ReadImageInformation()
     except RuntimeError:
         return  # SimpleITK's full read reports the problem
     dtype_name = next((k for k, v in _SITK_TYPES.items() if v == info.GetPixelID()), None)

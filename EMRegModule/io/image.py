@@ -16,8 +16,9 @@ import SimpleITK as sitk
 from ..errors import EMRegError
 from ..provenance import BackgroundHash, note_read_digest
 from .case import CT_FILE_NAMES, CT_FOLDER_NAME, find_ct  # noqa: F401  (re-exported: CT naming lives with the case)
-from .ct_checks import check_ct_geometry, check_ct_image, check_file_placement
+from .ct_checks import check_ct_file, check_ct_geometry, check_ct_path, check_ct_voxels, check_file_placement
 from .fast_read import VolumeFill, check_data_length, start_fast_read
+from .itk_messages import quiet_itk, read_failure
 
 
 def read_ct(path: str | os.PathLike[str], series: str | int | None = None) -> sitk.Image:
@@ -43,8 +44,7 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compa
     and ends with :class:`~EMRegModule.io.dicom_series.NarrowVoxelsError` if a slice does not fit it.
     """
     path = Path(path)
-    if not path.exists():
-        raise EMRegError(f"{path}: CT not found")
+    check_ct_path(path)
     try:
         if path.is_dir():
             from .dicom_series import open_dicom_series
@@ -53,29 +53,39 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compa
         else:
             if path.stat().st_size == 0:
                 raise EMRegError(f"{path}: CT file is empty")
+            check_ct_file(path)  # e.g. a damaged NIfTI magic, which ITK would read as Analyze (geometry lost)
             fill = start_fast_read(path)
             if fill is None:
                 check_data_length(path)  # SimpleITK reads what the header asks for and ignores the rest
                 digest = BackgroundHash(path)  # SimpleITK's read is a pass of its own: hash beside it
-                fill = VolumeFill.complete(sitk.ReadImage(str(path)))
+                fill = VolumeFill.complete(_read_with_simpleitk(path))
                 fill.sha256 = digest
         if fill.sha256 is not None:
             note_read_digest(path, fill.sha256)  # the provenance's sha256 of the CT, from this read
         image = fill.image
     except RuntimeError as exc:
-        reason = str(exc).strip().splitlines()
-        detail = next((line for line in reversed(reason) if line.strip()), "unreadable")
-        raise EMRegError(f"{path}: cannot read CT ({detail.strip()[:200]})") from None
+        raise EMRegError(f"{path}: cannot read CT ({read_failure(exc)})") from None
     try:
+        check_ct_geometry(image, path)  # 3D first: the placement checks below assume it
         check_file_placement(image, path)  # e.g. a NIfTI's sform and qform that disagree: readers differ
         if fill.is_complete:
-            check_ct_image(image, path)  # geometry and voxel values of an image read in full
-        else:
-            check_ct(image, path)  # the fast path counts non-finite voxels as they arrive
+            check_ct_voxels(image, path)  # the voxel values of an image read in full
+        # else: the fast path counts non-finite voxels as they arrive
     except EMRegError:
         fill.cancel()
         raise
     return fill
+
+
+def _read_with_simpleitk(path: Path) -> sitk.Image:
+    """``sitk.ReadImage``, ITK's own printing silenced; a failure is one line with the reason the reader gave."""
+    failure = None
+    with quiet_itk(capture=True) as printed:
+        try:
+            return sitk.ReadImage(str(path))
+        except RuntimeError as exc:
+            failure = exc
+    raise EMRegError(f"{path}: cannot read CT ({read_failure(failure, printed, path)})") from None
 
 
 def check_ct(image: sitk.Image, source: str | os.PathLike[str] = "CT") -> None:

@@ -51,6 +51,46 @@ def _header_file(path: Path) -> Path | None:
     return path
 
 
+def _head(path: Path, size: int) -> bytes | None:
+    """The first ``size`` bytes of ``path`` (inflated when it is gzip), or None when it cannot be read."""
+    try:
+        with open(path, "rb") as stream:
+            start = stream.read(2)
+            stream.seek(0)
+            return gzip.GzipFile(fileobj=stream).read(size) if start == b"\x1f\x8b" else stream.read(size)
+    except (OSError, EOFError, gzip.BadGzipFile):
+        return None
+
+
+def check_nifti_magic(path: str | os.PathLike[str]) -> None:
+    """Refuse a ``.nii`` / ``.nii.gz`` whose header is not NIfTI's: NIfTI-1 (``sizeof_hdr`` 348, magic ``n+1`` or
+    ``ni1`` at byte 344) or NIfTI-2 (540, ``n+2`` or ``ni2`` at byte 4), in either byte order.
+
+    ITK reads a single-file NIfTI whose magic is damaged as an Analyze 7.5 header: no qform nor sform, so the
+    orientation and origin are dropped (identity direction, origin 0) and the markers come out hundreds of
+    millimetres from where the file puts them. A ``.hdr`` / ``.img`` pair may be Analyze and is not checked.
+    """
+    path = Path(path)
+    if not path.name.lower().endswith((".nii", ".nii.gz")):
+        return
+    head = _head(path, 348)
+    if head is None:
+        return  # unreadable: the read says why
+    sizes = {struct.unpack_from(o + "i", head, 0)[0] for o in "<>"} if len(head) >= 4 else set()
+    if 348 in sizes and len(head) >= 348 and head[344:348] in (b"n+1\0", b"ni1\0"):
+        return
+    if 540 in sizes and head[4:8] in (b"n+2\0", b"ni2\0"):
+        return
+    if 348 in sizes and len(head) < 348:
+        raise EMRegError(f"{path}: cannot read CT (its NIfTI header is truncated: {len(head)} of 348 bytes)")
+    if 348 in sizes:
+        found = head[344:348]
+        raise EMRegError(f"{path}: not a valid NIfTI file (its magic is {bytes(found)!r}, not 'n+1'): ITK would read "
+                         "it as an Analyze 7.5 header and drop its orientation and origin; export the CT again")
+    raise EMRegError(f"{path}: not a NIfTI file (no NIfTI-1 or NIfTI-2 header: the file is damaged or not NIfTI); "
+                     "export the CT again")
+
+
 def nifti_sform_lps(path: str | os.PathLike[str]) -> tuple[np.ndarray, int, int] | None:
     """The sform of a NIfTI-1 file as a 4x4 voxel index (i, j, k) -> LPS mm matrix (the header's space unit
     turned into mm, as ITK does), with the sform and qform codes; ``None`` when the file has no sform
@@ -58,14 +98,8 @@ def nifti_sform_lps(path: str | os.PathLike[str]) -> tuple[np.ndarray, int, int]
     header = _header_file(Path(path))
     if header is None:
         return None
-    try:
-        with open(header, "rb") as stream:
-            start = stream.read(2)
-            stream.seek(0)
-            head = gzip.GzipFile(fileobj=stream).read(348) if start == b"\x1f\x8b" else stream.read(348)
-    except (OSError, EOFError):
-        return None
-    if len(head) < 348 or head[344:348] not in (b"n+1\0", b"ni1\0"):
+    head = _head(header, 348)
+    if head is None or len(head) < 348 or head[344:348] not in (b"n+1\0", b"ni1\0"):
         return None  # not NIfTI-1 (Analyze 7.5 keeps other fields where the sform would be)
     order = next((o for o in "<>" if struct.unpack_from(o + "i", head, 0)[0] == 348), None)
     if order is None:
@@ -86,8 +120,8 @@ def check_nifti_placement(image, path: str | os.PathLike[str]) -> None:
     header reading). Files without a sform, or whose sform SimpleITK used, pass.
     """
     sform = nifti_sform_lps(path)
-    if sform is None:
-        return
+    if sform is None or image.GetDimension() != 3:
+        return  # no sform, or an image refused as not 3D anyway
     index_to_lps, sform_code, qform_code = sform
     direction = np.asarray(image.GetDirection(), dtype=float).reshape(3, 3)
     read = np.eye(4)

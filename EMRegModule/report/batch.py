@@ -50,6 +50,7 @@ def ct_bytes_of_run(folder: Path) -> float:
 
     from ..io.atomic import read_json
     from ..io.case import find_ct
+    from ..io.itk_messages import quiet_itk
 
     try:
         run = read_json(folder / "run.json", "run record")
@@ -58,7 +59,8 @@ def ct_bytes_of_run(folder: Path) -> float:
             return 0.0
         reader = sitk.ImageFileReader()
         reader.SetFileName(str(ct))
-        reader.ReadImageInformation()
+        with quiet_itk(capture=True):  # a damaged header is said by the report that reads it, not by ITK here
+            reader.ReadImageInformation()
     except (EMRegError, OSError, KeyError, TypeError, RuntimeError):
         return 0.0
     size = 1.0
