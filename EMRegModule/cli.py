@@ -14,7 +14,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from . import __version__
 from .errors import EXIT_BAD_INPUT, EMRegError, NoSafeAnswerError
@@ -160,18 +160,95 @@ def cmd_detect(args: argparse.Namespace) -> int:
     return 0
 
 
+def _use_tool(args: argparse.Namespace, controller: EMRegController) -> None:
+    """``--tool FILE`` (else ``[tool] calibration`` of the settings): the tool whose tip is tracked."""
+    if getattr(args, "tool", None):
+        controller.load_tool(args.tool)
+    else:
+        controller.load_tool_from_settings()
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     _out_folder(args.out)
     recording = Path(args.recording)
     controller = _controller(args, _settings(args))
+    _use_tool(args, controller)
     controller.load_calibration_recording(recording)
-    folder = _output_folder(args, "calibrate", [recording])
+    folder = _output_folder(args, "calibrate", [recording] + ([Path(args.tool)] if args.tool else []))
     controller.note_inputs(calibration=recording)
     result = controller.calibrate_frame()
     controller.save_frame_calibration(folder)
     controller.warn(result.warnings)
-    print(f"{len(result.points)} pinholes calibrated -> {args.out}")
+    _warn("calibrate", controller.calibration_recording.warnings)
+    if controller.tool is None:
+        print(f"{len(result.points)} pinholes calibrated -> {args.out}")
+    else:
+        motions = [p.motion for p in result.points]
+        print(f"{len(result.points)} tip touches ({motions.count('pivot')} pivoting, {motions.count('rest')} "
+              f"resting) with the tool of {controller.tool.source} -> {args.out}")
     return 0
+
+
+def cmd_pivot(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .outputs import refuse_out_over_inputs
+    from .tool import TIP_TO_PROBE_ITK, TOOL_CALIBRATION_JSON, pivot_calibration, write_tool_calibration
+
+    _out_folder(args.out)
+    recording_path = Path(args.recording)
+    controller = _controller(args, _settings(args))
+    poses, frame, name, warnings = pivot_poses(controller, recording_path)
+    tool = pivot_calibration(poses, str(recording_path), frame, name)
+    refuse_out_over_inputs(args.out, [recording_path], (TOOL_CALIBRATION_JSON, TIP_TO_PROBE_ITK))
+    write_tool_calibration(tool, args.out)
+    _warn("pivot", warnings + tool.warnings)
+    tip = ", ".join(f"{v:.2f}" for v in tool.tip_mm)
+    print(f"tip at [{tip}] mm in the probe frame ({np.linalg.norm(tool.tip_mm):.1f} mm from the sensor), RMS "
+          f"{tool.rms_mm:.2f} mm over {tool.samples} of {tool.samples_total} samples, swing "
+          f"{tool.rotation_range_deg:.0f} degrees -> {args.out}")
+    return 0
+
+
+def pivot_poses(controller: EMRegController, path: Path) -> tuple[Any, str, str | None, list[str]]:
+    """The tool sensor's poses for a pivot calibration, ``ProbeToReference`` (N, 4, 4), or ``ProbeToTracker``
+    when the recording has no reference sensor; the frame's name, the tool's name (from a sequence file's
+    transform, e.g. ``Stylus``), and the recording's warnings."""
+    from .io.sequence_metafile import is_sequence_file, read_sequence_frames, recording_from_frames
+    from .tracking import probe_in_reference
+
+    names = controller.settings.sensors
+    if is_sequence_file(path):
+        frames = read_sequence_frames(path)
+        reference = names.reference_transform or "ReferenceToTracker"
+        tool = names.probe_transform or "ProbeToTracker"
+        warnings = []
+        others = [n for n in frames.names if n != reference]
+        if tool not in frames.matrices and len(others) == 1:  # the one transform, or the one besides the reference
+            warnings.append(f"{path}: no {tool}Transform; {others[0]}Transform is the only "
+                            f"{'transform besides ' + reference if reference in frames.matrices else 'transform'}"
+                            ": taken as the tool")
+            tool = others[0]
+        if tool not in frames.matrices:
+            raise EMRegError(f"{path}: no {tool}Transform (the tool) in the file; it holds "
+                             f"{', '.join(n + 'Transform' for n in frames.names) or 'no transforms'}; name the tool "
+                             "with [sensors] probe_transform in case.toml")
+        short = tool[:-len("ToTracker")] if tool.endswith("ToTracker") else tool
+        if reference not in frames.matrices:
+            recording = recording_from_frames(frames, {tool: controller.probe_sensor})
+            probe = recording.for_sensor(controller.probe_sensor, "probe")
+            return probe.transforms(), "Tracker", short, warnings + recording.warnings
+        recording = recording_from_frames(frames, {reference: controller.reference_sensor,
+                                                   tool: controller.probe_sensor})
+        recording.warnings[:0] = warnings
+    else:
+        recording = controller.read_recording(path)
+        short = None
+        if controller.reference_sensor not in recording.sensors:
+            probe = recording.for_sensor(controller.probe_sensor, "probe")
+            return probe.transforms(), "Tracker", short, recording.warnings
+    samples = probe_in_reference(recording, controller.reference_sensor, controller.probe_sensor, check_ports=False)
+    return samples.probe_to_reference, "Reference", short, recording.warnings
 
 
 def cmd_register(args: argparse.Namespace) -> int:
@@ -214,8 +291,10 @@ def cmd_navigate(args: argparse.Namespace) -> int:
     controller = _controller(args, _settings(args))
     controller.load_registration(args.registration)
     _warn("navigate", controller.use_ports(*_ports_given(args, controller.settings), args.registration))
-    recording = read_recording(recording_path, controller.settings, controller.reference_sensor,
-                               controller.probe_sensor)
+    _use_tool(args, controller)
+    recording = (read_recording(recording_path, controller.settings, controller.reference_sensor,
+                                controller.probe_sensor) if controller.tool is None
+                 else controller.read_recording(recording_path))
     folder = _output_folder(args, "navigate", [recording_path, Path(args.registration)])
     controller.note_inputs(navigation=recording_path)
     result = controller.navigate_recording(recording)
@@ -395,6 +474,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     case.settings = with_series(case.settings, args.series)
     case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # a sequence file's too
     controller = _controller(args, case.settings)
+    if args.tool:
+        controller.load_tool(args.tool)
     controller.keep_ct = False  # nothing uses the CT after the run: freed as soon as nothing needs it
     for line in controller.run(case, Path(args.out)):
         print(line)
@@ -528,6 +609,13 @@ def _add_sensor_options(parser: argparse.ArgumentParser) -> None:
                         help="port of the probe sensor (default 2 or case.toml [sensors])")
 
 
+def _add_tool_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--tool", default=None, metavar="FILE",
+                        help="a tracked tool's tip: tool_calibration.json, an ITK/Slicer TipToProbe transform "
+                             "(.h5/.tfm/.txt) or a PLUS device-set .xml (default: [tool] calibration, else the "
+                             "pinhole probe)")
+
+
 def _add_series_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--series", default=None, metavar="UID|NUMBER",
                         help="the DICOM series to use (Series Instance UID or series number; default: the CT "
@@ -577,6 +665,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("recording", metavar="RECORDING")
     p.add_argument("--out", required=True, metavar="OUT")
     _add_sensor_options(p)
+    _add_tool_option(p)
+
+    p = add("pivot", cmd_pivot, "pivot calibration of a tool's tip: OUT/tool_calibration.json and TipToProbe.h5")
+    p.add_argument("recording", metavar="RECORDING", help="the tip resting in a divot while the tool swings")
+    p.add_argument("--out", required=True, metavar="OUT")
+    _add_sensor_options(p)
 
     p = add("register", cmd_register, "pair, solve the sensor offset, register: OUT/registration.json")
     p.add_argument("--markers", required=True, metavar="markers.json")
@@ -591,6 +685,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="OUT")
     p.add_argument("--igtl-port", type=int, default=None, metavar="PORT", help="publish ProbeToImage over OpenIGTLink")
     _add_sensor_options(p)
+    _add_tool_option(p)
     live.add_live_navigate_arguments(p)
 
     p = add("evaluate", cmd_evaluate, "TRE at targets and the board table: OUT/evaluation.json")
@@ -618,6 +713,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="OUT")
     _add_series_option(p)
     _add_sensor_options(p)
+    _add_tool_option(p)
 
     p = add("demo", cmd_demo, "simulate the built-in sample case and run it")
     p.add_argument("--out", default="demo-output", metavar="DIR")

@@ -15,6 +15,7 @@ the CT's LPS image space.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import enum
 import os
 import sys
@@ -48,6 +49,7 @@ if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only wh
     from .evaluation import Evaluation
     from .navigation import NavigationResult
     from .registration import RegistrationResult
+    from .tool import ToolCalibration
     from .tracking import TrackingRecording
 
 
@@ -85,6 +87,7 @@ class EMRegController:
         self.image_source: str | None = None
         self.ct_series: dict[str, Any] | None = None  # a DICOM CT: the series used and the others
         self.calibration_recording: TrackingRecording | None = None
+        self.tool: ToolCalibration | None = None  # a tracked tool's tip (None: the paper's pinhole probe)
         self.detection: DetectionResult | None = None
         self.frame_calibration: FrameCalibration | None = None
         self.registration: RegistrationResult | None = None
@@ -223,11 +226,53 @@ class EMRegController:
 
     def load_calibration_recording(self, path: str | os.PathLike[str]) -> TrackingRecording:
         """Read the frame-calibration recording; drops the frame calibration and what follows."""
-        from .io.recording import read_recording
-
-        recording = read_recording(path, self.settings, self.reference_sensor, self.probe_sensor)
+        recording = self.read_recording(path)
         self.set_calibration_recording(recording)
         return recording
+
+    def read_recording(self, path: str | os.PathLike[str]) -> TrackingRecording:
+        """A tracking recording with this controller's ports and transform names (a tool's name is its
+        transform's: ``Stylus`` reads ``StylusToTracker`` unless ``[sensors] probe_transform`` says otherwise)."""
+        from .io.recording import read_recording
+
+        settings = self.settings
+        named_by_tool = self.tool is not None and self.tool.name and settings.sensors.probe_transform is None
+        if named_by_tool:
+            settings = dataclasses.replace(settings, sensors=dataclasses.replace(
+                settings.sensors, probe_transform=f"{self.tool.name}ToTracker"))
+        try:
+            return read_recording(path, settings, self.reference_sensor, self.probe_sensor)
+        except EMRegError as exc:
+            if named_by_tool and f"{self.tool.name}ToTrackerTransform" in str(exc):
+                raise EMRegError(f"{exc} (the tool file {self.tool.source} names the tool {self.tool.name})") from None
+            raise
+
+    def load_tool(self, path: str | os.PathLike[str]) -> ToolCalibration:
+        """Use the tool of a tool file (``tool_calibration.json``, ITK transform, PLUS device set;
+        :func:`EMRegModule.tool.read_tool`); drops the frame calibration and what follows."""
+        from .tool import read_tool
+
+        tool = read_tool(path, self.settings.tool.name)
+        if self.settings.tool.name:
+            tool.name = self.settings.tool.name
+        self.note_inputs(tool=path)
+        self.set_tool(tool)
+        return tool
+
+    def load_tool_from_settings(self) -> ToolCalibration | None:
+        """The tool of ``[tool] calibration`` (relative to ``case.toml``'s folder), if the settings name one."""
+        name = self.settings.tool.calibration
+        if not name:
+            return None
+        path = Path(name)
+        if not path.is_absolute() and self.settings.source:
+            path = Path(self.settings.source).parent / path
+        return self.load_tool(path)
+
+    def set_tool(self, tool: ToolCalibration | None) -> None:
+        """Use a tool (None: the pinhole probe); drops the frame calibration and what follows."""
+        self.tool = tool
+        self._invalidate(frame_calibration=True)
 
     def set_calibration_recording(self, recording: TrackingRecording) -> None:
         self.calibration_recording = recording
@@ -281,7 +326,8 @@ class EMRegController:
         with self.progress.step("calibrating frame"):
             result = calibrate_frame(
                 self.calibration_recording, self.reference_sensor, self.probe_sensor,
-                self.settings.calibration, probe_axis=self.probe_axis or "auto",
+                self.settings.calibration, probe_axis=self.probe_axis or "auto", tool=self.tool,
+                tool_still_radius_mm=self.settings.tool.still_radius_mm,
             )
         self.set_frame_calibration(result)
         return result
@@ -319,7 +365,8 @@ class EMRegController:
         from .navigation import navigate_recording, unpaired_probe_note
 
         result = navigate_recording(
-            recording, self.registration.reference_to_image, self.reference_sensor, self.probe_sensor
+            recording, self.registration.reference_to_image, self.reference_sensor, self.probe_sensor,
+            None if self.tool is None else self.tool.tip_to_probe,
         )
         note = unpaired_probe_note(recording, result, self.probe_sensor)
         if note and note not in recording.warnings:  # said with the recording's own warnings
@@ -465,7 +512,7 @@ class EMRegController:
         from .calibration import write_frame_calibration
 
         self._require(frame_calibration=self.frame_calibration)
-        provenance = self._provenance(("calibration",), ())
+        provenance = self._provenance(("calibration", "tool"), ())
         self.frame_calibration.provenance = provenance.to_json()
         write_frame_calibration(self.frame_calibration, folder.path / "frame_calibration.json")
         self._recorded(folder, "calibrate", provenance)
@@ -485,7 +532,7 @@ class EMRegController:
         from .navigation import write_navigation_csv
 
         self._require(navigation=self.navigation)
-        provenance = self._provenance(("navigation",), ("registration.json",))
+        provenance = self._provenance(("navigation", "tool"), ("registration.json",))
         write_navigation_csv(self.navigation, folder.path / "navigation.csv")
         self._recorded(folder, "navigate", provenance)
 
@@ -594,8 +641,6 @@ class EMRegController:
     def _bundle_provenance(provenance: Provenance, folder: OutputFolder, case_dir: Path | None) -> Provenance:
         """A bundle is made from the CT and the targets too: named, a later report keeps it while none of what
         it was made from changed (:mod:`EMRegModule.bundle_state`)."""
-        import dataclasses
-
         from .bundle_state import bundle_inputs
 
         return dataclasses.replace(provenance, inputs={**provenance.inputs, **bundle_inputs(folder.manifest, case_dir)})
@@ -622,6 +667,8 @@ class EMRegController:
                                all_output_names(), case.folder)
         self.command = self.command if self.command != "emreg" else "emreg run"
         self.note_inputs(**inputs)
+        if self.tool is None:
+            self.load_tool_from_settings()  # [tool] calibration = "FILE" (a --tool given first wins)
         folder = OutputFolder(out, self.command)
         summary: list[str] = []
         stage = "start"
@@ -691,7 +738,7 @@ class EMRegController:
         self.save_frame_calibration(folder)
         if self.detection is None:  # otherwise the registration repeats them
             self.warn(calibration.warnings)
-        summary.append(f"calibrate: {len(calibration.points)} pinholes")
+        summary.append(f"calibrate: {len(calibration.points)} {'pinholes' if self.tool is None else 'touches'}")
 
     def _run_register(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
         if self.detection is None or self.frame_calibration is None:
@@ -712,7 +759,8 @@ class EMRegController:
         if self.registration is None or case.navigation is None:
             return
         try:
-            recording = case.read_recording("navigation")
+            recording = (case.read_recording("navigation") if self.tool is None
+                         else self.read_recording(case.navigation))  # a tool's name is its transform's
             navigation = self.navigate_recording(recording)
         except NoSafeAnswerError:
             raise
