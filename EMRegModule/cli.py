@@ -327,7 +327,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     case.settings = case.settings.with_sensors(controller.reference_sensor, controller.probe_sensor)
     controller.check_case_inputs("registration.json", args.registration, case)
     controller.note_inputs(navigation=case.navigation, targets=case.targets, board=case.board)
-    result = controller.evaluate(case.read_recording("navigation"), case.read_targets(), case.read_recording("board"))
+    _use_tool(args, controller)
+    result = controller.evaluate(controller.case_recording(case, "navigation"), case.read_targets(),
+                                 controller.case_recording(case, "board"))
     controller.save_evaluation(folder, result)
     controller.warn(result.warnings)
     print(f"evaluation -> {folder.path / 'evaluation.json'}")
@@ -693,6 +695,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--registration", required=True, metavar="registration.json")
     p.add_argument("--out", required=True, metavar="OUT")
     _add_sensor_options(p)
+    _add_tool_option(p)
 
     p = add("convert", cmd_convert, "convert a tracking recording between CSV and a PLUS sequence metafile "
             "(.seq.mha, .mha, .seq.nrrd)")

@@ -247,6 +247,13 @@ class EMRegController:
                 raise EMRegError(f"{exc} (the tool file {self.tool.source} names the tool {self.tool.name})") from None
             raise
 
+    def case_recording(self, case: Case, role: str) -> TrackingRecording | None:
+        """A case's recording ``role`` (``navigation``, ``board``); with a tool, read with its transform name."""
+        if self.tool is None:
+            return case.read_recording(role)
+        path = getattr(case, role)
+        return None if path is None else self.read_recording(path)
+
     def load_tool(self, path: str | os.PathLike[str]) -> ToolCalibration:
         """Use the tool of a tool file (``tool_calibration.json``, ITK transform, PLUS device set;
         :func:`EMRegModule.tool.read_tool`); drops the frame calibration and what follows."""
@@ -390,7 +397,8 @@ class EMRegController:
             self.evaluation = evaluate(self.registration.reference_to_image, self.reference_sensor,
                                        self.probe_sensor, self.settings.evaluation, navigation=navigation,
                                        targets=targets, board=board, nominal_edges_mm=self.settings.board.edges_mm,
-                                       error_model=self.error_model, tolerant=tolerant, not_evaluated=not_evaluated)
+                                       error_model=self.error_model, tolerant=tolerant, not_evaluated=not_evaluated,
+                                       tip_to_probe=None if self.tool is None else self.tool.tip_to_probe)
         return self.evaluation
 
     @property
@@ -759,8 +767,7 @@ class EMRegController:
         if self.registration is None or case.navigation is None:
             return
         try:
-            recording = (case.read_recording("navigation") if self.tool is None
-                         else self.read_recording(case.navigation))  # a tool's name is its transform's
+            recording = self.case_recording(case, "navigation")
             navigation = self.navigate_recording(recording)
         except NoSafeAnswerError:
             raise
@@ -785,8 +792,8 @@ class EMRegController:
                                  if case.targets is None else
                                  f"{case.folder}: targets.mrk.json but no navigation recording (navigation.csv or "
                                  "navigation.seq.mha)")
-        for part, read in (("tre", lambda: (case.read_recording("navigation"), case.read_targets())),
-                           ("board", lambda: case.read_recording("board"))):
+        for part, read in (("tre", lambda: (self.case_recording(case, "navigation"), case.read_targets())),
+                           ("board", lambda: self.case_recording(case, "board"))):
             if part in unreadable or (part == "board" and case.board is None):
                 continue
             try:

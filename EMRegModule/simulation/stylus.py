@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from ..tracking import TrackingRecording
-from ..transforms import make_transform, random_rotation
+from ..transforms import axis_angle_to_rotation, make_transform, random_rotation
 from .tracking import NoiseModel, Visit, probe_rotation_into, simulate_session
 
 #: The default simulated stylus: the tip 150 mm along the sensor's +X (a pointer with the sensor in its
@@ -35,10 +35,7 @@ def simulate_pivot_recording(seed: int = 0, tip_mm: Any = DEFAULT_TIP_MM, swing_
     body_to_tracker = make_transform(random_rotation(rng), rng.uniform(-50, 50, 3) + [0.0, 0.0, 250.0])
     divot_body = np.array([60.0, 20.0, -10.0])
     down = -np.array([0.2, 0.1, 1.0]) / np.linalg.norm([0.2, 0.1, 1.0])  # the shaft points into the divot
-    rotation = probe_rotation_into(down, float(rng.uniform(0, 2 * np.pi)))
-    # the sensor's +X along the shaft is the tip's direction only for an on-axis tip: turn it onto the tip
-    axis = tip_mm / np.linalg.norm(tip_mm)
-    rotation = rotation @ _rotation_between(axis, np.array([1.0, 0.0, 0.0])).T
+    rotation = probe_rotation_into(down, float(rng.uniform(0, 2 * np.pi))) @ shaft_rotation(tip_mm)
     probe_to_body = make_transform(rotation, divot_body - rotation @ tip_mm)
     visit = Visit(probe_to_body, duration_s, "", "divot", tip_mm=tip_mm, pivot_swing_deg=swing_deg)
     recording, _, _ = simulate_session(rng, [visit], body_to_tracker, reference_to_body, divot_body,
@@ -48,10 +45,15 @@ def simulate_pivot_recording(seed: int = 0, tip_mm: Any = DEFAULT_TIP_MM, swing_
     return recording, truth
 
 
+def shaft_rotation(tip_mm: Any) -> np.ndarray:
+    """The rotation (3x3) that turns the tip's direction (sensor to tip, probe frame) onto +X: a probe pose
+    whose +X runs along a path, times this, is the stylus pose whose shaft runs along it."""
+    tip_mm = np.asarray(tip_mm, dtype=float)
+    return _rotation_between(tip_mm / np.linalg.norm(tip_mm), np.array([1.0, 0.0, 0.0])).T
+
+
 def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The rotation (3x3) taking unit vector ``a`` onto unit vector ``b`` (about their common normal)."""
-    from ..transforms import axis_angle_to_rotation
-
     cross = np.cross(a, b)
     sine, cosine = float(np.linalg.norm(cross)), float(np.dot(a, b))
     if sine < 1e-12:

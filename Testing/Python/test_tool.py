@@ -251,3 +251,77 @@ def test_a_frame_missing_a_status_the_other_frames_give_is_refused(tmp_path):
     _two_frame_file(tmp_path / "mixed.seq.mha", ["OK", None])
     with pytest.raises(EMRegError, match="frame 1 has ReferenceToTrackerTransform but no"):
         read_sequence_metafile(tmp_path / "mixed.seq.mha")
+
+
+# --- a simulated stylus case, end to end ----------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def stylus_case(tmp_path_factory):
+    """A small simulated case touched with a stylus (tip 150 mm out, pivoting 30 degrees at each pinhole), its
+    ``case.toml`` naming ``tool_calibration.json`` (the true tip), run without the report."""
+    from conftest import SMALL_CASE_OPTIONS
+
+    from EMRegModule.controller import EMRegController
+    from EMRegModule.io.case import open_case
+    from EMRegModule.simulation import simulate_case
+
+    folder = tmp_path_factory.mktemp("stylus")
+    truth = simulate_case(folder / "case", seed=6, spacing_mm=1.0, tool_tip_mm=(150.0, 1.5, -2.0),
+                          **SMALL_CASE_OPTIONS)
+    case = open_case(folder / "case")
+    controller = EMRegController.for_case(case)
+    controller.run(case, folder / "out", report=False)
+    return folder, truth, controller
+
+
+def test_a_stylus_case_registers_from_its_pivoting_tip_touches(stylus_case):
+    folder, truth, controller = stylus_case
+    calibration = read_frame_calibration(folder / "out" / "frame_calibration.json")
+    assert [p.motion for p in calibration.points] == ["pivot"] * 8
+    true_tips = np.array([m["pinhole_in_reference"] for m in truth["markers"] if m["calibrated"]])
+    touched = calibration.positions
+    # the simulator's per-dwell orientation error (0.25 degree per axis) moves a tip 150 mm out by about 1 mm
+    off = np.linalg.norm(touched[:, None] - true_tips[None], axis=2).min(axis=1)
+    assert np.sqrt(np.mean(off**2)) < 1.5 and off.max() < 2.5
+    registration = json.loads((folder / "out" / "registration.json").read_text())
+    assert len(registration["pairs"]) == 8
+    reference_to_image = np.array(registration["ReferenceToImage"])
+    image_to_reference_true = np.linalg.inv(np.array(truth["ReferenceToImage"]))
+    targets = np.array([t["position"] for t in truth["targets"]])
+    in_reference = targets @ image_to_reference_true[:3, :3].T + image_to_reference_true[:3, 3]
+    mapped = in_reference @ reference_to_image[:3, :3].T + reference_to_image[:3, 3]
+    assert np.linalg.norm(mapped - targets, axis=1).max() < 1.0
+
+
+def test_a_stylus_case_navigates_and_evaluates_the_tip(stylus_case):
+    """navigation.csv holds the tip (TipToImage): the TRE at the targets is about a millimetre, where the
+    sensor, 150 mm behind the tip, would be 150 mm off."""
+    folder, _, controller = stylus_case
+    evaluation = json.loads((folder / "out" / "evaluation.json").read_text())
+    assert evaluation["tre"]["mean_mm"] < 2.0
+    assert controller.tool is not None and controller.tool.source.endswith("tool_calibration.json")
+
+
+def test_emreg_pivot_on_the_stylus_case_recording_finds_its_tip(stylus_case, tmp_path):
+    """The case's pivot.csv (no reference in the divot's frame is needed: it has one) at the simulator's full
+    noise, per-dwell rotation bias included: within 1 mm of the true tip."""
+    folder, truth, _ = stylus_case
+    assert main(["pivot", str(folder / "case" / "pivot.csv"), "--out", str(tmp_path), "--quiet"]) == 0
+    tip = json.loads((tmp_path / "tool_calibration.json").read_text())["tip_mm"]
+    assert np.linalg.norm(np.array(tip) - truth["tool"]["tip_mm"]) < 1.0
+
+
+def test_navigation_with_a_tool_maps_the_tip():
+    from EMRegModule.navigation import navigate_recording
+
+    recording, truth = simulate_pivot_recording(7, swing_deg=30.0, noise=NoiseModel().scaled(0.0))
+    reference_to_image = make_transform(random_rotation(np.random.default_rng(8)), [10.0, -20.0, 30.0])
+    tip_to_probe = np.array(truth["TipToProbe"])
+    result = navigate_recording(recording, reference_to_image, 1, 2, tip_to_probe)
+    divot_image = reference_to_image[:3, :3] @ truth["pivot_point_mm"] + reference_to_image[:3, 3]
+    sensor = navigate_recording(recording, reference_to_image, 1, 2)
+    during = np.linalg.norm(result.position_mm - divot_image, axis=1) < 1e-6
+    assert during.sum() > 500  # the whole pivot: the tip stays in the divot while the sensor swings
+    assert np.ptp(sensor.position_mm[during], axis=0).max() > 30.0
+    np.testing.assert_allclose(result.probe_to_image, sensor.probe_to_image @ tip_to_probe, atol=1e-9)
