@@ -99,6 +99,8 @@ class FrameCalibration:
     provenance: dict[str, Any] | None = None  # what it was made from (``EMRegModule.provenance``)
     #: the tool whose tip made the points (``{"TipToProbe": 4x4, "source": ..}``); None: the pinhole probe
     tool: dict[str, Any] | None = None
+    #: the tool solved from this recording's touches (``--tool auto``), else None (not in the JSON: see ``tool``)
+    solved_tool: ToolCalibration | None = field(default=None, repr=False)
 
     @property
     def labels(self) -> list[str]:
@@ -198,7 +200,7 @@ def calibrate_frame(
     probe_sensor: int = 2,
     settings: CalibrationSettings | None = None,
     probe_axis: str = "auto",
-    tool: ToolCalibration | None = None,
+    tool: ToolCalibration | str | None = None,
     tool_still_radius_mm: float = 1.0,
 ) -> FrameCalibration:
     """One point per marker pinhole, in the Reference frame (mm), from a calibration recording.
@@ -212,7 +214,8 @@ def calibrate_frame(
 
     ``tool``: a tracked tool (:class:`~EMRegModule.tool.ToolCalibration`): the points are its tip's positions,
     a touch is the tip held still within ``tool_still_radius_mm`` (module docstring), and no direction is kept
-    (a pivoting shaft has none).
+    (a pivoting shaft has none). ``tool="auto"``: the tip is solved from the pivoting touches first
+    (:func:`EMRegModule.tool.solve_tip_from_touches`); the result's ``solved_tool`` holds it.
     """
     dwell_settings = settings or CalibrationSettings()
     revisit_tolerance = dwell_settings.revisit_tolerance_mm
@@ -223,6 +226,16 @@ def calibrate_frame(
     samples = probe_in_reference(recording, reference_sensor, probe_sensor)
     position = samples.position_mm
     out_of_hole = marker_directions(samples.direction, convention)
+    if tool == "auto":
+        from .tool import solve_tip_from_touches
+
+        touch_settings = replace(dwell_settings, still_radius_mm=tool_still_radius_mm)
+
+        def find_touches(tip_mm: np.ndarray) -> list[np.ndarray]:
+            return [d.indices for d in find_dwells(samples.time_s, tip_mm, samples.label, samples.quality,
+                                                   touch_settings)]
+
+        tool = solve_tip_from_touches(samples.probe_to_reference, samples.time_s, find_touches, recording.source)
     if tool is not None:
         from .tool import tip_poses
 
@@ -289,8 +302,12 @@ def calibrate_frame(
     has_direction = any(np.all(np.isfinite(p.direction)) for p in points)
     tool_json = None if tool is None else {"TipToProbe": tool.tip_to_probe.tolist(), "tip_mm": tool.tip_mm.tolist(),
                                            "source": tool.source, "name": tool.name}
-    return FrameCalibration(points, int(reference_sensor), int(probe_sensor), labelled, recording.source, warnings,
-                            probe_axis, convention if has_direction else "none", tool=tool_json)
+    if tool is not None and tool.method.startswith("auto"):
+        tool_json.update(method=tool.method, tip_std_mm=tool.tip_std_mm.tolist(), rms_mm=tool.rms_mm)
+    result = FrameCalibration(points, int(reference_sensor), int(probe_sensor), labelled, recording.source, warnings,
+                              probe_axis, convention if has_direction else "none", tool=tool_json)
+    result.solved_tool = tool if tool is not None and tool.method.startswith("auto") else None
+    return result
 
 
 def _close_point_warnings(points: list[CalibrationPoint], radius_mm: float) -> list[str]:

@@ -14,7 +14,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from . import __version__
 from .errors import EXIT_BAD_INPUT, EMRegError, NoSafeAnswerError
@@ -160,12 +160,16 @@ def cmd_detect(args: argparse.Namespace) -> int:
     return 0
 
 
-def _use_tool(args: argparse.Namespace, controller: EMRegController) -> None:
-    """``--tool FILE`` (else ``[tool] calibration`` of the settings): the tool whose tip is tracked."""
+def _use_tool(args: argparse.Namespace, controller: EMRegController, solves: bool = True) -> None:
+    """``--tool FILE`` (else ``[tool] calibration`` of the settings): the tool whose tip is tracked. ``solves``:
+    the command has a calibration recording to solve ``--tool auto`` from (else it is refused)."""
     if getattr(args, "tool", None):
         controller.load_tool(args.tool)
     else:
         controller.load_tool_from_settings()
+    if controller.tool_auto and not solves:
+        raise EMRegError(f"emreg {args.command}: --tool auto solves the tip from a calibration recording; give the "
+                         "tool_calibration.json that emreg calibrate or emreg run wrote with it instead")
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
@@ -174,18 +178,22 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     controller = _controller(args, _settings(args))
     _use_tool(args, controller)
     controller.load_calibration_recording(recording)
-    folder = _output_folder(args, "calibrate", [recording] + ([Path(args.tool)] if args.tool else []))
+    tool_file = [Path(args.tool)] if args.tool and args.tool != "auto" else []
+    folder = _output_folder(args, "calibrate", [recording] + tool_file)
     controller.note_inputs(calibration=recording)
     result = controller.calibrate_frame()
     controller.save_frame_calibration(folder)
     controller.warn(result.warnings)
-    _warn("calibrate", controller.calibration_recording.warnings)
     if controller.tool is None:
         print(f"{len(result.points)} pinholes calibrated -> {args.out}")
     else:
         motions = [p.motion for p in result.points]
+        tool = controller.tool
+        solved = "" if result.solved_tool is None else (
+            f"; tip solved from {tool.touches} pivoting touches: [{', '.join(f'{v:.2f}' for v in tool.tip_mm)}] mm "
+            f"+/- [{', '.join(f'{v:.2f}' for v in tool.tip_std_mm)}], RMS {tool.rms_mm:.2f} mm")
         print(f"{len(result.points)} tip touches ({motions.count('pivot')} pivoting, {motions.count('rest')} "
-              f"resting) with the tool of {controller.tool.source} -> {args.out}")
+              f"resting) with the tool of {tool.source}{solved} -> {args.out}")
     return 0
 
 
@@ -193,12 +201,13 @@ def cmd_pivot(args: argparse.Namespace) -> int:
     import numpy as np
 
     from .outputs import refuse_out_over_inputs
-    from .tool import TIP_TO_PROBE_ITK, TOOL_CALIBRATION_JSON, pivot_calibration, write_tool_calibration
+    from .tool import TIP_TO_PROBE_ITK, TOOL_CALIBRATION_JSON, pivot_calibration, pivot_poses, write_tool_calibration
 
     _out_folder(args.out)
     recording_path = Path(args.recording)
     controller = _controller(args, _settings(args))
-    poses, frame, name, warnings = pivot_poses(controller, recording_path)
+    poses, frame, name, warnings = pivot_poses(recording_path, controller.settings, controller.reference_sensor,
+                                               controller.probe_sensor)
     tool = pivot_calibration(poses, str(recording_path), frame, name)
     refuse_out_over_inputs(args.out, [recording_path], (TOOL_CALIBRATION_JSON, TIP_TO_PROBE_ITK))
     write_tool_calibration(tool, args.out)
@@ -208,47 +217,6 @@ def cmd_pivot(args: argparse.Namespace) -> int:
           f"{tool.rms_mm:.2f} mm over {tool.samples} of {tool.samples_total} samples, swing "
           f"{tool.rotation_range_deg:.0f} degrees -> {args.out}")
     return 0
-
-
-def pivot_poses(controller: EMRegController, path: Path) -> tuple[Any, str, str | None, list[str]]:
-    """The tool sensor's poses for a pivot calibration, ``ProbeToReference`` (N, 4, 4), or ``ProbeToTracker``
-    when the recording has no reference sensor; the frame's name, the tool's name (from a sequence file's
-    transform, e.g. ``Stylus``), and the recording's warnings."""
-    from .io.sequence_metafile import is_sequence_file, read_sequence_frames, recording_from_frames
-    from .tracking import probe_in_reference
-
-    names = controller.settings.sensors
-    if is_sequence_file(path):
-        frames = read_sequence_frames(path)
-        reference = names.reference_transform or "ReferenceToTracker"
-        tool = names.probe_transform or "ProbeToTracker"
-        warnings = []
-        others = [n for n in frames.names if n != reference]
-        if tool not in frames.matrices and len(others) == 1:  # the one transform, or the one besides the reference
-            warnings.append(f"{path}: no {tool}Transform; {others[0]}Transform is the only "
-                            f"{'transform besides ' + reference if reference in frames.matrices else 'transform'}"
-                            ": taken as the tool")
-            tool = others[0]
-        if tool not in frames.matrices:
-            raise EMRegError(f"{path}: no {tool}Transform (the tool) in the file; it holds "
-                             f"{', '.join(n + 'Transform' for n in frames.names) or 'no transforms'}; name the tool "
-                             "with [sensors] probe_transform in case.toml")
-        short = tool[:-len("ToTracker")] if tool.endswith("ToTracker") else tool
-        if reference not in frames.matrices:
-            recording = recording_from_frames(frames, {tool: controller.probe_sensor})
-            probe = recording.for_sensor(controller.probe_sensor, "probe")
-            return probe.transforms(), "Tracker", short, warnings + recording.warnings
-        recording = recording_from_frames(frames, {reference: controller.reference_sensor,
-                                                   tool: controller.probe_sensor})
-        recording.warnings[:0] = warnings
-    else:
-        recording = controller.read_recording(path)
-        short = None
-        if controller.reference_sensor not in recording.sensors:
-            probe = recording.for_sensor(controller.probe_sensor, "probe")
-            return probe.transforms(), "Tracker", short, recording.warnings
-    samples = probe_in_reference(recording, controller.reference_sensor, controller.probe_sensor, check_ports=False)
-    return samples.probe_to_reference, "Reference", short, recording.warnings
 
 
 def cmd_register(args: argparse.Namespace) -> int:
@@ -279,6 +247,9 @@ def cmd_register(args: argparse.Namespace) -> int:
 def cmd_navigate(args: argparse.Namespace) -> int:
     _out_folder(args.out)
     live = args.igtl_port is not None or not args.source.startswith("replay:")
+    if live and (args.tool or _settings(args).tool.calibration):
+        raise EMRegError("navigate: a tool (--tool or [tool] calibration) is used with replay:FILE only; live "
+                         "navigation streams the probe sensor's pose (ProbeToImage), not the tip")
     if live:
         from .live.commands import run_live_navigate
 
@@ -291,7 +262,7 @@ def cmd_navigate(args: argparse.Namespace) -> int:
     controller = _controller(args, _settings(args))
     controller.load_registration(args.registration)
     _warn("navigate", controller.use_ports(*_ports_given(args, controller.settings), args.registration))
-    _use_tool(args, controller)
+    _use_tool(args, controller, solves=False)
     recording = (read_recording(recording_path, controller.settings, controller.reference_sensor,
                                 controller.probe_sensor) if controller.tool is None
                  else controller.read_recording(recording_path))
@@ -327,7 +298,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     case.settings = case.settings.with_sensors(controller.reference_sensor, controller.probe_sensor)
     controller.check_case_inputs("registration.json", args.registration, case)
     controller.note_inputs(navigation=case.navigation, targets=case.targets, board=case.board)
-    _use_tool(args, controller)
+    _use_tool(args, controller, solves=False)
     result = controller.evaluate(controller.case_recording(case, "navigation"), case.read_targets(),
                                  controller.case_recording(case, "board"))
     controller.save_evaluation(folder, result)

@@ -88,6 +88,7 @@ class EMRegController:
         self.ct_series: dict[str, Any] | None = None  # a DICOM CT: the series used and the others
         self.calibration_recording: TrackingRecording | None = None
         self.tool: ToolCalibration | None = None  # a tracked tool's tip (None: the paper's pinhole probe)
+        self.tool_auto = False  # --tool auto: the tip is solved from the calibration recording's pivoting touches
         self.detection: DetectionResult | None = None
         self.frame_calibration: FrameCalibration | None = None
         self.registration: RegistrationResult | None = None
@@ -254,11 +255,16 @@ class EMRegController:
         path = getattr(case, role)
         return None if path is None else self.read_recording(path)
 
-    def load_tool(self, path: str | os.PathLike[str]) -> ToolCalibration:
+    def load_tool(self, path: str | os.PathLike[str]) -> ToolCalibration | None:
         """Use the tool of a tool file (``tool_calibration.json``, ITK transform, PLUS device set;
-        :func:`EMRegModule.tool.read_tool`); drops the frame calibration and what follows."""
+        :func:`EMRegModule.tool.read_tool`), or ``auto`` (None: the tip is solved when the frame is calibrated);
+        drops the frame calibration and what follows."""
         from .tool import read_tool
 
+        if str(path) == "auto":
+            self.set_tool(None)
+            self.tool_auto = True
+            return None
         tool = read_tool(path, self.settings.tool.name)
         if self.settings.tool.name:
             tool.name = self.settings.tool.name
@@ -272,13 +278,14 @@ class EMRegController:
         if not name:
             return None
         path = Path(name)
-        if not path.is_absolute() and self.settings.source:
+        if name != "auto" and not path.is_absolute() and self.settings.source:
             path = Path(self.settings.source).parent / path
         return self.load_tool(path)
 
     def set_tool(self, tool: ToolCalibration | None) -> None:
         """Use a tool (None: the pinhole probe); drops the frame calibration and what follows."""
         self.tool = tool
+        self.tool_auto = False
         self._invalidate(frame_calibration=True)
 
     def set_calibration_recording(self, recording: TrackingRecording) -> None:
@@ -333,9 +340,11 @@ class EMRegController:
         with self.progress.step("calibrating frame"):
             result = calibrate_frame(
                 self.calibration_recording, self.reference_sensor, self.probe_sensor,
-                self.settings.calibration, probe_axis=self.probe_axis or "auto", tool=self.tool,
-                tool_still_radius_mm=self.settings.tool.still_radius_mm,
+                self.settings.calibration, probe_axis=self.probe_axis or "auto",
+                tool="auto" if self.tool_auto else self.tool, tool_still_radius_mm=self.settings.tool.still_radius_mm,
             )
+        if result.solved_tool is not None:  # --tool auto: navigation and evaluation use the tip solved here
+            self.tool = result.solved_tool
         self.set_frame_calibration(result)
         return result
 
@@ -523,6 +532,10 @@ class EMRegController:
         provenance = self._provenance(("calibration", "tool"), ())
         self.frame_calibration.provenance = provenance.to_json()
         write_frame_calibration(self.frame_calibration, folder.path / "frame_calibration.json")
+        if self.frame_calibration.solved_tool is not None:  # --tool auto: the tip solved, for later commands
+            from .tool import write_tool_calibration
+
+            write_tool_calibration(self.frame_calibration.solved_tool, folder.path)
         self._recorded(folder, "calibrate", provenance)
 
     def save_registration(self, folder: OutputFolder) -> None:
@@ -675,7 +688,7 @@ class EMRegController:
                                all_output_names(), case.folder)
         self.command = self.command if self.command != "emreg" else "emreg run"
         self.note_inputs(**inputs)
-        if self.tool is None:
+        if self.tool is None and not self.tool_auto:
             self.load_tool_from_settings()  # [tool] calibration = "FILE" (a --tool given first wins)
         folder = OutputFolder(out, self.command)
         summary: list[str] = []

@@ -38,15 +38,12 @@ from typing import Any
 import numpy as np
 
 from .errors import EMRegError, NoSafeAnswerError
-from .io.atomic import atomic_path, atomic_write_json, itk_write_errors, read_json
+from .io.atomic import atomic_write_json, read_json
 from .transforms import LPS_TO_RAS, invert_rigid
 
 #: Names of ``emreg pivot``'s outputs.
 TOOL_CALIBRATION_JSON = "tool_calibration.json"
 TIP_TO_PROBE_ITK = "TipToProbe.h5"
-
-#: A tool file's ``TipToProbe`` must be rigid within this (|R^T R - I|, |det R - 1|, last row).
-RIGID_TOLERANCE = 1e-3
 
 #: The shaft must swing over at least this cone (degrees, the largest angle between two shaft directions, 95th
 #: percentile) for the tip to be pinned down along the shaft: at 0.25 mm of tracker noise per sample, 200
@@ -87,6 +84,10 @@ class ToolCalibration:
     samples_total: int | None = None
     pivot_frame: str | None = None
     warnings: list[str] = field(default_factory=list)
+    #: the tip's standard deviation per probe axis (mm), from the residuals (a tip solved from the touches)
+    tip_std_mm: np.ndarray | None = None
+    #: touches the tip was solved from (``--tool auto``)
+    touches: int | None = None
 
     @property
     def tip_mm(self) -> np.ndarray:
@@ -112,6 +113,10 @@ class ToolCalibration:
         if self.samples is not None:
             document["samples"] = int(self.samples)
             document["samples_total"] = int(self.samples_total or self.samples)
+        if self.tip_std_mm is not None:
+            document["tip_std_mm"] = [round(float(v), 4) for v in self.tip_std_mm]
+        if self.touches is not None:
+            document["touches"] = int(self.touches)
         if self.warnings:
             document["warnings"] = list(self.warnings)
         return document
@@ -122,21 +127,16 @@ class ToolCalibration:
 
 def check_tip_to_probe(matrix: Any, where: str) -> np.ndarray:
     """``TipToProbe`` as a 4x4 float array, or :class:`EMRegError` (one line naming ``where``) when it is not
-    a finite rigid transform within :data:`RIGID_TOLERANCE`."""
+    a finite rigid transform within the sequence reader's tolerance (1e-3)."""
     try:
         matrix = np.asarray(matrix, dtype=float)
     except (TypeError, ValueError):
         raise EMRegError(f"{where}: TipToProbe is not a 4x4 matrix of numbers") from None
     if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
         raise EMRegError(f"{where}: TipToProbe must be a 4x4 matrix of finite numbers, got shape {matrix.shape}")
-    rotation = matrix[:3, :3]
-    orthogonality = float(np.max(np.abs(rotation.T @ rotation - np.eye(3))))
-    determinant = float(np.linalg.det(rotation))
-    last_row = float(np.max(np.abs(matrix[3] - [0, 0, 0, 1])))
-    if orthogonality > RIGID_TOLERANCE or abs(determinant - 1.0) > RIGID_TOLERANCE or last_row > RIGID_TOLERANCE:
-        raise EMRegError(f"{where}: TipToProbe is not a rigid transform (|R^T R - I| = {orthogonality:.2g}, "
-                         f"det R = {determinant:.4g}, last row {matrix[3].tolist()}); a tool's tip transform must "
-                         "be a rotation and a translation")
+    from .io.sequence_metafile import check_rigid
+
+    check_rigid(matrix, f"{where}: TipToProbe (a tool's tip transform is a rotation and a translation)")
     return matrix
 
 
@@ -180,51 +180,18 @@ def _optional_float(value: Any) -> float | None:
 def read_tip_to_probe_itk(path: str | os.PathLike[str]) -> np.ndarray:
     """``TipToProbe`` (4x4, mm) from an ITK transform file as 3D Slicer writes a ``TipToProbe`` node
     (``F @ inv(T) @ F`` of the stored ``T``; module docstring)."""
-    import SimpleITK as sitk
+    from .io.itk_transform import read_itk_linear_matrix
 
-    try:
-        transform = sitk.ReadTransform(str(path))
-    except RuntimeError:
-        raise EMRegError(f"{path}: not a readable ITK transform file") from None
-    stored = _itk_matrix(transform, str(path))
+    stored = read_itk_linear_matrix(path)
     return check_tip_to_probe(LPS_TO_RAS @ np.linalg.inv(stored) @ LPS_TO_RAS, str(path))
-
-
-def _itk_matrix(transform: Any, where: str) -> np.ndarray:
-    """The 4x4 of a 3D linear ITK transform (a composite holding one linear transform is unwrapped)."""
-    import SimpleITK as sitk
-
-    if transform.GetDimension() != 3:
-        raise EMRegError(f"{where}: expected a 3D transform")
-    try:
-        affine = sitk.AffineTransform(transform)
-    except (RuntimeError, TypeError):
-        try:
-            composite = sitk.CompositeTransform(transform)
-            if composite.GetNumberOfTransforms() != 1:
-                raise EMRegError(f"{where}: holds {composite.GetNumberOfTransforms()} transforms; a tool file holds "
-                                 "one linear transform")
-            affine = sitk.AffineTransform(composite.GetNthTransform(0))
-        except (RuntimeError, TypeError):
-            raise EMRegError(f"{where}: not a linear transform (a tool's TipToProbe is rigid)") from None
-    matrix = np.eye(4)
-    matrix[:3, :3] = np.asarray(affine.GetMatrix()).reshape(3, 3)
-    center = np.asarray(affine.GetCenter())
-    matrix[:3, 3] = np.asarray(affine.GetTranslation()) + center - matrix[:3, :3] @ center
-    return matrix
 
 
 def write_tip_to_probe_itk(path: str | os.PathLike[str], tip_to_probe: np.ndarray) -> None:
     """Write ``TipToProbe`` as an ITK transform file that 3D Slicer loads as the node ``TipToProbe``
     (``T = F @ ProbeToTip @ F``; module docstring), atomically."""
-    import SimpleITK as sitk
+    from .io.itk_transform import write_itk_linear_matrix
 
-    stored = LPS_TO_RAS @ invert_rigid(tip_to_probe) @ LPS_TO_RAS
-    transform = sitk.AffineTransform(3)
-    transform.SetMatrix(stored[:3, :3].ravel().tolist())
-    transform.SetTranslation(stored[:3, 3].tolist())
-    with atomic_path(path) as tmp, itk_write_errors():
-        sitk.WriteTransform(transform, str(tmp))
+    write_itk_linear_matrix(path, LPS_TO_RAS @ invert_rigid(tip_to_probe) @ LPS_TO_RAS)
 
 
 def _read_plus_device_set(path: Path, name: str | None) -> ToolCalibration:
@@ -358,6 +325,54 @@ def tip_frame_rotation(tip_mm: np.ndarray) -> np.ndarray:
     return np.column_stack([x_axis, np.cross(z_axis, x_axis), z_axis])
 
 
+def pivot_poses(path: str | os.PathLike[str], settings: Any, reference_port: int, probe_port: int
+                ) -> tuple[np.ndarray, str, str | None, list[str]]:
+    """The tool sensor's poses of a pivot recording: ``ProbeToReference`` (N, 4, 4), or ``ProbeToTracker`` when
+    the recording has no reference sensor; the frame's name, the tool's name (a sequence file's transform without
+    ``ToTracker``, e.g. ``Stylus``; None for a CSV), and the recording's warnings. ``settings``: the typed
+    ``case.toml`` (its ``[sensors]`` transform names). In a sequence file without the probe's transform, the one
+    transform there is, or the one besides the reference, is the tool (with a warning)."""
+    from .io.recording import read_recording
+    from .io.sequence_metafile import (
+        DEFAULT_PROBE_TRANSFORM,
+        DEFAULT_REFERENCE_TRANSFORM,
+        is_sequence_file,
+        read_sequence_frames,
+        recording_from_frames,
+    )
+    from .tracking import probe_in_reference
+
+    path = Path(path)
+    name = None
+    warnings: list[str] = []
+    if is_sequence_file(path):
+        frames = read_sequence_frames(path)
+        reference = settings.sensors.reference_transform or DEFAULT_REFERENCE_TRANSFORM
+        tool = settings.sensors.probe_transform or DEFAULT_PROBE_TRANSFORM
+        others = [n for n in frames.names if n != reference]
+        if tool not in frames.matrices and len(others) == 1 and settings.sensors.probe_transform is None:
+            besides = f"transform besides {reference}" if reference in frames.matrices else "transform"
+            warnings.append(f"{path}: no {tool}Transform; {others[0]}Transform is the only {besides}: taken as the "
+                            "tool")
+            tool = others[0]
+        if tool not in frames.matrices:
+            raise EMRegError(f"{path}: no {tool}Transform (the tool) in the file; it holds "
+                             f"{', '.join(n + 'Transform' for n in frames.names) or 'no transforms'}; name the tool "
+                             "with [sensors] probe_transform in case.toml")
+        name = tool[:-len("ToTracker")] if tool.endswith("ToTracker") else tool
+        ports = {tool: probe_port}
+        if reference in frames.matrices:
+            ports = {reference: reference_port, tool: probe_port}
+        recording = recording_from_frames(frames, ports)
+    else:
+        recording = read_recording(path, settings, reference_port, probe_port)
+    warnings += recording.warnings
+    if reference_port not in recording.sensors:
+        return recording.for_sensor(probe_port, "probe").transforms(), "Tracker", name, warnings
+    samples = probe_in_reference(recording, reference_port, probe_port, check_ports=False)
+    return samples.probe_to_reference, "Reference", name, warnings
+
+
 def pivot_calibration(probe_to_frame: np.ndarray, source: str = "recording", frame: str = "Reference",
                       name: str | None = None, min_rotation_deg: float = MIN_PIVOT_ROTATION_DEG) -> ToolCalibration:
     """Pivot calibration from sensor poses ``ProbeToFrame`` (N, 4, 4, mm) taken while the tip rests in one divot.
@@ -384,9 +399,7 @@ def pivot_calibration(probe_to_frame: np.ndarray, source: str = "recording", fra
         raise NoSafeAnswerError(
             f"{source}: the tip did not stay at one point: the pivot fit leaves {fit.rms_mm:.1f} mm RMS (at most "
             f"{MAX_PIVOT_RMS_MM:g} mm); record one divot per pivot recording, the tip resting in it throughout")
-    tip_to_probe = np.eye(4)
-    tip_to_probe[:3, :3] = tip_frame_rotation(fit.tip_mm)
-    tip_to_probe[:3, 3] = fit.tip_mm
+    tip_to_probe = make_tip_to_probe(fit.tip_mm)
     warnings = []
     dropped = len(poses) - int(np.count_nonzero(fit.inliers))
     if dropped:
@@ -395,3 +408,104 @@ def pivot_calibration(probe_to_frame: np.ndarray, source: str = "recording", fra
     return ToolCalibration(tip_to_probe, source, name, "pivot: least squares, then refit without outliers "
                            f"(> {OUTLIER_FACTOR:g} x robust RMS residual)", fit.pivot_mm, fit.rms_mm, swing,
                            int(np.count_nonzero(fit.inliers)), len(poses), frame, warnings)
+
+
+# --- the tip solved from the touches (--tool auto) ---------------------------------------------------
+
+#: Windows of this length (s) are pivot-fitted to find where the tool pivots before its tip is known.
+AUTO_WINDOW_S = 1.0
+
+#: A window pivots when its fit leaves at most this RMS (mm) over at least ``AUTO_WINDOW_MIN_SWING_DEG``.
+AUTO_WINDOW_MAX_RMS_MM = 0.7
+AUTO_WINDOW_MIN_SWING_DEG = 10.0
+
+#: Fewest pivoting touches that pin the tip down (each pins it along the directions its swing spans).
+AUTO_MIN_TOUCHES = 3
+
+
+def fit_multi_pivot(poses: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """One tip (probe frame) and one pivot point per group of sensor poses ``ProbeToReference`` (each (N_k, 4,
+    4)): least squares of ``R_i @ tip - pivot_k = -p_i`` over every sample. Returns the tip (3,), the pivot
+    points (K, 3), the RMS residual (mm) and the tip's covariance (3x3, mm^2) from the residuals."""
+    k_groups = len(poses)
+    rows = sum(len(p) for p in poses)
+    system = np.zeros((3 * rows, 3 + 3 * k_groups))
+    rhs = np.zeros(3 * rows)
+    start = 0
+    for k, group in enumerate(poses):
+        n = len(group)
+        block = slice(3 * start, 3 * (start + n))
+        system[block, :3] = group[:, :3, :3].reshape(3 * n, 3)
+        system[block, 3 + 3 * k:6 + 3 * k] = -np.tile(np.eye(3), (n, 1))
+        rhs[block] = -group[:, :3, 3].reshape(3 * n)
+        start += n
+    solution, *_ = np.linalg.lstsq(system, rhs, rcond=None)
+    residual = (system @ solution - rhs).reshape(-1, 3)
+    distances = np.linalg.norm(residual, axis=1)
+    rms = float(np.sqrt(np.mean(distances**2)))
+    dof = max(3 * rows - len(solution), 1)
+    sigma2 = float(np.sum(residual**2)) / dof
+    normal = system.T @ system
+    covariance = sigma2 * np.linalg.pinv(normal)[:3, :3]
+    return solution[:3], solution[3:].reshape(k_groups, 3), rms, covariance
+
+
+def pivoting_windows_tip(probe_to_reference: np.ndarray, time_s: np.ndarray) -> np.ndarray | None:
+    """A first tip (probe frame, mm) before any is known: the median tip of the 1 s windows (half a window apart)
+    that pivot (:data:`AUTO_WINDOW_MAX_RMS_MM`, :data:`AUTO_WINDOW_MIN_SWING_DEG`); None when none does."""
+    time_s = np.asarray(time_s, dtype=float)
+    if len(time_s) == 0:
+        return None
+    tips = []
+    for start_s in np.arange(time_s[0], time_s[-1], AUTO_WINDOW_S / 2):
+        first, last = np.searchsorted(time_s, [start_s, start_s + AUTO_WINDOW_S])
+        if last - first < MIN_PIVOT_SAMPLES:
+            continue
+        window = probe_to_reference[first:last]
+        fit = fit_pivot(window, max_iterations=2)
+        if (fit.rms_mm <= AUTO_WINDOW_MAX_RMS_MM
+                and shaft_swing_deg(window[:, :3, :3], fit.tip_mm) >= AUTO_WINDOW_MIN_SWING_DEG):
+            tips.append(fit.tip_mm)
+    return np.median(np.asarray(tips), axis=0) if tips else None
+
+
+def solve_tip_from_touches(probe_to_reference: np.ndarray, time_s: np.ndarray, find_touches: Any,
+                           source: str = "recording", iterations: int = 3) -> ToolCalibration:
+    """``--tool auto``: the tip (probe frame) solved from a recording whose touches pivot about the tip.
+
+    ``find_touches(tip_positions) -> list of index arrays``: the touches of a tip track (the calibration's dwell
+    finder). A first tip from the pivoting 1 s windows (:func:`pivoting_windows_tip`) gives the tip track; its
+    touches that swing (:data:`AUTO_WINDOW_MIN_SWING_DEG`) are fitted jointly (:func:`fit_multi_pivot`: one tip,
+    one point per touch), and the touches are found again with the new tip, ``iterations`` times. Raises
+    :class:`NoSafeAnswerError` when nothing pivots or fewer than :data:`AUTO_MIN_TOUCHES` touches do."""
+    poses = np.asarray(probe_to_reference, dtype=float)
+    tip = pivoting_windows_tip(poses, time_s)
+    if tip is None:
+        raise NoSafeAnswerError(
+            f"{source}: --tool auto: the tool never pivots about its tip (no {AUTO_WINDOW_S:g} s window swings "
+            f"{AUTO_WINDOW_MIN_SWING_DEG:g} degrees about a still point within {AUTO_WINDOW_MAX_RMS_MM:g} mm RMS); "
+            "pivot the tool at each touch, or give its tip with --tool FILE (emreg pivot)")
+    for _ in range(iterations):
+        touches = find_touches(tip_poses(poses, make_tip_to_probe(tip))[:, :3, 3])
+        pivoting = [t for t in touches if shaft_swing_deg(poses[t, :3, :3], tip) >= AUTO_WINDOW_MIN_SWING_DEG]
+        if len(pivoting) < AUTO_MIN_TOUCHES:
+            raise NoSafeAnswerError(
+                f"{source}: --tool auto: {len(pivoting)} touch(es) pivot about the tip (of {len(touches)} found); at "
+                f"least {AUTO_MIN_TOUCHES} are needed to solve the tip; pivot the tool at each touch, or give its "
+                "tip with --tool FILE")
+        tip, _, rms, covariance = fit_multi_pivot([poses[t] for t in pivoting])
+    swing = min(shaft_swing_deg(poses[t, :3, :3], tip) for t in pivoting)
+    tool = ToolCalibration(make_tip_to_probe(tip), source, None,
+                           f"auto: one tip and one point per touch fitted to {len(pivoting)} pivoting touches",
+                           rms_mm=rms, rotation_range_deg=swing, samples=int(sum(len(t) for t in pivoting)),
+                           samples_total=len(poses), pivot_frame="Reference",
+                           tip_std_mm=np.sqrt(np.clip(np.diag(covariance), 0.0, None)), touches=len(pivoting))
+    return tool
+
+
+def make_tip_to_probe(tip_mm: np.ndarray) -> np.ndarray:
+    """``TipToProbe`` (4x4) for a tip (probe frame, mm), its axes as PLUS orients them (:func:`tip_frame_rotation`)."""
+    tip_to_probe = np.eye(4)
+    tip_to_probe[:3, :3] = tip_frame_rotation(tip_mm)
+    tip_to_probe[:3, 3] = tip_mm
+    return tip_to_probe

@@ -209,7 +209,7 @@ def read_sequence_frames(path: str | os.PathLike[str]) -> SequenceFrames:
             matrix = numbers.reshape(4, 4)
             no_orientation = frame.get(f"{name}TransformOrientation", "").strip().upper() == "MISSING"
             if not no_orientation:
-                _check_rigid(matrix, f"{where}: {name}Transform")
+                check_rigid(matrix, f"{where}: {name}Transform")
             elif np.max(np.abs(matrix[3] - [0, 0, 0, 1])) > RIGID_TOLERANCE:
                 raise EMRegError(f"{where}: {name}Transform's last row is not 0 0 0 1")
             matrices[name][k] = matrix
@@ -227,7 +227,8 @@ def read_sequence_frames(path: str | os.PathLike[str]) -> SequenceFrames:
     return frames
 
 
-def _check_rigid(matrix: np.ndarray, where: str) -> None:
+def check_rigid(matrix: np.ndarray, where: str) -> None:
+    """:class:`EMRegError` naming ``where`` unless ``matrix`` (4x4) is rigid within :data:`RIGID_TOLERANCE`."""
     rotation = matrix[:3, :3]
     orthogonality = float(np.max(np.abs(rotation.T @ rotation - np.eye(3))))
     determinant = float(np.linalg.det(rotation))

@@ -325,3 +325,74 @@ def test_navigation_with_a_tool_maps_the_tip():
     assert during.sum() > 500  # the whole pivot: the tip stays in the divot while the sensor swings
     assert np.ptp(sensor.position_mm[during], axis=0).max() > 30.0
     np.testing.assert_allclose(result.probe_to_image, sensor.probe_to_image @ tip_to_probe, atol=1e-9)
+
+
+# --- --tool auto ----------------------------------------------------------------------------------
+
+
+def test_tool_auto_solves_the_stylus_tip_from_the_pivoting_touches(stylus_case, tmp_path):
+    """``[tool] calibration = "auto"``: the tip solved jointly from the case's 8 pivoting touches at the simulator's
+    full noise lands within 1 mm of the truth, and the registration's error at the targets stays within 1.2 times
+    that of the same case registered with the true tip (the oracle), plus 0.05 mm."""
+    import shutil
+
+    from EMRegModule.controller import EMRegController
+    from EMRegModule.io.case import open_case
+
+    folder, truth, oracle = stylus_case
+    shutil.copytree(folder / "case", tmp_path / "case")
+    toml = tmp_path / "case" / "case.toml"
+    toml.write_text(toml.read_text().replace('calibration = "tool_calibration.json"', 'calibration = "auto"'))
+    (tmp_path / "case" / "tool_calibration.json").unlink()
+    case = open_case(tmp_path / "case")
+    controller = EMRegController.for_case(case)
+    controller.run(case, tmp_path / "out", report=False)
+    solved = json.loads((tmp_path / "out" / "tool_calibration.json").read_text())
+    assert np.linalg.norm(np.array(solved["tip_mm"]) - truth["tool"]["tip_mm"]) < 1.0
+    assert solved["touches"] == 8 and len(solved["tip_std_mm"]) == 3
+
+    def target_error(out: Path) -> float:
+        reference_to_image = np.array(json.loads((out / "registration.json").read_text())["ReferenceToImage"])
+        image_to_reference = np.linalg.inv(np.array(truth["ReferenceToImage"]))
+        targets = np.array([t["position"] for t in truth["targets"]])
+        in_reference = targets @ image_to_reference[:3, :3].T + image_to_reference[:3, 3]
+        mapped = in_reference @ reference_to_image[:3, :3].T + reference_to_image[:3, 3]
+        return float(np.sqrt(np.mean(np.sum((mapped - targets) ** 2, axis=1))))
+
+    assert target_error(tmp_path / "out") <= 1.2 * target_error(folder / "out") + 0.05
+
+
+def test_tool_auto_on_plus_real_recording(tmp_path):
+    """On PLUS's hand-held landmark recording --tool auto finds the 8 pivoting touches and a tip within 2 mm of
+    PLUS's own stylus calibration (see the closing note for what that costs the registration)."""
+    assert main(["calibrate", str(LANDMARK_RECORDING), "--tool", "auto", "--out", str(tmp_path), "--quiet"]) == 0
+    calibration = read_frame_calibration(tmp_path / "frame_calibration.json")
+    assert [p.motion for p in calibration.points].count("pivot") == 8
+    solved = read_tool(tmp_path / "tool_calibration.json")
+    plus_tip, _ = _plus_matrix(DEVICE_SET, "StylusTip", "Stylus")
+    assert np.linalg.norm(solved.tip_mm - plus_tip[:3, 3]) < 2.0
+
+
+def test_tool_auto_without_pivots_exits_3(stylus_case, tmp_path, capsys):
+    """The tool rests at each touch (the navigation recording's target touches do not pivot)."""
+    folder, _, _ = stylus_case
+    code = main(["calibrate", str(folder / "case" / "navigation.csv"), "--tool", "auto", "--out", str(tmp_path),
+                 "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 3 and len(err) == 1 and "--tool auto" in err[0] and "pivot" in err[0]
+    assert not (tmp_path / "frame_calibration.json").exists()
+
+
+def test_navigate_with_tool_auto_is_refused(stylus_case, tmp_path, capsys):
+    folder, _, _ = stylus_case
+    code = main(["navigate", "--registration", str(folder / "out" / "registration.json"), "--source",
+                 f"replay:{folder / 'case' / 'navigation.csv'}", "--tool", "auto", "--out", str(tmp_path), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "tool_calibration.json" in err[0]
+
+
+def test_live_navigation_with_a_tool_is_refused_not_ignored(capsys):
+    code = main(["navigate", "--registration", "registration.json", "--source", "trakstar:///dev/null", "--tool",
+                 str(DEVICE_SET), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "replay:FILE only" in err[0]
