@@ -300,10 +300,11 @@ def calibrate_frame(
     warnings += [f"{p.label}: {p.warning}" for p in points if p.warning]
     warnings += _close_point_warnings(points, 2.0 * dwell_settings.merge_radius_mm)
     has_direction = any(np.all(np.isfinite(p.direction)) for p in points)
-    tool_json = None if tool is None else {"TipToProbe": tool.tip_to_probe.tolist(), "tip_mm": tool.tip_mm.tolist(),
-                                           "source": tool.source, "name": tool.name}
-    if tool is not None and tool.method.startswith("auto"):
-        tool_json.update(method=tool.method, tip_std_mm=tool.tip_std_mm.tolist(), rms_mm=tool.rms_mm)
+    tool_json = None
+    if tool is not None:
+        tool_json = {"TipToProbe": tool.tip_to_probe.tolist(), "tip_mm": tool.tip_mm.tolist(), "source": tool.source,
+                     "name": tool.name, "method": tool.method, "rms_mm": tool.rms_mm,
+                     "tip_std_mm": None if tool.tip_std_mm is None else tool.tip_std_mm.tolist()}
     result = FrameCalibration(points, int(reference_sensor), int(probe_sensor), labelled, recording.source, warnings,
                               probe_axis, convention if has_direction else "none", tool=tool_json)
     result.solved_tool = tool if tool is not None and tool.method.startswith("auto") else None

@@ -136,6 +136,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from .simulation import simulate_case
 
     options = {"probe_axis": args.probe_axis} if args.probe_axis else {}
+    if args.tool_tip:
+        options["tool_tip_mm"] = tuple(args.tool_tip)
     simulate_case(
         Path(args.out), seed=args.seed, difficulty=args.difficulty, spacing_mm=args.spacing,
         progress=_progress(args), **options,
@@ -628,6 +630,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--probe-axis", choices=("+x_in", "+x_out", "none"), default=None,
                    help="probe convention of the recordings: +X into the hole (default), out of it, or "
                         "position only")
+    p.add_argument("--tool-tip", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                   help="touch with a stylus whose tip is at X Y Z mm in its sensor's frame (pivoting at the "
+                        "pinholes; writes tool_calibration.json, pivot.csv and [tool] calibration)")
 
     p = add("detect", cmd_detect, "find the markers in a CT: OUT/markers.json and markers.mrk.json")
     p.add_argument("ct", metavar="CT_OR_CASE", help="a CT file, a DICOM folder, or a case folder")
