@@ -598,7 +598,7 @@ def _add_series_option(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_study_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("name", metavar="NAME", help="calibration, board, tre, noise, markers or prediction")
+    p.add_argument("name", metavar="NAME", help="calibration, board, tre, noise, markers, prediction or tool")
     p.add_argument("--out", required=True, metavar="DIR")
     p.add_argument("--quick", action="store_true", help="a small frame and few sessions (a smoke-sized run)")
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="an existing Dask scheduler (default: a local one)")

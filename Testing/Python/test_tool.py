@@ -406,3 +406,20 @@ def test_the_report_shows_the_tool_and_each_touch(stylus_case):
     tip = ", ".join(f"{v:.2f}" for v in truth["tool"]["tip_mm"])
     assert f"tip at {tip} mm" in section and "tool_calibration.json" in section
     assert section.count("<td>pivot</td>") == 8
+
+
+def test_the_slicer_bundle_carries_the_tip(stylus_case):
+    pytest.importorskip("slicer")
+    import slicer.util
+    import vtk
+
+    from EMRegModule.io.slicer_scene import SlicerScene, write_run_bundle
+
+    folder, truth, _ = stylus_case
+    path, message = write_run_bundle(folder / "out", folder / "case")
+    assert path is not None, message
+    mrml = SlicerScene()
+    mrml.read_bundle(path)
+    matrix = vtk.vtkMatrix4x4()
+    mrml.node("TipToProbe").GetMatrixTransformToParent(matrix)
+    np.testing.assert_allclose(slicer.util.arrayFromVTKMatrix(matrix)[:3, 3], truth["tool"]["tip_mm"], atol=1e-9)
