@@ -249,12 +249,12 @@ def cmd_register(args: argparse.Namespace) -> int:
 def cmd_navigate(args: argparse.Namespace) -> int:
     _out_folder(args.out)
     live = args.igtl_port is not None or not args.source.startswith("replay:")
-    if live and (args.tool or _settings(args).tool.calibration):
-        raise EMRegError("navigate: a tool (--tool or [tool] calibration) is used with replay:FILE only; live "
-                         "navigation streams the probe sensor's pose (ProbeToImage), not the tip")
     if live:
         from .live.commands import run_live_navigate
 
+        if args.tool or _settings(args).tool.calibration:  # the live path streams the sensor's pose, not a tip
+            raise EMRegError("navigate: a tool (--tool or [tool] calibration) is used with replay:FILE only; live "
+                             "navigation streams the probe sensor's pose (ProbeToImage), not the tip")
         return run_live_navigate(args)
     if not args.out:
         raise EMRegError("navigate: --out DIR is needed to write navigation.csv from a replay")
