@@ -8,6 +8,13 @@ point is the robust average of its dwell samples (wild samples dropped), its dir
 robust mean of ``-(probe +X)``: the probe goes in tip first, so its +X points into the hole
 and the marker's +Y (out of the hole) is its opposite.
 
+With a tool (``tool``, :mod:`EMRegModule.tool`) every sample becomes the tip's position
+(``TipToReference = ProbeToReference @ TipToProbe``) and a touch is the *tip* held still: the shaft may swing
+(a pivot, as in PLUS's landmark recording) or rest; each point says which (``motion``). Hand tremor moves a
+held tip about 1 mm over a touch of several seconds, so the stillness radius is ``[tool] still_radius_mm``
+(1 mm) instead of ``[calibration] still_radius_mm``. A tool lying still (on the table) is a touch too: an
+extra point, which the pairing leaves out as it leaves out any point that matches no marker.
+
 Revisits: two dwells at the same pinhole (the same label, or, without labels, averages
 closer than ``merge_radius_mm``) are merged into one point (samples pooled); when the
 visits disagree by more than ``revisit_tolerance_mm`` the point carries a warning.
@@ -17,9 +24,9 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -28,6 +35,13 @@ from .errors import EMRegError
 from .io.atomic import atomic_write_json, read_json
 from .settings import CalibrationSettings
 from .tracking import TrackingRecording, probe_in_reference
+
+if TYPE_CHECKING:
+    from .tool import ToolCalibration
+
+#: A touch of a tool whose shaft swung at least this much (degrees, :func:`EMRegModule.tool.shaft_swing_deg`)
+#: about the still tip is a pivot; less is a rest (hand tremor of a held tool swings it by a degree or two).
+PIVOT_TOUCH_SWING_DEG = 5.0
 
 
 @dataclass
@@ -49,6 +63,8 @@ class CalibrationPoint:
     start_s: float = float("nan")
     end_s: float = float("nan")
     warning: str = ""
+    #: with a tool: ``pivot`` (the shaft swung about the still tip) or ``rest`` (the whole tool still); else empty
+    motion: str = ""
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -61,6 +77,8 @@ class CalibrationPoint:
         }
         if self.warning:
             out["warning"] = self.warning
+        if self.motion:
+            out["motion"] = self.motion
         return out
 
 
@@ -79,6 +97,10 @@ class FrameCalibration:
     probe_axis: str = "auto"
     direction_convention: str = "+x_in"
     provenance: dict[str, Any] | None = None  # what it was made from (``EMRegModule.provenance``)
+    #: the tool whose tip made the points (``{"TipToProbe": 4x4, "source": ..}``); None: the pinhole probe
+    tool: dict[str, Any] | None = None
+    #: the tool solved from this recording's touches (``--tool auto``), else None (not in the JSON: see ``tool``)
+    solved_tool: ToolCalibration | None = field(default=None, repr=False)
 
     @property
     def labels(self) -> list[str]:
@@ -104,6 +126,8 @@ class FrameCalibration:
         }
         if self.provenance is not None:
             document["provenance"] = self.provenance
+        if self.tool is not None:
+            document["tool"] = self.tool
         return document
 
     def probe_axis_json(self) -> dict[str, Any]:
@@ -142,7 +166,7 @@ class FrameCalibration:
                     visits=int(item.get("visits", 1)),
                     direction_std_deg=_float(item.get("direction_std_deg")),
                     start_s=_float(item.get("start_s")), end_s=_float(item.get("end_s")),
-                    warning=str(item.get("warning", "")),
+                    warning=str(item.get("warning", "")), motion=str(item.get("motion", "")),
                 ))
             labels = [p.label for p in points]
             if len(set(labels)) != len(labels):
@@ -157,7 +181,7 @@ class FrameCalibration:
             return cls(points, int(document.get("reference_sensor", 1)), int(document.get("probe_sensor", 2)),
                        bool(document.get("labelled", True)), str(document.get("source", "")),
                        [str(w) for w in document.get("warnings", [])], setting, convention,
-                       _dict_or_none(document.get("provenance")))
+                       _dict_or_none(document.get("provenance")), _dict_or_none(document.get("tool")))
         except (KeyError, TypeError, ValueError) as exc:
             raise EMRegError(f"{source}: not a frame calibration file ({exc!s:.100})") from None
 
@@ -176,6 +200,8 @@ def calibrate_frame(
     probe_sensor: int = 2,
     settings: CalibrationSettings | None = None,
     probe_axis: str = "auto",
+    tool: ToolCalibration | str | None = None,
+    tool_still_radius_mm: float = 1.0,
 ) -> FrameCalibration:
     """One point per marker pinhole, in the Reference frame (mm), from a calibration recording.
 
@@ -185,6 +211,11 @@ def calibrate_frame(
     ``settings``: the ``[calibration]`` table (dwell keys and ``revisit_tolerance_mm``). Unlabelled
     dwells are named ``P01, P02, ...`` in time order of their first visit. Raises
     :class:`EMRegError` when no dwell is found.
+
+    ``tool``: a tracked tool (:class:`~EMRegModule.tool.ToolCalibration`): the points are its tip's positions,
+    a touch is the tip held still within ``tool_still_radius_mm`` (module docstring), and no direction is kept
+    (a pivoting shaft has none). ``tool="auto"``: the tip is solved from the pivoting touches first
+    (:func:`EMRegModule.tool.solve_tip_from_touches`); the result's ``solved_tool`` holds it.
     """
     dwell_settings = settings or CalibrationSettings()
     revisit_tolerance = dwell_settings.revisit_tolerance_mm
@@ -195,6 +226,23 @@ def calibrate_frame(
     samples = probe_in_reference(recording, reference_sensor, probe_sensor)
     position = samples.position_mm
     out_of_hole = marker_directions(samples.direction, convention)
+    if tool == "auto":
+        from .tool import solve_tip_from_touches
+
+        touch_settings = replace(dwell_settings, still_radius_mm=tool_still_radius_mm)
+
+        def find_touches(tip_mm: np.ndarray) -> list[np.ndarray]:
+            return [d.indices for d in find_dwells(samples.time_s, tip_mm, samples.label, samples.quality,
+                                                   touch_settings)]
+
+        tool = solve_tip_from_touches(samples.probe_to_reference, samples.time_s, find_touches, recording.source)
+    if tool is not None:
+        from .tool import tip_poses
+
+        position = tip_poses(samples.probe_to_reference, tool.tip_to_probe)[:, :3, 3]
+        out_of_hole = np.full_like(position, np.nan)
+        probe_axis, convention = "none", "none"
+        dwell_settings = replace(dwell_settings, still_radius_mm=tool_still_radius_mm)
     dwells = find_dwells(samples.time_s, position, samples.label, samples.quality, dwell_settings)
     if not dwells:
         from .dwell import describe_still_periods
@@ -236,18 +284,31 @@ def calibrate_frame(
             if spread > revisit_tolerance:
                 warning = (f"{len(members)} visits disagree by up to {spread:.2f} mm "
                            f"(more than {revisit_tolerance:g} mm): check that the probe was fully inserted")
+        motion = ""
+        if tool is not None:
+            from .tool import shaft_swing_deg
+
+            swing = shaft_swing_deg(samples.probe_to_reference[used, :3, :3], tool.tip_mm)
+            motion = "pivot" if swing >= PIVOT_TOUCH_SWING_DEG else "rest"
         points.append(CalibrationPoint(
             label=label, position=average.mean, direction=direction, samples=len(used), std_mm=average.std_mm,
             visits=len(members), direction_std_deg=direction_std,
             start_s=float(min(dwells[m].start_s for m in members)),
-            end_s=float(max(dwells[m].end_s for m in members)), warning=warning,
+            end_s=float(max(dwells[m].end_s for m in members)), warning=warning, motion=motion,
         ))
     warnings = list(recording.warnings)  # time resets / gaps found on reading (kept, as separate segments)
     warnings += [f"{p.label}: {p.warning}" for p in points if p.warning]
     warnings += _close_point_warnings(points, 2.0 * dwell_settings.merge_radius_mm)
     has_direction = any(np.all(np.isfinite(p.direction)) for p in points)
-    return FrameCalibration(points, int(reference_sensor), int(probe_sensor), labelled, recording.source, warnings,
-                            probe_axis, convention if has_direction else "none")
+    tool_json = None
+    if tool is not None:
+        tool_json = {"TipToProbe": tool.tip_to_probe.tolist(), "tip_mm": tool.tip_mm.tolist(), "source": tool.source,
+                     "name": tool.name, "method": tool.method, "rms_mm": tool.rms_mm,
+                     "tip_std_mm": None if tool.tip_std_mm is None else tool.tip_std_mm.tolist()}
+    result = FrameCalibration(points, int(reference_sensor), int(probe_sensor), labelled, recording.source, warnings,
+                              probe_axis, convention if has_direction else "none", tool=tool_json)
+    result.solved_tool = tool if tool is not None and tool.method.startswith("auto") else None
+    return result
 
 
 def _close_point_warnings(points: list[CalibrationPoint], radius_mm: float) -> list[str]:

@@ -136,6 +136,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from .simulation import simulate_case
 
     options = {"probe_axis": args.probe_axis} if args.probe_axis else {}
+    if args.tool_tip:
+        options["tool_tip_mm"] = tuple(args.tool_tip)
     simulate_case(
         Path(args.out), seed=args.seed, difficulty=args.difficulty, spacing_mm=args.spacing,
         progress=_progress(args), **options,
@@ -160,17 +162,62 @@ def cmd_detect(args: argparse.Namespace) -> int:
     return 0
 
 
+def _use_tool(args: argparse.Namespace, controller: EMRegController, solves: bool = True) -> None:
+    """``--tool FILE`` (else ``[tool] calibration`` of the settings): the tool whose tip is tracked. ``solves``:
+    the command has a calibration recording to solve ``--tool auto`` from (else it is refused)."""
+    if getattr(args, "tool", None):
+        controller.load_tool(args.tool)
+    else:
+        controller.load_tool_from_settings()
+    if controller.tool_auto and not solves:
+        raise EMRegError(f"emreg {args.command}: --tool auto solves the tip from a calibration recording; give the "
+                         "tool_calibration.json that emreg calibrate or emreg run wrote with it instead")
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     _out_folder(args.out)
     recording = Path(args.recording)
     controller = _controller(args, _settings(args))
+    _use_tool(args, controller)
     controller.load_calibration_recording(recording)
-    folder = _output_folder(args, "calibrate", [recording])
+    tool_file = [Path(args.tool)] if args.tool and args.tool != "auto" else []
+    folder = _output_folder(args, "calibrate", [recording] + tool_file)
     controller.note_inputs(calibration=recording)
     result = controller.calibrate_frame()
     controller.save_frame_calibration(folder)
     controller.warn(result.warnings)
-    print(f"{len(result.points)} pinholes calibrated -> {args.out}")
+    if controller.tool is None:
+        print(f"{len(result.points)} pinholes calibrated -> {args.out}")
+    else:
+        motions = [p.motion for p in result.points]
+        tool = controller.tool
+        solved = "" if result.solved_tool is None else (
+            f"; tip solved from {tool.touches} pivoting touches: [{', '.join(f'{v:.2f}' for v in tool.tip_mm)}] mm "
+            f"+/- [{', '.join(f'{v:.2f}' for v in tool.tip_std_mm)}], RMS {tool.rms_mm:.2f} mm")
+        print(f"{len(result.points)} tip touches ({motions.count('pivot')} pivoting, {motions.count('rest')} "
+              f"resting) with the tool of {tool.source}{solved} -> {args.out}")
+    return 0
+
+
+def cmd_pivot(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .outputs import refuse_out_over_inputs
+    from .tool import TIP_TO_PROBE_ITK, TOOL_CALIBRATION_JSON, pivot_calibration, pivot_poses, write_tool_calibration
+
+    _out_folder(args.out)
+    recording_path = Path(args.recording)
+    controller = _controller(args, _settings(args))
+    poses, frame, name, warnings = pivot_poses(recording_path, controller.settings, controller.reference_sensor,
+                                               controller.probe_sensor)
+    tool = pivot_calibration(poses, str(recording_path), frame, name)
+    refuse_out_over_inputs(args.out, [recording_path], (TOOL_CALIBRATION_JSON, TIP_TO_PROBE_ITK))
+    write_tool_calibration(tool, args.out)
+    _warn("pivot", warnings + tool.warnings)
+    tip = ", ".join(f"{v:.2f}" for v in tool.tip_mm)
+    print(f"tip at [{tip}] mm in the probe frame ({np.linalg.norm(tool.tip_mm):.1f} mm from the sensor), RMS "
+          f"{tool.rms_mm:.2f} mm over {tool.samples} of {tool.samples_total} samples, swing "
+          f"{tool.rotation_range_deg:.0f} degrees -> {args.out}")
     return 0
 
 
@@ -212,6 +259,9 @@ def cmd_navigate(args: argparse.Namespace) -> int:
     if args.igtl_port is not None or not args.source.startswith("replay:"):
         from .live.commands import run_live_navigate
 
+        if args.tool or _settings(args).tool.calibration:  # the live path streams the sensor's pose, not a tip
+            raise EMRegError("navigate: a tool (--tool or [tool] calibration) is used with replay:FILE only; live "
+                             "navigation streams the probe sensor's pose (ProbeToImage), not the tip")
         return run_live_navigate(args)
     if not args.out:
         raise EMRegError("navigate: --out DIR is needed to write navigation.csv from a replay")
@@ -221,8 +271,10 @@ def cmd_navigate(args: argparse.Namespace) -> int:
     controller = _controller(args, _settings(args))
     controller.load_registration(args.registration)
     _warn("navigate", controller.use_ports(*_ports_given(args, controller.settings), args.registration))
-    recording = read_recording(recording_path, controller.settings, controller.reference_sensor,
-                               controller.probe_sensor)
+    _use_tool(args, controller, solves=False)
+    recording = (read_recording(recording_path, controller.settings, controller.reference_sensor,
+                                controller.probe_sensor) if controller.tool is None
+                 else controller.read_recording(recording_path))
     folder = _output_folder(args, "navigate", [recording_path, Path(args.registration)])
     controller.note_inputs(navigation=recording_path)
     result = controller.navigate_recording(recording)
@@ -255,7 +307,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     case.settings = case.settings.with_sensors(controller.reference_sensor, controller.probe_sensor)
     controller.check_case_inputs("registration.json", args.registration, case)
     controller.note_inputs(navigation=case.navigation, targets=case.targets, board=case.board)
-    result = controller.evaluate(case.read_recording("navigation"), case.read_targets(), case.read_recording("board"))
+    _use_tool(args, controller, solves=False)
+    result = controller.evaluate(controller.case_recording(case, "navigation"), case.read_targets(),
+                                 controller.case_recording(case, "board"))
     controller.save_evaluation(folder, result)
     controller.warn(result.warnings)
     print(f"evaluation -> {folder.path / 'evaluation.json'}")
@@ -402,6 +456,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     case.settings = with_series(case.settings, args.series)
     case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # a sequence file's too
     controller = _controller(args, case.settings)
+    if args.tool:
+        controller.load_tool(args.tool)
     controller.keep_ct = False  # nothing uses the CT after the run: freed as soon as nothing needs it
     for line in controller.run(case, Path(args.out)):
         print(line)
@@ -535,6 +591,13 @@ def _add_sensor_options(parser: argparse.ArgumentParser) -> None:
                         help="port of the probe sensor (default 2 or case.toml [sensors])")
 
 
+def _add_tool_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--tool", default=None, metavar="FILE",
+                        help="a tracked tool's tip: tool_calibration.json, an ITK/Slicer TipToProbe transform "
+                             "(.h5/.tfm/.txt) or a PLUS device-set .xml (default: [tool] calibration, else the "
+                             "pinhole probe)")
+
+
 def _add_series_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--series", default=None, metavar="UID|NUMBER",
                         help="the DICOM series to use (Series Instance UID or series number; default: the CT "
@@ -542,7 +605,7 @@ def _add_series_option(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_study_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("name", metavar="NAME", help="calibration, board, tre, noise, markers or prediction")
+    p.add_argument("name", metavar="NAME", help="calibration, board, tre, noise, markers, prediction or tool")
     p.add_argument("--out", required=True, metavar="DIR")
     p.add_argument("--quick", action="store_true", help="a small frame and few sessions (a smoke-sized run)")
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="an existing Dask scheduler (default: a local one)")
@@ -574,6 +637,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--probe-axis", choices=("+x_in", "+x_out", "none"), default=None,
                    help="probe convention of the recordings: +X into the hole (default), out of it, or "
                         "position only")
+    p.add_argument("--tool-tip", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                   help="touch with a stylus whose tip is at X Y Z mm in its sensor's frame (pivoting at the "
+                        "pinholes; writes tool_calibration.json, pivot.csv and [tool] calibration)")
 
     p = add("detect", cmd_detect, "find the markers in a CT: OUT/markers.json and markers.mrk.json")
     p.add_argument("ct", metavar="CT_OR_CASE", help="a CT file, a DICOM folder, or a case folder")
@@ -582,6 +648,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("calibrate", cmd_calibrate, "frame calibration from a tracking recording: OUT/frame_calibration.json")
     p.add_argument("recording", metavar="RECORDING")
+    p.add_argument("--out", required=True, metavar="OUT")
+    _add_sensor_options(p)
+    _add_tool_option(p)
+
+    p = add("pivot", cmd_pivot, "pivot calibration of a tool's tip: OUT/tool_calibration.json and TipToProbe.h5")
+    p.add_argument("recording", metavar="RECORDING", help="the tip resting in a divot while the tool swings")
     p.add_argument("--out", required=True, metavar="OUT")
     _add_sensor_options(p)
 
@@ -602,6 +674,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="OUT")
     p.add_argument("--igtl-port", type=int, default=None, metavar="PORT", help="publish ProbeToImage over OpenIGTLink")
     _add_sensor_options(p)
+    _add_tool_option(p)
     live.add_live_navigate_arguments(p)
 
     p = add("evaluate", cmd_evaluate, "TRE at targets and the board table: OUT/evaluation.json")
@@ -609,6 +682,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--registration", required=True, metavar="registration.json")
     p.add_argument("--out", required=True, metavar="OUT")
     _add_sensor_options(p)
+    _add_tool_option(p)
 
     p = add("convert", cmd_convert, "convert a tracking recording between CSV and a PLUS sequence metafile "
             "(.seq.mha, .mha, .seq.nrrd)")
@@ -629,6 +703,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="OUT")
     _add_series_option(p)
     _add_sensor_options(p)
+    _add_tool_option(p)
 
     p = add("demo", cmd_demo, "simulate the built-in sample case and run it")
     p.add_argument("--out", default="demo-output", metavar="DIR")

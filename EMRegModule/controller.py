@@ -15,6 +15,7 @@ the CT's LPS image space.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import enum
 import os
 import sys
@@ -49,6 +50,7 @@ if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only wh
     from .io.fiducials import Fiducials
     from .navigation import NavigationResult
     from .registration import RegistrationResult
+    from .tool import ToolCalibration
     from .tracking import TrackingRecording
 
 
@@ -86,6 +88,8 @@ class EMRegController:
         self.image_source: str | None = None
         self.ct_series: dict[str, Any] | None = None  # a DICOM CT: the series used and the others
         self.calibration_recording: TrackingRecording | None = None
+        self.tool: ToolCalibration | None = None  # a tracked tool's tip (None: the paper's pinhole probe)
+        self.tool_auto = False  # --tool auto: the tip is solved from the calibration recording's pivoting touches
         self.detection: DetectionResult | None = None
         #: Fiducial points instead of CT markers (``--fiducials``, a case's ``fiducials.mrk.json``), or None.
         self.fiducials: Fiducials | None = None
@@ -231,11 +235,66 @@ class EMRegController:
 
     def load_calibration_recording(self, path: str | os.PathLike[str]) -> TrackingRecording:
         """Read the frame-calibration recording; drops the frame calibration and what follows."""
-        from .io.recording import read_recording
-
-        recording = read_recording(path, self.settings, self.reference_sensor, self.probe_sensor)
+        recording = self.read_recording(path)
         self.set_calibration_recording(recording)
         return recording
+
+    def read_recording(self, path: str | os.PathLike[str]) -> TrackingRecording:
+        """A tracking recording with this controller's ports and transform names (a tool's name is its
+        transform's: ``Stylus`` reads ``StylusToTracker`` unless ``[sensors] probe_transform`` says otherwise)."""
+        from .io.recording import read_recording
+
+        settings = self.settings
+        named_by_tool = self.tool is not None and self.tool.name and settings.sensors.probe_transform is None
+        if named_by_tool:
+            settings = dataclasses.replace(settings, sensors=dataclasses.replace(
+                settings.sensors, probe_transform=f"{self.tool.name}ToTracker"))
+        try:
+            return read_recording(path, settings, self.reference_sensor, self.probe_sensor)
+        except EMRegError as exc:
+            if named_by_tool and f"{self.tool.name}ToTrackerTransform" in str(exc):
+                raise EMRegError(f"{exc} (the tool file {self.tool.source} names the tool {self.tool.name})") from None
+            raise
+
+    def case_recording(self, case: Case, role: str) -> TrackingRecording | None:
+        """A case's recording ``role`` (``navigation``, ``board``); with a tool, read with its transform name."""
+        if self.tool is None:
+            return case.read_recording(role)
+        path = getattr(case, role)
+        return None if path is None else self.read_recording(path)
+
+    def load_tool(self, path: str | os.PathLike[str]) -> ToolCalibration | None:
+        """Use the tool of a tool file (``tool_calibration.json``, ITK transform, PLUS device set;
+        :func:`EMRegModule.tool.read_tool`), or ``auto`` (None: the tip is solved when the frame is calibrated);
+        drops the frame calibration and what follows."""
+        from .tool import read_tool
+
+        if str(path) == "auto":
+            self.set_tool(None)
+            self.tool_auto = True
+            return None
+        tool = read_tool(path, self.settings.tool.name)
+        if self.settings.tool.name:
+            tool.name = self.settings.tool.name
+        self.note_inputs(tool=path)
+        self.set_tool(tool)
+        return tool
+
+    def load_tool_from_settings(self) -> ToolCalibration | None:
+        """The tool of ``[tool] calibration`` (relative to ``case.toml``'s folder), if the settings name one."""
+        name = self.settings.tool.calibration
+        if not name:
+            return None
+        path = Path(name)
+        if name != "auto" and not path.is_absolute() and self.settings.source:
+            path = Path(self.settings.source).parent / path
+        return self.load_tool(path)
+
+    def set_tool(self, tool: ToolCalibration | None) -> None:
+        """Use a tool (None: the pinhole probe); drops the frame calibration and what follows."""
+        self.tool = tool
+        self.tool_auto = False
+        self._invalidate(frame_calibration=True)
 
     def set_calibration_recording(self, recording: TrackingRecording) -> None:
         self.calibration_recording = recording
@@ -310,7 +369,10 @@ class EMRegController:
             result = calibrate_frame(
                 self.calibration_recording, self.reference_sensor, self.probe_sensor,
                 self.settings.calibration, probe_axis=self.probe_axis or "auto",
+                tool="auto" if self.tool_auto else self.tool, tool_still_radius_mm=self.settings.tool.still_radius_mm,
             )
+        if result.solved_tool is not None:  # --tool auto: navigation and evaluation use the tip solved here
+            self.tool = result.solved_tool
         self.set_frame_calibration(result)
         return result
 
@@ -358,7 +420,8 @@ class EMRegController:
         from .navigation import navigate_recording, unpaired_probe_note
 
         result = navigate_recording(
-            recording, self.registration.reference_to_image, self.reference_sensor, self.probe_sensor
+            recording, self.registration.reference_to_image, self.reference_sensor, self.probe_sensor,
+            None if self.tool is None else self.tool.tip_to_probe,
         )
         note = unpaired_probe_note(recording, result, self.probe_sensor)
         if note and note not in recording.warnings:  # said with the recording's own warnings
@@ -382,7 +445,8 @@ class EMRegController:
             self.evaluation = evaluate(self.registration.reference_to_image, self.reference_sensor,
                                        self.probe_sensor, self.settings.evaluation, navigation=navigation,
                                        targets=targets, board=board, nominal_edges_mm=self.settings.board.edges_mm,
-                                       error_model=self.error_model, tolerant=tolerant, not_evaluated=not_evaluated)
+                                       error_model=self.error_model, tolerant=tolerant, not_evaluated=not_evaluated,
+                                       tip_to_probe=None if self.tool is None else self.tool.tip_to_probe)
         return self.evaluation
 
     @property
@@ -505,9 +569,13 @@ class EMRegController:
         from .calibration import write_frame_calibration
 
         self._require(frame_calibration=self.frame_calibration)
-        provenance = self._provenance(("calibration",), ())
+        provenance = self._provenance(("calibration", "tool"), ())
         self.frame_calibration.provenance = provenance.to_json()
         write_frame_calibration(self.frame_calibration, folder.path / "frame_calibration.json")
+        if self.frame_calibration.solved_tool is not None:  # --tool auto: the tip solved, for later commands
+            from .tool import write_tool_calibration
+
+            write_tool_calibration(self.frame_calibration.solved_tool, folder.path)
         self._recorded(folder, "calibrate", provenance)
 
     def save_registration(self, folder: OutputFolder) -> None:
@@ -525,7 +593,7 @@ class EMRegController:
         from .navigation import write_navigation_csv
 
         self._require(navigation=self.navigation)
-        provenance = self._provenance(("navigation",), ("registration.json",))
+        provenance = self._provenance(("navigation", "tool"), ("registration.json",))
         write_navigation_csv(self.navigation, folder.path / "navigation.csv")
         self._recorded(folder, "navigate", provenance)
 
@@ -634,8 +702,6 @@ class EMRegController:
     def _bundle_provenance(provenance: Provenance, folder: OutputFolder, case_dir: Path | None) -> Provenance:
         """A bundle is made from the CT and the targets too: named, a later report keeps it while none of what
         it was made from changed (:mod:`EMRegModule.bundle_state`)."""
-        import dataclasses
-
         from .bundle_state import bundle_inputs
 
         return dataclasses.replace(provenance, inputs={**provenance.inputs, **bundle_inputs(folder.manifest, case_dir)})
@@ -661,6 +727,8 @@ class EMRegController:
                                all_output_names(), case.folder)
         self.command = self.command if self.command != "emreg" else "emreg run"
         self.note_inputs(**inputs)
+        if self.tool is None and not self.tool_auto:
+            self.load_tool_from_settings()  # [tool] calibration = "FILE" (a --tool given first wins)
         folder = OutputFolder(out, self.command)
         summary: list[str] = []
         stage = "start"
@@ -736,7 +804,7 @@ class EMRegController:
         self.save_frame_calibration(folder)
         if self.detection is None:  # otherwise the registration repeats them
             self.warn(calibration.warnings)
-        summary.append(f"calibrate: {len(calibration.points)} pinholes")
+        summary.append(f"calibrate: {len(calibration.points)} {'pinholes' if self.tool is None else 'touches'}")
 
     def _run_register(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
         if self._image_points is None or self.frame_calibration is None:
@@ -757,7 +825,7 @@ class EMRegController:
         if self.registration is None or case.navigation is None:
             return
         try:
-            recording = case.read_recording("navigation")
+            recording = self.case_recording(case, "navigation")
             navigation = self.navigate_recording(recording)
         except NoSafeAnswerError:
             raise
@@ -782,8 +850,8 @@ class EMRegController:
                                  if case.targets is None else
                                  f"{case.folder}: targets.mrk.json but no navigation recording (navigation.csv or "
                                  "navigation.seq.mha)")
-        for part, read in (("tre", lambda: (case.read_recording("navigation"), case.read_targets())),
-                           ("board", lambda: case.read_recording("board"))):
+        for part, read in (("tre", lambda: (self.case_recording(case, "navigation"), case.read_targets())),
+                           ("board", lambda: self.case_recording(case, "board"))):
             if part in unreadable or (part == "board" and case.board is None):
                 continue
             try:

@@ -324,6 +324,7 @@ def evaluate(
     error_model: ErrorModel | None = None,
     tolerant: bool = False,
     not_evaluated: Mapping[str, str] | None = None,
+    tip_to_probe: np.ndarray | None = None,
 ) -> Evaluation:
     """TRE when a navigation recording and targets (labels, (K, 3) LPS mm) are given, the board table
     when a board recording is; ``reference_to_image``: Reference -> CT LPS (mm).
@@ -333,6 +334,7 @@ def evaluate(
     ``tolerant`` (``emreg run``): a part that cannot be evaluated (no dwell found, a bad recording) is
     left out and named with its reason in ``not_evaluated`` and ``warnings`` instead of raising
     (``emreg evaluate`` raises); ``not_evaluated``: parts the caller could not even read, with why.
+    ``tip_to_probe`` (4x4, mm): a tool's tip (:mod:`EMRegModule.tool`), the point put on the targets and holes.
     """
     settings = settings or EvaluationSettings()
     result = Evaluation(not_evaluated=dict(not_evaluated or {}))
@@ -352,13 +354,13 @@ def evaluate(
         labels, positions = targets
         result.tre = part("tre", lambda: evaluate_targets(
             navigation, labels, positions, reference_to_image, reference_sensor, probe_sensor, settings,
-            settings.max_target_distance_mm, error_model))
+            settings.max_target_distance_mm, error_model, tip_to_probe))
         result.warnings += navigation.warnings
         if result.tre is not None:
             result.warnings += result.tre.warnings
     if board is not None:
         result.board = part("board", lambda: evaluate_board(board, reference_sensor, probe_sensor, nominal_edges_mm,
-                                                            settings))
+                                                            settings, tip_to_probe))
         result.warnings += board.warnings  # time resets / gaps / invalid frames found in the recordings
     result.warnings += [f"{_PART_NAMES.get(name, name)} not evaluated: {reason}"
                         for name, reason in result.not_evaluated.items()]
@@ -378,6 +380,7 @@ def evaluate_targets(
     settings: DwellSettings | None = None,
     max_target_distance_mm: float | None = None,
     error_model: ErrorModel | None = None,
+    tip_to_probe: np.ndarray | None = None,
 ) -> TargetEvaluation:
     """TRE per target over its dwells and overall (mm). ``targets_image`` (K, 3) LPS mm.
 
@@ -391,7 +394,7 @@ def evaluate_targets(
     targets_image = np.asarray(targets_image, dtype=float).reshape(-1, 3)
     if len(targets_image) == 0:
         raise EMRegError("evaluation: the targets file holds no target points")
-    navigation = navigate_recording(recording, reference_to_image, reference_sensor, probe_sensor)
+    navigation = navigate_recording(recording, reference_to_image, reference_sensor, probe_sensor, tip_to_probe)
     position = navigation.position_mm
     dwells = find_dwells(navigation.time_s, position, navigation.label, navigation.quality, settings)
     index_of = {str(label): k for k, label in enumerate(target_labels)}
@@ -490,18 +493,23 @@ def evaluate_board(
     probe_sensor: int = 2,
     nominal_edges_mm: Sequence[float] | None = None,
     settings: DwellSettings | None = None,
+    tip_to_probe: np.ndarray | None = None,
 ) -> BoardEvaluation:
     """Board-phantom edge lengths from a recording of the probe in each corner hole in turn
-    (positions in the Reference frame; in the Tracker frame if the recording has no reference)."""
+    (positions in the Reference frame; in the Tracker frame if the recording has no reference);
+    ``tip_to_probe``: a tool's tip, the point put in the holes."""
     settings = settings or DwellSettings()
     frame = "Reference"
     if reference_sensor in recording.sensors:
         samples = probe_in_reference(recording, reference_sensor, probe_sensor)
-        time_s, position, labels, quality = samples.time_s, samples.position_mm, samples.label, samples.quality
+        time_s, labels, quality = samples.time_s, samples.label, samples.quality
+        poses = samples.probe_to_reference
     else:
         probe = recording.for_sensor(probe_sensor, "probe")
-        time_s, position, labels, quality = probe.time_s, probe.position_mm, probe.label, probe.quality
+        time_s, labels, quality = probe.time_s, probe.label, probe.quality
+        poses = probe.transforms()
         frame = "Tracker"
+    position = poses[:, :3, 3] if tip_to_probe is None else (poses @ tip_to_probe)[:, :3, 3]
     dwells = find_dwells(time_s, position, labels, quality, settings)
     if not dwells:
         raise EMRegError(f"{recording.source}: no probe dwell found in the board recording: "

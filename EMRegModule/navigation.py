@@ -3,6 +3,9 @@
 ``ProbeToImage = ReferenceToImage @ inv(ReferenceToTracker) @ ProbeToTracker`` for each
 moment at which both sensors were sampled; vectorised over a whole recording, and as a
 single-pose function for the live path (OpenIGTLink server).
+
+With a tool (``TipToProbe``, :mod:`EMRegModule.tool`) the navigated point is the tip:
+``TipToImage = ProbeToImage @ TipToProbe``; ``navigation.csv`` then holds the tip's positions.
 """
 
 from __future__ import annotations
@@ -55,8 +58,11 @@ class NavigationResult:
 
 
 def navigate_recording(recording: TrackingRecording, reference_to_image: np.ndarray,
-                       reference_sensor: int = 1, probe_sensor: int = 2) -> NavigationResult:
+                       reference_sensor: int = 1, probe_sensor: int = 2,
+                       tip_to_probe: np.ndarray | None = None) -> NavigationResult:
     """Map every probe sample that has a reference sample at the same moment into image space.
+
+    ``tip_to_probe`` (4x4, mm): a tool's tip; the result then holds ``TipToImage`` (the tip navigated).
 
     Vectorised Eq. 12 in 3x3 blocks (no 4x4 stacks are built or inverted): with
     ``TrackerToImage = ReferenceToImage @ inv(ReferenceToTracker)`` per moment,
@@ -71,6 +77,8 @@ def navigate_recording(recording: TrackingRecording, reference_to_image: np.ndar
     offset = probe.position_mm[probe_idx] - reference.position_mm[ref_idx]
     mapped[:, :3, 3] = np.einsum("nij,nj->ni", tracker_to_image, offset) + reference_to_image[:3, 3]
     mapped[:, 3, 3] = 1.0
+    if tip_to_probe is not None:
+        mapped = mapped @ np.asarray(tip_to_probe, dtype=float)
     quality = np.fmax(reference.quality[ref_idx], probe.quality[probe_idx])
     return NavigationResult(probe.time_s[probe_idx], mapped, probe.label[probe_idx], quality)
 

@@ -36,7 +36,7 @@ from .provenance import RUN_JSON, Provenance, check_belongs, file_sha256, read_m
 #: The outputs of each stage, in workflow order (a later stage's outputs are stale when an earlier one changes).
 STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
     "detect": ("markers.json", "markers.mrk.json"),
-    "calibrate": ("frame_calibration.json",),
+    "calibrate": ("frame_calibration.json", "tool_calibration.json", "TipToProbe.h5"),  # the tool: --tool auto
     "register": ("registration.json", "ReferenceToImage.h5"),
     "navigate": ("navigation.csv",),
     "evaluate": ("evaluation.json",),

@@ -283,6 +283,29 @@ class CTSettings:
     series: str | int | None = None
 
 
+@dataclass(frozen=True)
+class ToolSettings:
+    """``[tool]``: a tracked tool instead of the paper's pinhole probe (:mod:`EMRegModule.tool`).
+
+    - ``calibration``: the tool file (``tool_calibration.json``, an ITK/Slicer ``TipToProbe`` transform, or a
+      PLUS device-set XML), relative to ``case.toml``'s folder; None: the pinhole probe (sensor at depth l).
+    - ``name``: the tool's transform name (``Stylus``: ``StylusToTracker`` in a sequence file, the
+      ``StylusTip`` -> ``Stylus`` transform of a device set); None: the tool file's own, if it names one.
+    - ``still_radius_mm`` (1.0): a touch is the tip within this of its median (a ``[calibration]`` dwell with
+      this ``still_radius_mm``). On PLUS's hand-held landmark recording the tip wanders about 1 mm over each
+      5-6 s touch: 0.5 mm (the pinhole probe's default) finds 5 of its 8 touches, 0.7 to 2 mm find all 8 and
+      the same registration (within 0.01 mm).
+    """
+
+    calibration: str | None = None
+    name: str | None = None
+    still_radius_mm: float = positive(1.0)
+
+    def validate(self) -> None:
+        if self.name is not None and not self.name.strip().isidentifier():
+            raise SettingError(f"must be a transform name such as 'Stylus', got {self.name!r}", "name")
+
+
 # --- the tree ----------------------------------------------------------------------------------
 
 
@@ -302,11 +325,12 @@ class Settings:
     board: BoardSettings = field(default_factory=BoardSettings)
     report: ReportSettings = field(default_factory=ReportSettings)
     ct: CTSettings = field(default_factory=CTSettings)
+    tool: ToolSettings = field(default_factory=ToolSettings)
     source: str = ""
 
     #: The tables, by TOML name (every field but ``source``).
     TABLES: ClassVar[tuple[str, ...]] = ("sensors", "marker", "detection", "calibration", "registration",
-                                         "evaluation", "board", "report", "ct")
+                                         "evaluation", "board", "report", "ct", "tool")
 
     @classmethod
     def from_mapping(cls, mapping: Any, source: str = "case.toml") -> Settings:
@@ -391,7 +415,7 @@ def with_series(settings: Settings, series: str | int | None) -> Settings:
 _TABLE_CLASSES: dict[str, type] = {
     "sensors": SensorSettings, "marker": MarkerModel, "detection": DetectionSettings,
     "calibration": CalibrationSettings, "registration": RegistrationSettings, "evaluation": EvaluationSettings,
-    "board": BoardSettings, "report": ReportSettings, "ct": CTSettings,
+    "board": BoardSettings, "report": ReportSettings, "ct": CTSettings, "tool": ToolSettings,
 }
 
 

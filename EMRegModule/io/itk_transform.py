@@ -34,16 +34,25 @@ from .atomic import atomic_path, itk_write_errors
 
 def write_slicer_linear_transform(path: str | os.PathLike[str], tracker_side_to_image: np.ndarray) -> None:
     """Write ``AToImage`` (4x4, mm; A a tracker-side frame, Image LPS) for 3D Slicer (module docstring)."""
-    stored = LPS_TO_RAS @ invert_rigid(tracker_side_to_image)
-    transform = sitk.AffineTransform(3)
-    transform.SetMatrix(stored[:3, :3].ravel().tolist())
-    transform.SetTranslation(stored[:3, 3].tolist())
-    with atomic_path(path) as tmp, itk_write_errors():
-        sitk.WriteTransform(transform, str(tmp))
+    write_itk_linear_matrix(path, LPS_TO_RAS @ invert_rigid(tracker_side_to_image))
 
 
 def read_slicer_linear_transform(path: str | os.PathLike[str]) -> np.ndarray:
     """Read a file written by :func:`write_slicer_linear_transform` back as ``AToImage`` (4x4, mm)."""
+    return np.linalg.inv(LPS_TO_RAS @ read_itk_linear_matrix(path))
+
+
+def write_itk_linear_matrix(path: str | os.PathLike[str], stored: np.ndarray) -> None:
+    """Write the 4x4 ``stored`` as it is (an ``AffineTransform``, ITK's own convention) atomically."""
+    transform = sitk.AffineTransform(3)
+    transform.SetMatrix(np.asarray(stored, dtype=float)[:3, :3].ravel().tolist())
+    transform.SetTranslation(np.asarray(stored, dtype=float)[:3, 3].tolist())
+    with atomic_path(path) as tmp, itk_write_errors():
+        sitk.WriteTransform(transform, str(tmp))
+
+
+def read_itk_linear_matrix(path: str | os.PathLike[str]) -> np.ndarray:
+    """The 4x4 an ITK transform file stores (a 3D linear transform, or a composite wrapping one), as it is."""
     try:
         transform = sitk.ReadTransform(str(path))
     except RuntimeError:
@@ -62,4 +71,4 @@ def read_slicer_linear_transform(path: str | os.PathLike[str]) -> np.ndarray:
     stored[:3, :3] = np.asarray(affine.GetMatrix()).reshape(3, 3)
     center = np.asarray(affine.GetCenter())
     stored[:3, 3] = np.asarray(affine.GetTranslation()) + center - stored[:3, :3] @ center
-    return np.linalg.inv(LPS_TO_RAS @ stored)
+    return stored

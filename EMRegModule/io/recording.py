@@ -46,6 +46,13 @@ def _names(settings: Settings | Mapping[str, Any] | None, reference_port: int | 
     }
 
 
+def _probe_transform_given(settings: Settings | Mapping[str, Any] | None) -> bool:
+    """Whether the settings name the probe's transform (``[sensors] probe_transform``)."""
+    if isinstance(settings, Settings):
+        return settings.sensors.probe_transform is not None
+    return bool(((settings or {}).get("sensors", {}) or {}).get("probe_transform"))
+
+
 def read_recording(path: str | os.PathLike[str], settings: Settings | Mapping[str, Any] | None = None,
                    reference_port: int | None = None, probe_port: int | None = None) -> TrackingRecording:
     """Read a tracking recording (CSV or sequence metafile, by its name). ``settings``: the parsed
@@ -54,7 +61,10 @@ def read_recording(path: str | os.PathLike[str], settings: Settings | Mapping[st
     opened: reading one would wait for a writer, or never end."""
     _refuse_special_file(path)
     if is_sequence_file(path):
-        return read_sequence_metafile(path, **_names(settings, reference_port, probe_port))
+        names = _names(settings, reference_port, probe_port)
+        if not _probe_transform_given(settings):
+            names["probe_transform"] = None  # ProbeToTracker, or the tool of a file with two transforms
+        return read_sequence_metafile(path, **names)
     if Path(path).is_dir():  # 3D Slicer's recording: one sequence file per transform
         from .sequence_folder import read_sequence_folder
 

@@ -19,7 +19,17 @@ EMReg extras, ignored by PLUS and Slicer: ``Seq_FrameNNNN_<Name>TransformQuality
 tracker's quality number) and ``Seq_FrameNNNN_<Name>TransformOrientation = MISSING`` for a
 position-only pose (the rotation written is the identity).
 
-Bad input (a broken header, a frame without its status or timestamp, a matrix that is not rigid
+Transform status as PLUS and 3D Slicer read it: PLUS (IGSIO's ``igsioTrackedFrame::GetFrameTransformStatus``)
+marks a transform whose ``...TransformStatus`` field is missing ``TOOL_INVALID`` (with an error), 3D Slicer's
+sequence reader ignores the status field altogether. A transform that has no status field in *any* frame (files
+written by tools that never record it, e.g. PLUS's own ``TransformInterpolationTest.igs.mha``) is read as Slicer
+reads it, every pose valid, with a warning; a frame without the status where other frames of the same transform
+have one is refused (one line), as an inconsistent file.
+
+Transform names: with no ``<probe>Transform`` in the file but exactly two transforms, one the reference, the
+other is taken as the tool (with a warning): ``ReferenceToTracker`` + ``StylusToTracker`` as PLUS records them.
+
+Bad input (a broken header, a frame without its timestamp, a matrix that is not rigid
 within :data:`RIGID_TOLERANCE`, NaN values, a sensor's time repeated) raises :class:`EMRegError`
 with one line naming the file and the frame. Timestamps that go back (a clock reset) or pause for
 more than 2 s split the recording into time segments with a warning naming the frame, by the same
@@ -71,6 +81,8 @@ class SequenceFrames:
     quality: dict[str, np.ndarray] = field(default_factory=dict)
     position_only: dict[str, np.ndarray] = field(default_factory=dict)
     index: np.ndarray | None = None
+    #: per transform name, what reading found and kept (one line: a transform without any status field)
+    notes: dict[str, str] = field(default_factory=dict)
 
     @property
     def names(self) -> list[str]:
@@ -151,6 +163,7 @@ def read_sequence_frames(path: str | os.PathLike[str]) -> SequenceFrames:
             if key.endswith("Transform") and key[:-len("Transform")] not in names:
                 names.append(key[:-len("Transform")])
     n = len(indices)
+    never_status = [name for name in names if not any(f"{name}TransformStatus" in per_frame[i] for i in indices)]
     time_s = np.empty(n)
     matrices = {name: np.tile(np.eye(4), (n, 1, 1)) for name in names}
     valid = {name: np.zeros(n, dtype=bool) for name in names}
@@ -174,7 +187,10 @@ def read_sequence_frames(path: str | os.PathLike[str]) -> SequenceFrames:
             if text is None and status is None:
                 continue  # this transform is not recorded in this frame
             if status is None:
-                raise EMRegError(f"{where} has {name}Transform but no {name}TransformStatus")
+                if name not in never_status:
+                    raise EMRegError(f"{where} has {name}Transform but no {name}TransformStatus (the other frames "
+                                     f"give {name}'s status: a frame without it is not a valid pose to PLUS)")
+                status = "OK"  # the file never records this transform's status: read as 3D Slicer reads it
             if text is None:
                 raise EMRegError(f"{where} has {name}TransformStatus but no {name}Transform")
             ok = status.strip().upper() == "OK"
@@ -193,7 +209,7 @@ def read_sequence_frames(path: str | os.PathLike[str]) -> SequenceFrames:
             matrix = numbers.reshape(4, 4)
             no_orientation = frame.get(f"{name}TransformOrientation", "").strip().upper() == "MISSING"
             if not no_orientation:
-                _check_rigid(matrix, f"{where}: {name}Transform")
+                check_rigid(matrix, f"{where}: {name}Transform")
             elif np.max(np.abs(matrix[3] - [0, 0, 0, 1])) > RIGID_TOLERANCE:
                 raise EMRegError(f"{where}: {name}Transform's last row is not 0 0 0 1")
             matrices[name][k] = matrix
@@ -205,10 +221,14 @@ def read_sequence_frames(path: str | os.PathLike[str]) -> SequenceFrames:
                     quality[name][k] = float(q)
                 except ValueError:
                     raise EMRegError(f"{where}: {name}TransformQuality {q[:20]!r} is not a number") from None
-    return SequenceFrames(str(path), time_s, matrices, valid, quality, position_only, np.asarray(indices))
+    frames = SequenceFrames(str(path), time_s, matrices, valid, quality, position_only, np.asarray(indices))
+    frames.notes = {name: f"{path}: {name}Transform has no {name}TransformStatus in any frame: every pose of it is "
+                    "read as valid, as 3D Slicer reads it (PLUS would take none of them)" for name in never_status}
+    return frames
 
 
-def _check_rigid(matrix: np.ndarray, where: str) -> None:
+def check_rigid(matrix: np.ndarray, where: str) -> None:
+    """:class:`EMRegError` naming ``where`` unless ``matrix`` (4x4) is rigid within :data:`RIGID_TOLERANCE`."""
     rotation = matrix[:3, :3]
     orthogonality = float(np.max(np.abs(rotation.T @ rotation - np.eye(3))))
     determinant = float(np.linalg.det(rotation))
@@ -221,14 +241,24 @@ def _check_rigid(matrix: np.ndarray, where: str) -> None:
 def read_sequence_metafile(
     path: str | os.PathLike[str],
     reference_transform: str = DEFAULT_REFERENCE_TRANSFORM,
-    probe_transform: str = DEFAULT_PROBE_TRANSFORM,
+    probe_transform: str | None = None,
     reference_port: int = 1,
     probe_port: int = 2,
 ) -> TrackingRecording:
     """A tracking recording from a sequence metafile: the reference and probe transforms
     (``<Name>Transform`` without the suffix, e.g. ``ProbeToTracker``) become rows of the given
-    ports; frames whose status is not OK are dropped and counted in ``warnings``. No labels."""
+    ports; frames whose status is not OK are dropped and counted in ``warnings``. No labels.
+    ``probe_transform`` None: ``ProbeToTracker``, else the tool of a file with two transforms
+    (:func:`tool_transform`, with a warning); a name given must be in the file."""
     frames = read_sequence_frames(path)
+    chosen = None if probe_transform is not None else tool_transform(frames, reference_transform,
+                                                                      DEFAULT_PROBE_TRANSFORM)
+    probe_transform = probe_transform or DEFAULT_PROBE_TRANSFORM
+    note = None
+    if chosen is not None:
+        note = (f"{path}: no {probe_transform}Transform; the file holds two transforms and {reference_transform} "
+                f"is the reference, so {chosen}Transform is taken as the tool")
+        probe_transform = chosen
     missing = [n for n in (reference_transform, probe_transform) if n not in frames.matrices]
     if missing:
         raise EMRegError(
@@ -236,14 +266,26 @@ def read_sequence_metafile(
             f"{', '.join(n + 'Transform' for n in frames.names) or 'no transforms'}; name them with [sensors] "
             "reference_transform / probe_transform in case.toml"
         )
-    return recording_from_frames(frames, {reference_transform: reference_port, probe_transform: probe_port})
+    recording = recording_from_frames(frames, {reference_transform: reference_port, probe_transform: probe_port})
+    if note:
+        recording.warnings.insert(0, note)
+    return recording
+
+
+def tool_transform(frames: SequenceFrames, reference_transform: str, probe_transform: str) -> str | None:
+    """The tool's transform name when the probe's is not in the file but the choice is plain: exactly two
+    transforms, one of them the reference (as PLUS writes ``ReferenceToTracker`` and ``StylusToTracker``).
+    None when ``probe_transform`` is in the file or the choice is not plain."""
+    if probe_transform in frames.matrices or len(frames.names) != 2 or reference_transform not in frames.names:
+        return None
+    return next(n for n in frames.names if n != reference_transform)
 
 
 def recording_from_frames(frames: SequenceFrames, ports: dict[str, int]) -> TrackingRecording:
     """Rows (sensor = the port of each transform name in ``ports``) of the frames' valid poses, in frame
     order; time resets and long pauses split them into segments (with a warning naming the frame)."""
     time_parts, sensor_parts, matrix_parts, quality_parts, only_parts, frame_parts = [], [], [], [], [], []
-    notes = []  # one line each, naming the file
+    notes = [frames.notes[name] for name in ports if name in frames.notes]  # one line each, naming the file
     for name, port in ports.items():
         ok = frames.valid[name]
         frame_parts.append(np.nonzero(ok)[0])

@@ -45,6 +45,7 @@ PATH_NODE_NAME = "EMReg probe path"
 RESIDUALS_NODE_NAME = "EMReg marker residuals"
 TRANSFORM_NODE_NAME = "ReferenceToImage"
 PROBE_NODE_NAME = "ProbeToReference"
+TIP_NODE_NAME = "TipToProbe"  # a tool's tip (frame_calibration.json's tool), under the probe pose when known
 TRE_MAP_NODE_NAME = "EMReg predicted TRE (mm)"
 FIDUCIALS_NODE_NAME = "EMReg fiducials"
 #: The predicted-TRE map of a run (``emreg run`` writes it beside registration.json when it can).
@@ -675,6 +676,7 @@ class RunScene:
     targets: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     path: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     probe_to_reference: np.ndarray | None = None
+    tip_to_probe: np.ndarray | None = None  # a tool's tip (frame_calibration.json's "tool"), None: the pinhole probe
     tre_map_path: Path | None = None
     image: Any = None
     stored_ct: StoredVoxels | None = None  # the CT in its file, copied into a bundle without being read
@@ -706,7 +708,11 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
         content.marker_origins = np.array([m["origin"] for m in markers], dtype=float).reshape(-1, 3)
         content.marker_axes = np.array([m["axis"] for m in markers], dtype=float).reshape(-1, 3)
     if (out / "frame_calibration.json").is_file():
-        points = read_json(out / "frame_calibration.json", "frame calibration JSON").get("points", [])
+        document = read_json(out / "frame_calibration.json", "frame calibration JSON")
+        tool = document.get("tool") if isinstance(document.get("tool"), dict) else None
+        if tool is not None and tool.get("TipToProbe") is not None:
+            content.tip_to_probe = np.asarray(tool["TipToProbe"], dtype=float).reshape(4, 4)
+        points = document.get("points", [])
         content.calibration_labels = [str(p["label"]) for p in points]
         content.calibration_points = np.array([p["position"] for p in points], dtype=float).reshape(-1, 3)
     if (out / "registration.json").is_file():
@@ -781,7 +787,8 @@ def build_run_scene(scene: Any, content: RunScene, nodes: dict[str, Any] | None 
 
     CT volume; markers (origins, RAS; label = marker id, description = pairing and residual);
     ``ReferenceToImage`` (ReferenceToRAS) with the calibration points under it (Reference frame)
-    and, when known, the probe pose ``ProbeToReference`` under it too; the pinhole points the
+    and, when known, the probe pose ``ProbeToReference`` under it too, and a tool's ``TipToProbe`` under
+    that (``TipToProbe`` alone without a probe pose); the pinhole points the
     calibration points are fitted to (``origin + l * axis``, RAS); spheres at them coloured by
     residual; targets; the probe path (curve, RAS); the predicted-TRE map when the run wrote one.
 
@@ -826,6 +833,9 @@ def build_run_scene(scene: Any, content: RunScene, nodes: dict[str, Any] | None 
         if content.probe_to_reference is not None:
             keep(PROBE_NODE_NAME, show_transform(scene, PROBE_NODE_NAME, content.probe_to_reference, transform,
                                                  node=nodes.get(PROBE_NODE_NAME)))
+    if content.tip_to_probe is not None:  # tracker-side frames: the matrix as it is (as SlicerIGT's pivot writes it)
+        keep(TIP_NODE_NAME, show_transform(scene, TIP_NODE_NAME, content.tip_to_probe, built.get(PROBE_NODE_NAME),
+                                           node=nodes.get(TIP_NODE_NAME)))
     if content.calibration_labels:
         keep(CALIBRATION_NODE_NAME, show_points(scene, CALIBRATION_NODE_NAME, content.calibration_labels,
                                                 content.calibration_points, (0.9, 0.2, 0.9),

@@ -200,8 +200,27 @@ def calibration_section(data: ReportData, figures: dict[str, Figure]) -> str:
                                                                       "output folder.")
     rows = [(esc(label), vec(p.position), vec(p.direction, 3) if np.all(np.isfinite(p.direction)) else DASH,
              esc(p.samples) if p.samples else DASH, num(p.std_mm, 3)) for label, p in data.points.items()]
-    return "<h2>Frame calibration</h2>\n" + table(
-        ("label", "position (Reference mm)", "direction", "samples", "spread (mm)"), rows)
+    tool = data.inputs.frame_calibration.tool if data.inputs.frame_calibration is not None else None
+    if not tool:
+        return "<h2>Frame calibration</h2>\n" + table(
+            ("label", "position (Reference mm)", "direction", "samples", "spread (mm)"), rows)
+    rows = [row + (esc(p.motion) if p.motion else DASH,) for row, p in zip(rows, data.points.values(), strict=True)]
+    return "\n".join(["<h2>Frame calibration</h2>", tool_note(tool), table(
+        ("label", "tip position (Reference mm)", "direction", "samples", "spread (mm)", "touch"), rows)])
+
+
+def tool_note(tool: dict) -> str:
+    """One paragraph on the tool whose tip made the calibration points (``frame_calibration.json``'s ``tool``)."""
+    tip = np.asarray(tool.get("tip_mm") or [np.nan] * 3, dtype=float)
+    text = (f"Tool: {esc(tool.get('name') or 'tracked tool')}, tip at {vec(tip)} mm in the sensor's frame "
+            f"({num(float(np.linalg.norm(tip)), 1)} mm from it), from {esc(tool.get('source', ''))}")
+    if tool.get("method"):
+        text += f"; {esc(tool['method'])}"
+    if tool.get("rms_mm") is not None:
+        text += f", pivot residual {num(tool['rms_mm'], 2)} mm RMS"
+    if tool.get("tip_std_mm") is not None:
+        text += f", tip standard deviation {vec(tool['tip_std_mm'], 2)} mm"
+    return note(text + ". Each point is the tip held still: pivot (the shaft swung about it) or rest.")
 
 
 def tre_section(data: ReportData, figures: dict[str, Figure]) -> str:

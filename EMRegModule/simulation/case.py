@@ -81,6 +81,7 @@ def simulate_case(out_dir: Path, seed: int = 0, difficulty: str = "standard", sp
         else:
             (out_dir / "targets.mrk.json").unlink(missing_ok=True)
         atomic_write_text(out_dir / "case.toml", _case_toml(seed, difficulty, opts, model))
+        _write_tool(out_dir, seed, opts)
 
     truth = _truth(seed, difficulty, opts, model, phantom, frame_to_image, ct_written, l_mm,
                    calibration, navigation, board)
@@ -260,7 +261,11 @@ def _calibration(seed: int, opts: SimulationOptions, phantom: Phantom, l_mm: flo
         rotation = m.marker_to_frame[:3, :3] @ probe_rotation_into([0.0, -1.0, 0.0], rng.uniform(0, 2 * np.pi))
         position = apply_transform(m.marker_to_frame, [0.0, l_mm, 0.0])
         label = m.label if opts.calibration_labels else ""
-        visits.append(Visit(pose(rotation, position), float(rng.uniform(1.0, 2.0)), label, m.label))
+        if opts.tool_tip_mm is None:
+            visits.append(Visit(pose(rotation, position), float(rng.uniform(1.0, 2.0)), label, m.label))
+        else:  # the stylus's tip in the pinhole, the shaft along the hole's axis, pivoting
+            visits.append(_tool_visit(rotation, position, opts, float(rng.uniform(2.0, 3.0)), label, m.label,
+                                      opts.pivot_swing_deg))
     bumps: dict[int, np.ndarray] = {}
     current = frame_to_tracker
     if opts.n_bumps and len(visits) > 2:
@@ -283,6 +288,18 @@ def _calibration(seed: int, opts: SimulationOptions, phantom: Phantom, l_mm: flo
             "bumps": len(bumps)}
 
 
+def _tool_visit(probe_rotation: np.ndarray, tip_position: np.ndarray, opts: SimulationOptions, duration_s: float,
+                label: str, name: str, swing_deg: float) -> Visit:
+    """A stylus touch: the sensor turned so that its shaft (sensor to tip) runs along ``probe_rotation``'s +X (the
+    pinhole probe's way in), placed so that the tip (``opts.tool_tip_mm``) is at ``tip_position``."""
+    from .stylus import shaft_rotation
+
+    tip_mm = np.asarray(opts.tool_tip_mm, dtype=float)
+    rotation = probe_rotation @ shaft_rotation(tip_mm)
+    return Visit(pose(rotation, np.asarray(tip_position) - rotation @ tip_mm), duration_s, label, name,
+                 tip_mm=tip_mm, pivot_swing_deg=swing_deg)
+
+
 def _navigation(seed: int, opts: SimulationOptions, phantom: Phantom, frame_to_image: np.ndarray) -> dict:
     rng = _rng(seed, STREAM_NAVIGATION)
     frame_to_tracker = _frame_to_tracker(rng, phantom.geometry.size, rng.uniform(-180, 180),
@@ -293,8 +310,14 @@ def _navigation(seed: int, opts: SimulationOptions, phantom: Phantom, frame_to_i
     for _round in range(opts.navigation_rounds):
         for t in range(n):
             rotation = probe_rotation_into(-phantom.target_normals[t], rng.uniform(0, 2 * np.pi), 25.0, rng)
-            visits.append(Visit(pose(rotation, phantom.targets[t]), float(rng.uniform(1.0, 2.0)), f"T{t + 1}",
-                                f"T{t + 1}", tremor_mm=0.08))
+            if opts.tool_tip_mm is None:
+                visits.append(Visit(pose(rotation, phantom.targets[t]), float(rng.uniform(1.0, 2.0)), f"T{t + 1}",
+                                    f"T{t + 1}", tremor_mm=0.08))
+            else:
+                visit = _tool_visit(rotation, phantom.targets[t], opts, float(rng.uniform(1.0, 2.0)), f"T{t + 1}",
+                                    f"T{t + 1}", 0.0)
+                visit.tremor_mm = 0.08
+                visits.append(visit)
     targets_image = apply_transform(frame_to_image, phantom.targets) if n else np.zeros((0, 3))
     out: dict[str, Any] = {"targets_image": targets_image, "dwells": [], "reference_to_tracker": None,
                            "recording": None}
@@ -345,7 +368,10 @@ def _board(seed: int, opts: SimulationOptions, phantom: Phantom) -> dict:
     for _round in range(opts.board_rounds):
         for h in range(4):
             rotation = probe_rotation_into(-normal, rng.uniform(0, 2 * np.pi), 2.0, rng)
-            visits.append(Visit(pose(rotation, holes[h]), float(rng.uniform(0.7, 1.3)), f"H{h + 1}", f"H{h + 1}"))
+            duration = float(rng.uniform(0.7, 1.3))
+            visits.append(Visit(pose(rotation, holes[h]), duration, f"H{h + 1}", f"H{h + 1}")
+                          if opts.tool_tip_mm is None else
+                          _tool_visit(rotation, holes[h], opts, duration, f"H{h + 1}", f"H{h + 1}", 0.0))
     noise = NoiseModel(bad_sample_rate=opts.bad_sample_rate).scaled(opts.tracker_noise_scale)
     recording, dwells = None, []
     if visits:
@@ -362,10 +388,28 @@ def _board(seed: int, opts: SimulationOptions, phantom: Phantom) -> dict:
 def _case_toml(seed: int, difficulty: str, opts: SimulationOptions, model: MarkerModel) -> str:
     marker = "\n".join(f"{k} = {v:g}" for k, v in model.to_dict().items())
     edges = ", ".join(f"{v:g}" for v in opts.board_edges_mm)
+    tool = "" if opts.tool_tip_mm is None else '\n[tool]\ncalibration = "tool_calibration.json"\n'
     return (f"# EMReg simulated case: seed {seed}, difficulty {difficulty}\n\n"
             f"[sensors]\nreference = 1\nprobe = 2\n\n"
             f"[marker]\n{marker}\n\n"
-            f"[board]\nedges_mm = [{edges}]\n")
+            f"[board]\nedges_mm = [{edges}]\n" + tool)
+
+
+def _write_tool(out_dir: Path, seed: int, opts: SimulationOptions) -> None:
+    """A stylus case's ``tool_calibration.json`` (the true tip) and pivot recording ``pivot.csv``; removed
+    (stale) for the pinhole probe."""
+    from ..tool import ToolCalibration, write_tool_calibration
+    from .stylus import simulate_pivot_recording
+
+    if opts.tool_tip_mm is None:
+        for name in ("tool_calibration.json", "TipToProbe.h5", "pivot.csv"):
+            (out_dir / name).unlink(missing_ok=True)
+        return
+    tip_mm = np.asarray(opts.tool_tip_mm, dtype=float)
+    write_tool_calibration(ToolCalibration(pose(None, tip_mm), "simulated (true tip)", None, "truth"), out_dir)
+    noise = NoiseModel(bad_sample_rate=opts.bad_sample_rate).scaled(opts.tracker_noise_scale)
+    recording, _ = simulate_pivot_recording(seed, tip_mm, max(opts.pivot_swing_deg, 30.0), noise=noise)
+    write_tracking_csv(recording, out_dir / "pivot.csv")
 
 
 def _dwell_list(dwells, reference_to_tracker=None) -> list[dict]:
@@ -415,4 +459,6 @@ def _truth(seed: int, difficulty: str, opts: SimulationOptions, model: MarkerMod
                         "dwells": _dwell_list(calibration["dwells"], calibration["reference_to_tracker"])},
         "navigation": {"ReferenceToTracker": navigation["reference_to_tracker"],
                        "dwells": _dwell_list(navigation["dwells"])},
+        "tool": None if opts.tool_tip_mm is None else {"tip_mm": list(opts.tool_tip_mm),
+                                                       "pivot_swing_deg": opts.pivot_swing_deg},
     }

@@ -52,6 +52,12 @@ class SimulationOptions:
     board_edges_mm: tuple[float, float, float, float] = (75.3, 60.4, 75.5, 60.4)
     board_quaternions: bool = False  # write board.csv with qw,qx,qy,qz columns
     probe_axis: str = "+x_in"  # probe convention in the recordings: "+x_in", "+x_out" or "none" (position only)
+    #: a stylus instead of the pinhole probe: its tip in the sensor's frame (mm); the calibration's touches put the
+    #: tip where the pinhole probe's sensor would be and pivot about it through ``pivot_swing_deg`` (full cone),
+    #: the navigation's touch the targets with the tip; ``tool_calibration.json`` (the true tip), a pivot
+    #: recording ``pivot.csv`` and ``[tool] calibration`` are written. None: the paper's probe.
+    tool_tip_mm: tuple[float, float, float] | None = None
+    pivot_swing_deg: float = 30.0
 
     def check(self) -> None:
         """Refuse impossible values with an :class:`EMRegError` naming the option."""

@@ -62,6 +62,10 @@ class Visit:
     label: str
     name: str  # the truth name (marker / hole / target), kept even when ``label`` is ''
     tremor_mm: float = 0.0  # hand-held wobble during the dwell (0 in a pinhole)
+    #: a tool's tip in the probe frame (3,) and the cone (full angle, degrees) its shaft swings through about the
+    #: still tip during the dwell (0: the tool rests); the tip stays where ``probe_to_body`` puts it
+    tip_mm: np.ndarray | None = None
+    pivot_swing_deg: float = 0.0
 
 
 @dataclass
@@ -155,6 +159,37 @@ def _travel(rng: np.random.Generator, start: np.ndarray, end: np.ndarray, out_st
     return out[1:-1]  # the dwells themselves hold the end poses
 
 
+def pivot_poses(probe_to_body: np.ndarray, tip_mm: np.ndarray | None, swing_deg: float, n: int,
+                rng: np.random.Generator | None = None, turns: float = 2.0) -> np.ndarray:
+    """(n, 4, 4) sensor poses ``ProbeToBody`` of a tool pivoting about its still tip: the shaft tilts away from
+    its start (``probe_to_body``) by up to half of ``swing_deg`` and back, going ``turns`` times round a cone
+    about the start's shaft, starting at a random phase; the tip (``tip_mm``, probe frame) never moves. No tip
+    or no swing: ``probe_to_body`` n times."""
+    start = np.asarray(probe_to_body, dtype=float)
+    if tip_mm is None or swing_deg <= 0 or n < 2:
+        return np.repeat(start[None], n, axis=0)
+    tip_mm = np.asarray(tip_mm, dtype=float)
+    tip_body = start[:3, :3] @ tip_mm + start[:3, 3]
+    shaft = start[:3, :3] @ tip_mm
+    shaft /= np.linalg.norm(shaft)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(shaft[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    u = np.cross(shaft, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(shaft, u)
+    phase0 = 0.0 if rng is None else float(rng.uniform(0, 2 * np.pi))
+    s = np.linspace(0.0, 1.0, n)
+    tilt = np.radians(swing_deg / 2.0) * np.sin(np.pi * s) ** 0.5  # out quickly, round the cone, back
+    phase = phase0 + 2 * np.pi * turns * s
+    out = np.empty((n, 4, 4))
+    for k in range(n):
+        axis = np.cos(phase[k]) * u + np.sin(phase[k]) * v
+        rotation = axis_angle_to_rotation(axis, float(tilt[k])) @ start[:3, :3]
+        out[k] = np.eye(4)
+        out[k, :3, :3] = rotation
+        out[k, :3, 3] = tip_body - rotation @ tip_mm
+    return out
+
+
 def _interpolate_pose(a_to_b_start: np.ndarray, a_to_b_end: np.ndarray, n: int) -> list[np.ndarray]:
     slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([a_to_b_start[:3, :3], a_to_b_end[:3, :3]])))
     s = _min_jerk(n)
@@ -215,8 +250,9 @@ def simulate_session(rng: np.random.Generator, visits: list[Visit], body_to_trac
         n = max(4, int(round(visit.duration_s * RATE_HZ)))
         start = len(track.time_s)
         tremor = _smooth_noise(rng, n, visit.tremor_mm, 0.95)
+        swing = pivot_poses(visit.probe_to_body, visit.tip_mm, visit.pivot_swing_deg, n, rng)
         for k in range(n):
-            p = visit.probe_to_body.copy()
+            p = swing[k].copy()
             p[:3, 3] += tremor[k]
             add(p, current_body, i, visit.label)
         dwells.append(DwellTruth(visit.name, visit.label, track.time_s[start], track.time_s[-1]))

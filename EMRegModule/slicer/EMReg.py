@@ -211,6 +211,8 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.reportButton.connect("clicked(bool)", self.onReport)
         self.ui.runAllButton.connect("clicked(bool)", self.onRunAll)
         self.ui.connectButton.connect("clicked(bool)", self.onConnectLive)
+        self.ui.toolPathLineEdit.connect("currentPathChanged(QString)", self.onToolChanged)
+        self.ui.pivotButton.connect("clicked(bool)", self.onPivot)
         self.updateGUIFromLogic()
 
     def cleanup(self):
@@ -247,6 +249,13 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
     def onCalibrate(self):
         self._run("Frame calibration failed.", self.logic.calibrateFrame)
+
+    def onToolChanged(self, path=None):
+        self._run("Reading the tool failed.", self.logic.loadTool, self.ui.toolPathLineEdit.currentPath)
+
+    def onPivot(self):
+        self._run("Pivot calibration failed.", self.logic.pivotCalibrate,
+                  self.ui.pivotRecordingPathLineEdit.currentPath)
 
     def onDetect(self):
         self._run("Marker detection failed.", self.logic.detectMarkers)
@@ -407,6 +416,29 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         self.showResults()
 
     # --- stages -------------------------------------------------------------------------------------
+
+    def loadTool(self, path):
+        """Use a tracked tool's tip (a tool file, or ``auto``; :mod:`EMRegModule.tool`); empty: the pinhole probe.
+        The frame calibration is made again with it."""
+        if not path:
+            self.controller.set_tool(None)
+            return None
+        return self.controller.load_tool(path)
+
+    def pivotCalibrate(self, recordingPath, outputDirectory=None):
+        """``emreg pivot``: the tool's tip from a pivot recording, written as ``tool_calibration.json`` and
+        ``TipToProbe.h5`` into ``outputDirectory`` (default: the output folder, else ``pivot/`` beside the
+        recording), then used. Returns the :class:`~EMRegModule.tool.ToolCalibration`."""
+        from EMRegModule.tool import pivot_calibration, pivot_poses, write_tool_calibration
+
+        poses, frame, name, _ = pivot_poses(recordingPath, self.controller.settings, self.controller.reference_sensor,
+                                            self.controller.probe_sensor)
+        tool = pivot_calibration(poses, str(recordingPath), frame, name)
+        out = Path(outputDirectory or self.outputDirectory or Path(recordingPath).parent / "pivot")
+        out.mkdir(parents=True, exist_ok=True)
+        write_tool_calibration(tool, out)
+        self.controller.set_tool(tool)
+        return tool
 
     def calibrateFrame(self):
         """Frame calibration (one point per pinhole, Reference frame); writes ``frame_calibration.json``."""

@@ -111,23 +111,39 @@ def reference_placement(rng: np.random.Generator) -> np.ndarray:
     return make_transform(rotation, position)
 
 
+def _touch(rotation: np.ndarray, point: np.ndarray, tip_mm: np.ndarray | None) -> np.ndarray:
+    """The sensor pose (4x4) that puts the pinhole probe's sensor, or a stylus's tip (``tip_mm``, shaft along
+    ``rotation``'s +X), at ``point``."""
+    if tip_mm is None:
+        return make_transform(rotation, point)
+    from ..simulation.stylus import shaft_rotation
+
+    rotation = rotation @ shaft_rotation(tip_mm)
+    return make_transform(rotation, np.asarray(point) - rotation @ tip_mm)
+
+
 def simulate_calibration(frame: Frame, rng: np.random.Generator, noise: NoiseModel | None = None,
-                         subset: np.ndarray | None = None) -> TrackingRecording:
-    """A calibration recording: the probe into each (selected) pinhole in turn, labelled by marker."""
+                         subset: np.ndarray | None = None, tip_mm: np.ndarray | None = None,
+                         pivot_swing_deg: float = 30.0) -> TrackingRecording:
+    """A calibration recording: the probe into each (selected) pinhole in turn, labelled by marker; with a
+    stylus (``tip_mm``) its tip at the pinhole point, pivoting through ``pivot_swing_deg``."""
     index = np.arange(len(frame.labels)) if subset is None else np.asarray(subset)
     visits = []
     for i in index:
         rotation = probe_rotation_into(-frame.axes[i], rng.uniform(0, 2 * np.pi))
-        visits.append(Visit(make_transform(rotation, frame.pinholes[i]), float(rng.uniform(1.0, 2.0)),
-                            frame.labels[i], frame.labels[i]))
+        visits.append(Visit(_touch(rotation, frame.pinholes[i], tip_mm),
+                            float(rng.uniform(1.0, 2.0) if tip_mm is None else rng.uniform(2.0, 3.0)),
+                            frame.labels[i], frame.labels[i], tip_mm=tip_mm,
+                            pivot_swing_deg=0.0 if tip_mm is None else pivot_swing_deg))
     recording, _, _ = simulate_session(rng, visits, reference_placement(rng), np.eye(4),
                                        frame.pinholes[index].mean(axis=0), lift_mm=25.0, noise=noise)
     return recording
 
 
 def simulate_navigation(frame: Frame, rng: np.random.Generator, rounds: int = 15,
-                        noise: NoiseModel | None = None) -> TrackingRecording:
-    """A navigation recording: the probe tip-first onto each target, ``rounds`` times, hand-held."""
+                        noise: NoiseModel | None = None, tip_mm: np.ndarray | None = None) -> TrackingRecording:
+    """A navigation recording: the probe tip-first onto each target, ``rounds`` times, hand-held (with a stylus,
+    ``tip_mm``: its tip on the targets)."""
     targets = frame.targets_reference
     centre = targets.mean(axis=0)
     visits = []
@@ -135,7 +151,7 @@ def simulate_navigation(frame: Frame, rng: np.random.Generator, rounds: int = 15
         for label, target in zip(frame.target_labels, targets, strict=True):
             inward = centre - target if np.linalg.norm(centre - target) > 1 else np.array([0.0, 0.0, 1.0])
             rotation = probe_rotation_into(inward, rng.uniform(0, 2 * np.pi), 25.0, rng)
-            visits.append(Visit(make_transform(rotation, target), float(rng.uniform(1.0, 2.0)), label, label,
+            visits.append(Visit(_touch(rotation, target, tip_mm), float(rng.uniform(1.0, 2.0)), label, label,
                                 tremor_mm=0.08))
     recording, _, _ = simulate_session(rng, visits, reference_placement(rng), np.eye(4), centre, lift_mm=20.0,
                                        noise=noise)
@@ -154,11 +170,14 @@ class Session:
 
 
 def calibrate_and_register(frame: Frame, rng: np.random.Generator, noise: NoiseModel | None = None,
-                           subset: np.ndarray | None = None) -> Session:
-    """Simulate a calibration session, then the real calibration and registration; errors vs the truth."""
-    recording = simulate_calibration(frame, rng, noise, subset)
+                           subset: np.ndarray | None = None, tool: object | None = None,
+                           true_tip_mm: np.ndarray | None = None) -> Session:
+    """Simulate a calibration session, then the real calibration and registration; errors vs the truth.
+    ``tool`` (a :class:`~EMRegModule.tool.ToolCalibration`): the session touches with a stylus whose tip is
+    truly at ``true_tip_mm`` and is calibrated with ``tool``'s."""
+    recording = simulate_calibration(frame, rng, noise, subset, tip_mm=true_tip_mm)
     try:
-        calibration = calibrate_frame(recording, 1, 2, None)
+        calibration = calibrate_frame(recording, 1, 2, None, tool=tool)
         registration = register(frame.detection, calibration, frame.model, None, targets_image=frame.targets_image)
     except EMRegError as exc:
         return Session(None, None, str(exc), None, None)

@@ -176,9 +176,12 @@ BAD_FILES = {
             "frame 1: ProbeToTrackerTransform holds NaN"),
     "repeated time": (lambda tmp: _file(tmp, [_frame_text(0, stamp=2.0), _frame_text(1, stamp=2.0)]),
                       "frame 1: time 2.0000 s of sensor 1 does not increase"),
-    "other names": (lambda tmp: _file(tmp, [_frame_text(0, name="StylusToTracker")]),
+    # two transforms, one the reference: the other is the tool (test_tool.py); with a third the choice is not plain
+    "other names": (lambda tmp: _file(tmp, [_frame_text(0, name="StylusToTracker").replace(
+                        "Seq_Frame0000_Timestamp", "Seq_Frame0000_NeedleToTrackerTransform = 1 0 0 0 0 1 0 0 0 0 1 0 "
+                        "0 0 0 1\nSeq_Frame0000_NeedleToTrackerTransformStatus = OK\nSeq_Frame0000_Timestamp")]),
                     "no ProbeToTrackerTransform in the file; it holds ReferenceToTrackerTransform, "
-                    "StylusToTrackerTransform"),
+                    "StylusToTrackerTransform, NeedleToTrackerTransform"),
     "frame count": (lambda tmp: _file(tmp, [_frame_text(0)], header=HEADER.format(n=5)),
                     "the header says 5 frames"),
 }

@@ -1123,3 +1123,25 @@ def test_bundle_shows_the_predicted_tre_map_as_slicer_reads_it(run_output, tmp_p
                                np.diag([-1.0, -1.0, 1.0, 1.0]) @ index_to_physical_matrix(expected), atol=1e-6)
     assert np.array_equal(slicer.util.arrayFromVolume(node), sitk.GetArrayViewFromImage(expected))
     assert node.GetDisplayNode().GetColorNode().GetName() == "ReverseRainbow"
+
+
+def test_logic_pivot_calibrates_and_loads_a_tool(slicer_core, tmp_path):
+    """The panel's tool row: a pivot recording calibrated into tool_calibration.json + TipToProbe.h5 and used; a
+    PLUS device set's stylus tip; an empty path back to the pinhole probe."""
+    from EMRegModule.io.sequence_metafile import write_sequence_metafile
+    from EMRegModule.simulation.stylus import simulate_pivot_recording
+    from EMRegModule.simulation.tracking import NoiseModel
+
+    module = slicer_core.load_module()
+    logic = module.EMRegLogic()
+    recording, truth = simulate_pivot_recording(2, swing_deg=40.0, noise=NoiseModel(probe_dwell_deg=0.0))
+    write_sequence_metafile(recording, tmp_path / "pivot.seq.mha")
+    tool = logic.pivotCalibrate(str(tmp_path / "pivot.seq.mha"), str(tmp_path / "tool"))
+    assert np.linalg.norm(tool.tip_mm - truth["tip_mm"]) < 0.5
+    assert (tmp_path / "tool" / "tool_calibration.json").is_file() and (tmp_path / "tool" / "TipToProbe.h5").is_file()
+    assert logic.controller.tool is tool
+    device_set = Path(__file__).resolve().parents[1] / "Data" / "PlusLibData" / \
+        "PlusDeviceSet_fCal_Sim_RecordPhantomLandmarks.xml"
+    assert logic.loadTool(str(device_set)).name == "Stylus" and logic.controller.tool.name == "Stylus"
+    logic.loadTool("")
+    assert logic.controller.tool is None

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 from distributed import LocalCluster
 
@@ -50,3 +51,16 @@ def test_unknown_study_and_unreachable_scheduler_are_one_line_errors(tmp_path, c
     assert "unknown study 'nonsense'" in capsys.readouterr().err
     assert main(["study", "calibration", "--quick", "--out", str(tmp_path), "--scheduler", "tcp://127.0.0.1:9"]) == 2
     assert "cannot reach the Dask scheduler tcp://127.0.0.1:9" in capsys.readouterr().err
+
+
+def test_tool_study_compares_the_pinhole_probe_with_a_pivot_calibrated_pointer(standard_case, study_work, tmp_path):
+    result = _study("tool", tmp_path, standard_case, study_work, "--workers", "1")
+    rows = result["rows"]
+    assert sorted(r["route"] for r in rows) == ["pinhole", "pinhole", "pivot", "pivot"]
+    assert not any(r["refused"] for r in rows)
+    pivot = [r for r in rows if r["route"] == "pivot"]
+    assert all(r["tip_error_mm"] < 2.0 for r in pivot)
+    assert all(r["tip_error_mm"] is None for r in rows if r["route"] == "pinhole")
+    # the pointer's tip error reaches the targets: its end-to-end TRE is the larger (the paper: about 2 mm more)
+    mean = {route: np.mean([r["tre_rms_mm"] for r in rows if r["route"] == route]) for route in ("pinhole", "pivot")}
+    assert mean["pivot"] > mean["pinhole"]
