@@ -291,8 +291,8 @@ def test_a_long_label_stays_under_its_own_target_in_the_error_budget():
 
 
 def test_a_long_pinhole_label_keeps_the_residual_in_the_markers_caption(labelled_run):
-    from EMRegModule.rendering.text import text_size
     from EMRegModule.rendering.slices import VIEW_PX
+    from EMRegModule.rendering.text import text_size
     from EMRegModule.report.derived import calibration_points, marker_rows
     from EMRegModule.report.figures import ReportData, _slice_markers
     from EMRegModule.report.inputs import load_report_inputs
