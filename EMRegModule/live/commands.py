@@ -439,9 +439,11 @@ def run_live_navigate(args: argparse.Namespace) -> int:
             server.close()
         raise
     link = guard_for(source)
+    trust = _trust_monitor(args, registration)
     navigator = LiveNavigator(reference_to_image, reference, probe, server, writer, source.period_s,
                               args.stale_periods, _max_quality(args), out=None if args.quiet else sys.stderr,
-                              link=link, check_ports=link is not None)  # a tracker's ports are judged live
+                              link=link, check_ports=link is not None,  # a tracker's ports are judged live
+                              trust=trust)
     navigator.max_frames = args.max_samples
     where = f"OpenIGTLink {args.host}:{server.port} (ProbeToImage, RAS)" if server else ""
     if writer:
@@ -473,15 +475,33 @@ def run_live_navigate(args: argparse.Namespace) -> int:
                     navigator.device_back(guard_for(source))
     finally:
         source.stop()
+        navigator.finish_trust()
         if server is not None:
             server.close()
         if writer is not None:
             writer.close()
+        if args.out:
+            from ..checkpoints import CHECKPOINTS_JSON, write_checkpoints
+
+            write_checkpoints(trust.report, Path(args.out) / CHECKPOINTS_JSON)
     again = f", {reconnects} reconnection(s)" if reconnects else ""
     print(f"{navigator.published} probe poses published, {navigator.withheld} withheld by the watchdog "
-          f"({why}{again})")
+          f"({why}{again}); {trust.report.summary()}")
     _report_framing(args, source)
     return 0
+
+
+def _trust_monitor(args: argparse.Namespace, registration: RegistrationResult):
+    """The live checkpoints and reference-jump watch (:class:`EMRegModule.checkpoints.TrustMonitor`) at the pinholes
+    of the markers beside ``--registration`` (``[navigation]`` of ``--settings``); without them, jumps only."""
+    from ..checkpoints import TrustMonitor, markers_beside, pinholes_from_detection
+    from ..settings import load_settings
+
+    markers, note = markers_beside(args.registration)
+    if note or markers is None:
+        _say(args, f"[emreg] warning: {note or 'no markers.json beside the registration: no checkpoints'}")
+    pinholes = None if markers is None else pinholes_from_detection(markers, registration.sensor_offset_l_mm)
+    return TrustMonitor(pinholes, load_settings(getattr(args, "settings", None)).navigation)
 
 
 def _tick_or_refuse(navigator) -> None:

@@ -21,7 +21,7 @@ from ..io.tracking_csv import HEADER_ANGLES
 from ..transforms import rotation_to_angles
 from .samples import SensorSample
 
-NAVIGATION_HEADER = ("time_s", "x_mm", "y_mm", "z_mm", "label")
+NAVIGATION_HEADER = ("time_s", "x_mm", "y_mm", "z_mm", "label", "status")
 
 
 class StreamingCSV:
@@ -129,10 +129,11 @@ class SequenceRecordingWriter(RecordingWriter):
 
 
 class NavigationWriter(StreamingCSV):
-    """``navigation.csv`` (``time_s,x_mm,y_mm,z_mm,label``): the probe position in LPS image space."""
+    """``navigation.csv`` (``time_s,x_mm,y_mm,z_mm,label,status``): the probe position in LPS image space and
+    the pose's status (``OK``, or ``INVALID`` after a failed checkpoint), as the offline ``emreg navigate``."""
 
     def __init__(self, path: str | os.PathLike[str], flush_interval_s: float = 1.0) -> None:
         super().__init__(path, NAVIGATION_HEADER, flush_interval_s)
 
-    def write_position(self, time_s: float, position_image_mm: np.ndarray, label: str = "") -> None:
-        self.write_row([f"{time_s:.4f}", *(f"{v:.4f}" for v in position_image_mm), label])
+    def write_position(self, time_s: float, position_image_mm: np.ndarray, label: str = "", status: str = "OK") -> None:
+        self.write_row([f"{time_s:.4f}", *(f"{v:.4f}" for v in position_image_mm), label, status])
