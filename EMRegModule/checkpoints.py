@@ -287,26 +287,39 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(a.T @ b) - 1.0) / 2.0, -1.0, 1.0))))
 
 
+def _step_excess(position_mm: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per step k (sample k -> k + 1) that has ``JUMP_WINDOW`` steps before it: how far the step departs from the
+    motion just before (mm: the step vector minus the componentwise median of the previous steps' vectors;
+    degrees: the step's angle minus the previous steps' median angle), the motion vector (mm per step) and the
+    steps' indices k."""
+    w = JUMP_WINDOW
+    step = np.diff(position_mm, axis=0)
+    angle = _rotation_step_deg(rotation)
+    k = np.arange(w, len(step))
+    motion = np.median(np.lib.stride_tricks.sliding_window_view(step, w, axis=0), axis=2)[k - w]  # steps k-w..k-1
+    turning = np.median(np.lib.stride_tricks.sliding_window_view(angle, w), axis=1)[k - w]
+    return np.linalg.norm(step[k] - motion, axis=1), angle[k] - turning, motion
+
+
 def step_noise(position_mm: np.ndarray, rotation: np.ndarray) -> tuple[float, float]:
-    """Robust sigma (mm, degrees) of the sample-to-sample steps of a sensor about their local median: the
-    tracker's noise as the steps show it (the recording's own motion mostly cancels)."""
+    """The tracker's noise as a sensor's steps show it (mm, degrees): the median departure of a step from the
+    motion just before it (:func:`_step_excess`; the recording's own smooth motion cancels)."""
     position_mm = np.asarray(position_mm, dtype=float).reshape(-1, 3)
-    if len(position_mm) < 3:
+    if len(position_mm) < JUMP_WINDOW + 2:
         return 0.0, 0.0
-    steps = (np.linalg.norm(np.diff(position_mm, axis=0), axis=1),
-             _rotation_step_deg(np.asarray(rotation, dtype=float)))
-    return tuple(float(1.4826 * np.median(np.abs(s - np.median(s)))) for s in steps)  # type: ignore[return-value]
+    excess_mm, excess_deg, _ = _step_excess(position_mm, np.asarray(rotation, dtype=float).reshape(-1, 3, 3))
+    return float(np.median(excess_mm)), float(np.median(np.abs(excess_deg)))
 
 
 def reference_jumps(time_s: np.ndarray, position_mm: np.ndarray, rotation: np.ndarray,
                     settings: NavigationSettings | None = None,
                     noise: tuple[float, float] | None = None) -> list[ReferenceJump]:
     """Sudden steps of one sensor (the reference: ``time_s`` (N,), ``position_mm`` (N, 3) and ``rotation``
-    (N, 3, 3) in the Tracker frame, good samples only, time order). A jump at sample i: the step from
-    i - 1 to i exceeds the median step of the ``JUMP_WINDOW`` samples before it (the motion) by more than
-    the limit (``reference_jump_mm`` / ``_deg``, at least ``JUMP_NOISE_FACTOR`` robust sigmas of ``noise``,
-    default :func:`step_noise` of these samples), and the pose after it stays there (the medians of the
-    windows before and after differ by at least half the step: a lone wild sample does not)."""
+    (N, 3, 3) in the Tracker frame, good samples only, time order). A jump at sample i: the step from i - 1
+    to i departs from the motion of the ``JUMP_WINDOW`` steps before it by more than the limit
+    (``reference_jump_mm`` / ``_deg``, and at least ``JUMP_NOISE_FACTOR`` times ``noise``, default
+    :func:`step_noise` of these samples), and the pose after it stays there (the medians of the windows before
+    and after, the motion taken out, differ by at least half of it: a lone wild sample does not)."""
     settings = settings or NavigationSettings()
     time_s = np.asarray(time_s, dtype=float)
     position_mm = np.asarray(position_mm, dtype=float).reshape(-1, 3)
@@ -314,35 +327,31 @@ def reference_jumps(time_s: np.ndarray, position_mm: np.ndarray, rotation: np.nd
     w = JUMP_WINDOW
     if len(time_s) < 2 * w + 1:
         return []
-    sigma_mm, sigma_deg = step_noise(position_mm, rotation) if noise is None else noise
-    limit_mm = max(settings.reference_jump_mm, JUMP_NOISE_FACTOR * sigma_mm)
-    limit_deg = max(settings.reference_jump_deg, JUMP_NOISE_FACTOR * sigma_deg)
-    step_mm = np.linalg.norm(np.diff(position_mm, axis=0), axis=1)  # step k: sample k -> k + 1
-    step_deg = _rotation_step_deg(rotation)
-    motion_mm = np.median(np.lib.stride_tricks.sliding_window_view(step_mm, w), axis=1)  # window j: steps j..j+w-1
-    motion_deg = np.median(np.lib.stride_tricks.sliding_window_view(step_deg, w), axis=1)
-    k = np.arange(w, len(step_mm) - w + 1)  # steps with w steps before them and w samples after
-    excess_mm = step_mm[k] - motion_mm[k - w]
-    excess_deg = step_deg[k] - motion_deg[k - w]
-    candidates = k[(excess_mm > limit_mm) | (excess_deg > limit_deg)]
+    noise_mm, noise_deg = step_noise(position_mm, rotation) if noise is None else noise
+    limit_mm = max(settings.reference_jump_mm, JUMP_NOISE_FACTOR * noise_mm)
+    limit_deg = max(settings.reference_jump_deg, JUMP_NOISE_FACTOR * noise_deg)
+    excess_mm, excess_deg, motion = _step_excess(position_mm, rotation)
+    steps = np.arange(w, len(position_mm) - 1)
+    usable = steps + 1 + w <= len(position_mm)  # a full window after the step
+    candidates = np.flatnonzero(usable & ((excess_mm > limit_mm) | (excess_deg > limit_deg)))
     jumps: list[ReferenceJump] = []
-    last = -10 * w
-    for step in candidates.tolist():
-        i = step + 1  # the first sample after the step
+    for j in candidates.tolist():
+        i = int(steps[j]) + 1  # the first sample after the step
         before, after = slice(i - w, i), slice(i, i + w)
-        moved_mm = float(np.linalg.norm(np.median(position_mm[after], axis=0) - np.median(position_mm[before], axis=0)))
-        moved_deg = _angle_deg(rotation[i - 1 - w // 2], rotation[i + w // 2 - 1])
-        e_mm, e_deg = float(step_mm[step] - motion_mm[step - w]), float(step_deg[step] - motion_deg[step - w])
-        stays = ((e_mm > limit_mm and moved_mm >= 0.5 * step_mm[step])
-                 or (e_deg > limit_deg and moved_deg >= 0.5 * step_deg[step]))
+        moved = np.median(position_mm[after], axis=0) - np.median(position_mm[before], axis=0) - w * motion[j]
+        turned = _angle_deg(rotation[i - 1 - w // 2], rotation[i + w // 2 - 1])
+        e_mm, e_deg = float(excess_mm[j]), float(excess_deg[j])
+        turning = float(np.median(_rotation_step_deg(rotation[i - 1 - w:i])))
+        stays = ((e_mm > limit_mm and float(np.linalg.norm(moved)) >= 0.5 * e_mm)
+                 or (e_deg > limit_deg and turned - w * turning >= 0.5 * e_deg))
         if not stays:
             continue
-        if i - last <= w and jumps:  # one slip spread over a few samples: one jump, its largest step
+        jump = ReferenceJump(float(time_s[i]), max(e_mm, 0.0), max(e_deg, 0.0), limit_mm, limit_deg)
+        if jumps and i - np.searchsorted(time_s, jumps[-1].time_s) <= w:  # one slip over a few samples: one jump
             if e_mm > jumps[-1].jump_mm:
-                jumps[-1] = ReferenceJump(float(time_s[i]), max(e_mm, 0.0), max(e_deg, 0.0), limit_mm, limit_deg)
+                jumps[-1] = jump
             continue
-        jumps.append(ReferenceJump(float(time_s[i]), max(e_mm, 0.0), max(e_deg, 0.0), limit_mm, limit_deg))
-        last = i
+        jumps.append(jump)
     return jumps
 
 
@@ -400,7 +409,7 @@ class TrustMonitor:
         self.valid = True
         self._visit: list[tuple[float, np.ndarray, np.ndarray, float]] = []
         self._reference: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=2 * JUMP_WINDOW + 2)
-        self._steps: deque[tuple[float, float]] = deque(maxlen=noise_samples)
+        self._history: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=noise_samples)
         self._noise: tuple[float, float] = (0.0, 0.0)
         self._pending: int | None = None  # samples until a candidate step has its window after it
         self._since_noise = 0
@@ -442,18 +451,17 @@ class TrustMonitor:
 
     def _observe_reference(self, time_s: float, reference_to_tracker: np.ndarray) -> ReferenceJump | None:
         position, rotation = reference_to_tracker[:3, 3].copy(), reference_to_tracker[:3, :3].copy()
-        if self._reference:
+        self._history.append((position, rotation))
+        self._since_noise += 1
+        if self._since_noise >= 50:  # the tracker's noise, re-estimated now and then from the recent samples
+            positions, rotations = (np.array(v) for v in zip(*self._history, strict=True))
+            self._noise = step_noise(positions, rotations)
+            self._since_noise = 0
+        if self._reference and self._pending is None:
             _, p0, r0 = self._reference[-1]
-            step = (float(np.linalg.norm(position - p0)), _angle_deg(r0, rotation))
-            self._steps.append(step)
-            self._since_noise += 1
-            if self._since_noise >= 50 and len(self._steps) >= 4 * JUMP_WINDOW:  # the noise, re-estimated now and then
-                steps = np.array(self._steps)
-                self._noise = tuple(float(1.4826 * np.median(np.abs(s - np.median(s)))) for s in steps.T)  # type: ignore[assignment]
-                self._since_noise = 0
-            if self._pending is None and (step[0] > self.settings.reference_jump_mm
-                                          or step[1] > self.settings.reference_jump_deg):
-                self._pending = JUMP_WINDOW
+            if (np.linalg.norm(position - p0) > self.settings.reference_jump_mm
+                    or _angle_deg(r0, rotation) > self.settings.reference_jump_deg):
+                self._pending = JUMP_WINDOW  # a candidate: judged once its window after it has arrived
         self._reference.append((time_s, position, rotation))
         if self._pending is None:
             return None

@@ -91,15 +91,18 @@ def simulate_case(out_dir: Path, seed: int = 0, difficulty: str = "standard", sp
     return truth
 
 
-def simulate_recordings(out_dir: Path, seed: int = 0, difficulty: str = "standard", **options: Any) -> None:
+def simulate_recordings(out_dir: Path, seed: int = 0, difficulty: str = "standard", **options: Any) -> dict:
     """Write only the tracking recordings (``calibration.csv``, ``navigation.csv``, ``board.csv``) of the
     case ``simulate_case`` makes with the same seed, difficulty and options: the same recordings,
-    e.g. in another probe convention (``probe_axis``), beside an existing case's CT and truth."""
+    e.g. in another probe convention (``probe_axis``), beside an existing case's CT and truth.
+    Returns the navigation's ground truth (``truth.json``'s ``"navigation"`` without its pose)."""
     opts = resolve_options(difficulty, None, options)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     model = MarkerModel.from_settings(opts.marker)
-    _write_recordings(out_dir, seed, opts, _phantom(seed, opts, model), model)
+    navigation = _write_recordings(out_dir, seed, opts, _phantom(seed, opts, model), model)[2]
+    return {"dwells": _dwell_list(navigation["dwells"]),
+            **({"reference_slip": navigation["reference_slip"]} if navigation.get("reference_slip") else {})}
 
 
 def _write_recordings(out_dir: Path, seed: int, opts: SimulationOptions, phantom: Phantom,
