@@ -38,7 +38,14 @@ from . import igtl_status as st
 from .igtl_server import TRANSFORM_INVALID, TRANSFORM_OK
 from .igtl_status import StatusMessage
 from .port_check import PORT_REASONS, PortRoleCheck
-from .samples import STATUS_NOT_ATTACHED, STATUS_OUT_OF_RANGE, SensorSample  # noqa: F401
+from .samples import (  # noqa: F401
+    FLAG_MISSING,
+    FLAG_OUT_OF_VOLUME,
+    FLAG_PARTLY_OUT_OF_VOLUME,
+    STATUS_NOT_ATTACHED,
+    STATUS_OUT_OF_RANGE,
+    SensorSample,
+)
 
 #: Device name of the STATUS messages that carry checkpoint results and reference jumps (live navigation).
 CHECKPOINT_STATUS_NAME = "Checkpoint"
@@ -67,6 +74,15 @@ class Verdict:
 
 
 OK = Verdict(True, "ok", "tracking data good", st.STATUS_OK, "OK")
+
+#: How an out-of-range sensor is named (terminal line, STATUS message and error name) by its tracker's flag.
+_OUT_OF_RANGE = {
+    None: ("out of the tracker's range", "OutOfRange"),
+    FLAG_MISSING: ("missing: the tracker found no solution (MISSING)", "ToolMissing"),
+    FLAG_OUT_OF_VOLUME: ("out of the tracker's measurement volume", "OutOfVolume"),
+    FLAG_PARTLY_OUT_OF_VOLUME: ("partly out of the tracker's measurement volume: accuracy not vouched for",
+                                "PartlyOutOfVolume"),
+}
 
 
 class Watchdog:
@@ -149,8 +165,8 @@ class Watchdog:
         for role, sensor in (("reference", self.reference_sensor), ("probe", self.probe_sensor)):
             sample = self._last[sensor][0]
             if sample.status == STATUS_OUT_OF_RANGE:
-                return Verdict(False, "out_of_range", f"{role} sensor (port {sensor}) out of the tracker's range",
-                               st.STATUS_OVERFLOW, "OutOfRange")
+                what, name = _OUT_OF_RANGE.get(sample.extra.get("flag"), _OUT_OF_RANGE[None])
+                return Verdict(False, "out_of_range", f"{role} sensor (port {sensor}) {what}", st.STATUS_OVERFLOW, name)
         if self.max_quality is not None:
             for role, sensor in (("reference", self.reference_sensor), ("probe", self.probe_sensor)):
                 quality = self._last[sensor][0].quality
@@ -437,5 +453,6 @@ class TrackerPublisher(_WatchedPublisher):
                 self._last_pose[name] = sample.transform()
                 self.published += 1
             elif name in self._last_pose:  # PLUS habit: the transform goes out with TransformStatus INVALID
-                self.server.send_transform(name, self._last_pose[name], self._stamp, TRANSFORM_INVALID)
+                status = TRANSFORM_INVALID if sample.valid else sample.transform_status  # or the tracker's reason
+                self.server.send_transform(name, self._last_pose[name], self._stamp, status)
                 self.invalid_sent += 1
