@@ -244,3 +244,41 @@ def line_chart(
             _put(canvas, marker_label, px + (8 if align == "left" else -8), axes.top + 14, 0.4, HIGHLIGHT,
                  align=align)
     return canvas
+
+
+def checkpoint_chart(
+    time_s: Sequence[float], error_mm: Sequence[float], ok: Sequence[bool], limit_mm: float,
+    jumps_s: Sequence[float] = (), size: tuple[int, int] = (760, 320),
+) -> np.ndarray:
+    """The error at each checkpoint (mm) over the navigation's time (s): a dot per checkpoint (passed: blue,
+    failed: red), the limit as a dashed line, the reference sensor's jumps as dotted vertical lines."""
+    time_s, error_mm = np.asarray(time_s, dtype=float), np.asarray(error_mm, dtype=float)
+    if time_s.shape != error_mm.shape or time_s.size == 0:
+        raise ValueError("checkpoint_chart needs equal-length arrays of at least one checkpoint")
+    width, height = size
+    canvas = np.full((height, width, 3), WHITE, dtype=np.uint8)
+    ticks = nice_ticks(0.0, max(float(np.max(error_mm)), limit_mm) * 1.15, 5)
+    every = np.concatenate([time_s, np.asarray(jumps_s, dtype=float)])
+    start, end = float(every.min()), float(every.max())
+    pad = max(1.0, 0.05 * (end - start))
+    axes = _Axes(canvas, 62, 34, width - 20, height - 46, (start - pad, end + pad), ticks)
+    _put(canvas, "Error at each checkpoint", width / 2, 20, 0.5, align="center")
+    axes.draw_y_grid("error (mm)")
+    x_ticks = nice_ticks(start - pad, end + pad, 8)
+    x_step = float(x_ticks[1] - x_ticks[0]) if len(x_ticks) > 1 else 1.0
+    for tick in x_ticks:
+        if start - pad <= tick <= end + pad:
+            px = int(round(axes.x(tick)))
+            cv2.line(canvas, (px, axes.bottom), (px, axes.bottom + 4), AXIS, 1)
+            _put(canvas, _format_tick(tick, x_step), px, axes.bottom + 17, 0.38, align="center")
+    _put(canvas, "navigation time (s)", (axes.left + axes.right) / 2, height - 8, 0.4, align="center")
+    for jump in jumps_s:
+        px = int(round(axes.x(float(jump))))
+        for yy in range(axes.top, axes.bottom, 6):
+            cv2.line(canvas, (px, yy), (px, min(yy + 2, axes.bottom)), REFERENCE, 1)
+        _put(canvas, "reference jump", px + 4, axes.top + 12, 0.34, REFERENCE)
+    axes.dashed_hline(limit_mm, HIGHLIGHT, f"limit {limit_mm:g} mm")
+    for t, e, good in zip(time_s, error_mm, ok, strict=True):
+        cv2.circle(canvas, (int(round(axes.x(t))), int(round(axes.y(e)))), 5, LINE if good else HIGHLIGHT, -1,
+                   cv2.LINE_AA)
+    return canvas
