@@ -419,6 +419,9 @@ class TrustMonitor:
         """One cycle: ``probe_to_image`` (4x4, LPS mm; None when no valid pose), ``reference_to_tracker`` (4x4;
         None when the reference sample is not valid), the worse quality number of the two sensors."""
         events: list[Checkpoint | ReferenceJump] = []
+        if probe_to_image is not None:  # this pose went out with the status :attr:`valid` gave it
+            self.report.poses += 1
+            self.report.invalid_poses += not self.valid
         if reference_to_tracker is not None:
             jump = self._observe_reference(time_s, reference_to_tracker)
             if jump is not None:
@@ -433,7 +436,6 @@ class TrustMonitor:
                 events += self._judge_visit()  # left the pinhole (longer than a wild sample's break), or a long rest
             if near <= limit:
                 self._visit.append((time_s, position.copy(), probe_to_image[:3, 0].copy(), quality))
-        self.report.poses += probe_to_image is not None
         return events
 
     def flush(self) -> list[Checkpoint]:

@@ -143,6 +143,7 @@ def test_live_navigation_streams_checkpoints_and_invalidates_poses(sessions, tmp
     status = {float(r[0]): r[5] for r in rows}
     assert all(s == "INVALID" for t, s in status.items() if t > failed["end_s"] + 0.5)
     assert all(s == "OK" for t, s in status.items() if t < failed["start_s"])
+    assert live["invalid_poses"] == list(status.values()).count("INVALID") > 0 and live["poses"] == len(rows)
 
 
 def test_live_navigator_sends_checkpoint_status_and_invalid_transforms(sessions):
