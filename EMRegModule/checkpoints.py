@@ -24,7 +24,6 @@ the pinhole).
 from __future__ import annotations
 
 import os
-from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -408,11 +407,17 @@ class TrustMonitor:
                                        radius_mm=self.settings.checkpoint_radius_mm)
         self.valid = True
         self._visit: list[tuple[float, np.ndarray, np.ndarray, float]] = []
-        self._reference: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=2 * JUMP_WINDOW + 2)
-        self._history: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=noise_samples)
-        self._noise: tuple[float, float] = (0.0, 0.0)
+        # the reference's recent samples in a ring (no allocation per cycle); a step above the floors (squared:
+        # mm^2, and the rotation's |R1 - R0|_F^2 = 8 sin^2(angle / 2)) is a candidate, judged by reference_jumps
+        # once its window after it has arrived, against the noise of the ring's samples
+        self._ring = max(int(noise_samples), 4 * JUMP_WINDOW)
+        self._times = np.empty(self._ring)
+        self._positions = np.empty((self._ring, 3))
+        self._rotations = np.empty((self._ring, 3, 3))
+        self._count = 0
+        self._floor_mm2 = self.settings.reference_jump_mm ** 2
+        self._floor_rot2 = 8.0 * np.sin(np.radians(self.settings.reference_jump_deg) / 2.0) ** 2
         self._pending: int | None = None  # samples until a candidate step has its window after it
-        self._since_noise = 0
 
     def observe(self, time_s: float, probe_to_image: np.ndarray | None, reference_to_tracker: np.ndarray | None,
                 quality: float = float("nan")) -> list[Checkpoint | ReferenceJump]:
@@ -429,7 +434,8 @@ class TrustMonitor:
                 events.append(jump)
         if probe_to_image is not None and self.pinholes is not None and len(self.pinholes):
             position = probe_to_image[:3, 3]
-            near = float(np.min(np.linalg.norm(self.pinholes.position_image - position, axis=1)))
+            offset = self.pinholes.position_image - position
+            near = float(np.min(np.einsum("ij,ij->i", offset, offset))) ** 0.5
             limit = self.settings.checkpoint_radius_mm + self.settings.still_radius_mm
             if self._visit and (time_s - self._visit[0][0] > self.max_visit_s or
                                 (near > limit and time_s - self._visit[-1][0] > self.settings.max_gap_s)):
@@ -452,25 +458,25 @@ class TrustMonitor:
         return found
 
     def _observe_reference(self, time_s: float, reference_to_tracker: np.ndarray) -> ReferenceJump | None:
-        position, rotation = reference_to_tracker[:3, 3].copy(), reference_to_tracker[:3, :3].copy()
-        self._history.append((position, rotation))
-        self._since_noise += 1
-        if self._since_noise >= 50:  # the tracker's noise, re-estimated now and then from the recent samples
-            positions, rotations = (np.array(v) for v in zip(*self._history, strict=True))
-            self._noise = step_noise(positions, rotations)
-            self._since_noise = 0
-        if self._reference and self._pending is None:
-            _, p0, r0 = self._reference[-1]
-            if (np.linalg.norm(position - p0) > self.settings.reference_jump_mm
-                    or _angle_deg(r0, rotation) > self.settings.reference_jump_deg):
-                self._pending = JUMP_WINDOW  # a candidate: judged once its window after it has arrived
-        self._reference.append((time_s, position, rotation))
+        position, rotation = reference_to_tracker[:3, 3], reference_to_tracker[:3, :3]
+        k = self._count % self._ring
+        if self._count and self._pending is None:
+            j = (self._count - 1) % self._ring
+            step = position - self._positions[j]
+            turn = rotation - self._rotations[j]
+            if float(step @ step) > self._floor_mm2 or float(np.vdot(turn, turn)) > self._floor_rot2:
+                self._pending = JUMP_WINDOW
+        self._times[k], self._positions[k], self._rotations[k] = time_s, position, rotation
+        self._count += 1
         if self._pending is None:
             return None
         self._pending -= 1
         if self._pending > 0:
             return None
         self._pending = None
-        times, positions, rotations = (np.array(v) for v in zip(*self._reference, strict=True))
-        jumps = reference_jumps(times, positions, rotations, self.settings, self._noise)
+        order = np.arange(max(0, self._count - self._ring), self._count) % self._ring
+        positions, rotations = self._positions[order], self._rotations[order]
+        window = slice(max(0, len(order) - (2 * JUMP_WINDOW + 2)), None)
+        jumps = reference_jumps(self._times[order][window], positions[window], rotations[window], self.settings,
+                                step_noise(positions, rotations))
         return jumps[-1] if jumps else None
