@@ -225,14 +225,17 @@ def find_checkpoints(time_s: np.ndarray, position_image: np.ndarray, direction_i
 
 
 def _nearest_pinhole(position_image: np.ndarray, pinholes: Pinholes) -> tuple[np.ndarray, np.ndarray]:
-    """Index of the nearest pinhole (N,) and the distance to it (N,, mm); NaN positions get an infinite distance."""
+    """Index of the nearest pinhole (N,) and the distance to it (N,, mm); NaN positions get an infinite distance.
+    One matrix product per block of samples (``|p|^2 + |q|^2 - 2 p.q``), the chosen distance then exactly."""
     nearest = np.zeros(len(position_image), dtype=int)
-    distance = np.full(len(position_image), np.inf)
-    for k, point in enumerate(pinholes.position_image):  # M is small (tens): M passes over N beat an (N, M) array
-        d = np.linalg.norm(position_image - point, axis=1)
-        closer = d < distance
-        nearest[closer] = k
-        distance[closer] = d[closer]
+    finite = np.all(np.isfinite(position_image), axis=1)
+    points = pinholes.position_image
+    squared = np.einsum("ij,ij->i", points, points)
+    for start in range(0, len(position_image), 65536):
+        block = np.where(finite[start:start + 65536, None], position_image[start:start + 65536], 0.0)
+        nearest[start:start + len(block)] = np.argmin(squared[None, :] - 2.0 * block @ points.T, axis=1)
+    distance = np.linalg.norm(position_image - points[nearest], axis=1)
+    distance[~finite] = np.inf
     return nearest, distance
 
 
@@ -276,37 +279,40 @@ def pose_status(time_s: np.ndarray, quality: np.ndarray | None, checkpoints: lis
 # --- reference jumps -----------------------------------------------------------------------------
 
 
-def _rotation_step_deg(rotation: np.ndarray) -> np.ndarray:
-    """Angle (degrees, N - 1) between consecutive rotations (N, 3, 3)."""
-    trace = np.einsum("nji,nji->n", rotation[:-1], rotation[1:])
+def _step_excess(position_mm: np.ndarray, rotation: np.ndarray,
+                 steps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each of ``steps`` (step k: sample k -> k + 1, with ``JUMP_WINDOW`` steps before it): how far the step
+    departs from the motion just before (mm: the step vector minus the componentwise median of the previous
+    steps' vectors; degrees: the step's angle minus the previous steps' median angle), and that motion vector
+    (mm per step)."""
+    w = JUMP_WINDOW
+    before = steps[:, None] + np.arange(-w, 0)  # (m, w) the previous steps
+    step = position_mm[steps + 1] - position_mm[steps]
+    motion = np.median(position_mm[before + 1] - position_mm[before], axis=1)
+    angle = _pair_angle_deg(rotation[steps], rotation[steps + 1])
+    turning = np.median(_pair_angle_deg(rotation[before], rotation[before + 1]), axis=1)
+    return np.linalg.norm(step - motion, axis=1), angle - turning, motion
+
+
+def _pair_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle (degrees) between rotations ``a`` and ``b`` (..., 3, 3)."""
+    trace = np.einsum("...ji,...ji->...", a, b)
     return np.degrees(np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0)))
 
 
-def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(a.T @ b) - 1.0) / 2.0, -1.0, 1.0))))
-
-
-def _step_excess(position_mm: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per step k (sample k -> k + 1) that has ``JUMP_WINDOW`` steps before it: how far the step departs from the
-    motion just before (mm: the step vector minus the componentwise median of the previous steps' vectors;
-    degrees: the step's angle minus the previous steps' median angle), the motion vector (mm per step) and the
-    steps' indices k."""
-    w = JUMP_WINDOW
-    step = np.diff(position_mm, axis=0)
-    angle = _rotation_step_deg(rotation)
-    k = np.arange(w, len(step))
-    motion = np.median(np.lib.stride_tricks.sliding_window_view(step, w, axis=0), axis=2)[k - w]  # steps k-w..k-1
-    turning = np.median(np.lib.stride_tricks.sliding_window_view(angle, w), axis=1)[k - w]
-    return np.linalg.norm(step[k] - motion, axis=1), angle[k] - turning, motion
+#: Steps :func:`step_noise` looks at, at most (evenly spread): the median of a few thousand is as good as all.
+NOISE_STEPS = 4000
 
 
 def step_noise(position_mm: np.ndarray, rotation: np.ndarray) -> tuple[float, float]:
     """The tracker's noise as a sensor's steps show it (mm, degrees): the median departure of a step from the
-    motion just before it (:func:`_step_excess`; the recording's own smooth motion cancels)."""
+    motion just before it (:func:`_step_excess`, at most ``NOISE_STEPS`` steps; smooth motion cancels)."""
     position_mm = np.asarray(position_mm, dtype=float).reshape(-1, 3)
     if len(position_mm) < JUMP_WINDOW + 2:
         return 0.0, 0.0
-    excess_mm, excess_deg, _ = _step_excess(position_mm, np.asarray(rotation, dtype=float).reshape(-1, 3, 3))
+    steps = np.arange(JUMP_WINDOW, len(position_mm) - 1)
+    steps = steps[::max(1, len(steps) // NOISE_STEPS)]
+    excess_mm, excess_deg, _ = _step_excess(position_mm, np.asarray(rotation, dtype=float).reshape(-1, 3, 3), steps)
     return float(np.median(excess_mm)), float(np.median(np.abs(excess_deg)))
 
 
@@ -329,18 +335,28 @@ def reference_jumps(time_s: np.ndarray, position_mm: np.ndarray, rotation: np.nd
     noise_mm, noise_deg = step_noise(position_mm, rotation) if noise is None else noise
     limit_mm = max(settings.reference_jump_mm, JUMP_NOISE_FACTOR * noise_mm)
     limit_deg = max(settings.reference_jump_deg, JUMP_NOISE_FACTOR * noise_deg)
-    excess_mm, excess_deg, motion = _step_excess(position_mm, rotation)
-    steps = np.arange(w, len(position_mm) - 1)
-    usable = steps + 1 + w <= len(position_mm)  # a full window after the step
-    candidates = np.flatnonzero(usable & ((excess_mm > limit_mm) | (excess_deg > limit_deg)))
+    # candidates: a step, or its change from the step before, beyond half the floor (a jump changes the step by
+    # its size whatever the motion); only they are measured against the motion before them
+    step = np.diff(position_mm, axis=0)
+    angle = _pair_angle_deg(rotation[:-1], rotation[1:])
+    change = np.linalg.norm(np.diff(step, axis=0), axis=1)
+    steps = np.arange(w, len(position_mm) - w)  # w steps before, a window of w samples after
+    loose_mm, loose_deg = 0.5 * settings.reference_jump_mm, 0.5 * settings.reference_jump_deg
+    steps = steps[(np.linalg.norm(step[steps], axis=1) > loose_mm) | (change[steps - 1] > loose_mm)
+                  | (angle[steps] > loose_deg) | (np.abs(angle[steps] - angle[steps - 1]) > loose_deg)]
+    if len(steps) == 0:
+        return []
+    parts = [_step_excess(position_mm, rotation, steps[k:k + 16384]) for k in range(0, len(steps), 16384)]
+    excess_mm, excess_deg, motion = (np.concatenate(values) for values in zip(*parts, strict=True))
+    candidates = np.flatnonzero((excess_mm > limit_mm) | (excess_deg > limit_deg))
     jumps: list[ReferenceJump] = []
     for j in candidates.tolist():
         i = int(steps[j]) + 1  # the first sample after the step
         before, after = slice(i - w, i), slice(i, i + w)
         moved = np.median(position_mm[after], axis=0) - np.median(position_mm[before], axis=0) - w * motion[j]
-        turned = _angle_deg(rotation[i - 1 - w // 2], rotation[i + w // 2 - 1])
+        turned = float(_pair_angle_deg(rotation[i - 1 - w // 2], rotation[i + w // 2 - 1]))
         e_mm, e_deg = float(excess_mm[j]), float(excess_deg[j])
-        turning = float(np.median(_rotation_step_deg(rotation[i - 1 - w:i])))
+        turning = float(np.median(angle[i - 1 - w:i - 1]))
         stays = ((e_mm > limit_mm and float(np.linalg.norm(moved)) >= 0.5 * e_mm)
                  or (e_deg > limit_deg and turned - w * turning >= 0.5 * e_deg))
         if not stays:
