@@ -313,7 +313,7 @@ def _reference_slip(seed: int, opts: SimulationOptions) -> ReferenceSlip | None:
 
 
 def _navigation(seed: int, opts: SimulationOptions, phantom: Phantom, frame_to_image: np.ndarray,
-                l_mm: float = 15.0) -> dict:
+                l_mm: float) -> dict:
     rng = _rng(seed, STREAM_NAVIGATION)
     frame_to_tracker = _frame_to_tracker(rng, phantom.geometry.size, rng.uniform(-180, 180),
                                          np.array([rng.uniform(250, 420), rng.uniform(-120, 120),

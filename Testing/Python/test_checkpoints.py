@@ -254,3 +254,13 @@ def test_reference_jump_is_a_step_that_stays_not_motion_or_a_wild_sample():
         pose[:3, :3], pose[:3, 3] = r, p
         events += monitor.observe(float(t), None, pose)
     assert len(events) == 1 and events[0].time_s == pytest.approx(time_s[200])
+
+
+def test_navigation_settings_are_checked_when_read():
+    from EMRegModule.errors import EMRegError
+
+    settings = Settings.from_mapping({"navigation": {"max_checkpoint_error_mm": 1.0, "reference_jump_mm": 0.8}})
+    assert settings.navigation.max_checkpoint_error_mm == 1.0 and settings.navigation.still_radius_mm == 0.5
+    for table in ({"max_checkpoint_error_mm": 6.0}, {"max_checkpoint_eror_mm": 1.0}, {"reference_jump_mm": "1"}):
+        with pytest.raises(EMRegError, match=r"\[navigation\]"):
+            Settings.from_mapping({"navigation": table})
