@@ -356,7 +356,8 @@ def reference_jumps(time_s: np.ndarray, position_mm: np.ndarray, rotation: np.nd
         moved = np.median(position_mm[after], axis=0) - np.median(position_mm[before], axis=0) - w * motion[j]
         turned = float(_pair_angle_deg(rotation[i - 1 - w // 2], rotation[i + w // 2 - 1]))
         e_mm, e_deg = float(excess_mm[j]), float(excess_deg[j])
-        turning = float(np.median(angle[i - 1 - w:i - 1]))
+        # a steady turn before the step (beyond the angles' own noise, which is never negative) is taken out
+        turning = max(float(np.median(angle[i - 1 - w:i - 1])) - 2.0 * noise_deg, 0.0)
         stays = ((e_mm > limit_mm and float(np.linalg.norm(moved)) >= 0.5 * e_mm)
                  or (e_deg > limit_deg and turned - w * turning >= 0.5 * e_deg))
         if not stays:
