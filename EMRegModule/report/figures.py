@@ -20,11 +20,12 @@ import SimpleITK as sitk
 from ..calibration import CalibrationPoint
 from ..errors import EMRegError
 from ..progress import QUIET, Progress
+from ..rendering.checkpoint_chart import checkpoint_chart
 from ..rendering.colors import GREY, colorize, residual_range
 from ..rendering.context import ContextSurface, bin_factor, binned_ct, context_surface
 from ..rendering.error_views import error_budget_chart, tre_map_slices
 from ..rendering.images import encode_png
-from ..rendering.plots import bar_chart, checkpoint_chart, fit_text, line_chart
+from ..rendering.plots import bar_chart, fit_text, line_chart
 from ..transforms import apply_transform
 from .checks import ReportWarning
 from .derived import MarkerRow, calibration_points_in_image, finite_or_none, tre_figures

@@ -13,7 +13,8 @@ import numpy as np
 from conftest import SMALL_CASE_OPTIONS
 
 from EMRegModule.cli import main
-from EMRegModule.rendering.plots import HIGHLIGHT, LINE, checkpoint_chart
+from EMRegModule.rendering.checkpoint_chart import checkpoint_chart
+from EMRegModule.rendering.plots import HIGHLIGHT, LINE
 from EMRegModule.simulation.case import simulate_recordings
 
 
