@@ -269,7 +269,13 @@ def cmd_navigate(args: argparse.Namespace) -> int:
 
     recording_path = Path(args.source[len("replay:"):])
     controller = _controller(args, _settings(args))
+    from .checkpoints import markers_beside
+
+    markers, note = markers_beside(args.registration)
+    if markers is not None:  # the checkpoints need the markers' pinholes (before the registration: it is dropped)
+        controller.set_detection(markers)
     controller.load_registration(args.registration)
+    _warn("navigate", [note] if note else [])
     _warn("navigate", controller.use_ports(*_ports_given(args, controller.settings), args.registration))
     _use_tool(args, controller, solves=False)
     recording = (read_recording(recording_path, controller.settings, controller.reference_sensor,
@@ -280,7 +286,7 @@ def cmd_navigate(args: argparse.Namespace) -> int:
     result = controller.navigate_recording(recording)
     controller.warn(recording.warnings)
     controller.save_navigation(folder)
-    print(f"{len(result)} probe samples mapped into image space -> {args.out}")
+    print(f"{len(result)} probe samples mapped into image space; {controller.checkpoints.summary()} -> {args.out}")
     return 0
 
 

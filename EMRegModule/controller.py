@@ -96,6 +96,8 @@ class EMRegController:
         self.frame_calibration: FrameCalibration | None = None
         self.registration: RegistrationResult | None = None
         self.navigation: NavigationResult | None = None
+        #: The checkpoints, reference jumps and pose status of ``navigation`` (:mod:`EMRegModule.checkpoints`).
+        self.checkpoints: Any = None
         self.evaluation: Evaluation | None = None
         #: The command this controller serves (in warnings and provenance).
         self.command = "emreg"
@@ -426,8 +428,23 @@ class EMRegController:
         note = unpaired_probe_note(recording, result, self.probe_sensor)
         if note and note not in recording.warnings:  # said with the recording's own warnings
             recording.warnings.append(note)
+        self.checkpoints = self._check_navigation(result, recording)
         self.navigation = result
         return result
+
+    def _check_navigation(self, result: NavigationResult, recording: TrackingRecording) -> Any:
+        """Checkpoints at the detected markers' pinholes, reference jumps and the pose status of ``result``
+        (:mod:`EMRegModule.checkpoints`); their warnings join the recording's."""
+        from .checkpoints import check_navigation, pinholes_from_detection
+
+        pinholes = (None if self.detection is None else
+                    pinholes_from_detection(self.detection, self.registration.sensor_offset_l_mm))
+        report = check_navigation(result, recording, pinholes, self.reference_sensor, self.settings.navigation)
+        notes = report.warnings()
+        if pinholes is None:
+            notes.append("no detected markers (markers.json) beside the registration: no checkpoints at the pinholes")
+        recording.warnings.extend(n for n in notes if n not in recording.warnings)
+        return report
 
     def evaluate(self, navigation: TrackingRecording | None = None,
                  targets: tuple[list[str], np.ndarray] | None = None,
@@ -595,6 +612,11 @@ class EMRegController:
         self._require(navigation=self.navigation)
         provenance = self._provenance(("navigation", "tool"), ("registration.json",))
         write_navigation_csv(self.navigation, folder.path / "navigation.csv")
+        if self.checkpoints is not None:
+            from .checkpoints import CHECKPOINTS_JSON, write_checkpoints
+
+            self.checkpoints.provenance = provenance.to_json()
+            write_checkpoints(self.checkpoints, folder.path / CHECKPOINTS_JSON)
         self._recorded(folder, "navigate", provenance)
 
     def save_evaluation(self, folder: OutputFolder, evaluation: Evaluation) -> None:
@@ -836,7 +858,8 @@ class EMRegController:
             return
         self.warn(recording.warnings)
         self.save_navigation(folder)
-        summary.append(f"navigate: {len(navigation)} probe samples")
+        summary.append(f"navigate: {len(navigation)} probe samples"
+                       + ("" if self.checkpoints is None else f"; {self.checkpoints.summary()}"))
 
     def _run_evaluate(self, case: Case, folder: OutputFolder, summary: list[str]) -> None:
         """The optional evaluation: a part that cannot be made is "not evaluated" with its reason in

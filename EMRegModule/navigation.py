@@ -18,7 +18,9 @@ import numpy as np
 from .io.atomic import atomic_path
 from .tracking import SAME_MOMENT_S, TrackingRecording, invert_rigid_batch, sensor_pair
 
-NAVIGATION_HEADER = "time_s,x_mm,y_mm,z_mm,label"
+#: ``status`` (added): the pose's status, ``OK`` or ``INVALID`` (PLUS's TransformStatus names; see
+#: :mod:`EMRegModule.checkpoints`); the spec's five columns come first, unchanged.
+NAVIGATION_HEADER = "time_s,x_mm,y_mm,z_mm,label,status"
 
 
 def probe_to_image(reference_to_image: np.ndarray, reference_to_tracker: np.ndarray,
@@ -36,12 +38,14 @@ def probe_to_image(reference_to_image: np.ndarray, reference_to_tracker: np.ndar
 @dataclass
 class NavigationResult:
     """Probe samples in image space: ``time_s`` (N,), ``probe_to_image`` (N, 4, 4),
-    ``label`` (N,) (the recording's labels) and ``quality`` (N,) (worst of both sensors)."""
+    ``label`` (N,) (the recording's labels), ``quality`` (N,) (worst of both sensors) and ``status`` (N,)
+    (``OK`` / ``INVALID``, set by :func:`EMRegModule.checkpoints.check_navigation`; None: not judged, OK)."""
 
     time_s: np.ndarray
     probe_to_image: np.ndarray
     label: np.ndarray
     quality: np.ndarray
+    status: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.time_s)
@@ -96,12 +100,13 @@ def unpaired_probe_note(recording: TrackingRecording, result: NavigationResult, 
 
 
 def format_navigation_csv(result: NavigationResult) -> str:
-    """``time_s,x_mm,y_mm,z_mm,label`` text, one row per probe sample (positions in LPS mm)."""
+    """``time_s,x_mm,y_mm,z_mm,label,status`` text, one row per probe sample (positions in LPS mm)."""
     position = result.position_mm
+    status = ["OK"] * len(result) if result.status is None else result.status.tolist()
     rows = zip(result.time_s.tolist(), position[:, 0].tolist(), position[:, 1].tolist(), position[:, 2].tolist(),
-               result.label.tolist(), strict=True)
+               result.label.tolist(), status, strict=True)
     lines = [NAVIGATION_HEADER]
-    lines.extend(f"{t:.4f},{x:.4f},{y:.4f},{z:.4f},{_csv_label(label)}" for t, x, y, z, label in rows)
+    lines.extend(f"{t:.4f},{x:.4f},{y:.4f},{z:.4f},{_csv_label(label)},{s}" for t, x, y, z, label, s in rows)
     return "\n".join(lines) + "\n"
 
 

@@ -38,7 +38,7 @@ STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
     "detect": ("markers.json", "markers.mrk.json"),
     "calibrate": ("frame_calibration.json", "tool_calibration.json", "TipToProbe.h5"),  # the tool: --tool auto
     "register": ("registration.json", "ReferenceToImage.h5"),
-    "navigate": ("navigation.csv",),
+    "navigate": ("navigation.csv", "checkpoints.json"),
     "evaluate": ("evaluation.json",),
     "tre_map": ("tre_map.nrrd",),
     "report": ("report.html", "report_figures"),

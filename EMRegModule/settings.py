@@ -185,6 +185,42 @@ class EvaluationSettings(DwellSettings):
     placement_error_mm: float = non_negative(0.0)
 
 
+# --- [navigation] ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NavigationSettings(DwellSettings):
+    """``[navigation]``: what EMReg checks while it navigates (:mod:`EMRegModule.checkpoints`).
+
+    Checkpoints: a rest of the probe (the dwell keys; a probe resting in a pinhole: 0.5 s within
+    0.5 mm, as at calibration) whose centre lies within ``checkpoint_radius_mm`` (5) of a detected
+    marker's pinhole at the solved depth l (image space), with the probe axis within
+    ``checkpoint_angle_deg`` (20) of the marker axis when the probe has an orientation. Its error is
+    the distance from there to the pinhole; above ``max_checkpoint_error_mm`` (1.5: three times the
+    simulated end-to-end RMS TRE, so a clean checkpoint fails about once in 10^5, while a 2 mm slip
+    of the reference moves every pinhole by about 2 mm) the checkpoint fails and every pose is
+    INVALID until a later checkpoint passes. ``max_quality`` (20, the trakSTAR's METAL scale as the
+    live watchdog takes it; the Aurora's RMS error is in mm: set e.g. 1): a sample with a worse
+    quality number is an INVALID pose and no part of a checkpoint. ``reference_jump_mm`` (0.5) /
+    ``reference_jump_deg`` (0.3): a step of the reference sensor between two samples larger than
+    this, and than 8 times the recording's own sample-to-sample noise, that stays (not a lone wild
+    sample) is warned about as a possible slip of the reference in its slot."""
+
+    min_duration_s: float = positive(0.5)
+    still_radius_mm: float = positive(0.5)
+    max_quality: float | None = non_negative(20.0)
+    max_checkpoint_error_mm: float = positive(1.5)
+    checkpoint_radius_mm: float = positive(5.0)
+    checkpoint_angle_deg: float = positive(20.0)
+    reference_jump_mm: float = positive(0.5)
+    reference_jump_deg: float = positive(0.3)
+
+    def validate(self) -> None:
+        if self.max_checkpoint_error_mm >= self.checkpoint_radius_mm:
+            raise SettingError(f"must be below checkpoint_radius_mm ({self.checkpoint_radius_mm:g}), got "
+                               f"{self.max_checkpoint_error_mm:g}", "max_checkpoint_error_mm")
+
+
 # --- [registration] ----------------------------------------------------------------------------
 
 
@@ -322,6 +358,7 @@ class Settings:
     calibration: CalibrationSettings = field(default_factory=CalibrationSettings)
     registration: RegistrationSettings = field(default_factory=RegistrationSettings)
     evaluation: EvaluationSettings = field(default_factory=EvaluationSettings)
+    navigation: NavigationSettings = field(default_factory=NavigationSettings)
     board: BoardSettings = field(default_factory=BoardSettings)
     report: ReportSettings = field(default_factory=ReportSettings)
     ct: CTSettings = field(default_factory=CTSettings)
@@ -330,7 +367,7 @@ class Settings:
 
     #: The tables, by TOML name (every field but ``source``).
     TABLES: ClassVar[tuple[str, ...]] = ("sensors", "marker", "detection", "calibration", "registration",
-                                         "evaluation", "board", "report", "ct", "tool")
+                                         "evaluation", "board", "report", "ct", "tool", "navigation")
 
     @classmethod
     def from_mapping(cls, mapping: Any, source: str = "case.toml") -> Settings:
@@ -416,6 +453,7 @@ _TABLE_CLASSES: dict[str, type] = {
     "sensors": SensorSettings, "marker": MarkerModel, "detection": DetectionSettings,
     "calibration": CalibrationSettings, "registration": RegistrationSettings, "evaluation": EvaluationSettings,
     "board": BoardSettings, "report": ReportSettings, "ct": CTSettings, "tool": ToolSettings,
+    "navigation": NavigationSettings,
 }
 
 

@@ -14,7 +14,8 @@ its physical port 1..4 read from PHINF's port location, +4 for channel 1 of a 5-
 spec's defaults reference = 1, probe = 2 mean ports 1 and 2), the polling loop (a new sample only
 for a new frame number; a reply ndicapi rejects - bad CRC, timeout - gives no sample at all), the
 mapping of NDI states to EMReg's (MISSING -> out of range, port unoccupied or DISABLED -> not
-attached, out-of-volume or partially-out-of-volume bit -> out of range; the RMS error -> ``quality``),
+attached, out-of-volume or partially-out-of-volume bit -> out of range, which of them in the sample's
+``extra["flag"]``, its ``transform_status``; the RMS error -> ``quality``),
 a tool plugged in during tracking (system status ``SYSTEM_PORT_OCCUPIED``: a replugged tool has a new
 handle) initialised and tracked again under its port's sensor number, and counters.
 
@@ -39,7 +40,15 @@ import numpy as np
 from ..errors import EMRegError
 from ..transforms import quaternion_to_rotation
 from . import ndi_protocol as ndi
-from .samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE, SensorSample
+from .samples import (
+    FLAG_MISSING,
+    FLAG_OUT_OF_VOLUME,
+    FLAG_PARTLY_OUT_OF_VOLUME,
+    STATUS_NOT_ATTACHED,
+    STATUS_OK,
+    STATUS_OUT_OF_RANGE,
+    SensorSample,
+)
 
 SampleCallback = Callable[[SensorSample], None]
 
@@ -442,12 +451,14 @@ class AuroraDriver:
     def _sample(tool: AuroraTool, result: int, values: list[float], port_status: int, frame: int,
                 t_ns: int) -> SensorSample:
         nan3 = np.full(3, np.nan)
-        status = STATUS_OK
+        status, flag = STATUS_OK, None
         if result == 1 or not port_status & ndi.PORT_OCCUPIED:  # NDI_DISABLED, or the tool was unplugged
             status = STATUS_NOT_ATTACHED
         elif result == 2 or port_status & (ndi.PORT_OUT_OF_VOLUME | ndi.PORT_PARTIALLY_IN_VOLUME):
             # NDI_MISSING, or (partly) outside the characterised volume: a transform without its accuracy
             status = STATUS_OUT_OF_RANGE
+            flag = (FLAG_PARTLY_OUT_OF_VOLUME if port_status & ndi.PORT_PARTIALLY_IN_VOLUME else
+                    FLAG_OUT_OF_VOLUME if port_status & ndi.PORT_OUT_OF_VOLUME else FLAG_MISSING)
         if result == 0:
             quaternion = np.asarray(values[:4], dtype=float)
             position, rotation, error = np.asarray(values[4:7], dtype=float), quaternion_to_rotation(quaternion), \
@@ -459,6 +470,8 @@ class AuroraDriver:
         sample = SensorSample(tool.sensor, 0.0, position, rotation, error, status, frame=frame,
                               received_ns=t_ns)
         sample.extra.update(handle=tool.handle, port_status=port_status, dof=tool.dof, quaternion=quaternion)
+        if flag is not None:
+            sample.extra["flag"] = flag  # which of the handle's states: the recordings' and clients' TransformStatus
         return sample
 
 

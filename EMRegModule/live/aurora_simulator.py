@@ -194,6 +194,13 @@ class AuroraSimulator(PtyDevice):
     """An Aurora System Control Unit on a pty. ``start()`` (thread) or ``run()`` (foreground), ``stop()``."""
 
     thread_name = "aurora-simulator"
+    #: A distortion model (``distortion_mm(position_mm) -> mm``, :mod:`EMRegModule.simulation.tracker_flags`) or
+    #: None: a tool's RMS error grows by the distortion at it (``aurora_error_mm``).
+    distortion = None
+    #: The characterised volume (``state(position_mm) -> "in" | "partly" | "out"``, ``MeasurementVolume``) or
+    #: None: a tool outside it is out of volume (port status 0x40, MISSING unless the reply mode has 0x0800),
+    #: near its faces partly out (0x80).
+    volume = None
 
     def __init__(self, scene: BuiltinScene | ReplayScene | None = None, tools: list[AuroraTool] | None = None,
                  rate_hz: float | None = None, faults: AuroraFaults | None = None, seed: int = 0,
@@ -630,22 +637,27 @@ class AuroraSimulator(PtyDevice):
             sensor = h.tool.sensor
             status = self._handle_status(h)
             truth = self.truth_for_frame(sensor, frame)
+            where = "in" if self.volume is None or truth is None else self.volume.state(truth[1])
             state = "valid"
             if not status & ndi.PORT_OCCUPIED:
                 system_status |= ndi.SYSTEM_PORT_UNOCCUPIED
                 state = "missing"
             elif truth is None or self._active("missing", sensor, t_s):
                 state = "missing"
-            elif self._active("out-of-range", sensor, t_s):
+            elif self._active("out-of-range", sensor, t_s) or where == "out":
                 status |= ndi.PORT_OUT_OF_VOLUME
                 if not mode & ndi.REPLY_NOT_NORMALLY_REPORTED:
                     state = "missing"
-            elif self._active("partly-out", sensor, t_s):
+            elif self._active("partly-out", sensor, t_s) or where == "partly":
                 status |= ndi.PORT_PARTIALLY_IN_VOLUME  # a transform, of accuracy the Aurora does not vouch for
             report = ndi.ToolReport(h.handle, state, port_status=status, frame=frame)
             if state == "valid":
                 report.quaternion, report.position_mm = truth
                 report.error = DISTORTED_ERROR if self._active("distort", sensor, t_s) else self._quality(sensor, frame)
+                if self.distortion is not None:
+                    from ..simulation.tracker_flags import aurora_error_mm  # only with a model (a heavy package)
+
+                    report.error = aurora_error_mm(self.distortion.distortion_mm(truth[1]), report.error)
             reports.append(report)
         if name == "BX":
             data = ndi.bx_reply(reports, system_status)

@@ -234,6 +234,13 @@ def add_sim_tracker_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-records", type=int, default=None, metavar="N", help="stop after N records sent")
     parser.add_argument("--emit-log", metavar="FILE.csv", help="at exit, write every record sent: seq, sensor, "
                         "monotonic ns of its last byte, truth position (for latency measurements)")
+    parser.add_argument("--distortion", default=None, metavar="MM[@X,Y,Z,R]",
+                        help="field distortion the tracker flags: MM everywhere, or MM at R mm from a metal object at "
+                             "X,Y,Z (tracker frame, falling off as 1/r^3); trakstar: the METAL byte (40 per mm), "
+                             "aurora: the tools' RMS error (+MM)")
+    parser.add_argument("--volume", default=None, metavar="X0,Y0,Z0,X1,Y1,Z1[:MARGIN]",
+                        help="aurora: the characterised volume (tracker frame, mm): a tool outside is out of volume, "
+                             "within MARGIN (10) mm of a face partly out")
 
 
 def run_sim_tracker(args: argparse.Namespace) -> int:
@@ -249,9 +256,11 @@ def run_sim_tracker(args: argparse.Namespace) -> int:
 
         scene = ReplayScene(read_recording(args.replay))
     attached = sensors_from_list(args.attached) if args.attached else None
+    distortion, _ = _flags(args)
     sim = TrackerSimulator(scene, baud=args.baud, faults=FaultPlan.parse(args.fault), seed=args.seed, link=args.link,
                            fast=args.fast, max_records=args.max_records, duration_s=args.duration, attached=attached,
                            keep_truth=bool(args.emit_log))
+    sim.distortion = distortion
     link = f" (link {args.link})" if args.link else ""
     print(f"trakSTAR simulator on {sim.path}{link}: connect with trakstar://{sim.path}?baud={args.baud}", flush=True)
     _run_until_stopped(sim)
@@ -262,6 +271,19 @@ def run_sim_tracker(args: argparse.Namespace) -> int:
                                      for r in sim.truth if r.emit_ns))
     _say(args, f"simulator stopped after {sim.records_sent} records")
     return 0
+
+
+def _flags(args: argparse.Namespace) -> tuple:
+    """(distortion model, measurement volume) of ``--distortion`` / ``--volume`` (None each when not given),
+    checked before the simulator opens its pty (:mod:`EMRegModule.simulation.tracker_flags`)."""
+    if args.distortion is None and args.volume is None:
+        return None, None
+    from ..simulation.tracker_flags import parse_distortion, parse_volume
+
+    if args.volume is not None and args.model != "aurora":
+        raise EMRegError("--volume: only the aurora simulator reports a tool out of its volume")
+    return (None if args.distortion is None else parse_distortion(args.distortion),
+            None if args.volume is None else parse_volume(args.volume))
 
 
 def _run_until_stopped(sim) -> None:
@@ -293,10 +315,12 @@ def _run_aurora_simulator(args: argparse.Namespace) -> int:
         from ..io.recording import read_recording
 
         scene = ReplayScene(read_recording(args.replay))
+    distortion, volume = _flags(args)
     sim = AuroraSimulator(scene, tools=parse_tools(args.tools) if args.tools else None, rate_hz=args.rate,
                           faults=AuroraFaults.parse(args.fault), seed=args.seed, link=args.link,
                           duration_s=args.duration, freeze_tag=args.freeze_tag or ndi.DEFAULT_FREEZE_TAG,
                           keep_log=bool(args.emit_log))
+    sim.distortion, sim.volume = distortion, volume
     # a device does not pause mid-reply; ndicapi gives up on a reply after 0.1 s of silence while probing,
     # so on a loaded host the simulator asks for a higher priority where it may (choice; root only)
     with contextlib.suppress(OSError):
@@ -528,9 +552,11 @@ def run_live_navigate(args: argparse.Namespace) -> int:
             server.close()
         raise
     link = guard_for(source)
+    trust = _trust_monitor(args, registration)
     navigator = LiveNavigator(reference_to_image, reference, probe, server, writer, source.period_s,
                               args.stale_periods, _max_quality(args), out=None if args.quiet else sys.stderr,
-                              link=link, check_ports=link is not None)  # a tracker's ports are judged live
+                              link=link, check_ports=link is not None,  # a tracker's ports are judged live
+                              trust=trust)
     navigator.max_frames = args.max_samples
     where = f"OpenIGTLink {args.host}:{server.port} (ProbeToImage, RAS)" if server else ""
     if writer:
@@ -562,15 +588,33 @@ def run_live_navigate(args: argparse.Namespace) -> int:
                     navigator.device_back(guard_for(source))
     finally:
         source.stop()
+        navigator.finish_trust()
         if server is not None:
             server.close()
         if writer is not None:
             writer.close()
+        if args.out:
+            from ..checkpoints import CHECKPOINTS_JSON, write_checkpoints
+
+            write_checkpoints(trust.report, Path(args.out) / CHECKPOINTS_JSON)
     again = f", {reconnects} reconnection(s)" if reconnects else ""
     print(f"{navigator.published} probe poses published, {navigator.withheld} withheld by the watchdog "
-          f"({why}{again})")
+          f"({why}{again}); {trust.report.summary()}")
     _report_framing(args, source)
     return 0
+
+
+def _trust_monitor(args: argparse.Namespace, registration: RegistrationResult):
+    """The live checkpoints and reference-jump watch (:class:`EMRegModule.checkpoints.TrustMonitor`) at the pinholes
+    of the markers beside ``--registration`` (``[navigation]`` of ``--settings``); without them, jumps only."""
+    from ..checkpoints import TrustMonitor, markers_beside, pinholes_from_detection
+    from ..settings import load_settings
+
+    markers, note = markers_beside(args.registration)
+    if note or markers is None:
+        _say(args, f"[emreg] warning: {note or 'no markers.json beside the registration: no checkpoints'}")
+    pinholes = None if markers is None else pinholes_from_detection(markers, registration.sensor_offset_l_mm)
+    return TrustMonitor(pinholes, load_settings(getattr(args, "settings", None)).navigation)
 
 
 def _tick_or_refuse(navigator) -> None:

@@ -38,7 +38,17 @@ from . import igtl_status as st
 from .igtl_server import TRANSFORM_INVALID, TRANSFORM_OK
 from .igtl_status import StatusMessage
 from .port_check import PORT_REASONS, PortRoleCheck
-from .samples import STATUS_NOT_ATTACHED, STATUS_OUT_OF_RANGE, SensorSample  # noqa: F401
+from .samples import (  # noqa: F401
+    FLAG_MISSING,
+    FLAG_OUT_OF_VOLUME,
+    FLAG_PARTLY_OUT_OF_VOLUME,
+    STATUS_NOT_ATTACHED,
+    STATUS_OUT_OF_RANGE,
+    SensorSample,
+)
+
+#: Device name of the STATUS messages that carry checkpoint results and reference jumps (live navigation).
+CHECKPOINT_STATUS_NAME = "Checkpoint"
 
 #: Status of a sample whose pose the link guard's jump test refused (moved faster than a hand can).
 STATUS_REJECTED = "rejected"
@@ -64,6 +74,15 @@ class Verdict:
 
 
 OK = Verdict(True, "ok", "tracking data good", st.STATUS_OK, "OK")
+
+#: How an out-of-range sensor is named (terminal line, STATUS message and error name) by its tracker's flag.
+_OUT_OF_RANGE = {
+    None: ("out of the tracker's range", "OutOfRange"),
+    FLAG_MISSING: ("missing: the tracker found no solution (MISSING)", "ToolMissing"),
+    FLAG_OUT_OF_VOLUME: ("out of the tracker's measurement volume", "OutOfVolume"),
+    FLAG_PARTLY_OUT_OF_VOLUME: ("partly out of the tracker's measurement volume: accuracy not vouched for",
+                                "PartlyOutOfVolume"),
+}
 
 
 class Watchdog:
@@ -146,8 +165,8 @@ class Watchdog:
         for role, sensor in (("reference", self.reference_sensor), ("probe", self.probe_sensor)):
             sample = self._last[sensor][0]
             if sample.status == STATUS_OUT_OF_RANGE:
-                return Verdict(False, "out_of_range", f"{role} sensor (port {sensor}) out of the tracker's range",
-                               st.STATUS_OVERFLOW, "OutOfRange")
+                what, name = _OUT_OF_RANGE.get(sample.extra.get("flag"), _OUT_OF_RANGE[None])
+                return Verdict(False, "out_of_range", f"{role} sensor (port {sensor}) {what}", st.STATUS_OVERFLOW, name)
         if self.max_quality is not None:
             for role, sensor in (("reference", self.reference_sensor), ("probe", self.probe_sensor)):
                 quality = self._last[sensor][0].quality
@@ -253,7 +272,7 @@ class LiveNavigator(_WatchedPublisher):
                  server=None, writer=None, period_s: float | None = None, stale_periods: float = 3.0,
                  max_quality: float | None = DEFAULT_MAX_QUALITY, out: TextIO | None = sys.stderr,
                  device_name: str = "ProbeToImage", status_name: str = "Navigation", link=None,
-                 check_ports: bool = False) -> None:
+                 check_ports: bool = False, trust=None) -> None:
         self.reference_to_image = np.asarray(reference_to_image, dtype=float)
         self.reference_sensor = reference_sensor
         self.probe_sensor = probe_sensor
@@ -279,6 +298,11 @@ class LiveNavigator(_WatchedPublisher):
         self.invalid_sent = 0  # TRANSFORMs sent with TransformStatus INVALID (poses withheld)
         #: frames handled at most (``--max-samples``); later samples are ignored (None: no limit)
         self.max_frames: int | None = None
+        #: checkpoints and reference jumps (a :class:`EMRegModule.checkpoints.TrustMonitor`, or None): after a failed
+        #: checkpoint the poses go out with TransformStatus INVALID until one passes; each result is a STATUS
+        #: ``Checkpoint`` (sticky: a client that connects later learns it) and one terminal line
+        self.trust = trust
+        self.out = out
 
     @property
     def verdict(self) -> Verdict | None:
@@ -322,17 +346,43 @@ class LiveNavigator(_WatchedPublisher):
                 self.withheld += 1
                 self._send_invalid(verdict)
                 return
-            probe_to_image = probe_to_image_pose(self.reference_to_image, reference.transform(), probe.transform())
+            reference_to_tracker = reference.transform()
+            probe_to_image = probe_to_image_pose(self.reference_to_image, reference_to_tracker, probe.transform())
             self.last_probe_to_image = probe_to_image
             received_ns = max(reference.received_ns, probe.received_ns)
+            status = TRANSFORM_OK if self.trust is None or self.trust.valid else TRANSFORM_INVALID
             if self.server is not None:
                 stamp = time.time() - (time.monotonic_ns() - received_ns) / 1e9
-                sent_ns = self.server.send_transform(self.device_name, LPS_TO_RAS @ probe_to_image, stamp,
-                                                     TRANSFORM_OK)
+                sent_ns = self.server.send_transform(self.device_name, LPS_TO_RAS @ probe_to_image, stamp, status)
                 self.latencies.append((probe.frame, received_ns, sent_ns))
             if self.writer is not None:
-                self.writer.write_position(probe.time_s, probe_to_image[:3, 3], probe.label)
+                self.writer.write_position(probe.time_s, probe_to_image[:3, 3], probe.label, status)
             self.published += 1
+            if self.trust is not None:  # after the send: off the latency path
+                quality = float(np.fmax(reference.quality, probe.quality))
+                self._announce_trust(self.trust.observe(probe.time_s, probe_to_image, reference_to_tracker, quality))
+
+    def finish_trust(self) -> None:
+        """The stream ended: judge a rest in a pinhole still in progress and announce it."""
+        if self.trust is not None:
+            with self._lock:
+                self._announce_trust(self.trust.flush())
+
+    def _announce_trust(self, events: list) -> None:
+        """A STATUS ``Checkpoint`` and a terminal line per checkpoint result or reference jump."""
+        from ..checkpoints import Checkpoint
+
+        for event in events:
+            if isinstance(event, Checkpoint):
+                text = event.describe(self.trust.settings.max_checkpoint_error_mm)
+                code, name = ((st.STATUS_OK, "CheckpointOK") if event.ok else
+                              (st.STATUS_UNKNOWN_ERROR, "CheckpointFailed"))
+            else:
+                text, code, name = event.describe(), st.STATUS_UNKNOWN_ERROR, "ReferenceJump"
+            if self.out is not None:
+                print(f"[emreg] {text}", file=self.out, flush=True)
+            if self.server is not None:
+                self.server.send(StatusMessage(code, 0, name, text, device_name=CHECKPOINT_STATUS_NAME))
 
 
     def _send_invalid(self, verdict: Verdict) -> None:
@@ -403,5 +453,6 @@ class TrackerPublisher(_WatchedPublisher):
                 self._last_pose[name] = sample.transform()
                 self.published += 1
             elif name in self._last_pose:  # PLUS habit: the transform goes out with TransformStatus INVALID
-                self.server.send_transform(name, self._last_pose[name], self._stamp, TRANSFORM_INVALID)
+                status = TRANSFORM_INVALID if sample.valid else sample.transform_status  # or the tracker's reason
+                self.server.send_transform(name, self._last_pose[name], self._stamp, status)
                 self.invalid_sent += 1

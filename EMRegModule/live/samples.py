@@ -11,6 +11,16 @@ import numpy as np
 STATUS_OK = "ok"
 STATUS_OUT_OF_RANGE = "out_of_range"
 STATUS_NOT_ATTACHED = "not_attached"
+#: Finer reasons a tracker gives for a pose it does not vouch for, in ``SensorSample.extra["flag"]`` (the status
+#: stays ``out_of_range``): the Aurora's handle status - no solution (MISSING), out of the characterised volume
+#: (port status 0x40), partly out of it (0x80).
+FLAG_MISSING = "missing"
+FLAG_OUT_OF_VOLUME = "out_of_volume"
+FLAG_PARTLY_OUT_OF_VOLUME = "partly_out_of_volume"
+#: PLUS ``TransformStatus`` names of the flags (``OK``, ``MISSING``, ``OUT_OF_VOLUME`` are PLUS's own; PLUS has
+#: no "partly": EMReg's name, read by PLUS and 3D Slicer as not OK, like any other).
+FLAG_TRANSFORM_STATUS = {FLAG_MISSING: "MISSING", FLAG_OUT_OF_VOLUME: "OUT_OF_VOLUME",
+                         FLAG_PARTLY_OUT_OF_VOLUME: "PARTIALLY_OUT_OF_VOLUME"}
 
 
 @dataclass
@@ -41,6 +51,15 @@ class SensorSample:
         """True when the pose can be used (status ok and finite numbers)."""
         return (self.status == STATUS_OK and bool(np.all(np.isfinite(self.position_mm)))
                 and bool(np.all(np.isfinite(self.rotation))))
+
+    @property
+    def transform_status(self) -> str:
+        """PLUS's ``TransformStatus`` for this sample: ``OK`` for a usable pose, else the tracker's reason (the
+        Aurora's MISSING / OUT_OF_VOLUME / PARTIALLY_OUT_OF_VOLUME, else the status: OUT_OF_RANGE, NOT_ATTACHED...)."""
+        if self.valid:
+            return "OK"
+        flag = self.extra.get("flag")
+        return FLAG_TRANSFORM_STATUS.get(flag) or str(self.status).upper() or "INVALID"
 
     def transform(self) -> np.ndarray:
         """``SensorToTracker`` 4x4."""

@@ -353,6 +353,10 @@ class TrackerSimulator(PtyDevice):
     """
 
     thread_name = "trakstar-simulator"
+    #: A distortion model (``distortion_mm(position_mm) -> mm`` at a sensor in the Tracker frame; see
+    #: :mod:`EMRegModule.simulation.tracker_flags`) or None: with METAL on, each record's METAL byte is the worse of
+    #: the scene's quality and the distortion there (``trakstar_metal``).
+    distortion = None
 
     def __init__(self, scene: BuiltinScene | ReplayScene | None = None, baud: int = tp.DEFAULT_BAUD,
                  faults: FaultPlan | None = None, seed: int = 0, link: str | os.PathLike[str] | None = None,
@@ -546,6 +550,10 @@ class TrackerSimulator(PtyDevice):
         else:
             sent_pose = pose
             clean = int(min(max(pose.quality, 0.0), tp.METAL_MAX))  # a replay carries its recording's quality
+            if self.distortion is not None and metal:
+                from ..simulation.tracker_flags import trakstar_metal  # only with a model (a heavy package)
+
+                clean = trakstar_metal(self.distortion.distortion_mm(pose.position_mm), clean)
             quality = (DISTORTED_METAL if state == "distorted" else clean) if metal else None
             if state == "out_of_range":
                 full_scale_mm = self.scale_inches * tp.MM_PER_INCH

@@ -21,7 +21,7 @@ from ..io.tracking_csv import HEADER_ANGLES
 from ..transforms import rotation_to_angles
 from .samples import SensorSample
 
-NAVIGATION_HEADER = ("time_s", "x_mm", "y_mm", "z_mm", "label")
+NAVIGATION_HEADER = ("time_s", "x_mm", "y_mm", "z_mm", "label", "status")
 
 
 class StreamingCSV:
@@ -87,8 +87,8 @@ class SequenceRecordingWriter(RecordingWriter):
     """A PLUS sequence metafile (``.seq.mha``) recorded live: the valid samples also stream into a
     sidecar CSV (``<path>.partial.csv``, flushed like every live file, so a crash keeps them); at
     :meth:`close` every sample, with its status (``OK``, or the source's reason for an unusable
-    pose, e.g. ``INVALID``), is written into the sequence metafile atomically (its header needs
-    the frame count) and the sidecar is removed."""
+    pose: :attr:`~.samples.SensorSample.transform_status`, e.g. ``OUT_OF_VOLUME``), is written into the
+    sequence metafile atomically (its header needs the frame count) and the sidecar is removed."""
 
     def __init__(self, path: str | os.PathLike[str], flush_interval_s: float = 1.0,
                  reference_port: int = 1, probe_port: int = 2) -> None:
@@ -102,7 +102,7 @@ class SequenceRecordingWriter(RecordingWriter):
             if not self._file.closed:
                 self._samples.append((sample.time_s, sample.sensor, np.asarray(sample.position_mm, dtype=float),
                                       np.asarray(sample.rotation, dtype=float), sample.quality,
-                                      "OK" if sample.valid else (str(sample.status).upper() or "INVALID")))
+                                      sample.transform_status))
         return super().write_sample(sample)
 
     def close(self) -> None:
@@ -129,10 +129,11 @@ class SequenceRecordingWriter(RecordingWriter):
 
 
 class NavigationWriter(StreamingCSV):
-    """``navigation.csv`` (``time_s,x_mm,y_mm,z_mm,label``): the probe position in LPS image space."""
+    """``navigation.csv`` (``time_s,x_mm,y_mm,z_mm,label,status``): the probe position in LPS image space and
+    the pose's status (``OK``, or ``INVALID`` after a failed checkpoint), as the offline ``emreg navigate``."""
 
     def __init__(self, path: str | os.PathLike[str], flush_interval_s: float = 1.0) -> None:
         super().__init__(path, NAVIGATION_HEADER, flush_interval_s)
 
-    def write_position(self, time_s: float, position_image_mm: np.ndarray, label: str = "") -> None:
-        self.write_row([f"{time_s:.4f}", *(f"{v:.4f}" for v in position_image_mm), label])
+    def write_position(self, time_s: float, position_image_mm: np.ndarray, label: str = "", status: str = "OK") -> None:
+        self.write_row([f"{time_s:.4f}", *(f"{v:.4f}" for v in position_image_mm), label, status])

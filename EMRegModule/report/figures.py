@@ -20,6 +20,7 @@ import SimpleITK as sitk
 from ..calibration import CalibrationPoint
 from ..errors import EMRegError
 from ..progress import QUIET, Progress
+from ..rendering.checkpoint_chart import checkpoint_chart
 from ..rendering.colors import GREY, colorize, residual_range
 from ..rendering.context import ContextSurface, bin_factor, binned_ct, context_surface
 from ..rendering.error_views import error_budget_chart, tre_map_slices
@@ -382,6 +383,34 @@ def render_tre_map(data: ReportData) -> list[Figure]:
                    "the reference sensor. Load it in 3D Slicer as a colour overlay on the CT.", _png(image))]
 
 
+def read_checkpoints(data: ReportData) -> dict | None:
+    """``OUT/checkpoints.json`` when it holds at least one checkpoint (None otherwise, or unreadable)."""
+    import json
+
+    try:
+        document = json.loads((data.inputs.out_dir / "checkpoints.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return document if isinstance(document, dict) and document.get("checkpoints") else None
+
+
+def render_checkpoints(data: ReportData) -> list[Figure]:
+    """The error at each checkpoint during navigation over time, with the limit and the reference's jumps."""
+    document = read_checkpoints(data)
+    checkpoints = document["checkpoints"]
+    limit = float(document["max_error_mm"])
+    chart = checkpoint_chart([0.5 * (c["start_s"] + c["end_s"]) for c in checkpoints],
+                             [c["error_mm"] for c in checkpoints], [bool(c["ok"]) for c in checkpoints], limit,
+                             [j["time_s"] for j in document.get("reference_jumps", [])])
+    failed = sum(not c["ok"] for c in checkpoints)
+    return [Figure("checkpoints", "Checkpoints during navigation",
+                   f"Each rest of the probe in a marker's pinhole during navigation: the distance (mm) of the "
+                   f"navigated probe from the pinhole at the solved l, where it must be; above the limit "
+                   f"({limit:g} mm, [navigation] max_checkpoint_error_mm; red) the poses are INVALID until a "
+                   f"checkpoint passes. {len(checkpoints)} checkpoint(s), {failed} failed; dotted lines: sudden jumps "
+                   "of the reference sensor (a bumped frame or a slipped reference).", _png(chart))]
+
+
 # --- the registry ---------------------------------------------------------------------------------
 
 
@@ -412,6 +441,7 @@ FIGURES: tuple[FigureSpec, ...] = (
     FigureSpec(("tre_targets",), _has_tre, render_tre_targets),
     FigureSpec(("error_budget",), _has_budget, render_error_budget),
     FigureSpec(("tre_map",), lambda d: (d.inputs.out_dir / "tre_map.nrrd").is_file(), render_tre_map),
+    FigureSpec(("checkpoints",), lambda d: read_checkpoints(d) is not None, render_checkpoints),
 )
 
 #: Every figure name, in the order of the registry.

@@ -246,6 +246,19 @@ def tre_section(data: ReportData, figures: dict[str, Figure]) -> str:
                            "alone.")])
 
 
+def checkpoints_section(data: ReportData, figures: dict[str, Figure]) -> str:
+    """The checkpoints during navigation (``checkpoints.json``): the figure and one row per checkpoint."""
+    if "checkpoints" not in figures:
+        return ""
+    from .figures import read_checkpoints
+
+    document = read_checkpoints(data) or {}
+    rows = [(esc(c["image_marker"]), num(c["start_s"], 2), num(c["end_s"], 2), num(c["error_mm"]),
+             "passed" if c["ok"] else "<b>FAILED</b>") for c in document.get("checkpoints", [])]
+    return "\n".join(["<h2>Checkpoints during navigation</h2>", _figures(figures, "checkpoints"),
+                      table(("marker", "from (s)", "to (s)", "error (mm)", "verdict"), rows)])
+
+
 def _board_row(i: int, name: str, edge: BoardEdge, nominal: list) -> tuple[str, ...]:
     reference = finite_or_none(edge.nominal_mm)
     if reference is None and i < len(nominal):
@@ -288,7 +301,7 @@ def run_log_section(data: ReportData, figures: dict[str, Figure]) -> str:
 
 SECTIONS: tuple[Callable[[ReportData, dict[str, Figure]], str], ...] = (
     summary_section, warnings_section, scene_section, registration_section, markers_section, calibration_section,
-    tre_section, board_section, run_log_section)
+    tre_section, checkpoints_section, board_section, run_log_section)
 
 
 def _image_space(registration: RegistrationResult | None) -> str:

@@ -25,12 +25,13 @@ from . import ct
 from .frame import REFERENCE_SENSOR_DIAMETER_MM, REFERENCE_SENSOR_LENGTH_MM, Phantom, build_phantom
 from .options import SimulationOptions, resolve_options
 from .shapes import pose
-from .tracking import NoiseModel, Visit, apply_probe_convention, probe_rotation_into, simulate_session
+from .tracking import NoiseModel, ReferenceSlip, Visit, apply_probe_convention, probe_rotation_into, simulate_session
 
 # independent random streams, so that e.g. a new spacing does not change the recordings
 STREAM_LAYOUT, STREAM_PLACEMENT, STREAM_NOISE, STREAM_STREAKS = 1, 2, 3, 4
 STREAM_CALIBRATION, STREAM_NAVIGATION, STREAM_BOARD, STREAM_OFFSET = 5, 6, 7, 8
 STREAM_MARKER_STREAKS = 9
+STREAM_CHECKPOINTS = 10
 MAX_VOXELS = 1_500_000_000
 
 
@@ -91,15 +92,18 @@ def simulate_case(out_dir: Path, seed: int = 0, difficulty: str = "standard", sp
     return truth
 
 
-def simulate_recordings(out_dir: Path, seed: int = 0, difficulty: str = "standard", **options: Any) -> None:
+def simulate_recordings(out_dir: Path, seed: int = 0, difficulty: str = "standard", **options: Any) -> dict:
     """Write only the tracking recordings (``calibration.csv``, ``navigation.csv``, ``board.csv``) of the
     case ``simulate_case`` makes with the same seed, difficulty and options: the same recordings,
-    e.g. in another probe convention (``probe_axis``), beside an existing case's CT and truth."""
+    e.g. in another probe convention (``probe_axis``), beside an existing case's CT and truth.
+    Returns the navigation's ground truth (``truth.json``'s ``"navigation"`` without its pose)."""
     opts = resolve_options(difficulty, None, options)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     model = MarkerModel.from_settings(opts.marker)
-    _write_recordings(out_dir, seed, opts, _phantom(seed, opts, model), model)
+    navigation = _write_recordings(out_dir, seed, opts, _phantom(seed, opts, model), model)[2]
+    return {"dwells": _dwell_list(navigation["dwells"]),
+            **({"reference_slip": navigation["reference_slip"]} if navigation.get("reference_slip") else {})}
 
 
 def _write_recordings(out_dir: Path, seed: int, opts: SimulationOptions, phantom: Phantom,
@@ -108,7 +112,7 @@ def _write_recordings(out_dir: Path, seed: int, opts: SimulationOptions, phantom
     if l_mm is None:
         l_mm = float(_rng(seed, STREAM_OFFSET).uniform(model.pinhole_bottom_mm + 1, model.pinhole_top_mm - 1))
     calibration = _calibration(seed, opts, phantom, l_mm)
-    navigation = _navigation(seed, opts, phantom, _frame_to_image(_rng(seed, STREAM_PLACEMENT), phantom, opts))
+    navigation = _navigation(seed, opts, phantom, _frame_to_image(_rng(seed, STREAM_PLACEMENT), phantom, opts), l_mm)
     board = _board(seed, opts, phantom)
     _write_recording(calibration.pop("recording"), out_dir / "calibration.csv", probe_axis=opts.probe_axis)
     _write_recording(navigation.pop("recording"), out_dir / "navigation.csv", probe_axis=opts.probe_axis)
@@ -300,7 +304,33 @@ def _tool_visit(probe_rotation: np.ndarray, tip_position: np.ndarray, opts: Simu
                  tip_mm=tip_mm, pivot_swing_deg=swing_deg)
 
 
-def _navigation(seed: int, opts: SimulationOptions, phantom: Phantom, frame_to_image: np.ndarray) -> dict:
+def _checkpoint_visits(seed: int, opts: SimulationOptions, phantom: Phantom, l_mm: float, visits: list[Visit]) -> None:
+    """Insert ``navigation_checkpoints`` unlabelled rests in marker pinholes (markers in the CT, at depth l, as at
+    calibration), evenly among the target visits; their own random stream leaves the rest unchanged."""
+    rng = _rng(seed, STREAM_CHECKPOINTS)
+    markers = [m for m in phantom.markers if m.in_ct]
+    count = opts.navigation_checkpoints
+    chosen = rng.choice(len(markers), size=count, replace=len(markers) < count)
+    where = np.linspace(0, len(visits), opts.navigation_checkpoints + 2)[1:-1].round().astype(int)
+    for k, (i, at) in enumerate(zip(chosen, where, strict=True)):
+        m = markers[int(i)]
+        rotation = m.marker_to_frame[:3, :3] @ probe_rotation_into([0.0, -1.0, 0.0], rng.uniform(0, 2 * np.pi))
+        position = apply_transform(m.marker_to_frame, [0.0, l_mm, 0.0])
+        visits.insert(int(at) + k, Visit(pose(rotation, position), float(rng.uniform(1.0, 2.0)), "", m.label))
+
+
+def _reference_slip(seed: int, opts: SimulationOptions) -> ReferenceSlip | None:
+    """The slip of the reference sensor in its slot (random directions of the given sizes), or None."""
+    if opts.reference_slip_mm <= 0 and opts.reference_slip_deg <= 0:
+        return None
+    rng = _rng(seed, STREAM_CHECKPOINTS + 1)
+    shift = rng.normal(size=3)
+    rotation = axis_angle_to_rotation(rng.normal(size=3), np.radians(opts.reference_slip_deg))
+    return ReferenceSlip(opts.reference_slip_at, pose(rotation, shift / np.linalg.norm(shift) * opts.reference_slip_mm))
+
+
+def _navigation(seed: int, opts: SimulationOptions, phantom: Phantom, frame_to_image: np.ndarray,
+                l_mm: float) -> dict:
     rng = _rng(seed, STREAM_NAVIGATION)
     frame_to_tracker = _frame_to_tracker(rng, phantom.geometry.size, rng.uniform(-180, 180),
                                          np.array([rng.uniform(250, 420), rng.uniform(-120, 120),
@@ -318,19 +348,44 @@ def _navigation(seed: int, opts: SimulationOptions, phantom: Phantom, frame_to_i
                                     f"T{t + 1}", 0.0)
                 visit.tremor_mm = 0.08
                 visits.append(visit)
+    if opts.navigation_checkpoints:
+        _checkpoint_visits(seed, opts, phantom, l_mm, visits)
     targets_image = apply_transform(frame_to_image, phantom.targets) if n else np.zeros((0, 3))
     out: dict[str, Any] = {"targets_image": targets_image, "dwells": [], "reference_to_tracker": None,
-                           "recording": None}
+                           "recording": None, "reference_slip": None}
     if not visits:
         return out
     noise = NoiseModel(bad_sample_rate=opts.bad_sample_rate).scaled(opts.tracker_noise_scale)
-    centre = np.asarray(phantom.targets).mean(axis=0)
+    centre = np.asarray(phantom.targets).mean(axis=0) if n else phantom.geometry.size * [0.0, 0.0, 0.5]
+    slip = _reference_slip(seed, opts)
     recording, dwells, body_poses = simulate_session(
         rng, visits, frame_to_tracker, phantom.reference_to_frame, centre, lift_mm=20.0, noise=noise,
-        start_time_s=round(float(rng.uniform(0, 5)), 2))
+        start_time_s=round(float(rng.uniform(0, 5)), 2), reference_slip=slip)
     out.update(recording=recording, dwells=dwells,
-               reference_to_tracker=frame_to_tracker @ phantom.reference_to_frame)
+               reference_to_tracker=frame_to_tracker @ phantom.reference_to_frame,
+               reference_slip=None if slip is None else _slip_truth(slip, phantom, l_mm, dwells))
     return out
+
+
+def _slip_truth(slip: ReferenceSlip, phantom: Phantom, l_mm: float, dwells) -> dict:
+    """Ground truth of the slip: when, how much, and the error it makes at each later rest in a pinhole
+    (``|inv(S) p - p|`` for the pinhole ``p`` in the Reference frame: what the navigated probe is off by,
+    before tracker noise and registration error)."""
+    after_to_before = slip.reference_after_to_before
+    before_to_after = invert_rigid(after_to_before)
+    frame_to_reference = invert_rigid(phantom.reference_to_frame)
+    pinholes = {m.label: apply_transform(frame_to_reference @ m.marker_to_frame, [0.0, l_mm, 0.0])
+                for m in phantom.markers}
+    errors = []
+    for d in dwells:
+        if d.name in pinholes:
+            p = pinholes[d.name]
+            moved = float(np.linalg.norm(apply_transform(before_to_after, p) - p)) if d.start_s >= slip.time_s else 0.0
+            errors.append({"name": d.name, "start_s": round(d.start_s, 4), "end_s": round(d.end_s, 4),
+                           "true_error_mm": round(moved, 4)})
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(after_to_before[:3, :3]) - 1) / 2, -1, 1))))
+    return {"time_s": round(float(slip.time_s), 4), "translation_mm": float(np.linalg.norm(after_to_before[:3, 3])),
+            "rotation_deg": angle, "ReferenceAfterToReferenceBefore": after_to_before, "checkpoints": errors}
 
 
 def board_holes(edges_mm) -> np.ndarray:
@@ -458,7 +513,9 @@ def _truth(seed: int, difficulty: str, opts: SimulationOptions, model: MarkerMod
                         "probe_axis": opts.probe_axis,
                         "dwells": _dwell_list(calibration["dwells"], calibration["reference_to_tracker"])},
         "navigation": {"ReferenceToTracker": navigation["reference_to_tracker"],
-                       "dwells": _dwell_list(navigation["dwells"])},
+                       "dwells": _dwell_list(navigation["dwells"]),
+                       **({"reference_slip": navigation["reference_slip"]}
+                          if navigation.get("reference_slip") else {})},
         "tool": None if opts.tool_tip_mm is None else {"tip_mm": list(opts.tool_tip_mm),
                                                        "pivot_swing_deg": opts.pivot_swing_deg},
     }

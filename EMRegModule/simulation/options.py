@@ -58,6 +58,10 @@ class SimulationOptions:
     #: recording ``pivot.csv`` and ``[tool] calibration`` are written. None: the paper's probe.
     tool_tip_mm: tuple[float, float, float] | None = None
     pivot_swing_deg: float = 30.0
+    navigation_checkpoints: int = 0  # unlabelled rests of the probe in marker pinholes during navigation
+    reference_slip_mm: float = 0.0  # the reference sensor slips in its slot during navigation by this much ...
+    reference_slip_deg: float = 0.0  # ... and this rotation (random directions)
+    reference_slip_at: float = 0.5  # ... at this fraction of the navigation recording (while the probe moves)
 
     def check(self) -> None:
         """Refuse impossible values with an :class:`EMRegError` naming the option."""
@@ -94,7 +98,11 @@ class SimulationOptions:
             raise EMRegError(f"simulate: pvc_hu must lie in 300..2800 HU, got {self.pvc_hu}")
         if self.marker_streaks > self.n_markers:
             raise EMRegError("simulate: marker_streaks cannot exceed n_markers")
-        for name in ("n_decoys", "marker_streaks", "n_bumps", "n_targets", "navigation_rounds", "board_rounds"):
+        if self.reference_slip_mm < 0 or self.reference_slip_deg < 0 or not 0.0 < self.reference_slip_at < 1.0:
+            raise EMRegError("simulate: reference_slip_mm and reference_slip_deg must not be negative, "
+                             "reference_slip_at must lie strictly between 0 and 1")
+        for name in ("n_decoys", "marker_streaks", "n_bumps", "n_targets", "navigation_rounds", "board_rounds",
+                     "navigation_checkpoints"):
             if getattr(self, name) < 0:
                 raise EMRegError(f"simulate: {name} must not be negative")
 

@@ -77,6 +77,17 @@ class DwellTruth:
 
 
 @dataclass
+class ReferenceSlip:
+    """The reference sensor slips in its slot once during a recording: from the transition sample nearest to
+    ``at_fraction`` of the recording on, the sensor sits at ``ReferenceAfterToReferenceBefore``
+    (``reference_after_to_before``, 4x4, mm) in its former pose; :func:`simulate_session` sets ``time_s``."""
+
+    at_fraction: float
+    reference_after_to_before: np.ndarray
+    time_s: float | None = None
+
+
+@dataclass
 class _Track:
     time_s: list = field(default_factory=list)
     probe_to_body: list = field(default_factory=list)
@@ -207,12 +218,15 @@ def simulate_session(rng: np.random.Generator, visits: list[Visit], body_to_trac
                      reference_to_body: np.ndarray, centre_body: np.ndarray, lift_mm: float = 25.0,
                      bump_before: dict[int, np.ndarray] | None = None, hesitation_rate: float = 0.0,
                      noise: NoiseModel | None = None, start_time_s: float = 0.0,
+                     reference_slip: ReferenceSlip | None = None,
                      ) -> tuple[TrackingRecording, list[DwellTruth], list[np.ndarray]]:
     """A recording of the probe visiting ``visits`` in turn with the reference sensor recorded alongside.
 
     ``bump_before[i]``: the new ``BodyToTracker`` that takes effect during the transition
-    into visit ``i`` (the frame was bumped). Returns the recording (reported poses), the
-    dwell periods, and the ``BodyToTracker`` of each visit.
+    into visit ``i`` (the frame was bumped). ``reference_slip``: the reference sensor slips in
+    its slot once, between two samples while the probe moves (its ``time_s`` is set to the first
+    sample after the slip). Returns the recording (reported poses), the dwell periods, and the
+    ``BodyToTracker`` of each visit.
     """
     noise = noise or NoiseModel()
     bump_before = bump_before or {}
@@ -265,7 +279,13 @@ def simulate_session(rng: np.random.Generator, visits: list[Visit], body_to_trac
         p = previous.copy()
         p[:3, 3] += (leave[:3, 3] - previous[:3, 3]) * k / n_leave
         add(p, current_body, -1, "")
-    recording = _report(rng, track, np.asarray(reference_to_body, dtype=float), noise, len(visits))
+    slip_index = None
+    if reference_slip is not None:
+        moving = np.flatnonzero(np.asarray(track.dwell_index) < 0)
+        slip_index = int(moving[np.argmin(np.abs(moving - reference_slip.at_fraction * len(track.time_s)))])
+        reference_slip.time_s = float(track.time_s[slip_index])
+    recording = _report(rng, track, np.asarray(reference_to_body, dtype=float), noise, len(visits),
+                        None if reference_slip is None else (slip_index, reference_slip.reference_after_to_before))
     return recording, dwells, visit_body_to_tracker
 
 
@@ -300,8 +320,9 @@ def _rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
 
 
 def _report(rng: np.random.Generator, track: _Track, reference_to_body: np.ndarray, noise: NoiseModel,
-            n_visits: int) -> TrackingRecording:
-    """Apply the tracker's errors to the true poses and interleave reference and probe rows."""
+            n_visits: int, slip: tuple[int, np.ndarray] | None = None) -> TrackingRecording:
+    """Apply the tracker's errors to the true poses and interleave reference and probe rows; ``slip``: (first
+    sample, ``ReferenceAfterToReferenceBefore``) of a slip of the reference sensor in its slot."""
     n = len(track.time_s)
     time_s = np.asarray(track.time_s)
     probe_to_body = np.asarray(track.probe_to_body)
@@ -309,6 +330,8 @@ def _report(rng: np.random.Generator, track: _Track, reference_to_body: np.ndarr
     dwell = np.asarray(track.dwell_index)
     probe_true = body_to_tracker @ probe_to_body
     reference_true = body_to_tracker @ reference_to_body
+    if slip is not None:
+        reference_true[slip[0]:] = reference_true[slip[0]:] @ slip[1]
 
     # probe: per-dwell systematic error, interpolated in time through the transitions
     sys_pos = rng.normal(0, noise.probe_dwell_mm, (n_visits, 3))

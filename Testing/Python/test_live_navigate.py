@@ -206,7 +206,7 @@ def test_replay_published_over_tcp_matches_offline_navigation(tmp_path):
     # the live navigation.csv equals the offline one, except the bad-quality moment the watchdog withheld
     offline_rows = (tmp_path / "offline" / "navigation.csv").read_text().splitlines()
     live_rows = (tmp_path / "live" / "navigation.csv").read_text().splitlines()
-    assert live_rows[0] == offline_rows[0] == "time_s,x_mm,y_mm,z_mm,label"
+    assert live_rows[0] == offline_rows[0] == "time_s,x_mm,y_mm,z_mm,label,status"
     assert live_rows[1:] == [r for r in offline_rows[1:] if not r.startswith("0.8000,")]
 
 
@@ -376,7 +376,7 @@ def test_cli_sim_tracker_link_and_live_navigate(tmp_path):
     assert sim.returncode == 0 and not link.exists()  # stopped cleanly, link removed
     rows = (tmp_path / "out" / "navigation.csv").read_text().splitlines()
     # 200 frames at 80 Hz; the first ~0.8 s are withheld while the port check waits for the probe to move
-    assert rows[0] == "time_s,x_mm,y_mm,z_mm,label" and 100 <= len(rows) - 1 <= 201
+    assert rows[0] == "time_s,x_mm,y_mm,z_mm,label,status" and 100 <= len(rows) - 1 <= 201
     positions = np.array([[float(v) for v in r.split(",")[1:4]] for r in rows[1:]])
     assert message is not None
     lps = (LPS_TO_RAS @ np.asarray(message.matrix, dtype=float))[:3, 3]

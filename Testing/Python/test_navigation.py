@@ -76,7 +76,8 @@ def test_navigation_csv(tmp_path, case):
     write_navigation_csv(result, path)
     with path.open() as f:
         rows = list(csv.reader(f))
-    assert rows[0] == ["time_s", "x_mm", "y_mm", "z_mm", "label"]
+    assert rows[0][:5] == ["time_s", "x_mm", "y_mm", "z_mm", "label"]  # the spec's columns first, then "status"
+    assert rows[0][5:] == ["status"] and {row[5] for row in rows[1:]} == {"OK"}  # not judged: OK
     assert len(rows) == len(result) + 1
     positions = np.array([[float(v) for v in row[1:4]] for row in rows[1:]])
     np.testing.assert_allclose(positions, result.position_mm, atol=1e-4)

@@ -79,7 +79,8 @@ def test_run_writes_every_output_of_the_spec(run):
                                registration["ReferenceToImage"], atol=1e-9)
     with (out / "navigation.csv").open() as f:
         rows = list(csv.reader(f))
-    assert rows[0] == ["time_s", "x_mm", "y_mm", "z_mm", "label"] and len(rows) > 1000
+    assert rows[0][:5] == ["time_s", "x_mm", "y_mm", "z_mm", "label"] and len(rows) > 1000
+    assert rows[0][5:] == ["status"] and {row[5] for row in rows[1:]} <= {"OK", "INVALID"}  # added after the spec's
     evaluation = _load(out, "evaluation.json")
     assert set(evaluation["tre"]["targets"]) == {t["label"] for t in truth["targets"]}
     assert list(evaluation["board"]["edges"]) == ["L1", "L2", "L3", "L4"]
