@@ -27,7 +27,7 @@ from .dwell import find_dwells, group_by_place, robust_mean, robust_mean_directi
 from .errors import EMRegError
 from .io.atomic import atomic_write_json, read_json
 from .settings import CalibrationSettings
-from .tracking import TrackingRecording, probe_in_reference
+from .tracking import TrackingRecording, invert_rigid_batch, probe_in_reference
 
 
 @dataclass
@@ -36,7 +36,9 @@ class CalibrationPoint:
 
     ``position`` (3,) mm: the probe sensor's centre in the pinhole; ``direction`` (3,) unit:
     the marker's +Y (out of the hole), NaN when unknown; ``samples``: samples averaged;
-    ``std_mm``: RMS 3D distance of those samples from ``position``; ``visits``: dwells merged.
+    ``std_mm``: RMS 3D distance of those samples from ``position``; ``visits``: dwells merged;
+    ``tracker_to_reference`` (4, 4): the transmitter's mean pose in the Reference frame over those samples
+    (where the field came from: :mod:`EMRegModule.distortion`; None in older files).
     """
 
     label: str
@@ -49,6 +51,7 @@ class CalibrationPoint:
     start_s: float = float("nan")
     end_s: float = float("nan")
     warning: str = ""
+    tracker_to_reference: np.ndarray | None = None
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -61,6 +64,8 @@ class CalibrationPoint:
         }
         if self.warning:
             out["warning"] = self.warning
+        if self.tracker_to_reference is not None:
+            out["TrackerToReference"] = np.asarray(self.tracker_to_reference, dtype=float).tolist()
         return out
 
 
@@ -143,6 +148,7 @@ class FrameCalibration:
                     direction_std_deg=_float(item.get("direction_std_deg")),
                     start_s=_float(item.get("start_s")), end_s=_float(item.get("end_s")),
                     warning=str(item.get("warning", "")),
+                    tracker_to_reference=_pose_or_none(item.get("TrackerToReference"), f"{source}: point {i + 1}"),
                 ))
             labels = [p.label for p in points]
             if len(set(labels)) != len(labels):
@@ -160,6 +166,25 @@ class FrameCalibration:
                        _dict_or_none(document.get("provenance")))
         except (KeyError, TypeError, ValueError) as exc:
             raise EMRegError(f"{source}: not a frame calibration file ({exc!s:.100})") from None
+
+
+def _pose_or_none(value: Any, source: str) -> np.ndarray | None:
+    """A stored 4 x 4 pose (None when absent); a malformed one is an :class:`EMRegError`."""
+    if value is None:
+        return None
+    pose = np.asarray(value, dtype=float)
+    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+        raise EMRegError(f"{source}: TrackerToReference must be a 4x4 matrix of finite numbers")
+    return pose
+
+
+def _mean_pose(poses: np.ndarray) -> np.ndarray:
+    """The mean of rigid poses (K, 4, 4): mean translation, rotation the polar part of the mean rotation."""
+    u, _, vt = np.linalg.svd(poses[:, :3, :3].mean(axis=0))
+    mean = np.eye(4)
+    mean[:3, :3] = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    mean[:3, 3] = poses[:, :3, 3].mean(axis=0)
+    return mean
 
 
 def _dict_or_none(value: Any) -> dict[str, Any] | None:
@@ -241,6 +266,7 @@ def calibrate_frame(
             visits=len(members), direction_std_deg=direction_std,
             start_s=float(min(dwells[m].start_s for m in members)),
             end_s=float(max(dwells[m].end_s for m in members)), warning=warning,
+            tracker_to_reference=_mean_pose(invert_rigid_batch(samples.reference_to_tracker[used])),
         ))
     warnings = list(recording.warnings)  # time resets / gaps found on reading (kept, as separate segments)
     warnings += [f"{p.label}: {p.warning}" for p in points if p.warning]

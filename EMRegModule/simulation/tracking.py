@@ -25,6 +25,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from ..tracking import TrackingRecording
 from ..transforms import axis_angle_to_rotation, random_rotation
+from .distortion import FieldDistortion
 
 RATE_HZ = 80.0
 REFERENCE_PORT = 1
@@ -172,12 +173,14 @@ def simulate_session(rng: np.random.Generator, visits: list[Visit], body_to_trac
                      reference_to_body: np.ndarray, centre_body: np.ndarray, lift_mm: float = 25.0,
                      bump_before: dict[int, np.ndarray] | None = None, hesitation_rate: float = 0.0,
                      noise: NoiseModel | None = None, start_time_s: float = 0.0,
+                     distortion: FieldDistortion | None = None,
                      ) -> tuple[TrackingRecording, list[DwellTruth], list[np.ndarray]]:
     """A recording of the probe visiting ``visits`` in turn with the reference sensor recorded alongside.
 
     ``bump_before[i]``: the new ``BodyToTracker`` that takes effect during the transition
-    into visit ``i`` (the frame was bumped). Returns the recording (reported poses), the
-    dwell periods, and the ``BodyToTracker`` of each visit.
+    into visit ``i`` (the frame was bumped). ``distortion``: a metal object distorting the field
+    (both sensors, at its strength at each sample's time; :mod:`.distortion`). Returns the recording
+    (reported poses), the dwell periods, and the ``BodyToTracker`` of each visit.
     """
     noise = noise or NoiseModel()
     bump_before = bump_before or {}
@@ -229,7 +232,7 @@ def simulate_session(rng: np.random.Generator, visits: list[Visit], body_to_trac
         p = previous.copy()
         p[:3, 3] += (leave[:3, 3] - previous[:3, 3]) * k / n_leave
         add(p, current_body, -1, "")
-    recording = _report(rng, track, np.asarray(reference_to_body, dtype=float), noise, len(visits))
+    recording = _report(rng, track, np.asarray(reference_to_body, dtype=float), noise, len(visits), distortion)
     return recording, dwells, visit_body_to_tracker
 
 
@@ -264,8 +267,9 @@ def _rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
 
 
 def _report(rng: np.random.Generator, track: _Track, reference_to_body: np.ndarray, noise: NoiseModel,
-            n_visits: int) -> TrackingRecording:
-    """Apply the tracker's errors to the true poses and interleave reference and probe rows."""
+            n_visits: int, distortion: FieldDistortion | None = None) -> TrackingRecording:
+    """Apply the tracker's errors (the field's distortion first) to the true poses and interleave reference
+    and probe rows."""
     n = len(track.time_s)
     time_s = np.asarray(track.time_s)
     probe_to_body = np.asarray(track.probe_to_body)
@@ -273,6 +277,9 @@ def _report(rng: np.random.Generator, track: _Track, reference_to_body: np.ndarr
     dwell = np.asarray(track.dwell_index)
     probe_true = body_to_tracker @ probe_to_body
     reference_true = body_to_tracker @ reference_to_body
+    if distortion is not None:
+        probe_true = distortion.distort(time_s, probe_true)
+        reference_true = distortion.distort(time_s, reference_true)
 
     # probe: per-dwell systematic error, interpolated in time through the transitions
     sys_pos = rng.normal(0, noise.probe_dwell_mm, (n_visits, 3))

@@ -28,6 +28,7 @@ from ..io.case import open_case
 from ..marker_model import MarkerModel
 from ..registration import RegistrationResult, register
 from ..simulation import load_truth, simulate_case
+from ..simulation.distortion import FieldDistortion
 from ..simulation.tracking import NoiseModel, Visit, probe_rotation_into, simulate_session
 from ..tracking import TrackingRecording
 from ..transforms import (
@@ -112,22 +113,29 @@ def reference_placement(rng: np.random.Generator) -> np.ndarray:
 
 
 def simulate_calibration(frame: Frame, rng: np.random.Generator, noise: NoiseModel | None = None,
-                         subset: np.ndarray | None = None) -> TrackingRecording:
-    """A calibration recording: the probe into each (selected) pinhole in turn, labelled by marker."""
+                         subset: np.ndarray | None = None, reference_to_tracker: np.ndarray | None = None,
+                         distortion: FieldDistortion | None = None) -> TrackingRecording:
+    """A calibration recording: the probe into each (selected) pinhole in turn, labelled by marker.
+
+    ``reference_to_tracker``: where the frame is (default: a random placement); ``distortion``: a metal
+    object distorting the field (:mod:`EMRegModule.simulation.distortion`)."""
     index = np.arange(len(frame.labels)) if subset is None else np.asarray(subset)
     visits = []
     for i in index:
         rotation = probe_rotation_into(-frame.axes[i], rng.uniform(0, 2 * np.pi))
         visits.append(Visit(make_transform(rotation, frame.pinholes[i]), float(rng.uniform(1.0, 2.0)),
                             frame.labels[i], frame.labels[i]))
-    recording, _, _ = simulate_session(rng, visits, reference_placement(rng), np.eye(4),
-                                       frame.pinholes[index].mean(axis=0), lift_mm=25.0, noise=noise)
+    placement = reference_placement(rng) if reference_to_tracker is None else reference_to_tracker
+    recording, _, _ = simulate_session(rng, visits, placement, np.eye(4), frame.pinholes[index].mean(axis=0),
+                                       lift_mm=25.0, noise=noise, distortion=distortion)
     return recording
 
 
 def simulate_navigation(frame: Frame, rng: np.random.Generator, rounds: int = 15,
-                        noise: NoiseModel | None = None) -> TrackingRecording:
-    """A navigation recording: the probe tip-first onto each target, ``rounds`` times, hand-held."""
+                        noise: NoiseModel | None = None, reference_to_tracker: np.ndarray | None = None,
+                        distortion: FieldDistortion | None = None) -> TrackingRecording:
+    """A navigation recording: the probe tip-first onto each target, ``rounds`` times, hand-held
+    (``reference_to_tracker``, ``distortion``: as for :func:`simulate_calibration`)."""
     targets = frame.targets_reference
     centre = targets.mean(axis=0)
     visits = []
@@ -137,8 +145,9 @@ def simulate_navigation(frame: Frame, rng: np.random.Generator, rounds: int = 15
             rotation = probe_rotation_into(inward, rng.uniform(0, 2 * np.pi), 25.0, rng)
             visits.append(Visit(make_transform(rotation, target), float(rng.uniform(1.0, 2.0)), label, label,
                                 tremor_mm=0.08))
-    recording, _, _ = simulate_session(rng, visits, reference_placement(rng), np.eye(4), centre, lift_mm=20.0,
-                                       noise=noise)
+    placement = reference_placement(rng) if reference_to_tracker is None else reference_to_tracker
+    recording, _, _ = simulate_session(rng, visits, placement, np.eye(4), centre, lift_mm=20.0, noise=noise,
+                                       distortion=distortion)
     return recording
 
 
@@ -154,9 +163,10 @@ class Session:
 
 
 def calibrate_and_register(frame: Frame, rng: np.random.Generator, noise: NoiseModel | None = None,
-                           subset: np.ndarray | None = None) -> Session:
+                           subset: np.ndarray | None = None, reference_to_tracker: np.ndarray | None = None,
+                           distortion: FieldDistortion | None = None) -> Session:
     """Simulate a calibration session, then the real calibration and registration; errors vs the truth."""
-    recording = simulate_calibration(frame, rng, noise, subset)
+    recording = simulate_calibration(frame, rng, noise, subset, reference_to_tracker, distortion)
     try:
         calibration = calibrate_frame(recording, 1, 2, None)
         registration = register(frame.detection, calibration, frame.model, None, targets_image=frame.targets_image)

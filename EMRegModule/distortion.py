@@ -1,0 +1,436 @@
+"""Field distortion seen at registration: residuals that are spatially coherent, beyond what noise explains.
+
+The CT is geometrically true; the EM measurements are not once metal distorts the field. After the
+rigid fit (with l), the residual of each calibration point is its tracking noise plus the non-rigid
+part of the distortion, a smooth field (neighbouring pinholes displaced alike). Noise is independent
+from pinhole to pinhole; a distortion is not. Everything here is in the **Reference frame** (mm):
+``d(x)`` is the displacement of an EM measurement at x from where it should be, with the part the
+rigid fit absorbs removed.
+
+**Model.** The residual vector ``r`` (3N) is ``P (f + e)``: ``P`` removes what the rigid fit (rotation,
+translation, and l when solved) absorbs; ``e`` is isotropic noise of unknown per-axis sigma (probe
+per-dwell error and CT localisation, independent per point); ``f`` is a smooth field
+``f(x) = sum_j exp(-|x - c_j|^2 / (2 L^2)) w_j`` with Gaussian bumps at the pinholes ``c_j``, weights
+``w ~ N(0, rho sigma^2 I)``. Length scale L (a fraction of the frame's size) and signal-to-noise ratio
+rho are chosen by maximum (marginal) likelihood on a grid, sigma profiled out.
+
+**Test.** The likelihood ratio of that model against noise alone (rho = 0). Its null distribution does
+not depend on the noise's size (the residual is scale-free under the null: only the geometry enters),
+so it is drawn by Monte Carlo once per geometry (deterministic seed): the p-value is exact up to the
+draws, whatever the tracker's noise. A single bad pair (one large, isolated residual) is not coherent
+and hardly raises it. The chi-square of the residuals against the error model's own FLE cannot serve
+here: with one dwell per pinhole the FLE is estimated from these same residuals (the dwell spread only
+shows the jitter, not the per-dwell error), so the ratio is one by construction.
+
+**Estimate.** The posterior mean of the non-rigid field at the pinholes gives ``rms_mm`` / ``max_mm``;
+its posterior mean and covariance anywhere give the distortion's mean-square contribution to the TRE
+at a target probed in the same field (:meth:`DistortionEstimate.mean_square_at`), and the noise
+sigma that remains replaces the probe's per-dwell error of the error model.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from .em_field import position_error_basis
+from .error_model import fiducial_jacobian
+
+#: Bump widths tried, as fractions of the RMS distance of the pinholes from their centroid.
+LENGTH_FRACTIONS = (0.3, 0.5, 0.8)
+#: Bump centres: the pinholes, and the pinholes pushed out from the centroid by this factor (an object outside).
+OUTWARD = 1.35
+#: Candidate objects: directions from the pinholes' centre, and gaps (mm) beyond their farthest one.
+OBJECT_DIRECTIONS = 64
+OBJECT_GAPS_MM = (15.0, 50.0, 100.0, 180.0, 300.0)
+#: Candidate objects nearer than this to the transmitter (mm) are not tried.
+MIN_TRANSMITTER_DISTANCE_MM = 80.0
+#: Monte Carlo draws of the null distribution.
+NULL_DRAWS = 4000
+#: Fewest residual degrees of freedom a test needs (below: not tested).
+MIN_DOF = 6
+
+
+def _kernel(points_a: np.ndarray, points_b: np.ndarray, length_mm: np.ndarray | float) -> np.ndarray:
+    """Gaussian bump values exp(-|a - b|^2 / (2 L^2)), (len(a), len(b)); ``length_mm`` per b or one."""
+    squared = np.sum((points_a[:, None, :] - points_b[None, :, :]) ** 2, axis=-1)
+    return np.exp(-squared / (2.0 * np.asarray(length_mm, dtype=float) ** 2))
+
+
+def _rigid_jacobian(points: np.ndarray, axes: np.ndarray | None) -> np.ndarray:
+    """The stacked rigid-fit Jacobian (3N, P) at the pinholes (rotation about their centroid, translation, l)."""
+    return fiducial_jacobian(points, points.mean(axis=0), axes).reshape(3 * len(points), -1)
+
+
+def _complement(jacobian: np.ndarray) -> np.ndarray:
+    """An orthonormal basis (3N, m) of what the rigid fit leaves: residuals live there."""
+    u, s, _ = np.linalg.svd(jacobian, full_matrices=True)
+    return u[:, int(np.sum(s > s[0] * 1e-10)):]
+
+
+def _fibonacci_sphere(n: int) -> np.ndarray:
+    """``n`` nearly uniform unit directions (n, 3)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    angle = np.pi * (1.0 + np.sqrt(5.0)) * k
+    r = np.sqrt(1.0 - z * z)
+    return np.column_stack([r * np.cos(angle), r * np.sin(angle), z])
+
+
+# --- the two field models: an induced dipole, or smooth bumps ---------------------------------
+
+
+@dataclass(frozen=True)
+class _Dipole:
+    """An induced dipole at ``object_mm`` (Tracker frame); pinholes seen from the transmitter through each one's
+    ``TrackerToReference`` (the frame may have moved between dwells). Amplitudes: the six symmetric
+    polarisability coefficients (mm^3, :data:`EMRegModule.em_field.SYMMETRIC_BASIS`)."""
+
+    object_mm: np.ndarray
+    tracker_to_reference: np.ndarray  # (4, 4): for points other than the pinholes (the calibration's mean pose)
+
+    def columns(self, points_reference: np.ndarray, tracker_to_reference: np.ndarray | None = None) -> np.ndarray:
+        """Field columns (K, 3, 6) in the Reference frame at points (K, 3), each with its pose (K, 4, 4) or the mean."""
+        poses = np.broadcast_to(self.tracker_to_reference if tracker_to_reference is None else tracker_to_reference,
+                                (len(points_reference), 4, 4))
+        rotation, origin = poses[:, :3, :3], poses[:, :3, 3]
+        points_tracker = np.einsum("kji,kj->ki", rotation, points_reference - origin)
+        return rotation @ position_error_basis(points_tracker, self.object_mm)
+
+
+@dataclass(frozen=True)
+class _Bumps:
+    """Gaussian bumps at ``centres_mm`` (B, 3, Reference) of widths ``lengths_mm`` (B,); amplitudes: a
+    displacement (mm, 3) per bump."""
+
+    centres_mm: np.ndarray
+    lengths_mm: np.ndarray
+
+    def columns(self, points_reference: np.ndarray, tracker_to_reference: np.ndarray | None = None) -> np.ndarray:
+        """Field columns (K, 3, 3B) at points (K, 3) of the Reference frame."""
+        kernel = _kernel(np.asarray(points_reference, dtype=float), self.centres_mm, self.lengths_mm)
+        return np.einsum("kb,cd->kcbd", kernel, np.eye(3)).reshape(len(kernel), 3, -1)
+
+
+def _stack(columns: np.ndarray) -> np.ndarray:
+    """(N, 3, P) -> (3N, P), rows point-major (as the rigid Jacobian)."""
+    return columns.reshape(-1, columns.shape[-1])
+
+
+@dataclass
+class _Scan:
+    """Candidate fields (dipoles or single bumps) and, in the residual basis Q (3N, m), each one's orthonormal
+    column basis (C, m, P)."""
+
+    basis: np.ndarray
+    candidates: list
+    bases: np.ndarray
+
+    @classmethod
+    def of(cls, points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None) -> _Scan:
+        basis = _complement(_rigid_jacobian(points, axes))
+        candidates = _dipole_candidates(points, poses) if poses is not None else _bump_candidates(points)
+        design = np.stack([basis.T @ _stack(c.columns(points, poses)) for c in candidates])
+        q, r = np.linalg.qr(design)  # (C, m, P)
+        diagonal = np.abs(np.diagonal(r, axis1=-2, axis2=-1))
+        q = q * (diagonal > 1e-9 * diagonal.max(axis=-1, keepdims=True))[:, None, :]  # drop dependent columns
+        return cls(basis, candidates, q)
+
+    @property
+    def dof(self) -> int:
+        return int(self.basis.shape[1])
+
+    def best_fraction(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The largest share of |z|^2 one candidate explains (...,) and which one (...,), z (..., m)."""
+        z = np.asarray(z, dtype=float)
+        n_candidates, m, n_columns = self.bases.shape
+        flat = np.transpose(self.bases, (1, 0, 2)).reshape(m, n_candidates * n_columns)
+        projections = (z @ flat).reshape(z.shape[:-1] + (n_candidates, n_columns))
+        fraction = np.sum(projections**2, axis=-1) / np.sum(z**2, axis=-1)[..., None]
+        return fraction.max(axis=-1), fraction.argmax(axis=-1)
+
+
+def _dipole_candidates(points: np.ndarray, poses: np.ndarray) -> list[_Dipole]:
+    """Objects around the pinholes (Tracker frame): :data:`OBJECT_DIRECTIONS` x :data:`OBJECT_GAPS_MM`."""
+    rotation, origin = poses[:, :3, :3], poses[:, :3, 3]
+    points_tracker = np.einsum("kji,kj->ki", rotation, points - origin)
+    centre = points_tracker.mean(axis=0)
+    radius = float(np.max(np.linalg.norm(points_tracker - centre, axis=1)))
+    mean = _mean_pose(poses)
+    candidates = []
+    for gap in OBJECT_GAPS_MM:
+        for direction in _fibonacci_sphere(OBJECT_DIRECTIONS):
+            position = centre + direction * (radius + gap)
+            if np.linalg.norm(position) >= MIN_TRANSMITTER_DISTANCE_MM:
+                candidates.append(_Dipole(position, mean))
+    return candidates
+
+
+def _bump_candidates(points: np.ndarray) -> list[_Bumps]:
+    """Single bumps at the pinholes and pushed out from them, of :data:`LENGTH_FRACTIONS` widths."""
+    centroid = points.mean(axis=0)
+    radius = float(np.sqrt(np.mean(np.sum((points - centroid) ** 2, axis=1))))
+    places = np.concatenate([points, centroid + OUTWARD * (points - centroid)])
+    return [_Bumps(place[None], np.array([max(radius * f, 1.0)])) for place in places for f in LENGTH_FRACTIONS]
+
+
+def _mean_pose(poses: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(poses[:, :3, :3].mean(axis=0))
+    mean = np.eye(4)
+    mean[:3, :3] = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    mean[:3, 3] = poses[:, :3, 3].mean(axis=0)
+    return mean
+
+
+@dataclass
+class DistortionEstimate:
+    """The distortion test and the non-rigid field fitted at registration (Reference frame, mm).
+
+    ``labels`` / ``image_markers``: the paired pinholes; ``points_mm`` (N, 3): their calibration points;
+    ``residuals_mm`` (N, 3): measured point minus the registered CT pinhole; ``statistic``: the largest
+    share of the residuals' sum of squares one candidate field explains; ``p_value``: its Monte Carlo
+    p-value under noise alone; ``alpha``: the false-alarm rate it is compared with. The fitted field:
+    ``model`` (a dipole or bumps; None: noise alone) with ``amplitudes`` (P,) and their covariance
+    (P, P); ``rigid_per_amplitude`` (6, P): the rigid motion (rotation rad, translation mm, about the
+    pinholes' centroid) the registration absorbs of each amplitude's field; ``at_pinholes_mm`` (N, 3):
+    the non-rigid field at the pinholes; ``noise_sigma_mm`` (per axis) and ``noise_dof``: the noise beside it.
+    """
+
+    labels: list[str]
+    points_mm: np.ndarray
+    residuals_mm: np.ndarray
+    statistic: float
+    p_value: float
+    alpha: float
+    noise_sigma_mm: float
+    noise_dof: float = float("inf")
+    model: _Dipole | _Bumps | None = None
+    amplitudes: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    amplitude_covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    rigid_per_amplitude: np.ndarray = field(default_factory=lambda: np.zeros((6, 0)))
+    at_pinholes_mm: np.ndarray | None = None
+    tested: bool = True
+    image_markers: list[str] = field(default_factory=list)
+    note: str = ""
+
+    @property
+    def detected(self) -> bool:
+        return bool(self.tested and self.p_value <= self.alpha)
+
+    # --- the fitted field -------------------------------------------------------------------
+
+    def _operator(self, points: np.ndarray, columns: np.ndarray) -> np.ndarray:
+        """``G(x) @ columns`` (K, 3, C) for amplitude columns (P, C): the model's field at x minus the rigid
+        motion the registration absorbed of it."""
+        raw = self.model.columns(points) @ columns
+        motion = fiducial_jacobian(points, np.asarray(self.points_mm, dtype=float).mean(axis=0))
+        return raw - motion @ (self.rigid_per_amplitude @ columns)
+
+    def field_at(self, points_reference: np.ndarray) -> np.ndarray:
+        """The fitted non-rigid displacement (K, 3, mm) at points (K, 3) of the Reference frame, probed with the
+        frame where it was calibrated."""
+        points = np.asarray(points_reference, dtype=float).reshape(-1, 3)
+        if self.model is None:
+            return np.zeros_like(points)
+        return self._operator(points, np.asarray(self.amplitudes, dtype=float).reshape(-1, 1))[..., 0]
+
+    def mean_square_at(self, points_reference: np.ndarray) -> np.ndarray:
+        """Expected squared distortion error (K,) (mm^2) at points (K, 3) of the Reference frame probed in the same
+        field: the fitted field squared plus its variance; 0 everywhere when no distortion was detected."""
+        points = np.asarray(points_reference, dtype=float).reshape(-1, 3)
+        if not self.detected or self.model is None:
+            return np.zeros(len(points))
+        values, vectors = np.linalg.eigh(np.asarray(self.amplitude_covariance, dtype=float))
+        columns = np.concatenate([np.asarray(self.amplitudes, dtype=float).reshape(-1, 1),
+                                  vectors * np.sqrt(np.clip(values, 0.0, None))], axis=1)
+        out = np.empty(len(points))
+        for start in range(0, len(points), 16384):
+            chunk = self._operator(points[start:start + 16384], columns)
+            out[start:start + len(chunk)] = np.sum(chunk**2, axis=(1, 2))
+        return out
+
+    # --- summary and files ------------------------------------------------------------------
+
+    def pinhole_field(self) -> np.ndarray:
+        """The fitted non-rigid field at the pinholes (N, 3, mm)."""
+        if self.at_pinholes_mm is None:
+            return np.zeros_like(np.asarray(self.points_mm, dtype=float))
+        return np.asarray(self.at_pinholes_mm, dtype=float)
+
+    @property
+    def rms_mm(self) -> float:
+        sizes = np.linalg.norm(self.pinhole_field(), axis=1)
+        return float(np.sqrt(np.mean(sizes**2))) if len(sizes) else 0.0
+
+    def largest(self) -> tuple[float, int]:
+        """The largest fitted field size at a pinhole (mm) and that pinhole's index (-1 without pinholes)."""
+        sizes = np.linalg.norm(self.pinhole_field(), axis=1)
+        return (float(sizes.max()), int(np.argmax(sizes))) if len(sizes) else (0.0, -1)
+
+    def where(self) -> str:
+        """The pinhole where the field is largest, named by calibration point (and CT marker)."""
+        _, k = self.largest()
+        if k < 0:
+            return "-"
+        marker = f" (CT marker {self.image_markers[k]})" if k < len(self.image_markers) else ""
+        return f"{self.labels[k]}{marker}"
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``registration.json`` ``distortion`` block."""
+        largest, k = self.largest()
+
+        def rounded(values: Any, digits: int = 6) -> list:
+            return np.round(np.asarray(values, dtype=float), digits).tolist()
+
+        model: dict[str, Any] | None = None
+        if isinstance(self.model, _Dipole):
+            model = {"kind": "dipole", "object_tracker_mm": rounded(self.model.object_mm),
+                     "TrackerToReference": rounded(self.model.tracker_to_reference, 9),
+                     "amplitudes": "polarisability (mm^3): xx, yy, zz, xy, xz, yz in the Tracker frame",
+                     "formula": "d(x) = T_R @ dx(inv(T) x): the first-order position error of an induced dipole "
+                                "(EMRegModule.em_field.position_error), T = TrackerToReference"}
+        elif isinstance(self.model, _Bumps):
+            model = {"kind": "bumps", "centres_mm": rounded(self.model.centres_mm),
+                     "length_scales_mm": rounded(self.model.lengths_mm),
+                     "amplitudes": "displacement (mm) x, y, z per bump",
+                     "formula": "d(x) = sum_b exp(-|x - c_b|^2 / (2 L_b^2)) a_b"}
+        return {
+            "detected": self.detected, "rms_mm": round(self.rms_mm, 4), "max_mm": round(largest, 4),
+            "max_at": self.labels[k] if k >= 0 else None, "tested": self.tested,
+            "test": "share of the rigid fit's residual sum of squares one candidate field (an induced dipole near "
+                    "the frame; smooth bumps without the transmitter's pose) explains, against its Monte Carlo "
+                    "distribution under independent noise",
+            "statistic": round(float(self.statistic), 6), "p_value": round(float(self.p_value), 6),
+            "alpha": float(self.alpha), **({"note": self.note} if self.note else {}),
+            "noise_sigma_mm": round(float(self.noise_sigma_mm), 5),
+            "noise_dof": round(float(self.noise_dof), 3) if np.isfinite(self.noise_dof) else None,
+            "field": {
+                "frame": "Reference", "units": "mm",
+                "description": "the EM measurement's displacement at x beyond the rigid motion the registration "
+                               "absorbs: model(x) @ amplitudes - (omega x (x - centroid) + t), (omega, t) = "
+                               "rigid_per_amplitude @ amplitudes",
+                "model": model, "amplitudes": rounded(self.amplitudes, 9),
+                "amplitude_covariance": rounded(self.amplitude_covariance, 12),
+                "rigid_per_amplitude": rounded(self.rigid_per_amplitude, 15),
+                "centroid_mm": rounded(np.asarray(self.points_mm, dtype=float).mean(axis=0)),
+                "pinholes_mm": rounded(self.points_mm),
+                "residuals_mm": rounded(self.residuals_mm),
+                "at_pinholes_mm": rounded(self.pinhole_field()),
+            },
+            "labels": list(self.labels), "image_markers": list(self.image_markers),
+        }
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any]) -> DistortionEstimate:
+        """Inverse of :meth:`to_json`."""
+        block = document["field"]
+        stored = block.get("model")
+        model: _Dipole | _Bumps | None = None
+        if stored and stored.get("kind") == "dipole":
+            model = _Dipole(np.asarray(stored["object_tracker_mm"], dtype=float).reshape(3),
+                            np.asarray(stored["TrackerToReference"], dtype=float).reshape(4, 4))
+        elif stored and stored.get("kind") == "bumps":
+            model = _Bumps(np.asarray(stored["centres_mm"], dtype=float).reshape(-1, 3),
+                           np.asarray(stored["length_scales_mm"], dtype=float).reshape(-1))
+        amplitudes = np.asarray(block.get("amplitudes", []), dtype=float).reshape(-1)
+        n = len(amplitudes)
+        return cls(labels=[str(v) for v in document.get("labels", [])],
+                   points_mm=np.asarray(block["pinholes_mm"], dtype=float).reshape(-1, 3),
+                   residuals_mm=np.asarray(block["residuals_mm"], dtype=float).reshape(-1, 3),
+                   statistic=float(document["statistic"]), p_value=float(document["p_value"]),
+                   alpha=float(document["alpha"]), noise_sigma_mm=float(document["noise_sigma_mm"]),
+                   noise_dof=float("inf") if document.get("noise_dof") is None else float(document["noise_dof"]),
+                   model=model, amplitudes=amplitudes,
+                   amplitude_covariance=np.asarray(block.get("amplitude_covariance", []), dtype=float).reshape(n, n),
+                   rigid_per_amplitude=np.asarray(block.get("rigid_per_amplitude", []), dtype=float).reshape(6, n),
+                   at_pinholes_mm=np.asarray(block["at_pinholes_mm"], dtype=float).reshape(-1, 3),
+                   tested=bool(document.get("tested", True)),
+                   image_markers=[str(v) for v in document.get("image_markers", [])],
+                   note=str(document.get("note", "")))
+
+
+def null_statistics(scan: _Scan, draws: int = NULL_DRAWS, seed: int = 0) -> np.ndarray:
+    """The test statistic under noise alone (draws,) for this geometry (deterministic: seeded)."""
+    z = np.random.default_rng(seed).standard_normal((draws, scan.dof))
+    fractions = np.empty(draws)
+    for start in range(0, draws, 250):
+        fractions[start:start + 250] = scan.best_fraction(z[start:start + 250])[0]
+    return fractions
+
+
+def _refine(scan: _Scan, model: _Dipole | _Bumps, points: np.ndarray, poses: np.ndarray | None,
+            z: np.ndarray) -> _Dipole | _Bumps:
+    """A dipole's position refined from the best candidate (least remaining sum of squares); bumps as chosen."""
+    if not isinstance(model, _Dipole):
+        return model
+    from scipy.optimize import minimize
+
+    def remaining(position: np.ndarray) -> float:
+        if np.linalg.norm(position) < MIN_TRANSMITTER_DISTANCE_MM:
+            return float(z @ z)
+        design = scan.basis.T @ _stack(_Dipole(position, model.tracker_to_reference).columns(points, poses))
+        q, _ = np.linalg.qr(design)
+        return float(z @ z - np.sum((q.T @ z) ** 2))
+
+    result = minimize(remaining, model.object_mm, method="Nelder-Mead",
+                      options={"xatol": 1.0, "fatol": 1e-6 * float(z @ z), "maxfev": 300,
+                               "initial_simplex": model.object_mm + np.vstack([np.zeros(3), 25.0 * np.eye(3)])})
+    return _Dipole(np.asarray(result.x, dtype=float), model.tracker_to_reference) \
+        if result.fun < remaining(model.object_mm) else model
+
+
+def estimate_distortion(points_reference: np.ndarray, residuals_reference: np.ndarray,
+                        axes_reference: np.ndarray | None, alpha: float, labels: Sequence[str] = (),
+                        image_markers: Sequence[str] = (),
+                        tracker_to_reference: np.ndarray | None = None) -> DistortionEstimate:
+    """Test the rigid fit's residuals for field distortion and fit it (see the module docstring).
+
+    ``points_reference`` (N, 3): the paired calibration points (Reference, mm); ``residuals_reference``
+    (N, 3): measured point minus the registered CT pinhole, in the Reference frame (mm);
+    ``axes_reference`` (N, 3): the markers' axes in the Reference frame when l was solved (None: fixed);
+    ``alpha``: the false-alarm rate (``[registration] distortion_false_alarm``);
+    ``tracker_to_reference`` (N, 4, 4): the transmitter's pose at each point's dwells (None: unknown, the
+    smooth bumps stand in for the dipole).
+    """
+    points = np.asarray(points_reference, dtype=float).reshape(-1, 3)
+    residuals = np.asarray(residuals_reference, dtype=float).reshape(-1, 3)
+    axes = None if axes_reference is None else np.asarray(axes_reference, dtype=float).reshape(-1, 3)
+    poses = None if tracker_to_reference is None else np.asarray(tracker_to_reference, dtype=float).reshape(-1, 4, 4)
+    labels = list(labels) or [f"P{k + 1:02d}" for k in range(len(points))]
+    rms = float(np.sqrt(np.mean(residuals**2))) if len(residuals) else 0.0
+    note = "" if poses is not None else ("the calibration does not say where the transmitter was (an older "
+                                         "frame_calibration.json): smooth bumps stand in for an induced dipole")
+    untested = DistortionEstimate(labels, points, residuals, 0.0, 1.0, alpha, rms, tested=False,
+                                  image_markers=list(image_markers), note="too few pinholes to test")
+    if len(points) < 4:
+        return untested
+    scan = _Scan.of(points, axes, poses)
+    if scan.dof < MIN_DOF + scan.bases.shape[-1]:
+        return untested
+    z = scan.basis.T @ residuals.reshape(-1)
+    if not np.any(z):
+        return replace(untested, note="")
+    statistic, best = scan.best_fraction(z)
+    null = null_statistics(scan)
+    p_value = float((1 + np.count_nonzero(null >= statistic - 1e-12)) / (len(null) + 1))
+    if p_value > alpha:
+        return DistortionEstimate(labels, points, residuals, float(statistic), p_value, alpha,
+                                  float(np.sqrt(z @ z / scan.dof)), float(scan.dof), image_markers=list(image_markers),
+                                  note=note)
+    model = _refine(scan, scan.candidates[int(best)], points, poses, z)
+    at_pinholes = model.columns(points, poses)  # (N, 3, P)
+    design = scan.basis.T @ _stack(at_pinholes)
+    amplitudes, *_ = np.linalg.lstsq(design, z, rcond=None)
+    remaining = z - design @ amplitudes
+    dof = scan.dof - np.linalg.matrix_rank(design) - (3 if isinstance(model, _Dipole) else 0)
+    variance = float(remaining @ remaining) / dof
+    covariance = variance * np.linalg.pinv(design.T @ design)
+    rigid = np.linalg.pinv(_rigid_jacobian(points, axes))[:6] @ _stack(at_pinholes)
+    centroid = points.mean(axis=0)
+    nonrigid = at_pinholes @ amplitudes - fiducial_jacobian(points, centroid) @ (rigid @ amplitudes)
+    return DistortionEstimate(labels, points, residuals, float(statistic), p_value, alpha, float(np.sqrt(variance)),
+                              float(dof), model, amplitudes, covariance, rigid, nonrigid,
+                              image_markers=list(image_markers), note=note)
