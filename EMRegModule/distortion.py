@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from .em_field import position_error_basis
+from .em_field import FieldAtPoints
 from .error_model import fiducial_jacobian
 
 #: Bump widths tried, as fractions of the RMS distance of the pinholes from their centroid.
@@ -48,8 +48,8 @@ OBJECT_DIRECTIONS = 64
 OBJECT_GAPS_MM = (15.0, 50.0, 100.0, 180.0, 300.0)
 #: Candidate objects nearer than this to the transmitter (mm) are not tried.
 MIN_TRANSMITTER_DISTANCE_MM = 80.0
-#: Monte Carlo draws of the null distribution.
-NULL_DRAWS = 4000
+#: Monte Carlo draws of the null distribution (p-values resolved to 1 / 2001, ample for a false-alarm rate of 0.002).
+NULL_DRAWS = 2000
 #: Fewest residual degrees of freedom a test needs (below: not tested).
 MIN_DOF = 6
 
@@ -92,13 +92,25 @@ class _Dipole:
     object_mm: np.ndarray
     tracker_to_reference: np.ndarray  # (4, 4): for points other than the pinholes (the calibration's mean pose)
 
-    def columns(self, points_reference: np.ndarray, tracker_to_reference: np.ndarray | None = None) -> np.ndarray:
-        """Field columns (K, 3, 6) in the Reference frame at points (K, 3), each with its pose (K, 4, 4) or the mean."""
-        poses = np.broadcast_to(self.tracker_to_reference if tracker_to_reference is None else tracker_to_reference,
-                                (len(points_reference), 4, 4))
-        rotation, origin = poses[:, :3, :3], poses[:, :3, 3]
-        points_tracker = np.einsum("kji,kj->ki", rotation, points_reference - origin)
-        return rotation @ position_error_basis(points_tracker, self.object_mm)
+    def columns(self, points_reference: np.ndarray, tracker_to_reference: np.ndarray | None = None,
+                seen: _Seen | None = None) -> np.ndarray:
+        """Field columns (K, 3, 6) in the Reference frame at points (K, 3), each with its pose (K, 4, 4) or the mean
+        (``seen``: those points as the transmitter sees them, kept)."""
+        seen = seen or _Seen(points_reference, np.broadcast_to(
+            self.tracker_to_reference if tracker_to_reference is None else tracker_to_reference,
+            (len(points_reference), 4, 4)))
+        return seen.rotation @ seen.field.error_basis(self.object_mm)
+
+
+class _Seen:
+    """Points of the Reference frame as the transmitter sees them: their poses' rotations (K, 3, 3) and the
+    free-space field there (:class:`EMRegModule.em_field.FieldAtPoints`)."""
+
+    def __init__(self, points_reference: np.ndarray, tracker_to_reference: np.ndarray) -> None:
+        self.rotation = tracker_to_reference[:, :3, :3]
+        origin = tracker_to_reference[:, :3, 3]
+        self.points_tracker = np.einsum("kji,kj->ki", self.rotation, np.asarray(points_reference) - origin)
+        self.field = FieldAtPoints(self.points_tracker)
 
 
 @dataclass(frozen=True)
@@ -109,7 +121,8 @@ class _Bumps:
     centres_mm: np.ndarray
     lengths_mm: np.ndarray
 
-    def columns(self, points_reference: np.ndarray, tracker_to_reference: np.ndarray | None = None) -> np.ndarray:
+    def columns(self, points_reference: np.ndarray, tracker_to_reference: np.ndarray | None = None,
+                seen: _Seen | None = None) -> np.ndarray:
         """Field columns (K, 3, 3B) at points (K, 3) of the Reference frame."""
         kernel = _kernel(np.asarray(points_reference, dtype=float), self.centres_mm, self.lengths_mm)
         return np.einsum("kb,cd->kcbd", kernel, np.eye(3)).reshape(len(kernel), 3, -1)
@@ -128,16 +141,19 @@ class _Scan:
     basis: np.ndarray
     candidates: list
     bases: np.ndarray
+    seen: _Seen | None = None
+    flat: np.ndarray | None = None
 
     @classmethod
     def of(cls, points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None) -> _Scan:
         basis = _complement(_rigid_jacobian(points, axes))
-        candidates = _dipole_candidates(points, poses) if poses is not None else _bump_candidates(points)
-        design = np.stack([basis.T @ _stack(c.columns(points, poses)) for c in candidates])
+        seen = None if poses is None else _Seen(points, poses)
+        candidates = _dipole_candidates(seen, poses) if seen is not None else _bump_candidates(points)
+        design = np.stack([basis.T @ _stack(c.columns(points, poses, seen)) for c in candidates])
         q, r = np.linalg.qr(design)  # (C, m, P)
         diagonal = np.abs(np.diagonal(r, axis1=-2, axis2=-1))
         q = q * (diagonal > 1e-9 * diagonal.max(axis=-1, keepdims=True))[:, None, :]  # drop dependent columns
-        return cls(basis, candidates, q)
+        return cls(basis, candidates, q, seen)
 
     @property
     def dof(self) -> int:
@@ -147,16 +163,16 @@ class _Scan:
         """The largest share of |z|^2 one candidate explains (...,) and which one (...,), z (..., m)."""
         z = np.asarray(z, dtype=float)
         n_candidates, m, n_columns = self.bases.shape
-        flat = np.transpose(self.bases, (1, 0, 2)).reshape(m, n_candidates * n_columns)
-        projections = (z @ flat).reshape(z.shape[:-1] + (n_candidates, n_columns))
+        if self.flat is None:
+            self.flat = np.ascontiguousarray(np.transpose(self.bases, (1, 0, 2)).reshape(m, n_candidates * n_columns))
+        projections = (z @ self.flat).reshape(z.shape[:-1] + (n_candidates, n_columns))
         fraction = np.sum(projections**2, axis=-1) / np.sum(z**2, axis=-1)[..., None]
         return fraction.max(axis=-1), fraction.argmax(axis=-1)
 
 
-def _dipole_candidates(points: np.ndarray, poses: np.ndarray) -> list[_Dipole]:
+def _dipole_candidates(seen: _Seen, poses: np.ndarray) -> list[_Dipole]:
     """Objects around the pinholes (Tracker frame): :data:`OBJECT_DIRECTIONS` x :data:`OBJECT_GAPS_MM`."""
-    rotation, origin = poses[:, :3, :3], poses[:, :3, 3]
-    points_tracker = np.einsum("kji,kj->ki", rotation, points - origin)
+    points_tracker = seen.points_tracker
     centre = points_tracker.mean(axis=0)
     radius = float(np.max(np.linalg.norm(points_tracker - centre, axis=1)))
     mean = _mean_pose(poses)
@@ -215,10 +231,14 @@ class DistortionEstimate:
     tested: bool = True
     image_markers: list[str] = field(default_factory=list)
     note: str = ""
+    #: The p-value again without the pinhole of the largest residual (``left_out``): one bad pair (a probe not
+    #: fully inserted) is not a field; NaN when not computed.
+    p_value_without_largest: float = float("nan")
+    left_out: str = ""
 
     @property
     def detected(self) -> bool:
-        return bool(self.tested and self.p_value <= self.alpha)
+        return bool(self.tested and self.p_value <= self.alpha and not self.p_value_without_largest > self.alpha)
 
     # --- the fitted field -------------------------------------------------------------------
 
@@ -305,6 +325,9 @@ class DistortionEstimate:
                     "distribution under independent noise",
             "statistic": round(float(self.statistic), 6), "p_value": round(float(self.p_value), 6),
             "alpha": float(self.alpha), **({"note": self.note} if self.note else {}),
+            "p_value_without_largest": None if not np.isfinite(self.p_value_without_largest)
+            else round(float(self.p_value_without_largest), 6),
+            "left_out": self.left_out or None,
             "noise_sigma_mm": round(float(self.noise_sigma_mm), 5),
             "noise_dof": round(float(self.noise_dof), 3) if np.isfinite(self.noise_dof) else None,
             "field": {
@@ -349,7 +372,10 @@ class DistortionEstimate:
                    at_pinholes_mm=np.asarray(block["at_pinholes_mm"], dtype=float).reshape(-1, 3),
                    tested=bool(document.get("tested", True)),
                    image_markers=[str(v) for v in document.get("image_markers", [])],
-                   note=str(document.get("note", "")))
+                   note=str(document.get("note", "")),
+                   p_value_without_largest=float("nan") if document.get("p_value_without_largest") is None
+                   else float(document["p_value_without_largest"]),
+                   left_out=str(document.get("left_out") or ""))
 
 
 def null_statistics(scan: _Scan, draws: int = NULL_DRAWS, seed: int = 0) -> np.ndarray:
@@ -371,7 +397,7 @@ def _refine(scan: _Scan, model: _Dipole | _Bumps, points: np.ndarray, poses: np.
     def remaining(position: np.ndarray) -> float:
         if np.linalg.norm(position) < MIN_TRANSMITTER_DISTANCE_MM:
             return float(z @ z)
-        design = scan.basis.T @ _stack(_Dipole(position, model.tracker_to_reference).columns(points, poses))
+        design = scan.basis.T @ _stack(_Dipole(position, model.tracker_to_reference).columns(points, poses, scan.seen))
         q, _ = np.linalg.qr(design)
         return float(z @ z - np.sum((q.T @ z) ** 2))
 
@@ -414,14 +440,24 @@ def estimate_distortion(points_reference: np.ndarray, residuals_reference: np.nd
     if not np.any(z):
         return replace(untested, note="")
     statistic, best = scan.best_fraction(z)
-    null = null_statistics(scan)
-    p_value = float((1 + np.count_nonzero(null >= statistic - 1e-12)) / (len(null) + 1))
+    p_value = _p_value(scan, float(statistic))
     if p_value > alpha:
         return DistortionEstimate(labels, points, residuals, float(statistic), p_value, alpha,
                                   float(np.sqrt(z @ z / scan.dof)), float(scan.dof), image_markers=list(image_markers),
                                   note=note)
+    largest = int(np.argmax(np.sum(residuals**2, axis=1)))
+    keep = np.arange(len(points)) != largest
+    p_without = float("nan")
+    if len(points) > 4:
+        rest = _Scan.of(points[keep], None if axes is None else axes[keep], None if poses is None else poses[keep])
+        if rest.dof >= MIN_DOF + rest.bases.shape[-1]:
+            p_without = _p_value(rest, float(rest.best_fraction(rest.basis.T @ residuals[keep].reshape(-1))[0]))
+    if p_without > alpha:
+        return DistortionEstimate(labels, points, residuals, float(statistic), p_value, alpha,
+                                  float(np.sqrt(z @ z / scan.dof)), float(scan.dof), image_markers=list(image_markers),
+                                  note=note, p_value_without_largest=p_without, left_out=labels[largest])
     model = _refine(scan, scan.candidates[int(best)], points, poses, z)
-    at_pinholes = model.columns(points, poses)  # (N, 3, P)
+    at_pinholes = model.columns(points, poses, scan.seen)  # (N, 3, P)
     design = scan.basis.T @ _stack(at_pinholes)
     amplitudes, *_ = np.linalg.lstsq(design, z, rcond=None)
     remaining = z - design @ amplitudes
@@ -433,4 +469,11 @@ def estimate_distortion(points_reference: np.ndarray, residuals_reference: np.nd
     nonrigid = at_pinholes @ amplitudes - fiducial_jacobian(points, centroid) @ (rigid @ amplitudes)
     return DistortionEstimate(labels, points, residuals, float(statistic), p_value, alpha, float(np.sqrt(variance)),
                               float(dof), model, amplitudes, covariance, rigid, nonrigid,
-                              image_markers=list(image_markers), note=note)
+                              image_markers=list(image_markers), note=note, p_value_without_largest=p_without,
+                              left_out=labels[largest])
+
+
+def _p_value(scan: _Scan, statistic: float) -> float:
+    """The Monte Carlo p-value of a statistic for the scan's geometry."""
+    null = null_statistics(scan)
+    return float((1 + np.count_nonzero(null >= statistic - 1e-12)) / (len(null) + 1))

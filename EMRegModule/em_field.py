@@ -63,19 +63,34 @@ def position_error(points_mm: np.ndarray, object_mm: np.ndarray, polarisability:
     return position_error_basis(points_mm, object_mm, polarisability[None])[..., 0]
 
 
+class FieldAtPoints:
+    """The free-space field and the inverse of its position Jacobian at fixed sensor points (K, 3, Tracker
+    frame, mm), kept for the errors of many candidate objects there."""
+
+    def __init__(self, points_mm: np.ndarray) -> None:
+        self.points_mm = np.asarray(points_mm, dtype=float).reshape(-1, 3)
+        self.field = coil_field(self.points_mm)
+        self.inverse = _inverse_jacobian(self.points_mm)
+
+    def error_basis(self, object_mm: np.ndarray, polarisabilities: np.ndarray = SYMMETRIC_BASIS) -> np.ndarray:
+        """:func:`position_error_basis` at these points."""
+        return position_error_basis(self.points_mm, object_mm, polarisabilities, self)
+
+
 def position_error_basis(points_mm: np.ndarray, object_mm: np.ndarray,
-                         polarisabilities: np.ndarray = SYMMETRIC_BASIS) -> np.ndarray:
+                         polarisabilities: np.ndarray = SYMMETRIC_BASIS,
+                         at: FieldAtPoints | None = None) -> np.ndarray:
     """First-order position errors (K, 3, P) at points (K, 3) of an object at ``object_mm`` for each of the
-    polarisabilities (P, 3, 3) (default: the six symmetric unit ones, so that ``error = basis @ coefficients``)."""
+    polarisabilities (P, 3, 3) (default: the six symmetric unit ones, so that ``error = basis @ coefficients``);
+    ``at``: the same points' :class:`FieldAtPoints`, to skip recomputing them."""
     x = np.asarray(points_mm, dtype=float).reshape(-1, 3)
-    field = coil_field(x)
-    inverse = _inverse_jacobian(x)
-    columns = []
-    for polarisability in np.asarray(polarisabilities, dtype=float):
-        d_field = induced_coupling(x, object_mm, polarisability)
-        d_invariant = np.swapaxes(field, -1, -2) @ d_field + np.swapaxes(d_field, -1, -2) @ field
-        columns.append((inverse @ d_invariant.reshape(-1, 9, 1))[..., 0])
-    return np.stack(columns, axis=-1)
+    at = at or FieldAtPoints(x)
+    o = np.asarray(object_mm, dtype=float).reshape(3)
+    moments = np.asarray(polarisabilities, dtype=float) @ coil_field(o)[0]  # (P, 3, 3)
+    d_field = np.einsum("kij,pjl->kpil", coil_field(x - o), moments)  # (K, P, 3, 3)
+    d_invariant = np.einsum("kji,kpjl->kpil", at.field, d_field)
+    d_invariant = d_invariant + np.swapaxes(d_invariant, -1, -2)
+    return np.einsum("kin,kpn->kip", at.inverse, d_invariant.reshape(len(x), -1, 9))
 
 
 def symmetric_coefficients(polarisability: np.ndarray) -> np.ndarray:
