@@ -135,6 +135,25 @@ def test_run_detects_distortion_says_where_and_predicts_with_it(distorted_case: 
     evaluation = json.loads((out / "evaluation.json").read_text())
     budgets = [t["budget_rms_mm"] for t in evaluation["tre"]["targets"].values()]
     assert all(b["distortion"] > 0 for b in budgets)
+    assert (out / "report_figures" / "distortion.png").stat().st_size > 0
+    assert "Field distortion" in (out / "report.html").read_text()
+
+
+def test_distortion_figure_draws_the_field_where_it_is_and_the_vectors():
+    """The figure's colour is brightest on the pinholes' side of the largest field; the arrows are drawn."""
+    from EMRegModule.rendering.error_views import distortion_views
+
+    points, residuals, axes, poses = _residuals(np.random.default_rng(23), 1.0)
+    estimate = estimate_distortion(points, residuals, axes, 0.002, tracker_to_reference=poses)
+    image = distortion_views(estimate.points_mm, estimate.residuals_mm, estimate.pinhole_field(),
+                             lambda p: np.linalg.norm(estimate.field_at(p), axis=1), "title", panel_px=300)
+    assert image.shape[1] == 600 and image.dtype == np.uint8
+    magenta = np.all(image == (230, 0, 230), axis=-1)
+    assert magenta.sum() > 50  # fitted-field arrows
+    clean = estimate_distortion(*_residuals(np.random.default_rng(21), 0.0)[:3], 0.002)
+    flat = distortion_views(clean.points_mm, clean.residuals_mm, clean.pinhole_field(),
+                            lambda p: np.linalg.norm(clean.field_at(p), axis=1), "title", panel_px=300)
+    assert not np.all(flat == (230, 0, 230), axis=-1).sum() > 50  # no field fitted, no magenta arrows
 
 
 def test_distortion_above_the_limit_is_refused(distorted_case: Path, tmp_path: Path):
