@@ -3,29 +3,35 @@
 The CT is geometrically true; the EM measurements are not once metal distorts the field. After the
 rigid fit (with l), the residual of each calibration point is its tracking noise plus the non-rigid
 part of the distortion, a smooth field (neighbouring pinholes displaced alike). Noise is independent
-from pinhole to pinhole; a distortion is not. Everything here is in the **Reference frame** (mm):
-``d(x)`` is the displacement of an EM measurement at x from where it should be, with the part the
-rigid fit absorbs removed.
+from pinhole to pinhole; a distortion is not. Everything here is in the **Reference frame** (mm): the
+field is the displacement of an EM measurement from where it should be, less the rigid motion the
+registration absorbs of it.
 
 **Model.** The residual vector ``r`` (3N) is ``P (f + e)``: ``P`` removes what the rigid fit (rotation,
-translation, and l when solved) absorbs; ``e`` is isotropic noise of unknown per-axis sigma (probe
-per-dwell error and CT localisation, independent per point); ``f`` is a smooth field
-``f(x) = sum_j exp(-|x - c_j|^2 / (2 L^2)) w_j`` with Gaussian bumps at the pinholes ``c_j``, weights
-``w ~ N(0, rho sigma^2 I)``. Length scale L (a fraction of the frame's size) and signal-to-noise ratio
-rho are chosen by maximum (marginal) likelihood on a grid, sigma profiled out.
+translation, and l when solved) absorbs; ``e`` is isotropic noise of unknown size, independent per point
+(the probe's per-dwell error and the CT's localisation); ``f`` is the field of one metal object, an
+induced dipole (:mod:`EMRegModule.em_field`) somewhere around the frame, linear in its six polarisability
+coefficients. The calibration keeps where the transmitter was at each pinhole (``TrackerToReference``),
+which the dipole's field depends on. Without it (an older ``frame_calibration.json``), smooth Gaussian
+bumps (3 amplitudes each, widths a fraction of the frame) stand in for the dipole.
 
-**Test.** The likelihood ratio of that model against noise alone (rho = 0). Its null distribution does
-not depend on the noise's size (the residual is scale-free under the null: only the geometry enters),
-so it is drawn by Monte Carlo once per geometry (deterministic seed): the p-value is exact up to the
-draws, whatever the tracker's noise. A single bad pair (one large, isolated residual) is not coherent
-and hardly raises it. The chi-square of the residuals against the error model's own FLE cannot serve
-here: with one dwell per pinhole the FLE is estimated from these same residuals (the dwell spread only
-shows the jitter, not the per-dwell error), so the ratio is one by construction.
+**Test.** The statistic is the largest share of ``|r|^2`` that one candidate field explains (a scan over
+object positions around the frame, or bump places and widths). Under noise alone its distribution does
+not depend on the noise's size (only the geometry enters), so it is drawn by Monte Carlo once per
+geometry (deterministic seed): the p-value is exact up to the draws whatever the tracker's noise, and
+is compared with ``[registration] distortion_false_alarm``. A detection must also survive leaving out
+the pinhole of the largest residual: one bad pair (a probe not fully inserted) is not a field.
 
-**Estimate.** The posterior mean of the non-rigid field at the pinholes gives ``rms_mm`` / ``max_mm``;
-its posterior mean and covariance anywhere give the distortion's mean-square contribution to the TRE
-at a target probed in the same field (:meth:`DistortionEstimate.mean_square_at`), and the noise
-sigma that remains replaces the probe's per-dwell error of the error model.
+Why not a chi-square against the error model's FLE: with one dwell per pinhole the FLE is estimated from
+these same residuals (a dwell's spread shows the tracker's jitter, not its per-dwell error, which is
+several times larger), so the ratio is one by construction; a noise level known beforehand would make
+the test only as good as that guess.
+
+**Estimate.** When detected, the best candidate (a dipole's position refined by Nelder-Mead) is fitted by
+least squares: its non-rigid field at the pinholes gives ``rms_mm`` / ``max_mm``; its field and the
+covariance of its amplitudes give the distortion's mean square at any point probed in the same field
+(:meth:`DistortionEstimate.mean_square_at`, the error model's distortion term), and the noise that
+remains beside it replaces the probe's per-dwell error of the error model.
 """
 
 from __future__ import annotations

@@ -32,9 +32,14 @@ sensor's error within a session (a bump between dwells).
 A configuration that does not determine the registration (fewer than 3 markers, collinear markers,
 parallel marker axes with l free) gives an infinite prediction, never a small number.
 
+**Field distortion** found at registration (:mod:`EMRegModule.distortion`) adds a fifth term: the
+fitted non-rigid field at the target and its uncertainty, for navigation in the same field; the probe's
+per-dwell error is then the noise beside the field, not the residuals' whole size.
+
 **Checked against what was measured.** Errors the model has no term for (a probe tip that is not
 where the sensor reports it, a reference sensor that moved on the patient, a wrong fixed l, field
-distortion) are invisible to it: the prediction would stay small while the surgeon sees more.
+distortion that appeared after the registration) are invisible to it: the prediction would stay small
+while the surgeon sees more.
 When dwells at targets were measured, :func:`optimism_limit` gives the largest ratio of measured to
 predicted mean-square TRE that the model's own randomness explains; a larger one means the
 prediction is optimistic and is said in a warning.
