@@ -28,6 +28,7 @@ from .errors import EMRegError
 from .io.atomic import atomic_write_json, read_json
 from .settings import CalibrationSettings
 from .tracking import TrackingRecording, invert_rigid_batch, probe_in_reference
+from .transforms import mean_rigid
 
 
 @dataclass
@@ -178,15 +179,6 @@ def _pose_or_none(value: Any, source: str) -> np.ndarray | None:
     return pose
 
 
-def _mean_pose(poses: np.ndarray) -> np.ndarray:
-    """The mean of rigid poses (K, 4, 4): mean translation, rotation the polar part of the mean rotation."""
-    u, _, vt = np.linalg.svd(poses[:, :3, :3].mean(axis=0))
-    mean = np.eye(4)
-    mean[:3, :3] = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
-    mean[:3, 3] = poses[:, :3, 3].mean(axis=0)
-    return mean
-
-
 def _dict_or_none(value: Any) -> dict[str, Any] | None:
     return value if isinstance(value, dict) else None
 
@@ -266,7 +258,7 @@ def calibrate_frame(
             visits=len(members), direction_std_deg=direction_std,
             start_s=float(min(dwells[m].start_s for m in members)),
             end_s=float(max(dwells[m].end_s for m in members)), warning=warning,
-            tracker_to_reference=_mean_pose(invert_rigid_batch(samples.reference_to_tracker[used])),
+            tracker_to_reference=mean_rigid(invert_rigid_batch(samples.reference_to_tracker[used])),
         ))
     warnings = list(recording.warnings)  # time resets / gaps found on reading (kept, as separate segments)
     warnings += [f"{p.label}: {p.warning}" for p in points if p.warning]

@@ -44,6 +44,7 @@ import numpy as np
 
 from .em_field import FieldAtPoints
 from .error_model import fiducial_jacobian
+from .transforms import mean_rigid
 
 #: Bump widths tried, as fractions of the RMS distance of the pinholes from their centroid.
 LENGTH_FRACTIONS = (0.3, 0.5, 0.8)
@@ -181,7 +182,7 @@ def _dipole_candidates(seen: _Seen, poses: np.ndarray) -> list[_Dipole]:
     points_tracker = seen.points_tracker
     centre = points_tracker.mean(axis=0)
     radius = float(np.max(np.linalg.norm(points_tracker - centre, axis=1)))
-    mean = _mean_pose(poses)
+    mean = mean_rigid(poses)
     candidates = []
     for gap in OBJECT_GAPS_MM:
         for direction in _fibonacci_sphere(OBJECT_DIRECTIONS):
@@ -197,14 +198,6 @@ def _bump_candidates(points: np.ndarray) -> list[_Bumps]:
     radius = float(np.sqrt(np.mean(np.sum((points - centroid) ** 2, axis=1))))
     places = np.concatenate([points, centroid + OUTWARD * (points - centroid)])
     return [_Bumps(place[None], np.array([max(radius * f, 1.0)])) for place in places for f in LENGTH_FRACTIONS]
-
-
-def _mean_pose(poses: np.ndarray) -> np.ndarray:
-    u, _, vt = np.linalg.svd(poses[:, :3, :3].mean(axis=0))
-    mean = np.eye(4)
-    mean[:3, :3] = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
-    mean[:3, 3] = poses[:, :3, 3].mean(axis=0)
-    return mean
 
 
 @dataclass
