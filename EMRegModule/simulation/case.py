@@ -287,7 +287,7 @@ def _calibration(seed: int, opts: SimulationOptions, phantom: Phantom, l_mm: flo
         distortion=distortion["calibration"] if distortion else None)
     reference_to_tracker = [b @ phantom.reference_to_frame for b in body_poses]
     return {"recording": recording, "dwells": dwells, "reference_to_tracker": reference_to_tracker,
-            "bumps": len(bumps), "distortion": distortion, "l_mm": l_mm}
+            "bumps": len(bumps), "distortion": distortion}
 
 
 def _distortion(seed: int, opts: SimulationOptions, phantom: Phantom, l_mm: float, frame_to_tracker: np.ndarray,
@@ -309,7 +309,7 @@ def _distortion(seed: int, opts: SimulationOptions, phantom: Phantom, l_mm: floa
     truth = truth_at_points(distortion, [m.label for m in calibrated], pinholes, frame_to_tracker,
                             phantom.reference_to_frame)
     return {"calibration": calibration, "navigation": navigation, "object": distortion,
-            "frame_to_tracker": frame_to_tracker, "truth": truth}
+            "frame_to_tracker": frame_to_tracker, "pinholes": pinholes, "truth": truth}
 
 
 def _navigation(seed: int, opts: SimulationOptions, phantom: Phantom, frame_to_image: np.ndarray,
@@ -466,8 +466,6 @@ def _distortion_truth(opts: SimulationOptions, phantom: Phantom, calibration: di
     calibrated pinholes (Reference frame, full strength) and at the targets, and its strength at every dwell."""
     distortion = calibration["distortion"]
     frame_to_tracker = distortion["frame_to_tracker"]
-    calibrated = [m for m in phantom.markers if m.calibrated]
-    pinholes = np.array([apply_transform(m.marker_to_frame, [0.0, calibration["l_mm"], 0.0]) for m in calibrated])
 
     def phase(field: FieldDistortion | None, dwells: list) -> dict | None:
         if field is None:
@@ -479,7 +477,8 @@ def _distortion_truth(opts: SimulationOptions, phantom: Phantom, calibration: di
 
     targets = {}
     if len(phantom.targets):
-        raw, nonrigid = nonrigid_errors(distortion["object"], pinholes, frame_to_tracker, phantom.reference_to_frame,
+        raw, nonrigid = nonrigid_errors(distortion["object"], distortion["pinholes"], frame_to_tracker,
+                                        phantom.reference_to_frame,
                                         at_body=np.asarray(phantom.targets))
         targets = {f"T{i + 1}": {"raw_mm": r.tolist(), "after_registration_mm": n.tolist(),
                                  "after_registration_norm_mm": float(np.linalg.norm(n))}
