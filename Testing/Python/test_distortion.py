@@ -190,3 +190,21 @@ def test_unpaired_point_is_not_blamed_on_the_user_when_distortion_is_detected():
     assert "distortion" in line and "likely not in a pinhole" not in line
     (line,) = _unpaired_warnings([], ["M07"], None)
     assert "likely not in a pinhole" in line
+
+
+def test_trust_study_summary_counts_detections_false_alarms_and_the_prediction():
+    from EMRegModule.studies.catalog import STUDIES
+
+    def row(size, detected, predicted_ms=1.0, measured_ms=1.0):
+        return {"distortion_mm": size, "refused": None, "detected": detected, "estimated_rms_mm": 1.0,
+                "truth_paired_rms_mm": size, "measured_ms": measured_ms, "predicted_ms": predicted_ms,
+                "predicted_without_distortion_ms": 0.25 * predicted_ms}
+
+    rows = [row(0.0, False)] * 19 + [row(0.0, True)] + [row(1.0, True, 1.21)] * 3 + [row(1.0, False, 1.21)]
+    rows.append({"distortion_mm": 1.0, "refused": "the EM field is distorted"})
+    summary = STUDIES["trust"].summarize(rows)
+    clean, distorted = summary.rows
+    assert clean[:4] == ["0", "20", "0", "5.0 %"]
+    assert distorted[:4] == ["1", "5", "1", "75.0 %"]
+    assert distorted[7:9] == ["1.10", "0.55"]  # predicted / measured RMS, and without the distortion term
+    assert summary.figure.ndim == 3
