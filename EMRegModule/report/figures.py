@@ -18,6 +18,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from ..calibration import CalibrationPoint
+from ..distortion import DistortionEstimate
 from ..errors import EMRegError
 from ..progress import QUIET, Progress
 from ..rendering.colors import GREY, colorize, residual_range
@@ -363,7 +364,7 @@ def render_error_budget(data: ReportData) -> list[Figure]:
                    "the placement; the black line is the measured RMS TRE.", _png(chart))]
 
 
-def _distortion(data: ReportData):
+def _distortion(data: ReportData) -> DistortionEstimate | None:
     """The registration's distortion estimate, when it was tested (None otherwise)."""
     registration = data.inputs.registration
     error = None if registration is None else registration.error
