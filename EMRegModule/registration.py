@@ -298,6 +298,8 @@ def register(
     paired_cal = set(cal_index.tolist())
     warnings += _unpaired_warnings([m for k, m in enumerate(image_ids) if k not in paired_images],
                                    [p for k, p in enumerate(labels) if k not in paired_cal], distortion)
+    warnings += _distortion_evidence(distortion, solution, points, labels, paired_cal, origins, axes, image_ids,
+                                     paired_images)
     return RegistrationResult(
         reference_to_image=solution.reference_to_image,
         sensor_offset_l_mm=solution.l_mm,
@@ -341,10 +343,37 @@ def _unpaired_warnings(image_markers: list[str], calibration_points: list[str],
         lines.append(f"calibration point(s) {', '.join(calibration_points)} paired with no marker of the CT, left "
                      "out of the registration: the probe was likely not in a pinhole while recorded there, or that "
                      "marker was not found in the CT (see 'rejected' in markers.json)")
-    if image_markers:
+    if image_markers and calibration_points and distortion is not None and distortion.detected:
+        lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
+                     "registration: the field distortion may have moved their calibration points out of pairing "
+                     "(or their pinholes were not recorded in the calibration)")
+    elif image_markers:
         lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
                      "registration: their pinholes were likely not recorded in the calibration (or their dwells "
                      "not found)")
+    return lines
+
+
+def _distortion_evidence(distortion: DistortionEstimate, solution: OffsetSolution, points_reference: np.ndarray,
+                         labels: list[str], paired_cal: set[int], origins_image: np.ndarray, axes_image: np.ndarray,
+                         image_ids: list[str], paired_images: set[int]) -> list[str]:
+    """For each unpaired calibration point, when a distortion was detected: how far it lies from the nearest
+    unpaired CT pinhole (at the solved l), with and without the fitted field taken off (Reference frame, mm)."""
+    unpaired_cal = [k for k in range(len(labels)) if k not in paired_cal]
+    unpaired_images = [k for k in range(len(image_ids)) if k not in paired_images]
+    if not distortion.detected or not unpaired_cal or not unpaired_images:
+        return []
+    pinholes = apply_transform(invert_rigid(solution.reference_to_image),
+                               origins_image[unpaired_images] + solution.l_mm * axes_image[unpaired_images])
+    measured = points_reference[unpaired_cal]
+    corrected = measured - distortion.field_at(measured)
+    lines = []
+    for k, before, after in zip(unpaired_cal, measured, corrected, strict=True):
+        gaps = np.linalg.norm(pinholes - before, axis=1)
+        nearest = int(np.argmin(gaps))
+        lines.append(f"{labels[k]}: {gaps[nearest]:.1f} mm from CT marker {image_ids[unpaired_images[nearest]]}'s "
+                     f"pinhole as measured, {np.linalg.norm(pinholes[nearest] - after):.1f} mm once the fitted field "
+                     "distortion is taken off")
     return lines
 
 

@@ -8,6 +8,7 @@ trust``) measures the rates; these tests assert what a single case must show.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +22,7 @@ from EMRegModule.em_field import coil_field, induced_coupling, position_error
 from EMRegModule.registration import read_registration
 from EMRegModule.simulation import load_truth, simulate_case
 from EMRegModule.simulation.distortion import FieldDistortion, nonrigid_errors, place_object
-from EMRegModule.transforms import invert_rigid, make_transform, random_rotation
+from EMRegModule.transforms import apply_transform, fit_rigid, invert_rigid, make_transform, random_rotation
 
 DISTORTED_OPTIONS = {**SMALL_CASE_OPTIONS, "frame_size_mm": (220.0, 220.0, 140.0), "n_markers": 16}
 
@@ -208,3 +209,32 @@ def test_trust_study_summary_counts_detections_false_alarms_and_the_prediction()
     assert distorted[:4] == ["1", "5", "1", "75.0 %"]
     assert distorted[7:9] == ["1.10", "0.55"]  # predicted / measured RMS, and without the distortion term
     assert summary.figure.ndim == 3
+
+
+def test_an_unpaired_point_is_measured_against_the_field_fitted_to_the_others():
+    """The evidence for blaming the distortion: taking the field fitted to the paired pinholes off an unpaired
+    calibration point brings it nearer its CT pinhole."""
+    from types import SimpleNamespace
+
+    from EMRegModule.registration import _distortion_evidence
+
+    rng = np.random.default_rng(24)
+    points, axes, reference_to_tracker = _frame(rng)
+    distortion = place_object(rng, points, reference_to_tracker, np.eye(4), 1.0)
+    raw, _ = nonrigid_errors(distortion, points, reference_to_tracker, np.eye(4))
+    worst = int(np.argmax(np.linalg.norm(raw, axis=1)))
+    measured = points + raw + rng.normal(0.0, 0.1, points.shape)
+    paired = np.arange(len(points)) != worst
+    fit = fit_rigid(measured[paired], points[paired])  # the registration (Image = the true Reference frame here)
+    in_image = apply_transform(fit, measured)
+    estimate = estimate_distortion(in_image[paired], in_image[paired] - points[paired], axes[paired], 0.002,
+                                   tracker_to_reference=np.broadcast_to(invert_rigid(reference_to_tracker),
+                                                                        (int(paired.sum()), 4, 4)))
+    assert estimate.detected
+    labels, ids = [f"M{k:02d}" for k in range(len(points))], [f"I{k:02d}" for k in range(len(points))]
+    solution = SimpleNamespace(reference_to_image=np.eye(4), l_mm=0.0)
+    (line,) = _distortion_evidence(estimate, solution, in_image, labels, set(np.nonzero(paired)[0].tolist()),
+                                   points, axes, ids, set(np.nonzero(paired)[0].tolist()))
+    before, after = (float(v) for v in re.findall(r"([0-9.]+) mm", line)[:2])
+    assert line.startswith(f"M{worst:02d}: ") and f"CT marker I{worst:02d}'s" in line
+    assert after < 0.7 * before
