@@ -234,7 +234,7 @@ def _trust_rows(frame: Frame, params: dict, rng: np.random.Generator) -> list[di
     placement = reference_placement(rng)
     distortion = place_object(rng, frame.pinholes, placement, np.eye(4), size) if size > 0 else None
     noise = noise_model(params.get("noise", 1.0))
-    session = calibrate_and_register(frame, rng, noise, None, placement, distortion)
+    session = calibrate_and_register(frame, rng, noise, reference_to_tracker=placement, distortion=distortion)
     row = {**params, "refused": session.refused}
     if session.registration is None:
         return [row]
@@ -249,7 +249,8 @@ def _trust_rows(frame: Frame, params: dict, rng: np.random.Generator) -> list[di
                truth_paired_rms_mm=truth_rms, paired=len(registration.pairs), fre_mm=registration.fre_mm,
                unpaired=len(registration.unpaired_calibration_points))
     model = ErrorModel.with_priors(registration.reference_to_image, registration.error)
-    recording = simulate_navigation(frame, rng, params.get("placements", 4), noise, placement, distortion)
+    recording = simulate_navigation(frame, rng, params.get("placements", 4), noise, reference_to_tracker=placement,
+                                    distortion=distortion)
     result = evaluate_targets(recording, frame.target_labels, frame.targets_image, registration.reference_to_image,
                               error_model=model).to_json()
     dwells = result["dwells"]

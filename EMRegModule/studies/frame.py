@@ -166,7 +166,8 @@ def calibrate_and_register(frame: Frame, rng: np.random.Generator, noise: NoiseM
                            subset: np.ndarray | None = None, reference_to_tracker: np.ndarray | None = None,
                            distortion: FieldDistortion | None = None) -> Session:
     """Simulate a calibration session, then the real calibration and registration; errors vs the truth."""
-    recording = simulate_calibration(frame, rng, noise, subset, reference_to_tracker, distortion)
+    recording = simulate_calibration(frame, rng, noise, subset, reference_to_tracker=reference_to_tracker,
+                                     distortion=distortion)
     try:
         calibration = calibrate_frame(recording, 1, 2, None)
         registration = register(frame.detection, calibration, frame.model, None, targets_image=frame.targets_image)
