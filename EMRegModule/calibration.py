@@ -34,7 +34,8 @@ from .dwell import find_dwells, group_by_place, robust_mean, robust_mean_directi
 from .errors import EMRegError
 from .io.atomic import atomic_write_json, read_json
 from .settings import CalibrationSettings
-from .tracking import TrackingRecording, probe_in_reference
+from .tracking import TrackingRecording, invert_rigid_batch, probe_in_reference
+from .transforms import mean_rigid
 
 if TYPE_CHECKING:
     from .tool import ToolCalibration
@@ -50,7 +51,9 @@ class CalibrationPoint:
 
     ``position`` (3,) mm: the probe sensor's centre in the pinhole; ``direction`` (3,) unit:
     the marker's +Y (out of the hole), NaN when unknown; ``samples``: samples averaged;
-    ``std_mm``: RMS 3D distance of those samples from ``position``; ``visits``: dwells merged.
+    ``std_mm``: RMS 3D distance of those samples from ``position``; ``visits``: dwells merged;
+    ``tracker_to_reference`` (4, 4): the transmitter's mean pose in the Reference frame over those samples
+    (where the field came from: :mod:`EMRegModule.distortion`; None in older files).
     """
 
     label: str
@@ -65,6 +68,7 @@ class CalibrationPoint:
     warning: str = ""
     #: with a tool: ``pivot`` (the shaft swung about the still tip) or ``rest`` (the whole tool still); else empty
     motion: str = ""
+    tracker_to_reference: np.ndarray | None = None
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -79,6 +83,8 @@ class CalibrationPoint:
             out["warning"] = self.warning
         if self.motion:
             out["motion"] = self.motion
+        if self.tracker_to_reference is not None:
+            out["TrackerToReference"] = np.asarray(self.tracker_to_reference, dtype=float).tolist()
         return out
 
 
@@ -167,6 +173,7 @@ class FrameCalibration:
                     direction_std_deg=_float(item.get("direction_std_deg")),
                     start_s=_float(item.get("start_s")), end_s=_float(item.get("end_s")),
                     warning=str(item.get("warning", "")), motion=str(item.get("motion", "")),
+                    tracker_to_reference=_pose_or_none(item.get("TrackerToReference"), f"{source}: point {i + 1}"),
                 ))
             labels = [p.label for p in points]
             if len(set(labels)) != len(labels):
@@ -184,6 +191,16 @@ class FrameCalibration:
                        _dict_or_none(document.get("provenance")), _dict_or_none(document.get("tool")))
         except (KeyError, TypeError, ValueError) as exc:
             raise EMRegError(f"{source}: not a frame calibration file ({exc!s:.100})") from None
+
+
+def _pose_or_none(value: Any, source: str) -> np.ndarray | None:
+    """A stored 4 x 4 pose (None when absent); a malformed one is an :class:`EMRegError`."""
+    if value is None:
+        return None
+    pose = np.asarray(value, dtype=float)
+    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+        raise EMRegError(f"{source}: TrackerToReference must be a 4x4 matrix of finite numbers")
+    return pose
 
 
 def _dict_or_none(value: Any) -> dict[str, Any] | None:
@@ -295,6 +312,7 @@ def calibrate_frame(
             visits=len(members), direction_std_deg=direction_std,
             start_s=float(min(dwells[m].start_s for m in members)),
             end_s=float(max(dwells[m].end_s for m in members)), warning=warning, motion=motion,
+            tracker_to_reference=mean_rigid(invert_rigid_batch(samples.reference_to_tracker[used])),
         ))
     warnings = list(recording.warnings)  # time resets / gaps found on reading (kept, as separate segments)
     warnings += [f"{p.label}: {p.warning}" for p in points if p.warning]

@@ -138,6 +138,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     options = {"probe_axis": args.probe_axis} if args.probe_axis else {}
     if args.tool_tip:
         options["tool_tip_mm"] = tuple(args.tool_tip)
+    if args.distortion:
+        options.update(distortion_mm=args.distortion, distortion_during=args.distortion_during,
+                       distortion_onset_s=args.distortion_onset)
     simulate_case(
         Path(args.out), seed=args.seed, difficulty=args.difficulty, spacing_mm=args.spacing,
         progress=_progress(args), **options,
@@ -611,7 +614,7 @@ def _add_series_option(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_study_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("name", metavar="NAME", help="calibration, board, tre, noise, markers, prediction or tool")
+    p.add_argument("name", metavar="NAME", help="calibration, board, tre, noise, markers, prediction, tool or trust")
     p.add_argument("--out", required=True, metavar="DIR")
     p.add_argument("--quick", action="store_true", help="a small frame and few sessions (a smoke-sized run)")
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="an existing Dask scheduler (default: a local one)")
@@ -646,6 +649,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tool-tip", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                    help="touch with a stylus whose tip is at X Y Z mm in its sensor's frame (pivoting at the "
                         "pinholes; writes tool_calibration.json, pivot.csv and [tool] calibration)")
+    p.add_argument("--distortion", type=float, default=0.0, metavar="MM",
+                   help="a steel rod beside the frame distorts the field: RMS non-rigid error (mm) it leaves at the "
+                        "calibrated pinholes after the best rigid fit (truth.json 'distortion')")
+    p.add_argument("--distortion-during", choices=("calibration", "navigation", "both"), default="both",
+                   help="the recordings the rod is in (default both; the navigation is then recorded where the "
+                        "frame was calibrated)")
+    p.add_argument("--distortion-onset", type=float, default=None, metavar="S",
+                   help="the rod is rolled in S seconds into the first recording it is in (default: there from "
+                        "the start)")
 
     p = add("detect", cmd_detect, "find the markers in a CT: OUT/markers.json and markers.mrk.json")
     p.add_argument("ct", metavar="CT_OR_CASE", help="a CT file, a DICOM folder, or a case folder")

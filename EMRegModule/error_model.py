@@ -32,9 +32,14 @@ sensor's error within a session (a bump between dwells).
 A configuration that does not determine the registration (fewer than 3 markers, collinear markers,
 parallel marker axes with l free) gives an infinite prediction, never a small number.
 
+**Field distortion** found at registration (:mod:`EMRegModule.distortion`) adds a fifth term: the
+fitted non-rigid field at the target and its uncertainty, for navigation in the same field; the probe's
+per-dwell error is then the noise beside the field, not the residuals' whole size.
+
 **Checked against what was measured.** Errors the model has no term for (a probe tip that is not
 where the sensor reports it, a reference sensor that moved on the patient, a wrong fixed l, field
-distortion) are invisible to it: the prediction would stay small while the surgeon sees more.
+distortion that appeared after the registration) are invisible to it: the prediction would stay small
+while the surgeon sees more.
 When dwells at targets were measured, :func:`optimism_limit` gives the largest ratio of measured to
 predicted mean-square TRE that the model's own randomness explains; a larger one means the
 prediction is optimistic and is said in a warning.
@@ -43,6 +48,7 @@ prediction is optimistic and is said in a warning.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -291,15 +297,21 @@ class ErrorBudget:
     tracking_ms: np.ndarray
     reference_ms: np.ndarray
     placement_ms: np.ndarray
+    #: The field distortion detected at registration, at targets probed in the same field (None: none detected).
+    distortion_ms: np.ndarray | None = None
 
     @property
     def rms_mm(self) -> np.ndarray:
-        return np.sqrt(self.registration_ms + self.tracking_ms + self.reference_ms + self.placement_ms)
+        distortion = 0.0 if self.distortion_ms is None else self.distortion_ms
+        return np.sqrt(self.registration_ms + self.tracking_ms + self.reference_ms + self.placement_ms + distortion)
 
     def term_rms_mm(self) -> dict[str, np.ndarray]:
         """Each term's own RMS (mm), for a stacked error-budget plot (they add in quadrature)."""
-        return {"registration": np.sqrt(self.registration_ms), "tracking": np.sqrt(self.tracking_ms),
-                "reference": np.sqrt(self.reference_ms), "placement": np.sqrt(self.placement_ms)}
+        terms = {"registration": np.sqrt(self.registration_ms), "tracking": np.sqrt(self.tracking_ms),
+                 "reference": np.sqrt(self.reference_ms), "placement": np.sqrt(self.placement_ms)}
+        if self.distortion_ms is not None:
+            terms["distortion"] = np.sqrt(self.distortion_ms)
+        return terms
 
 
 @dataclass(frozen=True)
@@ -310,11 +322,16 @@ class RegistrationError:
     ``probe_sigma_mm``: per-axis localisation error of one calibration dwell that the residuals
     reveal (mm); ``probe_sigma_dof``: the residual degrees of freedom it was estimated from
     (``3N - P``; infinite when unknown). Stored in ``registration.json`` under ``error_model``.
+    ``distortion``: the field distortion found at registration (a
+    :class:`EMRegModule.distortion.DistortionEstimate`, stored under ``distortion``; None: not tested);
+    when detected, the probe's error is the noise that remains beside the fitted field, and the field
+    adds its own term to the budget.
     """
 
     covariance: RegistrationCovariance
     probe_sigma_mm: float
     probe_sigma_dof: float = float("inf")
+    distortion: Any = None
 
     def to_json(self) -> dict:
         def number(value: float) -> float | None:
@@ -340,23 +357,29 @@ class RegistrationError:
 
 def registration_error(points_reference: np.ndarray, origins_image: np.ndarray, axes_image: np.ndarray,
                        l_mm: float, l_solved: bool, residuals_mm: np.ndarray,
-                       image_sigma_mm: np.ndarray | None = None) -> RegistrationError:
+                       image_sigma_mm: np.ndarray | None = None, distortion: Any = None) -> RegistrationError:
     """The :class:`RegistrationError` of a fit from the paired points it used.
 
     ``points_reference`` (N, 3): calibration points (Reference, mm); ``origins_image`` and
     ``axes_image`` (N, 3): their markers (CT LPS); ``residuals_mm`` (N,): the fit's residuals;
     ``image_sigma_mm`` (N,): per-axis localisation sigma of each marker point in the CT when known
-    (it is then kept out of the probe's error, which is the rest of what the residuals show).
+    (it is then kept out of the probe's error, which is the rest of what the residuals show);
+    ``distortion``: the :class:`EMRegModule.distortion.DistortionEstimate` of these residuals: when it
+    detected a field, the probe's error is the noise beside it (``noise_sigma_mm``), not the residuals'.
     """
     fiducials = np.asarray(origins_image, dtype=float) + l_mm * np.asarray(axes_image, dtype=float)
     axes = np.asarray(axes_image, dtype=float) if l_solved else None
     n = len(fiducials)
     image_var = np.zeros(n) if image_sigma_mm is None else np.square(np.asarray(image_sigma_mm, dtype=float))
-    probe_sigma = estimate_isotropic_fle(residuals_mm, fiducials, axes, image_var[:, None, None] * np.eye(3))
+    dof = float(3 * n - (7 if l_solved else 6))
+    if distortion is not None and distortion.detected:
+        probe_sigma = float(np.sqrt(max(distortion.noise_sigma_mm**2 - float(np.mean(image_var)), 0.0)))
+        dof = float(distortion.noise_dof)
+    else:
+        probe_sigma = estimate_isotropic_fle(residuals_mm, fiducials, axes, image_var[:, None, None] * np.eye(3))
     covariances = (probe_sigma**2 + image_var)[:, None, None] * np.eye(3)
-    dof = 3 * n - (7 if l_solved else 6)
     return RegistrationError(registration_covariance(fiducials, covariances, axes), probe_sigma,
-                             float(dof) if dof > 0 else float("inf"))
+                             dof if dof > 0 else float("inf"), distortion)
 
 
 @dataclass(frozen=True)
@@ -398,6 +421,9 @@ class ErrorModel:
         reference_one_pose = np.trace(pose_error_covariance(
             lever_arms, self.reference_position_sigma_mm, self.reference_rotation_sigma_rad), axis1=-2, axis2=-1)
         probe_ms = 3 * self.registration.probe_sigma_mm**2 if tracking_ms is None else tracking_ms
+        distortion = self.registration.distortion
         return ErrorBudget(registration_ms=registration, tracking_ms=np.full(len(points), probe_ms),
                            reference_ms=2 * reference_one_pose,
-                           placement_ms=np.full(len(points), self.placement_rms_mm**2))
+                           placement_ms=np.full(len(points), self.placement_rms_mm**2),
+                           distortion_ms=distortion.mean_square_at(lever_arms)
+                           if distortion is not None and distortion.detected else None)

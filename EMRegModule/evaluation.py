@@ -466,6 +466,8 @@ def _optimism_warning(result: TargetEvaluation, target_labels: Sequence[str], bu
     row = {str(label): k for k, label in enumerate(target_labels)}
     visited = np.array([row[d.target] for d in result.dwells])
     common = budget.registration_ms[visited] + budget.reference_ms[visited]
+    if budget.distortion_ms is not None:  # the same field at every dwell on a target
+        common = common + budget.distortion_ms[visited]
     independent = budget.tracking_ms[visited] + budget.placement_ms[visited]
     predicted_ms = float(np.mean(common + independent))
     if not np.isfinite(predicted_ms) or predicted_ms <= 0:

@@ -16,7 +16,10 @@ and the calibrated pinhole points (Reference frame), :func:`register`
    curvature vanishes and so does the information about l: above ``warn_l_std_mm`` the
    result carries a warning, above ``max_l_std_mm`` it is refused (the translation along the
    axes would be unknown by that much) unless l is given in ``[registration] sensor_offset_l_mm``;
-4. returns ``ReferenceToImage`` with FRE overall and per pair, flagged outliers (residual
+4. tests the residuals for field distortion (spatially coherent, beyond noise:
+   :mod:`EMRegModule.distortion`); refuses one above ``max_distortion_mm`` (RMS of the fitted
+   non-rigid field at the pinholes), warns below, and the error model then carries it;
+5. returns ``ReferenceToImage`` with FRE overall and per pair, flagged outliers (residual
    above ``outlier_factor`` times the robust RMS residual and above ``outlier_min_mm``), the
    FLE estimated from the FRE (``FLE^2 = FRE^2 N / (N - 2)``) and the predicted TRE at the
    targets (Fitzpatrick, West & Maurer), plus FRE(l) samples for the report's plot. The
@@ -28,6 +31,7 @@ FRE above ``max_fre_mm`` raises :class:`NoSafeAnswerError`: nothing is written.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -36,7 +40,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .calibration import FrameCalibration
+from .calibration import CalibrationPoint, FrameCalibration
+from .distortion import DistortionEstimate, estimate_distortion
 from .error_model import RegistrationError, registration_error
 from .errors import EMRegError, NoSafeAnswerError
 from .io.atomic import atomic_write_json, read_json
@@ -45,7 +50,7 @@ from .marker_model import MarkerModel
 from .probe_axis import pair_with_probe_axis
 from .sensor_offset import OffsetSolution, solve_sensor_offset
 from .settings import RegistrationSettings, Settings
-from .transforms import is_rigid, residuals
+from .transforms import apply_rotation, apply_transform, invert_rigid, is_rigid, residuals
 
 #: Name of the ITK transform file written beside ``registration.json``.
 TRANSFORM_FILE = "ReferenceToImage.h5"
@@ -138,6 +143,8 @@ class RegistrationResult:
             document["predicted_registration_tre_mm"] = [_round(v) for v in self.predicted_tre_mm]
         if self.error is not None:
             document["error_model"] = self.error.to_json()
+            if self.error.distortion is not None:
+                document["distortion"] = self.error.distortion.to_json()
         if self.fiducials is not None:
             document["fiducials"] = self.fiducials
         if self.provenance is not None:
@@ -176,7 +183,8 @@ class RegistrationResult:
                            np.asarray(curve.get("fre_mm", []), dtype=float)),
                 targets_image=None if targets is None else np.asarray(targets, dtype=float).reshape(-1, 3),
                 predicted_tre_mm=None if tre is None else np.array([_float(v) for v in tre]),
-                error=None if error is None else RegistrationError.from_json(error),
+                error=None if error is None else _with_distortion(RegistrationError.from_json(error),
+                                                                  document.get("distortion")),
                 warnings=[str(w) for w in document.get("warnings", [])],
                 pairing=dict(document.get("pairing", {})),
                 probe_axis=dict(document.get("probe_axis") or {}),
@@ -187,6 +195,13 @@ class RegistrationResult:
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise EMRegError(f"{source}: not a registration file ({exc!s:.100})") from None
+
+
+def _with_distortion(error: RegistrationError, document: Any) -> RegistrationError:
+    """The error model with the ``distortion`` block it was made with (absent in older files)."""
+    if not isinstance(document, Mapping):
+        return error
+    return dataclasses.replace(error, distortion=DistortionEstimate.from_json(document))
 
 
 def _port(document: Mapping[str, Any], key: str, source: str) -> int | None:
@@ -279,8 +294,12 @@ def register(
                                         solution.l_mm, model)
     n_used = int(np.count_nonzero(used))
     fle = fre_value * np.sqrt(n_used / (n_used - 2)) if n_used > 2 else float("nan")
+    distortion = _distortion(solution, points[cal_index[used]], origins[image_index[used]], axes[image_index[used]],
+                             fixed, config, [frame_calibration.points[i] for i in cal_index[used]],
+                             [image_ids[j] for j in image_index[used]])
+    warnings += _check_distortion(distortion, config)
     error = registration_error(points[cal_index[used]], origins[image_index[used]], axes[image_index[used]],
-                               solution.l_mm, not fixed, pair_residuals[used])
+                               solution.l_mm, not fixed, pair_residuals[used], distortion=distortion)
     targets, predicted = predicted_registration_tre(error, targets_image)
 
     pairs = [
@@ -290,7 +309,9 @@ def register(
     paired_images = set(image_index.tolist())
     paired_cal = set(cal_index.tolist())
     warnings += _unpaired_warnings([m for k, m in enumerate(image_ids) if k not in paired_images],
-                                   [p for k, p in enumerate(labels) if k not in paired_cal])
+                                   [p for k, p in enumerate(labels) if k not in paired_cal], distortion)
+    warnings += _distortion_evidence(distortion, solution, points, labels, paired_cal, origins, axes, image_ids,
+                                     paired_images)
     return RegistrationResult(
         reference_to_image=solution.reference_to_image,
         sensor_offset_l_mm=solution.l_mm,
@@ -332,18 +353,86 @@ def pairing_record(pairing: PairingResult, settings: PairingSettings) -> dict[st
             "distance_tolerance_mm": round(settings.distance_tolerance_mm, 3)}
 
 
-def _unpaired_warnings(image_markers: list[str], calibration_points: list[str]) -> list[str]:
-    """One line per kind of point left out of the registration, naming them and the likely reason."""
+def _unpaired_warnings(image_markers: list[str], calibration_points: list[str],
+                       distortion: DistortionEstimate | None = None) -> list[str]:
+    """One line per kind of point left out of the registration, naming them and the likely reason (a detected
+    field distortion first: it moves points off their pinholes, and the user is not blamed for it)."""
     lines = []
-    if calibration_points:
+    if calibration_points and distortion is not None and distortion.detected:
+        largest, _ = distortion.largest()
+        lines.append(f"calibration point(s) {', '.join(calibration_points)} paired with no marker of the CT, left "
+                     f"out of the registration: the field distortion detected here (up to {largest:.1f} mm at the "
+                     f"paired pinholes, largest near {distortion.where()}) may have moved them beyond the pairing "
+                     "tolerance; remove metal from near the frame and transmitter and calibrate again (or that "
+                     "marker was not found in the CT: see 'rejected' in markers.json)")
+    elif calibration_points:
         lines.append(f"calibration point(s) {', '.join(calibration_points)} paired with no marker of the CT, left "
                      "out of the registration: the probe was likely not in a pinhole while recorded there, or that "
                      "marker was not found in the CT (see 'rejected' in markers.json)")
-    if image_markers:
+    if image_markers and calibration_points and distortion is not None and distortion.detected:
+        lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
+                     "registration: the field distortion may have moved their calibration points out of pairing "
+                     "(or their pinholes were not recorded in the calibration)")
+    elif image_markers:
         lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
                      "registration: their pinholes were likely not recorded in the calibration (or their dwells "
                      "not found)")
     return lines
+
+
+def _distortion_evidence(distortion: DistortionEstimate, solution: OffsetSolution, points_reference: np.ndarray,
+                         labels: list[str], paired_cal: set[int], origins_image: np.ndarray, axes_image: np.ndarray,
+                         image_ids: list[str], paired_images: set[int]) -> list[str]:
+    """For each unpaired calibration point, when a distortion was detected: how far it lies from the nearest
+    unpaired CT pinhole (at the solved l), with and without the fitted field taken off (Reference frame, mm)."""
+    unpaired_cal = [k for k in range(len(labels)) if k not in paired_cal]
+    unpaired_images = [k for k in range(len(image_ids)) if k not in paired_images]
+    if not distortion.detected or not unpaired_cal or not unpaired_images:
+        return []
+    pinholes = apply_transform(invert_rigid(solution.reference_to_image),
+                               origins_image[unpaired_images] + solution.l_mm * axes_image[unpaired_images])
+    measured = points_reference[unpaired_cal]
+    corrected = measured - distortion.field_at(measured)
+    lines = []
+    for k, before, after in zip(unpaired_cal, measured, corrected, strict=True):
+        gaps = np.linalg.norm(pinholes - before, axis=1)
+        nearest = int(np.argmin(gaps))
+        lines.append(f"{labels[k]}: {gaps[nearest]:.1f} mm from CT marker {image_ids[unpaired_images[nearest]]}'s "
+                     f"pinhole as measured, {np.linalg.norm(pinholes[nearest] - after):.1f} mm once the fitted field "
+                     "distortion is taken off")
+    return lines
+
+
+def _distortion(solution: OffsetSolution, points_reference: np.ndarray, origins_image: np.ndarray,
+                axes_image: np.ndarray, fixed: bool, config: RegistrationSettings,
+                calibration_points: list[CalibrationPoint], image_markers: list[str]) -> DistortionEstimate:
+    """The distortion test on the fit's residual vectors, taken into the Reference frame (measured point minus
+    the registered CT pinhole; :func:`EMRegModule.distortion.estimate_distortion`), with the transmitter's pose
+    at each point when the calibration kept it."""
+    image_to_reference = invert_rigid(solution.reference_to_image)
+    pinholes_reference = apply_transform(image_to_reference, origins_image + solution.l_mm * axes_image)
+    axes_reference = None if fixed else apply_rotation(image_to_reference, axes_image)
+    poses = [p.tracker_to_reference for p in calibration_points]
+    return estimate_distortion(points_reference, points_reference - pinholes_reference, axes_reference,
+                               config.distortion_false_alarm, [p.label for p in calibration_points], image_markers,
+                               None if any(p is None for p in poses) else np.asarray(poses))
+
+
+def _check_distortion(distortion: DistortionEstimate, config: RegistrationSettings) -> list[str]:
+    """Refuse (:class:`NoSafeAnswerError`) a detected distortion above ``max_distortion_mm`` (RMS at the
+    pinholes); below it, a warning saying where and how much."""
+    if not distortion.detected:
+        return []
+    largest, _ = distortion.largest()
+    size = (f"{distortion.rms_mm:.2f} mm RMS at the pinholes beyond the rigid fit, up to {largest:.2f} mm near "
+            f"{distortion.where()} (p = {distortion.p_value:.2g})")
+    if distortion.rms_mm > config.max_distortion_mm:
+        raise NoSafeAnswerError(
+            f"the EM field is distorted: {size}, above the limit of {config.max_distortion_mm:g} mm "
+            "([registration] max_distortion_mm); move metal (C-arm, table rails, instrument trays) away from the "
+            "frame and the transmitter and calibrate again")
+    return [f"field distortion detected: {size}; metal near the frame or the transmitter? The predicted TRE and "
+            "tre_map.nrrd include it for navigation in this same field"]
 
 
 def _calibration_port(frame_calibration: FrameCalibration, key: str) -> int | None:

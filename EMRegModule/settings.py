@@ -275,7 +275,12 @@ class RegistrationSettings:
     """``[registration]``: ``max_fre_mm`` (2.0, FRE above it is refused), ``sensor_offset_l_mm`` (fix l
     instead of solving it), outlier flagging (``outlier_factor`` x robust RMS, at least
     ``outlier_min_mm``; ``exclude_outliers`` refits without them), the l uncertainty that earns a warning
-    (``warn_l_std_mm``) or a refusal (``max_l_std_mm``), and the pairing keys (:class:`PairingSettings`)."""
+    (``warn_l_std_mm``) or a refusal (``max_l_std_mm``), and the pairing keys (:class:`PairingSettings`).
+
+    Field distortion (:mod:`EMRegModule.distortion`): a detected one (false-alarm rate
+    ``distortion_false_alarm``, 0.002) whose RMS at the pinholes beyond the rigid fit is above
+    ``max_distortion_mm`` (1.5 mm) is refused: alone it would take most of a 2 mm accuracy budget (the
+    FRE limit), so the field is no place to navigate in; below, it is warned about and predicted."""
 
     max_fre_mm: float = positive(2.0)
     outlier_factor: float = positive(2.5)
@@ -284,7 +289,14 @@ class RegistrationSettings:
     max_l_std_mm: float = positive(1.0)
     sensor_offset_l_mm: float | None = positive(None)
     exclude_outliers: bool = False
+    max_distortion_mm: float = positive(1.5)
+    distortion_false_alarm: float = positive(0.002)
     pairing: PairingSettings = field(default_factory=PairingSettings)
+
+    def validate(self) -> None:
+        if not self.distortion_false_alarm < 0.5:
+            raise SettingError(f"must be a probability below 0.5, got {self.distortion_false_alarm}",
+                               "distortion_false_alarm")
 
     @classmethod
     def from_settings(cls, settings: Any) -> RegistrationSettings:

@@ -221,6 +221,17 @@ def fit_rigid(
     return make_transform(rotation, translation)
 
 
+def mean_rigid(a_to_b: ArrayLike) -> Array:
+    """The mean (4x4) of rigid transforms (K, 4, 4): the mean translation, and the rotation nearest the mean
+    rotation matrix (its polar part, determinant +1)."""
+    poses = np.asarray(a_to_b, dtype=float).reshape(-1, 4, 4)
+    u, _, vt = np.linalg.svd(poses[:, :3, :3].mean(axis=0))
+    mean = np.eye(4)
+    mean[:3, :3] = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    mean[:3, 3] = poses[:, :3, 3].mean(axis=0)
+    return mean
+
+
 def residuals(a_to_b: ArrayLike, points_a: ArrayLike, points_b: ArrayLike) -> Array:
     """Per-pair distances (mm) between ``AToB @ points_a`` and ``points_b``."""
     return np.linalg.norm(apply_transform(a_to_b, points_a) - np.asarray(points_b, dtype=float), axis=-1)

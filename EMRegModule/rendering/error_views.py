@@ -5,13 +5,15 @@
   the root of the sum of squares so far) and the measured RMS TRE as a black tick.
 - :func:`tre_map_slices`: three orthogonal planes of ``tre_map.nrrd`` through the targets' centre,
   coloured by the predicted RMS TRE (mm), with iso-lines and the targets marked.
+- :func:`distortion_views`: the registration's residual vectors at the pinholes and the fitted field
+  distortion (its size in colour, its vectors) in two views of the frame.
 
 Output: RGB ``uint8`` images on a white background, drawn with OpenCV.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -23,7 +25,7 @@ from .text import put_text, text_size
 
 #: Segment colours of the budget's terms (RGB).
 TERM_COLORS = {"registration": (70, 120, 200), "tracking": (240, 160, 60), "reference": (120, 180, 110),
-               "placement": (170, 120, 190)}
+               "placement": (170, 120, 190), "distortion": (200, 60, 60)}
 
 
 def error_budget_chart(labels: Sequence[str], budget_rms_mm: Mapping[str, Sequence[float]],
@@ -134,3 +136,60 @@ def _colour_legend(low: float, high: float, width: int) -> np.ndarray:
     put_text(legend, f"predicted RMS TRE; white iso-lines at {levels} mm; + targets", width / 2, 52, 0.35,
          align="center")
     return legend
+
+
+def distortion_views(points_mm: np.ndarray, residuals_mm: np.ndarray, fitted_mm: np.ndarray,
+                     field_size: Callable[[np.ndarray], np.ndarray], title: str, panel_px: int = 380,
+                     arrow_px_per_mm: float | None = None) -> np.ndarray:
+    """Two views of the frame's pinholes (Reference frame, mm) along their principal axes: the fitted
+    distortion field's size (colour, mm) on the plane through the pinholes' centroid, each pinhole's
+    residual vector (black arrow) and the fitted non-rigid field there (magenta arrow), both magnified.
+
+    ``points_mm``, ``residuals_mm``, ``fitted_mm`` (N, 3); ``field_size``: the field's size (mm) at points (K, 3).
+    """
+    points = np.asarray(points_mm, dtype=float).reshape(-1, 3)
+    centroid = points.mean(axis=0)
+    _, _, axes = np.linalg.svd(points - centroid)  # rows: the principal directions, widest first
+    extent = float(np.max(np.abs((points - centroid) @ axes.T))) * 1.15 + 1.0
+    largest = float(max(np.max(np.linalg.norm(residuals_mm, axis=1)), np.max(np.linalg.norm(fitted_mm, axis=1)),
+                        1e-3))
+    magnify = arrow_px_per_mm or 0.12 * panel_px / largest
+    scale = (panel_px - 40) / (2 * extent)
+    grid = np.linspace(-extent, extent, 64)
+    panels = []
+    planes = [(0, 1, "principal axes 1-2"), (0, 2, "principal axes 1-3")]
+    sizes = []
+    for u, v, _ in planes:
+        a, b = np.meshgrid(grid, grid)
+        sample = centroid + a.reshape(-1, 1) * axes[u] + b.reshape(-1, 1) * axes[v]
+        sizes.append(np.asarray(field_size(sample), dtype=float).reshape(a.shape))
+    # the colours span the field at the pinholes (beyond them, towards the object, it is only extrapolated)
+    high = max(1.5 * float(np.max(np.linalg.norm(fitted_mm, axis=1))), 0.5)
+    for (u, v, name), size_map in zip(planes, sizes, strict=True):
+        panel = np.full((panel_px, panel_px, 3), WHITE, dtype=np.uint8)
+        side = panel_px - 40
+        rgb = colorize(cv2.resize(size_map.astype(np.float32), (side, side), interpolation=cv2.INTER_LINEAR),
+                       0.0, high).reshape(side, side, 3)
+        panel[30:30 + side, 20:20 + side] = rgb[::-1]  # +v up
+
+        def pixel(p: np.ndarray, u: int = u, v: int = v) -> tuple[int, int]:
+            d = p - centroid
+            return (int(round(20 + (d @ axes[u] + extent) * scale)), int(round(30 + (extent - d @ axes[v]) * scale)))
+
+        for point, residual, fitted in zip(points, residuals_mm, fitted_mm, strict=True):
+            x, y = pixel(point)
+            for vector, colour, width in ((fitted, (230, 0, 230), 3), (residual, BLACK, 1)):
+                tip = (int(round(x + vector @ axes[u] * magnify)), int(round(y - vector @ axes[v] * magnify)))
+                cv2.arrowedLine(panel, (x, y), tip, colour, width, cv2.LINE_AA, tipLength=0.25)
+            cv2.circle(panel, (x, y), 3, WHITE, -1)
+            cv2.circle(panel, (x, y), 3, BLACK, 1)
+        put_text(panel, name, panel_px / 2, 18, 0.42, align="center")
+        panels.append(panel)
+    header = np.full((30, 2 * panel_px, 3), WHITE, dtype=np.uint8)
+    put_text(header, fit_text(title, 2 * panel_px - 20, 0.45), panel_px, 20, 0.45, align="center")
+    legend = _colour_legend(0.0, high, 2 * panel_px)
+    legend[40:, :] = WHITE
+    put_text(legend, f"fitted field size (mm, capped at {high:.2g}); arrows x{magnify / scale:.0f}: residual (black), "
+         "fitted field (magenta)",
+         panel_px, 52, 0.35, align="center")
+    return np.vstack([header, np.hstack(panels), legend])

@@ -18,12 +18,13 @@ import numpy as np
 import SimpleITK as sitk
 
 from ..calibration import CalibrationPoint
+from ..distortion import DistortionEstimate
 from ..errors import EMRegError
 from ..progress import QUIET, Progress
 from ..rendering.checkpoint_chart import checkpoint_chart
 from ..rendering.colors import GREY, colorize, residual_range
 from ..rendering.context import ContextSurface, bin_factor, binned_ct, context_surface
-from ..rendering.error_views import error_budget_chart, tre_map_slices
+from ..rendering.error_views import distortion_views, error_budget_chart, tre_map_slices
 from ..rendering.images import encode_png
 from ..rendering.plots import bar_chart, fit_text, line_chart
 from ..transforms import apply_transform
@@ -372,6 +373,30 @@ def render_error_budget(data: ReportData) -> list[Figure]:
                    "the placement; the black line is the measured RMS TRE.", _png(chart))]
 
 
+def _distortion(data: ReportData) -> DistortionEstimate | None:
+    """The registration's distortion estimate, when it was tested (None otherwise)."""
+    registration = data.inputs.registration
+    error = None if registration is None else registration.error
+    estimate = None if error is None else error.distortion
+    return estimate if estimate is not None and estimate.tested and len(estimate.points_mm) else None
+
+
+def render_distortion(data: ReportData) -> list[Figure]:
+    """The residual vectors on the frame and the fitted distortion field's size (Reference frame)."""
+    estimate = _distortion(data)
+    verdict = (f"field distortion detected: {estimate.rms_mm:.2f} mm RMS, up to {estimate.largest()[0]:.2f} mm near "
+               f"{estimate.where()}" if estimate.detected else "no field distortion detected")
+    image = distortion_views(estimate.points_mm, estimate.residuals_mm, estimate.pinhole_field(),
+                             lambda points: np.linalg.norm(estimate.field_at(points), axis=1),
+                             f"{verdict} (p = {estimate.p_value:.2g})")
+    return [Figure("distortion", "Field distortion",
+                   "The registration's residual at each pinhole (black arrow: the calibration point minus its CT "
+                   "pinhole, in the Reference frame, magnified) and the non-rigid field distortion fitted to them "
+                   "(magenta; colour: its size on the plane through the pinholes, in two views along their "
+                   "principal axes). Noise scatters the black arrows at random; a field moves neighbours alike.",
+                   _png(image))]
+
+
 def render_tre_map(data: ReportData) -> list[Figure]:
     """Three planes of ``tre_map.nrrd`` through the targets (or the map's centre)."""
     tre_map = sitk.ReadImage(str(data.inputs.out_dir / "tre_map.nrrd"))
@@ -442,6 +467,7 @@ FIGURES: tuple[FigureSpec, ...] = (
     FigureSpec(("error_budget",), _has_budget, render_error_budget),
     FigureSpec(("tre_map",), lambda d: (d.inputs.out_dir / "tre_map.nrrd").is_file(), render_tre_map),
     FigureSpec(("checkpoints",), lambda d: read_checkpoints(d) is not None, render_checkpoints),
+    FigureSpec(("distortion",), lambda d: _distortion(d) is not None, render_distortion),
 )
 
 #: Every figure name, in the order of the registry.

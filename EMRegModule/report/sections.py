@@ -135,6 +135,7 @@ def registration_section(data: ReportData, figures: dict[str, Figure]) -> str:
                                                                  "folder.")
     matrix = np.asarray(registration.reference_to_image, dtype=float)
     parts = ["<h2>Registration</h2>", _figures(figures, "residuals"), _figures(figures, "fre_curve"),
+             _figures(figures, "distortion"),
              "<h3>ReferenceToImage</h3>" + table(("", "x", "y", "z", "t"),
                                                  [(f"row {i + 1}", *(f"{v:.4f}" for v in matrix[i]))
                                                   for i in range(4)]),

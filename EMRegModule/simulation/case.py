@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import shutil
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +23,7 @@ from ..marker_model import MarkerModel
 from ..progress import QUIET, Progress
 from ..transforms import apply_transform, axis_angle_to_rotation, invert_rigid, random_rotation
 from . import ct
+from .distortion import FieldDistortion, nonrigid_errors, place_object, truth_at_points
 from .frame import REFERENCE_SENSOR_DIAMETER_MM, REFERENCE_SENSOR_LENGTH_MM, Phantom, build_phantom
 from .options import SimulationOptions, resolve_options
 from .shapes import pose
@@ -31,7 +33,8 @@ from .tracking import NoiseModel, ReferenceSlip, Visit, apply_probe_convention, 
 STREAM_LAYOUT, STREAM_PLACEMENT, STREAM_NOISE, STREAM_STREAKS = 1, 2, 3, 4
 STREAM_CALIBRATION, STREAM_NAVIGATION, STREAM_BOARD, STREAM_OFFSET = 5, 6, 7, 8
 STREAM_MARKER_STREAKS = 9
-STREAM_CHECKPOINTS = 10
+STREAM_CHECKPOINTS = 12  # and 13: the reference slip
+STREAM_DISTORTION = 10
 MAX_VOXELS = 1_500_000_000
 
 
@@ -112,7 +115,8 @@ def _write_recordings(out_dir: Path, seed: int, opts: SimulationOptions, phantom
     if l_mm is None:
         l_mm = float(_rng(seed, STREAM_OFFSET).uniform(model.pinhole_bottom_mm + 1, model.pinhole_top_mm - 1))
     calibration = _calibration(seed, opts, phantom, l_mm)
-    navigation = _navigation(seed, opts, phantom, _frame_to_image(_rng(seed, STREAM_PLACEMENT), phantom, opts), l_mm)
+    navigation = _navigation(seed, opts, phantom, _frame_to_image(_rng(seed, STREAM_PLACEMENT), phantom, opts),
+                             l_mm, calibration["distortion"])
     board = _board(seed, opts, phantom)
     _write_recording(calibration.pop("recording"), out_dir / "calibration.csv", probe_axis=opts.probe_axis)
     _write_recording(navigation.pop("recording"), out_dir / "navigation.csv", probe_axis=opts.probe_axis)
@@ -284,12 +288,15 @@ def _calibration(seed: int, opts: SimulationOptions, phantom: Phantom, l_mm: flo
             bumps[int(i)] = current
     noise = NoiseModel(bad_sample_rate=opts.bad_sample_rate).scaled(opts.tracker_noise_scale)
     centre = np.array([0.0, 0.0, phantom.geometry.size[2] / 2])
+    start_time_s = round(float(rng.uniform(0, 5)), 2)
+    distortion = _distortion(seed, opts, phantom, l_mm, frame_to_tracker, start_time_s)
     recording, dwells, body_poses = simulate_session(
         rng, visits, frame_to_tracker, phantom.reference_to_frame, centre, lift_mm=25.0, bump_before=bumps,
-        hesitation_rate=opts.hesitation_rate, noise=noise, start_time_s=round(float(rng.uniform(0, 5)), 2))
+        hesitation_rate=opts.hesitation_rate, noise=noise, start_time_s=start_time_s,
+        distortion=distortion["calibration"] if distortion else None)
     reference_to_tracker = [b @ phantom.reference_to_frame for b in body_poses]
     return {"recording": recording, "dwells": dwells, "reference_to_tracker": reference_to_tracker,
-            "bumps": len(bumps)}
+            "bumps": len(bumps), "distortion": distortion}
 
 
 def _tool_visit(probe_rotation: np.ndarray, tip_position: np.ndarray, opts: SimulationOptions, duration_s: float,
@@ -329,12 +336,36 @@ def _reference_slip(seed: int, opts: SimulationOptions) -> ReferenceSlip | None:
     return ReferenceSlip(opts.reference_slip_at, pose(rotation, shift / np.linalg.norm(shift) * opts.reference_slip_mm))
 
 
+def _distortion(seed: int, opts: SimulationOptions, phantom: Phantom, l_mm: float, frame_to_tracker: np.ndarray,
+                calibration_start_s: float) -> dict | None:
+    """The steel rod of ``distortion_mm`` beside the frame as calibrated (None without one): the object in each
+    recording it is in (``calibration`` / ``navigation``, None where absent) and its truth at the pinholes."""
+    if opts.distortion_mm <= 0:
+        return None
+    calibrated = [m for m in phantom.markers if m.calibrated]
+    pinholes = np.array([apply_transform(m.marker_to_frame, [0.0, l_mm, 0.0]) for m in calibrated])
+    distortion = place_object(_rng(seed, STREAM_DISTORTION), pinholes, frame_to_tracker, phantom.reference_to_frame,
+                              opts.distortion_mm)
+    onset = opts.distortion_onset_s
+    calibration = navigation = None
+    if opts.distortion_during in ("calibration", "both"):
+        calibration = distortion if onset is None else replace(distortion, onset_s=calibration_start_s + onset)
+    if opts.distortion_during == "both":
+        navigation = distortion
+    truth = truth_at_points(distortion, [m.label for m in calibrated], pinholes, frame_to_tracker,
+                            phantom.reference_to_frame)
+    return {"calibration": calibration, "navigation": navigation, "object": distortion,
+            "frame_to_tracker": frame_to_tracker, "pinholes": pinholes, "truth": truth}
+
+
 def _navigation(seed: int, opts: SimulationOptions, phantom: Phantom, frame_to_image: np.ndarray,
-                l_mm: float) -> dict:
+                l_mm: float, distortion: dict | None = None) -> dict:
     rng = _rng(seed, STREAM_NAVIGATION)
     frame_to_tracker = _frame_to_tracker(rng, phantom.geometry.size, rng.uniform(-180, 180),
                                          np.array([rng.uniform(250, 420), rng.uniform(-120, 120),
                                                    rng.uniform(-80, 100)]))
+    if distortion is not None:  # navigated where it was calibrated: the field the calibration measured
+        frame_to_tracker = distortion["frame_to_tracker"]
     visits = []
     n = len(phantom.targets)
     for _round in range(opts.navigation_rounds):
@@ -358,9 +389,18 @@ def _navigation(seed: int, opts: SimulationOptions, phantom: Phantom, frame_to_i
     noise = NoiseModel(bad_sample_rate=opts.bad_sample_rate).scaled(opts.tracker_noise_scale)
     centre = np.asarray(phantom.targets).mean(axis=0) if n else phantom.geometry.size * [0.0, 0.0, 0.5]
     slip = _reference_slip(seed, opts)
+    start_time_s = round(float(rng.uniform(0, 5)), 2)
+    field = None
+    if distortion is not None:
+        field = distortion["navigation"]
+        if opts.distortion_during == "navigation":
+            field = distortion["object"]
+            if opts.distortion_onset_s is not None:
+                field = replace(field, onset_s=start_time_s + opts.distortion_onset_s)
+        out["distortion"] = field
     recording, dwells, body_poses = simulate_session(
         rng, visits, frame_to_tracker, phantom.reference_to_frame, centre, lift_mm=20.0, noise=noise,
-        start_time_s=round(float(rng.uniform(0, 5)), 2), reference_slip=slip)
+        start_time_s=start_time_s, reference_slip=slip, distortion=field)
     out.update(recording=recording, dwells=dwells,
                reference_to_tracker=frame_to_tracker @ phantom.reference_to_frame,
                reference_slip=None if slip is None else _slip_truth(slip, phantom, l_mm, dwells))
@@ -518,4 +558,36 @@ def _truth(seed: int, difficulty: str, opts: SimulationOptions, model: MarkerMod
                           if navigation.get("reference_slip") else {})},
         "tool": None if opts.tool_tip_mm is None else {"tip_mm": list(opts.tool_tip_mm),
                                                        "pivot_swing_deg": opts.pivot_swing_deg},
+        **({"distortion": _distortion_truth(opts, phantom, calibration, navigation)} if calibration["distortion"]
+           else {}),
     }
+
+
+def _distortion_truth(opts: SimulationOptions, phantom: Phantom, calibration: dict, navigation: dict) -> dict:
+    """``truth.json`` ``distortion``: the object (Tracker frame), when it is in each recording, its errors at the
+    calibrated pinholes (Reference frame, full strength) and at the targets, and its strength at every dwell."""
+    distortion = calibration["distortion"]
+    frame_to_tracker = distortion["frame_to_tracker"]
+
+    def phase(field: FieldDistortion | None, dwells: list) -> dict | None:
+        if field is None:
+            return None
+        return {"onset_s": field.onset_s if np.isfinite(field.onset_s) else None, "ramp_s": field.ramp_s,
+                "dwells": [{"name": d.name, "start_s": round(d.start_s, 4), "end_s": round(d.end_s, 4),
+                            "strength": round(float(field.strength((d.start_s + d.end_s) / 2)), 4)}
+                           for d in dwells]}
+
+    targets = {}
+    if len(phantom.targets):
+        raw, nonrigid = nonrigid_errors(distortion["object"], distortion["pinholes"], frame_to_tracker,
+                                        phantom.reference_to_frame,
+                                        at_body=np.asarray(phantom.targets))
+        targets = {f"T{i + 1}": {"raw_mm": r.tolist(), "after_registration_mm": n.tolist(),
+                                 "after_registration_norm_mm": float(np.linalg.norm(n))}
+                   for i, (r, n) in enumerate(zip(raw, nonrigid, strict=True))}
+    return {"size_mm": opts.distortion_mm, "during": opts.distortion_during,
+            "object": distortion["object"].to_json(), "FrameToTracker": frame_to_tracker,
+            "frame": "pinhole and target errors in the Reference frame (mm), at full strength",
+            **distortion["truth"], "targets": targets,
+            "calibration": phase(distortion["calibration"], calibration["dwells"]),
+            "navigation": phase(navigation.get("distortion"), navigation["dwells"])}

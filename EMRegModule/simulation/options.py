@@ -10,6 +10,7 @@ import numpy as np
 from ..errors import EMRegError
 
 DIFFICULTIES = ("standard", "hard")
+DISTORTION_DURING = ("calibration", "navigation", "both")
 
 
 @dataclass(frozen=True)
@@ -62,6 +63,13 @@ class SimulationOptions:
     reference_slip_mm: float = 0.0  # the reference sensor slips in its slot during navigation by this much ...
     reference_slip_deg: float = 0.0  # ... and this rotation (random directions)
     reference_slip_at: float = 0.5  # ... at this fraction of the navigation recording (while the probe moves)
+    # field distortion by a steel rod near the frame (:mod:`.distortion`): RMS (mm) of the non-rigid error at the
+    # calibrated pinholes after the best rigid fit (0: none); in which recordings; when it is rolled in (s after
+    # the start of the first of them; None: there from the start). The navigation is then recorded with the frame
+    # where it was calibrated (the same field).
+    distortion_mm: float = 0.0
+    distortion_during: str = "both"  # "calibration", "navigation" or "both"
+    distortion_onset_s: float | None = None
 
     def check(self) -> None:
         """Refuse impossible values with an :class:`EMRegError` naming the option."""
@@ -92,6 +100,13 @@ class SimulationOptions:
                              "negative")
         if self.probe_axis not in ("+x_in", "+x_out", "none"):
             raise EMRegError(f"simulate: probe_axis must be '+x_in', '+x_out' or 'none', got {self.probe_axis!r}")
+        if not 0.0 <= self.distortion_mm <= 20.0:
+            raise EMRegError(f"simulate: distortion_mm must lie in 0..20 mm, got {self.distortion_mm}")
+        if self.distortion_during not in DISTORTION_DURING:
+            raise EMRegError(f"simulate: distortion_during must be one of {', '.join(DISTORTION_DURING)}, "
+                             f"got {self.distortion_during!r}")
+        if self.distortion_onset_s is not None and self.distortion_onset_s < 0:
+            raise EMRegError(f"simulate: distortion_onset_s must not be negative, got {self.distortion_onset_s}")
         if len(self.board_edges_mm) != 4:
             raise EMRegError("simulate: board_edges_mm needs four edge lengths")
         if not 300.0 <= self.pvc_hu <= 2800.0:

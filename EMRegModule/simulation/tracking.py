@@ -25,6 +25,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from ..tracking import TrackingRecording
 from ..transforms import axis_angle_to_rotation, random_rotation
+from .distortion import FieldDistortion
 
 RATE_HZ = 80.0
 REFERENCE_PORT = 1
@@ -219,14 +220,16 @@ def simulate_session(rng: np.random.Generator, visits: list[Visit], body_to_trac
                      bump_before: dict[int, np.ndarray] | None = None, hesitation_rate: float = 0.0,
                      noise: NoiseModel | None = None, start_time_s: float = 0.0,
                      reference_slip: ReferenceSlip | None = None,
+                     distortion: FieldDistortion | None = None,
                      ) -> tuple[TrackingRecording, list[DwellTruth], list[np.ndarray]]:
     """A recording of the probe visiting ``visits`` in turn with the reference sensor recorded alongside.
 
     ``bump_before[i]``: the new ``BodyToTracker`` that takes effect during the transition
     into visit ``i`` (the frame was bumped). ``reference_slip``: the reference sensor slips in
     its slot once, between two samples while the probe moves (its ``time_s`` is set to the first
-    sample after the slip). Returns the recording (reported poses), the dwell periods, and the
-    ``BodyToTracker`` of each visit.
+    sample after the slip). ``distortion``: a metal object distorting the field (both sensors, at
+    its strength at each sample's time; :mod:`.distortion`). Returns the recording (reported
+    poses), the dwell periods, and the ``BodyToTracker`` of each visit.
     """
     noise = noise or NoiseModel()
     bump_before = bump_before or {}
@@ -285,7 +288,8 @@ def simulate_session(rng: np.random.Generator, visits: list[Visit], body_to_trac
         slip_index = int(moving[np.argmin(np.abs(moving - reference_slip.at_fraction * len(track.time_s)))])
         reference_slip.time_s = float(track.time_s[slip_index])
     recording = _report(rng, track, np.asarray(reference_to_body, dtype=float), noise, len(visits),
-                        None if reference_slip is None else (slip_index, reference_slip.reference_after_to_before))
+                        None if reference_slip is None else (slip_index, reference_slip.reference_after_to_before),
+                        distortion)
     return recording, dwells, visit_body_to_tracker
 
 
@@ -320,9 +324,11 @@ def _rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
 
 
 def _report(rng: np.random.Generator, track: _Track, reference_to_body: np.ndarray, noise: NoiseModel,
-            n_visits: int, slip: tuple[int, np.ndarray] | None = None) -> TrackingRecording:
-    """Apply the tracker's errors to the true poses and interleave reference and probe rows; ``slip``: (first
-    sample, ``ReferenceAfterToReferenceBefore``) of a slip of the reference sensor in its slot."""
+            n_visits: int, slip: tuple[int, np.ndarray] | None = None,
+            distortion: FieldDistortion | None = None) -> TrackingRecording:
+    """Apply the tracker's errors to the true poses (a slip of the reference first, then the field's
+    distortion) and interleave reference and probe rows; ``slip``: (first sample,
+    ``ReferenceAfterToReferenceBefore``) of a slip of the reference sensor in its slot."""
     n = len(track.time_s)
     time_s = np.asarray(track.time_s)
     probe_to_body = np.asarray(track.probe_to_body)
@@ -332,6 +338,9 @@ def _report(rng: np.random.Generator, track: _Track, reference_to_body: np.ndarr
     reference_true = body_to_tracker @ reference_to_body
     if slip is not None:
         reference_true[slip[0]:] = reference_true[slip[0]:] @ slip[1]
+    if distortion is not None:
+        probe_true = distortion.distort(time_s, probe_true)
+        reference_true = distortion.distort(time_s, reference_true)
 
     # probe: per-dwell systematic error, interpolated in time through the transitions
     sys_pos = rng.normal(0, noise.probe_dwell_mm, (n_visits, 3))

@@ -17,7 +17,8 @@ from ..error_model import ErrorModel
 from ..evaluation import evaluate_board, evaluate_targets
 from ..io.case import open_case
 from ..rendering.plots import bar_chart, line_chart
-from .frame import Frame, calibrate_and_register, noise_model, simulate_navigation, with_noise
+from ..simulation.distortion import nonrigid_errors, place_object
+from .frame import Frame, calibrate_and_register, noise_model, reference_placement, simulate_navigation, with_noise
 
 #: The paper's figures (Lin et al. 2020) printed beside ours.
 PAPER = {"calibration_fre_mean_mm": 1.38, "tre_mean_mm": 1.38, "tre_std_mm": 0.32,
@@ -275,6 +276,78 @@ def _prediction_summary(rows: list[dict]) -> Summary:
                     "per target 5-95 %", "per target in 0.65-1.5"], table, figure, notes)
 
 
+# --- trust: field distortion detected at registration, and the TRE predicted with it ---------------
+
+#: Sessions per distortion size (RMS non-rigid mm at the pinholes; 0: clean) of ``emreg study trust``.
+TRUST_SESSIONS = {0.0: 40, 0.5: 20, 1.0: 40, 1.5: 20}
+TRUST_QUICK = {0.0: 2, 1.0: 2}
+
+
+def _trust_rows(frame: Frame, params: dict, rng: np.random.Generator) -> list[dict]:
+    """One calibration + registration + navigation with a steel rod of ``distortion_mm`` (RMS non-rigid at the
+    pinholes) beside the frame (0: a clean session), navigated in the same field: detection, estimate, TRE."""
+    size = float(params["distortion_mm"])
+    placement = reference_placement(rng)
+    distortion = place_object(rng, frame.pinholes, placement, np.eye(4), size) if size > 0 else None
+    noise = noise_model(params.get("noise", 1.0))
+    session = calibrate_and_register(frame, rng, noise, reference_to_tracker=placement, distortion=distortion)
+    row = {**params, "refused": session.refused}
+    if session.registration is None:
+        return [row]
+    registration = session.registration
+    estimate = registration.error.distortion
+    truth_rms = 0.0
+    if distortion is not None:
+        paired = [frame.labels.index(p["calibration_point"]) for p in registration.pairs]
+        truth_rms = float(np.sqrt(np.mean(np.sum(
+            nonrigid_errors(distortion, frame.pinholes[paired], placement, np.eye(4))[1] ** 2, axis=1))))
+    row.update(detected=bool(estimate.detected), p_value=estimate.p_value, estimated_rms_mm=estimate.rms_mm,
+               truth_paired_rms_mm=truth_rms, paired=len(registration.pairs), fre_mm=registration.fre_mm,
+               unpaired=len(registration.unpaired_calibration_points))
+    model = ErrorModel.with_priors(registration.reference_to_image, registration.error)
+    recording = simulate_navigation(frame, rng, params.get("placements", 4), noise, reference_to_tracker=placement,
+                                    distortion=distortion)
+    result = evaluate_targets(recording, frame.target_labels, frame.targets_image, registration.reference_to_image,
+                              error_model=model).to_json()
+    dwells = result["dwells"]
+    if dwells:
+        distortion_ms = model.budget(frame.targets_image).distortion_ms
+        index = [frame.target_labels.index(d["target"]) for d in dwells]
+        predicted = float(np.mean([result["targets"][d["target"]]["predicted_rms_mm"] ** 2 for d in dwells]))
+        row.update(measured_ms=float(np.mean([d["error_mm"] ** 2 for d in dwells])), dwells=len(dwells),
+                   predicted_ms=predicted, predicted_without_distortion_ms=predicted - (
+                       0.0 if distortion_ms is None else float(np.mean(distortion_ms[index]))))
+    return [row]
+
+
+def _trust_summary(rows: list[dict]) -> Summary:
+    table, sizes, rates = [], [], []
+    for size, group in _by(rows, "distortion_mm").items():
+        done = [r for r in group if not r["refused"]]
+        detected = [r for r in done if r["detected"]]
+        navigated = [r for r in done if "measured_ms" in r]
+        measured = np.mean([r["measured_ms"] for r in navigated]) if navigated else np.nan
+        predicted = np.mean([r["predicted_ms"] for r in navigated]) if navigated else np.nan
+        without = np.mean([r["predicted_without_distortion_ms"] for r in navigated]) if navigated else np.nan
+        ratios = np.array([np.sqrt(r["predicted_ms"] / r["measured_ms"]) for r in navigated])
+        rate = len(detected) / len(done) if done else np.nan
+        table.append([f"{size:g}", str(len(group)), f"{len(group) - len(done)}", f"{rate * 100:.1f} %",
+                      _mean_std([r["estimated_rms_mm"] for r in detected]),
+                      _mean_std([r["truth_paired_rms_mm"] for r in done]) if size else "-",
+                      f"{np.sqrt(measured):.3f}", f"{np.sqrt(predicted / measured):.2f}",
+                      f"{np.sqrt(without / measured):.2f}",
+                      f"{np.percentile(ratios, 5):.2f}-{np.percentile(ratios, 95):.2f}" if len(ratios) else "-"])
+        sizes.append(f"{size:g}")
+        rates.append(rate * 100)
+    figure = bar_chart(sizes, rates, title="distortion detected at registration", y_label="sessions detected (%)",
+                       reference_lines=[(95.0, "goal at 1 mm"), (1.0, "false alarms")])
+    refused = sum(1 for r in rows if r["refused"])
+    notes = [f"{refused} of {len(rows)} sessions refused"] if refused else []
+    return Summary(["distortion RMS (mm)", "sessions", "refused", "detected", "estimated RMS (mm, detected)",
+                    "true RMS at the paired pinholes (mm)", "measured RMS TRE (mm)", "predicted / measured",
+                    "without the distortion term", "per session 5-95 %"], table, figure, notes)
+
+
 def _grid(quick: bool, full: dict, small: dict, repetitions: int, quick_repetitions: int) -> list[dict]:
     """Every combination of the swept values, ``repetitions`` sessions each."""
     values = small if quick else full
@@ -305,4 +378,8 @@ STUDIES: dict[str, Study] = {s.name: s for s in (
                               {"noise": [1.0, 4.0], "markers": [0]}, 8, 2)
           + ([] if quick else [{"reference_jitter": 5.0, "repetition": r} for r in range(8)]),
           _navigation_rows, _prediction_summary),
+    Study("trust", "field distortion: detection at registration, false alarms, predicted against measured TRE",
+          lambda quick: [{"distortion_mm": size, "repetition": r}
+                         for size, count in (TRUST_QUICK if quick else TRUST_SESSIONS).items() for r in range(count)],
+          _trust_rows, _trust_summary),
 )}

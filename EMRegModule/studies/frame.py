@@ -28,6 +28,7 @@ from ..io.case import open_case
 from ..marker_model import MarkerModel
 from ..registration import RegistrationResult, register
 from ..simulation import load_truth, simulate_case
+from ..simulation.distortion import FieldDistortion
 from ..simulation.tracking import NoiseModel, Visit, probe_rotation_into, simulate_session
 from ..tracking import TrackingRecording
 from ..transforms import (
@@ -124,9 +125,13 @@ def _touch(rotation: np.ndarray, point: np.ndarray, tip_mm: np.ndarray | None) -
 
 def simulate_calibration(frame: Frame, rng: np.random.Generator, noise: NoiseModel | None = None,
                          subset: np.ndarray | None = None, tip_mm: np.ndarray | None = None,
-                         pivot_swing_deg: float = 30.0) -> TrackingRecording:
+                         pivot_swing_deg: float = 30.0, reference_to_tracker: np.ndarray | None = None,
+                         distortion: FieldDistortion | None = None) -> TrackingRecording:
     """A calibration recording: the probe into each (selected) pinhole in turn, labelled by marker; with a
-    stylus (``tip_mm``) its tip at the pinhole point, pivoting through ``pivot_swing_deg``."""
+    stylus (``tip_mm``) its tip at the pinhole point, pivoting through ``pivot_swing_deg``.
+
+    ``reference_to_tracker``: where the frame is (default: a random placement); ``distortion``: a metal
+    object distorting the field (:mod:`EMRegModule.simulation.distortion`)."""
     index = np.arange(len(frame.labels)) if subset is None else np.asarray(subset)
     visits = []
     for i in index:
@@ -135,15 +140,19 @@ def simulate_calibration(frame: Frame, rng: np.random.Generator, noise: NoiseMod
                             float(rng.uniform(1.0, 2.0) if tip_mm is None else rng.uniform(2.0, 3.0)),
                             frame.labels[i], frame.labels[i], tip_mm=tip_mm,
                             pivot_swing_deg=0.0 if tip_mm is None else pivot_swing_deg))
-    recording, _, _ = simulate_session(rng, visits, reference_placement(rng), np.eye(4),
-                                       frame.pinholes[index].mean(axis=0), lift_mm=25.0, noise=noise)
+    placement = reference_placement(rng) if reference_to_tracker is None else reference_to_tracker
+    recording, _, _ = simulate_session(rng, visits, placement, np.eye(4), frame.pinholes[index].mean(axis=0),
+                                       lift_mm=25.0, noise=noise, distortion=distortion)
     return recording
 
 
 def simulate_navigation(frame: Frame, rng: np.random.Generator, rounds: int = 15,
-                        noise: NoiseModel | None = None, tip_mm: np.ndarray | None = None) -> TrackingRecording:
+                        noise: NoiseModel | None = None, tip_mm: np.ndarray | None = None,
+                        reference_to_tracker: np.ndarray | None = None,
+                        distortion: FieldDistortion | None = None) -> TrackingRecording:
     """A navigation recording: the probe tip-first onto each target, ``rounds`` times, hand-held (with a stylus,
-    ``tip_mm``: its tip on the targets)."""
+    ``tip_mm``: its tip on the targets; ``reference_to_tracker``, ``distortion``: as for
+    :func:`simulate_calibration`)."""
     targets = frame.targets_reference
     centre = targets.mean(axis=0)
     visits = []
@@ -153,8 +162,9 @@ def simulate_navigation(frame: Frame, rng: np.random.Generator, rounds: int = 15
             rotation = probe_rotation_into(inward, rng.uniform(0, 2 * np.pi), 25.0, rng)
             visits.append(Visit(_touch(rotation, target, tip_mm), float(rng.uniform(1.0, 2.0)), label, label,
                                 tremor_mm=0.08))
-    recording, _, _ = simulate_session(rng, visits, reference_placement(rng), np.eye(4), centre, lift_mm=20.0,
-                                       noise=noise)
+    placement = reference_placement(rng) if reference_to_tracker is None else reference_to_tracker
+    recording, _, _ = simulate_session(rng, visits, placement, np.eye(4), centre, lift_mm=20.0, noise=noise,
+                                       distortion=distortion)
     return recording
 
 
@@ -171,11 +181,14 @@ class Session:
 
 def calibrate_and_register(frame: Frame, rng: np.random.Generator, noise: NoiseModel | None = None,
                            subset: np.ndarray | None = None, tool: object | None = None,
-                           true_tip_mm: np.ndarray | None = None) -> Session:
+                           true_tip_mm: np.ndarray | None = None, reference_to_tracker: np.ndarray | None = None,
+                           distortion: FieldDistortion | None = None) -> Session:
     """Simulate a calibration session, then the real calibration and registration; errors vs the truth.
     ``tool`` (a :class:`~EMRegModule.tool.ToolCalibration`): the session touches with a stylus whose tip is
-    truly at ``true_tip_mm`` and is calibrated with ``tool``'s."""
-    recording = simulate_calibration(frame, rng, noise, subset, tip_mm=true_tip_mm)
+    truly at ``true_tip_mm`` and is calibrated with ``tool``'s; ``reference_to_tracker``, ``distortion``: as
+    for :func:`simulate_calibration`."""
+    recording = simulate_calibration(frame, rng, noise, subset, tip_mm=true_tip_mm,
+                                     reference_to_tracker=reference_to_tracker, distortion=distortion)
     try:
         calibration = calibrate_frame(recording, 1, 2, None, tool=tool)
         registration = register(frame.detection, calibration, frame.model, None, targets_image=frame.targets_image)

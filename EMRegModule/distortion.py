@@ -1,0 +1,512 @@
+"""Field distortion seen at registration: residuals that are spatially coherent, beyond what noise explains.
+
+The CT is geometrically true; the EM measurements are not once metal distorts the field. After the
+rigid fit (with l), the residual of each calibration point is its tracking noise plus the non-rigid
+part of the distortion, a smooth field (neighbouring pinholes displaced alike). Noise is independent
+from pinhole to pinhole; a distortion is not. Everything here is in the **Reference frame** (mm): the
+field is the displacement of an EM measurement from where it should be, less the rigid motion the
+registration absorbs of it.
+
+**Model.** The residual vector ``r`` (3N) is ``P (f + e)``: ``P`` removes what the rigid fit (rotation,
+translation, and l when solved) absorbs; ``e`` is isotropic noise of unknown size, independent per point
+(the probe's per-dwell error and the CT's localisation); ``f`` is the field of one metal object, an
+induced dipole (:mod:`EMRegModule.em_field`) somewhere around the frame, linear in its six polarisability
+coefficients. The calibration keeps where the transmitter was at each pinhole (``TrackerToReference``),
+which the dipole's field depends on. Without it (an older ``frame_calibration.json``), smooth Gaussian
+bumps (3 amplitudes each, widths a fraction of the frame) stand in for the dipole.
+
+**Test.** The statistic is the largest share of ``|r|^2`` that one candidate field explains (a scan over
+object positions around the frame, or bump places and widths). Under noise alone its distribution does
+not depend on the noise's size (only the geometry enters), so it is drawn by Monte Carlo once per
+geometry (deterministic seed): the p-value is exact up to the draws whatever the tracker's noise, and
+is compared with ``[registration] distortion_false_alarm``. One bad pair (a probe not fully inserted)
+is not a field: the pinhole of the largest residual must be explained by the others too, either because
+they alone are significant or because the field fitted to them predicts most of its residual. (A rod
+near the frame often moves one pinhole much more than the rest, and the pairing may already have left
+the worst out: requiring significance without it missed 15 % of 1 mm distortions.)
+
+Why not a chi-square against the error model's FLE: with one dwell per pinhole the FLE is estimated from
+these same residuals (a dwell's spread shows the tracker's jitter, not its per-dwell error, which is
+several times larger), so the ratio is one by construction; a noise level known beforehand would make
+the test only as good as that guess.
+
+**Estimate.** When detected, the best candidate (a dipole's position refined by Nelder-Mead) is fitted by
+least squares: its non-rigid field at the pinholes gives ``rms_mm`` / ``max_mm``; its field and the
+covariance of its amplitudes give the distortion's mean square at any point probed in the same field
+(:meth:`DistortionEstimate.mean_square_at`, the error model's distortion term), and the noise that
+remains beside it replaces the probe's per-dwell error of the error model.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from .em_field import FieldAtPoints
+from .error_model import fiducial_jacobian
+from .transforms import mean_rigid
+
+#: Bump widths tried, as fractions of the RMS distance of the pinholes from their centroid.
+LENGTH_FRACTIONS = (0.3, 0.5, 0.8)
+#: Bump centres: the pinholes, and the pinholes pushed out from the centroid by this factor (an object outside).
+OUTWARD = 1.35
+#: Candidate objects: directions from the pinholes' centre, and gaps (mm) beyond their farthest one.
+OBJECT_DIRECTIONS = 64
+OBJECT_GAPS_MM = (15.0, 50.0, 100.0, 180.0, 300.0)
+#: Candidate objects nearer than this to the transmitter (mm) are not tried.
+MIN_TRANSMITTER_DISTANCE_MM = 80.0
+#: Monte Carlo draws of the null distribution (p-values resolved to 1 / 2001, ample for a false-alarm rate of 0.002).
+NULL_DRAWS = 2000
+#: Fewest residual degrees of freedom a test needs (below: not tested).
+MIN_DOF = 6
+#: Share of the largest residual's square the field fitted to the other pinholes must predict, when those alone are
+#: not significant (simulated, 12 each: a bad pair at most 0.14, a rod's field 0.44-0.96).
+PREDICTED_SHARE = 0.5
+
+
+def _kernel(points_a: np.ndarray, points_b: np.ndarray, length_mm: np.ndarray | float) -> np.ndarray:
+    """Gaussian bump values exp(-|a - b|^2 / (2 L^2)), (len(a), len(b)); ``length_mm`` per b or one."""
+    squared = np.sum((points_a[:, None, :] - points_b[None, :, :]) ** 2, axis=-1)
+    return np.exp(-squared / (2.0 * np.asarray(length_mm, dtype=float) ** 2))
+
+
+def _rigid_jacobian(points: np.ndarray, axes: np.ndarray | None) -> np.ndarray:
+    """The stacked rigid-fit Jacobian (3N, P) at the pinholes (rotation about their centroid, translation, l)."""
+    return fiducial_jacobian(points, points.mean(axis=0), axes).reshape(3 * len(points), -1)
+
+
+def _complement(jacobian: np.ndarray) -> np.ndarray:
+    """An orthonormal basis (3N, m) of what the rigid fit leaves: residuals live there."""
+    u, s, _ = np.linalg.svd(jacobian, full_matrices=True)
+    return u[:, int(np.sum(s > s[0] * 1e-10)):]
+
+
+def _fibonacci_sphere(n: int) -> np.ndarray:
+    """``n`` nearly uniform unit directions (n, 3)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    angle = np.pi * (1.0 + np.sqrt(5.0)) * k
+    r = np.sqrt(1.0 - z * z)
+    return np.column_stack([r * np.cos(angle), r * np.sin(angle), z])
+
+
+# --- the two field models: an induced dipole, or smooth bumps ---------------------------------
+
+
+@dataclass(frozen=True)
+class _Dipole:
+    """An induced dipole at ``object_mm`` (Tracker frame); pinholes seen from the transmitter through each one's
+    ``TrackerToReference`` (the frame may have moved between dwells). Amplitudes: the six symmetric
+    polarisability coefficients (mm^3, :data:`EMRegModule.em_field.SYMMETRIC_BASIS`)."""
+
+    object_mm: np.ndarray
+    tracker_to_reference: np.ndarray  # (4, 4): for points other than the pinholes (the calibration's mean pose)
+
+    def columns(self, points_reference: np.ndarray, tracker_to_reference: np.ndarray | None = None,
+                seen: _Seen | None = None) -> np.ndarray:
+        """Field columns (K, 3, 6) in the Reference frame at points (K, 3), each with its pose (K, 4, 4) or the mean
+        (``seen``: those points as the transmitter sees them, kept)."""
+        seen = seen or _Seen(points_reference, np.broadcast_to(
+            self.tracker_to_reference if tracker_to_reference is None else tracker_to_reference,
+            (len(points_reference), 4, 4)))
+        return seen.rotation @ seen.field.error_basis(self.object_mm)
+
+
+class _Seen:
+    """Points of the Reference frame as the transmitter sees them: their poses' rotations (K, 3, 3) and the
+    free-space field there (:class:`EMRegModule.em_field.FieldAtPoints`)."""
+
+    def __init__(self, points_reference: np.ndarray, tracker_to_reference: np.ndarray) -> None:
+        self.rotation = tracker_to_reference[:, :3, :3]
+        origin = tracker_to_reference[:, :3, 3]
+        self.points_tracker = np.einsum("kji,kj->ki", self.rotation, np.asarray(points_reference) - origin)
+        self.field = FieldAtPoints(self.points_tracker)
+
+
+@dataclass(frozen=True)
+class _Bumps:
+    """Gaussian bumps at ``centres_mm`` (B, 3, Reference) of widths ``lengths_mm`` (B,); amplitudes: a
+    displacement (mm, 3) per bump."""
+
+    centres_mm: np.ndarray
+    lengths_mm: np.ndarray
+
+    def columns(self, points_reference: np.ndarray, tracker_to_reference: np.ndarray | None = None,
+                seen: _Seen | None = None) -> np.ndarray:
+        """Field columns (K, 3, 3B) at points (K, 3) of the Reference frame."""
+        kernel = _kernel(np.asarray(points_reference, dtype=float), self.centres_mm, self.lengths_mm)
+        return np.einsum("kb,cd->kcbd", kernel, np.eye(3)).reshape(len(kernel), 3, -1)
+
+
+def _stack(columns: np.ndarray) -> np.ndarray:
+    """(N, 3, P) -> (3N, P), rows point-major (as the rigid Jacobian)."""
+    return columns.reshape(-1, columns.shape[-1])
+
+
+@dataclass
+class _Scan:
+    """Candidate fields (dipoles or single bumps) and, in the residual basis Q (3N, m), each one's orthonormal
+    column basis (C, m, P)."""
+
+    basis: np.ndarray
+    candidates: list
+    bases: np.ndarray
+    seen: _Seen | None = None
+    flat: np.ndarray | None = None
+
+    @classmethod
+    def of(cls, points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None) -> _Scan:
+        basis = _complement(_rigid_jacobian(points, axes))
+        seen = None if poses is None else _Seen(points, poses)
+        candidates = _dipole_candidates(seen, poses) if seen is not None else _bump_candidates(points)
+        design = np.stack([basis.T @ _stack(c.columns(points, poses, seen)) for c in candidates])
+        q, r = np.linalg.qr(design)  # (C, m, P)
+        diagonal = np.abs(np.diagonal(r, axis1=-2, axis2=-1))
+        q = q * (diagonal > 1e-9 * diagonal.max(axis=-1, keepdims=True))[:, None, :]  # drop dependent columns
+        return cls(basis, candidates, q, seen)
+
+    @property
+    def dof(self) -> int:
+        return int(self.basis.shape[1])
+
+    def best_fraction(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The largest share of |z|^2 one candidate explains (...,) and which one (...,), z (..., m)."""
+        z = np.asarray(z, dtype=float)
+        n_candidates, m, n_columns = self.bases.shape
+        if self.flat is None:
+            self.flat = np.ascontiguousarray(np.transpose(self.bases, (1, 0, 2)).reshape(m, n_candidates * n_columns))
+        projections = (z @ self.flat).reshape(z.shape[:-1] + (n_candidates, n_columns))
+        fraction = np.sum(projections**2, axis=-1) / np.sum(z**2, axis=-1)[..., None]
+        return fraction.max(axis=-1), fraction.argmax(axis=-1)
+
+
+def _dipole_candidates(seen: _Seen, poses: np.ndarray) -> list[_Dipole]:
+    """Objects around the pinholes (Tracker frame): :data:`OBJECT_DIRECTIONS` x :data:`OBJECT_GAPS_MM`."""
+    points_tracker = seen.points_tracker
+    centre = points_tracker.mean(axis=0)
+    radius = float(np.max(np.linalg.norm(points_tracker - centre, axis=1)))
+    mean = mean_rigid(poses)
+    candidates = []
+    for gap in OBJECT_GAPS_MM:
+        for direction in _fibonacci_sphere(OBJECT_DIRECTIONS):
+            position = centre + direction * (radius + gap)
+            if np.linalg.norm(position) >= MIN_TRANSMITTER_DISTANCE_MM:
+                candidates.append(_Dipole(position, mean))
+    return candidates
+
+
+def _bump_candidates(points: np.ndarray) -> list[_Bumps]:
+    """Single bumps at the pinholes and pushed out from them, of :data:`LENGTH_FRACTIONS` widths."""
+    centroid = points.mean(axis=0)
+    radius = float(np.sqrt(np.mean(np.sum((points - centroid) ** 2, axis=1))))
+    places = np.concatenate([points, centroid + OUTWARD * (points - centroid)])
+    return [_Bumps(place[None], np.array([max(radius * f, 1.0)])) for place in places for f in LENGTH_FRACTIONS]
+
+
+@dataclass
+class DistortionEstimate:
+    """The distortion test and the non-rigid field fitted at registration (Reference frame, mm).
+
+    ``labels`` / ``image_markers``: the paired pinholes; ``points_mm`` (N, 3): their calibration points;
+    ``residuals_mm`` (N, 3): measured point minus the registered CT pinhole; ``statistic``: the largest
+    share of the residuals' sum of squares one candidate field explains; ``p_value``: its Monte Carlo
+    p-value under noise alone; ``alpha``: the false-alarm rate it is compared with. The fitted field:
+    ``model`` (a dipole or bumps; None: noise alone) with ``amplitudes`` (P,) and their covariance
+    (P, P); ``rigid_per_amplitude`` (6, P): the rigid motion (rotation rad, translation mm, about the
+    pinholes' centroid) the registration absorbs of each amplitude's field; ``at_pinholes_mm`` (N, 3):
+    the non-rigid field at the pinholes; ``noise_sigma_mm`` (per axis) and ``noise_dof``: the noise beside it.
+    """
+
+    labels: list[str]
+    points_mm: np.ndarray
+    residuals_mm: np.ndarray
+    statistic: float
+    p_value: float
+    alpha: float
+    noise_sigma_mm: float
+    noise_dof: float = float("inf")
+    model: _Dipole | _Bumps | None = None
+    amplitudes: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    amplitude_covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    rigid_per_amplitude: np.ndarray = field(default_factory=lambda: np.zeros((6, 0)))
+    at_pinholes_mm: np.ndarray | None = None
+    tested: bool = True
+    image_markers: list[str] = field(default_factory=list)
+    note: str = ""
+    #: One bad pair (a probe not fully inserted) is not a field: the pinhole of the largest residual (``left_out``)
+    #: must be explained by the others too, either because they alone are significant (their p-value) or because
+    #: the field they fit predicts at least :data:`PREDICTED_SHARE` of its residual's square (NaN: not computed).
+    p_value_without_largest: float = float("nan")
+    largest_predicted_share: float = float("nan")
+    left_out: str = ""
+
+    @property
+    def detected(self) -> bool:
+        if not (self.tested and self.p_value <= self.alpha):
+            return False
+        return not (self.p_value_without_largest > self.alpha and self.largest_predicted_share < PREDICTED_SHARE)
+
+    # --- the fitted field -------------------------------------------------------------------
+
+    def _operator(self, points: np.ndarray, columns: np.ndarray) -> np.ndarray:
+        """``G(x) @ columns`` (K, 3, C) for amplitude columns (P, C): the model's field at x minus the rigid
+        motion the registration absorbed of it."""
+        raw = self.model.columns(points) @ columns
+        motion = fiducial_jacobian(points, np.asarray(self.points_mm, dtype=float).mean(axis=0))
+        return raw - motion @ (self.rigid_per_amplitude @ columns)
+
+    def field_at(self, points_reference: np.ndarray) -> np.ndarray:
+        """The fitted non-rigid displacement (K, 3, mm) at points (K, 3) of the Reference frame, probed with the
+        frame where it was calibrated."""
+        points = np.asarray(points_reference, dtype=float).reshape(-1, 3)
+        if self.model is None:
+            return np.zeros_like(points)
+        return self._operator(points, np.asarray(self.amplitudes, dtype=float).reshape(-1, 1))[..., 0]
+
+    def mean_square_at(self, points_reference: np.ndarray) -> np.ndarray:
+        """Expected squared distortion error (K,) (mm^2) at points (K, 3) of the Reference frame probed in the same
+        field: the fitted field squared plus its variance; 0 everywhere when no distortion was detected."""
+        points = np.asarray(points_reference, dtype=float).reshape(-1, 3)
+        if not self.detected or self.model is None:
+            return np.zeros(len(points))
+        values, vectors = np.linalg.eigh(np.asarray(self.amplitude_covariance, dtype=float))
+        columns = np.concatenate([np.asarray(self.amplitudes, dtype=float).reshape(-1, 1),
+                                  vectors * np.sqrt(np.clip(values, 0.0, None))], axis=1)
+        out = np.empty(len(points))
+        for start in range(0, len(points), 16384):
+            chunk = self._operator(points[start:start + 16384], columns)
+            out[start:start + len(chunk)] = np.sum(chunk**2, axis=(1, 2))
+        return out
+
+    # --- summary and files ------------------------------------------------------------------
+
+    def pinhole_field(self) -> np.ndarray:
+        """The fitted non-rigid field at the pinholes (N, 3, mm)."""
+        if self.at_pinholes_mm is None:
+            return np.zeros_like(np.asarray(self.points_mm, dtype=float))
+        return np.asarray(self.at_pinholes_mm, dtype=float)
+
+    @property
+    def rms_mm(self) -> float:
+        sizes = np.linalg.norm(self.pinhole_field(), axis=1)
+        return float(np.sqrt(np.mean(sizes**2))) if len(sizes) else 0.0
+
+    def largest(self) -> tuple[float, int]:
+        """The largest fitted field size at a pinhole (mm) and that pinhole's index (-1 without pinholes)."""
+        sizes = np.linalg.norm(self.pinhole_field(), axis=1)
+        return (float(sizes.max()), int(np.argmax(sizes))) if len(sizes) else (0.0, -1)
+
+    def where(self) -> str:
+        """The pinhole where the field is largest, named by calibration point (and CT marker)."""
+        _, k = self.largest()
+        if k < 0:
+            return "-"
+        marker = f" (CT marker {self.image_markers[k]})" if k < len(self.image_markers) else ""
+        return f"{self.labels[k]}{marker}"
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``registration.json`` ``distortion`` block."""
+        largest, k = self.largest()
+
+        def rounded(values: Any, digits: int = 6) -> list:
+            return np.round(np.asarray(values, dtype=float), digits).tolist()
+
+        model: dict[str, Any] | None = None
+        if isinstance(self.model, _Dipole):
+            model = {"kind": "dipole", "object_tracker_mm": rounded(self.model.object_mm),
+                     "TrackerToReference": rounded(self.model.tracker_to_reference, 9),
+                     "amplitudes": "polarisability (mm^3): xx, yy, zz, xy, xz, yz in the Tracker frame",
+                     "formula": "d(x) = T_R @ dx(inv(T) x): the first-order position error of an induced dipole "
+                                "(EMRegModule.em_field.position_error), T = TrackerToReference"}
+        elif isinstance(self.model, _Bumps):
+            model = {"kind": "bumps", "centres_mm": rounded(self.model.centres_mm),
+                     "length_scales_mm": rounded(self.model.lengths_mm),
+                     "amplitudes": "displacement (mm) x, y, z per bump",
+                     "formula": "d(x) = sum_b exp(-|x - c_b|^2 / (2 L_b^2)) a_b"}
+        return {
+            "detected": self.detected, "rms_mm": round(self.rms_mm, 4), "max_mm": round(largest, 4),
+            "max_at": self.labels[k] if k >= 0 else None, "tested": self.tested,
+            "test": "share of the rigid fit's residual sum of squares one candidate field (an induced dipole near "
+                    "the frame; smooth bumps without the transmitter's pose) explains, against its Monte Carlo "
+                    "distribution under independent noise",
+            "statistic": round(float(self.statistic), 6), "p_value": round(float(self.p_value), 6),
+            "alpha": float(self.alpha), **({"note": self.note} if self.note else {}),
+            "p_value_without_largest": None if not np.isfinite(self.p_value_without_largest)
+            else round(float(self.p_value_without_largest), 6),
+            "largest_predicted_share": None if not np.isfinite(self.largest_predicted_share)
+            else round(float(self.largest_predicted_share), 4),
+            "left_out": self.left_out or None,
+            "noise_sigma_mm": round(float(self.noise_sigma_mm), 5),
+            "noise_dof": round(float(self.noise_dof), 3) if np.isfinite(self.noise_dof) else None,
+            "field": {
+                "frame": "Reference", "units": "mm",
+                "description": "the EM measurement's displacement at x beyond the rigid motion the registration "
+                               "absorbs: model(x) @ amplitudes - (omega x (x - centroid) + t), (omega, t) = "
+                               "rigid_per_amplitude @ amplitudes",
+                "model": model, "amplitudes": rounded(self.amplitudes, 9),
+                "amplitude_covariance": rounded(self.amplitude_covariance, 12),
+                "rigid_per_amplitude": rounded(self.rigid_per_amplitude, 15),
+                "centroid_mm": rounded(np.asarray(self.points_mm, dtype=float).mean(axis=0)),
+                "pinholes_mm": rounded(self.points_mm),
+                "residuals_mm": rounded(self.residuals_mm),
+                "at_pinholes_mm": rounded(self.pinhole_field()),
+            },
+            "labels": list(self.labels), "image_markers": list(self.image_markers),
+        }
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any]) -> DistortionEstimate:
+        """Inverse of :meth:`to_json`."""
+        block = document["field"]
+        stored = block.get("model")
+        model: _Dipole | _Bumps | None = None
+        if stored and stored.get("kind") == "dipole":
+            model = _Dipole(np.asarray(stored["object_tracker_mm"], dtype=float).reshape(3),
+                            np.asarray(stored["TrackerToReference"], dtype=float).reshape(4, 4))
+        elif stored and stored.get("kind") == "bumps":
+            model = _Bumps(np.asarray(stored["centres_mm"], dtype=float).reshape(-1, 3),
+                           np.asarray(stored["length_scales_mm"], dtype=float).reshape(-1))
+        amplitudes = np.asarray(block.get("amplitudes", []), dtype=float).reshape(-1)
+        n = len(amplitudes)
+        return cls(labels=[str(v) for v in document.get("labels", [])],
+                   points_mm=np.asarray(block["pinholes_mm"], dtype=float).reshape(-1, 3),
+                   residuals_mm=np.asarray(block["residuals_mm"], dtype=float).reshape(-1, 3),
+                   statistic=float(document["statistic"]), p_value=float(document["p_value"]),
+                   alpha=float(document["alpha"]), noise_sigma_mm=float(document["noise_sigma_mm"]),
+                   noise_dof=float("inf") if document.get("noise_dof") is None else float(document["noise_dof"]),
+                   model=model, amplitudes=amplitudes,
+                   amplitude_covariance=np.asarray(block.get("amplitude_covariance", []), dtype=float).reshape(n, n),
+                   rigid_per_amplitude=np.asarray(block.get("rigid_per_amplitude", []), dtype=float).reshape(6, n),
+                   at_pinholes_mm=np.asarray(block["at_pinholes_mm"], dtype=float).reshape(-1, 3),
+                   tested=bool(document.get("tested", True)),
+                   image_markers=[str(v) for v in document.get("image_markers", [])],
+                   note=str(document.get("note", "")),
+                   p_value_without_largest=float("nan") if document.get("p_value_without_largest") is None
+                   else float(document["p_value_without_largest"]),
+                   largest_predicted_share=float("nan") if document.get("largest_predicted_share") is None
+                   else float(document["largest_predicted_share"]),
+                   left_out=str(document.get("left_out") or ""))
+
+
+def null_statistics(scan: _Scan, draws: int = NULL_DRAWS, seed: int = 0) -> np.ndarray:
+    """The test statistic under noise alone (draws,) for this geometry (deterministic: seeded)."""
+    z = np.random.default_rng(seed).standard_normal((draws, scan.dof))
+    fractions = np.empty(draws)
+    for start in range(0, draws, 250):
+        fractions[start:start + 250] = scan.best_fraction(z[start:start + 250])[0]
+    return fractions
+
+
+def _refine(scan: _Scan, model: _Dipole | _Bumps, points: np.ndarray, poses: np.ndarray | None,
+            z: np.ndarray) -> _Dipole | _Bumps:
+    """A dipole's position refined from the best candidate (least remaining sum of squares); bumps as chosen."""
+    if not isinstance(model, _Dipole):
+        return model
+    from scipy.optimize import minimize
+
+    def remaining(position: np.ndarray) -> float:
+        if np.linalg.norm(position) < MIN_TRANSMITTER_DISTANCE_MM:
+            return float(z @ z)
+        design = scan.basis.T @ _stack(_Dipole(position, model.tracker_to_reference).columns(points, poses, scan.seen))
+        q, _ = np.linalg.qr(design)
+        return float(z @ z - np.sum((q.T @ z) ** 2))
+
+    result = minimize(remaining, model.object_mm, method="Nelder-Mead",
+                      options={"xatol": 1.0, "fatol": 1e-6 * float(z @ z), "maxfev": 300,
+                               "initial_simplex": model.object_mm + np.vstack([np.zeros(3), 25.0 * np.eye(3)])})
+    return _Dipole(np.asarray(result.x, dtype=float), model.tracker_to_reference) \
+        if result.fun < remaining(model.object_mm) else model
+
+
+def estimate_distortion(points_reference: np.ndarray, residuals_reference: np.ndarray,
+                        axes_reference: np.ndarray | None, alpha: float, labels: Sequence[str] = (),
+                        image_markers: Sequence[str] = (),
+                        tracker_to_reference: np.ndarray | None = None) -> DistortionEstimate:
+    """Test the rigid fit's residuals for field distortion and fit it (see the module docstring).
+
+    ``points_reference`` (N, 3): the paired calibration points (Reference, mm); ``residuals_reference``
+    (N, 3): measured point minus the registered CT pinhole, in the Reference frame (mm);
+    ``axes_reference`` (N, 3): the markers' axes in the Reference frame when l was solved (None: fixed);
+    ``alpha``: the false-alarm rate (``[registration] distortion_false_alarm``);
+    ``tracker_to_reference`` (N, 4, 4): the transmitter's pose at each point's dwells (None: unknown, the
+    smooth bumps stand in for the dipole).
+    """
+    points = np.asarray(points_reference, dtype=float).reshape(-1, 3)
+    residuals = np.asarray(residuals_reference, dtype=float).reshape(-1, 3)
+    axes = None if axes_reference is None else np.asarray(axes_reference, dtype=float).reshape(-1, 3)
+    poses = None if tracker_to_reference is None else np.asarray(tracker_to_reference, dtype=float).reshape(-1, 4, 4)
+    labels = list(labels) or [f"P{k + 1:02d}" for k in range(len(points))]
+    rms = float(np.sqrt(np.mean(residuals**2))) if len(residuals) else 0.0
+    note = "" if poses is not None else ("the calibration does not say where the transmitter was (an older "
+                                         "frame_calibration.json): smooth bumps stand in for an induced dipole")
+    untested = DistortionEstimate(labels, points, residuals, 0.0, 1.0, alpha, rms, tested=False,
+                                  image_markers=list(image_markers), note="too few pinholes to test")
+    if len(points) < 4:
+        return untested
+    scan = _Scan.of(points, axes, poses)
+    if scan.dof < MIN_DOF + scan.bases.shape[-1]:
+        return untested
+    z = scan.basis.T @ residuals.reshape(-1)
+    if not np.any(z):
+        return replace(untested, note="")
+    statistic, best = scan.best_fraction(z)
+    p_value = _p_value(scan, float(statistic))
+    if p_value > alpha:
+        return DistortionEstimate(labels, points, residuals, float(statistic), p_value, alpha,
+                                  float(np.sqrt(z @ z / scan.dof)), float(scan.dof), image_markers=list(image_markers),
+                                  note=note)
+    largest = int(np.argmax(np.sum(residuals**2, axis=1)))
+    keep = np.arange(len(points)) != largest
+    p_without = float("nan")
+    if len(points) > 4:
+        rest = _Scan.of(points[keep], None if axes is None else axes[keep], None if poses is None else poses[keep])
+        if rest.dof >= MIN_DOF + rest.bases.shape[-1]:
+            p_without = _p_value(rest, float(rest.best_fraction(rest.basis.T @ residuals[keep].reshape(-1))[0]))
+    share = _predicted_share(scan, points, poses, residuals, largest) if not p_without <= alpha else float("nan")
+    if p_without > alpha and not share >= PREDICTED_SHARE:
+        return DistortionEstimate(labels, points, residuals, float(statistic), p_value, alpha,
+                                  float(np.sqrt(z @ z / scan.dof)), float(scan.dof), image_markers=list(image_markers),
+                                  note=note, p_value_without_largest=p_without, largest_predicted_share=share,
+                                  left_out=labels[largest])
+    model = _refine(scan, scan.candidates[int(best)], points, poses, z)
+    at_pinholes = model.columns(points, poses, scan.seen)  # (N, 3, P)
+    design = scan.basis.T @ _stack(at_pinholes)
+    amplitudes, *_ = np.linalg.lstsq(design, z, rcond=None)
+    remaining = z - design @ amplitudes
+    dof = scan.dof - np.linalg.matrix_rank(design) - (3 if isinstance(model, _Dipole) else 0)
+    variance = float(remaining @ remaining) / dof
+    covariance = variance * np.linalg.pinv(design.T @ design)
+    rigid = np.linalg.pinv(_rigid_jacobian(points, axes))[:6] @ _stack(at_pinholes)
+    centroid = points.mean(axis=0)
+    nonrigid = at_pinholes @ amplitudes - fiducial_jacobian(points, centroid) @ (rigid @ amplitudes)
+    return DistortionEstimate(labels, points, residuals, float(statistic), p_value, alpha, float(np.sqrt(variance)),
+                              float(dof), model, amplitudes, covariance, rigid, nonrigid,
+                              image_markers=list(image_markers), note=note, p_value_without_largest=p_without,
+                              largest_predicted_share=share, left_out=labels[largest])
+
+
+def _predicted_share(scan: _Scan, points: np.ndarray, poses: np.ndarray | None, residuals: np.ndarray,
+                     left_out: int) -> float:
+    """How much of pinhole ``left_out``'s squared residual the best candidate field fitted to the other pinholes
+    predicts there (1 - |r - prediction|^2 / |r|^2; 0 or less: nothing)."""
+    rows = np.ones(3 * len(points), dtype=bool)
+    rows[3 * left_out:3 * left_out + 3] = False
+    r = residuals.reshape(-1)
+    best_ssr, prediction = np.inf, np.zeros(3)
+    for candidate in scan.candidates:
+        design = scan.basis @ (scan.basis.T @ _stack(candidate.columns(points, poses, scan.seen)))
+        amplitudes, *_ = np.linalg.lstsq(design[rows], r[rows], rcond=None)
+        ssr = float(np.sum((r[rows] - design[rows] @ amplitudes) ** 2))
+        if ssr < best_ssr:
+            best_ssr, prediction = ssr, design[~rows] @ amplitudes
+    target = residuals[left_out]
+    return float(1.0 - np.sum((target - prediction) ** 2) / np.sum(target**2))
+
+
+def _p_value(scan: _Scan, statistic: float) -> float:
+    """The Monte Carlo p-value of a statistic for the scan's geometry."""
+    null = null_statistics(scan)
+    return float((1 + np.count_nonzero(null >= statistic - 1e-12)) / (len(null) + 1))
