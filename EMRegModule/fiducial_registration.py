@@ -32,6 +32,8 @@ from .pairing import pair_markers
 from .registration import (
     RegistrationResult,
     _calibration_port,
+    _check_distortion,
+    _distortion,
     _fit_pairs,
     check_fre,
     pairing_record,
@@ -82,8 +84,13 @@ def register_fiducials(fiducials: Fiducials, frame_calibration: FrameCalibration
     fre_value = float(np.sqrt(np.mean(residuals[used] ** 2)))
     check_fre(fre_value, config, f"the fiducials ({fiducials.source})")
     n_used = int(np.count_nonzero(used))
+    distortion = _distortion(fit.solution, points[cal_index[used]], fiducial_points[fiducial_index[used]],
+                             no_axes[fiducial_index[used]], True, config,
+                             [frame_calibration.points[i] for i in cal_index[used]],
+                             [fiducials.labels[j] for j in fiducial_index[used]])
+    warnings += _check_distortion(distortion, config)
     error = registration_error(points[cal_index[used]], fiducial_points[fiducial_index[used]],
-                               no_axes[fiducial_index[used]], 0.0, False, residuals[used])
+                               no_axes[fiducial_index[used]], 0.0, False, residuals[used], distortion=distortion)
     targets, predicted = predicted_registration_tre(error, targets_image)
     unpaired_fiducials = [m for k, m in enumerate(fiducials.labels) if k not in set(fiducial_index.tolist())]
     unpaired_points = [p for k, p in enumerate(labels) if k not in set(cal_index.tolist())]
