@@ -149,7 +149,11 @@ class OutputFolder:
             self.path.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise EMRegError(f"--out {self.path}: cannot create the output folder ({exc.strerror or exc})") from None
-        self.manifest: dict[str, Any] = read_manifest(self.path) or {}
+        self.damaged: EMRegError | None = None  # a run.json there but damaged: only ``emreg run`` replaces it
+        try:
+            self.manifest: dict[str, Any] = read_manifest(self.path) or {}
+        except EMRegError as exc:
+            self.damaged, self.manifest = exc, {}
 
     # --- starting -------------------------------------------------------------------------------
 
@@ -161,6 +165,7 @@ class OutputFolder:
 
     def _start_run(self, record: Mapping[str, Any]) -> None:
         old = dict(self.manifest)
+        self.damaged = None  # a damaged run.json goes to previous/ with the rest; nothing in OUT is trusted
         stale = self._present(set(all_output_names()) | set(old.get("outputs") or {}))
         previous = self.path / PREVIOUS_FOLDER
         if stale or (self.path / RUN_JSON).is_file():
@@ -179,6 +184,7 @@ class OutputFolder:
     def start_stage(self, stage: str, keep: Iterable[str] = ()) -> None:
         """Begin a per-stage command: the outputs of ``stage`` and of the stages made from it move to
         ``previous/``, except those in ``keep`` (still up to date: they stay, listed as they are)."""
+        self._refuse_damaged()
         kept = set(keep)
         names = [name for name in outputs_from(stage) if name not in kept]
         stale = self._present(names)
@@ -203,6 +209,11 @@ class OutputFolder:
         self.manifest["outputs"] = outputs
         self.save()
 
+    def _refuse_damaged(self) -> None:
+        """A per-stage command never adopts the outputs beside a damaged ``run.json`` (nor overwrites it)."""
+        if self.damaged is not None:
+            raise EMRegError(str(self.damaged))
+
     def _present(self, names: Iterable[str]) -> list[str]:
         return sorted(n for n in names if n and "/" not in n and n not in (RUN_JSON, PREVIOUS_FOLDER)
                       and (self.path / n).exists())
@@ -220,6 +231,7 @@ class OutputFolder:
     def record(self, names: Iterable[str], provenance: Provenance, sha256: dict[str, str] | None = None) -> None:
         """List files just written (atomically, by their stage's writer) in ``run.json`` with their sha256
         (``sha256``: those already computed by their writer, by name)."""
+        self._refuse_damaged()
         outputs = self.manifest.setdefault("outputs", {})
         known = sha256 or {}
         for name in names:
