@@ -10,7 +10,9 @@ and the marker's +Y (out of the hole) is its opposite.
 
 Revisits: two dwells at the same pinhole (the same label, or, without labels, averages
 closer than ``merge_radius_mm``) are merged into one point (samples pooled); when the
-visits disagree by more than ``revisit_tolerance_mm`` the point carries a warning.
+visits disagree by more than ``revisit_tolerance_mm`` the point carries a warning. Labelled visits farther
+apart than twice ``merge_radius_mm`` are several pinholes under one label (refused), and so is a labelled
+dwell in which the probe moves (:func:`EMRegModule.dwell.refuse_moving_labels`).
 """
 
 from __future__ import annotations
@@ -195,7 +197,8 @@ def calibrate_frame(
     samples = probe_in_reference(recording, reference_sensor, probe_sensor)
     position = samples.position_mm
     out_of_hole = marker_directions(samples.direction, convention)
-    dwells = find_dwells(samples.time_s, position, samples.label, samples.quality, dwell_settings)
+    dwells = find_dwells(samples.time_s, position, samples.label, samples.quality, dwell_settings,
+                         source=recording.source)
     if not dwells:
         from .dwell import describe_still_periods
 
@@ -233,6 +236,12 @@ def calibrate_frame(
         if len(members) > 1:
             visit_centres = centres_array[members]
             spread = float(np.max(np.linalg.norm(visit_centres[:, None] - visit_centres[None], axis=2)))
+            if labelled and spread > 2.0 * dwell_settings.merge_radius_mm:
+                raise EMRegError(
+                    f"{recording.source}: the {len(members)} dwells labelled {label!r} lie up to {spread:.1f} mm "
+                    f"apart, farther than visits of one pinhole can (2 x [calibration] merge_radius_mm = "
+                    f"{2.0 * dwell_settings.merge_radius_mm:g} mm): one label given to several pinholes; "
+                    "check the labels")
             if spread > revisit_tolerance:
                 warning = (f"{len(members)} visits disagree by up to {spread:.2f} mm "
                            f"(more than {revisit_tolerance:g} mm): check that the probe was fully inserted")

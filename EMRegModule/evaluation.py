@@ -393,7 +393,8 @@ def evaluate_targets(
         raise EMRegError("evaluation: the targets file holds no target points")
     navigation = navigate_recording(recording, reference_to_image, reference_sensor, probe_sensor)
     position = navigation.position_mm
-    dwells = find_dwells(navigation.time_s, position, navigation.label, navigation.quality, settings)
+    dwells = find_dwells(navigation.time_s, position, navigation.label, navigation.quality, settings,
+                         source=recording.source, section="evaluation")
     index_of = {str(label): k for k, label in enumerate(target_labels)}
     per_target: dict[str, list[float]] = {str(label): [] for label in target_labels}
     found: list[TargetDwell] = []
@@ -502,7 +503,7 @@ def evaluate_board(
         probe = recording.for_sensor(probe_sensor, "probe")
         time_s, position, labels, quality = probe.time_s, probe.position_mm, probe.label, probe.quality
         frame = "Tracker"
-    dwells = find_dwells(time_s, position, labels, quality, settings)
+    dwells = find_dwells(time_s, position, labels, quality, settings, source=recording.source, section="evaluation")
     if not dwells:
         raise EMRegError(f"{recording.source}: no probe dwell found in the board recording: "
                          + describe_still_periods(time_s, position, quality, settings))
