@@ -183,10 +183,10 @@ def cmd_register(args: argparse.Namespace) -> int:
     controller.load_frame_calibration(args.calibration)
     targets = None
     if args.targets:
-        from .io.markups import read_markups
+        from .io.case import read_targets
 
         controller.note_inputs(targets=args.targets)
-        targets = read_markups(args.targets)[1]
+        targets = read_targets(args.targets)[1]
     try:
         result = controller.register(targets)
     except NoSafeAnswerError:
