@@ -228,7 +228,7 @@ def cmd_navigate(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from .io.case import open_case
 
-    case = open_case(args.case)
+    case = open_case(args.case, _settings(args) if args.settings else None)
     _out_folder(args.out)
     if case.navigation is None and case.board is None:
         raise EMRegError(f"{case.folder}: nothing to evaluate: no navigation recording (navigation.csv) and no "
@@ -236,8 +236,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if case.navigation is not None and case.targets is None and case.board is None:
         raise EMRegError(f"{case.folder}: nothing to evaluate: a navigation recording but no targets.mrk.json "
                          "(and no board.csv)")
-    if args.settings:
-        case.settings = _settings(args)
     given = _ports_given(args, case.settings)
     case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # sequence files' ports
     controller = _controller(args, case.settings)
@@ -389,9 +387,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     _out_folder(args.out)
     from .settings import with_series
 
-    case = open_case(args.case)
-    if args.settings:
-        case.settings = _settings(args)
+    case = open_case(args.case, _settings(args) if args.settings else None)
     case.settings = with_series(case.settings, args.series)
     case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # a sequence file's too
     controller = _controller(args, case.settings)

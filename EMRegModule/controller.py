@@ -343,7 +343,8 @@ class EMRegController:
             self.evaluation = evaluate(self.registration.reference_to_image, self.reference_sensor,
                                        self.probe_sensor, self.settings.evaluation, navigation=navigation,
                                        targets=targets, board=board, nominal_edges_mm=self.settings.board.edges_mm,
-                                       error_model=self.error_model, tolerant=tolerant, not_evaluated=not_evaluated)
+                                       error_model=self.error_model, tolerant=tolerant, not_evaluated=not_evaluated,
+                                       settings_file=self.settings.source)
         return self.evaluation
 
     @property

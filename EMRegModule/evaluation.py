@@ -324,6 +324,7 @@ def evaluate(
     error_model: ErrorModel | None = None,
     tolerant: bool = False,
     not_evaluated: Mapping[str, str] | None = None,
+    settings_file: str = "",
 ) -> Evaluation:
     """TRE when a navigation recording and targets (labels, (K, 3) LPS mm) are given, the board table
     when a board recording is; ``reference_to_image``: Reference -> CT LPS (mm).
@@ -358,7 +359,7 @@ def evaluate(
             result.warnings += result.tre.warnings
     if board is not None:
         result.board = part("board", lambda: evaluate_board(board, reference_sensor, probe_sensor, nominal_edges_mm,
-                                                            settings))
+                                                            settings, settings_file))
         result.warnings += board.warnings  # time resets / gaps / invalid frames found in the recordings
     result.warnings += [f"{_PART_NAMES.get(name, name)} not evaluated: {reason}"
                         for name, reason in result.not_evaluated.items()]
@@ -491,9 +492,11 @@ def evaluate_board(
     probe_sensor: int = 2,
     nominal_edges_mm: Sequence[float] | None = None,
     settings: DwellSettings | None = None,
+    settings_file: str = "",
 ) -> BoardEvaluation:
     """Board-phantom edge lengths from a recording of the probe in each corner hole in turn
-    (positions in the Reference frame; in the Tracker frame if the recording has no reference)."""
+    (positions in the Reference frame; in the Tracker frame if the recording has no reference).
+    ``settings_file``: the settings file ``nominal_edges_mm`` came from (named when it does not fit)."""
     settings = settings or DwellSettings()
     frame = "Reference"
     if reference_sensor in recording.sensors:
@@ -515,8 +518,8 @@ def evaluate_board(
     rounds = _rounds(hole_of_dwell)
     nominal = None if nominal_edges_mm is None else [float(v) for v in nominal_edges_mm]
     if nominal is not None and len(nominal) != n_holes:
-        raise EMRegError(f"case.toml [board] edges_mm has {len(nominal)} values but the board recording "
-                         f"visits {n_holes} holes")
+        raise EMRegError(f"{settings_file or 'the settings'}: [board] edges_mm has {len(nominal)} values but the "
+                         f"board recording {recording.source} visits {n_holes} holes")
     edges: dict[str, BoardEdge] = {}
     for k in range(n_holes):
         h1, h2 = k, (k + 1) % n_holes

@@ -330,7 +330,7 @@ def _offset_range(config: RegistrationSettings, model: MarkerModel) -> tuple[flo
     if config.sensor_offset_l_mm is None:
         return (model.pinhole_bottom_mm, model.pinhole_top_mm)
     if not model.pinhole_bottom_mm <= config.sensor_offset_l_mm <= model.pinhole_top_mm:
-        raise EMRegError(f"case.toml [registration] sensor_offset_l_mm = {config.sensor_offset_l_mm:g} lies "
+        raise EMRegError(f"[registration] sensor_offset_l_mm = {config.sensor_offset_l_mm:g} lies "
                          f"outside the marker's pinhole {model.pinhole_bottom_mm:g}..{model.pinhole_top_mm:g} mm: "
                          "the probe sensor cannot sit there")
     return (config.sensor_offset_l_mm, config.sensor_offset_l_mm)
@@ -410,7 +410,7 @@ def _check_fre_and_offset(fre_value: float, solution: OffsetSolution, l_range: t
         raise NoSafeAnswerError(
             f"the sensor offset l is poorly determined (standard error {solution.l_std_mm:.2f} mm > "
             f"{config.max_l_std_mm:g} mm): the paired markers' axes are (nearly) parallel, so l trades off "
-            "against a translation along them; give l in case.toml [registration] sensor_offset_l_mm "
+            "against a translation along them; give l in the settings ([registration] sensor_offset_l_mm) "
             "or use markers on more than one face"
         )
     if solution.l_std_mm > config.warn_l_std_mm:
