@@ -133,6 +133,10 @@ class FrameCalibration:
                     raise EMRegError(f"{source}: point {i + 1} has no valid 3D position")
                 if direction.shape != (3,):
                     raise EMRegError(f"{source}: point {i + 1} has a malformed direction")
+                counts = (int(item.get("samples", 0)), int(item.get("visits", 1)))
+                if counts[0] < 0 or counts[1] < 1 or float(item.get("std_mm", 0.0)) < 0:
+                    raise EMRegError(f"{source}: point {i + 1} has a negative samples or std_mm, or no visit: a "
+                                     "damaged or hand-edited file")
                 norm = np.linalg.norm(direction)
                 if np.isfinite(norm) and norm > 0:
                     direction = direction / norm

@@ -315,6 +315,9 @@ def _check_convert_ports(recording, reference: int, probe: int, names: dict[str,
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    if args.batch and (args.out or args.case):  # one of them would be ignored: never guessed
+        raise EMRegError(f"give an output folder (emreg report OUT [--case CASE]) or --batch DIR, not "
+                         f"both ({args.out or '--case ' + args.case} and --batch {args.batch})")
     run = _run_record(args)
     early = _start_report_ct(args, run)  # the CT's read goes on while the report's libraries load
     bundle = early_bundle = _start_report_bundle(args, run)  # held: writes nothing into OUT until released below

@@ -141,6 +141,14 @@ class RegistrationResult:
             for key in ("sensor_offset_l_mm", "fre_mm"):
                 if not np.isfinite(float(document[key])):
                     raise EMRegError(f"{source}: {key} is not a finite number")
+                if float(document[key]) < 0 or (key == "sensor_offset_l_mm" and float(document[key]) == 0):
+                    raise EMRegError(f"{source}: {key} = {float(document[key]):g} is not a possible value "
+                                     f"({'an FRE is never negative' if key == 'fre_mm' else 'l must be positive'}): "
+                                     "a damaged or hand-edited file")
+            for key in ("fle_mm", "sensor_offset_l_std_mm"):
+                if _float(document.get(key)) < 0:
+                    raise EMRegError(f"{source}: {key} = {_float(document.get(key)):g} is negative: a damaged or "
+                                     "hand-edited file")
             curve = document.get("fre_curve") or {}
             targets = document.get("targets_image")
             tre = document.get("predicted_registration_tre_mm", document.get("predicted_tre_mm"))
