@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import EMRegError
+from .atomic import _cannot_write
 
 #: File name of the scene bundle in an output folder.
 BUNDLE_FILE = "EMReg.mrb"
@@ -175,6 +176,8 @@ class SlicerScene:
                                  "(disk full or no permission?)")
             self.bundle_sha256 = _zip_bundle(folder, staged, sources)
             os.replace(staged, path)
+        except OSError as exc:  # a full disk, no permission: one line naming the bundle, as for every output
+            raise _cannot_write(path, exc) from None
         finally:
             for storage_id, (node, data) in volumes.items():  # the scene as it was (Slicer's default: compressed)
                 if node.GetImageData() is not data:
