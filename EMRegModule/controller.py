@@ -649,7 +649,7 @@ class EMRegController:
         except KeyboardInterrupt as exc:
             with signals_held(redeliver=False):  # a second Ctrl-C does not cut the record short
                 folder.drop_unrecorded()  # an output written as the signal came, before run.json listed it
-                folder.finish("interrupted", f"{stage}: {exc or 'interrupted'}")
+                folder.finish("interrupted", f"{stage}: interrupted ({str(exc) or 'SIGINT'})")
             raise
         with signals_held() as pending:  # run.json says what the exit code says, even for a signal right now
             folder.finish("finished")

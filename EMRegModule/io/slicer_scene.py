@@ -55,14 +55,26 @@ MAX_PATH_POINTS = 1000
 
 
 def slicer_mrml_missing() -> str | None:
-    """Why Slicer's MRML cannot be used here (``None`` when it can)."""
+    """Why Slicer's MRML cannot be used here (``None`` when it can).
+
+    The import is never cut by Ctrl-C / SIGTERM (:func:`_uninterrupted`): VTK's loader turns the interrupt into an
+    ImportError (a false "not installed") or leaves a half-initialised extension module that crashes the process."""
     try:
-        import slicer
+        with _uninterrupted():
+            import slicer
     except ImportError as exc:
         return f"3D Slicer's MRML (the slicer-core wheel) is not installed ({exc}); {INSTALL_HINT}"
     if not hasattr(slicer, "vtkMRMLScene") or not hasattr(slicer, "vtkSlicerMarkupsLogic"):
         return f"the 'slicer' package found has no MRML classes; {INSTALL_HINT}"
     return None
+
+
+def _uninterrupted() -> contextlib.AbstractContextManager[Any]:
+    """Hold SIGINT / SIGTERM back while slicer-core and VTK's modules load and the scene is built (a second or
+    two), then deliver them (:func:`~EMRegModule.outputs.signals_held`)."""
+    from ..outputs import signals_held
+
+    return signals_held()
 
 
 def lps_to_ras_points(points_lps: Any) -> np.ndarray:
@@ -886,8 +898,9 @@ def write_run_bundle_hashed(out_dir: str | os.PathLike[str], case_dir: str | os.
         content = collect_run(out, case_dir, image)
         if not content.marker_ids and not content.calibration_labels:
             return no_bundle(f"no markers or calibration in {out}")
-        holder = SlicerScene()
-        built = build_run_scene(holder.scene, content)
+        with _uninterrupted():  # the modules its logics and nodes load
+            holder = SlicerScene()
+            built = build_run_scene(holder.scene, content)
         stored = {built[VOLUME_NODE_NAME].GetID(): content.stored_ct} if content.stored_ct is not None else {}
         if not allowed_to_write():
             return unwanted

@@ -172,9 +172,12 @@ class FrameSceneRenderer:
     """
 
     def __init__(self, scene: FrameScene, window_size: tuple[int, int] = (960, 720), focus: str = "markers") -> None:
-        import pyvista as pv
+        from ..outputs import signals_held
 
         prepare_offscreen()
+        with signals_held():  # Ctrl-C in VTK's loader is an ImportError (a traceback) or a half-loaded module
+            import pyvista as pv
+            import pyvista.plotting  # noqa: F401 - what Plotter loads: VTK's rendering modules
         self.scene = scene
         self.window_size = window_size
         self.focus = focus
