@@ -104,6 +104,28 @@ def signals_held(redeliver: bool = True) -> Iterator[list[int]]:
             signal.raise_signal(pending[0])
 
 
+def vtk_imports_uninterrupted() -> None:
+    """From now on, every VTK extension module loads with SIGINT / SIGTERM held back (:func:`signals_held`) and
+    delivered once it is loaded. VTK loads its modules lazily (pyvista's first Plotter, slicer-core's import), and
+    an interrupt inside one became an ImportError (a traceback, or a false "slicer-core is not installed") or left
+    a half-initialised module that crashed the process (SIGSEGV). Call it where VTK's use begins; idempotent."""
+    try:
+        import vtkmodules  # the package alone (its loader), not an extension module
+    except ImportError:
+        return
+    loader = getattr(vtkmodules, "VTKLoader", None)
+    if loader is None or getattr(loader, "emreg_uninterrupted", False):
+        return
+    load = loader.exec_module
+
+    def exec_module(self: Any, module: Any) -> None:
+        with signals_held():
+            load(self, module)
+
+    loader.exec_module = exec_module
+    loader.emreg_uninterrupted = True
+
+
 def recorded_series_uid(record: Any) -> str | None:
     """The Series Instance UID of the DICOM series a run record (``run.json``) or ``markers.json`` names under
     ``ct_series``: the series the markers were detected in (None: none named)."""

@@ -891,6 +891,9 @@ def write_run_bundle_hashed(out_dir: str | os.PathLike[str], case_dir: str | os.
             return None, f"no {BUNDLE_FILE} written: {reason}", None
         return unwanted
 
+    from ..outputs import vtk_imports_uninterrupted
+
+    vtk_imports_uninterrupted()  # the scene's nodes and writers load VTK modules
     missing = slicer_mrml_missing()
     if missing:
         return no_bundle(missing)

@@ -172,12 +172,12 @@ class FrameSceneRenderer:
     """
 
     def __init__(self, scene: FrameScene, window_size: tuple[int, int] = (960, 720), focus: str = "markers") -> None:
-        from ..outputs import signals_held
+        from ..outputs import vtk_imports_uninterrupted
+
+        vtk_imports_uninterrupted()  # the Plotter loads VTK's rendering modules
+        import pyvista as pv
 
         prepare_offscreen()
-        with signals_held():  # Ctrl-C in VTK's loader is an ImportError (a traceback) or a half-loaded module
-            import pyvista as pv
-            import pyvista.plotting  # noqa: F401 - what Plotter loads: VTK's rendering modules
         self.scene = scene
         self.window_size = window_size
         self.focus = focus
