@@ -20,11 +20,11 @@ from .settings import DwellSettings
 
 #: A chi-distributed 3D distance with per-axis sigma s has median about 1.538 s.
 _MEDIAN_CHI3 = 1.5382
+#: A still period's ends are trimmed to the samples within this many ``still_radius_mm`` of its median.
+TRIM_FACTOR = 1.5
 #: A labelled dwell whose samples spread (or drift) farther than this many ``still_radius_mm`` is a moving probe
 #: (a probe held still, even by hand, stays well within it: 0.3 mm against 2 mm in a pinhole).
 LABEL_SPREAD_FACTOR = 4.0
-#: A still period's ends are trimmed to the samples within this many ``still_radius_mm`` of its median.
-TRIM_FACTOR = 1.5
 
 
 @dataclass
