@@ -637,7 +637,17 @@ class Terminated(KeyboardInterrupt):
 
 
 def _on_sigterm(signum: int, frame: object) -> None:
+    from .outputs import note_interrupt
+
+    note_interrupt("SIGTERM")
     raise Terminated("SIGTERM")
+
+
+def _on_sigint(signum: int, frame: object) -> None:
+    from .outputs import note_interrupt
+
+    note_interrupt("SIGINT")
+    raise KeyboardInterrupt
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -646,12 +656,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     SIGINT and SIGTERM end a command with one line on stderr and exit code 130 / 143; temporary
     files are removed on the way out and an interrupted ``emreg run`` says so in ``OUT/run.json``.
     """
+    from .outputs import interrupted_by, note_interrupt
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    note_interrupt(None)
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _on_sigterm)
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            signal.signal(signal.SIGINT, _on_sigint)
     try:
-        return int(args.func(args) or 0)
+        try:
+            return int(args.func(args) or 0)
+        except (EMRegError, KeyboardInterrupt, OSError):
+            raise
+        except Exception:  # a signal's exception lost in a VTK callback (the filter then fails): the interrupt
+            if interrupted_by() is None:
+                raise
+            raise (Terminated("SIGTERM") if interrupted_by() == "SIGTERM" else KeyboardInterrupt()) from None
     except EMRegError as exc:
         print(f"emreg {args.command}: error: {exc}", file=sys.stderr)
         return exc.exit_code

@@ -32,6 +32,7 @@ from .outputs import (
     OutputFolder,
     all_output_names,
     check_outputs,
+    interrupted_by,
     refuse_out_over_inputs,
     signals_held,
 )
@@ -650,6 +651,14 @@ class EMRegController:
             with signals_held(redeliver=False):  # a second Ctrl-C does not cut the record short
                 folder.drop_unrecorded()  # an output written as the signal came, before run.json listed it
                 folder.finish("interrupted", f"{stage}: interrupted ({str(exc) or 'SIGINT'})")
+            raise
+        except Exception:
+            signal_name = interrupted_by()  # the signal's exception was lost in a VTK callback: still an interrupt
+            if signal_name is None:
+                raise
+            with signals_held(redeliver=False):
+                folder.drop_unrecorded()
+                folder.finish("interrupted", f"{stage}: interrupted ({signal_name})")
             raise
         with signals_held() as pending:  # run.json says what the exit code says, even for a signal right now
             folder.finish("finished")

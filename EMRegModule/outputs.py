@@ -104,6 +104,27 @@ def signals_held(redeliver: bool = True) -> Iterator[list[int]]:
             signal.raise_signal(pending[0])
 
 
+#: The signals (names) that asked this process to stop, in order (:func:`note_interrupt`).
+_INTERRUPTS: list[str] = []
+
+
+def note_interrupt(name: str | None) -> None:
+    """Record that SIGINT / SIGTERM (``name``) asked the command to stop; None forgets earlier ones (a new command).
+
+    The signal's exception does not always reach the command: raised inside a callback that VTK calls (a
+    pyvista filter), VTK logs it and the filter fails with an error of its own. :func:`interrupted_by` then
+    still tells that error from a real failure."""
+    if name is None:
+        _INTERRUPTS.clear()
+    else:
+        _INTERRUPTS.append(name)
+
+
+def interrupted_by() -> str | None:
+    """The first signal :func:`note_interrupt` recorded since the command began (None: none)."""
+    return _INTERRUPTS[0] if _INTERRUPTS else None
+
+
 def vtk_imports_uninterrupted() -> None:
     """From now on, every VTK extension module loads with SIGINT / SIGTERM held back (:func:`signals_held`) and
     delivered once it is loaded. VTK loads its modules lazily (pyvista's first Plotter, slicer-core's import), and
