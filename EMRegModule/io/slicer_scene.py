@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import EMRegError
+from ..outputs import signals_held, vtk_imports_uninterrupted
 from .atomic import _cannot_write
 
 #: File name of the scene bundle in an output folder.
@@ -57,24 +58,17 @@ MAX_PATH_POINTS = 1000
 def slicer_mrml_missing() -> str | None:
     """Why Slicer's MRML cannot be used here (``None`` when it can).
 
-    The import is never cut by Ctrl-C / SIGTERM (:func:`_uninterrupted`): VTK's loader turns the interrupt into an
-    ImportError (a false "not installed") or leaves a half-initialised extension module that crashes the process."""
+    The import is never cut by Ctrl-C / SIGTERM (held, then delivered: :func:`~EMRegModule.outputs.signals_held`):
+    VTK's loader turned the interrupt into an ImportError (a false "not installed") or left a half-initialised
+    extension module that crashed the process."""
     try:
-        with _uninterrupted():
+        with signals_held():
             import slicer
     except ImportError as exc:
         return f"3D Slicer's MRML (the slicer-core wheel) is not installed ({exc}); {INSTALL_HINT}"
     if not hasattr(slicer, "vtkMRMLScene") or not hasattr(slicer, "vtkSlicerMarkupsLogic"):
         return f"the 'slicer' package found has no MRML classes; {INSTALL_HINT}"
     return None
-
-
-def _uninterrupted() -> contextlib.AbstractContextManager[Any]:
-    """Hold SIGINT / SIGTERM back while slicer-core and VTK's modules load and the scene is built (a second or
-    two), then deliver them (:func:`~EMRegModule.outputs.signals_held`)."""
-    from ..outputs import signals_held
-
-    return signals_held()
 
 
 def lps_to_ras_points(points_lps: Any) -> np.ndarray:
@@ -891,8 +885,6 @@ def write_run_bundle_hashed(out_dir: str | os.PathLike[str], case_dir: str | os.
             return None, f"no {BUNDLE_FILE} written: {reason}", None
         return unwanted
 
-    from ..outputs import vtk_imports_uninterrupted
-
     vtk_imports_uninterrupted()  # the scene's nodes and writers load VTK modules
     missing = slicer_mrml_missing()
     if missing:
@@ -901,7 +893,7 @@ def write_run_bundle_hashed(out_dir: str | os.PathLike[str], case_dir: str | os.
         content = collect_run(out, case_dir, image)
         if not content.marker_ids and not content.calibration_labels:
             return no_bundle(f"no markers or calibration in {out}")
-        with _uninterrupted():  # the modules its logics and nodes load
+        with signals_held():  # the modules its logics and nodes load: never cut, the signal acts once they are
             holder = SlicerScene()
             built = build_run_scene(holder.scene, content)
         stored = {built[VOLUME_NODE_NAME].GetID(): content.stored_ct} if content.stored_ct is not None else {}
