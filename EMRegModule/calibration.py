@@ -17,7 +17,9 @@ extra point, which the pairing leaves out as it leaves out any point that matche
 
 Revisits: two dwells at the same pinhole (the same label, or, without labels, averages
 closer than ``merge_radius_mm``) are merged into one point (samples pooled); when the
-visits disagree by more than ``revisit_tolerance_mm`` the point carries a warning.
+visits disagree by more than ``revisit_tolerance_mm`` the point carries a warning. Labelled visits farther
+apart than twice ``merge_radius_mm`` are several pinholes under one label (refused), and so is a labelled
+dwell in which the probe moves (:func:`EMRegModule.dwell.refuse_moving_labels`).
 """
 
 from __future__ import annotations
@@ -161,6 +163,10 @@ class FrameCalibration:
                     raise EMRegError(f"{source}: point {i + 1} has no valid 3D position")
                 if direction.shape != (3,):
                     raise EMRegError(f"{source}: point {i + 1} has a malformed direction")
+                counts = (int(item.get("samples", 0)), int(item.get("visits", 1)))
+                if counts[0] < 0 or counts[1] < 1 or float(item.get("std_mm", 0.0)) < 0:
+                    raise EMRegError(f"{source}: point {i + 1} has a negative samples or std_mm, or no visit: a "
+                                     "damaged or hand-edited file")
                 norm = np.linalg.norm(direction)
                 if np.isfinite(norm) and norm > 0:
                     direction = direction / norm
@@ -260,7 +266,8 @@ def calibrate_frame(
         out_of_hole = np.full_like(position, np.nan)
         probe_axis, convention = "none", "none"
         dwell_settings = replace(dwell_settings, still_radius_mm=tool_still_radius_mm)
-    dwells = find_dwells(samples.time_s, position, samples.label, samples.quality, dwell_settings)
+    dwells = find_dwells(samples.time_s, position, samples.label, samples.quality, dwell_settings,
+                         source=recording.source)
     if not dwells:
         from .dwell import describe_still_periods
 
@@ -298,6 +305,12 @@ def calibrate_frame(
         if len(members) > 1:
             visit_centres = centres_array[members]
             spread = float(np.max(np.linalg.norm(visit_centres[:, None] - visit_centres[None], axis=2)))
+            if labelled and spread > 2.0 * dwell_settings.merge_radius_mm:
+                raise EMRegError(
+                    f"{recording.source}: the {len(members)} dwells labelled {label!r} lie up to {spread:.1f} mm "
+                    f"apart, farther than visits of one pinhole can (2 x [calibration] merge_radius_mm = "
+                    f"{2.0 * dwell_settings.merge_radius_mm:g} mm): one label given to several pinholes; "
+                    "check the labels")
             if spread > revisit_tolerance:
                 warning = (f"{len(members)} visits disagree by up to {spread:.2f} mm "
                            f"(more than {revisit_tolerance:g} mm): check that the probe was fully inserted")

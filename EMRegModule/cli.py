@@ -239,10 +239,10 @@ def cmd_register(args: argparse.Namespace) -> int:
     controller.load_frame_calibration(args.calibration)
     targets = None
     if args.targets:
-        from .io.markups import read_markups
+        from .io.case import read_targets
 
         controller.note_inputs(targets=args.targets)
-        targets = read_markups(args.targets)[1]
+        targets = read_targets(args.targets)[1]
     try:
         result = controller.register(targets)
     except NoSafeAnswerError:
@@ -296,7 +296,7 @@ def cmd_navigate(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from .io.case import open_case
 
-    case = open_case(args.case)
+    case = open_case(args.case, _settings(args) if args.settings else None)
     _out_folder(args.out)
     if case.navigation is None and case.board is None:
         raise EMRegError(f"{case.folder}: nothing to evaluate: no navigation recording (navigation.csv) and no "
@@ -304,8 +304,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if case.navigation is not None and case.targets is None and case.board is None:
         raise EMRegError(f"{case.folder}: nothing to evaluate: a navigation recording but no targets.mrk.json "
                          "(and no board.csv)")
-    if args.settings:
-        case.settings = _settings(args)
     given = _ports_given(args, case.settings)
     case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # sequence files' ports
     controller = _controller(args, case.settings)
@@ -387,6 +385,9 @@ def _check_convert_ports(recording, reference: int, probe: int, names: dict[str,
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    if args.batch and (args.out or args.case):  # one of them would be ignored: never guessed
+        raise EMRegError(f"give an output folder (emreg report OUT [--case CASE]) or --batch DIR, not "
+                         f"both ({args.out or '--case ' + args.case} and --batch {args.batch})")
     run = _run_record(args)
     early = _start_report_ct(args, run)  # the CT's read goes on while the report's libraries load
     bundle = early_bundle = _start_report_bundle(args, run)  # held: writes nothing into OUT until released below
@@ -459,9 +460,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     _out_folder(args.out)
     from .settings import with_series
 
-    case = open_case(args.case)
-    if args.settings:
-        case.settings = _settings(args)
+    case = open_case(args.case, _settings(args) if args.settings else None)
     case.settings = with_series(case.settings, args.series)
     case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # a sequence file's too
     controller = _controller(args, case.settings)
@@ -742,7 +741,17 @@ class Terminated(KeyboardInterrupt):
 
 
 def _on_sigterm(signum: int, frame: object) -> None:
+    from .outputs import note_interrupt
+
+    note_interrupt("SIGTERM")
     raise Terminated("SIGTERM")
+
+
+def _on_sigint(signum: int, frame: object) -> None:
+    from .outputs import note_interrupt
+
+    note_interrupt("SIGINT")
+    raise KeyboardInterrupt
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -751,12 +760,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     SIGINT and SIGTERM end a command with one line on stderr and exit code 130 / 143; temporary
     files are removed on the way out and an interrupted ``emreg run`` says so in ``OUT/run.json``.
     """
+    from .outputs import interrupted_by, note_interrupt
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    note_interrupt(None)
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _on_sigterm)
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            signal.signal(signal.SIGINT, _on_sigint)
     try:
-        return int(args.func(args) or 0)
+        try:
+            return int(args.func(args) or 0)
+        except (EMRegError, KeyboardInterrupt, OSError):
+            raise
+        except Exception:  # a signal's exception lost in a VTK callback (the filter then fails): the interrupt
+            if interrupted_by() is None:
+                raise
+            raise (Terminated("SIGTERM") if interrupted_by() == "SIGTERM" else KeyboardInterrupt()) from None
     except EMRegError as exc:
         print(f"emreg {args.command}: error: {exc}", file=sys.stderr)
         return exc.exit_code

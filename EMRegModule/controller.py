@@ -33,6 +33,7 @@ from .outputs import (
     OutputFolder,
     all_output_names,
     check_outputs,
+    interrupted_by,
     refuse_out_over_inputs,
     signals_held,
 )
@@ -463,7 +464,8 @@ class EMRegController:
                                        self.probe_sensor, self.settings.evaluation, navigation=navigation,
                                        targets=targets, board=board, nominal_edges_mm=self.settings.board.edges_mm,
                                        error_model=self.error_model, tolerant=tolerant, not_evaluated=not_evaluated,
-                                       tip_to_probe=None if self.tool is None else self.tool.tip_to_probe)
+                                       tip_to_probe=None if self.tool is None else self.tool.tip_to_probe,
+                                       settings_file=self.settings.source)
         return self.evaluation
 
     @property
@@ -777,7 +779,15 @@ class EMRegController:
         except KeyboardInterrupt as exc:
             with signals_held(redeliver=False):  # a second Ctrl-C does not cut the record short
                 folder.drop_unrecorded()  # an output written as the signal came, before run.json listed it
-                folder.finish("interrupted", f"{stage}: {exc or 'interrupted'}")
+                folder.finish("interrupted", f"{stage}: interrupted ({str(exc) or 'SIGINT'})")
+            raise
+        except Exception:
+            signal_name = interrupted_by()  # the signal's exception was lost in a VTK callback: still an interrupt
+            if signal_name is None:
+                raise
+            with signals_held(redeliver=False):
+                folder.drop_unrecorded()
+                folder.finish("interrupted", f"{stage}: interrupted ({signal_name})")
             raise
         with signals_held() as pending:  # run.json says what the exit code says, even for a signal right now
             folder.finish("finished")

@@ -20,6 +20,9 @@ from .settings import DwellSettings
 
 #: A still period's ends are trimmed to the samples within this many ``still_radius_mm`` of its median.
 TRIM_FACTOR = 1.5
+#: A labelled dwell whose samples spread (or drift) farther than this many ``still_radius_mm`` is a moving probe
+#: (a probe held still, even by hand, stays well within it: 0.3 mm against 2 mm in a pinhole).
+LABEL_SPREAD_FACTOR = 4.0
 
 
 @dataclass
@@ -130,21 +133,55 @@ def find_dwells(
     labels: np.ndarray | None = None,
     quality: np.ndarray | None = None,
     settings: DwellSettings | None = None,
+    source: str = "the recording",
+    section: str = "calibration",
 ) -> list[Dwell]:
     """The dwells of one probe track, in time order.
 
     ``time_s`` (N,) sorted, ``position_mm`` (N, 3) in one frame (normally Reference),
     ``labels`` (N,) strings (empty while moving) or None, ``quality`` (N,) or None.
     When any label is present the dwells are the labelled runs; otherwise they are found
-    automatically (:func:`still_periods`). Bad-quality samples are never part of a dwell.
+    automatically (:func:`still_periods`). Bad-quality samples are never part of a dwell. A labelled
+    dwell in which the probe moves is refused (:func:`refuse_moving_labels`; ``source`` names the
+    recording and ``section`` the settings table in the message).
     """
     settings = settings or DwellSettings()
     time_s, position_mm, valid = _usable_samples(time_s, position_mm, quality, settings)
     if labels is not None:
         labels = np.asarray(["" if v is None else str(v).strip() for v in labels], dtype=object)
         if any(labels[valid]):
-            return labelled_dwells(time_s, labels, valid, settings)
+            dwells = labelled_dwells(time_s, labels, valid, settings)
+            refuse_moving_labels(dwells, position_mm, settings, source, section)
+            return dwells
     return still_periods(time_s, position_mm, valid, settings)
+
+
+def label_motion_mm(points: np.ndarray) -> tuple[float, float]:
+    """How far a labelled dwell's probe moves (mm): the distance from the samples' median within which three
+    quarters of them lie (a minority of wild samples does not count), and the drift (:func:`_drift`)."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    spread = float(np.percentile(np.linalg.norm(points - np.median(points, axis=0), axis=1), 75))
+    return spread, _drift(points)
+
+
+def refuse_moving_labels(dwells: list[Dwell], position_mm: np.ndarray, settings: DwellSettings,
+                         source: str = "the recording", section: str = "calibration") -> None:
+    """Refuse (:class:`~EMRegModule.errors.EMRegError`) a labelled dwell in which the probe does not stay still:
+    its samples spread, or drift, farther than :data:`LABEL_SPREAD_FACTOR` x ``still_radius_mm`` (a probe moving
+    10 mm, or every row of a recording given one label): its average would be a plausible, wrong point.
+    ``position_mm`` (N, 3) in the frame the dwells were found in."""
+    from .errors import EMRegError
+
+    limit = LABEL_SPREAD_FACTOR * settings.still_radius_mm
+    for dwell in dwells:
+        spread, drift = label_motion_mm(position_mm[dwell.indices])
+        if max(spread, drift) > limit:
+            raise EMRegError(
+                f"{source}: the probe is not still during the dwell labelled {dwell.label!r} "
+                f"({dwell.start_s:.2f}-{dwell.end_s:.2f} s, {len(dwell)} samples): three quarters of its samples "
+                f"lie within {spread:.1f} mm of their median and it drifts {drift:.1f} mm, more than "
+                f"{limit:g} mm ({LABEL_SPREAD_FACTOR:g} x [{section}] still_radius_mm); label only the samples where "
+                "the probe is held still")
 
 
 def labelled_dwells(time_s: np.ndarray, labels: np.ndarray, valid: np.ndarray,
@@ -263,9 +300,14 @@ def describe_still_periods(time_s: np.ndarray, position_mm: np.ndarray, quality:
         parts.append(text + ")")
     more = f" and {len(periods) - limit} shorter" if len(periods) > limit else ""
     longest = periods[0].duration_s
-    hint = (f"lower [{section}] min_duration_s (e.g. to {max(0.05, np.floor(longest * 20) / 20 - 0.05):.2f})"
-            if longest < settings.min_duration_s else
-            f"raise [{section}] still_radius_mm or max_drift_mm")
+    most = max(len(d) for d in periods)
+    if longest < settings.min_duration_s:
+        hint = f"lower [{section}] min_duration_s (e.g. to {max(0.05, np.floor(longest * 20) / 20 - 0.05):.2f})"
+    elif most < settings.min_samples:
+        hint = (f"but a dwell needs {settings.min_samples} samples ([{section}] min_samples) and the fullest has "
+                f"{most}: lower [{section}] min_samples")
+    else:
+        hint = f"raise [{section}] still_radius_mm or max_drift_mm"
     return (f"{len(periods)} still period(s) found: {', '.join(parts)}{more}; {rule}; {hint}")
 
 

@@ -325,6 +325,7 @@ def evaluate(
     tolerant: bool = False,
     not_evaluated: Mapping[str, str] | None = None,
     tip_to_probe: np.ndarray | None = None,
+    settings_file: str = "",
 ) -> Evaluation:
     """TRE when a navigation recording and targets (labels, (K, 3) LPS mm) are given, the board table
     when a board recording is; ``reference_to_image``: Reference -> CT LPS (mm).
@@ -360,7 +361,7 @@ def evaluate(
             result.warnings += result.tre.warnings
     if board is not None:
         result.board = part("board", lambda: evaluate_board(board, reference_sensor, probe_sensor, nominal_edges_mm,
-                                                            settings, tip_to_probe))
+                                                            settings, tip_to_probe, settings_file))
         result.warnings += board.warnings  # time resets / gaps / invalid frames found in the recordings
     result.warnings += [f"{_PART_NAMES.get(name, name)} not evaluated: {reason}"
                         for name, reason in result.not_evaluated.items()]
@@ -396,7 +397,8 @@ def evaluate_targets(
         raise EMRegError("evaluation: the targets file holds no target points")
     navigation = navigate_recording(recording, reference_to_image, reference_sensor, probe_sensor, tip_to_probe)
     position = navigation.position_mm
-    dwells = find_dwells(navigation.time_s, position, navigation.label, navigation.quality, settings)
+    dwells = find_dwells(navigation.time_s, position, navigation.label, navigation.quality, settings,
+                         source=recording.source, section="evaluation")
     index_of = {str(label): k for k, label in enumerate(target_labels)}
     per_target: dict[str, list[float]] = {str(label): [] for label in target_labels}
     found: list[TargetDwell] = []
@@ -496,10 +498,12 @@ def evaluate_board(
     nominal_edges_mm: Sequence[float] | None = None,
     settings: DwellSettings | None = None,
     tip_to_probe: np.ndarray | None = None,
+    settings_file: str = "",
 ) -> BoardEvaluation:
     """Board-phantom edge lengths from a recording of the probe in each corner hole in turn
     (positions in the Reference frame; in the Tracker frame if the recording has no reference);
-    ``tip_to_probe``: a tool's tip, the point put in the holes."""
+    ``tip_to_probe``: a tool's tip, the point put in the holes; ``settings_file``: the settings file
+    ``nominal_edges_mm`` came from (named when it does not fit)."""
     settings = settings or DwellSettings()
     frame = "Reference"
     if reference_sensor in recording.sensors:
@@ -512,7 +516,7 @@ def evaluate_board(
         poses = probe.transforms()
         frame = "Tracker"
     position = poses[:, :3, 3] if tip_to_probe is None else (poses @ tip_to_probe)[:, :3, 3]
-    dwells = find_dwells(time_s, position, labels, quality, settings)
+    dwells = find_dwells(time_s, position, labels, quality, settings, source=recording.source, section="evaluation")
     if not dwells:
         raise EMRegError(f"{recording.source}: no probe dwell found in the board recording: "
                          + describe_still_periods(time_s, position, quality, settings))
@@ -524,8 +528,8 @@ def evaluate_board(
     rounds = _rounds(hole_of_dwell)
     nominal = None if nominal_edges_mm is None else [float(v) for v in nominal_edges_mm]
     if nominal is not None and len(nominal) != n_holes:
-        raise EMRegError(f"case.toml [board] edges_mm has {len(nominal)} values but the board recording "
-                         f"visits {n_holes} holes")
+        raise EMRegError(f"{settings_file or 'the settings'}: [board] edges_mm has {len(nominal)} values but the "
+                         f"board recording {recording.source} visits {n_holes} holes")
     edges: dict[str, BoardEdge] = {}
     for k in range(n_holes):
         h1, h2 = k, (k + 1) % n_holes

@@ -101,6 +101,49 @@ def signals_held(redeliver: bool = True) -> Iterator[list[int]]:
             signal.raise_signal(pending[0])
 
 
+#: The signals (names) that asked this process to stop, in order (:func:`note_interrupt`).
+_INTERRUPTS: list[str] = []
+
+
+def note_interrupt(name: str | None) -> None:
+    """Record that SIGINT / SIGTERM (``name``) asked the command to stop; None forgets earlier ones (a new command).
+
+    The signal's exception does not always reach the command: raised inside a callback that VTK calls (a
+    pyvista filter), VTK logs it and the filter fails with an error of its own. :func:`interrupted_by` then
+    still tells that error from a real failure."""
+    if name is None:
+        _INTERRUPTS.clear()
+    else:
+        _INTERRUPTS.append(name)
+
+
+def interrupted_by() -> str | None:
+    """The first signal :func:`note_interrupt` recorded since the command began (None: none)."""
+    return _INTERRUPTS[0] if _INTERRUPTS else None
+
+
+def vtk_imports_uninterrupted() -> None:
+    """From now on, every VTK extension module loads with SIGINT / SIGTERM held back (:func:`signals_held`) and
+    delivered once it is loaded. VTK loads its modules lazily (pyvista's first Plotter, slicer-core's import), and
+    an interrupt inside one became an ImportError (a traceback, or a false "slicer-core is not installed") or left
+    a half-initialised module that crashed the process (SIGSEGV). Call it where VTK's use begins; idempotent."""
+    try:
+        import vtkmodules  # the package alone (its loader), not an extension module
+    except ImportError:
+        return
+    loader = getattr(vtkmodules, "VTKLoader", None)
+    if loader is None or getattr(loader, "emreg_uninterrupted", False):
+        return
+    load = loader.exec_module
+
+    def exec_module(self: Any, module: Any) -> None:
+        with signals_held():
+            load(self, module)
+
+    loader.exec_module = exec_module
+    loader.emreg_uninterrupted = True
+
+
 def recorded_series_uid(record: Any) -> str | None:
     """The Series Instance UID of the DICOM series a run record (``run.json``) or ``markers.json`` names under
     ``ct_series``: the series the markers were detected in (None: none named)."""
@@ -154,7 +197,11 @@ class OutputFolder:
             self.path.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise EMRegError(f"--out {self.path}: cannot create the output folder ({exc.strerror or exc})") from None
-        self.manifest: dict[str, Any] = read_manifest(self.path) or {}
+        self.damaged: EMRegError | None = None  # a run.json there but damaged: only ``emreg run`` replaces it
+        try:
+            self.manifest: dict[str, Any] = read_manifest(self.path) or {}
+        except EMRegError as exc:
+            self.damaged, self.manifest = exc, {}
 
     # --- starting -------------------------------------------------------------------------------
 
@@ -166,6 +213,7 @@ class OutputFolder:
 
     def _start_run(self, record: Mapping[str, Any]) -> None:
         old = dict(self.manifest)
+        self.damaged = None  # a damaged run.json goes to previous/ with the rest; nothing in OUT is trusted
         stale = self._present(set(all_output_names()) | set(old.get("outputs") or {}))
         previous = self.path / PREVIOUS_FOLDER
         if stale or (self.path / RUN_JSON).is_file():
@@ -184,6 +232,7 @@ class OutputFolder:
     def start_stage(self, stage: str, keep: Iterable[str] = ()) -> None:
         """Begin a per-stage command: the outputs of ``stage`` and of the stages made from it move to
         ``previous/``, except those in ``keep`` (still up to date: they stay, listed as they are)."""
+        self._refuse_damaged()
         kept = set(keep)
         names = [name for name in outputs_from(stage) if name not in kept]
         stale = self._present(names)
@@ -208,6 +257,11 @@ class OutputFolder:
         self.manifest["outputs"] = outputs
         self.save()
 
+    def _refuse_damaged(self) -> None:
+        """A per-stage command never adopts the outputs beside a damaged ``run.json`` (nor overwrites it)."""
+        if self.damaged is not None:
+            raise EMRegError(str(self.damaged))
+
     def _present(self, names: Iterable[str]) -> list[str]:
         return sorted(n for n in names if n and "/" not in n and n not in (RUN_JSON, PREVIOUS_FOLDER)
                       and (self.path / n).exists())
@@ -225,6 +279,7 @@ class OutputFolder:
     def record(self, names: Iterable[str], provenance: Provenance, sha256: dict[str, str] | None = None) -> None:
         """List files just written (atomically, by their stage's writer) in ``run.json`` with their sha256
         (``sha256``: those already computed by their writer, by name)."""
+        self._refuse_damaged()
         outputs = self.manifest.setdefault("outputs", {})
         known = sha256 or {}
         for name in names:

@@ -191,17 +191,34 @@ class Provenance:
 
 
 def read_manifest(folder: str | os.PathLike[str]) -> dict[str, Any] | None:
-    """A folder's ``run.json`` (None when absent or not readable as a JSON object)."""
+    """A folder's ``run.json`` (None when absent).
+
+    A ``run.json`` that is there but damaged (not JSON, not an object, or its ``outputs`` / ``inputs`` not
+    objects) is an :class:`EMRegError`: it is what tells a run's own files from stale, copied or edited ones,
+    so it is never treated as absent (that would turn the check off).
+    """
     from .io.atomic import read_json
 
     path = Path(folder) / RUN_JSON
-    if not path.is_file():
+    if not os.path.lexists(path):
         return None
+    if not path.is_file():
+        raise EMRegError(f"{path}: the run record is not a file; the outputs beside it cannot be checked")
     try:
         document = read_json(path, "run record")
-    except EMRegError:
-        return None
-    return document if isinstance(document, dict) else None
+    except OSError as exc:
+        raise EMRegError(f"{path}: the run record cannot be read ({exc.strerror or exc}); "
+                         "the outputs beside it cannot be checked") from None
+    except EMRegError as exc:
+        raise EMRegError(f"{exc}; the outputs beside it cannot be checked: run again into a fresh --out") from None
+    if not isinstance(document, dict):
+        raise EMRegError(f"{path}: damaged run record (not a JSON object); the outputs beside it cannot be "
+                         "checked: run again into a fresh --out")
+    for key in ("outputs", "inputs"):
+        if key in document and not isinstance(document[key], Mapping):
+            raise EMRegError(f"{path}: damaged run record ({key!r} is not an object); the outputs beside it "
+                             "cannot be checked: run again into a fresh --out")
+    return document
 
 
 def check_belongs(path: str | os.PathLike[str], provenance: Provenance | None = None) -> None:

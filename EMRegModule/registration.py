@@ -163,6 +163,14 @@ class RegistrationResult:
             for key in ("sensor_offset_l_mm", "fre_mm"):
                 if not np.isfinite(float(document[key])):
                     raise EMRegError(f"{source}: {key} is not a finite number")
+                if float(document[key]) < 0 or (key == "sensor_offset_l_mm" and float(document[key]) == 0):
+                    raise EMRegError(f"{source}: {key} = {float(document[key]):g} is not a possible value "
+                                     f"({'an FRE is never negative' if key == 'fre_mm' else 'l must be positive'}): "
+                                     "a damaged or hand-edited file")
+            for key in ("fle_mm", "sensor_offset_l_std_mm"):
+                if _float(document.get(key)) < 0:
+                    raise EMRegError(f"{source}: {key} = {_float(document.get(key)):g} is negative: a damaged or "
+                                     "hand-edited file")
             curve = document.get("fre_curve") or {}
             targets = document.get("targets_image")
             tre = document.get("predicted_registration_tre_mm", document.get("predicted_tre_mm"))
@@ -445,7 +453,7 @@ def _offset_range(config: RegistrationSettings, model: MarkerModel) -> tuple[flo
     if config.sensor_offset_l_mm is None:
         return (model.pinhole_bottom_mm, model.pinhole_top_mm)
     if not model.pinhole_bottom_mm <= config.sensor_offset_l_mm <= model.pinhole_top_mm:
-        raise EMRegError(f"case.toml [registration] sensor_offset_l_mm = {config.sensor_offset_l_mm:g} lies "
+        raise EMRegError(f"[registration] sensor_offset_l_mm = {config.sensor_offset_l_mm:g} lies "
                          f"outside the marker's pinhole {model.pinhole_bottom_mm:g}..{model.pinhole_top_mm:g} mm: "
                          "the probe sensor cannot sit there")
     return (config.sensor_offset_l_mm, config.sensor_offset_l_mm)
@@ -521,7 +529,7 @@ def _check_fre_and_offset(fre_value: float, solution: OffsetSolution, l_range: t
         raise NoSafeAnswerError(
             f"the sensor offset l is poorly determined (standard error {solution.l_std_mm:.2f} mm > "
             f"{config.max_l_std_mm:g} mm): the paired markers' axes are (nearly) parallel, so l trades off "
-            "against a translation along them; give l in case.toml [registration] sensor_offset_l_mm "
+            "against a translation along them; give l in the settings ([registration] sensor_offset_l_mm) "
             "or use markers on more than one face"
         )
     if solution.l_std_mm > config.warn_l_std_mm:

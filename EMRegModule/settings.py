@@ -400,6 +400,11 @@ class Settings:
             if name == "detection":
                 base = DetectionSettings.for_model(tables["marker"])
             tables[name] = parse_table(table_class, mapping.get(name), name, source, base=base)
+        fixed_l, model = tables["registration"].sensor_offset_l_mm, tables["marker"]
+        if fixed_l is not None and not model.pinhole_bottom_mm <= fixed_l <= model.pinhole_top_mm:
+            raise EMRegError(f"{source}: [registration] sensor_offset_l_mm = {fixed_l:g} lies outside the "
+                             f"marker's pinhole {model.pinhole_bottom_mm:g}..{model.pinhole_top_mm:g} mm ([marker]): "
+                             "the probe sensor cannot sit there")
         return cls(**tables, source=str(source))
 
     def with_sensors(self, reference: int | None = None, probe: int | None = None) -> Settings:

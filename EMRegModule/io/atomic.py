@@ -108,13 +108,18 @@ def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> None:
 
 
 def read_json(path: str | os.PathLike[str], what: str = "JSON file") -> Any:
-    """Read a JSON file; a missing or malformed file raises :class:`EMRegError` naming it."""
+    """Read a JSON file; a missing, unreadable or malformed file (or a folder, a FIFO under its name) raises
+    :class:`EMRegError` naming it."""
     from ..errors import EMRegError
 
     path = Path(path)
     try:
+        if path.exists() and not path.is_file():  # a FIFO would block the read for ever
+            raise EMRegError(f"{path}: {what} is {'a folder' if path.is_dir() else 'not a regular file'}")
         return json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise EMRegError(f"{path}: {what} not found") from None
+    except OSError as exc:
+        raise EMRegError(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise EMRegError(f"{path}: not a valid {what} ({exc})") from None

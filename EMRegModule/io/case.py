@@ -53,14 +53,27 @@ class Case:
 
     def read_targets(self) -> tuple[list[str], np.ndarray] | None:
         """The targets (labels, (K, 3) LPS mm) of ``targets.mrk.json``, or None when absent."""
-        return None if self.targets is None else read_markups(self.targets)
+        return None if self.targets is None else read_targets(self.targets)
 
     def read_recording(self, role: str) -> TrackingRecording | None:
         """The tracking recording ``calibration``, ``navigation`` or ``board``, or None when absent."""
         from .recording import read_recording
 
         path = getattr(self, role)
-        return None if path is None else read_recording(path, self.settings)
+        if path is None:
+            return None
+        if path.name != role:  # ``role/``: a folder of sequence files, as 3D Slicer saves a recording
+            _refuse_not_a_file(path, f"the {role} recording")
+        return read_recording(path, self.settings)
+
+
+def read_targets(path: str | os.PathLike[str]) -> tuple[list[str], np.ndarray]:
+    """The targets (labels, (K, 3) LPS mm) of a markups file; one without any defined point is an
+    :class:`EMRegError` naming it (a TRE over no target is no evaluation)."""
+    labels, positions = read_markups(path)
+    if len(positions) == 0:
+        raise EMRegError(f"{path}: the targets file holds no target points (no defined control point)")
+    return labels, positions
 
 
 def find_ct(case_dir: str | os.PathLike[str]) -> Path | None:
@@ -80,22 +93,41 @@ def find_ct(case_dir: str | os.PathLike[str]) -> Path | None:
     return None
 
 
-def open_case(folder: str | os.PathLike[str]) -> Case:
-    """Discover a case folder's files by the spec's names and read its ``case.toml`` (typed, checked)."""
+def open_case(folder: str | os.PathLike[str], settings: Settings | None = None) -> Case:
+    """Discover a case folder's files by the spec's names and read its ``case.toml`` (typed, checked);
+    ``settings`` (``--settings FILE``) are used instead, and the case's own ``case.toml`` is then not read."""
     folder = Path(folder)
     if not folder.is_dir():
         raise EMRegError(f"{folder}: case folder not found")
 
-    def optional(name: str) -> Path | None:
-        return folder / name if (folder / name).is_file() else None
+    def present(path: Path) -> Path | None:
+        # a name held by a folder, a FIFO or a broken link is not "absent": kept, so that reading it says why
+        return path if os.path.lexists(path) else None
 
+    def recording(stem: str) -> Path | None:
+        found = find_recording(folder, stem)
+        return found or next((p for s in RECORDING_SUFFIXES if (p := present(folder / f"{stem}{s}"))), None)
+
+    if settings is None:
+        _refuse_not_a_file(folder / SETTINGS_FILE, "the case's settings")  # never "no settings, the defaults"
+        settings = load_settings(folder / SETTINGS_FILE)
     return Case(
         folder=folder,
         ct=find_ct(folder),
-        fiducials=optional(CASE_FIDUCIALS_NAME),
-        calibration=find_recording(folder, "calibration"),
-        navigation=find_recording(folder, "navigation"),
-        targets=optional(TARGETS_FILE),
-        board=find_recording(folder, "board"),
-        settings=load_settings(folder / SETTINGS_FILE),
+        calibration=recording("calibration"),
+        navigation=recording("navigation"),
+        fiducials=present(folder / CASE_FIDUCIALS_NAME),
+        targets=present(folder / TARGETS_FILE),
+        board=recording("board"),
+        settings=settings,
     )
+
+
+def _refuse_not_a_file(path: Path, what: str) -> None:
+    """Refuse (exit 2) a case file's name held by something that is not a regular file (a folder, a FIFO, a
+    broken link): it is not absent, and treating it so would silently drop what the user meant to give."""
+    if path.is_file() or not os.path.lexists(path):
+        return
+    kind = ("a folder" if path.is_dir() else "a broken symbolic link" if path.is_symlink() and not path.exists()
+            else "not a regular file")
+    raise EMRegError(f"{path}: {what} is {kind}; give a file under this name or remove it")

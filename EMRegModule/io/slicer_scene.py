@@ -27,6 +27,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import EMRegError
+from ..outputs import signals_held, vtk_imports_uninterrupted
+from .atomic import _cannot_write
 
 #: File name of the scene bundle in an output folder.
 BUNDLE_FILE = "EMReg.mrb"
@@ -56,9 +58,14 @@ MAX_PATH_POINTS = 1000
 
 
 def slicer_mrml_missing() -> str | None:
-    """Why Slicer's MRML cannot be used here (``None`` when it can)."""
+    """Why Slicer's MRML cannot be used here (``None`` when it can).
+
+    The import is never cut by Ctrl-C / SIGTERM (held, then delivered: :func:`~EMRegModule.outputs.signals_held`):
+    VTK's loader turned the interrupt into an ImportError (a false "not installed") or left a half-initialised
+    extension module that crashed the process."""
     try:
-        import slicer
+        with signals_held():
+            import slicer
     except ImportError as exc:
         return f"3D Slicer's MRML (the slicer-core wheel) is not installed ({exc}); {INSTALL_HINT}"
     if not hasattr(slicer, "vtkMRMLScene") or not hasattr(slicer, "vtkSlicerMarkupsLogic"):
@@ -177,6 +184,8 @@ class SlicerScene:
                                  "(disk full or no permission?)")
             self.bundle_sha256 = _zip_bundle(folder, staged, sources)
             os.replace(staged, path)
+        except OSError as exc:  # a full disk, no permission: one line naming the bundle, as for every output
+            raise _cannot_write(path, exc) from None
         finally:
             for storage_id, (node, data) in volumes.items():  # the scene as it was (Slicer's default: compressed)
                 if node.GetImageData() is not data:
@@ -909,6 +918,7 @@ def write_run_bundle_hashed(out_dir: str | os.PathLike[str], case_dir: str | os.
             return None, f"no {BUNDLE_FILE} written: {reason}", None
         return unwanted
 
+    vtk_imports_uninterrupted()  # the scene's nodes and writers load VTK modules
     missing = slicer_mrml_missing()
     if missing:
         return no_bundle(missing)
@@ -916,8 +926,9 @@ def write_run_bundle_hashed(out_dir: str | os.PathLike[str], case_dir: str | os.
         content = collect_run(out, case_dir, image)
         if not content.marker_ids and not content.calibration_labels:
             return no_bundle(f"no markers or calibration in {out}")
-        holder = SlicerScene()
-        built = build_run_scene(holder.scene, content)
+        with signals_held():  # the modules its logics and nodes load: never cut, the signal acts once they are
+            holder = SlicerScene()
+            built = build_run_scene(holder.scene, content)
         stored = {built[VOLUME_NODE_NAME].GetID(): content.stored_ct} if content.stored_ct is not None else {}
         if not allowed_to_write():
             return unwanted

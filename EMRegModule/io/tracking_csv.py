@@ -146,6 +146,12 @@ def parse_tracking_csv(text: str, source: str = "recording") -> TrackingRecordin
         word = "semicolons" if ";" in header[0] else "tabs"
         raise EMRegError(f"{source}: line 1: the fields are separated by {word}; a tracking CSV separates them by "
                          "commas (time_s,sensor,x_mm,...)")
+    read = {"time_s", "sensor", *POSITION_COLUMNS, *ANGLE_COLUMNS, *QUATERNION_COLUMNS, "quality", "label", "status"}
+    names = [h.lower() for h in header if h.lower() in read]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:  # which of the two holds the data? Never guessed
+        raise EMRegError(f"{source}: line 1: the header names column(s) {', '.join(repeated)} more than once; "
+                         "each column must appear once")
     missing = [c for c in ("time_s", "sensor", *POSITION_COLUMNS) if c not in columns]
     if all(c in columns for c in ANGLE_COLUMNS):
         orientation, orientation_columns = "angles", ANGLE_COLUMNS

@@ -168,7 +168,8 @@ class StoredZipWriter:
                 self._sha.update(window)
                 copied = _kernel_copy(source.fileno(), self._fd, offset, len(window))
                 if copied < len(window):
-                    self._write_all(window[copied:])
+                    with window[copied:] as rest:  # released even when the write fails (a full disk): else
+                        self._write_all(rest)  # the mapping cannot be closed (BufferError)
         self._position += region.length
 
 
