@@ -160,10 +160,12 @@ class RegistrationResult:
             if not is_rigid(matrix, RIGID_TOLERANCE):
                 raise EMRegError(f"{source}: ReferenceToImage is not rigid (rotation not orthonormal with "
                                  f"determinant +1, or last row not 0 0 0 1, within {RIGID_TOLERANCE:g})")
+            point_fit = document.get("fiducials") is not None  # a point fit onto fiducials: no offset, l = 0
             for key in ("sensor_offset_l_mm", "fre_mm"):
                 if not np.isfinite(float(document[key])):
                     raise EMRegError(f"{source}: {key} is not a finite number")
-                if float(document[key]) < 0 or (key == "sensor_offset_l_mm" and float(document[key]) == 0):
+                if float(document[key]) < 0 or (key == "sensor_offset_l_mm" and float(document[key]) == 0
+                                                and not point_fit):
                     raise EMRegError(f"{source}: {key} = {float(document[key]):g} is not a possible value "
                                      f"({'an FRE is never negative' if key == 'fre_mm' else 'l must be positive'}): "
                                      "a damaged or hand-edited file")
