@@ -10,7 +10,8 @@ and the marker's +Y (out of the hole) is its opposite.
 
 With a tool (``tool``, :mod:`EMRegModule.tool`) every sample becomes the tip's position
 (``TipToReference = ProbeToReference @ TipToProbe``) and a touch is the *tip* held still: the shaft may swing
-(a pivot, as in PLUS's landmark recording) or rest; each point says which (``motion``). Hand tremor moves a
+(a pivot, as in PLUS's landmark recording) or rest; each point says which (``motion``). A pivoting touch's point is
+the tip as placed, before the swing moves it (:func:`EMRegModule.tool.placement_samples`). Hand tremor moves a
 held tip about 1 mm over a touch of several seconds, so the stillness radius is ``[tool] still_radius_mm``
 (1 mm) instead of ``[calibration] still_radius_mm``. A tool lying still (on the table) is a touch too: an
 extra point, which the pairing leaves out as it leaves out any point that matches no marker.
@@ -280,8 +281,13 @@ def calibrate_frame(
     inlier_index = []
     centres = []
     for dwell in dwells:
-        average = robust_mean(position[dwell.indices])
-        inlier_index.append(dwell.indices[average.inliers])
+        indices = dwell.indices
+        if tool is not None:  # a pivoting touch's point is the tip as placed (module docstring)
+            from .tool import placement_samples
+
+            indices = indices[placement_samples(samples.probe_to_reference[indices, :3, :3], tool.tip_mm)]
+        average = robust_mean(position[indices])
+        inlier_index.append(indices[average.inliers])
         centres.append(average.mean)
     centres_array = np.asarray(centres)
     if labelled:
@@ -318,7 +324,8 @@ def calibrate_frame(
         if tool is not None:
             from .tool import shaft_swing_deg
 
-            swing = shaft_swing_deg(samples.probe_to_reference[used, :3, :3], tool.tip_mm)
+            touched = np.concatenate([dwells[m].indices for m in members])
+            swing = shaft_swing_deg(samples.probe_to_reference[touched, :3, :3], tool.tip_mm)
             motion = "pivot" if swing >= PIVOT_TOUCH_SWING_DEG else "rest"
         points.append(CalibrationPoint(
             label=label, position=average.mean, direction=direction, samples=len(used), std_mm=average.std_mm,

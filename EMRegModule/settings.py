@@ -342,7 +342,7 @@ class ToolSettings:
     - ``still_radius_mm`` (1.0): a touch is the tip within this of its median (a ``[calibration]`` dwell with
       this ``still_radius_mm``). On PLUS's hand-held landmark recording the tip wanders about 1 mm over each
       5-6 s touch: 0.5 mm (the pinhole probe's default) finds 5 of its 8 touches, 0.7 to 2 mm find all 8 and
-      the same registration (within 0.01 mm).
+      the same registration (0.11 to 0.14 mm from PLUS's at the landmarks).
     """
 
     calibration: str | None = None

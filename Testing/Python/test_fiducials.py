@@ -249,11 +249,21 @@ def test_markers_json_as_fiducials_is_the_ct_route(small_case, tmp_path):
 # --- PLUS ------------------------------------------------------------------------------------------
 
 
-def _plus_matrix(path: Path, source: str, target: str) -> np.ndarray:
+def _plus_transform(path: Path, source: str, target: str) -> ElementTree.Element:
+    """A ``CoordinateDefinitions`` transform element of a PLUS XML file."""
     for element in ElementTree.parse(path).getroot().iter("Transform"):
         if element.get("From") == source and element.get("To") == target:
-            return np.array(element.get("Matrix").split(), dtype=float).reshape(4, 4)
+            return element
     raise AssertionError(f"no {source}To{target} in {path}")
+
+
+def _plus_matrix(path: Path, source: str, target: str) -> np.ndarray:
+    return np.array(_plus_transform(path, source, target).get("Matrix").split(), dtype=float).reshape(4, 4)
+
+
+def _plus_error(path: Path, source: str, target: str) -> float:
+    """The ``Error`` (mm) PLUS reports for a ``CoordinateDefinitions`` transform."""
+    return float(_plus_transform(path, source, target).get("Error"))
 
 
 def test_plus_device_set_landmarks_are_read_with_their_names():
@@ -305,8 +315,9 @@ PLUS_RECORDING_RESULT = PLUS_DATA / "PhantomRegistrationLandmarkDetection.result
                     reason="PLUS's real stylus recording and its result ship with the tool work (--tool)")
 def test_real_plus_recording_pairs_all_eight_landmarks_as_plus(tmp_path):
     """PLUS's real recording (a stylus touching the fCal 2.0 phantom's 8 landmarks, pivoting, and lying still before
-    and after), its tip from the device set: every landmark paired, the rests left out, and the transform close to
-    PLUS's own PhantomToReference on that recording (PLUS reports 0.198 mm; measured 0.26 mm at most)."""
+    and after), its tip from the device set: every landmark paired, the rests left out, and the transform within
+    PLUS's reported error (0.198 mm) of PLUS's own PhantomToReference at every landmark (measured 0.12 mm at most;
+    0.26 mm when each touch's point averaged the whole swing instead of the tip as placed)."""
     assert main(["calibrate", str(PLUS_RECORDING), "--tool", str(PLUS_DEVICE_SET), "--out", str(tmp_path / "c"),
                  "--quiet"]) == 0
     assert main(["register", "--fiducials", str(PLUS_DEVICE_SET), "--calibration",
@@ -318,7 +329,7 @@ def test_real_plus_recording_pairs_all_eight_landmarks_as_plus(tmp_path):
     phantom_to_reference = _plus_matrix(PLUS_RECORDING_RESULT, "Phantom", "Reference")
     error = _plus_points_error(registration["ReferenceToImage"], invert_rigid(phantom_to_reference),
                                read_fiducials(PLUS_DEVICE_SET).positions)
-    assert error < 0.3, error
+    assert error < _plus_error(PLUS_RECORDING_RESULT, "Phantom", "Reference"), error
 
 
 def test_plus_phantom_without_its_asymmetric_landmark_is_ambiguous(tmp_path, capsys):

@@ -21,7 +21,9 @@ from EMRegModule.io.sequence_metafile import read_sequence_metafile, write_seque
 from EMRegModule.simulation.stylus import simulate_pivot_recording
 from EMRegModule.simulation.tracking import NoiseModel
 from EMRegModule.tool import (
+    PLACEMENT_SWING_DEG,
     pivot_calibration,
+    placement_samples,
     read_tip_to_probe_itk,
     read_tool,
     write_tip_to_probe_itk,
@@ -201,17 +203,19 @@ def test_every_pivoting_touch_of_the_real_stylus_is_found(landmark_touches):
 
 def test_the_touched_tips_register_to_the_landmarks_as_plus_registers_them(landmark_touches):
     """The 8 tip points (touched in landmark order) fitted to the phantom's landmarks give PLUS's own
-    ``PhantomToReference`` on this recording: within 0.3 mm at every landmark and 0.1 degree (PLUS reports
-    0.198 mm for its fit; both fits' residuals are about 0.3 mm)."""
+    ``PhantomToReference`` on this recording within PLUS's reported error (0.198 mm) at every landmark (measured
+    0.12 mm), and pass the check PLUS's own test makes against this baseline (vtkPhantomRegistrationLandmarkDetection
+    Test: translation within 0.1 mm, rotation within 0.2 degree; measured 0.02 mm and 0.06 degree)."""
     landmarks_phantom = _plus_landmarks(DEVICE_SET)
     touched_reference = np.array([p.position for p in landmark_touches.points if p.motion == "pivot"])
     phantom_to_reference = fit_rigid(landmarks_phantom, touched_reference)
     plus_phantom_to_reference, plus_error = _plus_matrix(PLUS_RESULT, "Phantom", "Reference")
     ours = landmarks_phantom @ phantom_to_reference[:3, :3].T + phantom_to_reference[:3, 3]
     theirs = landmarks_phantom @ plus_phantom_to_reference[:3, :3].T + plus_phantom_to_reference[:3, 3]
-    assert np.linalg.norm(ours - theirs, axis=1).max() < 0.3
-    assert _rotation_angle_deg(phantom_to_reference[:3, :3], plus_phantom_to_reference[:3, :3]) < 0.1
-    assert np.linalg.norm(touched_reference - theirs, axis=1).max() < 3 * plus_error
+    assert np.linalg.norm(ours - theirs, axis=1).max() < plus_error
+    assert np.linalg.norm(phantom_to_reference[:3, 3] - plus_phantom_to_reference[:3, 3]) < 0.1
+    assert _rotation_angle_deg(phantom_to_reference[:3, :3], plus_phantom_to_reference[:3, :3]) < 0.2
+    assert np.linalg.norm(touched_reference - theirs, axis=1).max() < 2 * plus_error
 
 
 def test_a_real_pivoting_touch_calibrates_the_stylus_near_plus_calibration(landmark_touches):
@@ -229,6 +233,37 @@ def test_a_real_pivoting_touch_calibrates_the_stylus_near_plus_calibration(landm
         distances.append(float(np.linalg.norm(tool.tip_mm - plus_tip[:3, 3])))
         assert tool.rms_mm < 0.7 and tool.rotation_range_deg > 40
     assert max(distances) < 3.0 and np.median(distances) < 2.0
+
+
+def _axis_rotation(axis: np.ndarray, angle_deg: float) -> np.ndarray:
+    axis = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    angle = np.radians(angle_deg)
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def test_a_pivoting_touch_is_the_tip_as_placed_and_a_rest_keeps_every_sample():
+    """A stylus whose calibrated tip is 1.4 mm off the point it pivots about (``e``): placed (8 still samples), then
+    fanned to one side by up to 25 degrees, as a hand swings. Its touch is the placement, ``c + R0 @ e``: the leading
+    samples until the shaft turned 10 degrees; the whole swing's mean is pulled away by the swing. A touch that
+    never turns keeps all its samples."""
+    tip_mm = np.array([150.0, 1.5, -2.0])
+    error_mm = np.array([0.0, 0.0, 1.4])  # the calibration's error in the probe frame
+    start = random_rotation(np.random.default_rng(3))
+    fan_axis = start @ np.cross(tip_mm, [0.0, 0.0, 1.0])
+    swing = [_axis_rotation(fan_axis, 25.0 * abs(np.sin(a))) @ start for a in np.linspace(0, 3 * np.pi, 80)]
+    rotation = np.array([start] * 8 + swing)
+    touched_mm = np.array([10.0, -20.0, 30.0])  # the point pivoted about (any frame)
+    tip_track = touched_mm + np.einsum("nij,j->ni", rotation, error_mm)
+    keep = placement_samples(rotation, tip_mm)
+    turned = np.degrees(np.arccos(np.clip(np.einsum("nij,j->ni", rotation, tip_mm / np.linalg.norm(tip_mm))
+                                          @ (start @ tip_mm / np.linalg.norm(tip_mm)), -1, 1)))
+    assert keep[:8].all() and not keep[np.argmax(turned > PLACEMENT_SWING_DEG):].any()
+    as_placed = touched_mm + start @ error_mm
+    assert np.linalg.norm(tip_track[keep].mean(axis=0) - as_placed) < 0.05
+    assert np.linalg.norm(tip_track.mean(axis=0) - as_placed) > 0.3
+    assert placement_samples(np.array([start] * 50), tip_mm).all()
+    assert placement_samples(rotation[-4:], tip_mm).all()  # too short to split
 
 
 # --- PLUS sequence files: status and names ----------------------------------------------------------
