@@ -213,6 +213,8 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.connectButton.connect("clicked(bool)", self.onConnectLive)
         self.ui.toolPathLineEdit.connect("currentPathChanged(QString)", self.onToolChanged)
         self.ui.pivotButton.connect("clicked(bool)", self.onPivot)
+        self.ui.fiducialsNodeComboBox.setMRMLScene(slicer.mrmlScene)
+        self.ui.useFiducialsButton.connect("clicked(bool)", self.onUseFiducials)
         self.updateGUIFromLogic()
 
     def cleanup(self):
@@ -256,6 +258,15 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     def onPivot(self):
         self._run("Pivot calibration failed.", self.logic.pivotCalibrate,
                   self.ui.pivotRecordingPathLineEdit.currentPath)
+
+    def onUseFiducials(self):
+        self._run("Using the fiducials failed.", self._useFiducials)
+
+    def _useFiducials(self):
+        node = self.ui.fiducialsNodeComboBox.currentNode()
+        if node is None:
+            raise ValueError("choose a markups point list whose control points are the fiducials")
+        self.logic.setFiducialsFromMarkupsNode(node)
 
     def onDetect(self):
         self._run("Marker detection failed.", self.logic.detectMarkers)

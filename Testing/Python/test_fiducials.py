@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import types
 import xml.etree.ElementTree as ElementTree
 from pathlib import Path
 
@@ -529,6 +530,32 @@ def test_slicer_logic_registers_onto_a_markups_node(small_case, landmarks, tmp_p
     assert "point fit onto fiducials" in logic.resultsText()
     shown = harness.scene.GetFirstNodeByName("EMReg fiducials")
     assert shown is not None and shown.GetNumberOfControlPoints() == len(labels)
+
+
+def test_slicer_panel_uses_the_markups_node_chosen_in_its_selector(small_case, landmarks, tmp_path, monkeypatch):
+    """The panel's fiducials row: nothing chosen is a shown error; a chosen point list of the scene becomes the
+    registration's fiducials (the Logic's setFiducialsFromMarkupsNode)."""
+    from test_slicer_module import SlicerHarness
+
+    harness = SlicerHarness(monkeypatch, application=True)
+    module = harness.load_module()
+    widget = module.EMRegWidget(parent=types.SimpleNamespace())
+    widget.setup()
+    ui = widget.ui
+    assert ui.fiducialsNodeComboBox.scene is harness.scene
+    with pytest.raises(Exception, match="choose a markups point list"):
+        ui.useFiducialsButton.click()
+    assert harness.errors and "Using the fiducials failed." in harness.errors[-1]
+    labels, positions, _ = landmarks
+    node = harness.scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "planned landmarks")
+    from vtkmodules.vtkCommonDataModel import vtkVector3d
+
+    for label, position in zip(labels, positions * RAS, strict=True):
+        node.AddControlPoint(vtkVector3d(*map(float, position)), label)
+    ui.fiducialsNodeComboBox.setCurrentNode(node)
+    ui.useFiducialsButton.click()
+    fiducials = widget.logic.controller.fiducials
+    assert fiducials.labels == labels and np.allclose(fiducials.positions, positions)
 
 
 @pytest.mark.parametrize("storage,name", [("vtkMRMLMarkupsFiducialStorageNode", "f.fcsv"),

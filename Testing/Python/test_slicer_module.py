@@ -187,6 +187,28 @@ class ctkCollapsibleButton(FakeSignalWidget):  # noqa: N801
         self.collapsed = properties.get("collapsed", False)
 
 
+class qMRMLNodeComboBox(FakeSignalWidget):  # noqa: N801
+    """A node selector: it lists the scene's nodes of ``nodeTypes`` once given the scene."""
+
+    signals = ("currentNodeChanged(vtkMRMLNode*)",)
+
+    def __init__(self, name, properties):
+        super().__init__(name, properties)
+        self.scene = None
+        self._node = None
+
+    def setMRMLScene(self, scene) -> None:
+        self.scene = scene
+
+    def currentNode(self):
+        return self._node
+
+    def setCurrentNode(self, node) -> None:
+        assert self.scene is not None and (node is None or self.scene.IsNodePresent(node)), "a node of its scene"
+        self._node = node
+        self.emit("currentNodeChanged(vtkMRMLNode*)", node)
+
+
 class qMRMLWidget(FakeSignalWidget):  # noqa: N801
     def __init__(self, name, properties):
         super().__init__(name, properties)
@@ -197,7 +219,7 @@ class qMRMLWidget(FakeSignalWidget):  # noqa: N801
 
 
 WIDGET_CLASSES = {cls.__name__: cls for cls in (QPushButton, QSpinBox, QLabel, QLineEdit, ctkPathLineEdit,
-                                                ctkCollapsibleButton, qMRMLWidget)}
+                                                ctkCollapsibleButton, qMRMLNodeComboBox, qMRMLWidget)}
 
 
 def _ui_properties(element: ET.Element) -> dict:
