@@ -441,7 +441,7 @@ def _start_report_ct(args: argparse.Namespace, run: dict | None):
     from .io.ct_stream import start_streamed_read
     from .io.slicer_scene import bundle_needs_ct_image
 
-    ct = _manifest_ct(run)
+    ct = _manifest_ct(run, Path(args.case) if args.case else None)
     if ct is None or bundle_needs_ct_image(ct) or _ct_products_kept(Path(args.out), run, ct):
         return None
     try:

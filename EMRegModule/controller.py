@@ -506,7 +506,8 @@ class EMRegController:
         from .report.writer import HandedCT, write_report_keeping_ct
 
         used = self._adopt_outputs(folder)
-        keep = bundle_needs_ct_image(_manifest_ct(folder.manifest))  # else the report streams a CT it reads itself
+        # else the report streams a CT it reads itself
+        keep = bundle_needs_ct_image(_manifest_ct(folder.manifest, case_dir))
         image: Any = self.image if self.image is not None else ct_read
         if self.image is not None and not keep and not self.keep_ct:  # nothing needs the CT after the report: it is
             self.image, image = None, HandedCT(image)  # freed once used, before the rendering libraries load
@@ -577,7 +578,7 @@ class EMRegController:
             used = self._adopt_outputs(folder)
             image = self.image if self.image is not None else self._report_image  # the CT is not read again
             self._report_image = None
-            if not bundle_needs_ct_image(_manifest_ct(folder.manifest)):
+            if not bundle_needs_ct_image(_manifest_ct(folder.manifest, case_dir)):
                 image = None  # the bundle copies the CT from its file: its memory is freed before slicer-core loads
                 if not self.keep_ct:
                     self.image = None
@@ -796,10 +797,12 @@ class EMRegController:
         return "; ".join(parts)
 
 
-def _manifest_ct(run: Any) -> str | None:
-    """The CT path a run record (``run.json``'s content, e.g. an :class:`OutputFolder`'s manifest) names."""
-    ct = run.get("ct") if isinstance(run, dict) else None
-    return ct if isinstance(ct, str) else None
+def _manifest_ct(run: Any, case_dir: Path | None = None) -> str | None:
+    """The CT path a run record (``run.json``'s content, e.g. an :class:`OutputFolder`'s manifest) names, else
+    the CT of ``case_dir`` (a report's ``--case`` over per-stage outputs): :func:`~EMRegModule.io.case.run_ct_path`."""
+    from .io.case import run_ct_path
+
+    return run_ct_path(run, case_dir)
 
 
 def _import_in_background(module: str) -> None:

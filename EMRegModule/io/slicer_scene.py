@@ -683,11 +683,12 @@ class RunScene:
 def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
                 image: Any = None) -> RunScene:
     """Read a run's outputs (``markers.json``, ``frame_calibration.json``, ``registration.json``,
-    ``navigation.csv``), the case's targets and its CT: when the CT that ``run.json`` names is a
-    plain NRRD (:func:`stored_voxels`) and ``image``, if given, has its grid, the file's stored voxels
-    (a bundle copies them, nothing is read into memory); otherwise ``image``, else the CT read (of a
-    DICOM folder, the series the markers were detected in, as ``markers.json`` / ``run.json`` name it,
-    not the folder's default choice: the run may have forced another with ``--series``)."""
+    ``navigation.csv``), the case's targets and its CT: when the CT that ``run.json`` names (per-stage
+    outputs: the case's, :func:`~EMRegModule.io.case.run_ct_path`) is a plain NRRD (:func:`stored_voxels`)
+    and ``image``, if given, has its grid, the file's stored voxels (a bundle copies them, nothing is read
+    into memory); otherwise ``image``, else the CT read (of a DICOM folder, the series the markers were
+    detected in, as ``markers.json`` / ``run.json`` name it, not the folder's default choice: the run may
+    have forced another with ``--series``)."""
     from ..outputs import recorded_series_uid
     from .atomic import read_json
 
@@ -723,7 +724,9 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
 
             labels, positions = read_markups(targets)
             content.target_labels, content.targets = list(labels), np.asarray(positions, dtype=float)
-    ct = run.get("ct")
+    from .case import run_ct_path
+
+    ct = run_ct_path(run, case_dir)
     stored = stored_voxels(ct) if ct and Path(ct).is_file() else None
     if stored is not None and (image is None or _same_grid(stored.geometry, image)):
         content.stored_ct, content.image = stored, None
@@ -979,7 +982,9 @@ def start_bundle_process(out_dir: str | os.PathLike[str], case_dir: str | os.Pat
     except (ImportError, ValueError):
         return None
     try:
-        ct = read_json(out / "run.json", "run record").get("ct")
+        from .case import run_ct_path
+
+        ct = run_ct_path(read_json(out / "run.json", "run record"), case_dir)
     except (EMRegError, OSError, AttributeError):
         return None
     if not isinstance(ct, str) or bundle_needs_ct_image(ct):

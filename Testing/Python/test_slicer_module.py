@@ -946,6 +946,38 @@ def test_report_writes_the_bundle_in_a_process_of_its_own_recorded_in_run_json(r
     _check_volume_matches_ct(mrml.node("EMReg CT"), Path(json.loads((copy / "run.json").read_text())["ct"]))
 
 
+def test_a_cold_report_of_per_stage_outputs_streams_the_case_ct_and_copies_it_into_the_bundle(small_case, tmp_path):
+    """``emreg report OUT --case CASE`` over the outputs of the per-stage commands (their ``run.json`` names no CT)
+    takes the case's CT as ``emreg run``'s report does: the CT is streamed and the bundle is written by a process of
+    its own (slicer-core never imported by the report), with the case's gzip stream copied as it is (not the CT held
+    whole and compressed again after the report); it imports in Slicer with the CT's voxels."""
+    import json
+    import subprocess
+    import zipfile
+
+    from EMRegModule.cli import main
+
+    out = tmp_path / "out"
+    for command in (["detect", str(small_case), "--out", str(out)],
+                    ["calibrate", str(small_case / "calibration.csv"), "--out", str(out)],
+                    ["register", "--markers", str(out / "markers.json"), "--calibration",
+                     str(out / "frame_calibration.json"), "--out", str(out)]):
+        assert main([*command, "--quiet"]) == 0
+    assert "ct" not in json.loads((out / "run.json").read_text())
+    probe = ("import sys; from EMRegModule.cli import main; "
+             "code = main(['report', sys.argv[1], '--case', sys.argv[2], '--quiet']); "
+             "print('slicer imported:', 'slicer' in sys.modules); sys.exit(code)")
+    done = subprocess.run([sys.executable, "-c", probe, str(out), str(small_case)], capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert f"bundle: {out / 'EMReg.mrb'}" in done.stdout and "slicer imported: False" in done.stdout
+    with zipfile.ZipFile(out / "EMReg.mrb") as archive:
+        body = archive.read("EMReg/Data/EMReg CT.nrrd").partition(b"\n\n")[2]
+    stored = (small_case / "ct.nrrd").read_bytes()
+    assert body == stored[stored.index(b"\n\n") + 2:]
+    _check_volume_matches_ct(_import_bundle(out / "EMReg.mrb").node("EMReg CT"), small_case / "ct.nrrd")
+
+
 # --- source compatibility with 3D Slicer's Python ---------------------------------------------------
 
 #: Standard-library modules removed in Python 3.12 and 3.13 (3D Slicer 5.10 runs 3.12; later releases newer).
