@@ -154,7 +154,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     controller = _controller(args, _with_series(_settings(args, case_dir), args))
     folder = _output_folder(args, "detect", [ct_path], case_dir)
     controller.note_inputs(ct=ct_path if ct_path.exists() else None)
-    result = controller.load_ct_and_detect(ct_path)  # detects on the slices read while the rest arrives
+    result = controller.load_ct_and_detect(ct_path, keep_image=False)  # detects on the slices read as the rest arrives
     controller.save_detection(folder)
     print(f"{len(result.markers)} markers detected, {len(result.rejected)} candidates rejected -> {args.out}")
     return 0

@@ -158,33 +158,35 @@ class EMRegController:
         self.ct_series = fill.series
         return image
 
-    def load_ct_and_detect(self, path: str | os.PathLike[str]) -> DetectionResult:
+    def load_ct_and_detect(self, path: str | os.PathLike[str], keep_image: bool = True) -> DetectionResult:
         """``load_ct`` then ``detect_markers``, detecting on the slices already read while the rest arrives.
 
         The same result as the two calls, sooner. Nothing changes when reading or detection fails.
         A DICOM series is read compact (int16 where its headers would take int32: half the memory to
         fill, the same values), and read again exactly in the rare CT whose values do not fit.
+        ``keep_image=False`` (``emreg detect``, which writes only the markers): the CT is not kept (``image`` is
+        None afterwards), so a DICOM series is read without a SimpleITK image (``open_ct``'s ``voxels_only``).
         """
         from .io.dicom_series import NarrowVoxelsError
 
         _import_in_background("EMRegModule.detection.detect")  # overlaps the import with the start of the read
         self._warn_series_unused(path)
         try:
-            return self._load_ct_and_detect(path, compact=True)
+            return self._load_ct_and_detect(path, compact=True, keep_image=keep_image)
         except NarrowVoxelsError as exc:
             self.progress.message(f"[emreg] {exc}: reading the CT again with int32 voxels")
-            return self._load_ct_and_detect(path, compact=False)
+            return self._load_ct_and_detect(path, compact=False, keep_image=keep_image)
 
-    def _load_ct_and_detect(self, path: str | os.PathLike[str], compact: bool) -> DetectionResult:
+    def _load_ct_and_detect(self, path: str | os.PathLike[str], compact: bool, keep_image: bool) -> DetectionResult:
         from .io.image import open_ct
 
         with self.progress.step("opening CT"):
-            fill = open_ct(path, self.ct_series_choice, compact=compact)
+            fill = open_ct(path, self.ct_series_choice, compact=compact, voxels_only=not keep_image)
         from .detection import detect_markers
 
         try:
             result = detect_markers(fill.image, self.marker_model, self.settings.detection, self.progress,
-                                    wait_for_slices=fill.wait_for_slices)
+                                    wait_for_slices=fill.wait_for_slices, voxels=fill.voxels)
             image = fill.result()  # the checksum is verified only at the end
         except BaseException as exc:
             fill.cancel()
@@ -193,7 +195,11 @@ class EMRegController:
                 if isinstance(read_error, EMRegError) and read_error is not exc:
                     raise read_error from None
             raise
-        self.set_image(image, str(path))
+        if fill.voxels is None:
+            self.set_image(image, str(path))
+        else:  # read for the detection only (``keep_image=False``): ``image`` is only the geometry, nothing kept
+            self.image, self.image_source = None, str(path)
+            self._invalidate(detection=True)
         self.ct_series = result.ct_series = fill.series
         self.set_detection(result)
         return result
