@@ -905,7 +905,7 @@ def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: 
             _hash_while_allocating(series.headers, early, pool, workers, names, digests)
         image = early.take(series) if early is not None else None  # allocated while the headers were read
         pixel_type = (compact_voxel_type if compact else voxel_type)(series.headers)
-        if voxels_only and _NUMPY_TYPES.get(pixel_type, np.dtype(np.float32)).kind in "iu":
+        if voxels_only and pixel_type in _NUMPY_TYPES:
             image = _series_geometry(series, pixel_type)
             voxels = fill.voxels = _fresh_voxels(series.size, _NUMPY_TYPES[pixel_type])
         else:

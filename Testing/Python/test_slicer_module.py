@@ -780,9 +780,11 @@ def test_bundle_volume_is_gzip_nrrd_holding_the_cts_voxels(run_output, standard_
 @pytest.mark.parametrize("name, compress", [("ct.nrrd", True), ("ct.nrrd", False), ("ct.mha", True)])
 def test_bundle_volume_from_the_file_or_from_memory_loads_in_slicer_with_the_cts_voxels(slicer_core, tmp_path,
                                                                                          name, compress):
-    """A gzip NRRD's stream is copied, a raw NRRD's voxels are compressed from the file (neither is read into
-    memory: the node holds a one-voxel placeholder), any other CT is compressed from memory; Slicer's reader
-    imports each bundle with the CT's geometry and voxels."""
+    """A gzip NRRD's stream is copied, a raw NRRD's voxels too, as a raw entry (neither is read into memory: the
+    node holds a one-voxel placeholder; neither is compressed again), any other CT is compressed from memory;
+    Slicer's reader imports each bundle with the CT's geometry and voxels."""
+    import zipfile
+
     import SimpleITK as sitk
     import slicer.util
 
@@ -812,6 +814,12 @@ def test_bundle_volume_from_the_file_or_from_memory_loads_in_slicer_with_the_cts
     _check_volume_matches_ct(volume, ct)
     assert np.array_equal(slicer.util.arrayFromVolume(volume), sitk.GetArrayViewFromImage(image))
     assert volume.GetDisplayNode().GetWindow() == pytest.approx(2000.0)
+    with zipfile.ZipFile(tmp_path / "EMReg.mrb") as archive:
+        header, _, body = archive.read("EMReg/Data/EMReg CT.nrrd").partition(b"\n\n")
+    encoding = "raw" if name.endswith(".nrrd") and not compress else "gzip"
+    assert f"\nencoding: {encoding}\n" in header.decode("ascii") + "\n"
+    if stored is not None:  # the file's own bytes
+        assert body == ct.read_bytes()[stored.offset:]
 
 
 def test_stored_voxels_only_for_plain_nrrd_in_the_machines_byte_order(tmp_path):
