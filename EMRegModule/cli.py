@@ -159,7 +159,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     controller = _controller(args, _with_series(_settings(args, case_dir), args))
     folder = _output_folder(args, "detect", [ct_path], case_dir)
     controller.note_inputs(ct=ct_path if ct_path.exists() else None)
-    result = controller.load_ct_and_detect(ct_path)  # detects on the slices read while the rest arrives
+    result = controller.load_ct_and_detect(ct_path, keep_image=False)  # detects on the slices read as the rest arrives
     controller.save_detection(folder)
     print(f"{len(result.markers)} markers detected, {len(result.rejected)} candidates rejected -> {args.out}")
     return 0
@@ -512,7 +512,7 @@ def _start_report_ct(args: argparse.Namespace, run: dict | None):
     from .io.ct_stream import start_streamed_read
     from .io.slicer_scene import bundle_needs_ct_image
 
-    ct = _manifest_ct(run)
+    ct = _manifest_ct(run, Path(args.case) if args.case else None)
     if ct is None or bundle_needs_ct_image(ct) or _ct_products_kept(Path(args.out), run, ct):
         return None
     try:

@@ -173,33 +173,35 @@ class EMRegController:
         self.ct_series = fill.series
         return image
 
-    def load_ct_and_detect(self, path: str | os.PathLike[str]) -> DetectionResult:
+    def load_ct_and_detect(self, path: str | os.PathLike[str], keep_image: bool = True) -> DetectionResult:
         """``load_ct`` then ``detect_markers``, detecting on the slices already read while the rest arrives.
 
         The same result as the two calls, sooner. Nothing changes when reading or detection fails.
         A DICOM series is read compact (int16 where its headers would take int32: half the memory to
         fill, the same values), and read again exactly in the rare CT whose values do not fit.
+        ``keep_image=False`` (``emreg detect``, which writes only the markers): the CT is not kept (``image`` is
+        None afterwards), so a DICOM series is read without a SimpleITK image (``open_ct``'s ``voxels_only``).
         """
         from .io.dicom_series import NarrowVoxelsError
 
         _import_in_background("EMRegModule.detection.detect")  # overlaps the import with the start of the read
         self._warn_series_unused(path)
         try:
-            return self._load_ct_and_detect(path, compact=True)
+            return self._load_ct_and_detect(path, compact=True, keep_image=keep_image)
         except NarrowVoxelsError as exc:
             self.progress.message(f"[emreg] {exc}: reading the CT again with int32 voxels")
-            return self._load_ct_and_detect(path, compact=False)
+            return self._load_ct_and_detect(path, compact=False, keep_image=keep_image)
 
-    def _load_ct_and_detect(self, path: str | os.PathLike[str], compact: bool) -> DetectionResult:
+    def _load_ct_and_detect(self, path: str | os.PathLike[str], compact: bool, keep_image: bool) -> DetectionResult:
         from .io.image import open_ct
 
         with self.progress.step("opening CT"):
-            fill = open_ct(path, self.ct_series_choice, compact=compact)
+            fill = open_ct(path, self.ct_series_choice, compact=compact, voxels_only=not keep_image)
         from .detection import detect_markers
 
         try:
             result = detect_markers(fill.image, self.marker_model, self.settings.detection, self.progress,
-                                    wait_for_slices=fill.wait_for_slices)
+                                    wait_for_slices=fill.wait_for_slices, voxels=fill.voxels)
             image = fill.result()  # the checksum is verified only at the end
         except BaseException as exc:
             fill.cancel()
@@ -208,7 +210,11 @@ class EMRegController:
                 if isinstance(read_error, EMRegError) and read_error is not exc:
                     raise read_error from None
             raise
-        self.set_image(image, str(path))
+        if fill.voxels is None:
+            self.set_image(image, str(path))
+        else:  # read for the detection only (``keep_image=False``): ``image`` is only the geometry, nothing kept
+            self.image, self.image_source = None, str(path)
+            self._invalidate(detection=True)
         self.ct_series = result.ct_series = fill.series
         self.set_detection(result)
         return result
@@ -638,7 +644,8 @@ class EMRegController:
         from .report.writer import HandedCT, write_report_keeping_ct
 
         used = self._adopt_outputs(folder)
-        keep = bundle_needs_ct_image(_manifest_ct(folder.manifest))  # else the report streams a CT it reads itself
+        # else the report streams a CT it reads itself
+        keep = bundle_needs_ct_image(_manifest_ct(folder.manifest, case_dir))
         image: Any = self.image if self.image is not None else ct_read
         if self.image is not None and not keep and not self.keep_ct:  # nothing needs the CT after the report: it is
             self.image, image = None, HandedCT(image)  # freed once used, before the rendering libraries load
@@ -709,7 +716,7 @@ class EMRegController:
             used = self._adopt_outputs(folder)
             image = self.image if self.image is not None else self._report_image  # the CT is not read again
             self._report_image = None
-            if not bundle_needs_ct_image(_manifest_ct(folder.manifest)):
+            if not bundle_needs_ct_image(_manifest_ct(folder.manifest, case_dir)):
                 image = None  # the bundle copies the CT from its file: its memory is freed before slicer-core loads
                 if not self.keep_ct:
                     self.image = None
@@ -962,10 +969,12 @@ def check_case_image_side(case: Case) -> None:
                          "of them; move the other out of the case folder")
 
 
-def _manifest_ct(run: Any) -> str | None:
-    """The CT path a run record (``run.json``'s content, e.g. an :class:`OutputFolder`'s manifest) names."""
-    ct = run.get("ct") if isinstance(run, dict) else None
-    return ct if isinstance(ct, str) else None
+def _manifest_ct(run: Any, case_dir: Path | None = None) -> str | None:
+    """The CT path a run record (``run.json``'s content, e.g. an :class:`OutputFolder`'s manifest) names, else
+    the CT of ``case_dir`` (a report's ``--case`` over per-stage outputs): :func:`~EMRegModule.io.case.run_ct_path`."""
+    from .io.case import run_ct_path
+
+    return run_ct_path(run, case_dir)
 
 
 def _import_in_background(module: str) -> None:

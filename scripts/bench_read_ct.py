@@ -13,7 +13,14 @@ read by ``read_ct`` (series scan and choice, slices decoded on a thread pool, th
 made in the same pass) against ``SimpleITK.ImageSeriesReader`` (``GetGDCMSeriesFileNames`` +
 ``Execute``); ``--dicom FOLDER`` adds a series of your own (e.g. ``bench_detect.py --dicom``'s).
 
-Usage: ``.venv/bin/python scripts/bench_read_ct.py [--work DIR] [--repeat 3] [--dicom FOLDER ...] [--no-dicom]``
+DICOM detection (issue 28): ``emreg detect`` on the hard case's oblique uncompressed series (0.5 x 0.5 x
+0.8 mm, ``emreg simulate --difficulty hard``, the case ``bench_detect.py --dicom`` uses) against
+``SimpleITK.ImageSeriesReader`` reading the same folder (``GetGDCMSeriesFileNames`` + ``Execute``), each
+in its own process, alternated ``--repeat`` times after a warm-up; medians of ``emreg detect``'s whole
+process against the reader's ``Execute`` (goal <= 1.0) and against the reader's whole process.
+
+Usage: ``.venv/bin/python scripts/bench_read_ct.py [--work DIR] [--repeat 3] [--dicom FOLDER ...] [--no-dicom]
+[--detect-only]``
 """
 
 from __future__ import annotations
@@ -68,13 +75,55 @@ def best_time(read, path: Path, repeat: int) -> tuple[float, sitk.Image]:
     return best, image
 
 
+def dicom_detect(work: Path, repeat: int, seed: int = 1) -> None:
+    """``emreg detect`` on the hard case's DICOM series against ``ImageSeriesReader`` (see the module docstring)."""
+    import re
+
+    from bench_detect import DICOM_READ_ONLY, run_child
+
+    case = work / "hard-dicom"
+    if not (case / "truth.json").is_file():
+        print(f"simulating the hard full frame (DICOM, 0.5 x 0.5 x 0.8 mm) into {case} ...", flush=True)
+        subprocess.run([sys.executable, "-m", "EMRegModule", "simulate", str(case), "--seed", str(seed),
+                        "--difficulty", "hard", "--quiet"], check=True)
+    folder, out = case / "ct", work / "out-read-ct-dicom"
+    read = [sys.executable, "-c", DICOM_READ_ONLY, str(folder)]
+    detect = [sys.executable, "-m", "EMRegModule", "detect", str(folder), "--out", str(out), "--quiet"]
+    run_child(read)  # warm-up: the files in the page cache, the modules compiled
+    run_child(detect)
+    reads, read_process, detects, peaks = [], [], [], []
+    for _ in range(repeat):
+        wall, _, text, err, code = run_child(read)
+        if code != 0:
+            sys.exit(f"ImageSeriesReader failed ({code}): {err.strip()[-300:]}")
+        reads.append(float(re.search(r"read (\S+)", text).group(1)))
+        read_process.append(wall)
+        wall, peak, _, err, code = run_child(detect)
+        if code != 0:
+            sys.exit(f"emreg detect failed ({code}): {err.strip()[-300:]}")
+        detects.append(wall)
+        peaks.append(peak)
+    t_read, t_process, t_detect = (float(np.median(v)) for v in (reads, read_process, detects))
+    print(f"\nDICOM detection: {folder} ({len(list(folder.glob('*.dcm')))} files), medians of {repeat} alternated runs")
+    print(f"  emreg detect (whole process)             {t_detect:6.2f} s  peak {np.max(peaks) / 1e9:.2f} GB  "
+          f"({' '.join(f'{v:.2f}' for v in detects)})")
+    print(f"  ImageSeriesReader (file names + Execute) {t_read:6.2f} s  its whole process {t_process:.2f} s  "
+          f"({' '.join(f'{v:.2f}' for v in reads)})")
+    print(f"  detect / read = {t_detect / t_read:.2f} (goal <= 1.0); detect / the reader's whole process = "
+          f"{t_detect / t_process:.2f}", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--work", default="/tmp/emreg-bench-detect", help="folder for the case (kept for reuse)")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--dicom", type=Path, nargs="*", default=[], help="more DICOM series folders to read")
     parser.add_argument("--no-dicom", action="store_true", help="leave out the DICOM copies of the CT")
+    parser.add_argument("--detect-only", action="store_true", help="only emreg detect on the hard DICOM series")
     args = parser.parse_args()
+    if args.detect_only:
+        dicom_detect(Path(args.work), args.repeat)
+        return
     case = Path(args.work) / "sim-0.6"
     if not (case / "truth.json").is_file():
         print(f"simulating the full frame at 0.6 mm into {case} ...", flush=True)
@@ -111,6 +160,8 @@ def main() -> None:
               f"{t_sitk / t_fast:>8.2f}x  {'identical' if same else 'DIFFERENT'}", flush=True)
         if not same:
             sys.exit(f"{path}: read_ct and SimpleITK disagree")
+    if not args.no_dicom:
+        dicom_detect(Path(args.work), args.repeat)
 
 
 if __name__ == "__main__":

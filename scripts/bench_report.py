@@ -27,8 +27,14 @@ and the paper's scan size; the simulator refuses 0.3 mm for the full frame (1.7 
 limit of 1.5 G), so the finest default is 0.32 mm (1.40 G voxels, 2.8 GB as int16, the size of
 the 0.3 mm scan of issue 17: 1.37 G voxels). Simulating that case needs about 10 GB once.
 
+``--cold-report`` (issue 28) measures instead a cold ``emreg report OUT --case CASE`` over the outputs of the
+per-stage commands (``detect``, ``calibrate``, ``register``, ``navigate``, ``evaluate``: their ``run.json`` names
+no CT; no report, no bundle, no kept CT products), bundle included, against ``emreg detect CASE``, and the same
+report of ``--baseline-rev``: the three alternated ``--repeat`` times, medians printed (goals: report time /
+detect time <= 1.5, report peak / CT bytes <= 1.3).
+
 Usage: ``.venv/bin/python scripts/bench_report.py [--spacing 0.6 0.32 | --case DIR ...] [--work DIR]
-[--baseline-rev REV]`` (run it under ``flock /work/heavy.lock`` on a shared machine).
+[--baseline-rev REV] [--cold-report [--repeat 3]]`` (run it under ``flock /work/heavy.lock`` on a shared machine).
 """
 
 from __future__ import annotations
@@ -224,6 +230,53 @@ def bench_case(case: Path, work: Path, baseline: Path, rev: str) -> None:
         print(f"  {name:<15} {verdict} (against the baseline's); the first report's: {first[name]}")
 
 
+def per_stage_outputs(case: Path, out: Path) -> None:
+    """The per-stage commands on ``case`` into ``out`` (no report): what a cold report starts from."""
+    shutil.rmtree(out, ignore_errors=True)
+    for command in (["detect", str(case), "--out", str(out)],
+                    ["calibrate", str(case / "calibration.csv"), "--out", str(out)],
+                    ["register", "--markers", str(out / "markers.json"), "--calibration",
+                     str(out / "frame_calibration.json"), "--targets", str(case / "targets.mrk.json"), "--out",
+                     str(out)],
+                    ["navigate", "--registration", str(out / "registration.json"), "--source",
+                     f"replay:{case / 'navigation.csv'}", "--out", str(out)],
+                    ["evaluate", str(case), "--registration", str(out / "registration.json"), "--out", str(out)]):
+        run_child(emreg(*command), cwd=ROOT)
+
+
+def bench_cold_report(case: Path, work: Path, baseline: Path, rev: str, repeat: int) -> None:
+    """A cold ``emreg report OUT --case CASE`` (this tree and ``rev``) against ``emreg detect``, alternated."""
+    size = ct_bytes(case)
+    base_env = {**os.environ, "PYTHONPATH": str(baseline)}
+    stages, detect_out = work / f"{case.name}-stages", work / f"{case.name}-detect"
+    print(f"\n{case} (CT {size / 1e9:.2f} GB; load {os.getloadavg()[0]:.1f}): cold report after the per-stage "
+          "commands", flush=True)
+    per_stage_outputs(case, stages)
+    run_child(emreg("detect", str(case), "--out", str(detect_out)), cwd=ROOT)  # warm-up: the CT in the page cache
+    results: dict[str, list[tuple[float, float, float]]] = {"detect": [], "report": [], "report (baseline)": []}
+    for _ in range(repeat):
+        results["detect"].append(run_child(emreg("detect", str(case), "--out", str(detect_out)), cwd=ROOT))
+        for name, env, cwd in (("report", None, ROOT), ("report (baseline)", base_env, baseline)):
+            cold = work / f"{case.name}-cold"
+            copy_outputs(stages, cold, as_left=False)
+            results[name].append(run_child(emreg("report", str(cold), "--case", str(case)), env=env, cwd=cwd))
+            if name == "report" and not (cold / "EMReg.mrb").is_file() and importlib.util.find_spec("slicer"):
+                raise SystemExit(f"{cold}: the cold report wrote no EMReg.mrb")
+            shutil.rmtree(cold, ignore_errors=True)
+    medians = {name: tuple(float(np.median([r[i] for r in runs])) for i in range(3)) for name, runs in results.items()}
+    print(f"{'command (median of ' + str(repeat) + ')':<24} {'time (s)':>9} {'CPU (s)':>8} {'peak (GB)':>10} "
+          f"{'peak / CT':>10}  all times")
+    for name, (wall, peak, cpu) in medians.items():
+        every = " ".join(f"{r[0]:.2f}" for r in results[name])
+        print(f"{name:<24} {wall:9.2f} {cpu:8.2f} {peak / 1e9:10.2f} {peak / size:10.2f}  {every}")
+    detect = medians["detect"]
+    for name in ("report", "report (baseline)"):
+        wall, peak, cpu = medians[name]
+        print(f"{name}: time / detect time {wall / detect[0]:.2f} (goal <= 1.5), CPU / detect CPU "
+              f"{cpu / detect[2]:.2f}, peak / CT bytes {peak / size:.2f} (goal <= 1.3)")
+    print(f"baseline: EMReg at {rev}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--spacing", type=float, nargs="+", default=[0.6, 0.32], help="voxel sizes (mm)")
@@ -232,6 +285,9 @@ def main() -> None:
     parser.add_argument("--case", type=Path, nargs="*", default=[], help="use these case folders instead")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--baseline-rev", default=DEFAULT_BASELINE_REV, help="git revision measured as baseline")
+    parser.add_argument("--cold-report", action="store_true",
+                        help="a cold report after the per-stage commands against detect (issue 28)")
+    parser.add_argument("--repeat", type=int, default=3, help="alternated runs of --cold-report (medians printed)")
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     baseline = baseline_tree(args.baseline_rev, args.work)
@@ -239,7 +295,10 @@ def main() -> None:
     print(f"baseline: EMReg at {args.baseline_rev} ({baseline}); {os.cpu_count()} CPUs; load "
           f"{os.getloadavg()[0]:.1f}", flush=True)
     for case in cases:
-        bench_case(case.resolve(), args.work, baseline, args.baseline_rev)
+        if args.cold_report:
+            bench_cold_report(case.resolve(), args.work, baseline, args.baseline_rev, args.repeat)
+        else:
+            bench_case(case.resolve(), args.work, baseline, args.baseline_rev)
 
 
 if __name__ == "__main__":

@@ -49,21 +49,22 @@ _Outcome = tuple[np.ndarray, DetectedMarker | RejectedCandidate]
 
 
 def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings: DetectionSettings | None = None,
-                   progress: Progress | None = None,
-                   wait_for_slices: Callable[[int], None] | None = None) -> DetectionResult:
+                   progress: Progress | None = None, wait_for_slices: Callable[[int], None] | None = None,
+                   voxels: np.ndarray | None = None) -> DetectionResult:
     """Markers in ``image`` (a scalar 3D CT in HU): origins (bottom-face centres) and +Y axes, LPS mm.
 
     ``settings`` is the ``[detection]`` table (None: the defaults for ``model``).
     ``wait_for_slices(n)``, when given, blocks until slices ``0 .. n-1`` (numpy axis 0) of an
     image still being read hold their values (:class:`~EMRegModule.io.fast_read.VolumeFill`):
     detection then works on the slices already read while the rest arrives, with the same result.
+    ``voxels``, when given, are the image's voxels (numpy k, j, i) and ``image`` only their geometry (its getters).
     Raises :class:`NoSafeAnswerError` (exit 3) when fewer than ``min_markers`` markers are found.
     """
     model = model or MarkerModel()
     options = settings or default_settings(model)
     progress = progress or QUIET
     check_ct(image)
-    volume = sitk.GetArrayViewFromImage(image)
+    volume = sitk.GetArrayViewFromImage(image) if voxels is None else voxels
     spacing_zyx = np.asarray(image.GetSpacing(), dtype=float)[::-1]
     index_to_image = index_to_physical_matrix(image)
     outcomes, too_large = _one_pass(volume, spacing_zyx, index_to_image, model, options, progress,
@@ -87,7 +88,7 @@ def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings
             outcomes, too_large, options = again, again_large, scaled
             band = {"low_hu": scaled.low_hu, "high_hu": scaled.high_hu,
                     "source": f"estimated from the markers' intensity ({estimate:.0f} HU in the default band)"}
-    result = _result(outcomes, too_large, index_to_image, options, image, model)
+    result = _result(outcomes, too_large, index_to_image, options, image, volume, model)
     final = _marker_hu_estimate(outcomes, model, options, markers_only=True)
     band["marker_hu"] = None if final is None else round(final, 1)
     result.band = band
@@ -259,7 +260,7 @@ def _region_key(region: Region) -> tuple[int, ...]:
 
 
 def _result(outcomes: list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]], too_large: list[TooLarge],
-            index_to_image: np.ndarray, options: DetectionSettings, image: sitk.Image,
+            index_to_image: np.ndarray, options: DetectionSettings, image: sitk.Image, volume: np.ndarray,
             model: MarkerModel) -> DetectionResult:
     """Markers and rejected candidates, each blob once (overlapping regions can reach the same blob)."""
     markers: list[DetectedMarker] = []
@@ -278,7 +279,7 @@ def _result(outcomes: list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]
     rejected.sort(key=lambda r: (r.centroid[2], r.centroid[1], r.centroid[0]))
     if len(markers) < options.min_markers:
         raise NoSafeAnswerError(_too_few_message(len(markers), options, rejected) + _size_hint(image, model)
-                                + _intensity_hint(image))
+                                + _intensity_hint(volume))
     return DetectionResult(markers, rejected, image_geometry(image))
 
 
@@ -382,11 +383,11 @@ def _size_hint(image: sitk.Image, model: MarkerModel) -> str:
             "EMReg reads spacing and origin in millimetres (is the file in metres or centimetres?)")
 
 
-def _intensity_hint(image: sitk.Image) -> str:
+def _intensity_hint(volume: np.ndarray) -> str:
     """A note for the too-few-markers message when the CT's air does not read near -1000 HU (its darkest
     voxels, 2nd percentile of a sample): the values are then not Hounsfield units, typically stored pixel
     values without their rescale intercept (HU + 1024). Empty otherwise."""
-    values = sitk.GetArrayViewFromImage(image)[::2, ::4, ::4]
+    values = volume[::2, ::4, ::4]
     if values.size == 0:
         return ""
     air = float(np.percentile(values, 2))

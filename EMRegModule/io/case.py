@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -91,6 +92,17 @@ def find_ct(case_dir: str | os.PathLike[str]) -> Path | None:
     if (case_dir / CT_FOLDER_NAME).is_dir():
         return case_dir / CT_FOLDER_NAME
     return None
+
+
+def run_ct_path(run: Any, case_dir: str | os.PathLike[str] | None = None) -> str | None:
+    """The CT of a run's outputs: the one its ``run.json`` (``run``, parsed) names, as ``emreg run`` records it;
+    else, for a folder of per-stage outputs (whose ``run.json`` names no CT), the CT of ``case_dir``, the case
+    a report of it is given (``--case``), which is the CT that report shows; None without either."""
+    ct = run.get("ct") if isinstance(run, dict) else None
+    if isinstance(ct, str):
+        return ct
+    found = find_ct(case_dir) if case_dir is not None and Path(case_dir).is_dir() else None
+    return str(found) if found is not None else None
 
 
 def open_case(folder: str | os.PathLike[str], settings: Settings | None = None) -> Case:

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import mmap
 import os
 import threading
 import warnings
@@ -39,6 +40,7 @@ import SimpleITK as sitk
 
 from ..errors import EMRegError
 from ..provenance import BackgroundHash, Digest, file_sha256, folder_members, folder_sha256
+from .ct_stream import _HUGE_PAGE_BYTES, FixedGeometry
 from .dicom_header import PIXEL_DATA, quick_header
 from .fast_read import VolumeFill, _writable_bytes
 from .itk_messages import quiet_itk
@@ -597,7 +599,8 @@ def series_record(chosen: DicomSeries, all_series: list[DicomSeries], folder: Pa
 
 
 def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None = None,
-                      workers: int | None = None, compact: bool = False) -> tuple[VolumeFill, dict[str, Any]]:
+                      workers: int | None = None, compact: bool = False,
+                      voxels_only: bool = False) -> tuple[VolumeFill, dict[str, Any]]:
     """Start reading the chosen CT series of ``folder``; its fill and its ``ct_series`` record.
 
     Slices are decoded on ``workers`` threads (default: the CPU count, at most 8) and announced
@@ -609,10 +612,16 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
     ``compact``: voxels of :func:`compact_voxel_type` (int16 where the headers allow values beyond
     it but the CT's own values, as CTs' do, fit), half the memory to fill; a slice holding a value
     beyond it ends the read with :class:`NarrowVoxelsError` (read again without ``compact``).
+
+    ``voxels_only``: for a caller that needs the voxels only while it works on them (``emreg detect``), integer
+    voxels go into a numpy array (``fill.voxels``, k, j, i) and ``fill.image`` is only the geometry
+    (:class:`~EMRegModule.io.ct_stream.FixedGeometry`): SimpleITK fills a new image with zeros before a slice can
+    be decoded into it (a pass over the whole volume, on one core, that the decoding waits for), where these
+    voxels are fresh memory that only the slices' decoding touches, page by page on the workers.
     """
     folder = Path(folder)
-    early = _EarlyImage(compact)
-    all_series = scan_series(folder, early.start)
+    early = None if voxels_only else _EarlyImage(compact)
+    all_series = scan_series(folder, early.start if early is not None else None)
     chosen = choose_series(all_series, folder, series)
     record = series_record(chosen, all_series, folder)
     if chosen.multiframe:
@@ -623,7 +632,7 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
         fill = VolumeFill(len(chosen.headers))
         fill.sha256 = Digest()
         workers = workers or max(1, min(8, os.cpu_count() or 1))
-        threading.Thread(target=_decode_series, args=(chosen, fill, workers, folder, early, compact),
+        threading.Thread(target=_decode_series, args=(chosen, fill, workers, folder, early, compact, voxels_only),
                          name="emreg-dicom-read").start()  # no daemon: see above
     fill.series = record
     return fill, record
@@ -915,10 +924,40 @@ def _slice_tasks(headers: list[SliceHeader]) -> list[tuple[int, int]]:
     return tasks
 
 
+_NUMPY_TYPES = {sitk.sitkInt16: np.dtype(np.int16), sitk.sitkUInt16: np.dtype(np.uint16),
+                sitk.sitkInt32: np.dtype(np.int32)}
+"""The integer voxel types :func:`voxel_type` chooses, as numpy's (float32 voxels always go into a SimpleITK image,
+whose values ``check_ct_image`` checks)."""
+
+
+def _fresh_voxels(size: tuple[int, int, int], dtype: np.dtype) -> np.ndarray:
+    """A (k, j, i) array of ``size`` (i, j, k) in fresh anonymous memory that nothing writes before the slices do:
+    each page is faulted in (zeroed by the kernel) by the worker that decodes into it. Huge pages only for slices
+    of 2 MB or more, as the streamed CT (:data:`~EMRegModule.io.ct_stream._HUGE_PAGE_BYTES`: smaller slices made
+    the kernel's work larger with them)."""
+    slice_bytes = int(size[0]) * int(size[1]) * dtype.itemsize
+    mapping = mmap.mmap(-1, max(1, slice_bytes * int(size[2])), flags=mmap.MAP_PRIVATE)
+    if hasattr(mmap, "MADV_HUGEPAGE") and slice_bytes >= _HUGE_PAGE_BYTES:
+        mapping.madvise(mmap.MADV_HUGEPAGE)
+    return np.frombuffer(mapping, dtype=dtype, count=int(np.prod(size))).reshape(size[::-1])
+
+
+def _series_geometry(series: DicomSeries, pixel_type: int) -> FixedGeometry:
+    """The geometry of ``series``' volume of ``pixel_type`` voxels, as the image SimpleITK would hold them gives it
+    (its getters' very values), without the image."""
+    probe = sitk.Image([1, 1, 1], pixel_type)
+    probe.SetSpacing(series.spacing)
+    probe.SetOrigin(series.origin)
+    probe.SetDirection(series.direction)
+    geometry = FixedGeometry.of_image(probe)
+    geometry.values["GetSize"] = tuple(int(n) for n in series.size)
+    return geometry
+
+
 def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: Path,
-                   early: _EarlyImage | None = None, compact: bool = False) -> None:
+                   early: _EarlyImage | None = None, compact: bool = False, voxels_only: bool = False) -> None:
     """The reading thread: allocate (or take the ``early`` image), decode slices on a pool, announce the
-    in-order prefix, then the sha256. ``compact``: see :func:`open_dicom_series`.
+    in-order prefix, then the sha256. ``compact``, ``voxels_only``: see :func:`open_dicom_series`.
 
     Uncompressed slices are read whole (one read, which also gives their sha256) and converted by
     numpy; compressed ones are decoded by GDCM, a run of consecutive slices per
@@ -932,14 +971,19 @@ def _decode_series(series: DicomSeries, fill: VolumeFill, workers: int, folder: 
         if early is not None:
             _hash_while_allocating(series.headers, early, pool, workers, names, digests)
         image = early.take(series) if early is not None else None  # allocated while the headers were read
-        if image is None:
-            image = sitk.Image(list(series.size), (compact_voxel_type if compact else voxel_type)(series.headers))
-        image.SetSpacing(series.spacing)
-        image.SetOrigin(series.origin)
-        image.SetDirection(series.direction)
-        raw = _writable_bytes(image)
-        view = sitk.GetArrayViewFromImage(image)
-        voxels = raw.view(view.dtype).reshape(view.shape)
+        pixel_type = (compact_voxel_type if compact else voxel_type)(series.headers)
+        if voxels_only and pixel_type in _NUMPY_TYPES:
+            image = _series_geometry(series, pixel_type)
+            voxels = fill.voxels = _fresh_voxels(series.size, _NUMPY_TYPES[pixel_type])
+        else:
+            if image is None:
+                image = sitk.Image(list(series.size), pixel_type)
+            image.SetSpacing(series.spacing)
+            image.SetOrigin(series.origin)
+            image.SetDirection(series.direction)
+            raw = _writable_bytes(image)
+            view = sitk.GetArrayViewFromImage(image)
+            voxels = raw.view(view.dtype).reshape(view.shape)
         fill._set_image(image)
         expected = (series.size[1], series.size[0])
         pixel = voxel_type(series.headers)  # GDCM's output, checked where it is narrowed to the image's type

@@ -100,6 +100,9 @@ class VolumeFill:
         self.series: dict | None = None  # a DICOM folder: the series read and the others (``dicom_series``)
         self.is_complete = False  # True when made by ``complete`` (read in full before it existed)
         self.sha256: Digest | None = None  # the source's sha256 (provenance), computed as it is read
+        # the voxels (k, j, i) when they are not in a SimpleITK image: ``image`` is then only their geometry
+        # (a DICOM series read ``voxels_only``, :func:`~EMRegModule.io.dicom_series.open_dicom_series`)
+        self.voxels: np.ndarray | None = None
 
     @classmethod
     def complete(cls, image: sitk.Image) -> VolumeFill:

@@ -30,7 +30,8 @@ def read_ct(path: str | os.PathLike[str], series: str | int | None = None) -> si
     return open_ct(path, series).result()
 
 
-def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compact: bool = False) -> VolumeFill:
+def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compact: bool = False,
+            voxels_only: bool = False) -> VolumeFill:
     """Start reading a CT as :func:`read_ct` does; the voxels may still be arriving when this returns.
 
     Plain NRRD, MetaImage and NIfTI files take the fast path of :mod:`.fast_read` (the same
@@ -42,6 +43,8 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compa
     ``fill.sha256`` is the source's sha256 (provenance), computed from the bytes this read takes.
     ``compact``: a DICOM series whose headers call for int32 voxels is read as int16 (half the memory to fill)
     and ends with :class:`~EMRegModule.io.dicom_series.NarrowVoxelsError` if a slice does not fit it.
+    ``voxels_only``: a DICOM series' integer voxels may come as ``fill.voxels`` (numpy, k, j, i) with ``fill.image``
+    only their geometry, for a caller that needs them only while it works on them (see ``open_dicom_series``).
     """
     path = Path(path)
     check_ct_path(path)
@@ -49,7 +52,7 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compa
         if path.is_dir():
             from .dicom_series import open_dicom_series
 
-            fill, _ = open_dicom_series(path, series, compact=compact)
+            fill, _ = open_dicom_series(path, series, compact=compact, voxels_only=voxels_only)
         else:
             if path.stat().st_size == 0:
                 raise EMRegError(f"{path}: CT file is empty")

@@ -239,6 +239,8 @@ def _placeholder(vtk_type: int, components: int) -> Any:
 class _MemoryVoxels:
     """An entry's voxels from a ``vtkImageData`` in memory, gzip-compressed by ISA-L on their way into the zip."""
 
+    encoding = "gzip"  # the bundle entry's
+
     def __init__(self, data: Any) -> None:
         self.data = data
 
@@ -269,9 +271,9 @@ class _MemoryVoxels:
 class StoredVoxels:
     """A CT's voxels as its NRRD file stores them (:func:`stored_voxels`): copied into a bundle as they are.
 
-    ``path`` the file, ``offset`` where its data starts, ``encoding`` "gzip" (the gzip stream is copied
-    byte for byte: nothing is decoded or compressed again) or "raw" (compressed by ISA-L from the file,
-    a chunk at a time); ``geometry`` SimpleITK's reading of the header (size, spacing, origin, direction
+    ``path`` the file, ``offset`` where its data starts, ``encoding`` "gzip" or "raw" (the bundle's entry has
+    the same: the gzip stream or the raw voxels are copied byte for byte, nothing is decoded or compressed
+    again); ``geometry`` SimpleITK's reading of the header (size, spacing, origin, direction
     and pixel type as ``sitk.ReadImage`` gives them); ``dtype`` the voxel type (machine byte order).
     """
 
@@ -290,28 +292,16 @@ class StoredVoxels:
         return int(np.prod(self.dimensions)) * self.dtype.itemsize
 
     def zip_parts(self, scratch: Path) -> list[Any]:
-        """The gzip stream of the voxels as parts of a zip entry (:mod:`EMRegModule.io.zip_store`): the file's own
-        (copied as it is), else compressed into the file ``scratch`` first."""
-        if self.encoding != "gzip":
-            return _spooled(self, scratch)
+        """The voxels as the file stores them, as the parts of a zip entry (:mod:`EMRegModule.io.zip_store`): its
+        gzip stream, or its raw bytes (``scratch`` is not used)."""
         from .zip_store import FileRegion
 
-        return [FileRegion(self.path, self.offset, self.path.stat().st_size - self.offset)]
-
-    def write_gzip(self, sink: Any) -> None:
-        with self.path.open("rb") as source:
-            source.seek(self.offset)
-            if self.encoding == "gzip":
-                shutil.copyfileobj(source, sink, _CHUNK_BYTES)
-                return
-            left = self.nbytes
-            with _parallel_gzip(sink) as gzip:
-                while left > 0:
-                    chunk = source.read(min(_CHUNK_BYTES, left))
-                    if not chunk:
-                        raise EMRegError(f"{self.path}: the CT file is shorter than its header says")
-                    left -= len(chunk)
-                    gzip.write(chunk)
+        length = self.path.stat().st_size - self.offset
+        if self.encoding == "gzip":
+            return [FileRegion(self.path, self.offset, length)]
+        if length < self.nbytes:
+            raise EMRegError(f"{self.path}: the CT file is shorter than its header says")
+        return [FileRegion(self.path, self.offset, self.nbytes)]
 
 
 def _parallel_gzip(sink: Any) -> Any:
@@ -326,7 +316,7 @@ def _parallel_gzip(sink: Any) -> Any:
     return igzip_threaded.open(sink, "wb", compresslevel=BUNDLE_GZIP_LEVEL, threads=max(1, os.cpu_count() or 1))
 
 
-def _spooled(voxels: _MemoryVoxels | StoredVoxels, scratch: Path) -> list[Any]:
+def _spooled(voxels: _MemoryVoxels, scratch: Path) -> list[Any]:
     """``voxels.write_gzip`` into the file ``scratch``, as the one part of a zip entry."""
     from .zip_store import FileRegion
 
@@ -359,10 +349,12 @@ def _zip_bundle(folder: Path, target: Path, sources: dict[str, Any]) -> str:
     ``sources``: storage node id -> the voxels (:class:`_MemoryVoxels` or :class:`StoredVoxels`) of
     the volumes Slicer saved as one-voxel raw NRRD placeholders (their files are found by the storage
     nodes' ``fileName`` in the ``.mrml``). Their entries are written from the placeholder's header
-    (Slicer's fields and geometry) with ``sizes`` set to the volume's dimensions and ``encoding: gzip``,
-    followed by a gzip stream of the voxels (as Slicer's own compressed writer makes): the CT file's own
-    gzip stream copied as it is, or compressed by ISA-L at :data:`BUNDLE_GZIP_LEVEL` a chunk of
-    :data:`_CHUNK_BYTES` at a time into a scratch file beside ``target``. The ``.mrml`` says
+    (Slicer's fields and geometry) with ``sizes`` set to the volume's dimensions and the source's encoding,
+    followed by its voxels: a plain NRRD CT file's own gzip stream or raw voxels copied as they are (a raw
+    NRRD gives a raw entry: compressing 2.7 GB at 0.3 mm took ~12 s of CPU, the copy is the kernel's), or a
+    gzip stream (as Slicer's own compressed writer makes) of the voxels in memory, compressed by ISA-L at
+    :data:`BUNDLE_GZIP_LEVEL` a chunk of :data:`_CHUNK_BYTES` at a time into a scratch file beside ``target``.
+    The ``.mrml`` says
     ``useCompression="1"`` again for the storage nodes, so that a scene saved again from Slicer stays
     compressed. The archive is written by :class:`~EMRegModule.io.zip_store.StoredZipWriter` (one forward
     pass, large files copied by the kernel, hashed on the way).
@@ -410,7 +402,8 @@ def _zip_bundle(folder: Path, target: Path, sources: dict[str, Any]) -> str:
                     source = files_of[path.resolve()]
                     written.add(id(source))
                     sizes = " ".join(str(n) for n in source.dimensions).encode("ascii")
-                    header = header.replace(b"\nencoding: raw\n", b"\nencoding: gzip\n", 1).replace(
+                    encoding = f"\nencoding: {source.encoding}\n".encode("ascii")
+                    header = header.replace(b"\nencoding: raw\n", encoding, 1).replace(
                         b"\nsizes: 1 1 1\n", b"\nsizes: " + sizes + b"\n", 1)
                     out.add(arcname, [header, *source.zip_parts(scratch)], status.st_mtime)
                     scratch.unlink(missing_ok=True)
@@ -695,11 +688,12 @@ class RunScene:
 def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
                 image: Any = None) -> RunScene:
     """Read a run's outputs (``markers.json``, ``frame_calibration.json``, ``registration.json``,
-    ``navigation.csv``), the case's targets and its CT: when the CT that ``run.json`` names is a
-    plain NRRD (:func:`stored_voxels`) and ``image``, if given, has its grid, the file's stored voxels
-    (a bundle copies them, nothing is read into memory); otherwise ``image``, else the CT read (of a
-    DICOM folder, the series the markers were detected in, as ``markers.json`` / ``run.json`` name it,
-    not the folder's default choice: the run may have forced another with ``--series``)."""
+    ``navigation.csv``), the case's targets and its CT: when the CT that ``run.json`` names (per-stage
+    outputs: the case's, :func:`~EMRegModule.io.case.run_ct_path`) is a plain NRRD (:func:`stored_voxels`)
+    and ``image``, if given, has its grid, the file's stored voxels (a bundle copies them, nothing is read
+    into memory); otherwise ``image``, else the CT read (of a DICOM folder, the series the markers were
+    detected in, as ``markers.json`` / ``run.json`` name it, not the folder's default choice: the run may
+    have forced another with ``--series``)."""
     from ..outputs import recorded_series_uid
     from .atomic import read_json
 
@@ -739,7 +733,9 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
 
             labels, positions = read_markups(targets)
             content.target_labels, content.targets = list(labels), np.asarray(positions, dtype=float)
-    ct = run.get("ct")
+    from .case import run_ct_path
+
+    ct = run_ct_path(run, case_dir)
     stored = stored_voxels(ct) if ct and Path(ct).is_file() else None
     if stored is not None and (image is None or _same_grid(stored.geometry, image)):
         content.stored_ct, content.image = stored, None
@@ -1023,7 +1019,9 @@ def start_bundle_process(out_dir: str | os.PathLike[str], case_dir: str | os.Pat
     except (ImportError, ValueError):
         return None
     try:
-        ct = read_json(out / "run.json", "run record").get("ct")
+        from .case import run_ct_path
+
+        ct = run_ct_path(read_json(out / "run.json", "run record"), case_dir)
     except (EMRegError, OSError, AttributeError):
         return None
     if not isinstance(ct, str) or bundle_needs_ct_image(ct):

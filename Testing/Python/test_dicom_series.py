@@ -276,6 +276,34 @@ def test_detection_while_decoding_gives_the_markers_of_the_whole_image(hard_case
     np.testing.assert_array_equal(streamed.axes, whole.axes)
 
 
+def test_emreg_detect_decodes_the_series_into_fresh_memory_with_the_same_markers(hard_case, tmp_path, monkeypatch):
+    """``emreg detect`` needs the voxels only while it detects: the slices go into fresh memory (``voxels_only``:
+    no SimpleITK image of the volume, which SimpleITK fills with zeros before the first slice), with the same
+    voxels and geometry as the image, and the same markers as a detection that keeps the image."""
+    from EMRegModule.controller import EMRegController
+    from EMRegModule.detection import write_detection
+    from EMRegModule.io import dicom_series
+
+    kept = EMRegController()
+    whole = kept.load_ct_and_detect(hard_case / "ct")
+    image = kept.image
+    fill, _ = open_dicom_series(hard_case / "ct", compact=True, voxels_only=True)
+    geometry = fill.result()
+    np.testing.assert_array_equal(fill.voxels, _voxels(image))
+    for getter in ("GetSize", "GetSpacing", "GetOrigin", "GetDirection", "GetPixelID"):
+        assert getattr(geometry, getter)() == getattr(image, getter)()
+    filled = []
+    writable = dicom_series._writable_bytes
+    monkeypatch.setattr(dicom_series, "_writable_bytes", lambda image: filled.append(image) or writable(image))
+    assert main(["detect", str(hard_case / "ct"), "--out", str(tmp_path), "--quiet"]) == 0
+    assert not filled  # no SimpleITK image was filled
+    write_detection(whole, tmp_path / "kept")
+    documents = [json.loads((folder / "markers.json").read_text()) for folder in (tmp_path, tmp_path / "kept")]
+    for document in documents:
+        document.pop("provenance", None)
+    assert documents[0] == documents[1] and documents[0]["markers"]
+
+
 @pytest.mark.skipif(bool(tools_available()), reason=f"DICOM tools missing: {tools_available()} (scripts/setup)")
 def test_quick_header_reader_agrees_with_pydicom_on_every_syntax(tmp_path, monkeypatch):
     """The quick header walk gives pydicom's values; files it does not handle go to pydicom."""

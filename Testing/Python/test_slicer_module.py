@@ -802,9 +802,11 @@ def test_bundle_volume_is_gzip_nrrd_holding_the_cts_voxels(run_output, standard_
 @pytest.mark.parametrize("name, compress", [("ct.nrrd", True), ("ct.nrrd", False), ("ct.mha", True)])
 def test_bundle_volume_from_the_file_or_from_memory_loads_in_slicer_with_the_cts_voxels(slicer_core, tmp_path,
                                                                                          name, compress):
-    """A gzip NRRD's stream is copied, a raw NRRD's voxels are compressed from the file (neither is read into
-    memory: the node holds a one-voxel placeholder), any other CT is compressed from memory; Slicer's reader
-    imports each bundle with the CT's geometry and voxels."""
+    """A gzip NRRD's stream is copied, a raw NRRD's voxels too, as a raw entry (neither is read into memory: the
+    node holds a one-voxel placeholder; neither is compressed again), any other CT is compressed from memory;
+    Slicer's reader imports each bundle with the CT's geometry and voxels."""
+    import zipfile
+
     import SimpleITK as sitk
     import slicer.util
 
@@ -834,6 +836,12 @@ def test_bundle_volume_from_the_file_or_from_memory_loads_in_slicer_with_the_cts
     _check_volume_matches_ct(volume, ct)
     assert np.array_equal(slicer.util.arrayFromVolume(volume), sitk.GetArrayViewFromImage(image))
     assert volume.GetDisplayNode().GetWindow() == pytest.approx(2000.0)
+    with zipfile.ZipFile(tmp_path / "EMReg.mrb") as archive:
+        header, _, body = archive.read("EMReg/Data/EMReg CT.nrrd").partition(b"\n\n")
+    encoding = "raw" if name.endswith(".nrrd") and not compress else "gzip"
+    assert f"\nencoding: {encoding}\n" in header.decode("ascii") + "\n"
+    if stored is not None:  # the file's own bytes
+        assert body == ct.read_bytes()[stored.offset:]
 
 
 def test_stored_voxels_only_for_plain_nrrd_in_the_machines_byte_order(tmp_path):
@@ -966,6 +974,38 @@ def test_report_writes_the_bundle_in_a_process_of_its_own_recorded_in_run_json(r
     assert not any(p.name.startswith(".EMReg") for p in copy.iterdir())
     mrml = _import_bundle(copy / "EMReg.mrb")
     _check_volume_matches_ct(mrml.node("EMReg CT"), Path(json.loads((copy / "run.json").read_text())["ct"]))
+
+
+def test_a_cold_report_of_per_stage_outputs_streams_the_case_ct_and_copies_it_into_the_bundle(small_case, tmp_path):
+    """``emreg report OUT --case CASE`` over the outputs of the per-stage commands (their ``run.json`` names no CT)
+    takes the case's CT as ``emreg run``'s report does: the CT is streamed and the bundle is written by a process of
+    its own (slicer-core never imported by the report), with the case's gzip stream copied as it is (not the CT held
+    whole and compressed again after the report); it imports in Slicer with the CT's voxels."""
+    import json
+    import subprocess
+    import zipfile
+
+    from EMRegModule.cli import main
+
+    out = tmp_path / "out"
+    for command in (["detect", str(small_case), "--out", str(out)],
+                    ["calibrate", str(small_case / "calibration.csv"), "--out", str(out)],
+                    ["register", "--markers", str(out / "markers.json"), "--calibration",
+                     str(out / "frame_calibration.json"), "--out", str(out)]):
+        assert main([*command, "--quiet"]) == 0
+    assert "ct" not in json.loads((out / "run.json").read_text())
+    probe = ("import sys; from EMRegModule.cli import main; "
+             "code = main(['report', sys.argv[1], '--case', sys.argv[2], '--quiet']); "
+             "print('slicer imported:', 'slicer' in sys.modules); sys.exit(code)")
+    done = subprocess.run([sys.executable, "-c", probe, str(out), str(small_case)], capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert f"bundle: {out / 'EMReg.mrb'}" in done.stdout and "slicer imported: False" in done.stdout
+    with zipfile.ZipFile(out / "EMReg.mrb") as archive:
+        body = archive.read("EMReg/Data/EMReg CT.nrrd").partition(b"\n\n")[2]
+    stored = (small_case / "ct.nrrd").read_bytes()
+    assert body == stored[stored.index(b"\n\n") + 2:]
+    _check_volume_matches_ct(_import_bundle(out / "EMReg.mrb").node("EMReg CT"), small_case / "ct.nrrd")
 
 
 # --- source compatibility with 3D Slicer's Python ---------------------------------------------------
