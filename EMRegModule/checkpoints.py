@@ -146,6 +146,8 @@ class CheckpointReport:
     invalid_poses: int = 0
     poses: int = 0
     provenance: dict[str, Any] | None = None
+    #: why there are no checkpoints to look for (e.g. no detected markers beside the registration), or None
+    note: str | None = None
 
     @property
     def failed(self) -> list[Checkpoint]:
@@ -159,6 +161,8 @@ class CheckpointReport:
             "checkpoint_radius_mm": float(self.radius_mm),
             "poses": int(self.poses), "invalid_poses": int(self.invalid_poses),
         }
+        if self.note:
+            document["note"] = self.note
         if self.provenance is not None:
             document["provenance"] = self.provenance
         return document
@@ -173,6 +177,8 @@ class CheckpointReport:
         passed = len(self.checkpoints) - len(self.failed)
         worst = max((c.error_mm for c in self.checkpoints), default=float("nan"))
         text = f"{len(self.checkpoints)} checkpoint(s), {passed} passed"
+        if self.note:
+            text += f" ({self.note})"
         if self.checkpoints:
             text += f" (largest error {worst:.2f} mm, limit {self.max_error_mm:g} mm)"
         if self.reference_jumps:

@@ -447,10 +447,9 @@ class EMRegController:
         pinholes = (None if self.detection is None else
                     pinholes_from_detection(self.detection, self.registration.sensor_offset_l_mm))
         report = check_navigation(result, recording, pinholes, self.reference_sensor, self.settings.navigation)
-        notes = report.warnings()
-        if pinholes is None:
-            notes.append("no detected markers (markers.json) beside the registration: no checkpoints at the pinholes")
-        recording.warnings.extend(n for n in notes if n not in recording.warnings)
+        if pinholes is None:  # a point fit onto fiducials, or a registration folder without its markers
+            report.note = "no detected markers (markers.json) beside the registration: no pinholes to check at"
+        recording.warnings.extend(n for n in report.warnings() if n not in recording.warnings)
         return report
 
     def evaluate(self, navigation: TrackingRecording | None = None,

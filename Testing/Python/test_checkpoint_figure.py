@@ -49,7 +49,7 @@ def test_report_shows_the_checkpoints_of_a_navigation(small_case: Path, tmp_path
     out = tmp_path / "out"
     assert main(["run", str(case), "--out", str(out), "--quiet"]) == 0
     checkpoints = json.loads((out / "checkpoints.json").read_text())["checkpoints"]
-    html = (out / "report.html").read_text()
+    html = (out / "report.html").read_text(encoding="utf-8")
     assert "Checkpoints during navigation" in html and html.count("FAILED") == sum(not c["ok"] for c in checkpoints)
     image = cv2.imread(str(out / "report_figures" / "checkpoints.png"))[:, :, ::-1]
     assert len(_blobs(image, LINE)) + len(_blobs(image, HIGHLIGHT)) == len(checkpoints) == 4

@@ -137,7 +137,7 @@ def test_run_detects_distortion_says_where_and_predicts_with_it(distorted_case: 
     budgets = [t["budget_rms_mm"] for t in evaluation["tre"]["targets"].values()]
     assert all(b["distortion"] > 0 for b in budgets)
     assert (out / "report_figures" / "distortion.png").stat().st_size > 0
-    assert "Field distortion" in (out / "report.html").read_text()
+    assert "Field distortion" in (out / "report.html").read_text(encoding="utf-8")
 
 
 def test_distortion_figure_draws_the_field_where_it_is_and_the_vectors():

@@ -211,7 +211,7 @@ def test_run_on_a_fiducial_case(small_case, landmarks, tmp_path):
     assert any(line.startswith("detect: skipped (no CT): 8 fiducials") for line in run["summary"])
     evaluation = json.loads((out / "evaluation.json").read_text())
     assert evaluation["tre"]["mean_mm"] < 1.0
-    page = (out / "report.html").read_text()
+    page = (out / "report.html").read_text(encoding="utf-8")
     assert "<h2>Fiducials</h2>" in page and "there is no CT" in page and "decoy" in page
     assert "sensor offset l" not in page
     from EMRegModule.io.slicer_scene import FIDUCIALS_NODE_NAME, SlicerScene, slicer_mrml_missing

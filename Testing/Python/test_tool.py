@@ -442,7 +442,7 @@ def test_live_navigation_with_a_tool_is_refused_not_ignored(capsys):
 def test_the_report_shows_the_tool_and_each_touch(stylus_case):
     folder, truth, _ = stylus_case
     assert main(["report", str(folder / "out"), "--case", str(folder / "case"), "--quiet"]) == 0
-    html = (folder / "out" / "report.html").read_text()
+    html = (folder / "out" / "report.html").read_text(encoding="utf-8")
     section = html[html.index("<h2>Frame calibration</h2>"):html.index("<h2>Target registration error</h2>")]
     tip = ", ".join(f"{v:.2f}" for v in truth["tool"]["tip_mm"])
     assert f"tip at {tip} mm" in section and "tool_calibration.json" in section

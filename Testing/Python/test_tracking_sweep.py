@@ -34,6 +34,7 @@ example), each checked at the command line on a small simulated case made here.
 
 from __future__ import annotations
 
+import csv
 import json
 import random
 import re
@@ -133,7 +134,8 @@ def test_labels_holding_a_hash_sign_are_read_whole(small_case, tmp_path, capsys)
     assert evaluation["board"]["edges"] == expected["board"]["edges"]
     assert sorted(evaluation["tre"]["targets"]) == sorted(f"T #{name[1:]}" for name in expected["tre"]["targets"])
     assert evaluation["tre"]["mean_mm"] == pytest.approx(expected["tre"]["mean_mm"], abs=1e-9)
-    labels = {line.rsplit(",", 1)[1] for line in (out / "navigation.csv").read_text().splitlines()[1:]}
+    with open(out / "navigation.csv", newline="", encoding="utf-8") as rows:
+        labels = {row["label"] for row in csv.DictReader(rows)}
     assert {f"T #{name[1:]}" for name in expected["tre"]["targets"]} <= labels
 
 
