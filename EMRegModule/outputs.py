@@ -30,7 +30,7 @@ from typing import Any
 from . import __version__
 from .errors import EMRegError
 from .io.atomic import atomic_write_json
-from .io.case import CASE_INPUT_NAMES
+from .names import CASE_INPUT_NAMES
 from .provenance import RUN_JSON, Provenance, check_belongs, file_sha256, read_manifest
 
 #: The outputs of each stage, in workflow order (a later stage's outputs are stale when an earlier one changes).

@@ -38,9 +38,10 @@ from typing import Any
 import numpy as np
 
 from .errors import EMRegError, NoSafeAnswerError
+from .frames import LPS_TO_RAS
 from .io.atomic import atomic_write_json, read_json
 from .io.sequence_metafile import check_rigid
-from .transforms import LPS_TO_RAS, invert_rigid
+from .transforms import invert_rigid
 
 #: Names of ``emreg pivot``'s outputs.
 TOOL_CALIBRATION_JSON = "tool_calibration.json"

@@ -17,7 +17,6 @@ from numpy.typing import ArrayLike, NDArray
 Array = NDArray[np.float64]
 
 # LPS <-> RAS: negate x and y. The matrix is its own inverse.
-LPS_TO_RAS: Array = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 
 def make_transform(rotation: ArrayLike | None = None, translation: ArrayLike | None = None) -> Array:
@@ -248,11 +247,6 @@ def angle_between_deg(u: ArrayLike, v: ArrayLike) -> Array:
     v = np.asarray(v, dtype=float)
     cos = np.sum(u * v, axis=-1) / (np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1))
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-
-
-def lps_to_ras(transform_lps: ArrayLike) -> Array:
-    """Express a 4x4 transform whose both frames are LPS-based in RAS (and back: same formula)."""
-    return LPS_TO_RAS @ np.asarray(transform_lps, dtype=float) @ LPS_TO_RAS
 
 
 def random_rotation(

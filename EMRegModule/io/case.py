@@ -13,21 +13,18 @@ from typing import Any
 import numpy as np
 
 from ..errors import EMRegError
+from ..names import (
+    CASE_FIDUCIALS_FILE,
+    CT_FILE_NAMES,
+    CT_FOLDER_NAME,
+    RECORDING_SUFFIXES,
+    SETTINGS_FILE,
+    TARGETS_FILE,
+)
 from ..settings import Settings, load_settings
 from ..tracking import TrackingRecording
-from .fiducials import CASE_FIDUCIALS_NAME
 from .markups import read_markups
-from .recording import RECORDING_SUFFIXES, find_recording
-
-CT_FILE_NAMES = ("ct.nrrd", "ct.nii.gz", "ct.nii", "ct.mha", "ct.mhd", "ct.nhdr")  # .nhdr: 3D Slicer's detached NRRD
-CT_FOLDER_NAME = "ct"
-RECORDING_ROLES = ("calibration", "navigation", "board")
-TARGETS_FILE = "targets.mrk.json"
-SETTINGS_FILE = "case.toml"
-#: Every name a case folder is read from (an output folder equal to the case must write none of them).
-CASE_INPUT_NAMES = (CT_FOLDER_NAME, *CT_FILE_NAMES,
-                    *(role + suffix for role in RECORDING_ROLES for suffix in RECORDING_SUFFIXES),
-                    TARGETS_FILE, SETTINGS_FILE, CASE_FIDUCIALS_NAME)
+from .recording import find_recording
 
 
 @dataclass
@@ -128,7 +125,7 @@ def open_case(folder: str | os.PathLike[str], settings: Settings | None = None) 
         ct=find_ct(folder),
         calibration=recording("calibration"),
         navigation=recording("navigation"),
-        fiducials=present(folder / CASE_FIDUCIALS_NAME),
+        fiducials=present(folder / CASE_FIDUCIALS_FILE),
         targets=present(folder / TARGETS_FILE),
         board=recording("board"),
         settings=settings,

@@ -44,7 +44,6 @@ FORMAT_FCSV = "Slicer markups CSV (fcsv)"
 FORMAT_PLUS = "PLUS phantom definition"
 
 #: The case-folder file a fiducial case holds instead of a CT.
-CASE_FIDUCIALS_NAME = "fiducials.mrk.json"
 
 #: The columns of an .fcsv written by Slicer 4.6 and later, when no ``# columns`` line names them.
 FCSV_COLUMNS = ("id", "x", "y", "z", "ow", "ox", "oy", "oz", "vis", "sel", "lock", "label", "desc", "associatedNodeID")

@@ -15,7 +15,7 @@ import SimpleITK as sitk
 
 from ..errors import EMRegError
 from ..provenance import BackgroundHash, note_read_digest
-from .case import CT_FILE_NAMES, CT_FOLDER_NAME, find_ct  # noqa: F401  (re-exported: CT naming lives with the case)
+from .case import find_ct  # noqa: F401
 from .ct_checks import check_ct_file, check_ct_geometry, check_ct_path, check_ct_voxels, check_file_placement
 from .fast_read import VolumeFill, check_data_length, start_fast_read
 from .itk_messages import quiet_itk, read_failure

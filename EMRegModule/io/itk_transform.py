@@ -28,7 +28,8 @@ import numpy as np
 import SimpleITK as sitk
 
 from ..errors import EMRegError
-from ..transforms import LPS_TO_RAS, invert_rigid
+from ..frames import LPS_TO_RAS
+from ..transforms import invert_rigid
 from .atomic import atomic_path, itk_write_errors
 
 

@@ -22,12 +22,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EMRegError
+from ..frames import LPS_TO_RAS_3X3
 
 #: Largest distance (mm) between where the sform and SimpleITK's geometry put a corner voxel of the grid
 #: that still counts as agreement (the float32 rounding of either is far below it; a voxel is >= 0.2 mm).
 PLACEMENT_TOLERANCE_MM = 0.05
 
-_RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0])
 _UNIT_MM = {1: 1000.0, 2: 1.0, 3: 0.001}  # xyzt_units' space unit (metre, mm, micron) in mm, as ITK scales it
 
 
@@ -109,7 +109,7 @@ def nifti_sform_lps(path: str | os.PathLike[str]) -> tuple[np.ndarray, int, int]
         return None
     index_to_ras = np.asarray(struct.unpack_from(order + "12f", head, 280), dtype=float).reshape(3, 4)
     index_to_lps = np.eye(4)
-    index_to_lps[:3, :] = _RAS_TO_LPS @ index_to_ras * _UNIT_MM.get(head[123] & 0x07, 1.0)
+    index_to_lps[:3, :] = LPS_TO_RAS_3X3 @ index_to_ras * _UNIT_MM.get(head[123] & 0x07, 1.0)
     return index_to_lps, int(sform_code), int(qform_code)
 
 

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import EMRegError
+from ..names import RECORDING_SUFFIXES  # in order of preference (the spec's CSV first)
 from ..settings import Settings
 from ..tracking import TrackingRecording
 from .sequence_metafile import (
@@ -26,9 +27,6 @@ from .sequence_metafile import (
     write_sequence_metafile,
 )
 from .tracking_csv import read_tracking_csv, write_tracking_csv
-
-#: Names a case folder's recordings may have, in order of preference (the spec's CSV first).
-RECORDING_SUFFIXES = (".csv", ".seq.mha", ".mha", ".seq.nrrd", ".igs.nrrd")
 
 
 def _names(settings: Settings | Mapping[str, Any] | None, reference_port: int | None = None,

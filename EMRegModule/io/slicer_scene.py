@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import EMRegError
+from ..frames import LPS_TO_RAS, lps_to_ras_points
 from ..outputs import signals_held, vtk_imports_uninterrupted
 from .atomic import _cannot_write
 
@@ -35,7 +36,6 @@ BUNDLE_FILE = "EMReg.mrb"
 #: How to get Slicer's MRML outside 3D Slicer.
 INSTALL_HINT = "install the optional dependency with: pip install 'emreg[slicer]' (the slicer-core wheel)"
 
-LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 # Node names (the Slicer module's Logic and the bundle use the same ones).
 VOLUME_NODE_NAME = "EMReg CT"
@@ -71,13 +71,6 @@ def slicer_mrml_missing() -> str | None:
     if not hasattr(slicer, "vtkMRMLScene") or not hasattr(slicer, "vtkSlicerMarkupsLogic"):
         return f"the 'slicer' package found has no MRML classes; {INSTALL_HINT}"
     return None
-
-
-def lps_to_ras_points(points_lps: Any) -> np.ndarray:
-    """(N, 3) points from LPS to RAS (the same flip maps RAS back to LPS)."""
-    points = np.array(points_lps, dtype=float).reshape(-1, 3)
-    points[:, :2] *= -1.0
-    return points
 
 
 class SlicerScene:

@@ -32,8 +32,8 @@ from typing import TextIO
 
 import numpy as np
 
+from ..frames import LPS_TO_RAS
 from ..navigation import probe_to_image as probe_to_image_pose
-from ..transforms import LPS_TO_RAS
 from . import igtl_status as st
 from .igtl_server import TRANSFORM_INVALID, TRANSFORM_OK
 from .igtl_status import StatusMessage

@@ -16,10 +16,10 @@ import numpy as np
 
 from ..errors import EMRegError
 from ..io.atomic import atomic_write_json, atomic_write_text, read_json
-from ..io.case import CT_FILE_NAMES, CT_FOLDER_NAME
 from ..io.markups import write_markups
 from ..io.tracking_csv import write_tracking_csv
 from ..marker_model import MarkerModel
+from ..names import CT_FILE_NAMES, CT_FOLDER_NAME
 from ..progress import QUIET, Progress
 from ..transforms import apply_transform, axis_angle_to_rotation, invert_rigid, random_rotation
 from . import ct

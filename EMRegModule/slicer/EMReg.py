@@ -128,11 +128,6 @@ def ensureEMRegImportable():
     return missing
 
 
-def lpsToRas(point):
-    """A point (3 numbers) from LPS to RAS (and back: the same flip)."""
-    return [float(point[0]) * -1.0, float(point[1]) * -1.0, float(point[2])]
-
-
 #
 # EMReg
 #
@@ -704,6 +699,7 @@ class EMRegTest(ScriptedLoadableModuleTest):
 
         import numpy as np
 
+        from EMRegModule.frames import LPS_TO_RAS, lps_to_ras_points
         from EMRegModule.simulation import load_truth
         from EMRegModule.transforms import apply_transform
 
@@ -734,10 +730,10 @@ class EMRegTest(ScriptedLoadableModuleTest):
         markersNode = slicer.mrmlScene.GetFirstNodeByName(EMRegLogic.MARKERS_NODE_NAME)
         self.assertEqual(markersNode.GetNumberOfControlPoints(), len(detection.markers))
         markersRas = slicer.util.arrayFromMarkupsControlPoints(markersNode, world=True)
-        self.assertTrue(np.allclose(markersRas, [lpsToRas(m.origin) for m in detection.markers], atol=1e-6))
+        self.assertTrue(np.allclose(markersRas, lps_to_ras_points([m.origin for m in detection.markers]), atol=1e-6))
         transformNode = slicer.mrmlScene.GetFirstNodeByName(EMRegLogic.TRANSFORM_NODE_NAME)
         matrix = slicer.util.arrayFromTransformMatrix(transformNode, toWorld=True)
-        expected = np.diag([-1.0, -1.0, 1.0, 1.0]) @ registration.reference_to_image
+        expected = LPS_TO_RAS @ registration.reference_to_image
         self.assertTrue(np.allclose(matrix, expected, atol=1e-9))
 
         # calibration points under ReferenceToImage land on their markers' pinhole points (world = RAS)
@@ -748,7 +744,7 @@ class EMRegTest(ScriptedLoadableModuleTest):
         byId = {m.id: m for m in detection.markers}
         for pair in registration.pairs:
             marker = byId[pair["image_marker"]]
-            pinholeRas = lpsToRas(marker.origin + registration.sensor_offset_l_mm * marker.axis)
+            pinholeRas = lps_to_ras_points(marker.origin + registration.sensor_offset_l_mm * marker.axis)[0]
             landed = calibrationRas[labels.index(pair["calibration_point"])]
             self.assertAlmostEqual(float(np.linalg.norm(landed - pinholeRas)), pair["residual_mm"], delta=1e-6)
 
@@ -762,7 +758,7 @@ class EMRegTest(ScriptedLoadableModuleTest):
             probeNode = slicer.mrmlScene.GetFirstNodeByName(EMRegLogic.PROBE_NODE_NAME)
             self.assertEqual(probeNode.GetTransformNodeID(), transformNode.GetID())
             probeToRas = slicer.util.arrayFromTransformMatrix(probeNode, toWorld=True)
-            self.assertTrue(np.allclose(probeToRas[:3, 3], lpsToRas(navigation.position_mm[-1]), atol=1e-6))
+            self.assertTrue(np.allclose(probeToRas[:3, 3], lps_to_ras_points(navigation.position_mm[-1])[0], atol=1e-6))
         report = logic.writeReport()
         self.assertTrue(Path(report).is_file())
         for name in ("markers.json", "frame_calibration.json", "registration.json", "ReferenceToImage.h5"):

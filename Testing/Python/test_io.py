@@ -8,6 +8,7 @@ import SimpleITK as sitk
 
 from EMRegModule import transforms as tf
 from EMRegModule.errors import EMRegError
+from EMRegModule.frames import LPS_TO_RAS
 from EMRegModule.io.atomic import atomic_path, atomic_write_json
 from EMRegModule.io.case import open_case
 from EMRegModule.io.image import image_geometry, index_to_physical_matrix, read_ct
@@ -133,8 +134,8 @@ def test_itk_transform_round_trip_and_how_slicer_loads_it(tmp_path, name):
     matrix = np.eye(4)
     matrix[:3, :3] = np.reshape(sitk.AffineTransform(stored).GetMatrix(), (3, 3))
     matrix[:3, 3] = sitk.AffineTransform(stored).GetTranslation()
-    to_parent_ras = tf.LPS_TO_RAS @ np.linalg.inv(matrix) @ tf.LPS_TO_RAS
-    np.testing.assert_allclose(to_parent_ras, tf.LPS_TO_RAS @ reference_to_image, atol=1e-9)
+    to_parent_ras = LPS_TO_RAS @ np.linalg.inv(matrix) @ LPS_TO_RAS
+    np.testing.assert_allclose(to_parent_ras, LPS_TO_RAS @ reference_to_image, atol=1e-9)
 
 
 def _volume(size=(12, 10, 8)):

@@ -20,9 +20,10 @@ import numpy as np
 import pyigtl
 import pytest
 
+from EMRegModule.frames import LPS_TO_RAS
 from EMRegModule.live.igtl_server import IGTLServer
 from EMRegModule.live.link_quality import JumpFilter, LinkQualityMonitor
-from EMRegModule.transforms import LPS_TO_RAS, angles_to_rotation, invert_rigid, make_transform, random_rotation
+from EMRegModule.transforms import angles_to_rotation, invert_rigid, make_transform, random_rotation
 
 WRONG_MM = 1.0
 EMREG = [sys.executable, "-m", "EMRegModule"]

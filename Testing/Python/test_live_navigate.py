@@ -18,6 +18,7 @@ import pytest
 from polling import wait_for
 
 from EMRegModule import cli
+from EMRegModule.frames import LPS_TO_RAS
 from EMRegModule.io.tracking_csv import read_tracking_csv, write_tracking_csv
 from EMRegModule.live.device_url import parse_device_url
 from EMRegModule.live.igtl_client import IGTLReceiver
@@ -29,7 +30,7 @@ from EMRegModule.live.sources import IGTLSource, TrakstarSource
 from EMRegModule.live.tracker_simulator import TrackerSimulator
 from EMRegModule.navigation import navigate_recording
 from EMRegModule.tracking import TrackingRecording
-from EMRegModule.transforms import LPS_TO_RAS, invert_rigid, make_transform, random_rotation
+from EMRegModule.transforms import invert_rigid, make_transform, random_rotation
 
 # --- helpers --------------------------------------------------------------------------------
 
