@@ -1,0 +1,64 @@
+"""The package keeps its shape (issue 25): one-way layers, no import circle, small functions and modules.
+
+``scripts/architecture.py`` reads the source and lists every finding; each test here asserts one list is
+empty, so a change that adds an upward import, a circle or a 100-line function fails with its name.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _architecture():
+    spec = importlib.util.spec_from_file_location("emreg_architecture", ROOT / "scripts" / "architecture.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def shape():
+    return _architecture().survey(ROOT)
+
+
+def test_every_module_has_a_layer(shape):
+    assert shape.unlayered == []
+
+
+def test_no_import_runs_up_a_layer(shape):
+    assert shape.upward == []
+
+
+def test_no_import_circle(shape):
+    assert shape.circles == []
+
+
+def test_functions_and_modules_stay_small(shape):
+    assert shape.long_functions == []
+    assert shape.big_modules == []
+    assert shape.big_classes == []
+
+
+def test_no_private_name_is_imported_from_another_module(shape):
+    assert shape.private_imports == []
+
+
+def test_the_survey_sees_a_planted_circle_and_an_upward_import(tmp_path):
+    """The checks can fail: a copy of two modules that import each other, one of them from above."""
+    package = tmp_path / "EMRegModule"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "transforms.py").write_text("from .cli import main\n\ndef _helper():\n    pass\n")
+    (package / "cli.py").write_text("from .transforms import _helper\n\ndef main():\n" + "    x = 1\n" * 95)
+    found = _architecture().survey(tmp_path)
+    assert found.circles == [["EMRegModule.cli", "EMRegModule.transforms"]]
+    assert found.upward == [("EMRegModule.transforms", "EMRegModule.cli")]
+    assert found.private_imports == [("EMRegModule.cli", "EMRegModule.transforms", "_helper")]
+    assert [(name, function) for _, name, function in found.long_functions] == [("EMRegModule.cli", "main")]

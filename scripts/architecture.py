@@ -1,0 +1,207 @@
+"""The shape of EMRegModule: its layers, the imports between them, and the signs a review looks at.
+
+Reads the package's source (no import of it) and reports:
+
+- the layer of every module (``LAYERS``, lowest first) and any import that runs from a lower layer up to a
+  higher one;
+- import circles (strongly connected modules, a package's ``__init__`` counted as a module);
+- functions over ``MAX_FUNCTION_LINES``, modules over ``MAX_MODULE_LINES``, classes over ``MAX_METHODS``;
+- private names (``_x``) imported from another module.
+
+    .venv/bin/python scripts/architecture.py [--root .]
+
+``Testing/Python/test_architecture.py`` asserts that every list is empty.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import sys
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+#: The layers, lowest first: a module may import from its own layer and the layers below it, never above.
+LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("base", ("__init__", "errors", "names", "frames", "tables", "progress", "interrupts", "transforms")),
+    ("model", ("tracking", "marker_model", "settings")),
+    ("formats", ("io", "provenance")),
+    ("core", ("em_field", "dwell", "error_model", "sensor_offset", "calibration", "pairing", "probe_axis",
+              "registration", "fiducial_registration", "distortion", "checkpoints", "navigation", "evaluation",
+              "tool", "tre_map", "detection")),
+    ("products", ("rendering", "report", "slicer_export", "simulation", "run_folder", "live")),
+    ("workflow", ("workflow", "controller", "outputs", "bundle_state")),
+    ("faces", ("commands", "cli", "__main__", "slicer", "studies")),
+)
+MAX_FUNCTION_LINES = 90
+MAX_MODULE_LINES = 700
+MAX_METHODS = 30
+#: Classes held to MAX_METHODS (the issue's bound on the controller; drivers mirror a device's command set).
+BOUNDED_CLASSES = ("EMRegController",)
+
+
+@dataclass
+class Shape:
+    """What :func:`survey` found; every list is a finding (empty when the code is in shape)."""
+
+    modules: dict[str, Path]
+    lines: dict[str, int]
+    imports: dict[str, set[str]]
+    circles: list[list[str]] = field(default_factory=list)
+    upward: list[tuple[str, str]] = field(default_factory=list)
+    long_functions: list[tuple[int, str, str]] = field(default_factory=list)
+    big_modules: list[tuple[int, str]] = field(default_factory=list)
+    big_classes: list[tuple[int, str, str]] = field(default_factory=list)
+    private_imports: list[tuple[str, str, str]] = field(default_factory=list)
+    unlayered: list[str] = field(default_factory=list)
+
+
+def layer_of(module: str) -> int | None:
+    """Index into ``LAYERS`` of a dotted module name ``EMRegModule.x...`` (None: in no layer)."""
+    parts = module.split(".")
+    top = parts[1] if len(parts) > 1 else "__init__"
+    return next((i for i, (_, names) in enumerate(LAYERS) if top in names), None)
+
+
+def _modules(root: Path) -> dict[str, Path]:
+    found = {}
+    for path in sorted((root / "EMRegModule").rglob("*.py")):
+        parts = path.relative_to(root).with_suffix("").parts
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        found[".".join(parts)] = path
+    return found
+
+
+def _target(module: str, node: ast.ImportFrom, is_package: bool) -> str:
+    if not node.level:
+        return node.module or ""
+    base = module.split(".")[: len(module.split(".")) - (node.level - (1 if is_package else 0))]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def _imports(module: str, tree: ast.Module, is_package: bool, modules: dict[str, Path],
+             shape: Shape) -> Iterator[str]:
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            yield from (alias.name for alias in node.names if alias.name in modules)
+        elif isinstance(node, ast.ImportFrom):
+            target = _target(module, node, is_package)
+            if target in modules:
+                yield target
+            for alias in node.names:
+                if f"{target}.{alias.name}" in modules:
+                    yield f"{target}.{alias.name}"
+                elif target in modules and alias.name.startswith("_") and not alias.name.startswith("__"):
+                    shape.private_imports.append((module, target, alias.name))
+
+
+def _circles(imports: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+    for start in imports:
+        if start in index:
+            continue
+        work = [(start, iter(sorted(imports[start])))]
+        index[start] = low[start] = len(index)
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(imports[child]))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+    return found
+
+
+def survey(root: Path) -> Shape:
+    """The shape of ``root/EMRegModule``."""
+    modules = _modules(root)
+    shape = Shape(modules, {}, {name: set() for name in modules})
+    for name, path in modules.items():
+        text = path.read_text(encoding="utf-8")
+        shape.lines[name] = text.count("\n")
+        tree = ast.parse(text)
+        shape.imports[name] = set(_imports(name, tree, path.name == "__init__.py", modules, shape)) - {name}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                length = node.end_lineno - node.lineno + 1
+                if length > MAX_FUNCTION_LINES:
+                    shape.long_functions.append((length, name, node.name))
+            elif isinstance(node, ast.ClassDef) and node.name in BOUNDED_CLASSES:
+                methods = sum(isinstance(b, ast.FunctionDef | ast.AsyncFunctionDef) for b in node.body)
+                if methods > MAX_METHODS:
+                    shape.big_classes.append((methods, name, node.name))
+        if shape.lines[name] > MAX_MODULE_LINES:
+            shape.big_modules.append((shape.lines[name], name))
+        if layer_of(name) is None:
+            shape.unlayered.append(name)
+    shape.circles = _circles(shape.imports)
+    for name, targets in shape.imports.items():
+        here = layer_of(name)
+        shape.upward += [(name, t) for t in sorted(targets)
+                         if here is not None and (there := layer_of(t)) is not None and there > here]
+    return shape
+
+
+def describe(shape: Shape) -> list[str]:
+    """The report, a line per fact."""
+    lines = []
+    for i, (layer, _) in enumerate(LAYERS):
+        members = [m for m in shape.modules if layer_of(m) == i]
+        total = sum(shape.lines[m] for m in members)
+        longest = max((shape.lines[m], m) for m in members) if members else (0, "-")
+        lines.append(f"layer {i} {layer:9s} {len(members):3d} modules {total:6d} lines, largest {longest[1]} "
+                     f"({longest[0]})")
+    longest_function = max((length, f"{m}.{f}") for length, m, f in shape.long_functions) \
+        if shape.long_functions else None
+    lines.append(f"import circles: {len(shape.circles)}" + "".join(f"\n  {c}" for c in shape.circles))
+    lines.append(f"upward imports: {len(shape.upward)}" + "".join(f"\n  {a} -> {b}" for a, b in shape.upward))
+    lines.append(f"functions over {MAX_FUNCTION_LINES} lines: {len(shape.long_functions)}"
+                 + (f" (longest {longest_function[1]}, {longest_function[0]})" if longest_function else ""))
+    lines += [f"  {length} {m}.{f}" for length, m, f in sorted(shape.long_functions, reverse=True)]
+    lines.append(f"modules over {MAX_MODULE_LINES} lines: {len(shape.big_modules)}")
+    lines += [f"  {length} {m}" for length, m in sorted(shape.big_modules, reverse=True)]
+    lines.append(f"classes over {MAX_METHODS} methods: {len(shape.big_classes)}")
+    lines += [f"  {n} {m}.{c}" for n, m, c in shape.big_classes]
+    lines.append(f"private names imported across modules: {len(shape.private_imports)}")
+    lines += [f"  {m} imports {t}.{n}" for m, t, n in shape.private_imports]
+    lines.append(f"modules in no layer: {len(shape.unlayered)}" + "".join(f"\n  {m}" for m in shape.unlayered))
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--root", type=Path, default=Path(__file__).resolve().parent.parent)
+    args = parser.parse_args(argv)
+    print("\n".join(describe(survey(args.root))))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
