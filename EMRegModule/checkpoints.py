@@ -7,9 +7,21 @@ averaged robustly over the rest, minus that point is the registration's current 
 "touch a landmark to check", made automatic. No label is needed: a rest is found by the dwell finder's
 stillness (:func:`EMRegModule.dwell.still_periods`, the ``[navigation]`` dwell keys) and recognised by
 its proximity to a pinhole (``checkpoint_radius_mm``) and, when the probe has an orientation, by its
-axis along the marker's (``checkpoint_angle_deg``). An error above ``max_checkpoint_error_mm`` fails the
-checkpoint: every pose from its start is ``INVALID`` until a later checkpoint passes (or the user
-registers again).
+axis along the marker's (``checkpoint_angle_deg``).
+
+**The decision.** With the registration's error model (:func:`pinholes_from_detection` given the
+registration), each pinhole has a predicted checkpoint error when nothing changed: a 3D normal error of
+covariance ``C`` (LPS mm^2), the registration's error at the pinhole plus the probe's per-dwell error and the
+reference sensor's pose error (:class:`EMRegModule.error_model.ErrorModel`; the fitted field's term when a
+distortion was found). A checkpoint fails when its error vector ``e`` is both beyond the user's limit
+(``|e| > max_checkpoint_error_mm``) and beyond what the model explains at the false-alarm rate
+``CHECKPOINT_FALSE_ALARM`` (``e^T C^-1 e > 3 F(1 - alpha; 3, dof)``, ``dof`` the degrees of freedom the
+probe's error was estimated from; chi-square(3) when exact). Along ``e``'s direction that is one distance,
+the checkpoint's ``threshold_mm``: ``max(limit, sqrt(q / u^T C^-1 u))``. So a noisier tracker does not fail
+clean checkpoints (the threshold grows with its measured noise), and errors within the user's limit never
+fail; ``expected_mm`` (``sqrt(tr C)``) says what a clean checkpoint shows there. Without an error model the
+limit alone decides. A failed checkpoint makes every pose from its start ``INVALID`` until a later
+checkpoint passes (or the user registers again).
 
 **Reference jumps.** A slip of the reference sensor in its slot moves everything and shows at the next
 checkpoint. Between checkpoints, a sudden step of the reference in the Tracker frame between two
@@ -26,12 +38,15 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .dwell import good_quality_mask, robust_mean, still_periods
 from .settings import NavigationSettings
+
+if TYPE_CHECKING:
+    from .registration import RegistrationResult
 
 #: Pose status in ``navigation.csv`` and over OpenIGTLink (PLUS's ``TransformStatus`` names).
 POSE_OK = "OK"
@@ -41,31 +56,89 @@ CHECKPOINTS_JSON = "checkpoints.json"
 JUMP_WINDOW = 8
 #: A step counts as a jump when it exceeds this many robust sigmas of the sample-to-sample noise.
 JUMP_NOISE_FACTOR = 8.0
+#: Chance that a checkpoint fails although nothing changed (the error model's tail beyond the threshold): one
+#: in 10^4 checkpoints, one false alarm in about 2000 sessions of 6 checkpoints.
+CHECKPOINT_FALSE_ALARM = 1e-4
 
 
 @dataclass
 class Pinholes:
     """The detected markers' pinholes at the solved depth: ``ids`` (M,), ``position_image`` (M, 3, LPS mm,
-    ``origin + l * axis``) and unit ``axis_image`` (M, 3, the marker's +Y, towards the opening)."""
+    ``origin + l * axis``) and unit ``axis_image`` (M, 3, the marker's +Y, towards the opening);
+    ``covariance_image`` (M, 3, 3, LPS mm^2): the error model's covariance of a checkpoint's error at each when
+    nothing changed, estimated from ``dof`` degrees of freedom (None: no error model, the limit alone decides)."""
 
     ids: list[str]
     position_image: np.ndarray
     axis_image: np.ndarray
+    covariance_image: np.ndarray | None = None
+    dof: float = float("inf")
 
     def __len__(self) -> int:
         return len(self.ids)
 
 
-def pinholes_from_detection(detection: Any, sensor_offset_l_mm: float) -> Pinholes:
+def pinholes_from_detection(detection: Any, sensor_offset_l_mm: float,
+                            registration: RegistrationResult | None = None) -> Pinholes:
     """The pinholes of every detected marker (paired or not: the CT alone places them) at depth ``l`` (mm)
-    along its axis from its origin (bottom-face centre), in image space (LPS mm)."""
+    along its axis from its origin (bottom-face centre), in image space (LPS mm); with ``registration`` (its
+    ``error``), the error model's covariance of a checkpoint there (:func:`checkpoint_covariance`)."""
     markers = list(getattr(detection, "markers", detection) or [])
     ids = [str(m.id) for m in markers]
     origin = np.array([m.origin for m in markers], dtype=float).reshape(-1, 3)
     axis = np.array([m.axis for m in markers], dtype=float).reshape(-1, 3)
     if len(axis):
         axis = axis / np.linalg.norm(axis, axis=1, keepdims=True)
-    return Pinholes(ids, origin + float(sensor_offset_l_mm) * axis, axis)
+    pinholes = Pinholes(ids, origin + float(sensor_offset_l_mm) * axis, axis)
+    if registration is not None and getattr(registration, "error", None) is not None and len(ids):
+        pinholes.covariance_image = checkpoint_covariance(registration.reference_to_image, registration.error,
+                                                          pinholes.position_image)
+        pinholes.dof = float(registration.error.probe_sigma_dof)
+    return pinholes
+
+
+def checkpoint_covariance(reference_to_image: np.ndarray, error: Any, points_image: np.ndarray) -> np.ndarray:
+    """Covariance (K, 3, 3, LPS mm^2) of a checkpoint's error at image points (K, 3) when nothing changed, from a
+    registration's :class:`EMRegModule.error_model.RegistrationError`: the fit's error there, the probe's
+    per-dwell error (isotropic), the reference sensor's pose error at calibration and now (the priors of
+    :meth:`EMRegModule.error_model.ErrorModel.with_priors`, rotated into image space) and, when a field
+    distortion was found, its term (isotropic). Infinite when the registration is undetermined."""
+    from .error_model import ErrorModel, pose_error_covariance
+    from .transforms import apply_transform, invert_rigid
+
+    model = ErrorModel.with_priors(reference_to_image, error)
+    points = np.asarray(points_image, dtype=float).reshape(-1, 3)
+    covariance = np.array(error.covariance.at(points), dtype=float)
+    covariance += error.probe_sigma_mm ** 2 * np.eye(3)
+    rotation = model.reference_to_image[:3, :3]
+    lever_arms = apply_transform(invert_rigid(model.reference_to_image), points)
+    reference = pose_error_covariance(lever_arms, model.reference_position_sigma_mm, model.reference_rotation_sigma_rad)
+    covariance += 2.0 * rotation @ reference @ rotation.T
+    distortion = error.distortion
+    if distortion is not None and distortion.detected:
+        covariance += (distortion.mean_square_at(lever_arms) / 3.0)[:, None, None] * np.eye(3)
+    return covariance
+
+
+def checkpoint_threshold(offset_mm: np.ndarray, covariance: np.ndarray | None, dof: float,
+                         limit_mm: float) -> tuple[float, float | None]:
+    """The distance (mm) a checkpoint's error along ``offset_mm`` (3,) must exceed to fail, and the expected error
+    ``sqrt(tr C)`` (mm, None without ``covariance``): ``max(limit_mm, sqrt(q / u^T C^-1 u))`` with ``q`` the
+    ``1 - CHECKPOINT_FALSE_ALARM`` quantile of ``e^T C^-1 e`` (3 F(3, dof); chi-square(3) for infinite dof)."""
+    if covariance is None:
+        return float(limit_mm), None
+    covariance = np.asarray(covariance, dtype=float)
+    expected = float(np.sqrt(np.trace(covariance)))
+    if not np.all(np.isfinite(covariance)):
+        return float("inf"), expected
+    from scipy.special import fdtri, gammaincinv
+
+    p = 1.0 - CHECKPOINT_FALSE_ALARM
+    q = 2.0 * float(gammaincinv(1.5, p)) if not np.isfinite(dof) or dof > 1e6 else 3.0 * float(fdtri(3, dof, p))
+    norm = float(np.linalg.norm(offset_mm))
+    u = np.asarray(offset_mm, dtype=float) / norm if norm > 0 else np.array([1.0, 0.0, 0.0])
+    along = float(u @ np.linalg.solve(covariance, u))
+    return max(float(limit_mm), float(np.sqrt(q / along)) if along > 0 else float("inf")), expected
 
 
 def markers_beside(registration_path: str | os.PathLike[str]) -> tuple[Any, str | None]:
@@ -100,17 +173,27 @@ class Checkpoint:
     ok: bool
     samples: int = 0
     offset_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: the error model's expected error there (mm, RMS) and the distance the error had to exceed (mm; see the
+    #: module docstring); None without an error model (the limit alone decided)
+    expected_mm: float | None = None
+    threshold_mm: float | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {"start_s": round(self.start_s, 4), "end_s": round(self.end_s, 4), "image_marker": self.image_marker,
-                "error_mm": round(self.error_mm, 4), "ok": bool(self.ok), "samples": int(self.samples),
-                "offset_mm": [round(float(v), 4) for v in self.offset_mm]}
+        document = {"start_s": round(self.start_s, 4), "end_s": round(self.end_s, 4),
+                    "image_marker": self.image_marker, "error_mm": round(self.error_mm, 4), "ok": bool(self.ok),
+                    "samples": int(self.samples), "offset_mm": [round(float(v), 4) for v in self.offset_mm]}
+        if self.threshold_mm is not None:
+            document.update(expected_mm=None if self.expected_mm is None else round(self.expected_mm, 4),
+                            threshold_mm=round(self.threshold_mm, 4) if np.isfinite(self.threshold_mm) else None)
+        return document
 
     def describe(self, limit_mm: float) -> str:
         verdict = "passed" if self.ok else "FAILED: poses are INVALID until a checkpoint passes"
+        limit = f"limit {limit_mm:g} mm, [navigation] max_checkpoint_error_mm"
+        if self.threshold_mm is not None and self.threshold_mm > limit_mm:
+            limit += f"; {self.threshold_mm:.2f} mm at this tracker's noise, expected {self.expected_mm:.2f} mm"
         return (f"checkpoint {self.image_marker} at {self.start_s:.2f}-{self.end_s:.2f} s: "
-                f"error {self.error_mm:.2f} mm "
-                f"(limit {limit_mm:g} mm, [navigation] max_checkpoint_error_mm) {verdict}")
+                f"error {self.error_mm:.2f} mm ({limit}) {verdict}")
 
 
 @dataclass
@@ -161,6 +244,10 @@ class CheckpointReport:
             "checkpoint_radius_mm": float(self.radius_mm),
             "poses": int(self.poses), "invalid_poses": int(self.invalid_poses),
         }
+        if any(c.threshold_mm is not None for c in self.checkpoints):
+            document["decision"] = ("fails when the error exceeds max_error_mm and the error model's prediction "
+                                    "(expected_mm) at false-alarm rate false_alarm: threshold_mm along the error")
+            document["false_alarm"] = CHECKPOINT_FALSE_ALARM
         if self.note:
             document["note"] = self.note
         if self.provenance is not None:
@@ -170,6 +257,12 @@ class CheckpointReport:
     def warnings(self) -> list[str]:
         """One line per failed checkpoint and per reference jump."""
         lines = [c.describe(self.max_error_mm) for c in self.failed]
+        noisy = [c for c in self.checkpoints if c.ok and c.error_mm > self.max_error_mm]
+        if noisy:
+            lines.append(f"{len(noisy)} checkpoint(s) passed with errors above the limit "
+                         f"{self.max_error_mm:g} mm that the tracker's measured noise explains (largest "
+                         f"{max(c.error_mm for c in noisy):.2f} mm, threshold {max(c.threshold_mm for c in noisy):.2f}"
+                         " mm): at this noise a checkpoint cannot verify the limit")
         lines += [j.describe() for j in self.reference_jumps]
         return lines
 
@@ -224,9 +317,12 @@ def find_checkpoints(time_s: np.ndarray, position_image: np.ndarray, direction_i
         along = _along_axis(direction_image, dwell.indices, pinholes.axis_image[k], settings.checkpoint_angle_deg)
         if error > settings.checkpoint_radius_mm or not along:
             continue
-        out.append(Checkpoint(dwell.start_s, dwell.end_s, pinholes.ids[k], error,
-                              error <= settings.max_checkpoint_error_mm, centre.count,
-                              tuple(float(v) for v in offset)))
+        covariance = None if pinholes.covariance_image is None else pinholes.covariance_image[k]
+        threshold, expected = checkpoint_threshold(offset, covariance, pinholes.dof,
+                                                   settings.max_checkpoint_error_mm)
+        out.append(Checkpoint(dwell.start_s, dwell.end_s, pinholes.ids[k], error, error <= threshold, centre.count,
+                              tuple(float(v) for v in offset), expected,
+                              None if covariance is None else threshold))
     return out
 
 

@@ -89,6 +89,16 @@ class ReferenceSlip:
 
 
 @dataclass
+class FieldOnset:
+    """A metal object rolled in once during a recording: its effect starts at the transition sample nearest to
+    ``at_fraction`` of the recording (and ramps up over the object's ``ramp_s``); :func:`simulate_session` sets
+    ``time_s`` (s, the recording's clock) and the distortion's ``onset_s``."""
+
+    at_fraction: float
+    time_s: float | None = None
+
+
+@dataclass
 class _Track:
     time_s: list = field(default_factory=list)
     probe_to_body: list = field(default_factory=list)
@@ -220,7 +230,7 @@ def simulate_session(rng: np.random.Generator, visits: list[Visit], body_to_trac
                      bump_before: dict[int, np.ndarray] | None = None, hesitation_rate: float = 0.0,
                      noise: NoiseModel | None = None, start_time_s: float = 0.0,
                      reference_slip: ReferenceSlip | None = None,
-                     distortion: FieldDistortion | None = None,
+                     distortion: FieldDistortion | None = None, distortion_onset: FieldOnset | None = None,
                      ) -> tuple[TrackingRecording, list[DwellTruth], list[np.ndarray]]:
     """A recording of the probe visiting ``visits`` in turn with the reference sensor recorded alongside.
 
@@ -228,7 +238,8 @@ def simulate_session(rng: np.random.Generator, visits: list[Visit], body_to_trac
     into visit ``i`` (the frame was bumped). ``reference_slip``: the reference sensor slips in
     its slot once, between two samples while the probe moves (its ``time_s`` is set to the first
     sample after the slip). ``distortion``: a metal object distorting the field (both sensors, at
-    its strength at each sample's time; :mod:`.distortion`). Returns the recording (reported
+    its strength at each sample's time; :mod:`.distortion`); ``distortion_onset``: when it is rolled in (a
+    transition sample, like the slip; its ``time_s`` is set). Returns the recording (reported
     poses), the dwell periods, and the ``BodyToTracker`` of each visit.
     """
     noise = noise or NoiseModel()
@@ -287,6 +298,11 @@ def simulate_session(rng: np.random.Generator, visits: list[Visit], body_to_trac
         moving = np.flatnonzero(np.asarray(track.dwell_index) < 0)
         slip_index = int(moving[np.argmin(np.abs(moving - reference_slip.at_fraction * len(track.time_s)))])
         reference_slip.time_s = float(track.time_s[slip_index])
+    if distortion is not None and distortion_onset is not None:
+        moving = np.flatnonzero(np.asarray(track.dwell_index) < 0)
+        onset_index = int(moving[np.argmin(np.abs(moving - distortion_onset.at_fraction * len(track.time_s)))])
+        distortion_onset.time_s = float(track.time_s[onset_index])
+        distortion = replace(distortion, onset_s=distortion_onset.time_s)
     recording = _report(rng, track, np.asarray(reference_to_body, dtype=float), noise, len(visits),
                         None if reference_slip is None else (slip_index, reference_slip.reference_after_to_before),
                         distortion)

@@ -16,8 +16,10 @@ import numpy as np
 from ..error_model import ErrorModel
 from ..evaluation import evaluate_board, evaluate_targets
 from ..io.case import open_case
+from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from ..rendering.plots import bar_chart, line_chart
 from ..simulation.distortion import nonrigid_errors, place_object
+from .checkpoints import CHECKPOINT_COLUMNS, checkpoint_rows, checkpoint_table
 from .frame import Frame, calibrate_and_register, noise_model, reference_placement, simulate_navigation, with_noise
 
 #: The paper's figures (Lin et al. 2020) printed beside ours.
@@ -177,7 +179,8 @@ def _tool_rows(frame: Frame, params: dict, rng: np.random.Generator) -> list[dic
     if params["route"] == "pivot":
         true_tip = np.asarray(POINTER_TIP_MM)
         pivot, _ = simulate_pivot_recording(int(rng.integers(1 << 31)), true_tip, 30.0, noise=noise)
-        tool = pivot_calibration(probe_in_reference(pivot, 1, 2, check_ports=False).probe_to_reference, "pivot")
+        in_reference = probe_in_reference(pivot, DEFAULT_REFERENCE_PORT, DEFAULT_PROBE_PORT, check_ports=False)
+        tool = pivot_calibration(in_reference.probe_to_reference, "pivot")
         tip_error = float(np.linalg.norm(tool.tip_mm - true_tip))
     session = calibrate_and_register(frame, rng, noise, tool=tool, true_tip_mm=true_tip)
     row = {**params, "refused": session.refused, "tip_error_mm": tip_error}
@@ -281,11 +284,28 @@ def _prediction_summary(rows: list[dict]) -> Summary:
 #: Sessions per distortion size (RMS non-rigid mm at the pinholes; 0: clean) of ``emreg study trust``.
 TRUST_SESSIONS = {0.0: 40, 0.5: 20, 1.0: 40, 1.5: 20}
 TRUST_QUICK = {0.0: 2, 1.0: 2}
+#: Navigations with checkpoints of ``emreg study trust``: (event, tracker noise, hard tracking) -> sessions.
+TRUST_CHECKPOINTS = {("clean", 1.0, False): 20, ("clean", 2.0, False): 20, ("clean", 4.0, False): 20,
+                     ("clean", 1.0, True): 20, ("slip", 1.0, False): 20, ("slip", 2.0, False): 20,
+                     ("slip", 1.0, True): 20, ("onset", 1.0, False): 20}
+TRUST_CHECKPOINTS_QUICK = {("clean", 1.0, False): 1, ("clean", 4.0, False): 1, ("slip", 1.0, False): 1,
+                           ("onset", 1.0, False): 1}
+
+
+def _trust_tasks(quick: bool) -> list[dict]:
+    tasks = [{"distortion_mm": size, "repetition": r}
+             for size, count in (TRUST_QUICK if quick else TRUST_SESSIONS).items() for r in range(count)]
+    return tasks + [{"checkpoints": event, "noise": noise, **({"hard": True} if hard else {}), "repetition": r}
+                    for (event, noise, hard), count in (TRUST_CHECKPOINTS_QUICK if quick else TRUST_CHECKPOINTS).items()
+                    for r in range(count)]
 
 
 def _trust_rows(frame: Frame, params: dict, rng: np.random.Generator) -> list[dict]:
     """One calibration + registration + navigation with a steel rod of ``distortion_mm`` (RMS non-rigid at the
-    pinholes) beside the frame (0: a clean session), navigated in the same field: detection, estimate, TRE."""
+    pinholes) beside the frame (0: a clean session), navigated in the same field: detection, estimate, TRE; or a
+    navigation with checkpoints (``params["checkpoints"]``: :func:`.checkpoints.checkpoint_rows`)."""
+    if "checkpoints" in params:
+        return checkpoint_rows(frame, params, rng)
     size = float(params["distortion_mm"])
     placement = reference_placement(rng)
     distortion = place_object(rng, frame.pinholes, placement, np.eye(4), size) if size > 0 else None
@@ -322,6 +342,8 @@ def _trust_rows(frame: Frame, params: dict, rng: np.random.Generator) -> list[di
 
 def _trust_summary(rows: list[dict]) -> Summary:
     table, sizes, rates = [], [], []
+    checkpoint_sessions = [r for r in rows if "checkpoints" in r]
+    rows = [r for r in rows if "checkpoints" not in r]
     for size, group in _by(rows, "distortion_mm").items():
         done = [r for r in group if not r["refused"]]
         detected = [r for r in done if r["detected"]]
@@ -336,16 +358,19 @@ def _trust_summary(rows: list[dict]) -> Summary:
                       _mean_std([r["truth_paired_rms_mm"] for r in done]) if size else "-",
                       f"{np.sqrt(measured):.3f}", f"{np.sqrt(predicted / measured):.2f}",
                       f"{np.sqrt(without / measured):.2f}",
-                      f"{np.percentile(ratios, 5):.2f}-{np.percentile(ratios, 95):.2f}" if len(ratios) else "-"])
+                      f"{np.percentile(ratios, 5):.2f}-{np.percentile(ratios, 95):.2f}" if len(ratios) else "-"]
+                     + ["-"] * len(CHECKPOINT_COLUMNS))
         sizes.append(f"{size:g}")
         rates.append(rate * 100)
     figure = bar_chart(sizes, rates, title="distortion detected at registration", y_label="sessions detected (%)",
                        reference_lines=[(95.0, "goal at 1 mm"), (1.0, "false alarms")])
-    refused = sum(1 for r in rows if r["refused"])
-    notes = [f"{refused} of {len(rows)} sessions refused"] if refused else []
-    return Summary(["distortion RMS (mm)", "sessions", "refused", "detected", "estimated RMS (mm, detected)",
-                    "true RMS at the paired pinholes (mm)", "measured RMS TRE (mm)", "predicted / measured",
-                    "without the distortion term", "per session 5-95 %"], table, figure, notes)
+    refused = sum(1 for r in rows + checkpoint_sessions if r["refused"])
+    notes = [f"{refused} of {len(rows) + len(checkpoint_sessions)} sessions refused"] if refused else []
+    header = ["distortion RMS (mm) / checkpoint sessions", "sessions", "refused", "detected",
+              "estimated RMS (mm, detected)", "true RMS at the paired pinholes (mm)", "measured RMS TRE (mm)",
+              "predicted / measured", "without the distortion term", "per session 5-95 %", *CHECKPOINT_COLUMNS]
+    more, lines = checkpoint_table(checkpoint_sessions, len(header))
+    return Summary(header, table + more, figure, notes + lines)
 
 
 def _grid(quick: bool, full: dict, small: dict, repetitions: int, quick_repetitions: int) -> list[dict]:
@@ -378,8 +403,7 @@ STUDIES: dict[str, Study] = {s.name: s for s in (
                               {"noise": [1.0, 4.0], "markers": [0]}, 8, 2)
           + ([] if quick else [{"reference_jitter": 5.0, "repetition": r} for r in range(8)]),
           _navigation_rows, _prediction_summary),
-    Study("trust", "field distortion: detection at registration, false alarms, predicted against measured TRE",
-          lambda quick: [{"distortion_mm": size, "repetition": r}
-                         for size, count in (TRUST_QUICK if quick else TRUST_SESSIONS).items() for r in range(count)],
-          _trust_rows, _trust_summary),
+    Study("trust", "field distortion: detection at registration, false alarms, predicted against measured TRE; "
+          "checkpoints during navigation: clean passes, alarm latency after a reference slip or a distortion onset, "
+          "reference-jump warnings", _trust_tasks, _trust_rows, _trust_summary),
 )}

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -26,10 +26,20 @@ from ..detection.result import DetectionResult, read_detection, write_detection
 from ..errors import EMRegError
 from ..io.case import open_case
 from ..marker_model import MarkerModel
+from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from ..registration import RegistrationResult, register
+from ..settings import Settings
 from ..simulation import load_truth, simulate_case
 from ..simulation.distortion import FieldDistortion
-from ..simulation.tracking import NoiseModel, Visit, probe_rotation_into, simulate_session
+from ..simulation.tracking import (
+    DwellTruth,
+    FieldOnset,
+    NoiseModel,
+    ReferenceSlip,
+    Visit,
+    probe_rotation_into,
+    simulate_session,
+)
 from ..tracking import TrackingRecording
 from ..transforms import (
     apply_rotation,
@@ -59,6 +69,9 @@ class Frame:
     in_ct: np.ndarray  # (N,) bool
     targets_image: np.ndarray  # (K, 3) LPS
     target_labels: list[str]
+    #: the case's ``case.toml`` settings: the sessions are calibrated, registered and checked with them (the
+    #: simulated sessions' sensors are on the default ports)
+    settings: Settings = field(default_factory=Settings)
 
     @property
     def targets_reference(self) -> np.ndarray:
@@ -74,13 +87,13 @@ def prepare_frame(work: Path, case_dir: Path | None = None, seed: int = 1, quick
             log(f"simulating the study's case into {case_dir}")
             simulate_case(case_dir, seed=seed, difficulty="standard", **(QUICK_FRAME if quick else {}))
     truth = load_truth(case_dir)
+    case = open_case(case_dir)
     key = hashlib.sha1(str(Path(case_dir).resolve()).encode()).hexdigest()[:8]
     markers_json = Path(work) / f"detection-{Path(case_dir).name}-{key}" / "markers.json"
     if markers_json.is_file():
         detection = read_detection(markers_json)
     else:
         log("detecting the markers in the study's CT (once)")
-        case = open_case(case_dir)
         controller = EMRegController.for_case(case)
         controller.load_ct(case.ct)
         detection = controller.detect_markers()
@@ -95,7 +108,7 @@ def prepare_frame(work: Path, case_dir: Path | None = None, seed: int = 1, quick
         axes=apply_rotation(invert_rigid(reference_to_image), np.array([m["axis"] for m in calibrated], dtype=float)),
         in_ct=np.array([bool(m.get("in_ct", True)) for m in calibrated]),
         targets_image=np.array([t["position"] for t in truth["targets"]], dtype=float).reshape(-1, 3),
-        target_labels=[t["label"] for t in truth["targets"]],
+        target_labels=[t["label"] for t in truth["targets"]], settings=case.settings,
     )
 
 
@@ -168,6 +181,39 @@ def simulate_navigation(frame: Frame, rng: np.random.Generator, rounds: int = 15
     return recording
 
 
+def simulate_checked_navigation(frame: Frame, rng: np.random.Generator, rounds: int, checkpoints: int,
+                                noise: NoiseModel | None = None, reference_to_tracker: np.ndarray | None = None,
+                                slip: ReferenceSlip | None = None, distortion: FieldDistortion | None = None,
+                                onset: FieldOnset | None = None,
+                                hesitation_rate: float = 0.0) -> tuple[TrackingRecording, list[DwellTruth]]:
+    """A navigation recording with ``checkpoints`` unlabelled rests of the probe in pinholes (markers in the CT,
+    evenly among ``rounds`` rounds of the targets), and the dwells' truth. ``slip``: the reference sensor slips
+    in its slot; ``distortion`` with ``onset``: a metal object rolled in mid-recording (both have their times
+    set); ``reference_to_tracker``: as for :func:`simulate_calibration`; ``hesitation_rate``: the chance of a
+    short mid-air pause in a transition (the hard difficulty's)."""
+    targets = frame.targets_reference
+    centre = targets.mean(axis=0)
+    visits = []
+    for _ in range(rounds):
+        for label, target in zip(frame.target_labels, targets, strict=True):
+            inward = centre - target if np.linalg.norm(centre - target) > 1 else np.array([0.0, 0.0, 1.0])
+            rotation = probe_rotation_into(inward, rng.uniform(0, 2 * np.pi), 25.0, rng)
+            visits.append(Visit(_touch(rotation, target, None), float(rng.uniform(1.0, 2.0)), label, label,
+                                tremor_mm=0.08))
+    available = np.nonzero(frame.in_ct)[0]
+    chosen = rng.choice(available, size=checkpoints, replace=len(available) < checkpoints)
+    where = np.linspace(0, len(visits), checkpoints + 2)[1:-1].round().astype(int)
+    for k, (i, at) in enumerate(zip(chosen, where, strict=True)):
+        rotation = probe_rotation_into(-frame.axes[i], rng.uniform(0, 2 * np.pi))
+        visits.insert(int(at) + k, Visit(_touch(rotation, frame.pinholes[i], None), float(rng.uniform(1.0, 2.0)),
+                                         "", frame.labels[i]))
+    placement = reference_placement(rng) if reference_to_tracker is None else reference_to_tracker
+    recording, dwells, _ = simulate_session(rng, visits, placement, np.eye(4), centre, lift_mm=20.0, noise=noise,
+                                            hesitation_rate=hesitation_rate, reference_slip=slip,
+                                            distortion=distortion, distortion_onset=onset)
+    return recording, dwells
+
+
 @dataclass
 class Session:
     """One calibration + registration: the result or the refusal, and its errors against the truth."""
@@ -190,8 +236,10 @@ def calibrate_and_register(frame: Frame, rng: np.random.Generator, noise: NoiseM
     recording = simulate_calibration(frame, rng, noise, subset, tip_mm=true_tip_mm,
                                      reference_to_tracker=reference_to_tracker, distortion=distortion)
     try:
-        calibration = calibrate_frame(recording, 1, 2, None, tool=tool)
-        registration = register(frame.detection, calibration, frame.model, None, targets_image=frame.targets_image)
+        calibration = calibrate_frame(recording, DEFAULT_REFERENCE_PORT, DEFAULT_PROBE_PORT,
+                                      frame.settings.calibration, tool=tool)
+        registration = register(frame.detection, calibration, frame.model, frame.settings.registration,
+                                targets_image=frame.targets_image)
     except EMRegError as exc:
         return Session(None, None, str(exc), None, None)
     errors = np.linalg.norm(apply_transform(registration.reference_to_image, frame.targets_reference)

@@ -264,3 +264,55 @@ def test_navigation_settings_are_checked_when_read():
     for table in ({"max_checkpoint_error_mm": 6.0}, {"max_checkpoint_eror_mm": 1.0}, {"reference_jump_mm": "1"}):
         with pytest.raises(EMRegError, match=r"\[navigation\]"):
             Settings.from_mapping({"navigation": table})
+
+
+# --- the noise-aware decision ------------------------------------------------------------------------------------
+
+
+def _checked(case: Path, out: Path, with_model: bool):
+    """The checkpoints of ``case/navigation.csv`` navigated with the registration in ``out`` (``emreg run``'s),
+    judged with its error model (``with_model``) or by the fixed limit alone."""
+    from EMRegModule.checkpoints import check_navigation
+
+    registration = read_registration(out / "registration.json")
+    markers, note = markers_beside(out / "registration.json")
+    assert note is None
+    pinholes = pinholes_from_detection(markers, registration.sensor_offset_l_mm,
+                                       registration if with_model else None)
+    recording = read_recording(case / "navigation.csv", Settings(), 1, 2)
+    navigation = navigate_recording(recording, registration.reference_to_image)
+    return check_navigation(navigation, recording, pinholes, 1, NavigationSettings())
+
+
+def test_a_noisy_clean_session_passes_its_checkpoints_where_the_fixed_limit_fails_them(tmp_path: Path):
+    """A tracker three times as noisy, calibrated and navigated (``emreg run``) with rests in pinholes: the error
+    model's thresholds grow with the measured noise and every clean checkpoint passes; the fixed 1.5 mm limit alone
+    fails some of the same checkpoints."""
+    from EMRegModule.simulation import simulate_case
+
+    case = tmp_path / "case"
+    simulate_case(case, seed=6, spacing_mm=1.0, tracker_noise_scale=3.0, navigation_checkpoints=6,
+                  **SMALL_CASE_OPTIONS)
+    assert main(["run", str(case), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    aware = _checked(case, tmp_path / "out", True)
+    fixed = _checked(case, tmp_path / "out", False)
+    assert len(aware.checkpoints) == len(fixed.checkpoints) >= 5
+    assert all(c.ok for c in aware.checkpoints), [c.to_json() for c in aware.checkpoints]
+    assert not all(c.ok for c in fixed.checkpoints)
+    assert all(c.threshold_mm > NavigationSettings().max_checkpoint_error_mm for c in aware.checkpoints)
+    document = aware.to_json()
+    assert {"start_s", "end_s", "image_marker", "error_mm", "ok", "expected_mm", "threshold_mm"} <= \
+        set(document["checkpoints"][0]) and document["max_error_mm"] == 1.5 and document["false_alarm"] == 1e-4
+    assert any("cannot verify the limit" in line for line in aware.warnings())
+
+
+def test_the_noise_aware_decision_flags_a_2mm_slip_at_the_first_checkpoint_after_it(sessions):
+    """At the tracker's usual noise the model's threshold stays near the user's limit (8 markers: the probe's
+    error known from 17 degrees of freedom): the slip fails the first checkpoint after it, the clean ones pass."""
+    slip = sessions["slip"]["truth"]["reference_slip"]
+    report = _checked(sessions["slip"]["case"], sessions["registration"].parent, True)
+    after = [c for c in report.checkpoints if c.start_s > slip["time_s"]]
+    assert all(c.ok for c in report.checkpoints if c.end_s < slip["time_s"])
+    assert after and not after[0].ok
+    assert all(1.5 <= c.threshold_mm < 2.0 and 0.2 < c.expected_mm < 1.0 for c in report.checkpoints), \
+        [c.to_json() for c in report.checkpoints]

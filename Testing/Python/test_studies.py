@@ -64,3 +64,22 @@ def test_tool_study_compares_the_pinhole_probe_with_a_pivot_calibrated_pointer(s
     # the pointer's tip error reaches the targets: its end-to-end TRE is the larger (the paper: about 2 mm more)
     mean = {route: np.mean([r["tre_rms_mm"] for r in rows if r["route"] == route]) for route in ("pinhole", "pivot")}
     assert mean["pivot"] > mean["pinhole"]
+
+
+def test_trust_study_measures_checkpoints_latency_and_reference_jumps(standard_case, study_work, tmp_path):
+    """The quick trust study's navigations with checkpoints: clean ones pass (at noise x1 and x4, where the fixed
+    limit alone fails some), a 2 mm / 0.5 deg slip is flagged at the first checkpoint after it and warned as a
+    reference jump, and the alarm latency is measured."""
+    result = _study("trust", tmp_path, standard_case, study_work, "--workers", "1")
+    header, table = result["summary"]["header"], result["summary"]["rows"]
+    rows = {row[0]: dict(zip(header, row, strict=True)) for row in table}
+    assert {"0", "1"} <= set(rows)  # the distortion rows stay
+    for noise in ("1", "4"):
+        clean = rows[f"checkpoints: clean, noise x{noise}"]
+        assert clean["clean checkpoints passed"].startswith("100.0 %"), clean
+    slip = rows["checkpoints: slip 2 mm/0.5 deg, noise x1"]
+    assert slip["flagged at the first checkpoint after"] == "100.0 % (1/1)"
+    assert slip["reference jump warned"] == "100.0 % (1/1)"
+    latency = next(r["latency_s"] for r in result["rows"] if r.get("checkpoints") == "slip")
+    assert 0 < latency < 30
+    assert rows["checkpoints: onset 1 mm, noise x1"]["sessions with a false jump warning"] == "0.0 % (0/1)"
