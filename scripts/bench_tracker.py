@@ -44,13 +44,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from EMRegModule.live import ndi_protocol as ndi  # noqa: E402
-from EMRegModule.live import trakstar_protocol as tp  # noqa: E402
+from EMRegModule.live.aurora import protocol as ndi  # noqa: E402
 from EMRegModule.live.device_url import parse_device_url  # noqa: E402
 from EMRegModule.live.igtl_server import IGTLServer  # noqa: E402
 from EMRegModule.live.navigator import LiveNavigator  # noqa: E402
-from EMRegModule.live.sources import TrakstarSource, open_source  # noqa: E402
-from EMRegModule.live.tracker_simulator import BuiltinScene  # noqa: E402
+from EMRegModule.live.simulator.scene import BuiltinScene  # noqa: E402
+from EMRegModule.live.sources import open_source  # noqa: E402
+from EMRegModule.live.trakstar import protocol as tp  # noqa: E402
+from EMRegModule.live.trakstar.source import TrakstarSource  # noqa: E402
 
 DRAIN = """
 import socket, sys

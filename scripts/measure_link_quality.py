@@ -22,8 +22,9 @@ import numpy as np
 
 from EMRegModule.live.device_url import parse_device_url
 from EMRegModule.live.link_quality import LinkGuard, LinkQualityMonitor
-from EMRegModule.live.sources import TrakstarSource
-from EMRegModule.live.tracker_simulator import FaultPlan, TrackerSimulator
+from EMRegModule.live.simulator.faults import FaultPlan
+from EMRegModule.live.simulator.trakstar import TrackerSimulator
+from EMRegModule.live.trakstar.source import TrakstarSource
 
 WRONG_MM = 1.0
 
@@ -35,7 +36,7 @@ def measure(level: float, seconds: float, seed: int, kind: str, replay: str | No
     scene = None
     if replay:
         from EMRegModule.io.tracking_csv import read_tracking_csv
-        from EMRegModule.live.tracker_simulator import ReplayScene
+        from EMRegModule.live.simulator.scene import ReplayScene
 
         scene = ReplayScene(read_tracking_csv(replay))
     with TrackerSimulator(scene, faults=faults, seed=seed, keep_truth=True, attached=(1, 2)) as sim:

@@ -15,13 +15,14 @@ raw sensors (``ReferenceToTracker``, ``ProbeToTracker``, tracker frame, unchange
 navigator (``--source igtl://HOST:18944``) or PLUS-style clients; ``emreg record --device URL --out
 rec.csv`` records the spec's tracking CSV.
 
-Modules: :mod:`.trakstar_protocol` (bytes and words, with their sources), :mod:`.trakstar_driver`
-(pyserial client), :mod:`.tracker_simulator` (a trakSTAR on a pseudo-terminal), :mod:`.ndi_protocol`
-(NDI's serial API: CRC16, BX/TX/PHSR/PHINF formats, with their sources), :mod:`.aurora_driver` (the
-Aurora on ndicapi), :mod:`.aurora_simulator` (an Aurora on a pseudo-terminal), :mod:`.device_url`
-(``trakstar://``, ``aurora://``, ``igtl://``, ``replay:``), :mod:`.sources` (sample sources behind those URLs),
-:mod:`.igtl_status` (OpenIGTLink STATUS on pyigtl's message base class), :mod:`.igtl_server` /
-:mod:`.igtl_client` (TCP), :mod:`.navigator` (live loop and watchdog), :mod:`.writers` (CSV files
-flushed every second), :mod:`.commands` (the ``emreg record / sim-tracker / serve`` commands and
-live ``emreg navigate``).
+Per device, the same three layers: :mod:`.trakstar` and :mod:`.aurora` each hold ``protocol`` (the bytes, with
+their sources), ``driver`` (the serial client: pyserial / ndicapi) and ``source`` (the live sample source behind
+``trakstar://`` / ``aurora://``). Shared by both: :mod:`.samples` (what a source delivers), :mod:`.source_base`
+(what a source is), :mod:`.sources` (replay and OpenIGTLink sources, and ``open_source`` for a URL),
+:mod:`.device_url` (``trakstar://``, ``aurora://``, ``igtl://``, ``replay:``), :mod:`.link_quality`,
+:mod:`.port_check`, :mod:`.igtl_status` (OpenIGTLink STATUS on pyigtl's message base class), :mod:`.igtl_server` /
+:mod:`.igtl_client` (TCP), :mod:`.navigator` (live loop and watchdog), :mod:`.writers` (CSV files flushed every
+second). :mod:`.simulator` is both devices on a pseudo-terminal: one pty, one scene, one ``--fault`` grammar, a
+protocol emulation per device. :mod:`.commands`: the ``emreg record / sim-tracker / serve`` commands and live
+``emreg navigate``.
 """

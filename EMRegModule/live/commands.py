@@ -23,10 +23,10 @@ import numpy as np
 
 from ..errors import EMRegError
 from ..transforms import is_rigid
-from . import trakstar_protocol as tp
 from .igtl_server import DEFAULT_PORT
 from .link_quality import HoldBack, guard_for
 from .port_check import SensorPortsError
+from .trakstar import protocol as tp
 
 if TYPE_CHECKING:
     from ..registration import RegistrationResult
@@ -247,8 +247,10 @@ def run_sim_tracker(args: argparse.Namespace) -> int:
     check_live_options(args)
     if args.model == "aurora":
         return _run_aurora_simulator(args)
-    from .tracker_simulator import BuiltinScene, FaultPlan, ReplayScene, TrackerSimulator
-    from .trakstar_driver import sensors_from_list
+    from .simulator.faults import FaultPlan
+    from .simulator.scene import BuiltinScene, ReplayScene
+    from .simulator.trakstar import TrackerSimulator
+    from .trakstar.driver import sensors_from_list
 
     scene = BuiltinScene(args.seed)
     if args.replay:
@@ -306,9 +308,10 @@ def _write_emit_log(path: str, header: str, lines: Iterable[str]) -> None:
 
 
 def _run_aurora_simulator(args: argparse.Namespace) -> int:
-    from . import ndi_protocol as ndi
-    from .aurora_simulator import AuroraFaults, AuroraSimulator, parse_tools
-    from .tracker_simulator import BuiltinScene, ReplayScene
+    from .aurora import protocol as ndi
+    from .simulator.aurora import AuroraSimulator, parse_tools
+    from .simulator.faults import AuroraFaults
+    from .simulator.scene import BuiltinScene, ReplayScene
 
     scene = BuiltinScene(args.seed)
     if args.replay:

@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 from urllib.parse import parse_qs, urlsplit
 
 from ..errors import EMRegError
-from . import ndi_protocol as ndi
-from . import trakstar_protocol as tp
+from .aurora import protocol as ndi
+from .trakstar import protocol as tp
 
 SCHEMES = ("trakstar", "aurora", "igtl", "replay")
 

@@ -1,14 +1,13 @@
-"""Live sample sources behind the device URLs: the trakSTAR driver, the Aurora driver
-(:mod:`.aurora_driver`), a replayed recording, an OpenIGTLink server. Each calls ``callback(sample)``
-from its own thread for every sensor sample.
+"""The sample sources behind the device URLs (:mod:`.device_url`), and :func:`open_source`, which picks one: the
+trakSTAR (:mod:`.trakstar.source`), the Aurora (:mod:`.aurora.source`), a replayed recording
+(:class:`ReplaySource`), an OpenIGTLink server (:class:`IGTLSource`). Each calls ``callback(sample)`` from its own
+thread for every sensor sample (``SensorToTracker``, mm).
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from abc import ABC, abstractmethod
-from collections.abc import Callable
 
 import numpy as np
 
@@ -17,108 +16,7 @@ from ..io.recording import read_recording
 from ..tracking import SAME_MOMENT_LIMIT_S, sensor_pair
 from .device_url import DeviceURL, parse_device_url
 from .samples import STATUS_OK, SensorSample
-
-SampleCallback = Callable[[SensorSample], None]
-
-
-class SampleSource(ABC):
-    """A running source of :class:`SensorSample` (``SensorToTracker``, mm)."""
-
-    #: Nominal time between samples of one sensor (None: unknown, the watchdog estimates it).
-    period_s: float | None = None
-    description: str = ""
-
-    def __init__(self) -> None:
-        self.finished = threading.Event()
-        self.error: str | None = None
-
-    @abstractmethod
-    def start(self, callback: SampleCallback) -> None:
-        """Start delivering samples to ``callback`` (from a background thread)."""
-
-    @abstractmethod
-    def stop(self) -> None:
-        """Stop delivering and release the device (idempotent)."""
-
-    def __enter__(self) -> SampleSource:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
-
-class DriverSource(SampleSource):
-    """A source over a tracker driver that reads on its own thread and reports a failure in ``driver.error``.
-
-    Subclasses set ``self.driver`` and implement :meth:`_start_driver`; a watch thread turns the driver's
-    error into ``self.error`` and ``finished``.
-    """
-
-    watch_name = "tracker-watch"
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.driver = None
-        self._watch: threading.Thread | None = None
-
-    @abstractmethod
-    def _start_driver(self, callback: SampleCallback) -> None:
-        """Start the driver delivering samples to ``callback``."""
-
-    def start(self, callback: SampleCallback) -> None:
-        self._start_driver(callback)
-        self._watch = threading.Thread(target=self._watch_errors, name=self.watch_name, daemon=True)
-        self._watch.start()
-
-    def _watch_errors(self) -> None:
-        while not self.finished.is_set():
-            if self.driver.error:
-                self.error = self.driver.error
-                self.finished.set()
-                return
-            time.sleep(0.05)
-
-    def stop(self) -> None:
-        self.finished.set()
-        self.driver.close()
-        if self._watch is not None:
-            self._watch.join(timeout=1.0)
-
-
-class TrakstarSource(DriverSource):
-    """A trakSTAR (or the simulator) streaming every sensor in group mode."""
-
-    watch_name = "trakstar-watch"
-
-    def __init__(self, url: DeviceURL) -> None:
-        super().__init__()
-        from .trakstar_driver import TrakstarDriver
-
-        options = url.options
-        self.driver = TrakstarDriver(url.path, url.baud, max_gap_ms=float(options.get("gap_ms", 50)))
-        self.driver.open()
-        try:
-            self.driver.configure(
-                options.get("format", "POSITION/ANGLES"), metal=options.get("metal", "1") not in ("0", "false", "no"),
-                group=True, rate_hz=float(options["rate"]) if "rate" in options else None,
-                scale_inches=int(options["scale"]) if "scale" in options else None)
-        except BaseException:
-            self.driver.close()
-            raise
-        self.period_s = 1.0 / self.driver.rate_hz
-        self.description = f"trakSTAR on {url.path} at {url.baud} baud, {self.driver.rate_hz:g} Hz"
-
-    def attached_ports(self) -> tuple[int, ...]:
-        """Ports with a sensor plugged in (the tracker's sensor serial number is non-zero)."""
-        return tuple(s for s in self.driver.group_sensors if self.driver.sensor_attached(s))
-
-    def link_counts(self) -> tuple[int, int]:
-        """Cumulative (accepted, rejected) records of the serial link (for the link-quality monitor)."""
-        stats = self.driver.stats
-        return stats.records, stats.rejected
-
-    def _start_driver(self, callback: SampleCallback) -> None:
-        self.driver.start_stream(callback)
+from .source_base import SampleCallback, SampleSource
 
 
 class ReplaySource(SampleSource):
@@ -258,9 +156,11 @@ def open_source(url: str | DeviceURL, reference_sensor: int = 1, probe_sensor: i
     """The source behind a device URL (the trakSTAR is opened and configured here)."""
     parsed = parse_device_url(url) if isinstance(url, str) else url
     if parsed.kind == "trakstar":
+        from .trakstar.source import TrakstarSource
+
         return TrakstarSource(parsed)
     if parsed.kind == "aurora":
-        from .aurora_driver import AuroraSource
+        from .aurora.source import AuroraSource
 
         return AuroraSource(parsed)
     if parsed.kind == "replay":

@@ -22,15 +22,15 @@ import pyigtl
 import pytest
 
 from EMRegModule.errors import EMRegError
+from EMRegModule.frames import LPS_TO_RAS
 from EMRegModule.io.tracking_csv import read_tracking_csv, write_tracking_csv
-from EMRegModule.live import ndi_protocol as ndi
-from EMRegModule.live.aurora_driver import AuroraDriver
-from EMRegModule.live.aurora_simulator import AuroraSimulator, parse_tools
+from EMRegModule.live.aurora import protocol as ndi
+from EMRegModule.live.aurora.driver import AuroraDriver
 from EMRegModule.live.device_url import parse_device_url
 from EMRegModule.live.samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE
+from EMRegModule.live.simulator.aurora import AuroraSimulator, parse_tools
 from EMRegModule.tracking import TrackingRecording
 from EMRegModule.transforms import (
-    LPS_TO_RAS,
     invert_rigid,
     make_transform,
     quaternion_to_rotation,
@@ -425,7 +425,7 @@ def test_driver_survives_a_dropped_byte_without_a_wrong_pose(tmp_path):
 
 
 def test_driver_on_a_noisy_line_starts_and_never_makes_a_wrong_pose(tmp_path):
-    from EMRegModule.live.aurora_simulator import AuroraFaults
+    from EMRegModule.live.simulator.faults import AuroraFaults
 
     # 0.2 % of the bytes with a flipped bit: about one reply in six is damaged, start-up replies included
     with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof"), link=tmp_path / "aurora", seed=11,
@@ -550,7 +550,7 @@ def test_cli_record_and_live_navigate_from_the_aurora(tmp_path, replay):
 def test_quality_limit_defaults_to_the_sources_scale():
     import argparse
 
-    from EMRegModule.live.aurora_driver import AuroraSource
+    from EMRegModule.live.aurora.source import AuroraSource
     from EMRegModule.live.commands import _max_quality
 
     aurora = argparse.Namespace(max_quality=None, source_max_quality=AuroraSource.default_max_quality)

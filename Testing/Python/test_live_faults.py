@@ -426,3 +426,15 @@ def test_live_navigate_starts_publishing_once_the_probe_moves(tmp_path):
     # none of them while the probe was still: its resting position is never among the published poses
     rest = truth[0]
     assert np.linalg.norm(published - rest, axis=1).min() > 1.0
+
+
+@pytest.mark.parametrize("model", ["trakstar", "aurora"])
+def test_the_fault_names_both_simulators_share_are_accepted_by_both(capsys, model):
+    """One --fault grammar: the names both devices have mean the same and are spelt the same (``_`` for ``-``,
+    any case, a window without END); the simulator runs and ends by itself."""
+    from EMRegModule.cli import main
+
+    faults = ["drop=0.001", "FLIP=0.001", "stall=5:0.1", "unplug=3@0-0.1", "out_of_range=2@0.05", "distort=1@0-1"]
+    assert main(["sim-tracker", "--model", model, *(a for f in faults for a in ("--fault", f)), "--duration",
+                 "0.2", "--quiet"]) == 0
+    assert "simulator on /dev/" in capsys.readouterr().out

@@ -26,8 +26,9 @@ from EMRegModule.live.igtl_server import IGTLServer
 from EMRegModule.live.igtl_status import StatusMessage
 from EMRegModule.live.navigator import LiveNavigator, TrackerPublisher, Watchdog
 from EMRegModule.live.samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE, SensorSample
-from EMRegModule.live.sources import IGTLSource, TrakstarSource
-from EMRegModule.live.tracker_simulator import TrackerSimulator
+from EMRegModule.live.simulator.trakstar import TrackerSimulator
+from EMRegModule.live.sources import IGTLSource
+from EMRegModule.live.trakstar.source import TrakstarSource
 from EMRegModule.navigation import navigate_recording
 from EMRegModule.tracking import TrackingRecording
 from EMRegModule.transforms import invert_rigid, make_transform, random_rotation

@@ -34,12 +34,13 @@ import numpy as np
 from polling import wait_for
 
 from EMRegModule.io.tracking_csv import read_tracking_csv
-from EMRegModule.live import ndi_protocol as ndi
-from EMRegModule.live import trakstar_protocol as tp
-from EMRegModule.live.aurora_driver import AuroraDriver
-from EMRegModule.live.aurora_simulator import AuroraSimulator, parse_tools
+from EMRegModule.live.aurora import protocol as ndi
+from EMRegModule.live.aurora.driver import AuroraDriver
 from EMRegModule.live.samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE
-from EMRegModule.live.tracker_simulator import Pose, TrackerSimulator
+from EMRegModule.live.simulator.aurora import AuroraSimulator, parse_tools
+from EMRegModule.live.simulator.trakstar import TrackerSimulator
+from EMRegModule.live.trakstar import protocol as tp
+from EMRegModule.live.trakstar.protocol import Pose
 
 EMREG = [sys.executable, "-m", "EMRegModule"]
 ENV = dict(os.environ, PYTHONUNBUFFERED="1")

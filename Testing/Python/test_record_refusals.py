@@ -19,7 +19,9 @@ from EMRegModule.io.recording import read_recording
 from EMRegModule.io.tracking_csv import HEADER_ANGLES, read_tracking_csv
 from EMRegModule.live.link_quality import JumpFilter, LinkGuard, LinkQualityMonitor
 from EMRegModule.live.samples import SensorSample
-from EMRegModule.live.tracker_simulator import FaultPlan, ReplayScene, TrackerSimulator
+from EMRegModule.live.simulator.faults import FaultPlan
+from EMRegModule.live.simulator.scene import ReplayScene
+from EMRegModule.live.simulator.trakstar import TrackerSimulator
 
 RATE_HZ = 80.0
 PROBE_START_MM = np.array([250.0, 60.0, 100.0])

@@ -213,7 +213,7 @@ def test_transform_names_from_case_toml(recording, tmp_path):
 
 
 def test_record_from_a_tracker_writes_a_sequence_metafile(tmp_path):
-    from EMRegModule.live.tracker_simulator import TrackerSimulator
+    from EMRegModule.live.simulator.trakstar import TrackerSimulator
 
     out = tmp_path / "rec.seq.mha"
     with TrackerSimulator(keep_truth=True, seed=3) as sim:

@@ -19,13 +19,14 @@ from polling import wait_for
 
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.sequence_metafile import read_sequence_metafile
-from EMRegModule.live import ndi_protocol as ndi
-from EMRegModule.live.aurora_driver import AuroraDriver
-from EMRegModule.live.aurora_simulator import CLEAN_ERROR, AuroraSimulator, parse_tools
+from EMRegModule.live.aurora import protocol as ndi
+from EMRegModule.live.aurora.driver import AuroraDriver
 from EMRegModule.live.navigator import Watchdog
 from EMRegModule.live.samples import FLAG_OUT_OF_VOLUME, FLAG_PARTLY_OUT_OF_VOLUME, STATUS_OUT_OF_RANGE
-from EMRegModule.live.tracker_simulator import BuiltinScene, TrackerSimulator
-from EMRegModule.live.trakstar_driver import TrakstarDriver
+from EMRegModule.live.simulator.aurora import CLEAN_ERROR, AuroraSimulator, parse_tools
+from EMRegModule.live.simulator.scene import BuiltinScene
+from EMRegModule.live.simulator.trakstar import TrackerSimulator
+from EMRegModule.live.trakstar.driver import TrakstarDriver
 from EMRegModule.live.writers import SequenceRecordingWriter
 from EMRegModule.simulation.tracker_flags import (
     METAL_PER_MM,

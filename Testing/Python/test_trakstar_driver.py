@@ -13,10 +13,12 @@ import pytest
 from polling import wait_for
 
 from EMRegModule.errors import EMRegError
-from EMRegModule.live import trakstar_protocol as tp
 from EMRegModule.live.samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE
-from EMRegModule.live.tracker_simulator import DISTORTED_METAL, EmittedRecord, FaultPlan, ReplayScene, TrackerSimulator
-from EMRegModule.live.trakstar_driver import TrakstarDriver
+from EMRegModule.live.simulator.faults import FaultPlan
+from EMRegModule.live.simulator.scene import ReplayScene
+from EMRegModule.live.simulator.trakstar import DISTORTED_METAL, EmittedRecord, TrackerSimulator
+from EMRegModule.live.trakstar import protocol as tp
+from EMRegModule.live.trakstar.driver import TrakstarDriver
 from EMRegModule.tracking import TrackingRecording
 from EMRegModule.transforms import make_transform, random_rotation, rotation_to_angles
 

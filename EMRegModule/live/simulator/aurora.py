@@ -1,6 +1,6 @@
 """An NDI Aurora on a pseudo-terminal: it answers NDI's serial command API byte for byte.
 
-Like :mod:`.tracker_simulator` (the trakSTAR), it serves the master side of a pty and a client opens
+Like :mod:`.trakstar`, it serves the master side of a pty (:mod:`.pty`) and a client opens
 the slave path (``/dev/pts/N`` or the ``--link`` symlink) exactly as it would open ``/dev/ttyUSB0``.
 How ndicapi opens ports: ``ndiSerialOpen`` / ``ndiSerialProbe`` / ``ndiOpenSerial`` take any path
 (``open(2)`` with O_NOCTTY, an advisory ``F_SETLK`` lock, termios), so a pty path or a symlink to it
@@ -9,7 +9,7 @@ works as given; only ndicapi's own enumeration (``ndiSerialDeviceName(i)``: on L
 auto-probe (pyserial's ``list_ports.comports()``, which lists no ptys) cannot find it - so clients are
 given the path: ``aurora://PATH`` for EMReg, ``{"serial port": PATH}`` for scikit-surgerynditracker,
 ``ndiProbe(PATH)`` / ``ndiOpen(PATH)`` for ndicapi. What it emulates (formats and constants in
-:mod:`.ndi_protocol`, with their sources):
+:mod:`..aurora.protocol`, with their sources):
 
 - commands ``INIT``, ``COMM`` (baud change after the OKAY, as ndicapi expects), ``VER`` (3 is
   ``ERROR23`` as on a real Aurora; 0, 1, 2, 4, 5 give the same text: choice), ``GETINFO``
@@ -52,21 +52,22 @@ simulator encoded for a frame number).
 from __future__ import annotations
 
 import contextlib
-import errno
 import fcntl
 import os
-import select
 import struct
 import termios
 import time
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import EMRegError
-from ..transforms import rotation_to_quaternion
-from . import ndi_protocol as ndi
-from .tracker_simulator import BuiltinScene, PtyDevice, ReplayScene, fault_probability, fault_stall, fault_window
+from ...errors import EMRegError
+from ...transforms import rotation_to_quaternion
+from ..aurora import protocol as ndi
+from .faults import AuroraFaults
+from .pty import PtyDevice
+from .scene import BuiltinScene, ReplayScene, Scene, pose_at
 
 #: Measuring rate of the simulated Aurora (choice: 40 Hz, the Aurora's nominal update rate).
 DEFAULT_RATE_HZ = 40.0
@@ -94,7 +95,7 @@ class AuroraTool:
 
     @property
     def sensor(self) -> int:
-        """EMReg's sensor number for this tool: the port, +4 for channel 1 (see ``aurora_driver``)."""
+        """EMReg's sensor number for this tool: the port, +4 for channel 1 (see :mod:`..aurora.driver`)."""
         return self.port + 4 * self.channel
 
 
@@ -132,46 +133,6 @@ def parse_tools(text: str) -> list[AuroraTool]:
     return tools
 
 
-#: Highest sensor number a fault window may name: port 1..4, +4 for channel 1 of a splitter.
-MAX_SENSOR = 2 * len(ndi.AURORA_PORTS)
-
-
-@dataclass
-class AuroraFaults:
-    """Faults to inject (probabilities per byte or per reply; windows in seconds after start)."""
-
-    drop: float = 0.0
-    flip: float = 0.0
-    crc: float = 0.0
-    stall_every_s: float = 0.0
-    stall_s: float = 0.0
-    windows: dict[str, list[tuple[int, float, float]]] = field(default_factory=dict)
-
-    KINDS = ("missing", "out-of-range", "partly-out", "unplug", "distort")
-
-    @classmethod
-    def parse(cls, items: list[str]) -> AuroraFaults:
-        plan = cls()
-        for item in items:
-            kind, _, value = item.partition("=")
-            kind = kind.strip().lower().replace("_", "-")
-            try:
-                if kind in ("drop", "flip", "crc"):
-                    setattr(plan, kind, fault_probability(value))
-                elif kind == "stall":
-                    plan.stall_every_s, plan.stall_s = fault_stall(value)
-                elif kind in cls.KINDS:
-                    plan.windows.setdefault(kind, []).append(fault_window(value, MAX_SENSOR))
-                else:
-                    raise ValueError(kind)
-            except ValueError:
-                raise EMRegError(f"--fault {item!r}: for the Aurora use drop=P, flip=P, crc=P, stall=EVERY_S:S, "
-                                 "missing=SENSOR@START-END, out-of-range=..., partly-out=..., unplug=..., "
-                                 f"distort=... (P a probability 0..1, seconds positive, SENSOR 1..{MAX_SENSOR}, "
-                                 "0 <= START < END)") from None
-        return plan
-
-
 @dataclass
 class EmittedFrame:
     """One BX/TX reply sent: its frame number, when its last byte left, and whether it was damaged."""
@@ -187,7 +148,7 @@ class _Pending:
     due_ns: int
     data: bytes
     frame: EmittedFrame | None = None
-    after: object = None  # callable run once written (the COMM baud switch)
+    after: Callable[[], None] | None = None  # run once written (the COMM baud switch)
 
 
 class AuroraSimulator(PtyDevice):
@@ -202,7 +163,7 @@ class AuroraSimulator(PtyDevice):
     #: near its faces partly out (0x80).
     volume = None
 
-    def __init__(self, scene: BuiltinScene | ReplayScene | None = None, tools: list[AuroraTool] | None = None,
+    def __init__(self, scene: Scene | None = None, tools: list[AuroraTool] | None = None,
                  rate_hz: float | None = None, faults: AuroraFaults | None = None, seed: int = 0,
                  link: str | os.PathLike[str] | None = None, duration_s: float | None = None,
                  freeze_tag: str = ndi.DEFAULT_FREEZE_TAG, keep_log: bool = False) -> None:
@@ -213,7 +174,6 @@ class AuroraSimulator(PtyDevice):
         self.tools = tools
         replay_rate = 1.0 / self.scene.period_s if getattr(self.scene, "period_s", None) else None
         self.rate_hz = float(rate_hz or replay_rate or DEFAULT_RATE_HZ)
-        self.faults = faults or AuroraFaults()
         self.rng = np.random.default_rng(seed)
         self.duration_s = duration_s
         self.freeze_tag = freeze_tag
@@ -222,12 +182,9 @@ class AuroraSimulator(PtyDevice):
         self.frames_sent = 0
         self.commands: list[str] = []
         self.line_noise_bytes = 0
-        self._manual: dict[str, set[int]] = {k: set() for k in AuroraFaults.KINDS}
-        self._stall_until_ns = 0
         self._corrupt_next = 0
         self._drop_next = False
-        self._open_pty(link)
-        self._start_ns = time.monotonic_ns()
+        super().__init__(faults or AuroraFaults(), link)
         self._power_on()
 
     # -- device state -------------------------------------------------------------------------
@@ -249,16 +206,7 @@ class AuroraSimulator(PtyDevice):
     def byte_ns(self) -> float:
         return self.bits_per_byte * 1e9 / self.baud
 
-    # -- public controls ------------------------------------------------------------------------
-    def set_state(self, kind: str, sensor: int, on: bool = True) -> None:
-        """Turn a state on or off now for the tool of ``sensor``: missing, out-of-range, partly-out, unplug,
-        distort."""
-        (self._manual[kind].add if on else self._manual[kind].discard)(sensor)
-
-    def stall(self, seconds: float) -> None:
-        """Fall silent for ``seconds`` from now (replies wait)."""
-        self._stall_until_ns = time.monotonic_ns() + int(seconds * 1e9)
-
+    # -- public controls (also :meth:`PtyDevice.set_state`, :meth:`PtyDevice.stall`) ------------------------
     def corrupt_next_replies(self, n: int = 1) -> None:
         """Send the next ``n`` BX/TX replies with a wrong CRC."""
         self._corrupt_next += n
@@ -288,10 +236,7 @@ class AuroraSimulator(PtyDevice):
         tool = next((t for t in self.tools if t.sensor == sensor), None)
         if tool is None:
             return None
-        if isinstance(self.scene, ReplayScene):
-            pose = self.scene.frame(frame).get(sensor)
-        else:
-            pose = self.scene.pose(sensor, self.frame_time_s(frame)) if sensor in self.scene.sensors else None
+        pose = pose_at(self.scene, sensor, self.frame_time_s(frame), frame)
         if pose is None:
             return None
         rotation = pose.rotation
@@ -306,45 +251,9 @@ class AuroraSimulator(PtyDevice):
                 return float(pose.quality)
         return CLEAN_ERROR
 
-    def _active(self, kind: str, sensor: int, t_s: float) -> bool:
-        return sensor in self._manual[kind] or any(
-            s == sensor and a <= t_s < b for s, a, b in self.faults.windows.get(kind, ()))
-
-    # -- main loop ---------------------------------------------------------------------------------
-    def run(self) -> None:
-        """Serve until ``stop()`` or ``duration_s``."""
-        self._start_ns = time.monotonic_ns()
-        deadline = None if self.duration_s is None else self._start_ns + int(self.duration_s * 1e9)
-        try:
-            while not self._stop.is_set():
-                now = time.monotonic_ns()
-                if deadline is not None and now >= deadline:
-                    break
-                self._flush_due(now)
-                wake = now + 50_000_000
-                if self._queue:
-                    wake = min(wake, self._queue[0].due_ns)
-                timeout = max(0.0, (wake - time.monotonic_ns()) / 1e9)
-                try:
-                    readable, _, _ = select.select([self.master_fd], [], [], timeout)
-                except (OSError, ValueError):
-                    break
-                if not readable:
-                    continue
-                try:
-                    packet = os.read(self.master_fd, 4096)
-                except BlockingIOError:
-                    continue
-                except OSError as exc:
-                    if exc.errno == errno.EIO:
-                        time.sleep(0.01)
-                        continue
-                    raise
-                if packet:
-                    self._on_packet(packet)
-        finally:
-            self._stop.set()
-            self.close()
+    # -- main loop (:meth:`PtyDevice.run`) ---------------------------------------------------------
+    def _wake_ns(self, wake: int) -> int:
+        return min(wake, self._queue[0].due_ns) if self._queue else wake
 
     def _host_baud(self) -> int | None:
         try:
@@ -352,7 +261,8 @@ class AuroraSimulator(PtyDevice):
         except termios.error:
             return None
 
-    def _on_packet(self, packet: bytes) -> None:
+    def _receive(self, packet: bytes) -> None:
+        """A packet-mode read: a control byte (0: data follows; else the host's flush) and the data."""
         control, data = packet[0], packet[1:]
         if control != 0:  # TIOCPKT status byte: the host flushed its buffers
             if control & _PKT_FLUSHREAD and control & _PKT_FLUSHWRITE:
@@ -390,7 +300,8 @@ class AuroraSimulator(PtyDevice):
                 item.after()
 
     # -- output --------------------------------------------------------------------------------------
-    def _send(self, data: bytes, frame: EmittedFrame | None = None, after=None, command_bytes: int = 0) -> None:
+    def _send(self, data: bytes, frame: EmittedFrame | None = None, after: Callable[[], None] | None = None,
+              command_bytes: int = 0) -> None:
         """Queue a reply: written when its last byte would have arrived (after the command's own bytes)."""
         now = time.monotonic_ns()
         start = max(now + int(command_bytes * self.byte_ns), self._line_free_ns, self._stall_until_ns)
@@ -419,19 +330,7 @@ class AuroraSimulator(PtyDevice):
             arr = arr[self.rng.random(len(arr)) >= f.drop]
         return arr.tobytes()
 
-    def _stall_active(self, now: int) -> bool:
-        f = self.faults
-        if now < self._stall_until_ns:
-            return True
-        if f.stall_every_s > 0 and f.stall_s > 0:
-            t = (now - self._start_ns) / 1e9
-            phase = t % f.stall_every_s
-            if t >= f.stall_every_s and phase < f.stall_s:
-                self._stall_until_ns = now + int((f.stall_s - phase) * 1e9)
-                return True
-        return False
-
-    def _reply(self, text: str, command_bytes: int, after=None) -> None:
+    def _reply(self, text: str, command_bytes: int, after: Callable[[], None] | None = None) -> None:
         self._send(ndi.frame_reply(text), after=after, command_bytes=command_bytes)
 
     def _error(self, code: int, command_bytes: int) -> None:
@@ -444,7 +343,7 @@ class AuroraSimulator(PtyDevice):
     def _refresh_handles(self) -> None:
         """Plugging: a handle whose tool was unplugged turns stale; a tool present without a live handle
         (plugged back in) gets a new handle, not yet initialised."""
-        t_s = (time.monotonic_ns() - self._start_ns) / 1e9
+        t_s = self._elapsed_s()
         for h in self.handles.values():
             if not h.freed and not h.stale and self._active("unplug", h.tool.sensor, t_s):
                 h.stale = True
@@ -519,7 +418,7 @@ class AuroraSimulator(PtyDevice):
         self._reply("OKAY", n, after=switch)
 
     def _handle_status(self, h: _Handle) -> int:
-        t_s = (time.monotonic_ns() - self._start_ns) / 1e9
+        t_s = self._elapsed_s()
         status = ndi.PORT_OCCUPIED if self._present(h, t_s) else 0
         status |= ndi.PORT_INITIALIZED if h.initialized else 0
         status |= ndi.PORT_ENABLED if h.enabled else 0
@@ -533,7 +432,7 @@ class AuroraSimulator(PtyDevice):
         if mode not in range(5):
             self._error(ndi.ERROR_PARAMETERS, n)
             return
-        t_s = (time.monotonic_ns() - self._start_ns) / 1e9
+        t_s = self._elapsed_s()
         entries = []
         for h in self.handles.values():
             if h.freed:
@@ -621,7 +520,7 @@ class AuroraSimulator(PtyDevice):
             return
         now = time.monotonic_ns()
         frame = max(0, int((now - self._tstart_ns) * self.rate_hz / 1e9))
-        t_s = (now - self._start_ns) / 1e9
+        t_s = self._elapsed_s(now)
         reports = []
         system_status = 0
         for h in sorted(self.handles.values(), key=lambda x: x.handle):
@@ -655,7 +554,7 @@ class AuroraSimulator(PtyDevice):
                 report.quaternion, report.position_mm = truth
                 report.error = DISTORTED_ERROR if self._active("distort", sensor, t_s) else self._quality(sensor, frame)
                 if self.distortion is not None:
-                    from ..simulation.tracker_flags import aurora_error_mm  # only with a model (a heavy package)
+                    from ...simulation.tracker_flags import aurora_error_mm  # only with a model (a heavy package)
 
                     report.error = aurora_error_mm(self.distortion.distortion_mm(truth[1]), report.error)
             reports.append(report)

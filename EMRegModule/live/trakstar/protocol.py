@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..transforms import angles_to_rotation, quaternion_to_rotation, rotation_to_angles, rotation_to_quaternion
+from ...transforms import angles_to_rotation, quaternion_to_rotation, rotation_to_angles, rotation_to_quaternion
 
 # --- serial line -------------------------------------------------------------------------------
 

@@ -1,9 +1,8 @@
 """A trakSTAR that lives on a pseudo-terminal: it answers the RS-232 protocol byte for byte.
 
-The simulator opens a pty pair (``os.openpty``), puts it in raw mode and serves the master side;
-any RS-232 client (EMReg's driver, or another trakSTAR program) opens the slave path (e.g.
-``/dev/pts/7``) through the operating system's serial stack, exactly as it would open
-``/dev/ttyUSB0``. What it emulates (see :mod:`.trakstar_protocol` for the sources):
+It serves a pty (:mod:`.pty`): any RS-232 client (EMReg's driver, or another trakSTAR program) opens
+the slave path (e.g. ``/dev/pts/7``) exactly as it would open ``/dev/ttyUSB0``. What it emulates (see
+:mod:`..trakstar.protocol` for the sources):
 
 - commands: sensor addressing (``0xF0 + port``), POINT, STREAM (ended by POINT), the seven record
   formats, CHANGE / EXAMINE VALUE (position scale, measurement rate, group mode, error code, status,
@@ -18,7 +17,7 @@ any RS-232 client (EMReg's driver, or another trakSTAR program) opens the slave 
   for a sensor return that sensor's successive samples; STREAM sends them in order at the
   recording's rate, or as fast as the line allows with ``fast``; the recording's quality numbers
   become the METAL bytes, capped at 127);
-- faults on demand: dropped bytes, flipped phasing bits, stalls, a sensor unplugged (all-zero
+- faults on demand (:mod:`.faults`): dropped bytes, flipped phasing bits, stalls, a sensor unplugged (all-zero
   records, sensor serial 0, error code 5) or out of range (saturated position, worst METAL byte).
 
 Every record sent can be logged with the truth it encodes (``keep_truth``), which is what the
@@ -27,210 +26,20 @@ tests compare the driver's output with.
 
 from __future__ import annotations
 
-import contextlib
-import errno
-import fcntl
 import os
-import select
-import threading
 import time
-import tty
 from collections import deque
 from collections.abc import Iterable
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import EMRegError
-from . import trakstar_protocol as tp
-from .trakstar_protocol import Pose, RecordFormat
-
-# --- pose sources ---------------------------------------------------------------------------
-
-
-class BuiltinScene:
-    """A deterministic scene in the Tracker frame (mm, degrees), a function of time.
-
-    Port 1: the reference sensor of the fiducial frame, at rest. Port 2: the probe, dwelling at
-    six waypoints around the frame and moving between them. Ports 3 and 4: tools moving slowly on
-    circles. Everything stays inside the 36-inch position range.
-    """
-
-    sensors = (1, 2, 3, 4)
-    period_s: float | None = None
-
-    def __init__(self, seed: int = 0) -> None:
-        rng = np.random.default_rng(seed)
-        self.reference_position = np.array([300.0, 40.0, 120.0])
-        self.reference_angles = np.array([20.0, -10.0, 5.0])
-        self.waypoints = self.reference_position + rng.uniform(-60.0, 60.0, size=(6, 3))
-        self.dwell_s = 0.6
-        self.move_s = 0.4
-
-    def pose(self, sensor: int, t_s: float) -> Pose:
-        """Truth pose of ``sensor`` at ``t_s`` seconds after start."""
-        if sensor == 1:
-            return Pose(self.reference_position.copy(), self.reference_angles.copy())
-        if sensor == 2:
-            cycle = self.dwell_s + self.move_s
-            k = int(t_s // cycle)
-            phase = t_s - k * cycle
-            a = self.waypoints[k % len(self.waypoints)]
-            b = self.waypoints[(k + 1) % len(self.waypoints)]
-            s = 0.0 if phase < self.dwell_s else (phase - self.dwell_s) / self.move_s
-            s = s * s * (3.0 - 2.0 * s)
-            position = a + s * (b - a)
-            angles = np.array([40.0 * np.sin(0.7 * t_s), 30.0 * np.sin(0.5 * t_s + 1.0), 60.0 * np.sin(0.3 * t_s)])
-            return Pose(position, angles)
-        w = 0.8 if sensor == 3 else -0.5
-        centre = np.array([200.0, -150.0, 50.0]) if sensor == 3 else np.array([-250.0, 100.0, -80.0])
-        position = centre + 80.0 * np.array([np.cos(w * t_s), np.sin(w * t_s), 0.3 * np.sin(2 * w * t_s)])
-        azimuth = ((100.0 * w * t_s + 180.0) % 360.0) - 180.0
-        angles = np.array([azimuth, 45.0 * np.sin(w * t_s), -170.0 + (20.0 * t_s) % 340.0])
-        return Pose(position, angles)
-
-
-class ReplayScene:
-    """Poses from a tracking recording (``SensorToTracker`` rows), frame by frame.
-
-    Rows of one moment (same ``time_s`` within 1 ms) form one frame. ``next_point(sensor)`` returns
-    the sensor's samples one after another (cycling), ``frame(k)`` the k-th frame (cycling).
-    """
-
-    def __init__(self, recording) -> None:
-        from ..transforms import rotation_to_angles
-
-        order = np.argsort(recording.time_s, kind="stable")
-        times = recording.time_s[order]
-        sensors = recording.sensor[order]
-        positions = recording.position_mm[order]
-        angles = rotation_to_angles(recording.rotation[order])
-        quality = np.nan_to_num(recording.quality[order], nan=0.0)
-        self.sensors = tuple(sorted(int(s) for s in np.unique(sensors)))
-        if any(not 1 <= s <= tp.MAX_SENSORS for s in self.sensors):
-            raise EMRegError(f"{recording.source}: the simulator has sensor ports 1..4, "
-                             f"the recording uses {self.sensors}")
-        self.frames: list[tuple[float, dict[int, Pose]]] = []
-        for i in range(len(times)):
-            if not self.frames or times[i] - self.frames[-1][0] > 1e-3:
-                self.frames.append((float(times[i]), {}))
-            self.frames[-1][1][int(sensors[i])] = Pose(positions[i].copy(), angles[i].copy(), float(quality[i]))
-        self.per_sensor = {s: [p[s] for _, p in self.frames if s in p] for s in self.sensors}
-        self._cursor = dict.fromkeys(self.sensors, 0)
-        frame_times = np.array([t for t, _ in self.frames])
-        steps = np.diff(frame_times)
-        self.period_s = float(np.median(steps)) if len(steps) else 1.0 / tp.POWER_ON_RATE_HZ
-        self.duration_s = float(frame_times[-1] - frame_times[0]) + self.period_s
-
-    def next_point(self, sensor: int) -> Pose | None:
-        samples = self.per_sensor.get(sensor)
-        if not samples:
-            return None
-        i = self._cursor[sensor]
-        self._cursor[sensor] = (i + 1) % len(samples)
-        return samples[i]
-
-    def frame_offset_s(self, k: int) -> float:
-        """Time of frame ``k`` (cycling) from the first frame, in seconds."""
-        n = len(self.frames)
-        loops, i = divmod(k, n)
-        return loops * self.duration_s + self.frames[i][0] - self.frames[0][0]
-
-    def frame(self, k: int) -> dict[int, Pose]:
-        return self.frames[k % len(self.frames)][1]
-
-
-# --- faults ---------------------------------------------------------------------------------
-
-
-def fault_probability(value: str) -> float:
-    """A ``--fault`` probability (per byte or per reply): a number in 0..1, else ValueError."""
-    probability = float(value)
-    if not 0.0 <= probability <= 1.0:
-        raise ValueError(value)
-    return probability
-
-
-def fault_stall(value: str) -> tuple[float, float]:
-    """``EVERY_S:DURATION_S`` of a ``--fault stall=``: both positive and finite (DURATION_S default 0.2), else
-    ValueError."""
-    every, _, duration = value.partition(":")
-    every_s, stall_s = float(every), float(duration or 0.2)
-    if not (0.0 < every_s < float("inf") and 0.0 < stall_s < float("inf")):
-        raise ValueError(value)
-    return every_s, stall_s
-
-
-def fault_window(value: str, max_sensor: int) -> tuple[int, float, float]:
-    """``SENSOR@START-END`` of a ``--fault`` (seconds after start; no END: to the end) as ``(sensor, start_s, end_s)``;
-    ValueError unless 1 <= SENSOR <= ``max_sensor`` and 0 <= START < END."""
-    sensor, _, window = value.partition("@")
-    start, _, end = window.partition("-")
-    entry = (int(sensor), float(start or 0.0), float(end) if end else float("inf"))
-    if not (1 <= entry[0] <= max_sensor and 0.0 <= entry[1] < entry[2]):
-        raise ValueError(value)
-    return entry
-
-
-@dataclass
-class FaultPlan:
-    """Faults to inject. Probabilities are per byte sent; windows are seconds after start.
-
-    ``drop``: a byte is lost. ``flip``: a byte's phasing bit (bit 7) is inverted - the corruption
-    the protocol's framing can detect. ``corrupt``: a byte's seven data bits are replaced by random
-    ones - line noise that this checksum-free protocol's framing cannot detect at all (the link
-    guard's jump test and value checks catch what they can). ``stall_every_s`` / ``stall_s``: the tracker
-    falls silent for ``stall_s`` every ``stall_every_s`` seconds. ``unplugged`` / ``out_of_range``:
-    ``(sensor, start_s, end_s)`` windows. ``late`` / ``late_s``: a POINT request is answered ``late_s``
-    seconds late with probability ``late`` (a tracker busy with something else, or a host that missed
-    its reply): the reply is the same bytes, only later, and the replies to later requests queue behind
-    it on the line, as on the real cable (the protocol has no request id).
-    """
-
-    drop: float = 0.0
-    flip: float = 0.0
-    corrupt: float = 0.0
-    stall_every_s: float = 0.0
-    stall_s: float = 0.0
-    late: float = 0.0
-    late_s: float = 0.0
-    unplugged: list[tuple[int, float, float]] = field(default_factory=list)
-    out_of_range: list[tuple[int, float, float]] = field(default_factory=list)
-    distorted: list[tuple[int, float, float]] = field(default_factory=list)
-
-    @classmethod
-    def parse(cls, items: Iterable[str]) -> FaultPlan:
-        """From ``KIND=VALUE`` strings: ``drop=0.001``, ``flip=0.001``, ``corrupt=0.01``, ``stall=EVERY_S:DURATION_S``,
-        ``late=P:DELAY_S`` (a POINT reply comes DELAY_S late with probability P),
-        ``unplug=SENSOR@START-END``, ``out-of-range=SENSOR@START-END``, ``distort=SENSOR@START-END``
-        (metal distortion: bad METAL byte, pose still sent) (seconds after start)."""
-        plan = cls()
-        for item in items:
-            kind, _, value = item.partition("=")
-            kind = kind.strip().lower().replace("_", "-")
-            try:
-                if kind in ("drop", "flip", "corrupt"):
-                    setattr(plan, kind, fault_probability(value))
-                elif kind == "stall":
-                    plan.stall_every_s, plan.stall_s = fault_stall(value)
-                elif kind == "late":
-                    probability, _, delay = value.partition(":")
-                    plan.late, plan.late_s = fault_probability(probability), float(delay or 0.2)
-                    if not 0.0 <= plan.late_s < float("inf"):
-                        raise ValueError(kind)
-                elif kind in ("unplug", "out-of-range", "distort"):
-                    {"unplug": plan.unplugged, "out-of-range": plan.out_of_range,
-                     "distort": plan.distorted}[kind].append(fault_window(value, tp.MAX_SENSORS))
-                else:
-                    raise ValueError(kind)
-            except ValueError:
-                raise EMRegError(
-                    f"--fault {item!r}: use drop=P, flip=P, corrupt=P, stall=EVERY_S:DURATION_S, late=P:DELAY_S, "
-                    "unplug=SENSOR@START-END, out-of-range=SENSOR@START-END or distort=SENSOR@START-END "
-                    f"(P a probability 0..1, seconds positive, SENSOR 1..{tp.MAX_SENSORS}, 0 <= START < END)") from None
-        return plan
-
+from ...errors import EMRegError
+from ..trakstar import protocol as tp
+from ..trakstar.protocol import Pose, RecordFormat
+from .faults import FaultPlan
+from .pty import PtyDevice
+from .scene import BuiltinScene, ReplayScene, Scene
 
 #: Longest delay (s) of a descheduled simulator whose STREAM cycles are still sent late; older ones are skipped.
 MAX_CATCH_UP_S = 1.0
@@ -260,91 +69,6 @@ class _Pending:
     record: EmittedRecord | None
 
 
-# --- the simulator ----------------------------------------------------------------------------
-
-
-class PtyDevice:
-    """A simulated serial device serving the master side of a pseudo-terminal in raw mode.
-
-    Clients open ``path`` (the slave side) or ``link``, a symbolic link to it. Subclasses call
-    :meth:`_open_pty` in their constructor, implement ``run()`` (ending when ``_stop`` is set) and may
-    configure the line in :meth:`_configure_pty`.
-    """
-
-    thread_name = "pty-device"
-
-    def _open_pty(self, link: str | os.PathLike[str] | None) -> None:
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self.master_fd, self.slave_fd = os.openpty()
-        tty.setraw(self.slave_fd)
-        self._configure_pty()
-        flags = fcntl.fcntl(self.master_fd, fcntl.F_GETFL)
-        fcntl.fcntl(self.master_fd, fcntl.F_SETFL, flags | os.O_NONBLOCK)
-        self.path = os.ttyname(self.slave_fd)
-        self.link = Path(link) if link else None
-        if self.link is not None:
-            self._make_link()
-        self._closed = False
-
-    def _configure_pty(self) -> None:
-        """Line settings beyond raw mode (none by default)."""
-
-    def _make_link(self) -> None:
-        assert self.link is not None
-        if self.link.is_symlink():
-            self.link.unlink()
-        elif self.link.exists():
-            self._close_fds()
-            raise EMRegError(f"--link {self.link}: a file of that name exists and is not a symbolic link; "
-                             "choose another path")
-        folder = self.link.parent
-        if not folder.is_dir():
-            self._close_fds()
-            raise EMRegError(f"--link {self.link}: the folder {folder} does not exist; make it or choose another path")
-        try:
-            os.symlink(self.path, self.link)
-        except OSError as exc:  # named after the link, never the pty it points to
-            self._close_fds()
-            raise EMRegError(f"--link {self.link}: cannot make the link ({exc.strerror or exc})") from None
-
-    def _close_fds(self) -> None:
-        for fd in (self.master_fd, self.slave_fd):
-            with contextlib.suppress(OSError):
-                os.close(fd)
-
-    def run(self) -> None:
-        raise NotImplementedError
-
-    def start(self) -> PtyDevice:
-        """Serve in a background thread (daemon; stops with ``stop()``)."""
-        self._thread = threading.Thread(target=self.run, name=self.thread_name, daemon=True)
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        """Stop serving, close the pty and remove the link (idempotent)."""
-        self._stop.set()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=5.0)
-        self.close()
-
-    def __enter__(self) -> PtyDevice:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        self._close_fds()
-        if self.link is not None and self.link.is_symlink():
-            with contextlib.suppress(OSError):
-                self.link.unlink()
-
-
 class TrackerSimulator(PtyDevice):
     """A trakSTAR on a pseudo-terminal. Use ``start()`` (background thread) or ``run()`` (foreground).
 
@@ -358,7 +82,7 @@ class TrackerSimulator(PtyDevice):
     #: the scene's quality and the distortion there (``trakstar_metal``).
     distortion = None
 
-    def __init__(self, scene: BuiltinScene | ReplayScene | None = None, baud: int = tp.DEFAULT_BAUD,
+    def __init__(self, scene: Scene | None = None, baud: int = tp.DEFAULT_BAUD,
                  faults: FaultPlan | None = None, seed: int = 0, link: str | os.PathLike[str] | None = None,
                  fast: bool = False, keep_truth: bool = False, max_records: int | None = None,
                  duration_s: float | None = None, attached: Iterable[int] | None = None) -> None:
@@ -366,7 +90,6 @@ class TrackerSimulator(PtyDevice):
             raise EMRegError(f"baud rate {baud} is not one the trakSTAR supports ({tp.BAUD_RATES})")
         self.scene = scene or BuiltinScene(seed)
         self.baud = baud
-        self.faults = faults or FaultPlan()
         self.fast = fast
         self.keep_truth = keep_truth
         self.max_records = max_records
@@ -379,11 +102,9 @@ class TrackerSimulator(PtyDevice):
         self.dropped_writes = 0
         self.late_replies = 0  # POINT replies sent late (fault ``late``)
         self.sensors = tuple(self.scene.sensors)
-        self._manual_unplugged: set[int] = set() if attached is None else set(self.sensors) - set(attached)
-        self._manual_out_of_range: set[int] = set()
-        self._manual_distorted: set[int] = set()
-        self._stall_until_ns = 0
-        self._open_pty(link)
+        super().__init__(faults or FaultPlan(), link)
+        if attached is not None:
+            self._manual["unplug"] = set(self.sensors) - set(attached)
         self._reset_state()
 
     # -- device state --------------------------------------------------------------------
@@ -410,67 +131,39 @@ class TrackerSimulator(PtyDevice):
     # -- public controls -----------------------------------------------------------------
     def set_unplugged(self, sensor: int, unplugged: bool = True) -> None:
         """Unplug (or plug back) a sensor now."""
-        (self._manual_unplugged.add if unplugged else self._manual_unplugged.discard)(sensor)
+        self.set_state("unplug", sensor, unplugged)
 
     def set_out_of_range(self, sensor: int, out: bool = True) -> None:
         """Move a sensor out of the position range (or back) now."""
-        (self._manual_out_of_range.add if out else self._manual_out_of_range.discard)(sensor)
+        self.set_state("out-of-range", sensor, out)
 
     def set_distorted(self, sensor: int, distorted: bool = True) -> None:
         """Metal distortion at a sensor now (or gone): its METAL byte reads ``DISTORTED_METAL``."""
-        (self._manual_distorted.add if distorted else self._manual_distorted.discard)(sensor)
-
-    def stall(self, seconds: float) -> None:
-        """Fall silent for ``seconds`` from now (records due meanwhile are skipped or delayed)."""
-        self._stall_until_ns = time.monotonic_ns() + int(seconds * 1e9)
+        self.set_state("distort", sensor, distorted)
 
     @property
     def finished(self) -> bool:
         """True once ``max_records`` or ``duration_s`` is reached (the loop then ends)."""
         return self._stop.is_set()
 
-    # -- main loop -----------------------------------------------------------------------
-    def run(self) -> None:
-        """Serve until ``stop()`` (or the record / duration limit)."""
-        self._start_ns = time.monotonic_ns()
-        deadline = None if self.duration_s is None else self._start_ns + int(self.duration_s * 1e9)
-        try:
-            while not self._stop.is_set():
-                now = time.monotonic_ns()
-                if deadline is not None and now >= deadline:
-                    break
-                if self.max_records is not None and self.records_sent >= self.max_records and not self._queue:
-                    break
-                self._flush_due(now)
-                if self.streaming and now >= self._next_tick_ns:
-                    self._stream_tick(now)
-                wake = now + 50_000_000
-                if self._queue:
-                    wake = min(wake, self._queue[0].due_ns)
-                if self.streaming:
-                    wake = min(wake, self._next_tick_ns)
-                if deadline is not None:
-                    wake = min(wake, deadline)
-                timeout = max(0.0, (wake - time.monotonic_ns()) / 1e9)
-                try:
-                    readable, _, _ = select.select([self.master_fd], [], [], timeout)
-                except (OSError, ValueError):
-                    break
-                if readable:
-                    try:
-                        data = os.read(self.master_fd, 4096)
-                    except BlockingIOError:
-                        continue
-                    except OSError as exc:
-                        if exc.errno == errno.EIO:
-                            time.sleep(0.01)
-                            continue
-                        raise
-                    self._rx.extend(data)
-                    self._handle_commands()
-        finally:
-            self._stop.set()
-            self.close()
+    # -- main loop (:meth:`PtyDevice.run`) ------------------------------------------------
+    def _done(self) -> bool:
+        return self.max_records is not None and self.records_sent >= self.max_records and not self._queue
+
+    def _tick(self, now: int) -> None:
+        if self.streaming and now >= self._next_tick_ns:
+            self._stream_tick(now)
+
+    def _wake_ns(self, wake: int) -> int:
+        if self._queue:
+            wake = min(wake, self._queue[0].due_ns)
+        if self.streaming:
+            wake = min(wake, self._next_tick_ns)
+        return wake
+
+    def _receive(self, data: bytes) -> None:
+        self._rx.extend(data)
+        self._handle_commands()
 
     def _flush_due(self, now: int) -> None:
         while self._queue and self._queue[0].due_ns <= now:
@@ -524,17 +217,12 @@ class TrackerSimulator(PtyDevice):
                 corrupted = True
         return arr.tobytes(), corrupted
 
-    def _elapsed_s(self, now_ns: int | None = None) -> float:
-        return ((now_ns or time.monotonic_ns()) - self._start_ns) / 1e9
-
     def _sensor_state(self, sensor: int, t_s: float) -> str:
-        if sensor not in self.sensors or sensor in self._manual_unplugged or any(
-                s == sensor and a <= t_s < b for s, a, b in self.faults.unplugged):
+        if sensor not in self.sensors or self._active("unplug", sensor, t_s):
             return "not_attached"
-        if sensor in self._manual_out_of_range or any(
-                s == sensor and a <= t_s < b for s, a, b in self.faults.out_of_range):
+        if self._active("out-of-range", sensor, t_s):
             return "out_of_range"
-        if sensor in self._manual_distorted or any(s == sensor and a <= t_s < b for s, a, b in self.faults.distorted):
+        if self._active("distort", sensor, t_s):
             return "distorted"
         return "ok"
 
@@ -551,7 +239,7 @@ class TrackerSimulator(PtyDevice):
             sent_pose = pose
             clean = int(min(max(pose.quality, 0.0), tp.METAL_MAX))  # a replay carries its recording's quality
             if self.distortion is not None and metal:
-                from ..simulation.tracker_flags import trakstar_metal  # only with a model (a heavy package)
+                from ...simulation.tracker_flags import trakstar_metal  # only with a model (a heavy package)
 
                 clean = trakstar_metal(self.distortion.distortion_mm(pose.position_mm), clean)
             quality = (DISTORTED_METAL if state == "distorted" else clean) if metal else None
@@ -569,18 +257,6 @@ class TrackerSimulator(PtyDevice):
         if self.keep_truth:
             self.truth.append(record)
         self._send(data, record, after_ns)
-
-    def _stall_active(self, now: int) -> bool:
-        f = self.faults
-        if now < self._stall_until_ns:
-            return True
-        if f.stall_every_s > 0 and f.stall_s > 0:
-            t = self._elapsed_s(now)
-            phase = t % f.stall_every_s
-            if t >= f.stall_every_s and phase < f.stall_s:
-                self._stall_until_ns = now + int((f.stall_s - phase) * 1e9)
-                return True
-        return False
 
     def _tick_sensors(self) -> list[int]:
         # In group mode every port of the unit answers; an empty port answers an all-zero record (choice).

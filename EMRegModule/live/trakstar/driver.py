@@ -1,18 +1,18 @@
 """A trakSTAR RS-232 client over pyserial: POINT and STREAM, record formats, examine / change value.
 
-Protocol facts and their sources are in :mod:`.trakstar_protocol`. What the driver adds:
+Protocol facts and their sources are in :mod:`.protocol`. What the driver adds:
 
 - Framing: records are found by the phasing bit; a record is used only if it passes every check of
-  :class:`~.trakstar_protocol.RecordParser` (start byte, no stray phasing bit, exact length,
+  :class:`~.protocol.RecordParser` (start byte, no stray phasing bit, exact length,
   group-mode address, followed by a record start when that byte is already there, no long silence
   inside it while the reader was waiting on the line: bytes found already waiting say nothing about
-  silences) *and* its values are possible (:func:`~.trakstar_protocol.record_values_plausible`).
+  silences) *and* its values are possible (:func:`~.protocol.record_values_plausible`).
   Anything else is dropped and counted; the parser resynchronises on the next record start. No
   pose is ever made from a record that failed these checks.
 - Limits of the protocol: records carry no checksum, so a flipped *data* bit (bits 0..6) that keeps
   the framing intact cannot be detected by any trakSTAR RS-232 client; the value checks catch the
   large ones in orientation, none in position. Use a shielded cable; the watchdog in
-  :mod:`.navigator` adds staleness and quality checks on top.
+  :mod:`..navigator` adds staleness and quality checks on top.
 - Sensor status: the RS-232 records carry no status bits. A port without a sensor answers with an
   all-zero record (position zero is the transmitter's centre, where no sensor can be) and sensor
   serial number 0 ([LTS] ``sensorAttached``); a sensor beyond the position range answers with
@@ -34,10 +34,10 @@ from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 
-from ..errors import EMRegError
-from . import trakstar_protocol as tp
-from .samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE, SensorSample
-from .trakstar_protocol import DecodedRecord, FramingStats, RecordFormat, RecordParser
+from ...errors import EMRegError
+from ..samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE, SensorSample
+from . import protocol as tp
+from .protocol import DecodedRecord, FramingStats, RecordFormat, RecordParser
 
 SampleCallback = Callable[[SensorSample], None]
 
@@ -170,7 +170,7 @@ class TrakstarDriver:
         self._write(self._prefix(sensor) + bytes([tp.CHANGE_VALUE, param]) + data)
 
     def error_code(self) -> int:
-        """The tracker's last error code (reading clears it); see ``trakstar_protocol.ERROR_CODES``."""
+        """The tracker's last error code (reading clears it); see ``protocol.ERROR_CODES``."""
         return self.examine_word(tp.PARAM_ERROR_CODE)
 
     def sensor_attached(self, sensor: int) -> bool:
