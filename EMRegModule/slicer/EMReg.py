@@ -14,8 +14,9 @@ and ``EMRegTest`` (drives the Logic end to end on a simulated case).
 The Logic needs only MRML nodes and ``slicer.util``: inside Slicer they are the application's;
 outside it (the tests) the ``slicer-core`` wheel provides them without Qt, and the scripted-module
 bases Slicer's application would provide are replaced by minimal ones (see the imports). The nodes
-are made by ``EMRegModule/io/slicer_scene.py``, which also writes the ``EMReg.mrb`` bundle of
-``emreg run``. Supported: 3D Slicer 5.10 and later (Python 3.12; EMReg needs 3.11).
+are made by the package ``EMRegModule/slicer_export/``, which also writes the ``EMReg.mrb`` bundle of
+``emreg run``; their names are ``EMRegModule/names.py``'s.
+Supported: 3D Slicer 5.10 and later (Python 3.12; EMReg needs 3.11).
 
 Coordinates: EMReg works in the CT's LPS space, Slicer in RAS. Markers and targets are
 converted point by point (x, y negated). ``ReferenceToImage`` becomes the linear transform
@@ -82,6 +83,10 @@ MODULE_DIR = Path(__file__).resolve().parent
 REPOSITORY_ROOT = MODULE_DIR.parents[1]
 UI_FILE = REPOSITORY_ROOT / "Resources" / "UI" / "EMReg.ui"
 ICON_FILE = REPOSITORY_ROOT / "Resources" / "Icons" / "EMReg.png"
+
+if str(REPOSITORY_ROOT) not in sys.path:  # the names module is the repository's, read before anything else
+    sys.path.insert(0, str(REPOSITORY_ROOT))
+from EMRegModule import names  # noqa: E402 - plain constants (Python 3.9 too, so that old Slicers load this file)
 
 #: Python packages EMReg needs: import name -> (pip name, what needs it).
 DEPENDENCIES = {
@@ -318,20 +323,21 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     of its methods, then the result is written to the output folder (the same files as
     ``emreg run``) and shown in the scene. Usable without the panel (Python console, tests) and
     without Qt: it needs only MRML nodes and ``slicer.util`` (3D Slicer's, or the slicer-core
-    wheel's). The nodes are made by :mod:`EMRegModule.io.slicer_scene`, the same code that writes
+    wheel's). The nodes are made by :mod:`EMRegModule.slicer_export`, the same code that writes
     the scene bundle ``EMReg.mrb`` of ``emreg run``, so both show the same nodes.
 
     ``scene``: the MRML scene to show the results in (default ``slicer.mrmlScene``).
     """
 
-    VOLUME_NODE_NAME = "EMReg CT"
-    MARKERS_NODE_NAME = "EMReg markers"
-    CALIBRATION_NODE_NAME = "EMReg calibration points"
-    TARGETS_NODE_NAME = "EMReg targets"
-    PATH_NODE_NAME = "EMReg probe path"
-    TRANSFORM_NODE_NAME = "ReferenceToImage"
-    PROBE_NODE_NAME = "ProbeToReference"
-    CONNECTOR_NODE_NAME = "EMReg OpenIGTLink"
+    # the node names of EMRegModule/names.py (the bundle's too)
+    VOLUME_NODE_NAME = names.VOLUME_NODE_NAME
+    MARKERS_NODE_NAME = names.MARKERS_NODE_NAME
+    CALIBRATION_NODE_NAME = names.CALIBRATION_NODE_NAME
+    TARGETS_NODE_NAME = names.TARGETS_NODE_NAME
+    PATH_NODE_NAME = names.PATH_NODE_NAME
+    TRANSFORM_NODE_NAME = names.TRANSFORM_NODE_NAME
+    PROBE_NODE_NAME = names.PROBE_NODE_NAME
+    CONNECTOR_NODE_NAME = names.CONNECTOR_NODE_NAME
     COMMAND = "EMReg (3D Slicer)"
 
     def __init__(self, settings=None, scene=None):
@@ -518,7 +524,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         self.evaluation = self.controller.evaluation
         if self.controller.navigation is not None:
             self._lastProbePose(self.case.read_recording("navigation"))
-        page = self.outputDirectory / "report.html"
+        page = self.outputDirectory / names.REPORT_HTML
         self.reportPath = page if report and page.is_file() else None
         self.showResults()
         return summary
@@ -533,7 +539,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
     # --- live navigation ----------------------------------------------------------------------------
 
-    def startLiveNavigation(self, host="localhost", port=18944):
+    def startLiveNavigation(self, host="localhost", port=names.DEFAULT_IGTL_PORT):
         """Connect OpenIGTLinkIF to an ``emreg navigate --igtl-port PORT`` server: ``ProbeToImage`` (RAS)
         arrives as a linear transform node. Needs the SlicerOpenIGTLink extension."""
         from EMRegModule.errors import EMRegError
@@ -582,10 +588,10 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
     def showVolume(self):
         """The controller's CT as a scalar volume node (IJK-to-RAS from the image's LPS geometry)."""
-        from EMRegModule.io import slicer_scene
+        from EMRegModule.slicer_export.nodes import show_volume
 
         # A copy: in 3D Slicer a user may edit the volume in place; the controller's CT must not change.
-        node = slicer_scene.show_volume(self.scene, self.controller.image, self.VOLUME_NODE_NAME,
+        node = show_volume(self.scene, self.controller.image, self.VOLUME_NODE_NAME,
                                         node=self.nodes.get(self.VOLUME_NODE_NAME), copy_voxels=True)
         self.nodes[self.VOLUME_NODE_NAME] = node
         if hasattr(slicer, "app"):  # slice views exist only in the application
@@ -596,7 +602,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         """What the scene shows, from the controller's results (as the bundle does from the output files)."""
         import numpy as np
 
-        from EMRegModule.io.slicer_scene import RunScene
+        from EMRegModule.slicer_export.run_scene import RunScene
 
         controller = self.controller
         content = RunScene()
@@ -623,9 +629,9 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     def showResults(self):
         """Show (or update) every result node: markers, calibration points under ``ReferenceToImage``,
         pinhole points, residual spheres, targets, probe path and pose; nodes of dropped results go."""
-        from EMRegModule.io import slicer_scene
+        from EMRegModule.slicer_export.run_scene import build_run_scene
 
-        return slicer_scene.build_run_scene(self.scene, self.resultsContent(), self.nodes)
+        return build_run_scene(self.scene, self.resultsContent(), self.nodes)
 
     def resultsText(self):
         """A few lines of figures for the panel."""
@@ -761,6 +767,7 @@ class EMRegTest(ScriptedLoadableModuleTest):
             self.assertTrue(np.allclose(probeToRas[:3, 3], lps_to_ras_points(navigation.position_mm[-1])[0], atol=1e-6))
         report = logic.writeReport()
         self.assertTrue(Path(report).is_file())
-        for name in ("markers.json", "frame_calibration.json", "registration.json", "ReferenceToImage.h5"):
+        for name in (names.MARKERS_JSON, names.FRAME_CALIBRATION_JSON, names.REGISTRATION_JSON,
+                     names.REFERENCE_TO_IMAGE_H5):
             self.assertTrue((output / name).is_file(), name)
         self.delayDisplay("Test passed")
