@@ -14,7 +14,13 @@ import numpy as np
 
 from ..errors import EMRegError
 from ..frames import LPS_TO_RAS
-from ..names import RESIDUALS_NODE_NAME, TRANSFORM_NODE_NAME, TRE_MAP_NODE_NAME, VOLUME_NODE_NAME
+from ..names import (
+    CONNECTOR_NODE_NAME,
+    RESIDUALS_NODE_NAME,
+    TRANSFORM_NODE_NAME,
+    TRE_MAP_NODE_NAME,
+    VOLUME_NODE_NAME,
+)
 from .mrb import StoredVoxels, placeholder_of
 
 
@@ -240,3 +246,35 @@ def show_tre_map(scene: Any, path: str | os.PathLike[str], name: str = TRE_MAP_N
         display.AutoWindowLevelOff()
         display.SetWindowLevelMinMax(0.0, max(high, 1e-3))
     return node
+
+
+def markups_points_lps(node: Any) -> tuple[list[str], np.ndarray]:
+    """The defined control points of a markups node: labels (``F-<n>`` for an unnamed n-th point) and world
+    positions (RAS, as Slicer shows them, through the transform hierarchy) in LPS, (N, 3) mm."""
+    labels, positions = [], []
+    for i in range(node.GetNumberOfControlPoints()):
+        if node.GetNthControlPointPositionStatus(i) != node.PositionDefined:
+            continue
+        ras = [0.0, 0.0, 0.0]
+        node.GetNthControlPointPositionWorld(i, ras)
+        labels.append(node.GetNthControlPointLabel(i) or f"F-{i + 1}")
+        positions.append([-ras[0], -ras[1], ras[2]])
+    return labels, np.asarray(positions, dtype=float).reshape(-1, 3)
+
+
+def connect_igtl_client(scene: Any, host: str, port: int, name: str = CONNECTOR_NODE_NAME) -> Any:
+    """An OpenIGTLinkIF connector node connected as a client to ``host:port`` (an ``emreg navigate --igtl-port``
+    server); :class:`EMRegError` without the SlicerOpenIGTLink extension or when nothing answers there."""
+    try:
+        connector = scene.AddNewNodeByClass("vtkMRMLIGTLConnectorNode", name)
+    except Exception:  # noqa: BLE001 - Slicer raises a plain error for an unknown node class
+        connector = None
+    if connector is None:
+        raise EMRegError("OpenIGTLinkIF is not available: install the SlicerOpenIGTLink extension "
+                         "(Extensions Manager) for live navigation")
+    connector.SetTypeClient(str(host), int(port))
+    if connector.Start() != 1:
+        scene.RemoveNode(connector)
+        raise EMRegError(f"cannot connect to OpenIGTLink at {host}:{port}: start 'emreg navigate --igtl-port "
+                         f"{port}' first")
+    return connector

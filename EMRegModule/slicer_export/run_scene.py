@@ -17,24 +17,20 @@ from ..frames import lps_to_ras_points
 from ..names import (
     CALIBRATION_NODE_NAME,
     FIDUCIALS_NODE_NAME,
-    FRAME_CALIBRATION_JSON,
-    MARKERS_JSON,
     MARKERS_NODE_NAME,
-    NAVIGATION_CSV,
     PATH_NODE_NAME,
     PINHOLES_NODE_NAME,
     PROBE_NODE_NAME,
-    REGISTRATION_JSON,
     RESIDUALS_NODE_NAME,
-    RUN_JSON,
     TARGETS_FILE,
     TARGETS_NODE_NAME,
     TIP_NODE_NAME,
     TRANSFORM_NODE_NAME,
     TRE_MAP_NODE_NAME,
-    TRE_MAP_NRRD,
     VOLUME_NODE_NAME,
 )
+from ..registration import RegistrationResult
+from ..run_folder import RunFolder, read_manifest, read_run_folder
 from .mrb import StoredVoxels, stored_voxels
 from .nodes import (
     show_curve,
@@ -60,7 +56,7 @@ class RunScene:
     marker_axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     calibration_labels: list[str] = field(default_factory=list)
     calibration_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    registration: dict[str, Any] | None = None
+    registration: RegistrationResult | None = None
     target_labels: list[str] = field(default_factory=list)
     targets: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     path: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
@@ -72,73 +68,82 @@ class RunScene:
     notes: list[str] = field(default_factory=list)
 
 
+def run_scene_of(folder: RunFolder, targets: tuple[list[str], np.ndarray] | None = None,
+                 probe_to_reference: np.ndarray | None = None) -> RunScene:
+    """What a run's scene shows, from its outputs (read from OUT, or the Slicer Logic's results in memory):
+    markers, calibration points (and a tool's ``TipToProbe``), the registration, the probe path, the
+    predicted-TRE map; ``targets`` (labels, (N, 3) image LPS mm) and the last probe pose ``probe_to_reference``
+    (4x4, probe -> Reference) when known. Without the CT (:func:`collect_run` adds it)."""
+    content = RunScene(probe_to_reference=probe_to_reference, registration=folder.registration,
+                       tre_map_path=folder.tre_map_path)
+    if folder.detection is not None:
+        content.marker_ids = [m.id for m in folder.detection.markers]
+        content.marker_origins = folder.detection.origins
+        content.marker_axes = folder.detection.axes
+    calibration = folder.frame_calibration
+    if calibration is not None:
+        tool = calibration.tool
+        if tool is not None and tool.get("TipToProbe") is not None:
+            content.tip_to_probe = np.asarray(tool["TipToProbe"], dtype=float).reshape(4, 4)
+        content.calibration_labels = list(calibration.labels)
+        content.calibration_points = calibration.positions
+    if folder.navigation_positions is not None:
+        content.path = folder.navigation_positions
+    if targets is not None:
+        content.target_labels, content.targets = list(targets[0]), np.asarray(targets[1], dtype=float)
+    return content
+
+
 def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
                 image: Any = None) -> RunScene:
-    """Read a run's outputs (``markers.json``, ``frame_calibration.json``, ``registration.json``,
-    ``navigation.csv``), the case's targets and its CT: when the CT that ``run.json`` names (per-stage
+    """Read a run's outputs (:func:`~EMRegModule.run_folder.read_run_folder`: an unreadable file raises
+    :class:`EMRegError`), the case's targets and its CT: when the CT that ``run.json`` names (per-stage
     outputs: the case's, :func:`~EMRegModule.io.case.run_ct_path`) is a plain NRRD (:func:`stored_voxels`)
     and ``image``, if given, has its grid, the file's stored voxels (a bundle copies them, nothing is read
     into memory); otherwise ``image``, else the CT read (of a DICOM folder, the series the markers were
     detected in, as ``markers.json`` / ``run.json`` name it, not the folder's default choice: the run may
     have forced another with ``--series``)."""
-    from ..io.atomic import read_json
+    from ..io.case import run_ct_path
     from ..outputs import recorded_series_uid
 
     out = Path(out_dir)
-    run = read_json(out / RUN_JSON, "run record") if (out / RUN_JSON).is_file() else {}
+    run = read_manifest(out) or {}
     if case_dir is None and run.get("case"):
         case_dir = run["case"]
-    content = RunScene(image=image)
+    folder = read_run_folder(out, run, tolerant=False)
+    targets = None
+    if case_dir is not None and (Path(case_dir) / TARGETS_FILE).is_file():
+        from ..io.markups import read_markups
+
+        targets = read_markups(Path(case_dir) / TARGETS_FILE)
+    content = run_scene_of(folder, targets)
+    content.image = image
     series = recorded_series_uid(run)
-    if (out / MARKERS_JSON).is_file():
-        detected = read_json(out / MARKERS_JSON, "markers JSON")
-        series = recorded_series_uid(detected) or series  # the series whose space the markers are in
-        markers = detected.get("markers", [])
-        content.marker_ids = [str(m["id"]) for m in markers]
-        content.marker_origins = np.array([m["origin"] for m in markers], dtype=float).reshape(-1, 3)
-        content.marker_axes = np.array([m["axis"] for m in markers], dtype=float).reshape(-1, 3)
-    if (out / FRAME_CALIBRATION_JSON).is_file():
-        document = read_json(out / FRAME_CALIBRATION_JSON, "frame calibration JSON")
-        tool = document.get("tool") if isinstance(document.get("tool"), dict) else None
-        if tool is not None and tool.get("TipToProbe") is not None:
-            content.tip_to_probe = np.asarray(tool["TipToProbe"], dtype=float).reshape(4, 4)
-        points = document.get("points", [])
-        content.calibration_labels = [str(p["label"]) for p in points]
-        content.calibration_points = np.array([p["position"] for p in points], dtype=float).reshape(-1, 3)
-    if (out / REGISTRATION_JSON).is_file():
-        content.registration = read_json(out / REGISTRATION_JSON, "registration JSON")
-    if (out / NAVIGATION_CSV).is_file():
-        from ..io.navigation_csv import read_navigation_csv
-
-        content.path = read_navigation_csv(out / NAVIGATION_CSV)[0]
-    if (out / TRE_MAP_NRRD).is_file():
-        content.tre_map_path = out / TRE_MAP_NRRD
-    if case_dir is not None:
-        targets = Path(case_dir) / TARGETS_FILE
-        if targets.is_file():
-            from ..io.markups import read_markups
-
-            labels, positions = read_markups(targets)
-            content.target_labels, content.targets = list(labels), np.asarray(positions, dtype=float)
-    from ..io.case import run_ct_path
-
+    if folder.detection is not None:  # the series whose space the markers are in
+        series = recorded_series_uid({"ct_series": folder.detection.ct_series}) or series
     ct = run_ct_path(run, case_dir)
     stored = stored_voxels(ct) if ct and Path(ct).is_file() else None
     if stored is not None and (image is None or _same_grid(stored.geometry, image)):
         content.stored_ct, content.image = stored, None
     elif content.image is None:
-        if ct and Path(ct).exists():
-            from ..io.image import read_ct
-
-            try:
-                content.image = read_ct(ct, series)
-            except EMRegError as exc:
-                content.notes.append(f"CT not included ({exc})")
-        elif not ct and run.get("fiducials"):
-            content.notes.append("no CT: a fiducial case (the fiducials are in the scene)")
-        else:
-            content.notes.append("CT not included (run.json names no CT that exists)")
+        content.image = _read_ct(ct, series, bool(run.get("fiducials")), content.notes)
     return content
+
+
+def _read_ct(ct: str | None, series: str | None, fiducial_case: bool, notes: list[str]) -> Any:
+    """The run's CT read whole (None, with a note, when there is none or it cannot be read)."""
+    if ct and Path(ct).exists():
+        from ..io.image import read_ct
+
+        try:
+            return read_ct(ct, series)
+        except EMRegError as exc:
+            notes.append(f"CT not included ({exc})")
+    elif not ct and fiducial_case:
+        notes.append("no CT: a fiducial case (the fiducials are in the scene)")
+    else:
+        notes.append("CT not included (run.json names no CT that exists)")
+    return None
 
 
 def _same_grid(geometry: Any, image: Any) -> bool:
@@ -154,7 +159,7 @@ def _pair_descriptions(content: RunScene) -> tuple[list[str], dict[str, tuple[st
     """Per marker: its pairing in words; and marker id -> (calibration label, residual)."""
     pairs: dict[str, tuple[str, float]] = {}
     if content.registration is not None:
-        for pair in content.registration.get("pairs", []):
+        for pair in content.registration.pairs:
             pairs[str(pair["image_marker"])] = (str(pair["calibration_point"]), float(pair["residual_mm"]))
     texts = []
     for marker_id in content.marker_ids:
@@ -200,8 +205,8 @@ def build_run_scene(scene: Any, content: RunScene, nodes: dict[str, Any] | None 
     transform = None
     if content.registration is not None:
         transform = keep(TRANSFORM_NODE_NAME, show_reference_to_image(
-            scene, content.registration["ReferenceToImage"], node=nodes.get(TRANSFORM_NODE_NAME)))
-        l_mm = float(content.registration["sensor_offset_l_mm"])
+            scene, content.registration.reference_to_image, node=nodes.get(TRANSFORM_NODE_NAME)))
+        l_mm = float(content.registration.sensor_offset_l_mm)
         index = {marker_id: k for k, marker_id in enumerate(content.marker_ids)}
         paired = [m for m in pairs if m in index]
         if paired:
@@ -213,7 +218,7 @@ def build_run_scene(scene: Any, content: RunScene, nodes: dict[str, Any] | None 
                  for m in paired], node=nodes.get(PINHOLES_NODE_NAME)))
             keep(RESIDUALS_NODE_NAME, show_residual_spheres(scene, pinholes, [pairs[m][1] for m in paired],
                                                             node=nodes.get(RESIDUALS_NODE_NAME)))
-        fiducials = content.registration.get("fiducials")
+        fiducials = content.registration.fiducials
         if isinstance(fiducials, dict) and fiducials.get("points"):  # a point fit: what the points were fitted onto
             _show_fiducials(scene, fiducials, pairs, keep, nodes)
         if content.probe_to_reference is not None:
