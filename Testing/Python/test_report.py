@@ -192,7 +192,7 @@ def test_interrupted_report_keeps_the_previous_page(tmp_path, sample_run, monkey
     def broken(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr("EMRegModule.report.sections.build_html", broken)
+    monkeypatch.setattr("EMRegModule.report.writer.build_html", broken)
     with pytest.raises(KeyboardInterrupt):
         write_report(out)
     assert (out / "report.html").read_bytes() == before
