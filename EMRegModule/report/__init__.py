@@ -1,6 +1,6 @@
 """The verification report: ``OUT/report.html``, one self-contained page showing a run's evidence.
 
-:func:`write_report` reads whatever a run left in OUT (spec formats): ``markers.json``,
+:func:`~EMRegModule.report.writer.write_report` reads whatever a run left in OUT (spec formats): ``markers.json``,
 ``frame_calibration.json``, ``registration.json``, ``navigation.csv``, ``evaluation.json``,
 ``run.json``, and the CT of the case (from ``case_dir`` or ``run.json``'s ``"case"``). It
 renders offscreen (pyvista, OpenCV) a 3D view of the frame with every fitted marker model
@@ -13,29 +13,15 @@ refused steps) come first.
 
 Images are embedded as base64 PNG (the page opens anywhere) and also written to
 ``OUT/report_figures/``. Every file is written atomically; the page holds no timestamps, so
-the same inputs give the same bytes. :func:`write_reports_batch` renders many runs, in
+the same inputs give the same bytes. :func:`~EMRegModule.report.batch.write_reports_batch` renders many runs, in
 parallel processes within the available memory, with a progress bar.
 
 Modules: :mod:`.inputs` (the typed outputs of a run, read by the stages' readers),
 :mod:`.derived` (pairs joined to markers, FRE(l), predicted TRE), :mod:`.checks` (warnings, by
 the stages' own policies), :mod:`.figures` (one function per figure, in a registry),
 :mod:`.html` and :mod:`.sections` (the page, one function per section), :mod:`.writer`
-(:func:`write_report`), :mod:`.batch` (:func:`write_reports_batch`).
+(:func:`~.writer.write_report`), :mod:`.batch` (:func:`~.batch.write_reports_batch`). The package re-exports
+nothing: import from the module (one way: inputs -> derived -> checks -> figures -> html/sections -> writer -> batch).
 
 Frames: positions in the tables are image space (CT LPS, mm) unless they say Reference.
 """
-
-from .batch import write_reports_batch
-from .checks import ReportWarning, collect_warnings
-from .derived import MarkerRow, calibration_points, fre_curve, marker_rows
-from .figures import FIGURE_NAMES, FIGURES, Figure, ReportData, render_figures
-from .inputs import INPUT_NAMES, ReportInputs, has_report_inputs, load_report_inputs, read_navigation_csv
-from .sections import build_html
-from .writer import FIGURE_DIR, REPORT_NAME, write_report
-
-__all__ = [
-    "FIGURES", "FIGURE_DIR", "FIGURE_NAMES", "INPUT_NAMES", "REPORT_NAME", "Figure", "MarkerRow", "ReportData",
-    "ReportInputs", "ReportWarning", "build_html", "calibration_points", "collect_warnings", "fre_curve",
-    "has_report_inputs", "load_report_inputs", "marker_rows", "read_navigation_csv", "render_figures",
-    "write_report", "write_reports_batch",
-]

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from ..errors import EMRegError
+from ..names import RUN_JSON
 from ..progress import QUIET, Progress
 from .inputs import has_report_inputs
 
@@ -53,7 +54,7 @@ def ct_bytes_of_run(folder: Path) -> float:
     from ..io.itk_messages import quiet_itk
 
     try:
-        run = read_json(folder / "run.json", "run record")
+        run = read_json(folder / RUN_JSON, "run record")
         ct = Path(run["ct"]) if run.get("ct") else find_ct(run["case"])
         if ct is None or ct.is_dir():  # a DICOM series: no single header to ask
             return 0.0
@@ -95,10 +96,10 @@ def memory_limited_jobs(folders: Sequence[str], jobs: int, progress: Progress = 
 def _bundle_needs_ct(folder: Path) -> bool:
     """Whether the run's scene bundle needs its CT in memory (not when it copies the CT from its file)."""
     from ..io.atomic import read_json
-    from ..io.slicer_scene import bundle_needs_ct_image
+    from ..slicer_export.mrb import bundle_needs_ct_image
 
     try:
-        ct = read_json(folder / "run.json", "run record").get("ct")
+        ct = read_json(folder / RUN_JSON, "run record").get("ct")
     except (EMRegError, OSError, AttributeError):
         return True
     return bundle_needs_ct_image(ct if isinstance(ct, str) else None)
@@ -121,9 +122,9 @@ def _batch_worker(folder: str, bundle: bool = False,
         return folder, None, f"{type(exc).__name__}: {exc}", None
     written = None
     if bundle:  # with the CT the report holds: not read a second time
-        from ..io.slicer_scene import write_run_bundle_hashed
+        from ..slicer_export.bundle import write_run_bundle
 
-        path, message, sha = write_run_bundle_hashed(folder, image=ct)
+        path, message, sha = write_run_bundle(folder, image=ct)
         written = (None if path is None else str(path), message, sha)
     return folder, str(page), None, written
 
@@ -142,7 +143,7 @@ def write_reports_batch(folders: Sequence[str | os.PathLike[str]], jobs: int = 1
     the failures.
 
     ``bundles``: when a list is given, each job also writes its case's 3D Slicer scene bundle
-    (``write_run_bundle_hashed``, with the CT its report read) and ``(folder, (bundle path or None, message,
+    (``write_run_bundle``, with the CT its report read) and ``(folder, (bundle path or None, message,
     its sha256 computed as it was written))`` is appended to it for every reported folder, in the order of ``folders``.
     ``settings_file``: the settings every report is made with (``--settings``); by default each case's ``case.toml``.
     """

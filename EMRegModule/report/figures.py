@@ -10,7 +10,7 @@ and sampled on small planes around each marker for the slices.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -399,7 +399,7 @@ def render_distortion(data: ReportData) -> list[Figure]:
 
 def render_tre_map(data: ReportData) -> list[Figure]:
     """Three planes of ``tre_map.nrrd`` through the targets (or the map's centre)."""
-    tre_map = sitk.ReadImage(str(data.inputs.out_dir / "tre_map.nrrd"))
+    tre_map = sitk.ReadImage(str(data.inputs.folder.tre_map_path))
     positions = data.inputs.targets_positions if data.inputs.targets_positions is not None else np.zeros((0, 3))
     image = tre_map_slices(tre_map, positions, data.inputs.targets_labels or [])
     return [Figure("tre_map", "Predicted TRE over the CT",
@@ -408,15 +408,9 @@ def render_tre_map(data: ReportData) -> list[Figure]:
                    "the reference sensor. Load it in 3D Slicer as a colour overlay on the CT.", _png(image))]
 
 
-def read_checkpoints(data: ReportData) -> dict | None:
+def read_checkpoints(data: ReportData) -> Mapping[str, object] | None:
     """``OUT/checkpoints.json`` when it holds at least one checkpoint (None otherwise, or unreadable)."""
-    import json
-
-    try:
-        document = json.loads((data.inputs.out_dir / "checkpoints.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    return document if isinstance(document, dict) and document.get("checkpoints") else None
+    return data.inputs.folder.checkpoints
 
 
 def render_checkpoints(data: ReportData) -> list[Figure]:
@@ -465,7 +459,7 @@ FIGURES: tuple[FigureSpec, ...] = (
     FigureSpec(("fre_curve",), lambda d: d.curve is not None, render_fre_curve),
     FigureSpec(("tre_targets",), _has_tre, render_tre_targets),
     FigureSpec(("error_budget",), _has_budget, render_error_budget),
-    FigureSpec(("tre_map",), lambda d: (d.inputs.out_dir / "tre_map.nrrd").is_file(), render_tre_map),
+    FigureSpec(("tre_map",), lambda d: d.inputs.folder.tre_map_path is not None, render_tre_map),
     FigureSpec(("checkpoints",), lambda d: read_checkpoints(d) is not None, render_checkpoints),
     FigureSpec(("distortion",), lambda d: _distortion(d) is not None, render_distortion),
 )

@@ -1,9 +1,7 @@
-"""What a report is made of: the typed outputs of a run, read back by the stages' own readers.
+"""What a report is made of: the typed outputs of a run (:class:`~EMRegModule.run_folder.RunFolder`, read back by
+the stages' own readers), the case's settings and targets, and its CT.
 
-Each stage output in OUT is read with the reader of the stage that writes it
-(:func:`~EMRegModule.detection.read_detection`, :func:`~EMRegModule.calibration.read_frame_calibration`,
-:func:`~EMRegModule.registration.read_registration`), and the report keeps the typed objects
-they return. A file that is missing is None; one that a reader turns down is None with a note
+A file that is missing is None; one that a reader turns down is None with a note
 (shown as a warning), never a crash. The CT starts being read as soon as it is known
 (:func:`EMRegModule.io.image.open_ct`, on a background thread) so that the rest of the report
 is prepared while its voxels arrive.
@@ -14,23 +12,29 @@ Frames: positions are image space (CT LPS, mm) unless they say Reference.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..calibration import FrameCalibration, read_frame_calibration
-from ..detection.result import DetectionResult, read_detection
+from ..calibration import FrameCalibration
+from ..detection.result import DetectionResult
 from ..errors import EMRegError
-from ..evaluation import Evaluation, read_evaluation
-from ..io.atomic import read_json
+from ..evaluation import Evaluation
 from ..io.case import open_case
 from ..io.markups import read_markups
-from ..io.navigation_csv import read_navigation_csv
 from ..marker_model import MarkerModel
-from ..registration import RegistrationResult, read_registration
+from ..names import (
+    EVALUATION_JSON,
+    FRAME_CALIBRATION_JSON,
+    MARKERS_JSON,
+    NAVIGATION_CSV,
+    REGISTRATION_JSON,
+    RUN_JSON,
+)
+from ..registration import RegistrationResult
+from ..run_folder import RunFolder, read_manifest, read_run_folder
 from ..settings import Settings
 
 if TYPE_CHECKING:
@@ -38,28 +42,22 @@ if TYPE_CHECKING:
 
     from ..io.fast_read import VolumeFill
 
-INPUT_NAMES = ("markers.json", "frame_calibration.json", "registration.json", "navigation.csv", "evaluation.json",
-               "run.json")
+INPUT_NAMES = (MARKERS_JSON, FRAME_CALIBRATION_JSON, REGISTRATION_JSON, NAVIGATION_CSV, EVALUATION_JSON, RUN_JSON)
 
 
 @dataclass
 class ReportInputs:
     """Everything found for one report; None where absent. Positions in image space (LPS mm).
 
-    ``ct`` is the case's CT, possibly still being read (``ct.result()`` waits for it);
-    ``settings`` the case's checked ``case.toml`` (defaults when unreadable); ``notes`` the inputs
-    that could not be read.
+    ``folder`` is the run's outputs (the stage results below are its); ``ct`` is the case's CT, possibly still
+    being read (``ct.result()`` waits for it); ``settings`` the case's checked ``case.toml`` (defaults when
+    unreadable); ``notes`` the inputs that could not be read.
     """
 
     out_dir: Path
     case_dir: Path | None = None
     run: dict | None = None
-    detection: DetectionResult | None = None
-    frame_calibration: FrameCalibration | None = None
-    registration: RegistrationResult | None = None
-    evaluation: Evaluation | None = None
-    navigation_positions: np.ndarray | None = None
-    navigation_labels: list[str] | None = None
+    folder: RunFolder = None  # type: ignore[assignment]  # set in __post_init__: OUT read, nothing in it yet
     ct: VolumeFill | None = None
     ct_path: Path | None = None
     ct_series: str | int | None = None  # a DICOM folder's series, as ``--series`` takes it
@@ -68,6 +66,35 @@ class ReportInputs:
     settings: Settings = field(default_factory=Settings)
     model: MarkerModel = field(default_factory=MarkerModel)
     notes: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.folder is None:
+            self.folder = RunFolder(self.out_dir)
+
+    @property
+    def detection(self) -> DetectionResult | None:
+        return self.folder.detection
+
+    @property
+    def frame_calibration(self) -> FrameCalibration | None:
+        return self.folder.frame_calibration
+
+    @property
+    def registration(self) -> RegistrationResult | None:
+        return self.folder.registration
+
+    @property
+    def evaluation(self) -> Evaluation | None:
+        return self.folder.evaluation
+
+    @property
+    def navigation_positions(self) -> np.ndarray | None:
+        """The probe path (N, 3), image space LPS mm."""
+        return self.folder.navigation_positions
+
+    @property
+    def navigation_labels(self) -> list[str] | None:
+        return self.folder.navigation_labels
 
     @property
     def image(self) -> sitk.Image | None:
@@ -108,30 +135,9 @@ def require_report_inputs(out_dir: str | os.PathLike[str]) -> Path:
     return out
 
 
-def _read_optional(path: Path, read: Callable[[Path], Any], notes: list[str]) -> Any:
-    """``read(path)`` when the file exists; its :class:`EMRegError` becomes a note."""
-    if not path.is_file():
-        return None
-    try:
-        return read(path)
-    except EMRegError as exc:
-        notes.append(str(exc))
-        return None
-
-
 def _max_fre_mm(settings: Settings | None) -> float | None:
     """The case's ``[registration] max_fre_mm`` (the default without settings)."""
     return (settings or Settings()).registration.max_fre_mm
-
-
-def _read_json_object(what: str) -> Callable[[Path], dict]:
-    def read(path: Path) -> dict:
-        document = read_json(path, what)
-        if not isinstance(document, dict):
-            raise EMRegError(f"{path}: not a {what} (expected a JSON object)")
-        return document
-
-    return read
 
 
 def _resolve_case_dir(out_dir: Path, case_dir: Path | None, run: dict | None, notes: list[str]) -> Path | None:
@@ -146,7 +152,7 @@ def _resolve_case_dir(out_dir: Path, case_dir: Path | None, run: dict | None, no
     for candidate in (Path(recorded), out_dir / recorded):
         if candidate.is_dir():
             return candidate
-    notes.append(f"{out_dir / 'run.json'}: the recorded case folder {recorded} is not there any more; "
+    notes.append(f"{out_dir / RUN_JSON}: the recorded case folder {recorded} is not there any more; "
                  "give it with --case to see the CT")
     return None
 
@@ -235,22 +241,16 @@ def load_report_inputs(out_dir: str | os.PathLike[str], case_dir: str | os.PathL
     out = require_report_inputs(out_dir)
     inputs = ReportInputs(out_dir=out)
     notes = inputs.notes
-    inputs.run = _read_optional(out / "run.json", _read_json_object("run record"), notes)
+    inputs.run = read_manifest(out, notes)
     inputs.case_dir = _resolve_case_dir(out, Path(case_dir) if case_dir is not None else None, inputs.run, notes)
     if inputs.case_dir is not None:
         _read_case(inputs)
     if settings is not None:  # the command's own (``--settings``): those its provenance names
         inputs.settings = settings
-    if (out / "registration.json").exists():
-        # A registration that cannot be trusted (corrupt, non-finite, not rigid, FRE above the limit) is
-        # never drawn as if it were: the report is refused (exit 2, or 3 for the FRE), not annotated.
-        inputs.registration = read_registration(out / "registration.json", _max_fre_mm(inputs.settings))
+    # A registration that cannot be trusted (corrupt, non-finite, not rigid, FRE above the limit) is
+    # never drawn as if it were: the report is refused (exit 2, or 3 for the FRE), not annotated.
+    inputs.folder = read_run_folder(out, inputs.run, _max_fre_mm(inputs.settings))
     _start_ct(inputs, image, read_image, keep_ct)
-    inputs.detection = _read_optional(out / "markers.json", read_detection, notes)
-    inputs.frame_calibration = _read_optional(out / "frame_calibration.json", read_frame_calibration, notes)
-    inputs.evaluation = _read_optional(out / "evaluation.json", read_evaluation, notes)
-    navigation = _read_optional(out / "navigation.csv", read_navigation_csv, notes)
-    if navigation is not None:
-        inputs.navigation_positions, inputs.navigation_labels = navigation
+    notes.extend(inputs.folder.notes)
     inputs.model = inputs.settings.marker
     return inputs

@@ -14,20 +14,21 @@ from typing import TYPE_CHECKING
 
 from ..errors import EMRegError
 from ..io.atomic import atomic_write_bytes, atomic_write_text
+from ..names import REPORT_FIGURES, REPORT_HTML
 from ..progress import QUIET, Progress
-from . import sections
 from .checks import collect_warnings
 from .derived import calibration_points, marker_rows, report_fre_curve
 from .figures import FIGURE_NAMES, ReportData, prepare_ct_products, render_figures
 from .inputs import ReportInputs, load_report_inputs
+from .sections import build_html
 
 if TYPE_CHECKING:
     import SimpleITK as sitk
 
     from ..settings import Settings
 
-REPORT_NAME = "report.html"
-FIGURE_DIR = "report_figures"
+#: Read by ct_memo (helper ``ct`` moves it onto :data:`~EMRegModule.names.REPORT_FIGURES`; then this line goes).
+FIGURE_DIR = REPORT_FIGURES
 
 
 def write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
@@ -192,7 +193,7 @@ def _write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[s
         raise
     checked = _check_run_ct(inputs)
     data.warnings = collect_warnings(inputs, rows, curve)  # after the figures: a CT that failed to read is a note
-    figure_dir = inputs.out_dir / FIGURE_DIR
+    figure_dir = inputs.out_dir / REPORT_FIGURES
     for figure in figures:
         atomic_write_bytes(figure_dir / f"{figure.name}.png", figure.png)
     _keep_ct_products(data, checked, handed)
@@ -200,8 +201,8 @@ def _write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[s
     for name in FIGURE_NAMES:  # figures of an earlier run that this one did not produce are stale
         if name not in produced:
             (figure_dir / f"{name}.png").unlink(missing_ok=True)
-    path = inputs.out_dir / REPORT_NAME
-    atomic_write_text(path, sections.build_html(data, figures))
+    path = inputs.out_dir / REPORT_HTML
+    atomic_write_text(path, build_html(data, figures))
     ct = None
     if inputs.ct is not None and inputs.ct.read_error() is None:
         ct = inputs.ct.result()

@@ -14,8 +14,9 @@ and ``EMRegTest`` (drives the Logic end to end on a simulated case).
 The Logic needs only MRML nodes and ``slicer.util``: inside Slicer they are the application's;
 outside it (the tests) the ``slicer-core`` wheel provides them without Qt, and the scripted-module
 bases Slicer's application would provide are replaced by minimal ones (see the imports). The nodes
-are made by ``EMRegModule/io/slicer_scene.py``, which also writes the ``EMReg.mrb`` bundle of
-``emreg run``. Supported: 3D Slicer 5.10 and later (Python 3.12; EMReg needs 3.11).
+are made by the package ``EMRegModule/slicer_export/``, which also writes the ``EMReg.mrb`` bundle of
+``emreg run``; their names are ``EMRegModule/names.py``'s.
+Supported: 3D Slicer 5.10 and later (Python 3.12; EMReg needs 3.11).
 
 Coordinates: EMReg works in the CT's LPS space, Slicer in RAS. Markers and targets are
 converted point by point (x, y negated). ``ReferenceToImage`` becomes the linear transform
@@ -29,11 +30,19 @@ import importlib.util
 import logging
 import os
 import sys
-import unittest
 from pathlib import Path
 
 import slicer
 from slicer.util import VTKObservationMixin
+
+MODULE_DIR = Path(__file__).resolve().parent
+REPOSITORY_ROOT = MODULE_DIR.parents[1]
+UI_FILE = REPOSITORY_ROOT / "Resources" / "UI" / "EMReg.ui"
+ICON_FILE = REPOSITORY_ROOT / "Resources" / "Icons" / "EMReg.png"
+
+if str(REPOSITORY_ROOT) not in sys.path:  # the names module is the repository's, read before anything else
+    sys.path.insert(0, str(REPOSITORY_ROOT))
+from EMRegModule import names  # noqa: E402 - plain constants (Python 3.9 too, so that old Slicers load this file)
 
 try:  # the 3D Slicer application (Qt)
     import qt
@@ -47,41 +56,14 @@ try:
         ScriptedLoadableModuleTest,
         ScriptedLoadableModuleWidget,
     )
-except ImportError:
-    # Outside the Slicer application. The slicer-core wheel has Slicer's MRML, storage nodes, module logics and
-    # slicer.util, but not Slicer's Python package for scripted modules (it needs Qt and the application). So that
-    # the Logic and the self-test run on slicer-core's MRML (in CI), their bases are replaced here by the parts of
-    # Slicer's bases they use; the module description and the Widget need the application and refuse to start.
+except ImportError:  # outside the Slicer application: the parts of Slicer's bases the Logic and the test use
+    from EMRegModule.slicer_export.scripted_bases import (
+        ScriptedLoadableModule,
+        ScriptedLoadableModuleLogic,
+        ScriptedLoadableModuleTest,
+        ScriptedLoadableModuleWidget,
+    )
 
-    class ScriptedLoadableModuleLogic:
-        """Outside Slicer: what Slicer's base does in its constructor (the module name, singleton parameter
-        node); its parameter-node helpers are not provided (EMRegLogic does not use them)."""
-
-        def __init__(self, parent=None):
-            self.moduleName = type(self).__name__[: -len("Logic")]
-            self.isSingletonParameterNode = True
-
-    class ScriptedLoadableModuleTest(unittest.TestCase):
-        """Outside Slicer: a unittest.TestCase whose delayDisplay logs (no message box)."""
-
-        def delayDisplay(self, message, requestedDelay=None, msec=None):
-            logging.info("EMReg test: %s", message)
-
-    class _NeedsSlicerApplication:
-        def __init__(self, *args, **kwargs):
-            raise RuntimeError(f"{type(self).__name__} needs the 3D Slicer application (Qt); outside it use "
-                               "EMRegLogic (MRML only) or the 'emreg' command")
-
-    class ScriptedLoadableModule(_NeedsSlicerApplication):
-        pass
-
-    class ScriptedLoadableModuleWidget(_NeedsSlicerApplication):
-        pass
-
-MODULE_DIR = Path(__file__).resolve().parent
-REPOSITORY_ROOT = MODULE_DIR.parents[1]
-UI_FILE = REPOSITORY_ROOT / "Resources" / "UI" / "EMReg.ui"
-ICON_FILE = REPOSITORY_ROOT / "Resources" / "Icons" / "EMReg.png"
 
 #: Python packages EMReg needs: import name -> (pip name, what needs it).
 DEPENDENCIES = {
@@ -318,20 +300,21 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     of its methods, then the result is written to the output folder (the same files as
     ``emreg run``) and shown in the scene. Usable without the panel (Python console, tests) and
     without Qt: it needs only MRML nodes and ``slicer.util`` (3D Slicer's, or the slicer-core
-    wheel's). The nodes are made by :mod:`EMRegModule.io.slicer_scene`, the same code that writes
+    wheel's). The nodes are made by :mod:`EMRegModule.slicer_export`, the same code that writes
     the scene bundle ``EMReg.mrb`` of ``emreg run``, so both show the same nodes.
 
     ``scene``: the MRML scene to show the results in (default ``slicer.mrmlScene``).
     """
 
-    VOLUME_NODE_NAME = "EMReg CT"
-    MARKERS_NODE_NAME = "EMReg markers"
-    CALIBRATION_NODE_NAME = "EMReg calibration points"
-    TARGETS_NODE_NAME = "EMReg targets"
-    PATH_NODE_NAME = "EMReg probe path"
-    TRANSFORM_NODE_NAME = "ReferenceToImage"
-    PROBE_NODE_NAME = "ProbeToReference"
-    CONNECTOR_NODE_NAME = "EMReg OpenIGTLink"
+    # the node names of EMRegModule/names.py (the bundle's too)
+    VOLUME_NODE_NAME = names.VOLUME_NODE_NAME
+    MARKERS_NODE_NAME = names.MARKERS_NODE_NAME
+    CALIBRATION_NODE_NAME = names.CALIBRATION_NODE_NAME
+    TARGETS_NODE_NAME = names.TARGETS_NODE_NAME
+    PATH_NODE_NAME = names.PATH_NODE_NAME
+    TRANSFORM_NODE_NAME = names.TRANSFORM_NODE_NAME
+    PROBE_NODE_NAME = names.PROBE_NODE_NAME
+    CONNECTOR_NODE_NAME = names.CONNECTOR_NODE_NAME
     COMMAND = "EMReg (3D Slicer)"
 
     def __init__(self, settings=None, scene=None):
@@ -396,19 +379,11 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         """Register onto the defined control points of a markups node (world RAS, as Slicer shows them; kept
         in LPS) instead of CT markers: a rigid point fit of the calibration points, no sensor offset. Checked as a
         fiducials file is (at least 3, unique labels, not on one line); drops the registration."""
-        import numpy as np
-
         from EMRegModule.io.fiducials import Fiducials, check_fiducials
+        from EMRegModule.slicer_export.nodes import markups_points_lps
 
-        labels, positions = [], []
-        for i in range(markupsNode.GetNumberOfControlPoints()):
-            if markupsNode.GetNthControlPointPositionStatus(i) != markupsNode.PositionDefined:
-                continue
-            ras = [0.0, 0.0, 0.0]
-            markupsNode.GetNthControlPointPositionWorld(i, ras)
-            labels.append(markupsNode.GetNthControlPointLabel(i) or f"F-{i + 1}")
-            positions.append([-ras[0], -ras[1], ras[2]])
-        fiducials = Fiducials(labels, np.asarray(positions, dtype=float).reshape(-1, 3),
+        labels, positions = markups_points_lps(markupsNode)
+        fiducials = Fiducials(labels, positions,
                               f"markups node {markupsNode.GetName()}", "3D Slicer markups node", "LPS",
                               {"coordinate_system": "RAS (world)", "units": "mm"})
         check_fiducials(fiducials)
@@ -518,7 +493,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         self.evaluation = self.controller.evaluation
         if self.controller.navigation is not None:
             self._lastProbePose(self.case.read_recording("navigation"))
-        page = self.outputDirectory / "report.html"
+        page = self.outputDirectory / names.REPORT_HTML
         self.reportPath = page if report and page.is_file() else None
         self.showResults()
         return summary
@@ -533,23 +508,12 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
     # --- live navigation ----------------------------------------------------------------------------
 
-    def startLiveNavigation(self, host="localhost", port=18944):
+    def startLiveNavigation(self, host="localhost", port=names.DEFAULT_IGTL_PORT):
         """Connect OpenIGTLinkIF to an ``emreg navigate --igtl-port PORT`` server: ``ProbeToImage`` (RAS)
         arrives as a linear transform node. Needs the SlicerOpenIGTLink extension."""
-        from EMRegModule.errors import EMRegError
+        from EMRegModule.slicer_export.nodes import connect_igtl_client
 
-        try:
-            connector = self.scene.AddNewNodeByClass("vtkMRMLIGTLConnectorNode", self.CONNECTOR_NODE_NAME)
-        except Exception:  # noqa: BLE001 - Slicer raises a plain error for an unknown node class
-            connector = None
-        if connector is None:
-            raise EMRegError("OpenIGTLinkIF is not available: install the SlicerOpenIGTLink extension "
-                             "(Extensions Manager) for live navigation")
-        connector.SetTypeClient(str(host), int(port))
-        if connector.Start() != 1:
-            self.scene.RemoveNode(connector)
-            raise EMRegError(f"cannot connect to OpenIGTLink at {host}:{port}: start 'emreg navigate --igtl-port "
-                             f"{port}' first")
+        connector = connect_igtl_client(self.scene, host, port, self.CONNECTOR_NODE_NAME)
         self.connectorNode = connector
         logging.info("EMReg: OpenIGTLink client connected to %s:%s; ProbeToImage will appear as a transform node",
                      host, port)
@@ -582,10 +546,10 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
     def showVolume(self):
         """The controller's CT as a scalar volume node (IJK-to-RAS from the image's LPS geometry)."""
-        from EMRegModule.io import slicer_scene
+        from EMRegModule.slicer_export.nodes import show_volume
 
         # A copy: in 3D Slicer a user may edit the volume in place; the controller's CT must not change.
-        node = slicer_scene.show_volume(self.scene, self.controller.image, self.VOLUME_NODE_NAME,
+        node = show_volume(self.scene, self.controller.image, self.VOLUME_NODE_NAME,
                                         node=self.nodes.get(self.VOLUME_NODE_NAME), copy_voxels=True)
         self.nodes[self.VOLUME_NODE_NAME] = node
         if hasattr(slicer, "app"):  # slice views exist only in the application
@@ -593,39 +557,26 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         return node
 
     def resultsContent(self):
-        """What the scene shows, from the controller's results (as the bundle does from the output files)."""
-        import numpy as np
-
-        from EMRegModule.io.slicer_scene import RunScene
+        """What the scene shows, from the controller's results: the run's typed view
+        (:class:`~EMRegModule.run_folder.RunFolder`, in memory) turned into a scene as the bundle's is."""
+        from EMRegModule.io.markups import read_markups
+        from EMRegModule.run_folder import RunFolder
+        from EMRegModule.slicer_export.run_scene import run_scene_of
 
         controller = self.controller
-        content = RunScene()
-        if controller.detection is not None:
-            markers = controller.detection.markers
-            content.marker_ids = [m.id for m in markers]
-            content.marker_origins = np.array([m.origin for m in markers], dtype=float).reshape(-1, 3)
-            content.marker_axes = np.array([m.axis for m in markers], dtype=float).reshape(-1, 3)
-        if controller.frame_calibration is not None:
-            content.calibration_labels = list(controller.frame_calibration.labels)
-            content.calibration_points = controller.frame_calibration.positions
-        if controller.registration is not None:
-            content.registration = controller.registration.to_json()
-            if controller.navigation is not None:
-                content.path = controller.navigation.position_mm
-                content.probe_to_reference = self.probeToReference
-        if self.case is not None and self.case.targets is not None:
-            from EMRegModule.io.markups import read_markups
-
-            labels, positions = read_markups(self.case.targets)
-            content.target_labels, content.targets = list(labels), np.asarray(positions, dtype=float)
-        return content
+        navigated = controller.registration is not None and controller.navigation is not None
+        folder = RunFolder(self.outputDirectory, detection=controller.detection,
+                           frame_calibration=controller.frame_calibration, registration=controller.registration,
+                           navigation_positions=controller.navigation.position_mm if navigated else None)
+        targets = read_markups(self.case.targets) if self.case is not None and self.case.targets is not None else None
+        return run_scene_of(folder, targets, self.probeToReference if navigated else None)
 
     def showResults(self):
         """Show (or update) every result node: markers, calibration points under ``ReferenceToImage``,
         pinhole points, residual spheres, targets, probe path and pose; nodes of dropped results go."""
-        from EMRegModule.io import slicer_scene
+        from EMRegModule.slicer_export.run_scene import build_run_scene
 
-        return slicer_scene.build_run_scene(self.scene, self.resultsContent(), self.nodes)
+        return build_run_scene(self.scene, self.resultsContent(), self.nodes)
 
     def resultsText(self):
         """A few lines of figures for the panel."""
@@ -699,8 +650,8 @@ class EMRegTest(ScriptedLoadableModuleTest):
 
         import numpy as np
 
-        from EMRegModule.frames import LPS_TO_RAS, lps_to_ras_points
         from EMRegModule.simulation import load_truth
+        from EMRegModule.slicer_export.scene_check import scene_disagreements
         from EMRegModule.transforms import apply_transform
 
         self.delayDisplay("Starting the EMReg test")
@@ -726,27 +677,8 @@ class EMRegTest(ScriptedLoadableModuleTest):
             np.linalg.inv(true_reference_to_image), markers)) - markers
         self.assertLess(float(np.max(np.linalg.norm(error, axis=1))), 1.0)
 
-        # MRML: markers in RAS, the transform node = ReferenceToRAS
-        markersNode = slicer.mrmlScene.GetFirstNodeByName(EMRegLogic.MARKERS_NODE_NAME)
-        self.assertEqual(markersNode.GetNumberOfControlPoints(), len(detection.markers))
-        markersRas = slicer.util.arrayFromMarkupsControlPoints(markersNode, world=True)
-        self.assertTrue(np.allclose(markersRas, lps_to_ras_points([m.origin for m in detection.markers]), atol=1e-6))
-        transformNode = slicer.mrmlScene.GetFirstNodeByName(EMRegLogic.TRANSFORM_NODE_NAME)
-        matrix = slicer.util.arrayFromTransformMatrix(transformNode, toWorld=True)
-        expected = LPS_TO_RAS @ registration.reference_to_image
-        self.assertTrue(np.allclose(matrix, expected, atol=1e-9))
-
-        # calibration points under ReferenceToImage land on their markers' pinhole points (world = RAS)
-        calibrationNode = slicer.mrmlScene.GetFirstNodeByName(EMRegLogic.CALIBRATION_NODE_NAME)
-        self.assertEqual(calibrationNode.GetTransformNodeID(), transformNode.GetID())
-        calibrationRas = slicer.util.arrayFromMarkupsControlPoints(calibrationNode, world=True)
-        labels = [calibrationNode.GetNthControlPointLabel(i) for i in range(calibrationNode.GetNumberOfControlPoints())]
-        byId = {m.id: m for m in detection.markers}
-        for pair in registration.pairs:
-            marker = byId[pair["image_marker"]]
-            pinholeRas = lps_to_ras_points(marker.origin + registration.sensor_offset_l_mm * marker.axis)[0]
-            landed = calibrationRas[labels.index(pair["calibration_point"])]
-            self.assertAlmostEqual(float(np.linalg.norm(landed - pinholeRas)), pair["residual_mm"], delta=1e-6)
+        # MRML (world coordinates): markers, ReferenceToRAS, calibration points on their pinhole points
+        self.assertEqual(scene_disagreements(slicer.mrmlScene, detection, registration), [])
 
         self.delayDisplay("Navigating and writing the report")
         if logic.case.navigation is not None:
@@ -755,12 +687,11 @@ class EMRegTest(ScriptedLoadableModuleTest):
             if logic.evaluation is not None and logic.evaluation.tre is not None:
                 self.assertLess(logic.evaluation.tre.mean_mm, 2.0)
             # the last probe pose, under ReferenceToImage, lands where navigation says (RAS)
-            probeNode = slicer.mrmlScene.GetFirstNodeByName(EMRegLogic.PROBE_NODE_NAME)
-            self.assertEqual(probeNode.GetTransformNodeID(), transformNode.GetID())
-            probeToRas = slicer.util.arrayFromTransformMatrix(probeNode, toWorld=True)
-            self.assertTrue(np.allclose(probeToRas[:3, 3], lps_to_ras_points(navigation.position_mm[-1])[0], atol=1e-6))
+            self.assertEqual(scene_disagreements(slicer.mrmlScene, detection, registration,
+                                                 navigation.position_mm[-1]), [])
         report = logic.writeReport()
         self.assertTrue(Path(report).is_file())
-        for name in ("markers.json", "frame_calibration.json", "registration.json", "ReferenceToImage.h5"):
+        for name in (names.MARKERS_JSON, names.FRAME_CALIBRATION_JSON, names.REGISTRATION_JSON,
+                     names.REFERENCE_TO_IMAGE_H5):
             self.assertTrue((output / name).is_file(), name)
         self.delayDisplay("Test passed")

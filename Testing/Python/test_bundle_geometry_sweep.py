@@ -163,7 +163,7 @@ def swept_run(request, base_case, tmp_path_factory) -> tuple[str, Path, Path, np
 
 
 def _import_bundle(path: Path):
-    from EMRegModule.io.slicer_scene import SlicerScene
+    from EMRegModule.slicer_export.mrml import SlicerScene
 
     mrml = SlicerScene()
     mrml.read_bundle(path)
@@ -298,12 +298,12 @@ def test_bundle_shows_every_node_where_the_ct_and_the_outputs_put_it(swept_run):
 def test_bundle_written_from_the_outputs_shows_the_series_the_run_detected_in(swept_run, tmp_path):
     """``write_run_bundle(OUT)`` without the CT in memory reads it again: of a DICOM folder of several series,
     the one the run was told to use (``--series 1``), not the folder's default choice (series 2, thinner)."""
-    from EMRegModule.io.slicer_scene import write_run_bundle
+    from EMRegModule.slicer_export.bundle import write_run_bundle
 
     _, case, out, _ = swept_run
     copy = tmp_path / "out"
     shutil.copytree(out, copy, ignore=shutil.ignore_patterns("EMReg.mrb", "report*"))
-    path, message = write_run_bundle(copy)
+    path, message, _ = write_run_bundle(copy)
     assert path == copy / "EMReg.mrb", message
     mrml = _import_bundle(path)
     _check_volume_at_cts_physical_points(mrml.node("EMReg CT"), _read_ct(case, out))

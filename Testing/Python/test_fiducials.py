@@ -214,7 +214,8 @@ def test_run_on_a_fiducial_case(small_case, landmarks, tmp_path):
     page = (out / "report.html").read_text(encoding="utf-8")
     assert "<h2>Fiducials</h2>" in page and "there is no CT" in page and "decoy" in page
     assert "sensor offset l" not in page
-    from EMRegModule.io.slicer_scene import FIDUCIALS_NODE_NAME, SlicerScene, slicer_mrml_missing
+    from EMRegModule.names import FIDUCIALS_NODE_NAME
+    from EMRegModule.slicer_export.mrml import SlicerScene, slicer_mrml_missing
 
     if slicer_mrml_missing() is None:  # the bundle carries the fiducials as a markups node (RAS)
         scene = SlicerScene()
@@ -564,7 +565,7 @@ def test_slicer_panel_uses_the_markups_node_chosen_in_its_selector(small_case, l
 def test_files_written_by_slicers_storage_nodes_are_read_in_lps(tmp_path, storage, name, system):
     """Slicer's own writers (the slicer-core wheel's storage nodes) are the judge of the formats: a point list
     written as .fcsv / .mrk.json in LPS or RAS reads back as the node's RAS positions turned to LPS, labels kept."""
-    from EMRegModule.io.slicer_scene import SlicerScene, slicer_mrml_missing
+    from EMRegModule.slicer_export.mrml import SlicerScene, slicer_mrml_missing
 
     if slicer_mrml_missing() is not None:
         pytest.skip(slicer_mrml_missing())

@@ -16,8 +16,9 @@ import sys
 
 #: Modules each command imports before it knows what it will do (command line, controller, stage modules).
 CORE = ("EMRegModule.cli", "EMRegModule.controller", "EMRegModule.detection.detect", "EMRegModule.registration",
-        "EMRegModule.calibration", "EMRegModule.evaluation", "EMRegModule.navigation", "EMRegModule.report",
-        "EMRegModule.io.slicer_scene", "EMRegModule.io.image")
+        "EMRegModule.calibration", "EMRegModule.evaluation", "EMRegModule.navigation", "EMRegModule.report.writer",
+        "EMRegModule.report.batch",
+        "EMRegModule.slicer_export.bundle", "EMRegModule.slicer_export.run_scene", "EMRegModule.io.image")
 
 #: Libraries none of them may load at import time.
 HEAVY = ("scipy.stats", "scipy.optimize", "matplotlib", "pyvista", "slicer", "vtkmodules.vtkRenderingCore",

@@ -22,8 +22,10 @@ from fixtures.samples import write_sample_run
 
 from EMRegModule.cli import main
 from EMRegModule.errors import EMRegError
+from EMRegModule.names import REPORT_FIGURES
 from EMRegModule.progress import Progress
-from EMRegModule.report import FIGURE_DIR, write_report, write_reports_batch
+from EMRegModule.report.batch import write_reports_batch
+from EMRegModule.report.writer import write_report
 
 CHROMIUM_CANDIDATES = ("/usr/bin/chromium", "/usr/bin/chromium-browser", "/usr/bin/google-chrome")
 ALL_FIGURES = ("scene_oblique", "scene_top", "marker_slices", "residuals", "fre_curve", "tre_targets")
@@ -90,7 +92,7 @@ def test_report_shows_every_figure_and_table(sample_run):
         image = cv2.imdecode(np.frombuffer(base64.b64decode(source.split(",", 1)[1]), np.uint8), cv2.IMREAD_COLOR)
         assert image is not None and image.shape[0] > 100 and image.shape[1] > 300
     for name in ALL_FIGURES:
-        png = root / "out" / FIGURE_DIR / f"{name}.png"
+        png = root / "out" / REPORT_FIGURES / f"{name}.png"
         assert png.is_file() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert base64.b64encode(png.read_bytes()).decode() in text  # the page embeds the very same file
     registration = json.loads((root / "out" / "registration.json").read_text(encoding="utf-8"))
@@ -107,7 +109,7 @@ def test_report_shows_every_figure_and_table(sample_run):
 
 def test_slices_show_the_fitted_outline_on_the_ct(sample_run):
     root, _, _ = sample_run
-    mosaic = cv2.imread(str(root / "out" / FIGURE_DIR / "marker_slices.png"))[:, :, ::-1]
+    mosaic = cv2.imread(str(root / "out" / REPORT_FIGURES / "marker_slices.png"))[:, :, ::-1]
     green = np.all(np.abs(mosaic.astype(int) - (40, 200, 80)) < 40, axis=2)
     orange = np.all(np.abs(mosaic.astype(int) - (255, 140, 0)) < 40, axis=2)
     bright = mosaic.min(axis=2) > 200  # PVC in the CT window
@@ -121,7 +123,7 @@ def test_report_is_deterministic(sample_run, tmp_path):
     second = write_report(out, case_dir=root / "case")
     assert _without_out_path(second) == _without_out_path(first)
     for name in ALL_FIGURES:
-        figure = FIGURE_DIR + f"/{name}.png"
+        figure = REPORT_FIGURES + f"/{name}.png"
         assert (out / figure).read_bytes() == (root / "out" / figure).read_bytes()
 
 
@@ -136,7 +138,7 @@ def test_missing_inputs_leave_sections_out_with_a_note(tmp_path, sample_run):
     assert "Not shown: no frame_calibration.json" in text
     assert "the CT was not found" in text and "no CT available" in text
     assert "fig-scene_oblique" in text and "fig-marker_slices" not in text and "fig-residuals" not in text
-    assert sorted(p.name for p in (out / FIGURE_DIR).iterdir()) == ["scene_oblique.png", "scene_top.png"]
+    assert sorted(p.name for p in (out / REPORT_FIGURES).iterdir()) == ["scene_oblique.png", "scene_top.png"]
 
 
 def test_calibration_alone_gives_tables_but_no_empty_scene(tmp_path, sample_run):
@@ -160,8 +162,9 @@ def test_refusal_and_stale_figures(tmp_path, sample_run):
     text = write_report(out).read_text(encoding="utf-8")
     assert "Refused: register: refused: the pairing is ambiguous" in text
     assert text.index("Refused:") < text.index("Frame in 3D")
-    assert not (out / FIGURE_DIR / "residuals.png").exists() and not (out / FIGURE_DIR / "fre_curve.png").exists()
-    assert (out / FIGURE_DIR / "marker_slices.png").is_file()
+    figures = out / REPORT_FIGURES
+    assert not (figures / "residuals.png").exists() and not (figures / "fre_curve.png").exists()
+    assert (out / REPORT_FIGURES / "marker_slices.png").is_file()
 
 
 def test_warnings_for_outliers_and_an_offset_off_the_fre_minimum(tmp_path, sample_run):
@@ -189,7 +192,7 @@ def test_interrupted_report_keeps_the_previous_page(tmp_path, sample_run, monkey
     def broken(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr("EMRegModule.report.sections.build_html", broken)
+    monkeypatch.setattr("EMRegModule.report.writer.build_html", broken)
     with pytest.raises(KeyboardInterrupt):
         write_report(out)
     assert (out / "report.html").read_bytes() == before
@@ -344,7 +347,7 @@ def test_the_ct_given_handed_over_or_streamed_gives_the_same_page_and_figures(sa
 
     root, _, _ = sample_run
     out = _copy_run(sample_run, tmp_path)
-    for figure in (out / FIGURE_DIR).iterdir():
+    for figure in (out / REPORT_FIGURES).iterdir():
         figure.unlink()
     image = read_ct(root / "case" / "ct.nrrd")
     if how == "given":
@@ -359,8 +362,8 @@ def test_the_ct_given_handed_over_or_streamed_gives_the_same_page_and_figures(sa
         page, kept = write_report_keeping_ct(out, keep_ct=False)
         assert kept is None
     assert _without_out_path(page) == _without_out_path(root / "out" / "report.html")
-    for figure in (root / "out" / FIGURE_DIR).iterdir():
-        assert (out / FIGURE_DIR / figure.name).read_bytes() == figure.read_bytes(), figure.name
+    for figure in (root / "out" / REPORT_FIGURES).iterdir():
+        assert (out / REPORT_FIGURES / figure.name).read_bytes() == figure.read_bytes(), figure.name
 
 
 def test_an_early_ct_read_is_used_only_when_it_is_the_reports_ct(sample_run, tmp_path):
@@ -380,5 +383,5 @@ def test_an_early_ct_read_is_used_only_when_it_is_the_reports_ct(sample_run, tmp
         page, kept = write_report_keeping_ct(out, image=early, keep_ct=False)
         assert kept is None
         assert _without_out_path(page) == _without_out_path(root / "out" / "report.html")
-        for figure in (root / "out" / FIGURE_DIR).iterdir():
-            assert (out / FIGURE_DIR / figure.name).read_bytes() == figure.read_bytes(), figure.name
+        for figure in (root / "out" / REPORT_FIGURES).iterdir():
+            assert (out / REPORT_FIGURES / figure.name).read_bytes() == figure.read_bytes(), figure.name

@@ -400,7 +400,7 @@ def test_a_signal_while_slicer_core_loads_waits_for_the_import(monkeypatch):
     now never cut: the signal is delivered once it is done, as the interrupt it is."""
     import builtins
 
-    from EMRegModule.io.slicer_scene import slicer_mrml_missing
+    from EMRegModule.slicer_export.mrml import slicer_mrml_missing
 
     pytest.importorskip("slicer")
     during = _signal_during(monkeypatch, builtins, "__import__", lambda name, *rest: name == "slicer")

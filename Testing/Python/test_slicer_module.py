@@ -313,7 +313,7 @@ class SlicerHarness:
         import slicer
         import slicer.util
 
-        from EMRegModule.io.slicer_scene import SlicerScene
+        from EMRegModule.slicer_export.mrml import SlicerScene
 
         self.mrml = SlicerScene()
         self.scene = self.mrml.scene
@@ -690,7 +690,7 @@ def run_output(standard_case, tmp_path_factory):
 
 
 def _import_bundle(path: Path):
-    from EMRegModule.io.slicer_scene import SlicerScene
+    from EMRegModule.slicer_export.mrml import SlicerScene
 
     mrml = SlicerScene()
     mrml.read_bundle(path)
@@ -810,7 +810,9 @@ def test_bundle_volume_from_the_file_or_from_memory_loads_in_slicer_with_the_cts
     import SimpleITK as sitk
     import slicer.util
 
-    from EMRegModule.io.slicer_scene import SlicerScene, show_stored_volume, show_volume, stored_voxels
+    from EMRegModule.slicer_export.mrb import stored_voxels
+    from EMRegModule.slicer_export.mrml import SlicerScene
+    from EMRegModule.slicer_export.nodes import show_stored_volume, show_volume
 
     rng = np.random.default_rng(7)
     image = sitk.GetImageFromArray(rng.integers(-1000, 3000, size=(7, 9, 11)).astype(np.int16))
@@ -846,7 +848,7 @@ def test_bundle_volume_from_the_file_or_from_memory_loads_in_slicer_with_the_cts
 
 def test_stored_voxels_only_for_plain_nrrd_in_the_machines_byte_order(tmp_path):
     """A big-endian NRRD, detached data or an .nhdr are read into memory for the bundle, never copied."""
-    from EMRegModule.io.slicer_scene import stored_voxels
+    from EMRegModule.slicer_export.mrb import stored_voxels
 
     header = "NRRD0004\ntype: short\ndimension: 3\nsizes: 2 2 2\nencoding: raw\nendian: {}\n\n"
     little, big = tmp_path / "little.nrrd", tmp_path / "big.nrrd"
@@ -863,7 +865,8 @@ def test_volume_node_shares_the_images_voxels_and_keeps_the_image_alive(slicer_c
     import SimpleITK as sitk
     import slicer.util
 
-    from EMRegModule.io.slicer_scene import SlicerScene, show_volume
+    from EMRegModule.slicer_export.mrml import SlicerScene
+    from EMRegModule.slicer_export.nodes import show_volume
 
     voxels = np.arange(4 * 5 * 6, dtype=np.int16).reshape(4, 5, 6)
     image = sitk.GetImageFromArray(voxels)
@@ -1161,7 +1164,7 @@ def test_bundle_shows_the_predicted_tre_map_as_slicer_reads_it(run_output, tmp_p
     import vtk
 
     from EMRegModule.io.image import index_to_physical_matrix
-    from EMRegModule.io.slicer_scene import write_run_bundle
+    from EMRegModule.slicer_export.bundle import write_run_bundle
 
     _, out = run_output
     copy = tmp_path / "out"
@@ -1175,7 +1178,7 @@ def test_bundle_shows_the_predicted_tre_map_as_slicer_reads_it(run_output, tmp_p
         tre_map.SetDirection(geometry["direction"])
         sitk.WriteImage(tre_map, str(copy / "tre_map.nrrd"))
     expected = sitk.ReadImage(str(copy / "tre_map.nrrd"))
-    path, message = write_run_bundle(copy)
+    path, message, _ = write_run_bundle(copy)
     assert path == copy / "EMReg.mrb", message
     mrml = _import_bundle(path)  # keep the scene alive while its nodes are used
     node = mrml.node("EMReg predicted TRE (mm)")

@@ -126,7 +126,7 @@ def test_itk_tool_file_maps_as_3d_slicer_reads_and_writes_it(tmp_path):
     import slicer.util
     import vtk
 
-    from EMRegModule.io.slicer_scene import SlicerScene
+    from EMRegModule.slicer_export.mrml import SlicerScene
 
     tip_to_probe = make_transform(random_rotation(np.random.default_rng(3)), [108.6, 7.8, 2.5])
     write_tip_to_probe_itk(tmp_path / "TipToProbe.h5", tip_to_probe)
@@ -454,10 +454,11 @@ def test_the_slicer_bundle_carries_the_tip(stylus_case):
     import slicer.util
     import vtk
 
-    from EMRegModule.io.slicer_scene import SlicerScene, write_run_bundle
+    from EMRegModule.slicer_export.bundle import write_run_bundle
+    from EMRegModule.slicer_export.mrml import SlicerScene
 
     folder, truth, _ = stylus_case
-    path, message = write_run_bundle(folder / "out", folder / "case")
+    path, message, _ = write_run_bundle(folder / "out", folder / "case")
     assert path is not None, message
     mrml = SlicerScene()
     mrml.read_bundle(path)
