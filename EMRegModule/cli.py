@@ -122,8 +122,7 @@ def _ports_given(args: argparse.Namespace, settings: Settings) -> tuple[int | No
 def _controller(args: argparse.Namespace, settings: Settings) -> EMRegController:
     from .controller import EMRegController
 
-    controller = EMRegController(settings, _progress(args))
-    controller.command = f"emreg {args.command}"
+    controller = EMRegController(settings, _progress(args), f"emreg {args.command}")
     controller.set_sensors(getattr(args, "reference_sensor", None), getattr(args, "probe_sensor", None))
     return controller
 
@@ -158,9 +157,9 @@ def cmd_detect(args: argparse.Namespace) -> int:
     ct_path = find_ct(source) if case_dir is not None else source
     controller = _controller(args, _with_series(_settings(args, case_dir), args))
     folder = _output_folder(args, "detect", [ct_path], case_dir)
-    controller.note_inputs(ct=ct_path if ct_path.exists() else None)
+    controller.recorder.note_inputs(ct=ct_path if ct_path.exists() else None)
     result = controller.load_ct_and_detect(ct_path, keep_image=False)  # detects on the slices read as the rest arrives
-    controller.save_detection(folder)
+    controller.save("detect", folder)
     print(f"{len(result.markers)} markers detected, {len(result.rejected)} candidates rejected -> {args.out}")
     return 0
 
@@ -185,10 +184,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     controller.load_calibration_recording(recording)
     tool_file = [Path(args.tool)] if args.tool and args.tool != "auto" else []
     folder = _output_folder(args, "calibrate", [recording] + tool_file)
-    controller.note_inputs(calibration=recording)
+    controller.recorder.note_inputs(calibration=recording)
     result = controller.calibrate_frame()
-    controller.save_frame_calibration(folder)
-    controller.warn(result.warnings)
+    controller.save("calibrate", folder)
+    controller.recorder.warn(result.warnings)
     if controller.tool is None:
         print(f"{len(result.points)} pinholes calibrated -> {args.out}")
     else:
@@ -241,16 +240,16 @@ def cmd_register(args: argparse.Namespace) -> int:
     if args.targets:
         from .io.case import read_targets
 
-        controller.note_inputs(targets=args.targets)
+        controller.recorder.note_inputs(targets=args.targets)
         targets = read_targets(args.targets)[1]
     try:
         result = controller.register(targets)
     except NoSafeAnswerError:
         folder.remove_from("register")
         raise
-    controller.save_registration(folder)
-    controller.warn(result.warnings)
-    from .controller import offset_summary
+    controller.save("register", folder)
+    controller.recorder.warn(result.warnings)
+    from .workflow.results import offset_summary
 
     print(f"registered: FRE {result.fre_mm:.2f} mm, {offset_summary(result)}, {len(result.pairs)} pairs -> {args.out}")
     return 0
@@ -285,11 +284,12 @@ def cmd_navigate(args: argparse.Namespace) -> int:
                                 controller.probe_sensor) if controller.tool is None
                  else controller.read_recording(recording_path))
     folder = _output_folder(args, "navigate", [recording_path, Path(args.registration)])
-    controller.note_inputs(navigation=recording_path)
+    controller.recorder.note_inputs(navigation=recording_path)
     result = controller.navigate_recording(recording)
-    controller.warn(recording.warnings)
-    controller.save_navigation(folder)
-    print(f"{len(result)} probe samples mapped into image space; {controller.checkpoints.summary()} -> {args.out}")
+    controller.recorder.warn(recording.warnings)
+    controller.save("navigate", folder)
+    checkpoints = controller.results.checkpoints
+    print(f"{len(result)} probe samples mapped into image space; {checkpoints.summary()} -> {args.out}")
     return 0
 
 
@@ -312,13 +312,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     controller.load_registration(args.registration)
     _warn("evaluate", controller.use_ports(*given, args.registration))
     case.settings = case.settings.with_sensors(controller.reference_sensor, controller.probe_sensor)
-    controller.check_case_inputs("registration.json", args.registration, case)
-    controller.note_inputs(navigation=case.navigation, targets=case.targets, board=case.board)
+    controller.recorder.check_case_inputs("registration.json", args.registration, case)
+    controller.recorder.note_inputs(navigation=case.navigation, targets=case.targets, board=case.board)
     _use_tool(args, controller, solves=False)
     result = controller.evaluate(controller.case_recording(case, "navigation"), case.read_targets(),
                                  controller.case_recording(case, "board"))
-    controller.save_evaluation(folder, result)
-    controller.warn(result.warnings)
+    controller.save("evaluate", folder)
+    controller.recorder.warn(result.warnings)
     print(f"evaluation -> {folder.path / 'evaluation.json'}")
     return 0
 
@@ -388,9 +388,12 @@ def cmd_report(args: argparse.Namespace) -> int:
     if args.batch and (args.out or args.case):  # one of them would be ignored: never guessed
         raise EMRegError(f"give an output folder (emreg report OUT [--case CASE]) or --batch DIR, not "
                          f"both ({args.out or '--case ' + args.case} and --batch {args.batch})")
-    run = _run_record(args)
-    early = _start_report_ct(args, run)  # the CT's read goes on while the report's libraries load
-    bundle = early_bundle = _start_report_bundle(args, run)  # held: writes nothing into OUT until released below
+    from .workflow.exporters import read_run_record, recorded_case, start_report_bundle, start_report_ct
+
+    out, case = (Path(args.out) if args.out else None), (Path(args.case) if args.case else None)
+    run = read_run_record(out) if out is not None and not args.batch else None
+    early = start_report_ct(out, case, run) if out is not None else None  # read while the report's libraries load
+    bundle = early_bundle = start_report_bundle(out, case, run)  # held: writes nothing into OUT until released below
     folder = kept = None
     try:
         from .outputs import OutputFolder
@@ -403,19 +406,18 @@ def cmd_report(args: argparse.Namespace) -> int:
         from .report.inputs import require_report_inputs
 
         require_report_inputs(args.out)  # before run.json is written: a case folder is left as it is
-        case = Path(args.case) if args.case else None
         # the case's settings (those the figures use), so that the report's provenance names them
-        controller = _controller(args, _settings(args, case or _recorded_case(run)))
+        controller = _controller(args, _settings(args, case or recorded_case(run)))
         stage = OutputFolder(args.out, "emreg report")
-        kept = controller.kept_bundle(stage, case)  # still the scene this report would write: it stays
+        kept = controller.exporter.kept_bundle(stage, case)  # still the scene this report would write: it stays
         stage.start_stage("report", keep=[kept.path.name] if kept is not None else ())
         folder = stage
         if kept is None:
-            bundle = controller.start_bundle(folder, case, early_bundle)  # goes on while the report renders
+            bundle = controller.exporter.start_bundle(folder, case, early_bundle)  # goes on while the report renders
         elif early_bundle is not None:
             early_bundle.cancel()
             bundle = None
-        path = controller.save_report(folder, case, early)
+        path = controller.exporter.save_report(folder, case, controller, early)
     except BaseException:
         if bundle is not None:
             bundle.cancel()
@@ -427,7 +429,7 @@ def cmd_report(args: argparse.Namespace) -> int:
             folder.drop_unrecorded()
         raise
     print(f"report -> {path}")
-    print(controller.save_bundle(folder, case, bundle, kept))
+    print(controller.exporter.save_bundle(folder, case, controller, bundle, kept))
     return 0
 
 
@@ -466,7 +468,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     controller = _controller(args, case.settings)
     if args.tool:
         controller.load_tool(args.tool)
-    controller.keep_ct = False  # nothing uses the CT after the run: freed as soon as nothing needs it
+    controller.exporter.keep_ct = False  # nothing uses the CT after the run: freed as soon as nothing needs it
     for line in controller.run(case, Path(args.out)):
         print(line)
     return 0
@@ -490,67 +492,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_record(args: argparse.Namespace) -> dict | None:
-    """``OUT/run.json`` of ``emreg report OUT``, read once for what is decided before the report starts (None for
-    ``--batch``, or when there is none to read: the report then says what is wrong)."""
-    if args.batch or not args.out or not Path(args.out).is_dir():
-        return None
-    from .io.atomic import read_json
-
-    try:
-        run = read_json(Path(args.out) / "run.json", "run record")
-    except (EMRegError, OSError):
-        return None
-    return run if isinstance(run, dict) else None
-
-
-def _start_report_ct(args: argparse.Namespace, run: dict | None):
-    """``emreg report OUT``: start streaming the CT that ``OUT/run.json`` names, when the report may stream it
-    (a plain file whose bundle copies it from the file) and no earlier report kept its products; None otherwise.
-    The report checks it is its CT."""
-    from .controller import _manifest_ct
-    from .io.ct_stream import start_streamed_read
-    from .io.slicer_scene import bundle_needs_ct_image
-
-    ct = _manifest_ct(run, Path(args.case) if args.case else None)
-    if ct is None or bundle_needs_ct_image(ct) or _ct_products_kept(Path(args.out), run, ct):
-        return None
-    try:
-        return start_streamed_read(ct)
-    except EMRegError:
-        return None  # the report reads it again and says what is wrong
-
-
-def _recorded_case(run: dict | None) -> Path | None:
-    """The case folder ``OUT/run.json`` names, when it is there."""
-    case = (run or {}).get("case")
-    return Path(case) if isinstance(case, str) and Path(case).is_dir() else None
-
-
-def _ct_products_kept(out: Path, run: dict, ct: str) -> bool:
-    """Whether an earlier report of this run kept the CT's products for this CT (then the report only hashes it)."""
-    from .report.ct_memo import kept_for, memo_candidates, recorded_ct_sha256
-
-    recorded = recorded_ct_sha256(run, Path(ct))
-    return any(kept_for(path, recorded) for path in memo_candidates(out))
-
-
-def _start_report_bundle(args: argparse.Namespace, run: dict | None):
-    """``emreg report OUT``: the bundle's process, started held (:class:`~EMRegModule.io.slicer_scene.BundleProcess`)
-    so that its start-up (Python, numpy, slicer-core: ~1 s of CPU) runs beside this command's own, on the core
-    that leaves idle; None when it cannot be written in a process of its own (or for ``--batch``), or when the
-    bundle there is most likely kept (the settings are compared once read)."""
-    if run is None:
-        return None
-    from .bundle_state import current_bundle
-    from .io.slicer_scene import start_bundle_process
-
-    case = Path(args.case) if args.case else None
-    if current_bundle(Path(args.out), run, case, None):
-        return None
-    return start_bundle_process(args.out, case, held=True)
-
-
 def _record_batch_report(args: argparse.Namespace, folder: Path, bundle_sha256: str | None) -> None:
     """The report (and bundle, whose sha256 its job computed as it wrote it) a batch job wrote into ``folder``,
     listed in its ``run.json``."""
@@ -564,8 +505,8 @@ def _record_batch_report(args: argparse.Namespace, folder: Path, bundle_sha256: 
     case_dir = Path(case) if isinstance(case, str) and Path(case).is_dir() else None
     try:
         controller = _controller(args, _settings(args, case_dir))
-        controller.command = "emreg report --batch"
-        controller.record_report_outputs(OutputFolder(folder, controller.command), bundle_sha256)
+        controller.recorder.command = "emreg report --batch"
+        controller.exporter.record_report_outputs(OutputFolder(folder, controller.recorder.command), bundle_sha256)
     except EMRegError as exc:
         _warn("report", [f"{folder}: not recorded in run.json ({exc})"])
 
