@@ -7,9 +7,9 @@ import pytest
 import SimpleITK as sitk
 
 from EMRegModule.controller import EMRegController
-from EMRegModule.workflow.results import WorkflowError, WorkflowState
 from EMRegModule.errors import EMRegError
 from EMRegModule.settings import Settings
+from EMRegModule.workflow.results import WorkflowError, WorkflowState
 
 
 def _detection():
