@@ -17,10 +17,11 @@ from typing import Any
 
 from . import __version__
 from .errors import EMRegError
-from .outputs import STAGE_OUTPUTS, all_output_names
+from .names import BUNDLE_MRB, TARGETS_FILE
 from .provenance import BackgroundHash, file_sha256
+from .workflow.stages import made_before_export
 
-BUNDLE_NAME = STAGE_OUTPUTS["bundle"][0]
+BUNDLE_NAME = BUNDLE_MRB
 
 
 def bundle_inputs(run: dict[str, Any], case_dir: Path | None) -> dict[str, dict[str, str]]:
@@ -32,7 +33,7 @@ def bundle_inputs(run: dict[str, Any], case_dir: Path | None) -> dict[str, dict[
     if isinstance(ct, dict) and ct.get("path") == run.get("ct") and isinstance(ct.get("sha256"), str):
         inputs["ct"] = {"path": str(ct["path"]), "sha256": str(ct["sha256"])}
     case = case_dir if case_dir is not None else (Path(run["case"]) if isinstance(run.get("case"), str) else None)
-    targets = case / "targets.mrk.json" if case is not None else None
+    targets = case / TARGETS_FILE if case is not None else None
     if targets is not None and targets.is_file():
         try:
             inputs["targets"] = {"path": str(targets), "sha256": file_sha256(targets)}
@@ -81,11 +82,10 @@ def current_bundle(out: Path, run: dict[str, Any], case_dir: Path | None,
     if not isinstance(provenance, dict) or provenance.get("emreg_version") != __version__ or (
             settings_sha256 is not None and provenance.get("settings_sha256") != settings_sha256):
         return None
-    later = {*STAGE_OUTPUTS["report"], *STAGE_OUTPUTS["bundle"]}
-    listed = {name: outputs[name].get("sha256") for name in all_output_names()
-              if name not in later and (out / name).is_file() and isinstance(outputs.get(name), dict)}
+    listed = {name: outputs[name].get("sha256") for name in made_before_export()
+              if (out / name).is_file() and isinstance(outputs.get(name), dict)}
     if provenance.get("uses") != listed or len(listed) != sum(
-            1 for name in all_output_names() if name not in later and (out / name).is_file()):
+            1 for name in made_before_export() if (out / name).is_file()):
         return None
     inputs, recorded = bundle_inputs(run, case_dir), provenance.get("inputs")
     if "ct" not in inputs or not isinstance(recorded, dict) or any(

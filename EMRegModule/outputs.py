@@ -30,46 +30,9 @@ from typing import Any
 from . import __version__
 from .errors import EMRegError
 from .io.atomic import atomic_write_json
-from .names import CASE_INPUT_NAMES
+from .names import CASE_INPUT_NAMES, PREVIOUS_FOLDER
 from .provenance import RUN_JSON, Provenance, check_belongs, file_sha256, read_manifest
-
-#: The outputs of each stage, in workflow order (a later stage's outputs are stale when an earlier one changes).
-STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
-    "detect": ("markers.json", "markers.mrk.json"),
-    "calibrate": ("frame_calibration.json", "tool_calibration.json", "TipToProbe.h5"),  # the tool: --tool auto
-    "register": ("registration.json", "ReferenceToImage.h5"),
-    "navigate": ("navigation.csv", "checkpoints.json"),
-    "evaluate": ("evaluation.json",),
-    "tre_map": ("tre_map.nrrd",),
-    "report": ("report.html", "report_figures"),
-    "bundle": ("EMReg.mrb",),
-}
-#: Other files a run writes (moved aside with the rest when a new run starts).
-OTHER_OUTPUTS: tuple[str, ...] = ()
-#: Where earlier outputs are moved.
-PREVIOUS_FOLDER = "previous"
-
-
-def all_output_names() -> list[str]:
-    return [name for names in STAGE_OUTPUTS.values() for name in names] + list(OTHER_OUTPUTS)
-
-
-#: The stages whose results are made from each stage's (directly or not): stale when it has a new result.
-DEPENDENTS: dict[str, tuple[str, ...]] = {
-    "detect": ("register", "navigate", "evaluate", "tre_map", "report", "bundle"),
-    "calibrate": ("register", "navigate", "evaluate", "tre_map", "report", "bundle"),
-    "register": ("navigate", "evaluate", "tre_map", "report", "bundle"),
-    "navigate": ("report", "bundle"),
-    "evaluate": ("tre_map", "report", "bundle"),
-    "tre_map": ("report", "bundle"),
-    "report": ("bundle",),
-    "bundle": (),
-}
-
-
-def outputs_from(stage: str) -> list[str]:
-    """The outputs of ``stage`` and of every stage made from its result (stale once it has a new one)."""
-    return [name for later in (stage, *DEPENDENTS[stage]) for name in STAGE_OUTPUTS[later]]
+from .workflow.stages import all_output_names, made_before_export, outputs_from
 
 
 @contextlib.contextmanager
@@ -340,8 +303,7 @@ def check_outputs(folder: str | os.PathLike[str]) -> list[str]:
     """Check that every output in ``folder`` belongs to it (:func:`~EMRegModule.provenance.check_belongs`);
     returns the names of the stage outputs present (files), in workflow order."""
     folder = Path(folder)
-    later = {*STAGE_OUTPUTS["report"], *STAGE_OUTPUTS["bundle"]}
-    present = [n for n in all_output_names() if (folder / n).is_file() and n not in later]
+    present = [n for n in made_before_export() if (folder / n).is_file()]
     for name in present:
         check_belongs(folder / name)
     return present

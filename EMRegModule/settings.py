@@ -24,6 +24,7 @@ from typing import Any, ClassVar
 
 from .errors import EMRegError
 from .marker_model import MarkerModel
+from .names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from .tables import SettingError, fraction, non_negative, one_of, parse_table, port, positive
 
 # --- [sensors] ---------------------------------------------------------------------------------
@@ -36,8 +37,8 @@ class SensorSettings:
     calibration's own for a registration; see :mod:`EMRegModule.probe_axis`); the transform names of
     the two sensors in a PLUS sequence file (None: ``ReferenceToTracker``, ``ProbeToTracker``)."""
 
-    reference: int = port(1)
-    probe: int = port(2)
+    reference: int = port(DEFAULT_REFERENCE_PORT)
+    probe: int = port(DEFAULT_PROBE_PORT)
     probe_axis: str | None = one_of(None, "auto", "+x_in", "+x_out", "none")
     reference_transform: str | None = None
     probe_transform: str | None = None
@@ -361,7 +362,8 @@ class ToolSettings:
 class Settings:
     """Every ``case.toml`` table, typed (defaults where a table or key is absent).
 
-    ``source`` names the file the settings were read from (empty: defaults only).
+    ``source`` names the file the settings were read from (empty: defaults only); ``given`` the keys that file
+    gives (``"sensors.probe"``...): the one answer to "was this key given by the user?" (:meth:`gives`).
     """
 
     sensors: SensorSettings = field(default_factory=SensorSettings)
@@ -376,6 +378,7 @@ class Settings:
     ct: CTSettings = field(default_factory=CTSettings)
     tool: ToolSettings = field(default_factory=ToolSettings)
     source: str = ""
+    given: frozenset[str] = field(default=frozenset(), compare=False)
 
     #: The tables, by TOML name (every field but ``source``).
     TABLES: ClassVar[tuple[str, ...]] = ("sensors", "marker", "detection", "calibration", "registration",
@@ -405,7 +408,13 @@ class Settings:
             raise EMRegError(f"{source}: [registration] sensor_offset_l_mm = {fixed_l:g} lies outside the "
                              f"marker's pinhole {model.pinhole_bottom_mm:g}..{model.pinhole_top_mm:g} mm ([marker]): "
                              "the probe sensor cannot sit there")
-        return cls(**tables, source=str(source))
+        given = frozenset(f"{name}.{key}" for name, table in mapping.items() if isinstance(table, dict)
+                          for key in table)
+        return cls(**tables, source=str(source), given=given)
+
+    def gives(self, table: str, key: str) -> bool:
+        """Whether the settings file itself gives ``[table] key`` (a default is not a user's choice)."""
+        return f"{table}.{key}" in self.given
 
     def with_sensors(self, reference: int | None = None, probe: int | None = None) -> Settings:
         """These settings with the ports overridden (command line); checked like ``[sensors]``."""
@@ -429,17 +438,8 @@ def sensor_ports_given(settings: Settings) -> tuple[int | None, int | None]:
     """The ports (reference, probe) that the settings file itself gives in ``[sensors]`` (None where it gives
     none, or when the settings are the defaults): a port left out there is not a user's choice, so a
     consumer may take it from the registration (:meth:`EMRegModule.controller.EMRegController.use_ports`)."""
-    if not settings.source or not Path(settings.source).is_file():
-        return None, None
-    try:
-        with Path(settings.source).open("rb") as f:
-            sensors = tomllib.load(f).get("sensors") or {}
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-        return None, None
-    if not isinstance(sensors, dict):
-        return None, None
-    return (settings.sensors.reference if "reference" in sensors else None,
-            settings.sensors.probe if "probe" in sensors else None)
+    return (settings.sensors.reference if settings.gives("sensors", "reference") else None,
+            settings.sensors.probe if settings.gives("sensors", "probe") else None)
 
 
 def choose_ports(given: tuple[int | None, int | None], recorded: tuple[int | None, int | None],
@@ -449,8 +449,9 @@ def choose_ports(given: tuple[int | None, int | None], recorded: tuple[int | Non
     calibration used (``recorded``; None in files older than the keys), else the spec's default (1, 2).
     A given port that differs from the recorded one is used (a re-cabled tracker) with a one-line warning,
     returned with the ports."""
+    defaults = (DEFAULT_REFERENCE_PORT, DEFAULT_PROBE_PORT)
     chosen = tuple(g if g is not None else r if r is not None else d
-                   for g, r, d in zip(given, recorded, (1, 2), strict=True))
+                   for g, r, d in zip(given, recorded, defaults, strict=True))
     warnings = []
     if any(g is not None and r is not None and g != r for g, r in zip(given, recorded, strict=True)):
         warnings.append(f"the ports given (reference {chosen[0]}, probe {chosen[1]}) differ from those of the "

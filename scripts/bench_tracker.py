@@ -106,7 +106,7 @@ def match_emits(poses: list[np.ndarray], emitted: list[tuple[int, np.ndarray]]) 
 
 def _trust():
     """The checkpoint and reference-jump watch live ``emreg navigate`` runs beside every pose (28 pinholes of a
-    full frame, 350 x 350 mm, around the scene's probe), as :func:`EMRegModule.live.commands.run_live_navigate`
+    full frame, 350 x 350 mm, around the scene's probe), as :func:`EMRegModule.commands.live.run_live_navigate`
     builds it."""
     from EMRegModule.checkpoints import Pinholes, TrustMonitor
 

@@ -550,8 +550,8 @@ def test_cli_record_and_live_navigate_from_the_aurora(tmp_path, replay):
 def test_quality_limit_defaults_to_the_sources_scale():
     import argparse
 
+    from EMRegModule.commands.live import _max_quality
     from EMRegModule.live.aurora.source import AuroraSource
-    from EMRegModule.live.commands import _max_quality
 
     aurora = argparse.Namespace(max_quality=None, source_max_quality=AuroraSource.default_max_quality)
     assert _max_quality(aurora) == 1.0  # the Aurora's RMS error, mm

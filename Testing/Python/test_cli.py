@@ -66,9 +66,9 @@ def test_ctrl_c_inside_a_string_exec_still_exits_130_under_python_m(tmp_path, so
     so any lazy import can be the place) made ``python -m EMRegModule.cli`` die by SIGINT (-2) after printing
     its one line, although ``main`` returned 130: CPython then remembers the interrupt as unhandled."""
     (tmp_path / "interrupted_cli.py").write_text(
-        "import sys\nfrom EMRegModule import cli\n"
+        "import sys\nfrom EMRegModule import cli\nfrom EMRegModule.commands import stages\n"
         f"def interrupted(args):\n    exec({source!r})\n"
-        "cli.cmd_detect = interrupted\n"
+        "stages.cmd_detect = interrupted\n"
         "sys.exit(cli.main(['detect', 'CT', '--out', 'OUT']))\n")
     result = subprocess.run([sys.executable, "-m", "interrupted_cli"], cwd=tmp_path, capture_output=True,
                             text=True, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})

@@ -463,16 +463,16 @@ def test_a_signal_lost_in_a_vtk_callback_still_ends_the_run_as_interrupted(small
                                                                           signum, code):
     """A signal landing in a pyvista filter is raised inside VTK's callback: VTK logs it and the filter fails
     with an error of its own, which ended emreg run in a traceback (exit 1, run.json "running")."""
-    from EMRegModule.controller import EMRegController
+    from EMRegModule import controller
 
-    def stage_whose_signal_vtk_swallows(self, *args):
+    def stage_whose_signal_vtk_swallows(*args):
         try:
             signal.raise_signal(signum)
         except KeyboardInterrupt:
             pass  # what VTK does with an exception raised in a Python callback: logs it, the algorithm fails
         raise RuntimeError("Algorithm vtkPythonAlgorithm returned failure for request")
 
-    monkeypatch.setattr(EMRegController, "_run_read_calibration", stage_whose_signal_vtk_swallows)
+    monkeypatch.setitem(controller.PREPARE, "calibrate", stage_whose_signal_vtk_swallows)
     out = tmp_path / "out"
     capsys.readouterr()
     assert main(["run", str(small_case), "--out", str(out), "--quiet"]) == code

@@ -1,7 +1,7 @@
 """The live commands: ``emreg record``, ``emreg sim-tracker``, ``emreg serve`` and live ``emreg navigate``.
 
-``cli.py`` registers every entry of :data:`SUBCOMMANDS` (name, add_arguments, run, help) and hands
-``emreg navigate`` to :func:`run_live_navigate` when ``--igtl-port`` is given or the source is not a
+:func:`add_parsers` adds the subcommands of :data:`SUBCOMMANDS` (name, add_arguments, run, help); ``emreg navigate``
+(:mod:`.stages`) hands itself to :func:`run_live_navigate` when ``--igtl-port`` is given or the source is not a
 ``replay:`` file. Every loop here stops by itself with ``--duration`` / ``--max-samples`` (or on
 Ctrl-C / SIGTERM), and releases the serial port, the sockets and the pty.
 """
@@ -23,34 +23,16 @@ import numpy as np
 
 from ..errors import EMRegError
 from ..transforms import is_rigid
-from .igtl_server import DEFAULT_PORT
-from .link_quality import HoldBack, guard_for
-from .port_check import SensorPortsError
-from .trakstar import protocol as tp
+from ..live.igtl_server import DEFAULT_PORT
+from ..live.link_quality import HoldBack, guard_for
+from ..live.port_check import SensorPortsError
+from ..live.trakstar import protocol as tp
+from .args import AddCommand, sensor_ports
 
 if TYPE_CHECKING:
     from ..registration import RegistrationResult
 
 # --- shared helpers ---------------------------------------------------------------------------
-
-
-def _sensor_ports(args: argparse.Namespace, registration: RegistrationResult | None = None) -> tuple[int, int]:
-    """The (reference, probe) ports: the flags, else the settings file's ``[sensors]``, else (with a
-    registration) the ports of its calibration, else 1 / 2; a given port that differs from the
-    registration's is used with a warning on stderr."""
-    from ..settings import choose_ports, load_settings, sensor_ports_given  # here: `emreg --help` imports this module
-
-    settings = load_settings(getattr(args, "settings", None), required=True)
-    if registration is not None:
-        in_file = sensor_ports_given(settings)
-        given = tuple(f if f is not None else t
-                      for f, t in zip((args.reference_sensor, args.probe_sensor), in_file, strict=True))
-        chosen, warnings = choose_ports(given, (registration.reference_sensor, registration.probe_sensor))
-        for warning in warnings:
-            print(f"emreg navigate: warning: {warning}", file=sys.stderr)
-        args = argparse.Namespace(**{**vars(args), "reference_sensor": chosen[0], "probe_sensor": chosen[1]})
-    sensors = settings.with_sensors(args.reference_sensor, args.probe_sensor).sensors
-    return sensors.reference, sensors.probe
 
 
 def _check_ports_attached(source, reference: int, probe: int) -> None:
@@ -176,7 +158,7 @@ def _add_watchdog_options(parser: argparse.ArgumentParser) -> None:
 
 def _max_quality(args: argparse.Namespace) -> float | None:
     if args.max_quality is None:  # not given: the source's own scale, else the trakSTAR's
-        from .navigator import DEFAULT_MAX_QUALITY
+        from ..live.navigator import DEFAULT_MAX_QUALITY
 
         return float(getattr(args, "source_max_quality", None) or DEFAULT_MAX_QUALITY)
     return None if args.max_quality < 0 else args.max_quality
@@ -247,10 +229,10 @@ def run_sim_tracker(args: argparse.Namespace) -> int:
     check_live_options(args)
     if args.model == "aurora":
         return _run_aurora_simulator(args)
-    from .simulator.faults import FaultPlan
-    from .simulator.scene import BuiltinScene, ReplayScene
-    from .simulator.trakstar import TrackerSimulator
-    from .trakstar.driver import sensors_from_list
+    from ..live.simulator.faults import FaultPlan
+    from ..live.simulator.scene import BuiltinScene, ReplayScene
+    from ..live.simulator.trakstar import TrackerSimulator
+    from ..live.trakstar.driver import sensors_from_list
 
     scene = BuiltinScene(args.seed)
     if args.replay:
@@ -308,10 +290,10 @@ def _write_emit_log(path: str, header: str, lines: Iterable[str]) -> None:
 
 
 def _run_aurora_simulator(args: argparse.Namespace) -> int:
-    from .aurora import protocol as ndi
-    from .simulator.aurora import AuroraSimulator, parse_tools
-    from .simulator.faults import AuroraFaults
-    from .simulator.scene import BuiltinScene, ReplayScene
+    from ..live.aurora import protocol as ndi
+    from ..live.simulator.aurora import AuroraSimulator, parse_tools
+    from ..live.simulator.faults import AuroraFaults
+    from ..live.simulator.scene import BuiltinScene, ReplayScene
 
     scene = BuiltinScene(args.seed)
     if args.replay:
@@ -362,13 +344,13 @@ def add_record_arguments(parser: argparse.ArgumentParser) -> None:
 def run_record(args: argparse.Namespace) -> int:
     check_live_options(args)
     from ..io.sequence_metafile import is_sequence_file
-    from .sources import open_source
-    from .writers import RecordingWriter, SequenceRecordingWriter
+    from ..live.sources import open_source
+    from ..live.writers import RecordingWriter, SequenceRecordingWriter
 
-    reference, probe = _sensor_ports(args)
-    from ..cli import _out_file
+    reference, probe = sensor_ports(args)
+    from .args import out_file
 
-    _out_file(args.out)
+    out_file(args.out)
     source = open_source(args.device, reference, probe, fast=args.fast, loop=args.loop)
     writer = (SequenceRecordingWriter(args.out, reference_port=reference, probe_port=probe)
               if is_sequence_file(args.out) else RecordingWriter(args.out))
@@ -477,11 +459,11 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_serve(args: argparse.Namespace) -> int:
     check_live_options(args)
-    from .igtl_server import IGTLServer
-    from .navigator import TrackerPublisher
-    from .sources import open_source
+    from ..live.igtl_server import IGTLServer
+    from ..live.navigator import TrackerPublisher
+    from ..live.sources import open_source
 
-    reference, probe = _sensor_ports(args)
+    reference, probe = sensor_ports(args)
     source = open_source(args.device, reference, probe, fast=args.fast, loop=args.loop)
     _check_ports_attached(source, reference, probe)
     args.source_max_quality = getattr(source, "default_max_quality", None)
@@ -530,16 +512,16 @@ def add_live_navigate_arguments(parser: argparse.ArgumentParser) -> None:
 def run_live_navigate(args: argparse.Namespace) -> int:
     """Live navigation: samples from ``--source`` -> ``ProbeToImage`` on ``--igtl-port`` and/or
     ``OUT/navigation.csv``."""
-    from .igtl_server import IGTLServer
-    from .navigator import LiveNavigator
-    from .sources import open_source
-    from .writers import NavigationWriter
+    from ..live.igtl_server import IGTLServer
+    from ..live.navigator import LiveNavigator
+    from ..live.sources import open_source
+    from ..live.writers import NavigationWriter
 
     if args.igtl_port is None and not args.out:
         raise EMRegError("navigate: a live source needs --igtl-port PORT (publish) and/or --out DIR (record)")
     registration = load_registration(args.registration, getattr(args, "settings", None))
     reference_to_image = np.asarray(registration.reference_to_image, dtype=float)
-    reference, probe = _sensor_ports(args, registration)
+    reference, probe = sensor_ports(args, registration)
     source = open_source(args.source, reference, probe, fast=args.fast, loop=args.loop)
     _check_ports_attached(source, reference, probe)
     args.source_max_quality = getattr(source, "default_max_quality", None)
@@ -633,8 +615,8 @@ def _reconnect(args: argparse.Namespace, reference: int, probe: int, stop: _Stop
     Returns the new source, or None when interrupted; raises :class:`EMRegError` (exit 2) when the
     device did not come back in time. Replays are not reopened.
     """
-    from .device_url import parse_device_url
-    from .sources import open_source
+    from ..live.device_url import parse_device_url
+    from ..live.sources import open_source
 
     window = float(getattr(args, "reconnect", 0) or 0)
     if window <= 0 or parse_device_url(args.source).kind == "replay":
@@ -673,3 +655,9 @@ SUBCOMMANDS = [
 
 __all__ = ["SUBCOMMANDS", "add_live_navigate_arguments", "check_live_options", "run_live_navigate",
            "load_registration"]
+
+
+def add_parsers(add: AddCommand) -> None:
+    """The live subcommands of :data:`SUBCOMMANDS` (``add``: :data:`~EMRegModule.commands.args.AddCommand`)."""
+    for name, add_arguments, run, help_text in SUBCOMMANDS:
+        add_arguments(add(name, run, help_text))

@@ -1,0 +1,1 @@
+"""The ``emreg`` subcommands, one module per family; :mod:`.args` turns arguments into settings, ports and OUT."""
