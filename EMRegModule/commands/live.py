@@ -22,11 +22,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import EMRegError
-from ..transforms import is_rigid
 from ..live.igtl_server import DEFAULT_PORT
 from ..live.link_quality import HoldBack, guard_for
 from ..live.port_check import SensorPortsError
 from ..live.trakstar import protocol as tp
+from ..transforms import is_rigid
 from .args import AddCommand, sensor_ports
 
 if TYPE_CHECKING:

@@ -62,7 +62,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def _report_batch(args: argparse.Namespace) -> int:
     """``emreg report --batch DIR``: every run folder under DIR, each with its bundle."""
-    from ..report import write_reports_batch
+    from ..report.batch import write_reports_batch
 
     batch = Path(args.batch)
     if not batch.is_dir():

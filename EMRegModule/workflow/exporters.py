@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 
     from ..bundle_state import KeptBundle
     from ..io.ct_stream import StreamedCT
-    from ..io.slicer_scene import BundleProcess
+    from ..slicer_export.bundle import BundleProcess
     from ..progress import Progress
     from ..settings import Settings
 
@@ -48,7 +48,7 @@ class Exporter:
         the report read is kept for the Slicer bundle (:meth:`save_bundle`). ``ct_read``: a streamed read of the
         CT started earlier (:func:`start_report_ct`), used when it is the report's CT."""
         from ..io.case import run_ct_path
-        from ..io.slicer_scene import bundle_needs_ct_image
+        from ..slicer_export.mrb import bundle_needs_ct_image
         from ..report.writer import HandedCT, write_report_keeping_ct
 
         used = self.recorder.adopt_outputs(folder)
@@ -79,7 +79,7 @@ class Exporter:
         """Start writing ``EMReg.mrb`` in a separate process, to go on while the report renders (pass the
         result to :meth:`save_bundle`); None when it must be written here. ``started``: a bundle process started
         earlier and held (:func:`start_report_bundle`), released here once the outputs are checked."""
-        from ..io.slicer_scene import start_bundle_process
+        from ..slicer_export.bundle import start_bundle_process
 
         used = self.recorder.adopt_outputs(folder)
         job = started if started is not None else start_bundle_process(folder.path, case_dir)
@@ -101,7 +101,8 @@ class Exporter:
         """``EMReg.mrb``, the 3D Slicer scene of ``folder``'s outputs; a summary line. Optional: without
         slicer-core, or when it cannot be written, the other outputs stand and a warning says why."""
         from ..io.case import run_ct_path
-        from ..io.slicer_scene import bundle_needs_ct_image, write_run_bundle_hashed
+        from ..slicer_export.bundle import write_run_bundle
+        from ..slicer_export.mrb import bundle_needs_ct_image
 
         if kept is not None and kept.confirmed():
             return f"bundle: {kept.path} (up to date: kept)"
@@ -118,7 +119,7 @@ class Exporter:
                 if not self.keep_ct:
                     holder.image = None
             with self.progress.step("writing the 3D Slicer scene bundle"):
-                path, message, sha = write_run_bundle_hashed(folder.path, case_dir, image)
+                path, message, sha = write_run_bundle(folder.path, case_dir, image)
         if path is None:
             self.recorder.warn([message])
         else:
@@ -156,7 +157,7 @@ def start_report_ct(out: Path, case_dir: Path | None, run: dict[str, Any] | None
     CT."""
     from ..io.case import run_ct_path
     from ..io.ct_stream import start_streamed_read
-    from ..io.slicer_scene import bundle_needs_ct_image
+    from ..slicer_export.mrb import bundle_needs_ct_image
 
     ct = run_ct_path(run, case_dir)
     if ct is None or bundle_needs_ct_image(ct) or _ct_products_kept(out, run, ct):
@@ -176,13 +177,13 @@ def _ct_products_kept(out: Path, run: dict[str, Any] | None, ct: str) -> bool:
 
 
 def start_report_bundle(out: Path, case_dir: Path | None, run: dict[str, Any] | None) -> BundleProcess | None:
-    """The bundle's process, started held (:class:`~EMRegModule.io.slicer_scene.BundleProcess`) so that its start-up
+    """The bundle's process, started held (:class:`~EMRegModule.slicer_export.bundle.BundleProcess`) so that its start-up
     (Python, numpy, slicer-core: ~1 s of CPU) runs beside the report's own; None when it cannot be written in a
     process of its own, or when the bundle there is most likely kept (the settings are compared once read)."""
     if run is None:
         return None
     from ..bundle_state import current_bundle
-    from ..io.slicer_scene import start_bundle_process
+    from ..slicer_export.bundle import start_bundle_process
 
     if current_bundle(out, run, case_dir, None):
         return None
