@@ -19,9 +19,9 @@ if TYPE_CHECKING:
 
     from ..bundle_state import KeptBundle
     from ..io.ct_stream import StreamedCT
-    from ..slicer_export.bundle import BundleProcess
     from ..progress import Progress
     from ..settings import Settings
+    from ..slicer_export.bundle import BundleProcess
 
 
 class HoldsCT(Protocol):
@@ -48,8 +48,8 @@ class Exporter:
         the report read is kept for the Slicer bundle (:meth:`save_bundle`). ``ct_read``: a streamed read of the
         CT started earlier (:func:`start_report_ct`), used when it is the report's CT."""
         from ..io.case import run_ct_path
-        from ..slicer_export.mrb import bundle_needs_ct_image
         from ..report.writer import HandedCT, write_report_keeping_ct
+        from ..slicer_export.mrb import bundle_needs_ct_image
 
         used = self.recorder.adopt_outputs(folder)
         keep = bundle_needs_ct_image(run_ct_path(folder.manifest, case_dir))  # else the report streams a CT itself
@@ -177,7 +177,7 @@ def _ct_products_kept(out: Path, run: dict[str, Any] | None, ct: str) -> bool:
 
 
 def start_report_bundle(out: Path, case_dir: Path | None, run: dict[str, Any] | None) -> BundleProcess | None:
-    """The bundle's process, started held (:class:`~EMRegModule.slicer_export.bundle.BundleProcess`) so that its start-up
+    """The bundle's process, started held so that its start-up
     (Python, numpy, slicer-core: ~1 s of CPU) runs beside the report's own; None when it cannot be written in a
     process of its own, or when the bundle there is most likely kept (the settings are compared once read)."""
     if run is None:
