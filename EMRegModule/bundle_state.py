@@ -19,7 +19,7 @@ from . import __version__
 from .errors import EMRegError
 from .names import BUNDLE_MRB, TARGETS_FILE
 from .provenance import BackgroundHash, file_sha256
-from .workflow.stages import made_before_export
+from .stages import made_before_export
 
 BUNDLE_NAME = BUNDLE_MRB
 

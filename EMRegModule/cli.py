@@ -50,13 +50,13 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, raised in the main thread like Ctrl-C so that every ``finally`` and atomic write cleans up."""
 
 def _on_sigterm(signum: int, frame: object) -> None:
-    from .outputs import note_interrupt
+    from .interrupts import note_interrupt
 
     note_interrupt("SIGTERM")
     raise Terminated("SIGTERM")
 
 def _on_sigint(signum: int, frame: object) -> None:
-    from .outputs import note_interrupt
+    from .interrupts import note_interrupt
 
     note_interrupt("SIGINT")
     raise KeyboardInterrupt
@@ -67,7 +67,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     SIGINT and SIGTERM end a command with one line on stderr and exit code 130 / 143; temporary
     files are removed on the way out and an interrupted ``emreg run`` says so in ``OUT/run.json``.
     """
-    from .outputs import interrupted_by, note_interrupt
+    from .interrupts import interrupted_by, note_interrupt
 
     parser = build_parser()
     args = parser.parse_args(argv)

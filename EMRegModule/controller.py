@@ -1,4 +1,4 @@
-"""The workflow controller: sequences the stages of :mod:`EMRegModule.workflow.stages` for the ``emreg`` command
+"""The workflow controller: sequences the stages of :mod:`EMRegModule.stages` for the ``emreg`` command
 and the 3D Slicer module's Logic.
 
 It holds the inputs (CT, calibration recording, tool, sensor ports), refuses a step whose prerequisites are
@@ -24,17 +24,18 @@ import numpy as np
 
 from . import __version__
 from .errors import EMRegError, NoSafeAnswerError
+from .interrupts import interrupted_by, signals_held
 from .io.case import Case
 from .marker_model import MarkerModel
 from .names import TRE_MAP_NRRD
-from .outputs import OutputFolder, all_output_names, interrupted_by, refuse_out_over_inputs, signals_held
+from .outputs import OutputFolder, all_output_names, refuse_out_over_inputs
 from .progress import QUIET, Progress
 from .settings import Settings, choose_ports
+from .stages import STAGE, STAGES
 from .workflow.background import import_in_background
 from .workflow.exporters import Exporter
 from .workflow.recorder import RunRecorder
 from .workflow.results import WorkflowResults, offset_summary
-from .workflow.stages import STAGE, STAGES
 
 if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only when used
     import SimpleITK as sitk
@@ -591,7 +592,7 @@ def _run_bundle(controller: EMRegController, case: Case, folder: OutputFolder, s
     summary.append(controller.exporter.save_bundle(folder, case.folder, controller))
 
 
-#: How ``emreg run`` executes each stage of :data:`~EMRegModule.workflow.stages.STAGES` (in the table's order), and
+#: How ``emreg run`` executes each stage of :data:`~EMRegModule.stages.STAGES` (in the table's order), and
 #: what it checks first, before the long stages: the calibration recording is read and its ports checked before
 #: the CT is (a malformed file or a wrong port is refused at once rather than after a detection).
 Step = Callable[[EMRegController, Case, OutputFolder, list[str]], None]

@@ -36,7 +36,9 @@ from .names import (
     RUN_JSON,
     TRE_MAP_NRRD,
 )
+from .provenance import check_belongs
 from .registration import RegistrationResult, read_registration
+from .stages import made_before_export
 
 T = TypeVar("T")
 
@@ -134,3 +136,21 @@ def _read_checkpoints(path: Path) -> dict[str, Any] | None:
     except (OSError, ValueError):
         return None
     return document if isinstance(document, dict) and document.get("checkpoints") else None
+
+
+def recorded_series_uid(record: Any) -> str | None:
+    """The Series Instance UID of the DICOM series a run record (``run.json``) or ``markers.json`` names under
+    ``ct_series``: the series the markers were detected in (None: none named)."""
+    block = record.get("ct_series") if isinstance(record, dict) else None
+    uid = block.get("series_instance_uid") if isinstance(block, dict) else None
+    return str(uid) if uid else None
+
+
+def check_outputs(folder: str | os.PathLike[str]) -> list[str]:
+    """Check that every output in ``folder`` belongs to it (:func:`~EMRegModule.provenance.check_belongs`);
+    returns the names of the stage outputs present (files), in workflow order."""
+    folder = Path(folder)
+    present = [n for n in made_before_export() if (folder / n).is_file()]
+    for name in present:
+        check_belongs(folder / name)
+    return present

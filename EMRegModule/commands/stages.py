@@ -1,5 +1,5 @@
 """The per-stage commands of a case: ``emreg detect``, ``calibrate``, ``pivot``, ``register``, ``navigate``,
-``evaluate``: each reads its inputs, runs its stage of :mod:`EMRegModule.workflow.stages` through the controller and
+``evaluate``: each reads its inputs, runs its stage of :mod:`EMRegModule.stages` through the controller and
 saves it into OUT (the outputs of its own and of every later stage moved to ``OUT/previous/``).
 """
 

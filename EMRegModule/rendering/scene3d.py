@@ -173,7 +173,7 @@ class FrameSceneRenderer:
     """
 
     def __init__(self, scene: FrameScene, window_size: tuple[int, int] = (960, 720), focus: str = "markers") -> None:
-        from ..outputs import vtk_imports_uninterrupted
+        from ..interrupts import vtk_imports_uninterrupted
 
         vtk_imports_uninterrupted()  # the Plotter loads VTK's rendering modules
         import pyvista as pv

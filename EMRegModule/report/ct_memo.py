@@ -213,7 +213,7 @@ def memo_path(out_dir: str | os.PathLike[str]) -> Path:
 def memo_candidates(out_dir: str | os.PathLike[str]) -> list[Path]:
     """Where the last report's CT products may be: beside its figures, or in ``previous/`` once a new report
     has started (its stage moves the last report there)."""
-    from ..outputs import PREVIOUS_FOLDER
+    from ..names import PREVIOUS_FOLDER
 
     here = memo_path(out_dir)
     return [here, Path(out_dir) / PREVIOUS_FOLDER / here.parent.name / here.name]

@@ -184,7 +184,7 @@ def _start_ct(inputs: ReportInputs, image: sitk.Image | None, read_image: bool, 
     if image is not None:
         inputs.ct = image if early is not None else VolumeFill.complete(image)
     elif read_image and inputs.ct_path is not None:
-        from ..outputs import recorded_series_uid
+        from ..run_folder import recorded_series_uid
 
         # a DICOM folder: the series the run detected in
         inputs.ct_series = recorded_series_uid(inputs.run) or inputs.settings.ct.series

@@ -166,7 +166,7 @@ class HandedCT:
 def _write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None, progress: Progress,
                   image: sitk.Image | HandedCT | None, keep_ct: bool,
                   settings: Settings | None = None) -> tuple[Path, sitk.Image | None]:
-    from ..outputs import vtk_imports_uninterrupted
+    from ..interrupts import vtk_imports_uninterrupted
 
     vtk_imports_uninterrupted()  # the figures load VTK's modules (pyvista) as they go
     handed = isinstance(image, HandedCT)

@@ -12,8 +12,8 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import EMRegError
+from ..interrupts import signals_held, vtk_imports_uninterrupted
 from ..names import BUNDLE_MRB, RUN_JSON, VOLUME_NODE_NAME
-from ..outputs import signals_held, vtk_imports_uninterrupted
 from .mrb import bundle_needs_ct_image
 from .mrml import SlicerScene, slicer_mrml_missing
 from .run_scene import build_run_scene, collect_run

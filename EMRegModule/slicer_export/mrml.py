@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import EMRegError
-from ..outputs import signals_held
+from ..interrupts import signals_held
 from .mrb import StoredVoxels, write_mrb
 
 #: How to get Slicer's MRML outside 3D Slicer.
@@ -19,7 +19,7 @@ INSTALL_HINT = "install the optional dependency with: pip install 'emreg[slicer]
 def slicer_mrml_missing() -> str | None:
     """Why Slicer's MRML cannot be used here (``None`` when it can).
 
-    The import is never cut by Ctrl-C / SIGTERM (held, then delivered: :func:`~EMRegModule.outputs.signals_held`):
+    The import is never cut by Ctrl-C / SIGTERM (held, then delivered: :func:`~EMRegModule.interrupts.signals_held`):
     VTK's loader turned the interrupt into an ImportError (a false "not installed") or left a half-initialised
     extension module that crashed the process."""
     try:

@@ -104,7 +104,7 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
     detected in, as ``markers.json`` / ``run.json`` name it, not the folder's default choice: the run may
     have forced another with ``--series``)."""
     from ..io.case import run_ct_path
-    from ..outputs import recorded_series_uid
+    from ..run_folder import recorded_series_uid
 
     out = Path(out_dir)
     run = read_manifest(out) or {}

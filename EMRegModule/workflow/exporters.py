@@ -11,8 +11,8 @@ from typing import TYPE_CHECKING, Any, Protocol
 from ..errors import EMRegError
 from ..names import RUN_JSON
 from ..outputs import OutputFolder
+from ..stages import STAGE_OUTPUTS
 from .recorder import RunRecorder
-from .stages import STAGE_OUTPUTS
 
 if TYPE_CHECKING:
     import SimpleITK as sitk

@@ -1,7 +1,7 @@
 """The run recorder: every output a stage saves goes through it, into an :class:`~EMRegModule.outputs.OutputFolder`
 and listed in ``run.json`` with its provenance (the inputs by role and sha256, the upstream outputs it was made
 from, the settings' digest, the command). What each stage writes and is made from is the stage table's
-(:mod:`EMRegModule.workflow.stages`).
+(:mod:`EMRegModule.stages`).
 """
 
 from __future__ import annotations
@@ -14,10 +14,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from .. import names
-from ..outputs import OutputFolder, check_outputs
+from ..outputs import OutputFolder
 from ..provenance import InputDigest, Provenance, check_belongs, check_inputs_match, file_sha256
+from ..run_folder import check_outputs
+from ..stages import STAGE, STAGE_OUTPUTS, uses
 from .results import WorkflowResults
-from .stages import STAGE, STAGE_OUTPUTS, uses
 
 if TYPE_CHECKING:
     from ..io.case import Case

@@ -11,7 +11,7 @@ from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING
 
 from ..errors import EMRegError
-from .stages import DEPENDENTS, STAGE, STAGES
+from ..stages import DEPENDENTS, STAGE, STAGES
 
 if TYPE_CHECKING:
     import numpy as np

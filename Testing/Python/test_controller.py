@@ -92,7 +92,7 @@ def test_bad_image_is_refused_before_anything_changes():
 def test_the_stage_table_says_what_each_new_result_makes_stale():
     """A new registration drops the navigation and the evaluation made with the old one; a new CT drops the
     markers and everything made from them, not the frame calibration (both from the stage table)."""
-    from EMRegModule.workflow.stages import DEPENDENTS, outputs_from
+    from EMRegModule.stages import DEPENDENTS, outputs_from
 
     assert DEPENDENTS["register"] == ("navigate", "evaluate", "tre_map", "report", "bundle")
     assert DEPENDENTS["navigate"] == ("report", "bundle")

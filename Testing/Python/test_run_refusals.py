@@ -416,7 +416,7 @@ def test_a_signal_while_a_vtk_module_loads_waits_for_it(monkeypatch):
     import importlib.machinery
     import importlib.util
 
-    from EMRegModule.outputs import vtk_imports_uninterrupted
+    from EMRegModule.interrupts import vtk_imports_uninterrupted
 
     pytest.importorskip("vtkmodules")
     names = [f"vtkmodules.{n}" for n in ("vtkIOMINC", "vtkIOSegY", "vtkIOVideo", "vtkFiltersTopology")]

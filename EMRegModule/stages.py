@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .. import names
+from . import names
 
 
 @dataclass(frozen=True)
