@@ -83,11 +83,6 @@ class EMRegController:
         """A controller configured with a case folder's ``case.toml``."""
         return cls(case.settings, progress, command)
 
-    @property
-    def detection(self) -> DetectionResult | None:
-        """The detected markers (``results.detection``)."""
-        return self.results.detection
-
     # --- inputs -----------------------------------------------------------------------------
     def load_ct(self, path: str | os.PathLike[str]) -> sitk.Image:
         """Read the CT (file or DICOM folder); drops detection and everything after it."""
@@ -680,7 +675,8 @@ def _check_navigation(controller: EMRegController, result: NavigationResult,
 
     pinholes = (None if controller.results.detection is None else
                 pinholes_from_detection(controller.results.detection,
-                                        controller.results.registration.sensor_offset_l_mm))
+                                        controller.results.registration.sensor_offset_l_mm,
+                                        controller.results.registration))  # judged against the error model
     report = check_navigation(result, recording, pinholes, controller.reference_sensor, controller.settings.navigation)
     if pinholes is None:  # a point fit onto fiducials, or a registration folder without its markers
         report.note = "no detected markers (markers.json) beside the registration: no pinholes to check at"

@@ -598,7 +598,8 @@ def _trust_monitor(args: argparse.Namespace, registration: RegistrationResult):
     markers, note = markers_beside(args.registration)
     if note or markers is None:
         _say(args, f"[emreg] warning: {note or 'no markers.json beside the registration: no checkpoints'}")
-    pinholes = None if markers is None else pinholes_from_detection(markers, registration.sensor_offset_l_mm)
+    pinholes = (None if markers is None else
+                pinholes_from_detection(markers, registration.sensor_offset_l_mm, registration))
     return TrustMonitor(pinholes, load_settings(getattr(args, "settings", None)).navigation)
 
 

@@ -275,16 +275,16 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             return
         controller = self.logic.controller
         hasCase = self.logic.case is not None
-        self.ui.calibrateButton.enabled = controller.calibration_recording is not None
-        self.ui.detectButton.enabled = controller.image is not None
-        self.ui.registerButton.enabled = controller.detection is not None and controller.frame_calibration is not None
-        self.ui.navigateButton.enabled = controller.registration is not None and hasCase \
-            and self.logic.case.navigation is not None
-        self.ui.reportButton.enabled = self.logic.outputDirectory is not None and (
-            controller.detection is not None or controller.frame_calibration is not None)
+        stages = controller.results.available(controller.image is not None,
+                                              controller.calibration_recording is not None)  # the stage table's
+        self.ui.calibrateButton.enabled = "calibrate" in stages
+        self.ui.detectButton.enabled = "detect" in stages
+        self.ui.registerButton.enabled = "register" in stages
+        self.ui.navigateButton.enabled = "navigate" in stages and hasCase and self.logic.case.navigation is not None
+        self.ui.reportButton.enabled = self.logic.outputDirectory is not None and "report" in stages
         self.ui.runAllButton.enabled = hasCase
         self.ui.connectButton.text = "Disconnect" if self.logic.connectorNode is not None else "Connect"
-        self.ui.statusLabel.text = controller.describe()
+        self.ui.statusLabel.text = controller.results.describe()
         self.ui.resultsLabel.text = self.logic.resultsText()
 
 
@@ -323,8 +323,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         from EMRegModule.controller import EMRegController
 
         self._scene = scene
-        self.controller = EMRegController(settings)
-        self.controller.command = self.COMMAND
+        self.controller = EMRegController(settings, command=self.COMMAND)
         self.case = None
         self.outputDirectory = None
         self.reportPath = None
@@ -353,8 +352,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
             raise EMRegError("choose a case folder first")
         case = open_case(caseDirectory)
         check_case_image_side(case)
-        self.controller = EMRegController.for_case(case)  # sensor ports from case.toml (default 1 and 2)
-        self.controller.command = self.COMMAND
+        self.controller = EMRegController.for_case(case, command=self.COMMAND)  # sensor ports from case.toml
         self.case = case
         self.outputDirectory = Path(outputDirectory) if outputDirectory else case.folder / "emreg-output"
         self.outputDirectory.mkdir(parents=True, exist_ok=True)
@@ -365,14 +363,14 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
             self.controller.load_ct(case.ct)
         else:  # a fiducial case: registered onto its fiducials, nothing to detect
             self.controller.load_fiducials(case.fiducials)
-        self.controller.note_inputs(ct=case.ct, calibration=case.calibration, navigation=case.navigation,
+        self.controller.recorder.note_inputs(ct=case.ct, calibration=case.calibration, navigation=case.navigation,
                                     targets=case.targets, board=case.board)  # provenance of the outputs
         if case.calibration is not None:
             self.controller.load_calibration_recording(case.calibration)
         if case.ct is not None:
             self.showVolume()
         self.showResults()
-        logging.info("EMReg: case %s loaded; %s", case.folder, self.controller.describe())
+        logging.info("EMReg: case %s loaded; %s", case.folder, self.controller.results.describe())
         return case
 
     def setFiducialsFromMarkupsNode(self, markupsNode):
@@ -424,14 +422,14 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     def calibrateFrame(self):
         """Frame calibration (one point per pinhole, Reference frame); writes ``frame_calibration.json``."""
         result = self.controller.calibrate_frame()
-        self.controller.save_frame_calibration(self._outputs("calibrate"))
+        self.controller.save("calibrate", self._outputs("calibrate"))
         self.showResults()
         return result
 
     def detectMarkers(self):
         """Marker detection in the CT; writes ``markers.json`` and shows the markers (RAS)."""
         result = self.controller.detect_markers()
-        self.controller.save_detection(self._outputs("detect"))
+        self.controller.save("detect", self._outputs("detect"))
         self.showResults()
         return result
 
@@ -443,7 +441,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
             targets = read_markups(self.case.targets)[1]
         result = self.controller.register(targets)
-        self.controller.save_registration(self._outputs("register"))
+        self.controller.save("register", self._outputs("register"))
         self.showResults()
         return result
 
@@ -459,24 +457,27 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         recording = read_recording(self.case.navigation, self.case.settings, self.controller.reference_sensor,
                                    self.controller.probe_sensor)
         result = self.controller.navigate_recording(recording)
-        self.controller.save_navigation(self._outputs("navigate"))
+        self.controller.save("navigate", self._outputs("navigate"))
         self._lastProbePose(recording)
         self.evaluate()
         self.showResults()
         return result
 
     def evaluate(self):
-        """TRE at the targets and the board table when the case has the recordings; writes ``evaluation.json``."""
+        """TRE at the targets and the board table when the case has the recordings; writes ``evaluation.json``.
+        The same step as ``emreg run``'s: a part that cannot be made is "not evaluated" with its reason."""
+        from EMRegModule.controller import STEPS
+
         if self.case is None or (self.case.navigation is None and self.case.board is None):
             return None
-        self.evaluation = self.controller.evaluate(self.case.read_recording("navigation"), self.case.read_targets(),
-                                                   self.case.read_recording("board"))
-        self.controller.save_evaluation(self._outputs("evaluate"), self.evaluation)
+        STEPS["evaluate"](self.controller, self.case, self._outputs("evaluate"), [])
+        self.evaluation = self.controller.results.evaluation
         return self.evaluation
 
     def writeReport(self):
         """The verification report ``report.html`` of the output folder (offscreen rendering)."""
-        self.reportPath = self.controller.save_report(self._outputs("report"), self.case.folder if self.case else None)
+        self.reportPath = self.controller.exporter.save_report(self._outputs("report"),
+                                                               self.case.folder if self.case else None, self.controller)
         return self.reportPath
 
     def runAll(self):
@@ -490,8 +491,8 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         if not report:
             logging.warning("EMReg: the report needs pyvista and opencv-python-headless; skipped")
         summary = self.controller.run(self.case, self.outputDirectory, report=report)
-        self.evaluation = self.controller.evaluation
-        if self.controller.navigation is not None:
+        self.evaluation = self.controller.results.evaluation
+        if self.controller.results.navigation is not None:
             self._lastProbePose(self.case.read_recording("navigation"))
         page = self.outputDirectory / names.REPORT_HTML
         self.reportPath = page if report and page.is_file() else None
@@ -563,11 +564,11 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         from EMRegModule.run_folder import RunFolder
         from EMRegModule.slicer_export.run_scene import run_scene_of
 
-        controller = self.controller
-        navigated = controller.registration is not None and controller.navigation is not None
-        folder = RunFolder(self.outputDirectory, detection=controller.detection,
-                           frame_calibration=controller.frame_calibration, registration=controller.registration,
-                           navigation_positions=controller.navigation.position_mm if navigated else None)
+        results = self.controller.results
+        navigated = results.registration is not None and results.navigation is not None
+        folder = RunFolder(self.outputDirectory, detection=results.detection,
+                           frame_calibration=results.frame_calibration, registration=results.registration,
+                           navigation_positions=results.navigation.position_mm if navigated else None)
         targets = read_markups(self.case.targets) if self.case is not None and self.case.targets is not None else None
         return run_scene_of(folder, targets, self.probeToReference if navigated else None)
 
@@ -581,9 +582,9 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     def resultsText(self):
         """A few lines of figures for the panel."""
         lines = []
-        registration = self.controller.registration
+        registration = self.controller.results.registration
         if registration is not None:
-            from EMRegModule.controller import offset_summary
+            from EMRegModule.workflow.results import offset_summary
 
             lines.append(f"FRE {registration.fre_mm:.2f} mm over {len(registration.pairs)} pairs; "
                          f"{offset_summary(registration)}")

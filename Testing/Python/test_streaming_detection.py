@@ -191,4 +191,4 @@ def test_controller_is_unchanged_when_the_read_fails_late(tmp_path):
     controller = EMRegController()
     with pytest.raises(EMRegError, match="corrupt"):
         controller.load_ct_and_detect(path)
-    assert controller.image is None and controller.detection is None
+    assert controller.image is None and controller.results.detection is None
