@@ -33,11 +33,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .dwell import find_dwells, group_by_place, robust_mean, robust_mean_direction
+from .dwell import Dwell, find_dwells, group_by_place, robust_mean, robust_mean_direction
 from .errors import EMRegError
 from .io.atomic import atomic_write_json, read_json
+from .names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from .settings import CalibrationSettings
-from .tracking import TrackingRecording, invert_rigid_batch, probe_in_reference
+from .tracking import ProbeInReference, TrackingRecording, invert_rigid_batch, probe_in_reference
 from .transforms import mean_rigid
 
 if TYPE_CHECKING:
@@ -220,8 +221,8 @@ def _float(value: Any) -> float:
 
 def calibrate_frame(
     recording: TrackingRecording,
-    reference_sensor: int = 1,
-    probe_sensor: int = 2,
+    reference_sensor: int = DEFAULT_REFERENCE_PORT,
+    probe_sensor: int = DEFAULT_PROBE_PORT,
     settings: CalibrationSettings | None = None,
     probe_axis: str = "auto",
     tool: ToolCalibration | str | None = None,
@@ -242,7 +243,6 @@ def calibrate_frame(
     (:func:`EMRegModule.tool.solve_tip_from_touches`); the result's ``solved_tool`` holds it.
     """
     dwell_settings = settings or CalibrationSettings()
-    revisit_tolerance = dwell_settings.revisit_tolerance_mm
     from .probe_axis import ASSUMED_CONVENTION, check_probe_axis, marker_directions
 
     probe_axis = check_probe_axis(probe_axis)
@@ -251,15 +251,7 @@ def calibrate_frame(
     position = samples.position_mm
     out_of_hole = marker_directions(samples.direction, convention)
     if tool == "auto":
-        from .tool import solve_tip_from_touches
-
-        touch_settings = replace(dwell_settings, still_radius_mm=tool_still_radius_mm)
-
-        def find_touches(tip_mm: np.ndarray) -> list[np.ndarray]:
-            return [d.indices for d in find_dwells(samples.time_s, tip_mm, samples.label, samples.quality,
-                                                   touch_settings)]
-
-        tool = solve_tip_from_touches(samples.probe_to_reference, samples.time_s, find_touches, recording.source)
+        tool = _solve_tool(samples, dwell_settings, tool_still_radius_mm, recording.source)
     if tool is not None:
         from .tool import tip_poses
 
@@ -267,17 +259,56 @@ def calibrate_frame(
         out_of_hole = np.full_like(position, np.nan)
         probe_axis, convention = "none", "none"
         dwell_settings = replace(dwell_settings, still_radius_mm=tool_still_radius_mm)
-    dwells = find_dwells(samples.time_s, position, samples.label, samples.quality, dwell_settings,
-                         source=recording.source)
+    dwells = _find_calibration_dwells(samples, position, dwell_settings, recording.source)
+    labelled = bool(dwells[0].label)
+    inlier_index, centres = _dwell_centres(dwells, samples, position, tool)
+    group, order = _group_dwells(dwells, centres, labelled, dwell_settings.merge_radius_mm)
+    points = [_pinhole_point(label, np.nonzero(group == g)[0], dwells, inlier_index, centres, samples, position,
+                             out_of_hole, tool, labelled, dwell_settings, recording.source)
+              for g, label in enumerate(order)]
+    warnings = list(recording.warnings)  # time resets / gaps found on reading (kept, as separate segments)
+    warnings += [f"{p.label}: {p.warning}" for p in points if p.warning]
+    warnings += _close_point_warnings(points, 2.0 * dwell_settings.merge_radius_mm)
+    has_direction = any(np.all(np.isfinite(p.direction)) for p in points)
+    result = FrameCalibration(points, int(reference_sensor), int(probe_sensor), labelled, recording.source, warnings,
+                              probe_axis, convention if has_direction else "none", tool=_tool_json(tool))
+    result.solved_tool = tool if tool is not None and tool.method.startswith("auto") else None
+    return result
+
+
+def _solve_tool(samples: ProbeInReference, dwell_settings: CalibrationSettings, still_radius_mm: float,
+                source: str) -> ToolCalibration:
+    """``--tool auto``: the tip solved from the recording's pivoting touches (tip still within ``still_radius_mm``)."""
+    from .tool import solve_tip_from_touches
+
+    touch_settings = replace(dwell_settings, still_radius_mm=still_radius_mm)
+
+    def find_touches(tip_mm: np.ndarray) -> list[np.ndarray]:
+        return [d.indices for d in find_dwells(samples.time_s, tip_mm, samples.label, samples.quality,
+                                               touch_settings)]
+
+    return solve_tip_from_touches(samples.probe_to_reference, samples.time_s, find_touches, source)
+
+
+def _find_calibration_dwells(samples: ProbeInReference, position: np.ndarray, dwell_settings: CalibrationSettings,
+                             source: str) -> list[Dwell]:
+    """The dwells of the probe (or tool tip) positions (Reference frame, mm); refuses a recording with none."""
+    dwells = find_dwells(samples.time_s, position, samples.label, samples.quality, dwell_settings, source=source)
     if not dwells:
         from .dwell import describe_still_periods
 
         raise EMRegError(
-            f"{recording.source}: no dwell found (the probe never stayed still in a pinhole for "
+            f"{source}: no dwell found (the probe never stayed still in a pinhole for "
             f"{dwell_settings.min_duration_s:g} s; check the sensor ports): "
             + describe_still_periods(samples.time_s, position, samples.quality, dwell_settings, section="calibration")
         )
-    labelled = bool(dwells[0].label)
+    return dwells
+
+
+def _dwell_centres(dwells: list[Dwell], samples: ProbeInReference, position: np.ndarray,
+                   tool: ToolCalibration | None) -> tuple[list[np.ndarray], np.ndarray]:
+    """Each dwell's inlier sample indices and robust centre (Reference mm); a tool's touch keeps the samples of
+    the tip as placed (:func:`EMRegModule.tool.placement_samples`)."""
     inlier_index = []
     centres = []
     for dwell in dwells:
@@ -289,64 +320,69 @@ def calibrate_frame(
         average = robust_mean(position[indices])
         inlier_index.append(indices[average.inliers])
         centres.append(average.mean)
-    centres_array = np.asarray(centres)
+    return inlier_index, np.asarray(centres)
+
+
+def _group_dwells(dwells: list[Dwell], centres: np.ndarray, labelled: bool,
+                  merge_radius_mm: float) -> tuple[np.ndarray, list[str]]:
+    """The pinhole (group index) of each dwell and the pinholes' labels: by label, else by place."""
     if labelled:
         names = [d.label for d in dwells]
         order = list(dict.fromkeys(names))
-        group = np.array([order.index(n) for n in names])
-    else:
-        group = group_by_place(centres_array, dwell_settings.merge_radius_mm)
-        order = [f"P{g + 1:02d}" for g in range(int(group.max()) + 1)]
-    points = []
-    for g, label in enumerate(order):
-        members = np.nonzero(group == g)[0]
-        pooled = np.concatenate([inlier_index[m] for m in members])
-        average = robust_mean(position[pooled])
-        used = pooled[average.inliers]
-        if np.all(np.isfinite(out_of_hole[used])):
-            direction, direction_std = robust_mean_direction(out_of_hole[used])
-        else:  # position-only probe rows (or no convention): no direction
-            direction, direction_std = np.full(3, np.nan), float("nan")
-        warning = ""
-        if len(members) > 1:
-            visit_centres = centres_array[members]
-            spread = float(np.max(np.linalg.norm(visit_centres[:, None] - visit_centres[None], axis=2)))
-            if labelled and spread > 2.0 * dwell_settings.merge_radius_mm:
-                raise EMRegError(
-                    f"{recording.source}: the {len(members)} dwells labelled {label!r} lie up to {spread:.1f} mm "
-                    f"apart, farther than visits of one pinhole can (2 x [calibration] merge_radius_mm = "
-                    f"{2.0 * dwell_settings.merge_radius_mm:g} mm): one label given to several pinholes; "
-                    "check the labels")
-            if spread > revisit_tolerance:
-                warning = (f"{len(members)} visits disagree by up to {spread:.2f} mm "
-                           f"(more than {revisit_tolerance:g} mm): check that the probe was fully inserted")
-        motion = ""
-        if tool is not None:
-            from .tool import shaft_swing_deg
+        return np.array([order.index(n) for n in names]), order
+    group = group_by_place(centres, merge_radius_mm)
+    return group, [f"P{g + 1:02d}" for g in range(int(group.max()) + 1)]
 
-            touched = np.concatenate([dwells[m].indices for m in members])
-            swing = shaft_swing_deg(samples.probe_to_reference[touched, :3, :3], tool.tip_mm)
-            motion = "pivot" if swing >= PIVOT_TOUCH_SWING_DEG else "rest"
-        points.append(CalibrationPoint(
-            label=label, position=average.mean, direction=direction, samples=len(used), std_mm=average.std_mm,
-            visits=len(members), direction_std_deg=direction_std,
-            start_s=float(min(dwells[m].start_s for m in members)),
-            end_s=float(max(dwells[m].end_s for m in members)), warning=warning, motion=motion,
-            tracker_to_reference=mean_rigid(invert_rigid_batch(samples.reference_to_tracker[used])),
-        ))
-    warnings = list(recording.warnings)  # time resets / gaps found on reading (kept, as separate segments)
-    warnings += [f"{p.label}: {p.warning}" for p in points if p.warning]
-    warnings += _close_point_warnings(points, 2.0 * dwell_settings.merge_radius_mm)
-    has_direction = any(np.all(np.isfinite(p.direction)) for p in points)
-    tool_json = None
+
+def _pinhole_point(label: str, members: np.ndarray, dwells: list[Dwell], inlier_index: list[np.ndarray],
+                   centres: np.ndarray, samples: ProbeInReference, position: np.ndarray, out_of_hole: np.ndarray,
+                   tool: ToolCalibration | None, labelled: bool, dwell_settings: CalibrationSettings,
+                   source: str) -> CalibrationPoint:
+    """One pinhole's point from the pooled inliers of its visits (``members``: dwell indices)."""
+    pooled = np.concatenate([inlier_index[m] for m in members])
+    average = robust_mean(position[pooled])
+    used = pooled[average.inliers]
+    if np.all(np.isfinite(out_of_hole[used])):
+        direction, direction_std = robust_mean_direction(out_of_hole[used])
+    else:  # position-only probe rows (or no convention): no direction
+        direction, direction_std = np.full(3, np.nan), float("nan")
+    warning = ""
+    if len(members) > 1:
+        visit_centres = centres[members]
+        spread = float(np.max(np.linalg.norm(visit_centres[:, None] - visit_centres[None], axis=2)))
+        if labelled and spread > 2.0 * dwell_settings.merge_radius_mm:
+            raise EMRegError(
+                f"{source}: the {len(members)} dwells labelled {label!r} lie up to {spread:.1f} mm "
+                f"apart, farther than visits of one pinhole can (2 x [calibration] merge_radius_mm = "
+                f"{2.0 * dwell_settings.merge_radius_mm:g} mm): one label given to several pinholes; "
+                "check the labels")
+        if spread > dwell_settings.revisit_tolerance_mm:
+            warning = (f"{len(members)} visits disagree by up to {spread:.2f} mm "
+                       f"(more than {dwell_settings.revisit_tolerance_mm:g} mm): check that the probe was fully "
+                       "inserted")
+    motion = ""
     if tool is not None:
-        tool_json = {"TipToProbe": tool.tip_to_probe.tolist(), "tip_mm": tool.tip_mm.tolist(), "source": tool.source,
-                     "name": tool.name, "method": tool.method, "rms_mm": tool.rms_mm,
-                     "tip_std_mm": None if tool.tip_std_mm is None else tool.tip_std_mm.tolist()}
-    result = FrameCalibration(points, int(reference_sensor), int(probe_sensor), labelled, recording.source, warnings,
-                              probe_axis, convention if has_direction else "none", tool=tool_json)
-    result.solved_tool = tool if tool is not None and tool.method.startswith("auto") else None
-    return result
+        from .tool import shaft_swing_deg
+
+        touched = np.concatenate([dwells[m].indices for m in members])
+        swing = shaft_swing_deg(samples.probe_to_reference[touched, :3, :3], tool.tip_mm)
+        motion = "pivot" if swing >= PIVOT_TOUCH_SWING_DEG else "rest"
+    return CalibrationPoint(
+        label=label, position=average.mean, direction=direction, samples=len(used), std_mm=average.std_mm,
+        visits=len(members), direction_std_deg=direction_std,
+        start_s=float(min(dwells[m].start_s for m in members)),
+        end_s=float(max(dwells[m].end_s for m in members)), warning=warning, motion=motion,
+        tracker_to_reference=mean_rigid(invert_rigid_batch(samples.reference_to_tracker[used])),
+    )
+
+
+def _tool_json(tool: ToolCalibration | None) -> dict[str, Any] | None:
+    """``frame_calibration.json`` ``"tool"``: the tracked tool the points are its tip's (None: the pinhole probe)."""
+    if tool is None:
+        return None
+    return {"TipToProbe": tool.tip_to_probe.tolist(), "tip_mm": tool.tip_mm.tolist(), "source": tool.source,
+            "name": tool.name, "method": tool.method, "rms_mm": tool.rms_mm,
+            "tip_std_mm": None if tool.tip_std_mm is None else tool.tip_std_mm.tolist()}
 
 
 def _close_point_warnings(points: list[CalibrationPoint], radius_mm: float) -> list[str]:

@@ -31,11 +31,11 @@ from .io.fiducials import Fiducials
 from .pairing import pair_markers
 from .registration import (
     RegistrationResult,
-    _calibration_port,
-    _check_distortion,
-    _distortion,
-    _fit_pairs,
+    calibration_port,
+    check_distortion,
     check_fre,
+    distortion_of_fit,
+    fit_pairs,
     pairing_record,
     predicted_registration_tre,
 )
@@ -74,7 +74,7 @@ def register_fiducials(fiducials: Fiducials, frame_calibration: FrameCalibration
                            NO_OFFSET, config.pairing)
     fiducial_index = np.array([j for j, _ in pairing.pairs])
     cal_index = np.array([i for _, i in pairing.pairs])
-    fit = _fit_pairs(points[cal_index], fiducial_points[fiducial_index], no_axes[fiducial_index], NO_OFFSET, config)
+    fit = fit_pairs(points[cal_index], fiducial_points[fiducial_index], no_axes[fiducial_index], NO_OFFSET, config)
     used, residuals = fit.used, fit.residuals_mm
     warnings = list(fit.warnings)
     if np.any(fit.outlier):
@@ -84,11 +84,11 @@ def register_fiducials(fiducials: Fiducials, frame_calibration: FrameCalibration
     fre_value = float(np.sqrt(np.mean(residuals[used] ** 2)))
     check_fre(fre_value, config, f"the fiducials ({fiducials.source})")
     n_used = int(np.count_nonzero(used))
-    distortion = _distortion(fit.solution, points[cal_index[used]], fiducial_points[fiducial_index[used]],
-                             no_axes[fiducial_index[used]], True, config,
-                             [frame_calibration.points[i] for i in cal_index[used]],
-                             [fiducials.labels[j] for j in fiducial_index[used]])
-    warnings += _check_distortion(distortion, config)
+    distortion = distortion_of_fit(fit.solution, points[cal_index[used]], fiducial_points[fiducial_index[used]],
+                                   no_axes[fiducial_index[used]], True, config,
+                                   [frame_calibration.points[i] for i in cal_index[used]],
+                                   [fiducials.labels[j] for j in fiducial_index[used]])
+    warnings += check_distortion(distortion, config)
     error = registration_error(points[cal_index[used]], fiducial_points[fiducial_index[used]],
                                no_axes[fiducial_index[used]], 0.0, False, residuals[used], distortion=distortion)
     targets, predicted = predicted_registration_tre(error, targets_image)
@@ -120,8 +120,8 @@ def register_fiducials(fiducials: Fiducials, frame_calibration: FrameCalibration
         pairing=pairing_record(pairing, config.pairing),
         probe_axis={"setting": "none", "detected": "none", "pairing": "distances only",
                     "note": "fiducials are points: there is no marker axis to compare the probe's with"},
-        reference_sensor=_calibration_port(frame_calibration, "reference_sensor"),
-        probe_sensor=_calibration_port(frame_calibration, "probe_sensor"),
+        reference_sensor=calibration_port(frame_calibration, "reference_sensor"),
+        probe_sensor=calibration_port(frame_calibration, "probe_sensor"),
         fiducials={**fiducials.to_json(),
                    "fit": "rigid point fit of the calibration points onto the fiducials (no sensor offset l)",
                    "calibration_points": "tool tip" if tool is not None else "probe sensor (no tool tip applied)"},

@@ -136,11 +136,7 @@ def pair_with_probe_axis(
     distance-only pairing (the paper's CSP) refuses too.
     """
     setting = check_probe_axis(setting)
-    points = np.asarray(points_reference, dtype=float).reshape(-1, 3)
-    if directions_reference is None:
-        directions = np.full_like(points, np.nan)
-    else:
-        directions = np.asarray(directions_reference, dtype=float).reshape(-1, 3)
+    points, directions = _points_and_directions(points_reference, directions_reference)
     present = np.all(np.isfinite(directions), axis=1)
     has_directions = bool(np.count_nonzero(present) >= max(3, len(points) // 2))
     cos_limit = float(np.cos(np.radians(min(settings.angle_tolerance_deg, 45.0))))
@@ -210,6 +206,15 @@ def pair_with_probe_axis(
     return result, ProbeAxisReport(setting, setting, "directions", angle, agreeing, result.support,
                                    note=f"probe_axis = {setting} (forced); {agreeing} of {result.support} paired "
                                         f"points agree")
+
+
+def _points_and_directions(points_reference: np.ndarray,
+                           directions_reference: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) points and (N, 3) directions (NaN rows where unknown; all NaN when the calibration has none)."""
+    points = np.asarray(points_reference, dtype=float).reshape(-1, 3)
+    if directions_reference is None:
+        return points, np.full_like(points, np.nan)
+    return points, np.asarray(directions_reference, dtype=float).reshape(-1, 3)
 
 
 def _short(exc: Exception) -> str:

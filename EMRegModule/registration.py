@@ -290,7 +290,7 @@ def register(
     cal_index = np.array([i for _, i in pairing.pairs])
     warnings: list[str] = list(axis_report.warnings)
 
-    fit = _fit_pairs(points[cal_index], origins[image_index], axes[image_index], l_range, config)
+    fit = fit_pairs(points[cal_index], origins[image_index], axes[image_index], l_range, config)
     solution, pair_residuals, outlier, used = fit.solution, fit.residuals_mm, fit.outlier, fit.used
     warnings += fit.warnings
     if np.any(outlier):
@@ -304,10 +304,11 @@ def register(
                                         solution.l_mm, model)
     n_used = int(np.count_nonzero(used))
     fle = fre_value * np.sqrt(n_used / (n_used - 2)) if n_used > 2 else float("nan")
-    distortion = _distortion(solution, points[cal_index[used]], origins[image_index[used]], axes[image_index[used]],
-                             fixed, config, [frame_calibration.points[i] for i in cal_index[used]],
-                             [image_ids[j] for j in image_index[used]])
-    warnings += _check_distortion(distortion, config)
+    distortion = distortion_of_fit(solution, points[cal_index[used]], origins[image_index[used]],
+                                   axes[image_index[used]], fixed, config,
+                                   [frame_calibration.points[i] for i in cal_index[used]],
+                                   [image_ids[j] for j in image_index[used]])
+    warnings += check_distortion(distortion, config)
     error = registration_error(points[cal_index[used]], origins[image_index[used]], axes[image_index[used]],
                                solution.l_mm, not fixed, pair_residuals[used], distortion=distortion)
     targets, predicted = predicted_registration_tre(error, targets_image)
@@ -340,8 +341,8 @@ def register(
         warnings=warnings + list(frame_calibration.warnings),
         pairing=pairing_record(pairing, config.pairing),
         probe_axis=axis_report.to_json(),
-        reference_sensor=_calibration_port(frame_calibration, "reference_sensor"),
-        probe_sensor=_calibration_port(frame_calibration, "probe_sensor"),
+        reference_sensor=calibration_port(frame_calibration, "reference_sensor"),
+        probe_sensor=calibration_port(frame_calibration, "probe_sensor"),
     )
 
 
@@ -413,9 +414,9 @@ def _distortion_evidence(distortion: DistortionEstimate, solution: OffsetSolutio
     return lines
 
 
-def _distortion(solution: OffsetSolution, points_reference: np.ndarray, origins_image: np.ndarray,
-                axes_image: np.ndarray, fixed: bool, config: RegistrationSettings,
-                calibration_points: list[CalibrationPoint], image_markers: list[str]) -> DistortionEstimate:
+def distortion_of_fit(solution: OffsetSolution, points_reference: np.ndarray, origins_image: np.ndarray,
+                      axes_image: np.ndarray, fixed: bool, config: RegistrationSettings,
+                      calibration_points: list[CalibrationPoint], image_markers: list[str]) -> DistortionEstimate:
     """The distortion test on the fit's residual vectors, taken into the Reference frame (measured point minus
     the registered CT pinhole; :func:`EMRegModule.distortion.estimate_distortion`), with the transmitter's pose
     at each point when the calibration kept it."""
@@ -428,7 +429,7 @@ def _distortion(solution: OffsetSolution, points_reference: np.ndarray, origins_
                                None if any(p is None for p in poses) else np.asarray(poses))
 
 
-def _check_distortion(distortion: DistortionEstimate, config: RegistrationSettings) -> list[str]:
+def check_distortion(distortion: DistortionEstimate, config: RegistrationSettings) -> list[str]:
     """Refuse (:class:`NoSafeAnswerError`) a detected distortion above ``max_distortion_mm`` (RMS at the
     pinholes); below it, a warning saying where and how much."""
     if not distortion.detected:
@@ -445,7 +446,8 @@ def _check_distortion(distortion: DistortionEstimate, config: RegistrationSettin
             "tre_map.nrrd include it for navigation in this same field"]
 
 
-def _calibration_port(frame_calibration: FrameCalibration, key: str) -> int | None:
+def calibration_port(frame_calibration: FrameCalibration, key: str) -> int | None:
+    """The tracker port (``reference_sensor`` or ``probe_sensor``) the calibration was recorded on (None: unknown)."""
     value = getattr(frame_calibration, key, None)
     return int(value) if value is not None else None
 
@@ -462,7 +464,7 @@ def _offset_range(config: RegistrationSettings, model: MarkerModel) -> tuple[flo
 
 
 @dataclass
-class _PairFit:
+class PairFit:
     """The sensor offset solved on the paired points, the residual of every pair (mm), which pairs
     are outliers and which were used in the fit, and the warnings of the fit."""
 
@@ -473,8 +475,8 @@ class _PairFit:
     warnings: list[str]
 
 
-def _fit_pairs(points_reference: np.ndarray, origins_image: np.ndarray, axes_image: np.ndarray,
-               l_range: tuple[float, float], config: RegistrationSettings) -> _PairFit:
+def fit_pairs(points_reference: np.ndarray, origins_image: np.ndarray, axes_image: np.ndarray,
+               l_range: tuple[float, float], config: RegistrationSettings) -> PairFit:
     """Solve l and ``ReferenceToImage`` on the paired points (Reference / image, row k paired with row k),
     flag outliers and, with ``exclude_outliers``, solve again without them (while enough pairs remain)."""
     def residuals_at(solution: OffsetSolution) -> np.ndarray:
@@ -490,7 +492,7 @@ def _fit_pairs(points_reference: np.ndarray, origins_image: np.ndarray, axes_ima
         solution = solve_sensor_offset(points_reference[used], origins_image[used], axes_image[used], l_range)
         pair_residuals = residuals_at(solution)
         warnings.append(f"{np.count_nonzero(outlier)} outlier pair(s) left out of the fit")
-    return _PairFit(solution, pair_residuals, outlier, used, warnings)
+    return PairFit(solution, pair_residuals, outlier, used, warnings)
 
 
 #: A fixed l is said to disagree with the markers when the l they give is further than this many of its

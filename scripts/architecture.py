@@ -24,7 +24,7 @@ from pathlib import Path
 
 #: The layers, lowest first: a module may import from its own layer and the layers below it, never above.
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("base", ("__init__", "errors", "names", "frames", "tables", "progress", "interrupts", "transforms")),
+    ("base", ("__init__", "errors", "names", "frames", "tables", "progress", "interrupts", "transforms", "stages")),
     ("model", ("tracking", "marker_model", "settings")),
     ("formats", ("io", "provenance")),
     ("core", ("em_field", "dwell", "error_model", "sensor_offset", "calibration", "pairing", "probe_axis",

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from EMRegModule.marker_model import MarkerModel
-from EMRegModule.simulation import ct, simulate_case
-from EMRegModule.simulation.case import _frame_to_image, _rng
+from EMRegModule.simulation import ct
+from EMRegModule.simulation.case import _frame_to_image, _rng, simulate_case
 from EMRegModule.simulation.frame import build_phantom
 from EMRegModule.simulation.options import resolve_options
 from EMRegModule.transforms import apply_transform, invert_rigid

@@ -39,7 +39,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from ..io.case import open_case
-    from ..simulation import simulate_case
+    from ..simulation.case import simulate_case
 
     out = out_folder(args.out)
     case_dir = out / "case"

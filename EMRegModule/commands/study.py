@@ -11,7 +11,7 @@ from .args import AddCommand, out_folder, progress_of
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     out_folder(args.out)
-    from ..simulation import simulate_case
+    from ..simulation.case import simulate_case
 
     options = {"probe_axis": args.probe_axis} if args.probe_axis else {}
     if args.tool_tip:

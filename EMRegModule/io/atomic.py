@@ -34,7 +34,7 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem.split('.')[0]}-", suffix=suffix, dir=path.parent)
         os.close(fd)
     except OSError as exc:
-        raise _cannot_write(path, exc) from None
+        raise cannot_write(path, exc) from None
     tmp = Path(tmp_name)
     try:
         yield tmp
@@ -45,11 +45,11 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         with contextlib.suppress(OSError):
             tmp.unlink()
         if isinstance(exc, OSError):
-            raise _cannot_write(path, exc) from None
+            raise cannot_write(path, exc) from None
         raise
 
 
-def _cannot_write(path: Path, exc: OSError) -> Exception:
+def cannot_write(path: Path, exc: OSError) -> Exception:
     """The one-line error for a file-system failure writing ``path`` (the OS names no file, or the temporary)."""
     from ..errors import EMRegError
 

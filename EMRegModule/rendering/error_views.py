@@ -20,7 +20,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from .colors import colorize
-from .plots import BLACK, WHITE, _Axes, fit_text, nice_ticks
+from .plots import BLACK, WHITE, Axes, fit_text, nice_ticks
 from .text import put_text, text_size
 
 #: Segment colours of the budget's terms (RGB).
@@ -38,7 +38,7 @@ def error_budget_chart(labels: Sequence[str], budget_rms_mm: Mapping[str, Sequen
     width, height = size
     canvas = np.full((height, width, 3), WHITE, dtype=np.uint8)
     highest = float(np.nanmax(np.r_[tops[-1] if len(tops) else [0.0], measured, 0.1]))
-    axes = _Axes(canvas, 62, 56, width - 20, height - 28, (0.0, float(len(labels))),
+    axes = Axes(canvas, 62, 56, width - 20, height - 28, (0.0, float(len(labels))),
                  nice_ticks(0.0, highest * 1.1, 5))
     put_text(canvas, "Predicted error budget and measured TRE per target", width / 2, 18, 0.5, align="center")
     axes.draw_y_grid("RMS TRE (mm)")

@@ -61,7 +61,7 @@ def _format_tick(value: float, step: float) -> str:
     return f"{value:.{decimals}f}"
 
 
-class _Axes:
+class Axes:
     """Maps data coordinates to pixels inside a plot rectangle and draws the frame and grid."""
 
     def __init__(self, canvas: np.ndarray, left: int, top: int, right: int, bottom: int,
@@ -128,7 +128,7 @@ def bar_chart(
     slot = (width - 70 - 20) / n
     vertical_labels = longest > slot - 4
     bottom_margin = (longest + 14) if vertical_labels else 26
-    axes = _Axes(canvas, 62, 34, width - 20, height - bottom_margin, (0.0, float(n)), ticks)
+    axes = Axes(canvas, 62, 34, width - 20, height - bottom_margin, (0.0, float(n)), ticks)
     if title:
         put_text(canvas, title, width / 2, 20, 0.5, align="center")
     axes.draw_y_grid(y_label)
@@ -185,7 +185,7 @@ def line_chart(
     y_low, y_high = (float(np.min(y[finite])), float(np.max(y[finite]))) if finite.any() else (0.0, 1.0)
     pad = 0.08 * (y_high - y_low) if y_high > y_low else 0.5
     ticks = nice_ticks(max(0.0, y_low - pad) if y_low >= 0 else y_low - pad, y_high + pad, 5)
-    axes = _Axes(canvas, 62, 34, width - 20, height - 46, (float(x.min()), float(x.max())), ticks)
+    axes = Axes(canvas, 62, 34, width - 20, height - 46, (float(x.min()), float(x.max())), ticks)
     if title:
         put_text(canvas, title, width / 2, 20, 0.5, align="center")
     axes.draw_y_grid(y_label)

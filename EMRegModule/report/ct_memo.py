@@ -205,9 +205,9 @@ def save_ct_memo(path: Path, ct_sha256: str, model: MarkerModel, image: Any, bin
 
 def memo_path(out_dir: str | os.PathLike[str]) -> Path:
     """Where a report of ``out_dir`` keeps its CT products."""
-    from .writer import FIGURE_DIR
+    from ..names import REPORT_FIGURES
 
-    return Path(out_dir) / FIGURE_DIR / MEMO_NAME
+    return Path(out_dir) / REPORT_FIGURES / MEMO_NAME
 
 
 def memo_candidates(out_dir: str | os.PathLike[str]) -> list[Path]:

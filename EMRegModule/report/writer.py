@@ -28,7 +28,6 @@ if TYPE_CHECKING:
     from ..settings import Settings
 
 #: Read by ct_memo (helper ``ct`` moves it onto :data:`~EMRegModule.names.REPORT_FIGURES`; then this line goes).
-FIGURE_DIR = REPORT_FIGURES
 
 
 def write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,

@@ -627,7 +627,7 @@ class EMRegTest(ScriptedLoadableModuleTest):
         folder = self.caseDirectory or os.environ.get("EMREG_TEST_CASE")
         if folder:
             return Path(folder)
-        from EMRegModule.simulation import simulate_case
+        from EMRegModule.simulation.case import simulate_case
 
         folder = Path(tempfile.mkdtemp(prefix="EMRegTest-")) / "case"
         self._temporary.append(folder.parent)
@@ -651,7 +651,7 @@ class EMRegTest(ScriptedLoadableModuleTest):
 
         import numpy as np
 
-        from EMRegModule.simulation import load_truth
+        from EMRegModule.simulation.case import load_truth
         from EMRegModule.slicer_export.scene_check import scene_disagreements
         from EMRegModule.transforms import apply_transform
 

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import EMRegError
-from ..io.atomic import _cannot_write
+from ..io.atomic import cannot_write
 
 
 def write_mrb(scene: Any, path: Path, stored: dict[str, StoredVoxels]) -> str:
@@ -76,7 +76,7 @@ def write_mrb(scene: Any, path: Path, stored: dict[str, StoredVoxels]) -> str:
         digest = _zip_bundle(folder, staged, sources)
         os.replace(staged, path)
     except OSError as exc:  # a full disk, no permission: one line naming the bundle, as for every output
-        raise _cannot_write(path, exc) from None
+        raise cannot_write(path, exc) from None
     finally:
         for storage_id, (node, data) in volumes.items():  # the scene as it was (Slicer's default: compressed)
             if node.GetImageData() is not data:

@@ -29,7 +29,7 @@ from ..marker_model import MarkerModel
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from ..registration import RegistrationResult, register
 from ..settings import Settings
-from ..simulation import load_truth, simulate_case
+from ..simulation.case import load_truth, simulate_case
 from ..simulation.distortion import FieldDistortion
 from ..simulation.tracking import (
     DwellTruth,

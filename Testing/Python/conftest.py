@@ -32,7 +32,7 @@ import pytest
 from versions import report_header
 
 from EMRegModule.cli import main
-from EMRegModule.simulation import load_truth, simulate_case
+from EMRegModule.simulation.case import load_truth, simulate_case
 
 #: Options of the CI-sized cases (shared so tests can state what they rely on).
 CI_CASE_OPTIONS = {"frame_size_mm": (220.0, 220.0, 140.0), "n_markers": 16}

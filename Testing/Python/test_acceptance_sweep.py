@@ -34,7 +34,7 @@ import pytest
 from conftest import SMALL_CASE_OPTIONS
 
 from EMRegModule.cli import main
-from EMRegModule.simulation import simulate_case
+from EMRegModule.simulation.case import simulate_case
 
 
 @pytest.fixture(scope="module")

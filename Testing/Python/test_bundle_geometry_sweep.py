@@ -41,7 +41,7 @@ from conftest import SMALL_CASE_OPTIONS  # noqa: E402
 from ct_files import write_nrrd  # noqa: E402
 
 from EMRegModule.cli import main  # noqa: E402
-from EMRegModule.simulation import simulate_case  # noqa: E402
+from EMRegModule.simulation.case import simulate_case  # noqa: E402
 
 SMALL = {**SMALL_CASE_OPTIONS, "board_rounds": 1}
 RAS = np.array([-1.0, -1.0, 1.0])

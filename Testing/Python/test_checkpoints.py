@@ -288,7 +288,7 @@ def test_a_noisy_clean_session_passes_its_checkpoints_where_the_fixed_limit_fail
     """A tracker three times as noisy, calibrated and navigated (``emreg run``) with rests in pinholes: the error
     model's thresholds grow with the measured noise and every clean checkpoint passes; the fixed 1.5 mm limit alone
     fails some of the same checkpoints."""
-    from EMRegModule.simulation import simulate_case
+    from EMRegModule.simulation.case import simulate_case
 
     case = tmp_path / "case"
     simulate_case(case, seed=6, spacing_mm=1.0, tracker_noise_scale=3.0, navigation_checkpoints=6,

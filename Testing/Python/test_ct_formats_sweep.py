@@ -49,7 +49,7 @@ from EMRegModule.errors import EMRegError
 from EMRegModule.io.ct_stream import start_streamed_read
 from EMRegModule.io.fast_read import plain_storage, start_fast_read
 from EMRegModule.io.image import read_ct
-from EMRegModule.simulation import simulate_case
+from EMRegModule.simulation.case import simulate_case
 
 ORIGIN_TOLERANCE_MM = 0.3  # well under the 1 mm voxel
 

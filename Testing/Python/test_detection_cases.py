@@ -20,7 +20,7 @@ from fixtures import phantom as ph
 from EMRegModule.cli import main
 from EMRegModule.detection import DetectionResult, read_detection
 from EMRegModule.io.markups import read_markups
-from EMRegModule.simulation import simulate_case
+from EMRegModule.simulation.case import simulate_case
 from EMRegModule.transforms import angle_between_deg
 
 

@@ -16,7 +16,7 @@ from test_detection_cases import errors_against_truth
 from EMRegModule.cli import main
 from EMRegModule.detection import detect as detect_module
 from EMRegModule.detection import read_detection
-from EMRegModule.simulation import simulate_case
+from EMRegModule.simulation.case import simulate_case
 
 
 def _detect(case, out, *extra) -> int:

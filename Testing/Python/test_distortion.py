@@ -20,7 +20,7 @@ from EMRegModule.cli import main
 from EMRegModule.distortion import DistortionEstimate, estimate_distortion
 from EMRegModule.em_field import coil_field, induced_coupling, position_error
 from EMRegModule.registration import read_registration
-from EMRegModule.simulation import load_truth, simulate_case
+from EMRegModule.simulation.case import load_truth, simulate_case
 from EMRegModule.simulation.distortion import FieldDistortion, nonrigid_errors, place_object
 from EMRegModule.transforms import apply_transform, fit_rigid, invert_rigid, make_transform, random_rotation
 
@@ -176,7 +176,7 @@ def test_simulate_command_passes_the_distortion_options(tmp_path: Path, monkeypa
     def fake_simulate_case(out, **kwargs):
         seen.update(kwargs)
 
-    monkeypatch.setattr("EMRegModule.simulation.simulate_case", fake_simulate_case)
+    monkeypatch.setattr("EMRegModule.simulation.case.simulate_case", fake_simulate_case)
     assert main(["simulate", str(tmp_path / "c"), "--distortion", "1.0", "--distortion-during", "navigation",
                  "--distortion-onset", "12", "--quiet"]) == 0
     assert (seen["distortion_mm"], seen["distortion_during"], seen["distortion_onset_s"]) == (1.0, "navigation", 12.0)

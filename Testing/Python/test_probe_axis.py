@@ -137,7 +137,7 @@ def three_conventions(standard_case, tmp_path_factory):
     from conftest import CI_CASE_OPTIONS, STANDARD_SEED
 
     from EMRegModule.cli import main
-    from EMRegModule.simulation import simulate_recordings
+    from EMRegModule.simulation.case import simulate_recordings
 
     root = tmp_path_factory.mktemp("probe_conventions")
     assert main(["detect", str(standard_case), "--out", str(root / "detect"), "--quiet"]) == 0

@@ -20,7 +20,7 @@ from EMRegModule.errors import EMRegError
 from EMRegModule.io.case import open_case
 from EMRegModule.outputs import OutputFolder, refuse_out_over_inputs
 from EMRegModule.provenance import check_belongs, file_sha256
-from EMRegModule.simulation import simulate_case
+from EMRegModule.simulation.case import simulate_case
 
 SMALL = {**CI_CASE_OPTIONS, "spacing_mm": 1.25}
 

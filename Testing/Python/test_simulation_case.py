@@ -14,7 +14,7 @@ from EMRegModule.errors import EMRegError
 from EMRegModule.io.case import open_case
 from EMRegModule.io.image import read_ct
 from EMRegModule.marker_model import MarkerModel
-from EMRegModule.simulation import simulate_case
+from EMRegModule.simulation.case import simulate_case
 from EMRegModule.simulation.frame import FACE_NORMALS
 from EMRegModule.transforms import apply_transform, invert_rigid, is_rigid, random_rotation
 

@@ -9,7 +9,7 @@ from conftest import load_truth
 from EMRegModule.io.case import open_case
 from EMRegModule.io.markups import read_markups
 from EMRegModule.io.tracking_csv import read_tracking_csv
-from EMRegModule.simulation import board_holes, simulate_case
+from EMRegModule.simulation.case import board_holes, simulate_case
 from EMRegModule.tracking import probe_in_reference
 from EMRegModule.transforms import angle_between_deg, apply_transform
 

@@ -305,7 +305,7 @@ def stylus_case(tmp_path_factory):
 
     from EMRegModule.controller import EMRegController
     from EMRegModule.io.case import open_case
-    from EMRegModule.simulation import simulate_case
+    from EMRegModule.simulation.case import simulate_case
 
     folder = tmp_path_factory.mktemp("stylus")
     truth = simulate_case(folder / "case", seed=6, spacing_mm=1.0, tool_tip_mm=(150.0, 1.5, -2.0),

@@ -45,7 +45,7 @@ import numpy as np
 import pytest
 
 from EMRegModule.cli import main
-from EMRegModule.simulation import simulate_case
+from EMRegModule.simulation.case import simulate_case
 
 RECORDINGS = ("calibration.csv", "navigation.csv", "board.csv")
 
