@@ -31,7 +31,7 @@ def checkpoint_chart(
     every = np.concatenate([time_s, np.asarray(jumps_s, dtype=float)])
     start, end = float(every.min()), float(every.max())
     pad = max(1.0, 0.05 * (end - start))
-    axes = plots._Axes(canvas, 62, 34, width - 20, height - 46, (start - pad, end + pad), ticks)
+    axes = plots.Axes(canvas, 62, 34, width - 20, height - 46, (start - pad, end + pad), ticks)
     _text(canvas, "Error at each checkpoint", width / 2, 20, 0.5, align="center")
     axes.draw_y_grid("error (mm)")
     x_ticks = plots.nice_ticks(start - pad, end + pad, 8)

@@ -514,7 +514,7 @@ def test_slicer_logic_registers_onto_a_markups_node(small_case, landmarks, tmp_p
     write_mrk_json(case / "fiducials.mrk.json", ["A", "B", "C"], [[0, 0, 0], [90, 0, 0], [0, 70, 5]])
     logic = module.EMRegLogic()
     logic.loadCase(str(case), str(tmp_path / "out"))
-    assert logic.controller.image is None and len(logic.controller.fiducials) == 3
+    assert logic.controller.image is None and len(logic.controller.results.fiducials) == 3
     node = harness.scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "planned landmarks")
     from vtkmodules.vtkCommonDataModel import vtkVector3d
 
@@ -555,7 +555,7 @@ def test_slicer_panel_uses_the_markups_node_chosen_in_its_selector(small_case, l
         node.AddControlPoint(vtkVector3d(*map(float, position)), label)
     ui.fiducialsNodeComboBox.setCurrentNode(node)
     ui.useFiducialsButton.click()
-    fiducials = widget.logic.controller.fiducials
+    fiducials = widget.logic.controller.results.fiducials
     assert fiducials.labels == labels and np.allclose(fiducials.positions, positions)
 
 
