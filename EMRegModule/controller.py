@@ -106,7 +106,7 @@ class EMRegController:
         ``keep_image=False`` (``emreg detect``, which writes only the markers): the CT is not kept (``image`` is
         None afterwards), so a DICOM series is read without a SimpleITK image (``open_ct``'s ``voxels_only``).
         """
-        from .io.dicom_series import NarrowVoxelsError
+        from .io.dicom_read import NarrowVoxelsError
 
         import_in_background("EMRegModule.detection.detect")  # overlaps the import with the start of the read
         _warn_series_unused(self, path)

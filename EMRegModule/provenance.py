@@ -48,7 +48,7 @@ def file_sha256(path: str | os.PathLike[str]) -> str:
         if path.is_dir():
             return folder_sha256({name: _digest(member) for name, member in folder_members(path)})
         if path.name.lower().endswith(_DETACHED_HEADERS):
-            from .io.fast_read import detached_data_file
+            from .io.ct_header import detached_data_file
 
             data = detached_data_file(path)
             if data is not None:

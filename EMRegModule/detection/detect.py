@@ -34,7 +34,9 @@ import numpy as np
 import SimpleITK as sitk
 
 from ..errors import NoSafeAnswerError
-from ..io.image import check_ct, image_geometry, index_to_physical_matrix
+from ..io.ct_checks import check_ct_geometry
+from ..io.ct_handle import CTGeometry, CTHandle
+from ..io.image import image_geometry, index_to_physical_matrix
 from ..marker_model import MarkerModel
 from ..progress import QUIET, Progress
 from ..transforms import apply_transform
@@ -48,23 +50,28 @@ _Outcome = tuple[np.ndarray, DetectedMarker | RejectedCandidate]
 """A blob's centroid (LPS mm) and what became of it."""
 
 
-def detect_markers(image: sitk.Image, model: MarkerModel | None = None, settings: DetectionSettings | None = None,
-                   progress: Progress | None = None, wait_for_slices: Callable[[int], None] | None = None,
+def detect_markers(ct: CTHandle | sitk.Image | CTGeometry, model: MarkerModel | None = None,
+                   settings: DetectionSettings | None = None, progress: Progress | None = None,
+                   wait_for_slices: Callable[[int], None] | None = None,
                    voxels: np.ndarray | None = None) -> DetectionResult:
-    """Markers in ``image`` (a scalar 3D CT in HU): origins (bottom-face centres) and +Y axes, LPS mm.
+    """Markers in a scalar 3D CT in HU: origins (bottom-face centres) and +Y axes, LPS mm.
 
-    ``settings`` is the ``[detection]`` table (None: the defaults for ``model``).
-    ``wait_for_slices(n)``, when given, blocks until slices ``0 .. n-1`` (numpy axis 0) of an
-    image still being read hold their values (:class:`~EMRegModule.io.fast_read.VolumeFill`):
-    detection then works on the slices already read while the rest arrives, with the same result.
-    ``voxels``, when given, are the image's voxels (numpy k, j, i) and ``image`` only their geometry (its getters).
+    ``ct``: a :class:`~EMRegModule.io.ct_handle.CTHandle`, possibly still being read: detection follows its slices
+    as they arrive (``wait_for_slices``), working on those already read while the rest arrives, with the same
+    result; or a ``SimpleITK.Image`` read in full. ``settings`` is the ``[detection]`` table (None: the defaults for
+    ``model``). ``wait_for_slices`` and ``voxels`` are a handle's parts for a caller that passes its ``image``
+    (``voxels``: numpy k, j, i, ``ct`` then only their geometry).
     Raises :class:`NoSafeAnswerError` (exit 3) when fewer than ``min_markers`` markers are found.
     """
     model = model or MarkerModel()
     options = settings or default_settings(model)
     progress = progress or QUIET
-    check_ct(image)
-    volume = sitk.GetArrayViewFromImage(image) if voxels is None else voxels
+    image = ct.image if isinstance(ct, CTHandle) else ct
+    check_ct_geometry(image)
+    if isinstance(ct, CTHandle):
+        volume, wait_for_slices = ct.array, ct.wait_for_slices
+    else:
+        volume = sitk.GetArrayViewFromImage(image) if voxels is None else voxels
     spacing_zyx = np.asarray(image.GetSpacing(), dtype=float)[::-1]
     index_to_image = index_to_physical_matrix(image)
     outcomes, too_large = _one_pass(volume, spacing_zyx, index_to_image, model, options, progress,
@@ -260,7 +267,7 @@ def _region_key(region: Region) -> tuple[int, ...]:
 
 
 def _result(outcomes: list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]], too_large: list[TooLarge],
-            index_to_image: np.ndarray, options: DetectionSettings, image: sitk.Image, volume: np.ndarray,
+            index_to_image: np.ndarray, options: DetectionSettings, image: sitk.Image | CTGeometry, volume: np.ndarray,
             model: MarkerModel) -> DetectionResult:
     """Markers and rejected candidates, each blob once (overlapping regions can reach the same blob)."""
     markers: list[DetectedMarker] = []
@@ -371,7 +378,7 @@ def _size_and_shape_problem(volume: float, spreads: np.ndarray, model: MarkerMod
     return None, ""
 
 
-def _size_hint(image: sitk.Image, model: MarkerModel) -> str:
+def _size_hint(image: sitk.Image | CTGeometry, model: MarkerModel) -> str:
     """A note for the too-few-markers message when the whole CT is smaller than two markers side by side:
     its spacing and origin are then not millimetres (metres or centimetres, e.g.). Empty otherwise."""
     extent_mm = np.asarray(image.GetSize(), dtype=float) * np.asarray(image.GetSpacing(), dtype=float)

@@ -17,7 +17,7 @@
   reading and counts non-finite voxels slice by slice as they arrive (:class:`NonFiniteCounter`).
 
 The length of the voxel data against the header's ``sizes`` is checked by the readers themselves
-(:func:`EMRegModule.io.fast_read.check_data_length`), since only they see the bytes.
+(:func:`EMRegModule.io.ct_header.check_data_length`), since only they see the bytes.
 """
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ def _check_space_units(path: str | os.PathLike[str]) -> None:
     found, or found at the wrong size) instead of being said wrong."""
     import re
 
-    from .fast_read import nrrd_header_fields
+    from .ct_header import nrrd_header_fields
 
     units = (nrrd_header_fields(Path(path)) or {}).get("space units")
     named = [u.strip() for u in re.findall(r'"([^"]*)"', units or "")]

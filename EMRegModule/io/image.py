@@ -15,9 +15,10 @@ import SimpleITK as sitk
 
 from ..errors import EMRegError
 from ..provenance import BackgroundHash, note_read_digest
-from .case import find_ct  # noqa: F401
 from .ct_checks import check_ct_file, check_ct_geometry, check_ct_path, check_ct_voxels, check_file_placement
-from .fast_read import VolumeFill, check_data_length, start_fast_read
+from .ct_handle import CTHandle
+from .ct_header import check_data_length
+from .fast_read import start_fast_read
 from .itk_messages import quiet_itk, read_failure
 
 
@@ -31,18 +32,19 @@ def read_ct(path: str | os.PathLike[str], series: str | int | None = None) -> si
 
 
 def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compact: bool = False,
-            voxels_only: bool = False) -> VolumeFill:
+            voxels_only: bool = False) -> CTHandle:
     """Start reading a CT as :func:`read_ct` does; the voxels may still be arriving when this returns.
 
     Plain NRRD, MetaImage and NIfTI files take the fast path of :mod:`.fast_read` (the same
     image as SimpleITK's, 1.2-1.4x faster on compressed scans), read slice by slice on a
     background thread; a DICOM folder is decoded slice by slice on a thread pool
     (:mod:`.dicom_series`, which also chooses the series: ``fill.series`` names it); anything
-    else is read by SimpleITK before this returns. The geometry is
-    checked (:func:`check_ct`) before returning; ``result()`` raises the read's own errors.
-    ``fill.sha256`` is the source's sha256 (provenance), computed from the bytes this read takes.
+    else is read by SimpleITK before this returns: a :class:`~EMRegModule.io.ct_handle.CTHandle` in every case.
+    The geometry is checked (:func:`~EMRegModule.io.ct_checks.check_ct_geometry`) before returning; ``result()``
+    raises the read's own errors. ``fill.sha256`` is the source's sha256 (provenance), computed from the bytes
+    this read takes.
     ``compact``: a DICOM series whose headers call for int32 voxels is read as int16 (half the memory to fill)
-    and ends with :class:`~EMRegModule.io.dicom_series.NarrowVoxelsError` if a slice does not fit it.
+    and ends with :class:`~EMRegModule.io.dicom_read.NarrowVoxelsError` if a slice does not fit it.
     ``voxels_only``: a DICOM series' integer voxels may come as ``fill.voxels`` (numpy, k, j, i) with ``fill.image``
     only their geometry, for a caller that needs them only while it works on them (see ``open_dicom_series``).
     """
@@ -50,7 +52,7 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compa
     check_ct_path(path)
     try:
         if path.is_dir():
-            from .dicom_series import open_dicom_series
+            from .dicom_read import open_dicom_series
 
             fill, _ = open_dicom_series(path, series, compact=compact, voxels_only=voxels_only)
         else:
@@ -61,7 +63,7 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compa
             if fill is None:
                 check_data_length(path)  # SimpleITK reads what the header asks for and ignores the rest
                 digest = BackgroundHash(path)  # SimpleITK's read is a pass of its own: hash beside it
-                fill = VolumeFill.complete(_read_with_simpleitk(path))
+                fill = CTHandle.of_image(_read_with_simpleitk(path))
                 fill.sha256 = digest
         if fill.sha256 is not None:
             note_read_digest(path, fill.sha256)  # the provenance's sha256 of the CT, from this read
@@ -89,16 +91,6 @@ def _read_with_simpleitk(path: Path) -> sitk.Image:
         except RuntimeError as exc:
             failure = exc
     raise EMRegError(f"{path}: cannot read CT ({read_failure(failure, printed, path)})") from None
-
-
-def check_ct(image: sitk.Image, source: str | os.PathLike[str] = "CT") -> None:
-    """Refuse images EMReg cannot use: not 3D, not scalar, unsupported pixel type, degenerate, sheared.
-
-    The geometry checks of :func:`EMRegModule.io.ct_checks.check_ct_geometry` (safe on an image
-    whose voxels are still arriving); :func:`EMRegModule.io.ct_checks.check_ct_image` adds the
-    voxel-value check for an image read in full.
-    """
-    check_ct_geometry(image, source)
 
 
 def image_geometry(image: sitk.Image) -> dict[str, Any]:

@@ -3,7 +3,7 @@
 :func:`binned_ct` averages the CT over ``f x f x f`` blocks (``f`` chosen so that at most
 ``max_voxels`` remain, like ITK's ``BinShrinkImageFilter``: the last incomplete block of each
 axis is dropped) without ever making a full-size copy: it accumulates whole slices into one
-int32 plane, and it can follow a CT that is still being read (:class:`~EMRegModule.io.fast_read.VolumeFill`),
+int32 plane, and it can follow a CT that is still being read (:class:`~EMRegModule.io.ct_handle.CTHandle`),
 block of slices by block of slices, so that the binning costs no time of its own. Its memory is
 the binned volume plus one slice.
 
@@ -40,7 +40,7 @@ from ..transforms import apply_transform
 if TYPE_CHECKING:
     import SimpleITK as sitk
 
-    from ..io.fast_read import VolumeFill
+    from ..io.ct_handle import CTHandle
 
 #: CT values below this (HU) are counted as air by :func:`otsu_threshold` (padding outside the field of view).
 AIR_HU = -1024.0
@@ -100,21 +100,21 @@ def bin_factor(size: tuple[int, ...], max_voxels: int = MAX_CONTEXT_VOXELS) -> i
     return max(1, int(np.ceil((float(np.prod(size)) / max_voxels) ** (1.0 / 3.0))))
 
 
-def binned_ct(source: sitk.Image | VolumeFill, max_voxels: int = MAX_CONTEXT_VOXELS,
+def binned_ct(source: sitk.Image | CTHandle, max_voxels: int = MAX_CONTEXT_VOXELS,
               on_slices: Callable[[int], None] | None = None) -> BinnedCT:
     """Average a CT over ``f x f x f`` blocks (see module docstring); a CT still being read is followed.
 
-    ``source``: a ``SimpleITK.Image`` or a :class:`VolumeFill` (waited on slice block by slice
-    block; its read errors propagate; a :class:`~EMRegModule.io.ct_stream.StreamedCT` too, whose
-    slices ``on_slices`` may release once binned). No full-size copy is made. ``on_slices(n)`` is called
-    whenever slices ``0 .. n-1`` are known to be read (other work on them can follow the read too).
+    ``source``: a ``SimpleITK.Image`` or a :class:`~EMRegModule.io.ct_handle.CTHandle` (waited on slice block by
+    slice block; its read errors propagate; slices ``on_slices`` may release once binned). No full-size copy is
+    made. ``on_slices(n)`` is called whenever slices ``0 .. n-1`` are known to be read (other work on them can
+    follow the read too).
     """
-    import SimpleITK as sitk
+    from ..io.ct_handle import CTHandle
 
-    fill = source if hasattr(source, "wait_for_slices") and not source.is_complete else None
-    image = source.image if hasattr(source, "wait_for_slices") else source
-    array = source.array if hasattr(source, "array") else sitk.GetArrayViewFromImage(image)  # (k, j, i); voxels
-    # may still be arriving (a StreamedCT: its voxels, the image being its geometry)
+    handle = source if isinstance(source, CTHandle) else CTHandle.of_image(source)
+    fill = None if handle.is_complete else handle
+    image = handle.geometry
+    array = handle.array  # (k, j, i); voxels may still be arriving
     factor = bin_factor(image.GetSize(), max_voxels)
     nk, nj, ni = (s // factor for s in array.shape)
     values = np.empty((nk, nj, ni), dtype=np.float32)

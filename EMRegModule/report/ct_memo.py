@@ -30,8 +30,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..io.atomic import atomic_path, atomic_write_bytes
-from ..io.ct_stream import FixedGeometry, ReleasedCT
+from ..io.ct_handle import CTGeometry, CTHandle
 from ..marker_model import MarkerModel
+from ..names import PREVIOUS_FOLDER, REPORT_FIGURES
 from ..provenance import BackgroundHash
 
 if TYPE_CHECKING:
@@ -57,13 +58,14 @@ def _key(ct_sha256: str, model: MarkerModel) -> str:
 
 @dataclass
 class CTMemo:
-    """The kept CT products: ``binned``; ``views`` (markers, 3, px, px) float32 in the order of
-    ``marker_to_image`` (markers, 4, 4); ``geometry``: the CT's geometry, as SimpleITK's getters answer."""
+    """The kept CT products: ``binned``; ``planes`` (markers, 3, px, px) float32, each marker's three sampled
+    planes in the order of ``marker_to_image`` (markers, 4, 4, ``MarkerToImage``, LPS mm); ``geometry``: the CT's.
+    It answers as :class:`~EMRegModule.rendering.slices.StreamingMarkerViews` does (``views``, ``release``)."""
 
     binned: BinnedCT
-    views: np.ndarray
+    planes: np.ndarray
     marker_to_image: np.ndarray
-    geometry: dict[str, Any]
+    geometry: CTGeometry
     source: Path | None = None
     surface: dict[str, Any] | None = None  # the context surface's arrays and figures (see save_ct_memo)
 
@@ -88,30 +90,19 @@ class CTMemo:
         poses = np.asarray(marker_to_image, dtype=float).reshape(-1, 4, 4)
         return poses.shape == self.marker_to_image.shape and bool(np.array_equal(poses, self.marker_to_image))
 
-
-class KeptViews:
-    """The marker planes of a :class:`CTMemo`, answering as
-    :class:`~EMRegModule.rendering.slices.StreamingMarkerViews` does."""
-
-    def __init__(self, views: np.ndarray) -> None:
-        self._views = [list(planes) for planes in views]
-
     def views(self) -> list[list[np.ndarray]]:
-        return self._views
+        """Each marker's three planes (float32, px x px), in the order of ``marker_to_image``."""
+        return [list(planes) for planes in self.planes]
 
     def release(self) -> None:
         return None
 
-
-class MemoCT(ReleasedCT):
-    """The report's CT when its products are kept: the geometry, no voxels (``result()`` is None), and the
-    file's sha256 computed on a thread (``sha256``), which the report checks against ``run.json``."""
-
-    def __init__(self, path: Path, memo: CTMemo) -> None:
-        self.path = path
-        self.memo = memo
-        self.image = FixedGeometry(memo.geometry)
-        self.sha256 = BackgroundHash(path)
+    def ct_handle(self, path: Path) -> CTHandle:
+        """The report's CT when these products are kept: its geometry, no voxels (``result()`` is None), this memo,
+        and the file's sha256 computed on a thread (``sha256``), which the report checks against ``run.json``."""
+        handle = CTHandle.without_voxels(self.geometry, BackgroundHash(path))
+        handle.path, handle.memo = path, self
+        return handle
 
 
 def recorded_ct_sha256(run: dict | None, ct_path: Path | None) -> str | None:
@@ -158,8 +149,7 @@ def load_ct_memo(path: Path, ct_sha256: str | None, model: MarkerModel) -> CTMem
                 return None
             binned = BinnedCT(np.ascontiguousarray(kept["binned"], dtype=np.float32),
                               np.asarray(kept["index_to_image"], dtype=float), int(kept["factor"]))
-            geometry = json.loads(str(kept["geometry"]))
-            geometry = {name: tuple(v) if isinstance(v, list) else v for name, v in geometry.items()}
+            geometry = CTGeometry.from_getters(json.loads(str(kept["geometry"])))
             surface = None
             if "surface_points" in kept.files:
                 surface = {"points": kept["surface_points"], "faces": kept["surface_faces"],
@@ -171,11 +161,12 @@ def load_ct_memo(path: Path, ct_sha256: str | None, model: MarkerModel) -> CTMem
         return None
 
 
-def save_ct_memo(path: Path, ct_sha256: str, model: MarkerModel, image: Any, binned: BinnedCT,
+def save_ct_memo(path: Path, ct_sha256: str, model: MarkerModel, geometry: CTGeometry, binned: BinnedCT,
                  views: list[list[np.ndarray]] | None, marker_to_image: list[np.ndarray],
                  surface: ContextSurface | None = None, iso_setting: float | None = None) -> None:
     """Keep the CT products of a report (atomically); nothing when a marker's planes are missing. ``surface``:
-    the context surface made from ``binned`` with the ``[report] iso_value`` setting ``iso_setting``."""
+    the context surface made from ``binned`` with the ``[report] iso_value`` setting ``iso_setting``; ``geometry``:
+    the CT's (:attr:`~EMRegModule.io.ct_handle.CTHandle.geometry`)."""
     import io
 
     if views is None and marker_to_image:
@@ -185,7 +176,6 @@ def save_ct_memo(path: Path, ct_sha256: str, model: MarkerModel, image: Any, bin
         return
     stacked = (np.stack([np.stack(p) for p in planes]).astype(np.float32, copy=False) if planes
                else np.zeros((0, 3, 1, 1), np.float32))
-    geometry = FixedGeometry.of_image(image).values
     extra: dict[str, np.ndarray] = {}
     if surface is not None and surface.surface is not None and surface.surface.is_all_triangles:
         polydata = surface.surface
@@ -199,22 +189,18 @@ def save_ct_memo(path: Path, ct_sha256: str, model: MarkerModel, image: Any, bin
     np.savez(buffer, key=np.array(_key(ct_sha256, model)), binned=binned.values,
              index_to_image=binned.index_to_image, factor=np.array(binned.factor), views=stacked,
              marker_to_image=np.asarray(marker_to_image, dtype=float).reshape(-1, 4, 4),
-             geometry=np.array(json.dumps(geometry)), **extra)
+             geometry=np.array(json.dumps(geometry.getters())), **extra)
     atomic_write_bytes(path, buffer.getvalue())
 
 
 def memo_path(out_dir: str | os.PathLike[str]) -> Path:
     """Where a report of ``out_dir`` keeps its CT products."""
-    from ..names import REPORT_FIGURES
-
     return Path(out_dir) / REPORT_FIGURES / MEMO_NAME
 
 
 def memo_candidates(out_dir: str | os.PathLike[str]) -> list[Path]:
     """Where the last report's CT products may be: beside its figures, or in ``previous/`` once a new report
     has started (its stage moves the last report there)."""
-    from ..names import PREVIOUS_FOLDER
-
     here = memo_path(out_dir)
     return [here, Path(out_dir) / PREVIOUS_FOLDER / here.parent.name / here.name]
 

@@ -153,16 +153,14 @@ def prepare_context_surface(data: ReportData) -> None:
 def prepare_ct_products(data: ReportData) -> None:
     """What the figures take from the CT's voxels: the block-averaged CT and the marker planes (made as the CT
     is read; no rendering library is needed). A CT that fails to read becomes a note (and no CT figure)."""
-    from ..io.dicom_series import NarrowVoxelsError
+    from ..io.dicom_read import NarrowVoxelsError
 
     if data.inputs.ct is None or data.binned is not None:
         return
-    memo = getattr(data.inputs.ct, "memo", None)  # kept by an earlier report of this run (report.ct_memo)
+    memo = data.inputs.ct.memo  # kept by an earlier report of this run (report.ct_memo)
     if memo is not None:
         if memo.matches([r.marker_to_image for r in data.rows]):
-            from .ct_memo import KeptViews
-
-            data.binned, data.marker_views = memo.binned, KeptViews(memo.views) if data.rows else None
+            data.binned, data.marker_views = memo.binned, memo if data.rows else None
             data.surface = memo.context_surface(data.inputs.settings.report.iso_value)  # None: made from binned
             data.kept_whole = data.surface is not None
             return
@@ -187,15 +185,15 @@ def _sample_ct(data: ReportData, read_exactly: bool = False) -> None:
         data.marker_views = None
         if data.rows:
             data.marker_views = StreamingMarkerViews(ct.image, _slice_markers(data), data.inputs.model,
-                                                     array=getattr(ct, "array", None))
+                                                     array=ct.array)
         views = data.marker_views
         factor = bin_factor(ct.image.GetSize())
 
         def on_slices(read: int) -> None:  # slices 0 .. read-1 are in; those below read - factor are binned
             if views is not None:
                 views.sample_ready(read)
-            if hasattr(ct, "release_before"):  # a StreamedCT: slices used by nothing any more go back
-                ct.release_before(min(read - factor, views.first_needed_slice() if views is not None else read))
+            # slices used by nothing any more go back (voxels in anonymous memory: a streamed read)
+            ct.release_before(min(read - factor, views.first_needed_slice() if views is not None else read))
 
         data.binned = binned_ct(ct, on_slices=on_slices)
     except EMRegError as exc:

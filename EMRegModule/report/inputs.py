@@ -40,7 +40,7 @@ from ..settings import Settings
 if TYPE_CHECKING:
     import SimpleITK as sitk
 
-    from ..io.fast_read import VolumeFill
+    from ..io.ct_handle import CTHandle
 
 INPUT_NAMES = (MARKERS_JSON, FRAME_CALIBRATION_JSON, REGISTRATION_JSON, NAVIGATION_CSV, EVALUATION_JSON, RUN_JSON)
 
@@ -58,7 +58,7 @@ class ReportInputs:
     case_dir: Path | None = None
     run: dict | None = None
     folder: RunFolder = None  # type: ignore[assignment]  # set in __post_init__: OUT read, nothing in it yet
-    ct: VolumeFill | None = None
+    ct: CTHandle | None = None
     ct_path: Path | None = None
     ct_series: str | int | None = None  # a DICOM folder's series, as ``--series`` takes it
     targets_labels: list[str] | None = None
@@ -103,7 +103,7 @@ class ReportInputs:
 
     def read_ct_exactly(self) -> None:
         """Read the DICOM CT again at the voxel type its headers call for (int32), after its compact read
-        (int16) met a slice beyond int16 (:class:`~EMRegModule.io.dicom_series.NarrowVoxelsError`)."""
+        (int16) met a slice beyond int16 (:class:`~EMRegModule.io.dicom_read.NarrowVoxelsError`)."""
         from ..io.image import open_ct
 
         self.ct = open_ct(self.ct_path, self.ct_series)
@@ -173,16 +173,16 @@ def _read_case(inputs: ReportInputs) -> None:
             inputs.notes.append(str(exc))
 
 
-def _start_ct(inputs: ReportInputs, image: sitk.Image | None, read_image: bool, keep_ct: bool) -> None:
-    from ..io.ct_stream import StreamedCT
-    from ..io.fast_read import VolumeFill
+def _start_ct(inputs: ReportInputs, image: sitk.Image | CTHandle | None, read_image: bool, keep_ct: bool) -> None:
+    from ..io.ct_handle import CTHandle
 
-    early = image if isinstance(image, StreamedCT) else None  # a read started before the report was
+    handle = image if isinstance(image, CTHandle) else None
+    early = handle if handle is not None and not handle.is_complete else None  # a read started before the report
     if early is not None and (keep_ct or inputs.ct_path is None or early.path != inputs.ct_path.resolve()):
         early.cancel()  # not the CT this report shows (or the caller wants the whole CT): read that one
-        image = None
+        image = handle = None
     if image is not None:
-        inputs.ct = image if early is not None else VolumeFill.complete(image)
+        inputs.ct = handle if handle is not None else CTHandle.of_image(image)
     elif read_image and inputs.ct_path is not None:
         from ..run_folder import recorded_series_uid
 
@@ -195,14 +195,14 @@ def _start_ct(inputs: ReportInputs, image: sitk.Image | None, read_image: bool, 
 def _use_kept_ct_products(inputs: ReportInputs) -> bool:
     """Take the CT's products an earlier report of this run kept (:mod:`.ct_memo`) instead of reading the CT: its
     file is only hashed (and checked against ``run.json`` before the page is written)."""
-    from .ct_memo import MemoCT, load_ct_memo, memo_candidates, recorded_ct_sha256
+    from .ct_memo import load_ct_memo, memo_candidates, recorded_ct_sha256
 
     recorded = recorded_ct_sha256(inputs.run, inputs.ct_path)
     memo = next(filter(None, (load_ct_memo(path, recorded, inputs.settings.marker)
                               for path in memo_candidates(inputs.out_dir))), None)
     if memo is None:
         return False
-    inputs.ct = MemoCT(inputs.ct_path, memo)
+    inputs.ct = memo.ct_handle(inputs.ct_path)
     return True
 
 
@@ -224,7 +224,7 @@ def open_report_ct(inputs: ReportInputs, keep_ct: bool = False) -> None:
 
 
 def load_report_inputs(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
-                       read_image: bool = True, image: sitk.Image | None = None, keep_ct: bool = True,
+                       read_image: bool = True, image: sitk.Image | CTHandle | None = None, keep_ct: bool = True,
                        settings: Settings | None = None) -> ReportInputs:
     """Gather what exists in OUT and the case folder. Unreadable files become notes, not errors.
 

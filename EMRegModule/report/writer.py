@@ -25,9 +25,8 @@ from .sections import build_html
 if TYPE_CHECKING:
     import SimpleITK as sitk
 
+    from ..io.ct_handle import CTHandle
     from ..settings import Settings
-
-#: Read by ct_memo (helper ``ct`` moves it onto :data:`~EMRegModule.names.REPORT_FIGURES`; then this line goes).
 
 
 def write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
@@ -38,13 +37,15 @@ def write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[st
 
 
 def write_report_keeping_ct(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
-                            progress: Progress | None = None, image: sitk.Image | HandedCT | None = None,
+                            progress: Progress | None = None, image: sitk.Image | CTHandle | None = None,
                             keep_ct: bool = True, settings: Settings | None = None) -> tuple[Path, sitk.Image | None]:
     """Render ``OUT/report.html`` (and ``OUT/report_figures/*.png``) from what the run left in OUT.
 
     ``case_dir`` is the case folder (for the CT and targets); by default the one recorded in
     ``OUT/run.json``. ``image``: the case's CT already in memory (``SimpleITK.Image``), which spares
-    reading it again (a :class:`HandedCT`: the report lets it go as soon as it has used it). Returns the path
+    reading it again; handed over as a :class:`~EMRegModule.io.ct_handle.CTHandle` read in full (``is_complete``),
+    the report lets it go as soon as it has used it (the caller keeps no other reference); a handle still being
+    read is the report's CT when it is the case's (a streamed read started earlier). Returns the path
     of the page and the CT the report used (None without one, or
     when it could not be read), so that the caller can reuse it (the 3D Slicer bundle). ``keep_ct=False``:
     the caller does not need the CT, so a CT read here is streamed and never whole in memory (None is
@@ -57,14 +58,11 @@ def write_report_keeping_ct(out_dir: str | os.PathLike[str], case_dir: str | os.
 
 def _use_and_release_ct(data: ReportData) -> None:
     """Take from a handed CT what the figures need, then let it go (its geometry stays)."""
-    from ..io.ct_stream import ReleasedCT
-
-    geometry = data.inputs.ct.image
     prepare_ct_products(data)
     if data.marker_views is not None:
         data.marker_views.release()
     if data.inputs.ct is not None:
-        data.inputs.ct = ReleasedCT(geometry)
+        data.inputs.ct.release()
 
 
 @contextlib.contextmanager
@@ -145,32 +143,18 @@ def _keep_ct_products(data: ReportData, checked_sha256: str | None, handed: bool
     if recorded is None or (checked_sha256 != recorded and not handed):
         return
     views = data.marker_views.views() if data.marker_views is not None else None
-    save_ct_memo(memo_path(inputs.out_dir), recorded, inputs.model, inputs.ct.image, data.binned, views,
+    save_ct_memo(memo_path(inputs.out_dir), recorded, inputs.model, inputs.ct.geometry, data.binned, views,
                  [r.marker_to_image for r in data.rows], data.surface, inputs.settings.report.iso_value)
 
 
-class HandedCT:
-    """A CT handed to the report to use and let go: the caller keeps no reference to it, so once the report has
-    taken what it needs (the block-averaged CT, the marker planes) the CT's memory is freed before the
-    rendering libraries load (``emreg run``: the report's peak then does not add to the detection's)."""
-
-    def __init__(self, image: sitk.Image) -> None:
-        self._image: sitk.Image | None = image
-
-    def take(self) -> sitk.Image | None:
-        image, self._image = self._image, None
-        return image
-
-
 def _write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None, progress: Progress,
-                  image: sitk.Image | HandedCT | None, keep_ct: bool,
+                  image: sitk.Image | CTHandle | None, keep_ct: bool,
                   settings: Settings | None = None) -> tuple[Path, sitk.Image | None]:
     from ..interrupts import vtk_imports_uninterrupted
+    from ..io.ct_handle import CTHandle
 
     vtk_imports_uninterrupted()  # the figures load VTK's modules (pyvista) as they go
-    handed = isinstance(image, HandedCT)
-    if handed:
-        image = image.take()
+    handed = isinstance(image, CTHandle) and image.is_complete
     inputs = load_report_inputs(out_dir, case_dir, image=image, keep_ct=keep_ct, settings=settings)
     del image  # held by ``inputs.ct`` alone (a handed CT is let go below)
     try:

@@ -18,7 +18,7 @@ if TYPE_CHECKING:
     import SimpleITK as sitk
 
     from ..bundle_state import KeptBundle
-    from ..io.ct_stream import StreamedCT
+    from ..io.ct_handle import CTHandle
     from ..progress import Progress
     from ..settings import Settings
     from ..slicer_export.bundle import BundleProcess
@@ -43,19 +43,21 @@ class Exporter:
         self._report_image: sitk.Image | None = None  # the CT the report read, for the Slicer bundle
 
     def save_report(self, folder: OutputFolder, case_dir: Path | None, holder: HoldsCT,
-                    ct_read: StreamedCT | None = None) -> Path:
+                    ct_read: CTHandle | None = None) -> Path:
         """The verification report of ``folder`` (its outputs checked to belong together first); the CT
         the report read is kept for the Slicer bundle (:meth:`save_bundle`). ``ct_read``: a streamed read of the
         CT started earlier (:func:`start_report_ct`), used when it is the report's CT."""
         from ..io.case import run_ct_path
-        from ..report.writer import HandedCT, write_report_keeping_ct
+        from ..io.ct_handle import CTHandle
+        from ..report.writer import write_report_keeping_ct
         from ..slicer_export.mrb import bundle_needs_ct_image
 
         used = self.recorder.adopt_outputs(folder)
         keep = bundle_needs_ct_image(run_ct_path(folder.manifest, case_dir))  # else the report streams a CT itself
         image: Any = holder.image if holder.image is not None else ct_read
         if holder.image is not None and not keep and not self.keep_ct:  # nothing needs the CT after the report: it
-            holder.image, image = None, HandedCT(image)  # is freed once used, before the rendering libraries load
+            holder.image, image = None, CTHandle.of_image(image)  # handed over: freed once used, before the
+            # rendering libraries load
         page, self._report_image = write_report_keeping_ct(folder.path, case_dir=case_dir, progress=self.progress,
                                                            image=image, keep_ct=keep, settings=self.settings)
         self.recorder.record(folder, "report", self.recorder.provenance("report", tuple(used)))
@@ -151,7 +153,7 @@ def recorded_case(run: dict[str, Any] | None) -> Path | None:
     return Path(case) if isinstance(case, str) and Path(case).is_dir() else None
 
 
-def start_report_ct(out: Path, case_dir: Path | None, run: dict[str, Any] | None) -> StreamedCT | None:
+def start_report_ct(out: Path, case_dir: Path | None, run: dict[str, Any] | None) -> CTHandle | None:
     """Start streaming the CT that ``OUT/run.json`` names, when the report may stream it (a plain file whose bundle
     copies it from the file) and no earlier report kept its products; None otherwise. The report checks it is its
     CT."""

@@ -164,7 +164,8 @@ def test_a_dicom_file_cut_100_bytes_short_is_refused(tmp_path, capsys):
 
 
 def test_a_whole_dicom_slice_passes_the_pixel_data_check(tmp_path):
-    from EMRegModule.io.dicom_series import check_pixel_data_length, read_header
+    from EMRegModule.io.dicom_read import check_pixel_data_length
+    from EMRegModule.io.dicom_series import read_header
 
     files = write_series(make_volume(), tmp_path / "ct", uid(93))
     header = read_header(files[0])

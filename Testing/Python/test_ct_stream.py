@@ -9,7 +9,8 @@ import pytest
 import SimpleITK as sitk
 
 from EMRegModule.errors import EMRegError
-from EMRegModule.io.ct_stream import StreamedCT, start_streamed_read
+from EMRegModule.io.ct_handle import CTHandle
+from EMRegModule.io.ct_stream import start_streamed_read
 from EMRegModule.io.image import read_ct
 from EMRegModule.marker_model import MarkerModel
 from EMRegModule.rendering.context import binned_ct
@@ -33,7 +34,7 @@ def test_streamed_voxels_and_geometry_are_those_of_read_ct(tmp_path, name, compr
     path, _ = _ct(tmp_path, name, compress)
     expected = read_ct(path)
     ct = start_streamed_read(path)
-    assert isinstance(ct, StreamedCT)
+    assert isinstance(ct, CTHandle) and ct.voxels is ct.array
     assert ct.result() is None  # no image is kept
     assert np.array_equal(ct.array, sitk.GetArrayViewFromImage(expected))
     geometry = ct.image
@@ -69,7 +70,7 @@ def test_binned_context_and_marker_planes_match_the_whole_image_while_slices_are
     for plane, expected in zip(views.views()[0], whole_views[0], strict=True):
         assert np.array_equal(plane, expected, equal_nan=True)
     assert max(released) > 60  # most of the CT was handed back while it was read
-    slice_bytes = ct.slice_bytes
+    slice_bytes = ct.array[0].nbytes
     whole_pages = (max(released) * slice_bytes) // 4096 * 4096 // slice_bytes  # slices wholly released
     assert whole_pages > 0 and not ct.array[:whole_pages - 1].any()  # released pages read as zeros
 

@@ -22,7 +22,8 @@ from dicom_files import TRANSFER_SYNTAXES, convert, make_volume, tools_available
 from EMRegModule.cli import main
 from EMRegModule.detection import read_detection
 from EMRegModule.errors import EMRegError
-from EMRegModule.io.dicom_series import choose_series, open_dicom_series, scan_series
+from EMRegModule.io.dicom_read import open_dicom_series
+from EMRegModule.io.dicom_series import choose_series, scan_series
 from EMRegModule.io.image import read_ct
 
 
@@ -244,23 +245,23 @@ def test_detect_on_a_multi_series_export_uses_the_thin_volume_and_says_so(hard_c
 @pytest.mark.parametrize("signed", [True, False])
 def test_uncompressed_slices_are_read_directly_and_match_gdcm(tmp_path, monkeypatch, signed):
     """Uncompressed slices skip GDCM (read straight into the volume); the voxels are GDCM's."""
-    from EMRegModule.io import dicom_series
+    from EMRegModule.io import dicom_read
 
     pixel = sitk.sitkInt16 if signed else sitk.sitkUInt16
     files = write_series(make_volume(pixel=pixel, seed=6), tmp_path, uid(12), bits_stored=12,
                          rescale=[(1.0, -1024.0 if not signed else 0.0), (2.0, -7.0)] * 6)
     direct: list[bool] = []
-    original = dicom_series._read_uncompressed
+    original = dicom_read._read_uncompressed
 
     def spied(header, data, out) -> bool:
         direct.append(original(header, data, out))
         return direct[-1]
 
-    monkeypatch.setattr(dicom_series, "_read_uncompressed", spied)
+    monkeypatch.setattr(dicom_read, "_read_uncompressed", spied)
     image = read_ct(tmp_path)
     assert direct == [True] * len(files)
     np.testing.assert_array_equal(_voxels(image), _voxels(_series_reader(files)).astype(float))
-    monkeypatch.setattr(dicom_series, "_read_uncompressed", lambda h, data, out: False)  # GDCM for every slice
+    monkeypatch.setattr(dicom_read, "_read_uncompressed", lambda h, data, out: False)  # GDCM for every slice
     np.testing.assert_array_equal(_voxels(read_ct(tmp_path)), _voxels(image))
 
 
@@ -282,19 +283,20 @@ def test_emreg_detect_decodes_the_series_into_fresh_memory_with_the_same_markers
     voxels and geometry as the image, and the same markers as a detection that keeps the image."""
     from EMRegModule.controller import EMRegController
     from EMRegModule.detection import write_detection
-    from EMRegModule.io import dicom_series
+    from EMRegModule.io import dicom_read
 
     kept = EMRegController()
     whole = kept.load_ct_and_detect(hard_case / "ct")
     image = kept.image
     fill, _ = open_dicom_series(hard_case / "ct", compact=True, voxels_only=True)
-    geometry = fill.result()
+    assert fill.result() is None  # no SimpleITK image holds the voxels
+    geometry = fill.geometry
     np.testing.assert_array_equal(fill.voxels, _voxels(image))
     for getter in ("GetSize", "GetSpacing", "GetOrigin", "GetDirection", "GetPixelID"):
         assert getattr(geometry, getter)() == getattr(image, getter)()
     filled = []
-    writable = dicom_series._writable_bytes
-    monkeypatch.setattr(dicom_series, "_writable_bytes", lambda image: filled.append(image) or writable(image))
+    writable = dicom_read.writable_bytes
+    monkeypatch.setattr(dicom_read, "writable_bytes", lambda image: filled.append(image) or writable(image))
     assert main(["detect", str(hard_case / "ct"), "--out", str(tmp_path), "--quiet"]) == 0
     assert not filled  # no SimpleITK image was filled
     write_detection(whole, tmp_path / "kept")
@@ -359,20 +361,20 @@ def test_slices_hashed_while_the_volume_is_allocated_are_not_hashed_again_and_th
     """The first slices are hashed while the volume is zeroed (here: for three rounds of the pool); their
     decoding reads them without hashing them again, and the folder's sha256 and the voxels are those of a plain
     read."""
-    from EMRegModule.io import dicom_series
+    from EMRegModule.io import dicom_read
     from EMRegModule.provenance import file_sha256
 
     _export(tmp_path)
     rounds = iter([True, True, True])
-    monkeypatch.setattr(dicom_series._EarlyImage, "allocating", lambda self: next(rounds, False))
+    monkeypatch.setattr(dicom_read._EarlyImage, "allocating", lambda self: next(rounds, False))
     hashed: list[bool] = []
-    file_bytes = dicom_series._file_bytes
+    file_bytes = dicom_read._file_bytes
 
     def counted(path, hashed_here=True):
         hashed.append(hashed_here)
         return file_bytes(path, hashed_here)
 
-    monkeypatch.setattr(dicom_series, "_file_bytes", counted)
+    monkeypatch.setattr(dicom_read, "_file_bytes", counted)
     fill, _ = open_dicom_series(tmp_path, workers=2)
     image = fill.result()
     assert hashed.count(True) == image.GetSize()[2] and hashed.count(False) == 3  # three rounds of one slice each
@@ -420,17 +422,17 @@ def test_enhanced_ct_with_a_missing_frame_or_unreadable_pixels_is_refused_in_one
 
 
 def test_the_volume_allocated_while_headers_are_read_is_used_only_when_it_fits(tmp_path, monkeypatch):
-    from EMRegModule.io import dicom_series
+    from EMRegModule.io import dicom_read
 
     taken: list[bool] = []
-    original = dicom_series._EarlyImage.take
+    original = dicom_read._EarlyImage.take
 
     def spied(self, series):
         image = original(self, series)
         taken.append(image is not None)
         return image
 
-    monkeypatch.setattr(dicom_series._EarlyImage, "take", spied)
+    monkeypatch.setattr(dicom_read._EarlyImage, "take", spied)
     volume = make_volume(seed=14)
     files = write_series(volume, tmp_path / "one", uid(60))
     np.testing.assert_array_equal(_voxels(read_ct(tmp_path / "one")), _voxels(_series_reader(files)))
@@ -462,7 +464,7 @@ def test_a_compact_read_holds_int16_and_a_slice_beyond_it_is_read_again_exactly(
     series as int16 (the CT's own values fit), and reads it again as int32 when one slice does not fit."""
     from EMRegModule.controller import EMRegController
     from EMRegModule.errors import NoSafeAnswerError
-    from EMRegModule.io.dicom_series import NarrowVoxelsError
+    from EMRegModule.io.dicom_read import NarrowVoxelsError
     from EMRegModule.progress import Progress
 
     if syntax != "uncompressed" and tools_available():

@@ -341,9 +341,9 @@ def test_emreg_run_writes_the_report_with_all_figures(request, tmp_path):
 def test_the_ct_given_handed_over_or_streamed_gives_the_same_page_and_figures(sample_run, tmp_path, how):
     """The report from a CT in memory (``emreg run``), from one handed over to be let go once used, and from
     one it streams itself: the same page and the same figures, byte for byte, as from a CT read whole."""
-    from EMRegModule.io.ct_stream import ReleasedCT
+    from EMRegModule.io.ct_handle import CTHandle
     from EMRegModule.io.image import read_ct
-    from EMRegModule.report.writer import HandedCT, write_report_keeping_ct
+    from EMRegModule.report.writer import write_report_keeping_ct
 
     root, _, _ = sample_run
     out = _copy_run(sample_run, tmp_path)
@@ -354,10 +354,11 @@ def test_the_ct_given_handed_over_or_streamed_gives_the_same_page_and_figures(sa
         page, kept = write_report_keeping_ct(out, image=image)
         assert kept is image
     elif how == "handed":
-        handed = HandedCT(image)
+        handed = CTHandle.of_image(image)
+        del image
         page, kept = write_report_keeping_ct(out, image=handed, keep_ct=False)
-        assert kept is None and handed.take() is None  # the report took it and let it go
-        assert isinstance(ReleasedCT(image).image.GetSize(), tuple)
+        assert kept is None and handed.result() is None and handed.array is None  # the report let it go
+        assert handed.geometry.GetSize() == handed.image.GetSize()  # its geometry stays
     else:
         page, kept = write_report_keeping_ct(out, keep_ct=False)
         assert kept is None

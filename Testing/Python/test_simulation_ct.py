@@ -7,7 +7,8 @@ import pytest
 import SimpleITK as sitk
 from conftest import load_truth
 
-from EMRegModule.io.image import find_ct, read_ct
+from EMRegModule.io.case import find_ct
+from EMRegModule.io.image import read_ct
 from EMRegModule.marker_model import MarkerModel
 from EMRegModule.simulation import ct
 from EMRegModule.simulation.shapes import MarkerSolid, Posed

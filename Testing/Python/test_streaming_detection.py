@@ -22,7 +22,7 @@ from EMRegModule.detection.components import GrowingComponents
 from EMRegModule.detection.segmentation import CoarseScan
 from EMRegModule.detection.settings import DetectionSettings, settings_from_dict
 from EMRegModule.errors import EMRegError
-from EMRegModule.io.fast_read import _writable_bytes, start_fast_read
+from EMRegModule.io.fast_read import start_fast_read, writable_bytes
 from EMRegModule.marker_model import MarkerModel
 
 
@@ -110,7 +110,7 @@ def test_detection_never_reads_slices_before_they_arrive(monkeypatch):
     truth = sitk.GetArrayViewFromImage(image)
     arriving = sitk.Image(image.GetSize(), image.GetPixelID())
     arriving.CopyInformation(image)
-    buffer = _writable_bytes(arriving).view(truth.dtype).reshape(truth.shape)
+    buffer = writable_bytes(arriving).view(truth.dtype).reshape(truth.shape)
     buffer[...] = 1000  # in the marker band everywhere
     calls: list[int] = []
 
@@ -186,7 +186,7 @@ def test_controller_is_unchanged_when_the_read_fails_late(tmp_path):
     data = _gzip_nrrd(path, sitk.GetArrayViewFromImage(scene.image))
     intact = EMRegController()
     intact.load_ct_and_detect(path)
-    assert len(intact.detection.markers) == len(scene.markers)  # the intact file: detection runs to the end
+    assert len(intact.results.detection.markers) == len(scene.markers)  # the intact file: detection runs to the end
     path.write_bytes(data[:-8] + bytes(b ^ 0xFF for b in data[-8:-4]) + data[-4:])
     controller = EMRegController()
     with pytest.raises(EMRegError, match="corrupt"):
