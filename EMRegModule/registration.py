@@ -50,14 +50,10 @@ from .marker_model import MarkerModel
 from .probe_axis import pair_with_probe_axis
 from .sensor_offset import OffsetSolution, solve_sensor_offset
 from .settings import RegistrationSettings, Settings
-from .transforms import apply_rotation, apply_transform, invert_rigid, is_rigid, residuals
+from .transforms import apply_rotation, apply_transform, check_rigid, invert_rigid, residuals
 
 #: Name of the ITK transform file written beside ``registration.json``.
 TRANSFORM_FILE = "ReferenceToImage.h5"
-
-#: Largest deviation accepted in a stored ``ReferenceToImage``: |R R^T - I| entries, |det R - 1| and the
-#: last row against 0 0 0 1 (files written by EMReg are rigid to 1e-12).
-RIGID_TOLERANCE = 1e-4
 
 #: Median of a chi-squared variable with 3 degrees of freedom (robust RMS of 3D residuals).
 _CHI2_3_MEDIAN = 2.3660
@@ -157,9 +153,7 @@ class RegistrationResult:
             matrix = np.asarray(document["ReferenceToImage"], dtype=float)
             if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
                 raise EMRegError(f"{source}: ReferenceToImage must be a 4x4 matrix of finite numbers")
-            if not is_rigid(matrix, RIGID_TOLERANCE):
-                raise EMRegError(f"{source}: ReferenceToImage is not rigid (rotation not orthonormal with "
-                                 f"determinant +1, or last row not 0 0 0 1, within {RIGID_TOLERANCE:g})")
+            check_rigid(matrix, f"{source}: ReferenceToImage")
             point_fit = document.get("fiducials") is not None  # a point fit onto fiducials: no offset, l = 0
             for key in ("sensor_offset_l_mm", "fre_mm"):
                 if not np.isfinite(float(document[key])):
@@ -577,7 +571,7 @@ def read_registration(path: str | os.PathLike[str], max_fre_mm: float | None = N
     """Read ``registration.json`` (a folder holding one is accepted too) and check it can be trusted.
 
     Every consumer (navigate, evaluate, report, live navigation, the Slicer Logic) reads through
-    here: the numbers must be finite, ``ReferenceToImage`` rigid within :data:`RIGID_TOLERANCE`,
+    here: the numbers must be finite, ``ReferenceToImage`` rigid (:func:`~EMRegModule.transforms.check_rigid`),
     and ``fre_mm`` at most ``max_fre_mm`` (default: the ``[registration] max_fre_mm`` default,
     2 mm). A malformed file raises :class:`EMRegError` (exit 2); an FRE above the limit raises
     :class:`NoSafeAnswerError` (exit 3), as ``emreg register`` does.

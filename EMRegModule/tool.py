@@ -40,8 +40,7 @@ import numpy as np
 from .errors import EMRegError, NoSafeAnswerError
 from .frames import LPS_TO_RAS
 from .io.atomic import atomic_write_json, read_json
-from .io.sequence_metafile import check_rigid
-from .transforms import invert_rigid
+from .transforms import check_rigid, invert_rigid
 
 #: Names of ``emreg pivot``'s outputs.
 TOOL_CALIBRATION_JSON = "tool_calibration.json"
@@ -130,7 +129,7 @@ class ToolCalibration:
 
 def check_tip_to_probe(matrix: Any, where: str) -> np.ndarray:
     """``TipToProbe`` as a 4x4 float array, or :class:`EMRegError` (one line naming ``where``) when it is not
-    a finite rigid transform within the sequence reader's tolerance (1e-3)."""
+    a finite rigid transform (:func:`~EMRegModule.transforms.check_rigid`)."""
     try:
         matrix = np.asarray(matrix, dtype=float)
     except (TypeError, ValueError):

@@ -52,17 +52,41 @@ def apply_rotation(a_to_b: ArrayLike, vectors_a: ArrayLike) -> Array:
     return np.asarray(vectors_a, dtype=float) @ a_to_b[:3, :3].T
 
 
-def is_rigid(transform: ArrayLike, tolerance: float = 1e-6) -> bool:
-    """True when the 4x4 matrix is a proper rigid transform (orthonormal rotation, det +1)."""
+#: The one tolerance of EMReg's rigidity checks (the largest of |R^T R - I|, |det R - 1| and the last row's distance
+#: from 0 0 0 1): a matrix printed with four decimals (PLUS, hand-written files) passes, a scale or shear of 0.1 %
+#: does not.
+RIGID_TOLERANCE = 1e-3
+
+
+def rigidity_error(transform: ArrayLike) -> float:
+    """How far a 4x4 matrix is from a proper rigid transform: the largest of |R^T R - I| (element-wise),
+    |det R - 1| and the last row's distance from 0 0 0 1 (infinite for another shape or a non-finite value)."""
     transform = np.asarray(transform, dtype=float)
-    if transform.shape != (4, 4):
-        return False
+    if transform.shape != (4, 4) or not np.all(np.isfinite(transform)):
+        return float("inf")
     rotation = transform[:3, :3]
-    return bool(
-        np.allclose(rotation @ rotation.T, np.eye(3), atol=tolerance)
-        and abs(np.linalg.det(rotation) - 1.0) < tolerance
-        and np.allclose(transform[3], [0, 0, 0, 1], atol=tolerance)
-    )
+    return max(float(np.max(np.abs(rotation.T @ rotation - np.eye(3)))), abs(float(np.linalg.det(rotation)) - 1.0),
+               float(np.max(np.abs(transform[3] - [0.0, 0.0, 0.0, 1.0]))))
+
+
+def is_rigid(transform: ArrayLike, tolerance: float = RIGID_TOLERANCE) -> bool:
+    """True when the 4x4 matrix is a proper rigid transform (orthonormal rotation, det +1, last row 0 0 0 1) within
+    ``tolerance`` (:func:`rigidity_error`)."""
+    return rigidity_error(transform) <= tolerance
+
+
+def check_rigid(transform: ArrayLike, where: str) -> None:
+    """Raise :class:`~EMRegModule.errors.EMRegError` naming ``where`` (the file and the transform) unless the 4x4
+    ``transform`` is rigid within :data:`RIGID_TOLERANCE`."""
+    from .errors import EMRegError
+
+    error = rigidity_error(transform)
+    if not error <= RIGID_TOLERANCE:
+        matrix = np.asarray(transform, dtype=float)
+        detail = (f"det R = {np.linalg.det(matrix[:3, :3]):.4g}, last row {matrix[3].tolist()}, "
+                  if matrix.shape == (4, 4) and np.all(np.isfinite(matrix)) else "")
+        raise EMRegError(f"{where} is not a rigid transform (off by {error:.2g}: {detail}tolerance "
+                         f"{RIGID_TOLERANCE:g})")
 
 
 # --- trakSTAR angles ----------------------------------------------------------------------

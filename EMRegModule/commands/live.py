@@ -26,7 +26,6 @@ from ..live.igtl_server import DEFAULT_PORT
 from ..live.link_quality import HoldBack, guard_for
 from ..live.port_check import SensorPortsError
 from ..live.trakstar import protocol as tp
-from ..transforms import is_rigid
 from .args import AddCommand, sensor_ports
 
 if TYPE_CHECKING:
@@ -68,10 +67,7 @@ def load_registration(path: str, settings_path: str | None = None) -> Registrati
 
     settings = load_settings(settings_path, required=True)
     registration = read_registration(path, max_fre_from_settings(settings))
-    matrix = np.asarray(registration.reference_to_image, dtype=float)
     check_belongs(Path(path) / "registration.json" if Path(path).is_dir() else Path(path))
-    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)) or not is_rigid(matrix, 1e-4):
-        raise EMRegError(f"{path}: ReferenceToImage is not a rigid 4x4 transform")
     return registration
 
 

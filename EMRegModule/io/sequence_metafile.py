@@ -30,7 +30,7 @@ Transform names: with no ``<probe>Transform`` in the file but exactly two transf
 other is taken as the tool (with a warning): ``ReferenceToTracker`` + ``StylusToTracker`` as PLUS records them.
 
 Bad input (a broken header, a frame without its timestamp, a matrix that is not rigid
-within :data:`RIGID_TOLERANCE`, NaN values, a sensor's time repeated) raises :class:`EMRegError`
+within :data:`~EMRegModule.transforms.RIGID_TOLERANCE`, NaN values, a sensor's time repeated) raises :class:`EMRegError`
 with one line naming the file and the frame. Timestamps that go back (a clock reset) or pause for
 more than 2 s split the recording into time segments with a warning naming the frame, by the same
 rule as a tracking CSV (:func:`EMRegModule.tracking.split_time_segments`): nothing is dropped and
@@ -49,14 +49,13 @@ import numpy as np
 
 from ..errors import EMRegError
 from ..tracking import SAME_MOMENT_LIMIT_S, TrackingRecording, split_time_segments
+from ..transforms import RIGID_TOLERANCE, check_rigid
 from .atomic import atomic_path
 
 #: File name endings read and written as sequence metafiles.
 SEQUENCE_SUFFIXES = (".seq.mha", ".mha", ".seq.nrrd", ".igs.nrrd")
 DEFAULT_REFERENCE_TRANSFORM = "ReferenceToTracker"
 DEFAULT_PROBE_TRANSFORM = "ProbeToTracker"
-#: An OK pose must be rigid: |R^T R - I| and |det R - 1| at most this, last row (0, 0, 0, 1) within it.
-RIGID_TOLERANCE = 1e-3
 #: Header lines longer than this are not a sequence metafile header (binary data reached).
 _MAX_LINE = 1 << 16
 _FRAME_FIELD = re.compile(r"^Seq_Frame(\d+)_(\S+)$")
@@ -225,17 +224,6 @@ def read_sequence_frames(path: str | os.PathLike[str]) -> SequenceFrames:
     frames.notes = {name: f"{path}: {name}Transform has no {name}TransformStatus in any frame: every pose of it is "
                     "read as valid, as 3D Slicer reads it (PLUS would take none of them)" for name in never_status}
     return frames
-
-
-def check_rigid(matrix: np.ndarray, where: str) -> None:
-    """:class:`EMRegError` naming ``where`` unless ``matrix`` (4x4) is rigid within :data:`RIGID_TOLERANCE`."""
-    rotation = matrix[:3, :3]
-    orthogonality = float(np.max(np.abs(rotation.T @ rotation - np.eye(3))))
-    determinant = float(np.linalg.det(rotation))
-    last_row = float(np.max(np.abs(matrix[3] - [0, 0, 0, 1])))
-    if orthogonality > RIGID_TOLERANCE or abs(determinant - 1.0) > RIGID_TOLERANCE or last_row > RIGID_TOLERANCE:
-        raise EMRegError(f"{where} is not a rigid transform (|R^T R - I| = {orthogonality:.2g}, det R = "
-                         f"{determinant:.4g}, last row {matrix[3].tolist()}; tolerance {RIGID_TOLERANCE:g})")
 
 
 def read_sequence_metafile(

@@ -171,8 +171,8 @@ def _consumers(tmp_path, registration):
 
 @pytest.mark.parametrize("consumer", ["navigate", "navigate live", "evaluate", "report"])
 @pytest.mark.parametrize("problem,needle,code", [
-    ("infinity", "finite", 2), ("nan fre", "fre_mm is not a finite", 2), ("sheared", "not rigid", 2),
-    ("scaled", "not rigid", 2), ("fre 50", "above the limit of 2 mm", 3), ("corrupt", "registration", 2),
+    ("infinity", "finite", 2), ("nan fre", "fre_mm is not a finite", 2), ("sheared", "not a rigid transform", 2),
+    ("scaled", "not a rigid transform", 2), ("fre 50", "above the limit of 2 mm", 3), ("corrupt", "registration", 2),
 ])
 def test_every_consumer_refuses_an_untrustworthy_registration(tmp_path, capsys, consumer, problem, needle, code):
     path = tmp_path / "registration.json"

@@ -42,7 +42,7 @@ def test_cli_simulate_writes_every_file_of_the_spec(tmp_path, capsys):
         image.GetDirection(), truth["image"]["direction"])
     model = MarkerModel(**truth["marker_model"])
     assert model.pinhole_bottom_mm + 1 <= truth["sensor_offset_l_mm"] <= model.pinhole_top_mm - 1
-    assert is_rigid(truth["ReferenceToImage"])
+    assert is_rigid(truth["ReferenceToImage"], 1e-9)
     assert not any(name.startswith(".") for name in (p.name for p in out.iterdir()))  # no temporaries left
 
 
@@ -115,7 +115,7 @@ def test_layout_is_on_the_faces_irregular_and_spread(standard_case):
         coordinate = shoulder[2] if m["face"] == "top" else abs(shoulder @ np.abs(normal))
         assert coordinate == pytest.approx(face_level[m["face"]], abs=1e-9)
         marker_to_image = np.asarray(m["marker_to_image"])
-        assert is_rigid(marker_to_image) and np.allclose(marker_to_image[:3, 1], m["axis"])
+        assert is_rigid(marker_to_image, 1e-9) and np.allclose(marker_to_image[:3, 1], m["axis"])
         origins.append(m["origin"])
     assert faces == set(FACE_NORMALS)
     origins = np.asarray(origins)

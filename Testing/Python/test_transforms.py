@@ -68,7 +68,7 @@ def test_fit_rigid_is_reflection_safe():
     points_a = np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10.0]])
     mirrored = points_a * [1, 1, -1]
     a_to_b = tf.fit_rigid(points_a, mirrored)
-    assert tf.is_rigid(a_to_b)
+    assert tf.is_rigid(a_to_b, 1e-9)
 
 
 def test_fit_rigid_rejects_bad_input():
@@ -91,7 +91,7 @@ def test_lps_ras_conversion_is_an_involution():
     ras = lps_to_ras(transform)
     np.testing.assert_allclose(ras[:3, 3], [-1, -2, 3])
     np.testing.assert_allclose(lps_to_ras(ras), transform)
-    assert tf.is_rigid(ras)
+    assert tf.is_rigid(ras, 1e-9)
 
 
 def test_rotation_from_y_axis():
