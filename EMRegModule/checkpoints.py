@@ -43,6 +43,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .dwell import good_quality_mask, robust_mean, still_periods
+from .names import MARKERS_JSON
 from .settings import NavigationSettings
 
 if TYPE_CHECKING:
@@ -51,7 +52,6 @@ if TYPE_CHECKING:
 #: Pose status in ``navigation.csv`` and over OpenIGTLink (PLUS's ``TransformStatus`` names).
 POSE_OK = "OK"
 POSE_INVALID = "INVALID"
-CHECKPOINTS_JSON = "checkpoints.json"
 #: Samples on each side of a step that must agree for it to be a jump (not a lone wild sample).
 JUMP_WINDOW = 8
 #: A step counts as a jump when it exceeds this many robust sigmas of the sample-to-sample noise.
@@ -149,7 +149,7 @@ def markers_beside(registration_path: str | os.PathLike[str]) -> tuple[Any, str 
     from .provenance import check_belongs
 
     path = Path(registration_path)
-    markers = (path if path.is_dir() else path.parent) / "markers.json"
+    markers = (path if path.is_dir() else path.parent) / MARKERS_JSON
     if not markers.is_file():
         return None, None
     try:

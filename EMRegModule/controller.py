@@ -27,7 +27,7 @@ from .errors import EMRegError, NoSafeAnswerError
 from .interrupts import interrupted_by, signals_held
 from .io.case import Case
 from .marker_model import MarkerModel
-from .names import TRE_MAP_NRRD
+from .names import FRAME_CALIBRATION_JSON, MARKERS_JSON, REGISTRATION_JSON, TRE_MAP_NRRD
 from .outputs import OutputFolder, all_output_names, refuse_out_over_inputs
 from .progress import QUIET, Progress
 from .settings import Settings, choose_ports
@@ -203,7 +203,7 @@ class EMRegController:
             self.results.drop("calibrate")
 
     def use_ports(self, reference_given: int | None, probe_given: int | None,
-                  source: str = "registration.json") -> list[str]:
+                  source: str = REGISTRATION_JSON) -> list[str]:
         """The ports of a consumer of the current registration (navigate, evaluate): for each sensor the port the
         user gave (command line, else ``case.toml [sensors]``; None: not given), else the port the
         registration's calibration used, else the spec's default (reference 1, probe 2). A given port that
@@ -349,9 +349,9 @@ class EMRegController:
         from .detection import read_detection
 
         path = Path(path)
-        path = path / "markers.json" if path.is_dir() else path
+        path = path / MARKERS_JSON if path.is_dir() else path
         detection = read_detection(path)
-        self.recorder.read_output("markers.json", path, detection.provenance)
+        self.recorder.read_output(MARKERS_JSON, path, detection.provenance)
         self.set_detection(detection)
         return detection
 
@@ -360,7 +360,7 @@ class EMRegController:
         from .calibration import read_frame_calibration
 
         calibration = read_frame_calibration(path)
-        self.recorder.read_output("frame_calibration.json", Path(path), calibration.provenance)
+        self.recorder.read_output(FRAME_CALIBRATION_JSON, Path(path), calibration.provenance)
         self.set_frame_calibration(calibration)
         return calibration
 
@@ -371,9 +371,9 @@ class EMRegController:
         from .registration import read_registration
 
         path = Path(path)
-        path = path / "registration.json" if path.is_dir() else path
+        path = path / REGISTRATION_JSON if path.is_dir() else path
         registration = read_registration(path, self.settings.registration.max_fre_mm)
-        self.recorder.read_output("registration.json", path, registration.provenance)
+        self.recorder.read_output(REGISTRATION_JSON, path, registration.provenance)
         self.set_registration(registration)
         return registration
 

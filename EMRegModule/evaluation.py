@@ -32,12 +32,12 @@ from .dwell import Dwell, describe_still_periods, find_dwells, group_by_place, r
 from .error_model import ErrorBudget, ErrorModel, optimism_limit, repeated_dwell_ms, satterthwaite_dof
 from .errors import EMRegError, NoSafeAnswerError
 from .io.atomic import atomic_write_json, read_json
+from .names import EVALUATION_JSON
 from .navigation import navigate_recording
 from .settings import DwellSettings, EvaluationSettings
 from .tracking import TrackingRecording, probe_in_reference
 
 #: The name of the evaluation file in an output folder.
-EVALUATION_JSON = "evaluation.json"
 
 
 # --- typed results ---------------------------------------------------------------------------

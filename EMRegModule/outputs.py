@@ -29,8 +29,8 @@ from . import __version__
 from .errors import EMRegError
 from .interrupts import signals_held
 from .io.atomic import atomic_write_json
-from .names import CASE_INPUT_NAMES, PREVIOUS_FOLDER
-from .provenance import RUN_JSON, Provenance, file_sha256, read_manifest
+from .names import CASE_INPUT_NAMES, PREVIOUS_FOLDER, RUN_JSON
+from .provenance import Provenance, file_sha256, read_manifest
 from .stages import all_output_names, outputs_from
 
 

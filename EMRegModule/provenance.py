@@ -26,9 +26,9 @@ from typing import Any
 
 from . import __version__
 from .errors import EMRegError
+from .names import RUN_JSON
 
 #: The manifest of an output folder (and the record of the last ``emreg run`` into it).
-RUN_JSON = "run.json"
 _CHUNK = 1 << 22
 
 

@@ -47,13 +47,13 @@ from .errors import EMRegError, NoSafeAnswerError
 from .io.atomic import atomic_write_json, read_json
 from .io.itk_transform import write_slicer_linear_transform
 from .marker_model import MarkerModel
+from .names import REFERENCE_TO_IMAGE_H5, REGISTRATION_JSON
 from .probe_axis import pair_with_probe_axis
 from .sensor_offset import OffsetSolution, solve_sensor_offset
 from .settings import RegistrationSettings, Settings
 from .transforms import apply_rotation, apply_transform, check_rigid, invert_rigid, residuals
 
 #: Name of the ITK transform file written beside ``registration.json``.
-TRANSFORM_FILE = "ReferenceToImage.h5"
 
 #: Median of a chi-squared variable with 3 degrees of freedom (robust RMS of 3D residuals).
 _CHI2_3_MEDIAN = 2.3660
@@ -120,7 +120,7 @@ class RegistrationResult:
             "unpaired_calibration_points": list(self.unpaired_calibration_points),
             **({"reference_sensor": int(self.reference_sensor)} if self.reference_sensor is not None else {}),
             **({"probe_sensor": int(self.probe_sensor)} if self.probe_sensor is not None else {}),
-            "transform_file": TRANSFORM_FILE,
+            "transform_file": REFERENCE_TO_IMAGE_H5,
             "transform_file_note": ("ITK file: stores ImageToReference (the resampling direction, LPS); "
                                     "3D Slicer loads it as the ReferenceToImage linear transform"),
             "sensor_offset_l_std_mm": _round(self.sensor_offset_l_std_mm),
@@ -563,8 +563,8 @@ def write_registration(result: RegistrationResult, out_dir: str | os.PathLike[st
     """Write ``registration.json`` and ``ReferenceToImage.h5`` (both atomically) into ``out_dir``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    write_slicer_linear_transform(out / TRANSFORM_FILE, result.reference_to_image)
-    atomic_write_json(out / "registration.json", result.to_json())
+    write_slicer_linear_transform(out / REFERENCE_TO_IMAGE_H5, result.reference_to_image)
+    atomic_write_json(out / REGISTRATION_JSON, result.to_json())
 
 
 def read_registration(path: str | os.PathLike[str], max_fre_mm: float | None = None) -> RegistrationResult:
@@ -578,7 +578,7 @@ def read_registration(path: str | os.PathLike[str], max_fre_mm: float | None = N
     """
     path = Path(path)
     if path.is_dir():
-        path = path / "registration.json"
+        path = path / REGISTRATION_JSON
     result = RegistrationResult.from_json(read_json(path, "registration JSON"), str(path))
     limit = RegistrationSettings().max_fre_mm if max_fre_mm is None else float(max_fre_mm)
     if result.fre_mm > limit:

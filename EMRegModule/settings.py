@@ -24,7 +24,7 @@ from typing import Any, ClassVar
 
 from .errors import EMRegError
 from .marker_model import MarkerModel
-from .names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
+from .names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT, REGISTRATION_JSON
 from .tables import SettingError, fraction, non_negative, one_of, parse_table, port, positive
 
 # --- [sensors] ---------------------------------------------------------------------------------
@@ -443,7 +443,7 @@ def sensor_ports_given(settings: Settings) -> tuple[int | None, int | None]:
 
 
 def choose_ports(given: tuple[int | None, int | None], recorded: tuple[int | None, int | None],
-                 source: str = "registration.json") -> tuple[tuple[int, int], list[str]]:
+                 source: str = REGISTRATION_JSON) -> tuple[tuple[int, int], list[str]]:
     """The (reference, probe) ports of a consumer of a registration: for each sensor the port the user gave
     (command line, else ``case.toml [sensors]``; None: not given), else the port the registration's
     calibration used (``recorded``; None in files older than the keys), else the spec's default (1, 2).

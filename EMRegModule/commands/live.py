@@ -26,6 +26,7 @@ from ..live.igtl_server import DEFAULT_PORT
 from ..live.link_quality import HoldBack, guard_for
 from ..live.port_check import SensorPortsError
 from ..live.trakstar import protocol as tp
+from ..names import CHECKPOINTS_JSON, NAVIGATION_CSV, REGISTRATION_JSON
 from .args import AddCommand, sensor_ports
 
 if TYPE_CHECKING:
@@ -67,7 +68,7 @@ def load_registration(path: str, settings_path: str | None = None) -> Registrati
 
     settings = load_settings(settings_path, required=True)
     registration = read_registration(path, max_fre_from_settings(settings))
-    check_belongs(Path(path) / "registration.json" if Path(path).is_dir() else Path(path))
+    check_belongs(Path(path) / REGISTRATION_JSON if Path(path).is_dir() else Path(path))
     return registration
 
 
@@ -526,7 +527,7 @@ def run_live_navigate(args: argparse.Namespace) -> int:
         if args.igtl_port is not None:
             server = IGTLServer(args.host, args.igtl_port, log=None if args.quiet else sys.stderr)
         if args.out:
-            writer = NavigationWriter(Path(args.out) / "navigation.csv")
+            writer = NavigationWriter(Path(args.out) / NAVIGATION_CSV)
     except BaseException:
         source.stop()
         if server is not None:
@@ -575,7 +576,7 @@ def run_live_navigate(args: argparse.Namespace) -> int:
         if writer is not None:
             writer.close()
         if args.out:
-            from ..checkpoints import CHECKPOINTS_JSON, write_checkpoints
+            from ..checkpoints import write_checkpoints
 
             write_checkpoints(trust.report, Path(args.out) / CHECKPOINTS_JSON)
     again = f", {reconnects} reconnection(s)" if reconnects else ""

@@ -8,6 +8,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import EMRegError
+from ..names import RUN_JSON
 from .args import AddCommand, controller_of, out_folder, progress_of, settings_of, warn
 
 
@@ -90,7 +91,7 @@ def _record_batch_report(args: argparse.Namespace, folder: Path, bundle_sha256: 
     from ..outputs import OutputFolder
 
     try:
-        case = read_json(folder / "run.json", "run record").get("case")
+        case = read_json(folder / RUN_JSON, "run record").get("case")
     except (EMRegError, AttributeError):
         case = None
     case_dir = Path(case) if isinstance(case, str) and Path(case).is_dir() else None

@@ -9,6 +9,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import EMRegError, NoSafeAnswerError
+from ..names import REGISTRATION_JSON
 from .args import (
     AddCommand,
     add_sensor_options,
@@ -178,7 +179,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     controller.load_registration(args.registration)
     warn("evaluate", controller.use_ports(*given, args.registration))
     case.settings = case.settings.with_sensors(controller.reference_sensor, controller.probe_sensor)
-    controller.recorder.check_case_inputs("registration.json", args.registration, case)
+    controller.recorder.check_case_inputs(REGISTRATION_JSON, args.registration, case)
     controller.recorder.note_inputs(navigation=case.navigation, targets=case.targets, board=case.board)
     use_tool(args, controller, solves=False)
     result = controller.evaluate(controller.case_recording(case, "navigation"), case.read_targets(),

@@ -15,10 +15,8 @@ import numpy as np
 from ..errors import EMRegError
 from ..io.atomic import atomic_write_json, read_json
 from ..io.markups import write_markups
+from ..names import MARKERS_JSON, MARKERS_MRK_JSON
 from ..transforms import make_transform, rotation_from_y_axis
-
-MARKERS_JSON = "markers.json"
-MARKERS_MRK_JSON = "markers.mrk.json"
 
 
 def marker_to_image_from_axis(origin: np.ndarray, axis: np.ndarray) -> np.ndarray:
@@ -119,7 +117,7 @@ class DetectionResult:
         return document
 
     @classmethod
-    def from_json(cls, document: dict[str, Any], source: str = "markers.json") -> DetectionResult:
+    def from_json(cls, document: dict[str, Any], source: str = MARKERS_JSON) -> DetectionResult:
         """Parse a ``markers.json`` document; a malformed one raises :class:`EMRegError` naming ``source``."""
         try:
             system = document.get("coordinate_system", "LPS")
@@ -164,7 +162,7 @@ def read_detection(path: str | os.PathLike[str]) -> DetectionResult:
     path = Path(path)
     if path.is_dir():
         path = path / MARKERS_JSON
-    document = read_json(path, "markers.json")
+    document = read_json(path, MARKERS_JSON)
     if not isinstance(document, dict):
         raise EMRegError(f"{path}: not a valid markers.json (not a JSON object)")
     return DetectionResult.from_json(document, str(path))

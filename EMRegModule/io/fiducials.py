@@ -32,6 +32,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import EMRegError
+from ..frames import lps_to_ras_points
+from ..names import MARKERS_JSON
 from .markups import read_markups_with_frame
 
 #: A rigid fit needs three points not on one line.
@@ -79,7 +81,7 @@ def is_markers_file(path: str | os.PathLike[str]) -> bool:
     """True for a ``markers.json`` of ``emreg detect`` (a JSON object with a ``markers`` list and no ``markups``)."""
     path = Path(path)
     if path.is_dir():
-        return (path / "markers.json").is_file()
+        return (path / MARKERS_JSON).is_file()
     if path.suffix.lower() != ".json" or path.name.lower().endswith(".mrk.json"):
         return False
     from .atomic import read_json
@@ -190,7 +192,7 @@ def _read_fcsv(path: Path) -> Fiducials:
         positions.append(position)
     lps = np.asarray(positions, dtype=float).reshape(-1, 3)
     if system == "RAS":
-        lps = lps * np.array([-1.0, -1.0, 1.0])
+        lps = lps_to_ras_points(lps)  # the flip is its own inverse: RAS -> LPS
     return Fiducials(labels, lps, str(path), FORMAT_FCSV, "LPS",
                      {"coordinate_system": system, "units": "mm", "version": version or "Slicer 3 (unversioned)"})
 

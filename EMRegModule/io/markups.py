@@ -13,6 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..errors import EMRegError
+from ..frames import LPS_TO_RAS_3X3
 from .atomic import atomic_write_json, read_json
 
 MARKUPS_SCHEMA = (
@@ -79,7 +80,7 @@ def read_markups_with_frame(path: str | os.PathLike[str]) -> tuple[list[str], np
             system = str(markup.get("coordinateSystem") or "LPS").upper()
             if system not in ("LPS", "RAS"):
                 raise EMRegError(f"{path}: unknown coordinateSystem {system!r} (Slicer writes LPS or RAS)")
-            flip = np.array([-1.0, -1.0, 1.0]) if system == "RAS" else np.ones(3)
+            flip = np.diag(LPS_TO_RAS_3X3) if system == "RAS" else np.ones(3)
             units = _markups_units(markup.get("coordinateUnits", "mm"), path)
             flip = flip * UNIT_TO_MM[units]
             systems.append(system)

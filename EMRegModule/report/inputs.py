@@ -120,7 +120,7 @@ def has_report_inputs(folder: str | os.PathLike[str]) -> bool:
     if not folder.is_dir():
         return False
     present = [name for name in INPUT_NAMES if (folder / name).is_file()]
-    return bool(present) and (present != ["navigation.csv"] or find_ct(folder) is None)
+    return bool(present) and (present != [NAVIGATION_CSV] or find_ct(folder) is None)
 
 
 def require_report_inputs(out_dir: str | os.PathLike[str]) -> Path:

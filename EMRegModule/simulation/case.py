@@ -19,7 +19,7 @@ from ..io.atomic import atomic_write_json, atomic_write_text, read_json
 from ..io.markups import write_markups
 from ..io.tracking_csv import write_tracking_csv
 from ..marker_model import MarkerModel
-from ..names import CT_FILE_NAMES, CT_FOLDER_NAME
+from ..names import CT_FILE_NAMES, CT_FOLDER_NAME, TARGETS_FILE
 from ..progress import QUIET, Progress
 from ..transforms import apply_transform, axis_angle_to_rotation, invert_rigid, random_rotation
 from . import ct
@@ -80,10 +80,10 @@ def simulate_case(out_dir: Path, seed: int = 0, difficulty: str = "standard", sp
         l_mm, calibration, navigation, board = _write_recordings(out_dir, seed, opts, phantom, model)
         targets_image = navigation["targets_image"]
         if len(targets_image):
-            write_markups(out_dir / "targets.mrk.json", [f"T{i + 1}" for i in range(len(targets_image))],
+            write_markups(out_dir / TARGETS_FILE, [f"T{i + 1}" for i in range(len(targets_image))],
                           targets_image, name="T")
         else:
-            (out_dir / "targets.mrk.json").unlink(missing_ok=True)
+            (out_dir / TARGETS_FILE).unlink(missing_ok=True)
         atomic_write_text(out_dir / "case.toml", _case_toml(seed, difficulty, opts, model))
         _write_tool(out_dir, seed, opts)
 

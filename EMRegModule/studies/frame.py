@@ -26,7 +26,7 @@ from ..detection.result import DetectionResult, read_detection, write_detection
 from ..errors import EMRegError
 from ..io.case import open_case
 from ..marker_model import MarkerModel
-from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
+from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT, MARKERS_JSON
 from ..registration import RegistrationResult, register
 from ..settings import Settings
 from ..simulation.case import load_truth, simulate_case
@@ -89,7 +89,7 @@ def prepare_frame(work: Path, case_dir: Path | None = None, seed: int = 1, quick
     truth = load_truth(case_dir)
     case = open_case(case_dir)
     key = hashlib.sha1(str(Path(case_dir).resolve()).encode()).hexdigest()[:8]
-    markers_json = Path(work) / f"detection-{Path(case_dir).name}-{key}" / "markers.json"
+    markers_json = Path(work) / f"detection-{Path(case_dir).name}-{key}" / MARKERS_JSON
     if markers_json.is_file():
         detection = read_detection(markers_json)
     else:
