@@ -97,8 +97,8 @@ class FrameCalibration:
     """The calibrated pinholes of a fiducial frame (Reference frame, mm) and how they were found."""
 
     points: list[CalibrationPoint]
-    reference_sensor: int = 1
-    probe_sensor: int = 2
+    reference_sensor: int = DEFAULT_REFERENCE_PORT
+    probe_sensor: int = DEFAULT_PROBE_PORT
     labelled: bool = True
     source: str = ""
     warnings: list[str] = field(default_factory=list)

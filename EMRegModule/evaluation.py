@@ -32,7 +32,7 @@ from .dwell import Dwell, describe_still_periods, find_dwells, group_by_place, r
 from .error_model import ErrorBudget, ErrorModel, optimism_limit, repeated_dwell_ms, satterthwaite_dof
 from .errors import EMRegError, NoSafeAnswerError
 from .io.atomic import atomic_write_json, read_json
-from .names import EVALUATION_JSON
+from .names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT, EVALUATION_JSON
 from .navigation import navigate_recording
 from .settings import DwellSettings, EvaluationSettings
 from .tracking import TrackingRecording, probe_in_reference
@@ -376,8 +376,8 @@ def evaluate_targets(
     target_labels: Sequence[str],
     targets_image: np.ndarray,
     reference_to_image: np.ndarray,
-    reference_sensor: int = 1,
-    probe_sensor: int = 2,
+    reference_sensor: int = DEFAULT_REFERENCE_PORT,
+    probe_sensor: int = DEFAULT_PROBE_PORT,
     settings: DwellSettings | None = None,
     max_target_distance_mm: float | None = None,
     error_model: ErrorModel | None = None,
@@ -493,8 +493,8 @@ def _optimism_warning(result: TargetEvaluation, target_labels: Sequence[str], bu
 
 def evaluate_board(
     recording: TrackingRecording,
-    reference_sensor: int = 1,
-    probe_sensor: int = 2,
+    reference_sensor: int = DEFAULT_REFERENCE_PORT,
+    probe_sensor: int = DEFAULT_PROBE_PORT,
     nominal_edges_mm: Sequence[float] | None = None,
     settings: DwellSettings | None = None,
     tip_to_probe: np.ndarray | None = None,

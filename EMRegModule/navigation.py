@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .io.atomic import atomic_path
+from .names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from .tracking import SAME_MOMENT_S, TrackingRecording, invert_rigid_batch, sensor_pair
 
 #: ``status`` (added): the pose's status, ``OK`` or ``INVALID`` (PLUS's TransformStatus names; see
@@ -62,7 +63,7 @@ class NavigationResult:
 
 
 def navigate_recording(recording: TrackingRecording, reference_to_image: np.ndarray,
-                       reference_sensor: int = 1, probe_sensor: int = 2,
+                       reference_sensor: int = DEFAULT_REFERENCE_PORT, probe_sensor: int = DEFAULT_PROBE_PORT,
                        tip_to_probe: np.ndarray | None = None) -> NavigationResult:
     """Map every probe sample that has a reference sample at the same moment into image space.
 
@@ -87,7 +88,8 @@ def navigate_recording(recording: TrackingRecording, reference_to_image: np.ndar
     return NavigationResult(probe.time_s[probe_idx], mapped, probe.label[probe_idx], quality)
 
 
-def unpaired_probe_note(recording: TrackingRecording, result: NavigationResult, probe_sensor: int = 2) -> str | None:
+def unpaired_probe_note(recording: TrackingRecording, result: NavigationResult,
+                        probe_sensor: int = DEFAULT_PROBE_PORT) -> str | None:
     """One line when some probe samples of ``recording`` found no reference sample at the same moment (within
     ``SAME_MOMENT_S``) and so are not in ``result`` (e.g. a probe sampled faster than the reference), else None."""
     probe_rows = int(np.count_nonzero(recording.sensor == probe_sensor))

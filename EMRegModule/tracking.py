@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import EMRegError
+from .names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from .transforms import invert_rigid
 
 #: Reference and probe rows of one moment share ``time_s`` within this tolerance (spec).
@@ -195,7 +196,8 @@ def match_moments(
 
 
 def probe_in_reference(
-    recording: TrackingRecording, reference_port: int = 1, probe_port: int = 2, check_ports: bool = True
+    recording: TrackingRecording, reference_port: int = DEFAULT_REFERENCE_PORT, probe_port: int = DEFAULT_PROBE_PORT,
+    check_ports: bool = True,
 ) -> ProbeInReference:
     """Express every probe sample in the Reference frame at its own moment (paper Eq. 3-5).
 

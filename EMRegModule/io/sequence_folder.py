@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EMRegError
+from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from ..tracking import SAME_MOMENT_LIMIT_S, SAME_MOMENT_S, TrackingRecording
 from .sequence_metafile import (
     DEFAULT_PROBE_TRANSFORM,
@@ -72,8 +73,8 @@ def read_sequence_folder(
     folder: str | os.PathLike[str],
     reference_transform: str = DEFAULT_REFERENCE_TRANSFORM,
     probe_transform: str = DEFAULT_PROBE_TRANSFORM,
-    reference_port: int = 1,
-    probe_port: int = 2,
+    reference_port: int = DEFAULT_REFERENCE_PORT,
+    probe_port: int = DEFAULT_PROBE_PORT,
 ) -> TrackingRecording:
     """The recording of a folder of single-transform sequence files (see module docstring): the reference
     and probe transforms as rows of the given ports, their frames matched by timestamp."""

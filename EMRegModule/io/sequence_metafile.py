@@ -48,6 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EMRegError
+from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from ..tracking import SAME_MOMENT_LIMIT_S, TrackingRecording, split_time_segments
 from ..transforms import RIGID_TOLERANCE, check_rigid
 from .atomic import atomic_path
@@ -230,8 +231,8 @@ def read_sequence_metafile(
     path: str | os.PathLike[str],
     reference_transform: str = DEFAULT_REFERENCE_TRANSFORM,
     probe_transform: str | None = None,
-    reference_port: int = 1,
-    probe_port: int = 2,
+    reference_port: int = DEFAULT_REFERENCE_PORT,
+    probe_port: int = DEFAULT_PROBE_PORT,
 ) -> TrackingRecording:
     """A tracking recording from a sequence metafile: the reference and probe transforms
     (``<Name>Transform`` without the suffix, e.g. ``ProbeToTracker``) become rows of the given
@@ -338,8 +339,8 @@ def format_sequence_metafile(
     recording: TrackingRecording,
     reference_transform: str = DEFAULT_REFERENCE_TRANSFORM,
     probe_transform: str = DEFAULT_PROBE_TRANSFORM,
-    reference_port: int = 1,
-    probe_port: int = 2,
+    reference_port: int = DEFAULT_REFERENCE_PORT,
+    probe_port: int = DEFAULT_PROBE_PORT,
     statuses: dict[str, np.ndarray] | None = None,
 ) -> str:
     """Sequence metafile text: one frame per moment (rows within 1 ms), the reference and probe

@@ -33,6 +33,7 @@ from typing import TextIO
 import numpy as np
 
 from ..frames import LPS_TO_RAS
+from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from ..navigation import probe_to_image as probe_to_image_pose
 from . import igtl_status as st
 from .igtl_server import TRANSFORM_INVALID, TRANSFORM_OK
@@ -92,9 +93,9 @@ class Watchdog:
     ``max_quality``: worst acceptable quality number (None: not checked; NaN quality passes).
     """
 
-    def __init__(self, reference_sensor: int = 1, probe_sensor: int = 2, period_s: float | None = None,
-                 stale_periods: float = 3.0, max_quality: float | None = DEFAULT_MAX_QUALITY,
-                 link=None) -> None:
+    def __init__(self, reference_sensor: int = DEFAULT_REFERENCE_PORT, probe_sensor: int = DEFAULT_PROBE_PORT,
+                 period_s: float | None = None, stale_periods: float = 3.0,
+                 max_quality: float | None = DEFAULT_MAX_QUALITY, link=None) -> None:
         self.reference_sensor = reference_sensor
         self.link = link  # a link_quality.LinkGuard for a raw tracker link, or None
         self.lost: str | None = None  # set when the device is gone (no more samples will come)
@@ -268,11 +269,11 @@ class LiveNavigator(_WatchedPublisher):
     from the first cycles before publishing (:mod:`.port_check`; for raw tracker links).
     """
 
-    def __init__(self, reference_to_image: np.ndarray, reference_sensor: int = 1, probe_sensor: int = 2,
-                 server=None, writer=None, period_s: float | None = None, stale_periods: float = 3.0,
-                 max_quality: float | None = DEFAULT_MAX_QUALITY, out: TextIO | None = sys.stderr,
-                 device_name: str = "ProbeToImage", status_name: str = "Navigation", link=None,
-                 check_ports: bool = False, trust=None) -> None:
+    def __init__(self, reference_to_image: np.ndarray, reference_sensor: int = DEFAULT_REFERENCE_PORT,
+                 probe_sensor: int = DEFAULT_PROBE_PORT, server=None, writer=None, period_s: float | None = None,
+                 stale_periods: float = 3.0, max_quality: float | None = DEFAULT_MAX_QUALITY,
+                 out: TextIO | None = sys.stderr, device_name: str = "ProbeToImage", status_name: str = "Navigation",
+                 link=None, check_ports: bool = False, trust=None) -> None:
         self.reference_to_image = np.asarray(reference_to_image, dtype=float)
         self.reference_sensor = reference_sensor
         self.probe_sensor = probe_sensor
@@ -404,9 +405,10 @@ class TrackerPublisher(_WatchedPublisher):
     is ``ReferenceToTracker``, the probe port ``ProbeToTracker``, others ``Sensor<N>ToTracker``.
     Samples of one cycle share one timestamp."""
 
-    def __init__(self, server, reference_sensor: int = 1, probe_sensor: int = 2, period_s: float | None = None,
-                 stale_periods: float = 3.0, max_quality: float | None = DEFAULT_MAX_QUALITY,
-                 out: TextIO | None = sys.stderr, link=None) -> None:
+    def __init__(self, server, reference_sensor: int = DEFAULT_REFERENCE_PORT,
+                 probe_sensor: int = DEFAULT_PROBE_PORT, period_s: float | None = None, stale_periods: float = 3.0,
+                 max_quality: float | None = DEFAULT_MAX_QUALITY, out: TextIO | None = sys.stderr,
+                 link=None) -> None:
         self.server = server
         self.reference_sensor = reference_sensor
         self.probe_sensor = probe_sensor

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..errors import EMRegError
 from ..io.recording import read_recording
+from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from ..tracking import SAME_MOMENT_LIMIT_S, sensor_pair
 from .device_url import DeviceURL, parse_device_url
 from .samples import STATUS_OK, SensorSample
@@ -151,8 +152,8 @@ class IGTLSource(SampleSource):
         self.finished.set()
 
 
-def open_source(url: str | DeviceURL, reference_sensor: int = 1, probe_sensor: int = 2, fast: bool = False,
-                loop: bool = False) -> SampleSource:
+def open_source(url: str | DeviceURL, reference_sensor: int = DEFAULT_REFERENCE_PORT,
+                probe_sensor: int = DEFAULT_PROBE_PORT, fast: bool = False, loop: bool = False) -> SampleSource:
     """The source behind a device URL (the trakSTAR is opened and configured here)."""
     parsed = parse_device_url(url) if isinstance(url, str) else url
     if parsed.kind == "trakstar":

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.tracking_csv import HEADER_ANGLES
+from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from ..transforms import rotation_to_angles
 from .samples import SensorSample
 
@@ -91,7 +92,7 @@ class SequenceRecordingWriter(RecordingWriter):
     sequence metafile atomically (its header needs the frame count) and the sidecar is removed."""
 
     def __init__(self, path: str | os.PathLike[str], flush_interval_s: float = 1.0,
-                 reference_port: int = 1, probe_port: int = 2) -> None:
+                 reference_port: int = DEFAULT_REFERENCE_PORT, probe_port: int = DEFAULT_PROBE_PORT) -> None:
         self.target = Path(path)
         self.reference_port, self.probe_port = reference_port, probe_port
         self._samples: list[tuple] = []
