@@ -54,7 +54,7 @@ class Exporter:
 
         used = self.recorder.adopt_outputs(folder)
         keep = bundle_needs_ct_image(run_ct_path(folder.manifest, case_dir))  # else the report streams a CT itself
-        image: Any = holder.image if holder.image is not None else ct_read
+        image: sitk.Image | CTHandle | None = holder.image if holder.image is not None else ct_read
         if holder.image is not None and not keep and not self.keep_ct:  # nothing needs the CT after the report: it
             holder.image, image = None, CTHandle.of_image(image)  # handed over: freed once used, before the
             # rendering libraries load
