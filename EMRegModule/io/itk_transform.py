@@ -25,7 +25,6 @@ from __future__ import annotations
 import os
 
 import numpy as np
-import SimpleITK as sitk
 
 from ..errors import EMRegError
 from ..frames import LPS_TO_RAS
@@ -45,6 +44,8 @@ def read_slicer_linear_transform(path: str | os.PathLike[str]) -> np.ndarray:
 
 def write_itk_linear_matrix(path: str | os.PathLike[str], stored: np.ndarray) -> None:
     """Write the 4x4 ``stored`` as it is (an ``AffineTransform``, ITK's own convention) atomically."""
+    import SimpleITK as sitk  # loaded when a transform is written, not with the registration module
+
     transform = sitk.AffineTransform(3)
     transform.SetMatrix(np.asarray(stored, dtype=float)[:3, :3].ravel().tolist())
     transform.SetTranslation(np.asarray(stored, dtype=float)[:3, 3].tolist())
@@ -54,6 +55,8 @@ def write_itk_linear_matrix(path: str | os.PathLike[str], stored: np.ndarray) ->
 
 def read_itk_linear_matrix(path: str | os.PathLike[str]) -> np.ndarray:
     """The 4x4 an ITK transform file stores (a 3D linear transform, or a composite wrapping one), as it is."""
+    import SimpleITK as sitk
+
     try:
         transform = sitk.ReadTransform(str(path))
     except RuntimeError:

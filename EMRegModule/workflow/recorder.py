@@ -16,7 +16,6 @@ from typing import TYPE_CHECKING, Any
 from .. import names
 from ..outputs import OutputFolder
 from ..provenance import InputDigest, Provenance, check_belongs, check_inputs_match, file_sha256
-from ..run_folder import check_outputs
 from ..stages import STAGE, STAGE_OUTPUTS, uses
 from .results import WorkflowResults
 
@@ -93,6 +92,8 @@ class RunRecorder:
 
     def adopt_outputs(self, folder: OutputFolder) -> list[str]:
         """The outputs present in ``folder``, checked to belong together; their sha256 kept for provenance."""
+        from ..run_folder import check_outputs  # reads every output format: loaded when a report or bundle needs it
+
         used = check_outputs(folder.path)
         for name in used:
             self._output_sha.setdefault(name, folder.sha256(name))
