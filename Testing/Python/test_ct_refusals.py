@@ -297,3 +297,24 @@ def test_the_threads_that_run_simpleitk_are_no_daemons(tmp_path, monkeypatch):
     read_ct(tmp_path / "ct")
     assert {t.name for t in started} >= {"emreg-dicom-read", "emreg-dicom-allocate"}
     assert not [t.name for t in started if t.daemon]
+
+
+def test_a_refusal_exits_after_the_background_import_not_during_it(tmp_path):
+    """The detection stage's import runs on a thread while the CT is read; a command refused at once exits only
+    once that import is done (the interpreter ends a daemon thread from inside a C++ extension's initialisation
+    at exit: SIGSEGV after the refusal). A module that takes a while to import, and notes when it is done, stands
+    in for VTK."""
+    (tmp_path / "slow_module.py").write_text(
+        "import pathlib, sys, time\n"
+        "time.sleep(0.5)\n"
+        "pathlib.Path(sys.argv[1]).write_text('imported')\n")
+    done = tmp_path / "done.txt"
+    script = ("import sys\n"
+              "from EMRegModule.workflow.background import import_in_background\n"
+              "import_in_background('slow_module')\n"
+              "sys.exit(2)\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), *sys.path]))
+    result = subprocess.run([sys.executable, "-c", script, str(done)], env=env, capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 2, result.stderr
+    assert done.read_text() == "imported"  # the import ran to its end before the interpreter exited
