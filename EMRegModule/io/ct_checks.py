@@ -65,10 +65,42 @@ def check_ct_path(path: str | os.PathLike[str]) -> None:
 
 def check_ct_file(path: str | os.PathLike[str]) -> None:
     """Refuse, before reading it, a CT file that SimpleITK would read wrongly: a ``.nii`` / ``.nii.gz`` without
-    NIfTI's magic (read as Analyze 7.5, its orientation and origin lost)."""
+    NIfTI's magic (read as Analyze 7.5, its orientation and origin lost), a NRRD whose header's spacing or origin
+    is damaged (:func:`_check_nrrd_geometry`)."""
     from .nifti_header import check_nifti_magic
 
     check_nifti_magic(path)
+    _check_nrrd_geometry(path)
+
+
+def _check_nrrd_geometry(path: str | os.PathLike[str]) -> None:
+    """Refuse a NRRD whose header gives a spacing (the lengths of its ``space directions``, or its ``spacings``) or
+    a ``space origin`` no CT has: ITK reads a ``space directions`` vector of length 1e300 as spacing 1 along the
+    identity direction, silently (a plausible, wrong geometry)."""
+    import re
+
+    from .ct_header import nrrd_header_fields
+
+    fields = nrrd_header_fields(Path(path)) or {}
+    vectors = [_numbers(text) for text in re.findall(r"\(([^)]*)\)", fields.get("space directions", ""))]
+    spacing = [float(np.hypot.reduce(v)) if np.all(np.isfinite(v)) else float("nan") for v in vectors if v.size]
+    spacing += [v for v in _numbers(fields.get("spacings", "")).tolist() if not np.isnan(v)]
+    if spacing:
+        _check_spacing(np.asarray(spacing), path)
+    origin = re.findall(r"\(([^)]*)\)", fields.get("space origin", ""))
+    if origin:
+        _check_origin(_numbers(origin[0]), path)
+
+
+def _numbers(text: str) -> np.ndarray:
+    """The numbers of a NRRD field's text (``nan`` for a word that is none: NRRD's ``none`` / ``nan`` axes)."""
+    values = []
+    for word in text.replace(",", " ").split():
+        try:
+            values.append(float(word))
+        except ValueError:
+            values.append(float("nan"))
+    return np.asarray(values, dtype=float)
 
 
 def check_file_placement(geometry: sitk.Image, path: str | os.PathLike[str]) -> None:
@@ -108,18 +140,8 @@ def check_ct_geometry(image: sitk.Image, source: str | os.PathLike[str] = "CT") 
         )
     if min(image.GetSize()) < 2:
         raise EMRegError(f"{source}: CT has a degenerate size {image.GetSize()}")
-    spacing = np.asarray(image.GetSpacing(), dtype=float)
-    if not np.all(np.isfinite(spacing)) or np.min(spacing) <= 0:
-        raise EMRegError(f"{source}: CT has a non-positive or non-finite spacing {image.GetSpacing()}")
-    low, high = SPACING_RANGE_MM
-    if np.min(spacing) < low or np.max(spacing) > high:
-        raise EMRegError(f"{source}: CT spacing {tuple(float(f'{v:.6g}') for v in spacing)} mm is outside "
-                         f"{low:g}..{high:g} mm, no CT's voxel size: the header's spacing is damaged")
-    if not np.all(np.isfinite(image.GetOrigin())):
-        raise EMRegError(f"{source}: CT has a non-finite origin {image.GetOrigin()}")
-    if np.max(np.abs(image.GetOrigin())) > ORIGIN_LIMIT_MM:
-        raise EMRegError(f"{source}: CT origin {tuple(float(f'{v:.6g}') for v in image.GetOrigin())} mm lies more "
-                         f"than {ORIGIN_LIMIT_MM:g} mm from the scanner's origin: the header's origin is damaged")
+    _check_spacing(np.asarray(image.GetSpacing(), dtype=float), source)
+    _check_origin(np.asarray(image.GetOrigin(), dtype=float), source)
     direction = np.asarray(image.GetDirection(), dtype=float).reshape(3, 3)
     if not np.all(np.isfinite(direction)):
         raise EMRegError(f"{source}: CT has non-finite direction cosines")
@@ -131,6 +153,25 @@ def check_ct_geometry(image: sitk.Image, source: str | os.PathLike[str] = "CT") 
             f"gantry-tilted geometry): resample it onto an orthogonal grid first (e.g. Slicer's "
             f"'Harden transform' / 'Resample Scalar Volume')"
         )
+
+
+def _check_spacing(spacing: np.ndarray, source: str | os.PathLike[str]) -> None:
+    """Refuse voxel spacings (mm) that are not finite, not positive or outside :data:`SPACING_RANGE_MM`."""
+    if not np.all(np.isfinite(spacing)) or np.min(spacing) <= 0:
+        raise EMRegError(f"{source}: CT has a non-positive or non-finite spacing {tuple(spacing.tolist())}")
+    low, high = SPACING_RANGE_MM
+    if np.min(spacing) < low or np.max(spacing) > high:
+        raise EMRegError(f"{source}: CT spacing {tuple(float(f'{v:.6g}') for v in spacing)} mm is outside "
+                         f"{low:g}..{high:g} mm, no CT's voxel size: the header's spacing is damaged")
+
+
+def _check_origin(origin: np.ndarray, source: str | os.PathLike[str]) -> None:
+    """Refuse an origin (LPS mm) that is not finite or lies beyond :data:`ORIGIN_LIMIT_MM`."""
+    if not np.all(np.isfinite(origin)):
+        raise EMRegError(f"{source}: CT has a non-finite origin {tuple(origin.tolist())}")
+    if np.max(np.abs(origin)) > ORIGIN_LIMIT_MM:
+        raise EMRegError(f"{source}: CT origin {tuple(float(f'{v:.6g}') for v in origin)} mm lies more "
+                         f"than {ORIGIN_LIMIT_MM:g} mm from the scanner's origin: the header's origin is damaged")
 
 
 def _axis_angles_deg(direction: np.ndarray) -> str:

@@ -109,6 +109,34 @@ def test_an_absurd_spacing_or_origin_in_the_header_is_one_line(tmp_path, capfd, 
     assert "Warning" not in err
 
 
+def _nrrd_with(tmp_path: Path, key: str, value: str) -> Path:
+    """A NRRD of the test volume whose header field ``key`` is replaced by ``value``."""
+    source = tmp_path / "source.nrrd"
+    sitk.WriteImage(make_volume(), str(source))
+    data = source.read_bytes()
+    end = data.index(b"\n\n") + 2
+    lines = data[:end].split(b"\n")
+    index = next(i for i, line in enumerate(lines) if line.startswith(f"{key}:".encode()))
+    lines[index] = f"{key}: {value}".encode()
+    path = tmp_path / "ct.nrrd"
+    path.write_bytes(b"\n".join(lines) + data[end:])
+    return path
+
+
+@pytest.mark.parametrize(("key", "value", "needle"), [
+    ("space directions", "(1e300,0,0) (0,0.6,0) (0,0,0.8)", "spacing"),
+    ("space directions", "(1e-300,0,0) (0,0.6,0) (0,0,0.8)", "spacing"),
+    ("space origin", "(1e300,30.5,-101.25)", "origin"),
+])
+def test_an_absurd_spacing_or_origin_in_a_nrrd_header_is_refused_before_itk_reads_it(tmp_path, capfd, key, value,
+                                                                                    needle):
+    """ITK reads a NRRD ``space directions`` vector of length 1e300 as spacing 1 along the identity direction,
+    without a word: a plausible, wrong geometry. The header's own numbers are checked first."""
+    path = _nrrd_with(tmp_path, key, value)
+    err = _refused(capfd, _detect(path, tmp_path), "ct.nrrd", needle, "damaged")
+    assert "Warning" not in err
+
+
 def test_a_scanner_sized_spacing_and_origin_pass_the_geometry_check():
     from EMRegModule.io.ct_checks import check_ct_geometry
 
