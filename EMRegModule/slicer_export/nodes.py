@@ -141,12 +141,7 @@ def show_points(scene: Any, name: str, labels: Sequence[str], positions: Any, co
         index = node.AddControlPoint(vtkVector3d(*(float(v) for v in position)), str(label))
         if text:
             node.SetNthControlPointDescription(index, str(text))
-    node.SetLocked(True)
-    node.CreateDefaultDisplayNodes()
-    display = node.GetDisplayNode()
-    if display is not None:
-        display.SetSelectedColor(*color)
-        display.SetColor(*color)
+    _lock_and_colour(node, color)
     node.SetAndObserveTransformNodeID(parent_transform.GetID() if parent_transform is not None else None)
     return node
 
@@ -161,14 +156,21 @@ def show_curve(scene: Any, name: str, positions_ras: Any, color: Sequence[float]
     slicer.util.updateMarkupsControlPointsFromArray(node, points)
     for index in range(node.GetNumberOfControlPoints()):
         node.SetNthControlPointLabel(index, "")
+    display = _lock_and_colour(node, color)
+    if display is not None:
+        display.SetPointLabelsVisibility(False)
+    return node
+
+
+def _lock_and_colour(node: Any, color: Sequence[float]) -> Any:
+    """Lock a markups node against edits and colour its points (selected or not); its display node (or None)."""
     node.SetLocked(True)
     node.CreateDefaultDisplayNodes()
     display = node.GetDisplayNode()
     if display is not None:
         display.SetSelectedColor(*color)
         display.SetColor(*color)
-        display.SetPointLabelsVisibility(False)
-    return node
+    return display
 
 
 def show_transform(scene: Any, name: str, to_parent: Any, parent: Any = None, node: Any = None) -> Any:

@@ -159,13 +159,10 @@ def simulate_calibration(frame: Frame, rng: np.random.Generator, noise: NoiseMod
     return recording
 
 
-def simulate_navigation(frame: Frame, rng: np.random.Generator, rounds: int = 15,
-                        noise: NoiseModel | None = None, tip_mm: np.ndarray | None = None,
-                        reference_to_tracker: np.ndarray | None = None,
-                        distortion: FieldDistortion | None = None) -> TrackingRecording:
-    """A navigation recording: the probe tip-first onto each target, ``rounds`` times, hand-held (with a stylus,
-    ``tip_mm``: its tip on the targets; ``reference_to_tracker``, ``distortion``: as for
-    :func:`simulate_calibration`)."""
+def _target_visits(frame: Frame, rng: np.random.Generator, rounds: int,
+                   tip_mm: np.ndarray | None) -> tuple[np.ndarray, list[Visit]]:
+    """``rounds`` rounds of hand-held touches, tip first, on each target (Reference frame, mm), the probe tilted
+    25 degrees about the inward direction; the targets' centre and the visits (``tip_mm``: a stylus's tip)."""
     targets = frame.targets_reference
     centre = targets.mean(axis=0)
     visits = []
@@ -175,6 +172,17 @@ def simulate_navigation(frame: Frame, rng: np.random.Generator, rounds: int = 15
             rotation = probe_rotation_into(inward, rng.uniform(0, 2 * np.pi), 25.0, rng)
             visits.append(Visit(_touch(rotation, target, tip_mm), float(rng.uniform(1.0, 2.0)), label, label,
                                 tremor_mm=0.08))
+    return centre, visits
+
+
+def simulate_navigation(frame: Frame, rng: np.random.Generator, rounds: int = 15,
+                        noise: NoiseModel | None = None, tip_mm: np.ndarray | None = None,
+                        reference_to_tracker: np.ndarray | None = None,
+                        distortion: FieldDistortion | None = None) -> TrackingRecording:
+    """A navigation recording: the probe tip-first onto each target, ``rounds`` times, hand-held (with a stylus,
+    ``tip_mm``: its tip on the targets; ``reference_to_tracker``, ``distortion``: as for
+    :func:`simulate_calibration`)."""
+    centre, visits = _target_visits(frame, rng, rounds, tip_mm)
     placement = reference_placement(rng) if reference_to_tracker is None else reference_to_tracker
     recording, _, _ = simulate_session(rng, visits, placement, np.eye(4), centre, lift_mm=20.0, noise=noise,
                                        distortion=distortion)
@@ -191,15 +199,7 @@ def simulate_checked_navigation(frame: Frame, rng: np.random.Generator, rounds: 
     in its slot; ``distortion`` with ``onset``: a metal object rolled in mid-recording (both have their times
     set); ``reference_to_tracker``: as for :func:`simulate_calibration`; ``hesitation_rate``: the chance of a
     short mid-air pause in a transition (the hard difficulty's)."""
-    targets = frame.targets_reference
-    centre = targets.mean(axis=0)
-    visits = []
-    for _ in range(rounds):
-        for label, target in zip(frame.target_labels, targets, strict=True):
-            inward = centre - target if np.linalg.norm(centre - target) > 1 else np.array([0.0, 0.0, 1.0])
-            rotation = probe_rotation_into(inward, rng.uniform(0, 2 * np.pi), 25.0, rng)
-            visits.append(Visit(_touch(rotation, target, None), float(rng.uniform(1.0, 2.0)), label, label,
-                                tremor_mm=0.08))
+    centre, visits = _target_visits(frame, rng, rounds, None)
     available = np.nonzero(frame.in_ct)[0]
     chosen = rng.choice(available, size=checkpoints, replace=len(available) < checkpoints)
     where = np.linspace(0, len(visits), checkpoints + 2)[1:-1].round().astype(int)
