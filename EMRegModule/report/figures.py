@@ -343,7 +343,10 @@ def render_tre_targets(data: ReportData) -> list[Figure]:
     return [Figure("tre_targets", "TRE per target",
                    "Mean and standard deviation over the dwells at each target"
                    + (", with the end-to-end RMS TRE the error model predicts (red)" if overlay else "")
-                   + " (paper: 1.38 +/- 0.32 mm over 6 targets x 15 placements).", _png(chart))]
+                   + " (paper: 1.38 +/- 0.32 mm over 6 targets x 15 placements)."
+                   + (f" {tre.invalid_poses_left_out} INVALID poses (after a failed checkpoint, or a bad tracker "
+                      f"quality) were left out, {tre.dwells_left_out or 0} dwell(s) among them."
+                      if tre.invalid_poses_left_out else ""), _png(chart))]
 
 
 def _has_tre(data: ReportData) -> bool:

@@ -462,3 +462,46 @@ def test_slip_watch_confirms_lets_a_confirmed_slip_stand_rules_out_and_drops_wha
     harmless = small.judge(predicted[1], covariance, 1)
     assert harmless.verdict == "confirmed" and not harmless.fails
 
+
+# --- emreg evaluate leaves the INVALID poses out of the TRE ------------------------------------------------------
+
+
+def _evaluate(case: Path, registration: Path, out: Path) -> tuple[int, str]:
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        code = main(["evaluate", str(case), "--registration", str(registration), "--out", str(out), "--quiet"])
+    return code, err.getvalue()
+
+
+def test_evaluate_leaves_the_invalid_poses_out_of_the_tre_and_counts_them(sessions, small_case: Path, tmp_path: Path):
+    """``emreg evaluate`` on the slip session (the small case's targets beside it): the poses navigation.csv marks
+    INVALID (from the failed checkpoint after the slip on, and the tracker's bad samples) are left out of the TRE
+    and counted; the target dwells after the slip, off by the slip, no longer raise it. The clean session loses
+    only the bad samples and no dwell."""
+    from EMRegModule.evaluation import evaluate_targets
+    from EMRegModule.io.case import read_targets
+
+    targets = read_targets(small_case / "targets.mrk.json")
+    results = {}
+    for name in ("clean", "slip"):
+        case = sessions[name]["case"]
+        (case / "targets.mrk.json").write_bytes((small_case / "targets.mrk.json").read_bytes())
+        code, err = _evaluate(case, sessions["registration"], tmp_path / name)
+        assert code == 0, err
+        results[name] = (json.loads((tmp_path / name / "evaluation.json").read_text()), err)
+    rows = _rows(sessions["slip"]["out"] / "navigation.csv")  # emreg navigate's, of the same recording
+    tre, err = results["slip"][0]["tre"], results["slip"][1]
+    assert tre["invalid_poses_left_out"] == [r[5] for r in rows].count("INVALID") > 500
+    failed = next(c for c in sessions["slip"]["checkpoints"]["checkpoints"] if not c["ok"])
+    assert all(d["end_s"] < failed["start_s"] for d in tre["dwells"])  # no dwell from the INVALID period
+    assert tre["dwells_left_out"] >= 2 and "INVALID" in err and "left out" in err
+    # the same recording without the pose status: the dwells after the slip count, and raise the TRE
+    recording = read_recording(sessions["slip"]["case"] / "navigation.csv", Settings(), 1, 2)
+    every = evaluate_targets(recording, targets[0], targets[1],
+                             read_registration(sessions["registration"]).reference_to_image)
+    assert every.invalid_poses_left_out is None and len(every.dwells) == tre["n"] + tre["dwells_left_out"]
+    assert every.to_json()["rms_mm"] > tre["rms_mm"] + 0.3
+    clean = results["clean"][0]["tre"]
+    assert clean["dwells_left_out"] == 0 and "left out" not in results["clean"][1]
+    assert clean["invalid_poses_left_out"] == [r[5] for r in _rows(sessions["clean"]["out"] / "navigation.csv")
+                                               ].count("INVALID")
