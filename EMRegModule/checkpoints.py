@@ -26,7 +26,10 @@ checkpoint passes (or the user registers again).
 **Reference jumps.** A slip of the reference sensor in its slot moves everything and shows at the next
 checkpoint. Between checkpoints, a sudden step of the reference in the Tracker frame between two
 samples, beyond the tracker's noise and the motion around it, that stays (not a lone wild sample) is
-warned about: the frame was bumped or the reference slipped.
+warned about: the frame was bumped or the reference slipped. The jump's measured step is then a hypothesis the
+checkpoints after it test (:mod:`EMRegModule.slip`): a checkpoint whose error matches the slip's prediction
+confirms it and fails when the slip's predicted error somewhere on the frame exceeds the limit, even if its own
+error is within it; one that falls short of it rules the slip out (the frame moved as a whole).
 
 The same code serves the offline ``emreg navigate`` / ``emreg run`` (whole recordings, vectorised) and
 live navigation (:class:`TrustMonitor`, one sample at a time: a rest is judged when the probe leaves
@@ -45,6 +48,7 @@ import numpy as np
 from .dwell import good_quality_mask, robust_mean, still_periods
 from .names import MARKERS_JSON
 from .settings import NavigationSettings
+from .slip import SlipVerdict, SlipWatch, jump_transform
 
 if TYPE_CHECKING:
     from .registration import RegistrationResult
@@ -66,13 +70,15 @@ class Pinholes:
     """The detected markers' pinholes at the solved depth: ``ids`` (M,), ``position_image`` (M, 3, LPS mm,
     ``origin + l * axis``) and unit ``axis_image`` (M, 3, the marker's +Y, towards the opening);
     ``covariance_image`` (M, 3, 3, LPS mm^2): the error model's covariance of a checkpoint's error at each when
-    nothing changed, estimated from ``dof`` degrees of freedom (None: no error model, the limit alone decides)."""
+    nothing changed, estimated from ``dof`` degrees of freedom (None: no error model, the limit alone decides);
+    ``reference_to_image`` (4x4): the registration they were judged with (None: no error model, no slip test)."""
 
     ids: list[str]
     position_image: np.ndarray
     axis_image: np.ndarray
     covariance_image: np.ndarray | None = None
     dof: float = float("inf")
+    reference_to_image: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -94,7 +100,27 @@ def pinholes_from_detection(detection: Any, sensor_offset_l_mm: float,
         pinholes.covariance_image = checkpoint_covariance(registration.reference_to_image, registration.error,
                                                           pinholes.position_image)
         pinholes.dof = float(registration.error.probe_sigma_dof)
+        pinholes.reference_to_image = np.asarray(registration.reference_to_image, dtype=float)
     return pinholes
+
+
+def slip_watch(pinholes: Pinholes | None, settings: NavigationSettings) -> SlipWatch | None:
+    """The slip test of the jumps (:mod:`EMRegModule.slip`) at these pinholes; None without an error model."""
+    if pinholes is None or pinholes.covariance_image is None or pinholes.reference_to_image is None:
+        return None
+    return SlipWatch(pinholes.reference_to_image, pinholes.position_image, pinholes.ids,
+                     settings.max_checkpoint_error_mm, pinholes.dof)
+
+
+def judge_slip(watch: SlipWatch | None, checkpoint: Checkpoint, pinholes: Pinholes) -> None:
+    """Judge ``checkpoint`` against the jumps before it (``watch``): it fails too when it confirms a slip, or a
+    confirmed slip stands, whose predicted error on the frame exceeds the limit."""
+    if watch is None:
+        return
+    k = pinholes.ids.index(checkpoint.image_marker)
+    checkpoint.slip = watch.judge(np.asarray(checkpoint.offset_mm), pinholes.covariance_image[k], k)
+    if checkpoint.slip is not None and checkpoint.slip.fails:
+        checkpoint.ok = False
 
 
 def checkpoint_covariance(reference_to_image: np.ndarray, error: Any, points_image: np.ndarray) -> np.ndarray:
@@ -177,6 +203,8 @@ class Checkpoint:
     #: module docstring); None without an error model (the limit alone decided)
     expected_mm: float | None = None
     threshold_mm: float | None = None
+    #: what it says of the reference jumps before it (:mod:`EMRegModule.slip`), None when none was pending
+    slip: SlipVerdict | None = None
 
     def to_json(self) -> dict[str, Any]:
         document = {"start_s": round(self.start_s, 4), "end_s": round(self.end_s, 4),
@@ -185,6 +213,8 @@ class Checkpoint:
         if self.threshold_mm is not None:
             document.update(expected_mm=None if self.expected_mm is None else round(self.expected_mm, 4),
                             threshold_mm=round(self.threshold_mm, 4) if np.isfinite(self.threshold_mm) else None)
+        if self.slip is not None:
+            document["slip"] = self.slip.to_json()
         return document
 
     def describe(self, limit_mm: float) -> str:
@@ -192,8 +222,9 @@ class Checkpoint:
         limit = f"limit {limit_mm:g} mm, [navigation] max_checkpoint_error_mm"
         if self.threshold_mm is not None and self.threshold_mm > limit_mm:
             limit += f"; {self.threshold_mm:.2f} mm at this tracker's noise, expected {self.expected_mm:.2f} mm"
+        slip = "" if self.slip is None else f"; {self.slip.describe()}"
         return (f"checkpoint {self.image_marker} at {self.start_s:.2f}-{self.end_s:.2f} s: "
-                f"error {self.error_mm:.2f} mm ({limit}) {verdict}")
+                f"error {self.error_mm:.2f} mm ({limit}{slip}) {verdict}")
 
 
 @dataclass
@@ -206,10 +237,17 @@ class ReferenceJump:
     jump_deg: float
     limit_mm: float
     limit_deg: float
+    #: the measured step (4x4, mm): a point fixed in the Tracker frame, from the Reference frame before it into the
+    #: one after it (:func:`EMRegModule.slip.jump_transform`); None when not measured
+    reference_before_to_after: np.ndarray | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {"time_s": round(self.time_s, 4), "jump_mm": round(self.jump_mm, 4), "jump_deg": round(self.jump_deg, 4),
-                "limit_mm": round(self.limit_mm, 4), "limit_deg": round(self.limit_deg, 4)}
+        document = {"time_s": round(self.time_s, 4), "jump_mm": round(self.jump_mm, 4),
+                    "jump_deg": round(self.jump_deg, 4), "limit_mm": round(self.limit_mm, 4),
+                    "limit_deg": round(self.limit_deg, 4)}
+        if self.reference_before_to_after is not None:
+            document["ReferenceBeforeToReferenceAfter"] = np.round(self.reference_before_to_after, 6).tolist()
+        return document
 
     def describe(self) -> str:
         return (f"the reference sensor jumped {self.jump_mm:.2f} mm / {self.jump_deg:.2f} deg at {self.time_s:.2f} s "
@@ -248,6 +286,10 @@ class CheckpointReport:
             document["decision"] = ("fails when the error exceeds max_error_mm and the error model's prediction "
                                     "(expected_mm) at false-alarm rate false_alarm: threshold_mm along the error")
             document["false_alarm"] = CHECKPOINT_FALSE_ALARM
+        if any(c.slip is not None for c in self.checkpoints):
+            document["slip_test"] = ("after a reference jump: fails when the error matches the slip the jump would "
+                                     "make (one-sided at slip.false_alarm) and the slip's predicted error on the frame "
+                                     "exceeds max_error_mm (EMRegModule.slip)")
         if self.note:
             document["note"] = self.note
         if self.provenance is not None:
@@ -464,7 +506,8 @@ def reference_jumps(time_s: np.ndarray, position_mm: np.ndarray, rotation: np.nd
                  or (e_deg > limit_deg and turned - w * turning >= 0.5 * e_deg))
         if not stays:
             continue
-        jump = ReferenceJump(float(time_s[i]), max(e_mm, 0.0), max(e_deg, 0.0), limit_mm, limit_deg)
+        jump = ReferenceJump(float(time_s[i]), max(e_mm, 0.0), max(e_deg, 0.0), limit_mm, limit_deg,
+                             jump_transform(position_mm, rotation, before, after, motion[j]))
         if jumps and i - np.searchsorted(time_s, jumps[-1].time_s) <= w:  # one slip over a few samples: one jump
             if e_mm > jumps[-1].jump_mm:
                 jumps[-1] = jump
@@ -491,10 +534,25 @@ def check_navigation(navigation: Any, recording: Any, pinholes: Pinholes | None,
     good = (np.all(np.isfinite(reference.position_mm), axis=1) & np.all(np.isfinite(reference.rotation), axis=(1, 2))
             & good_quality_mask(reference.quality, settings.max_quality))
     jumps = reference_jumps(reference.time_s[good], reference.position_mm[good], reference.rotation[good], settings)
+    judge_slips(checkpoints, jumps, pinholes, settings)
     navigation.status = pose_status(navigation.time_s, navigation.quality, checkpoints, settings.max_quality)
     invalid = int(np.count_nonzero(navigation.status == POSE_INVALID))
     return CheckpointReport(settings.max_checkpoint_error_mm, checkpoints, jumps, settings.checkpoint_radius_mm,
                             invalid, len(navigation.time_s))
+
+
+def judge_slips(checkpoints: list[Checkpoint], jumps: list[ReferenceJump], pinholes: Pinholes | None,
+                settings: NavigationSettings) -> None:
+    """Judge each checkpoint against the jumps before its end, in time order (:func:`judge_slip`)."""
+    watch = slip_watch(pinholes, settings)
+    if watch is None or not jumps:
+        return
+    events = sorted([(j.time_s, 0, j) for j in jumps] + [(c.end_s, 1, c) for c in checkpoints], key=lambda e: e[:2])
+    for _, kind, event in events:
+        if kind == 0:
+            watch.add_jump(event.time_s, event.reference_before_to_after)
+        else:
+            judge_slip(watch, event, pinholes)
 
 
 def write_checkpoints(report: CheckpointReport, path: str | os.PathLike[str]) -> None:
@@ -525,6 +583,7 @@ class TrustMonitor:
         self.report = CheckpointReport(self.settings.max_checkpoint_error_mm,
                                        radius_mm=self.settings.checkpoint_radius_mm)
         self.valid = True
+        self.watch = slip_watch(pinholes, self.settings)
         self._visit: list[tuple[float, np.ndarray, np.ndarray, float]] = []
         # the reference's recent samples in a ring (no allocation per cycle); a step above the floors (squared:
         # mm^2, and the rotation's |R1 - R0|_F^2 = 8 sin^2(angle / 2)) is a candidate, judged by reference_jumps
@@ -550,6 +609,8 @@ class TrustMonitor:
             jump = self._observe_reference(time_s, reference_to_tracker)
             if jump is not None:
                 self.report.reference_jumps.append(jump)
+                if self.watch is not None:
+                    self.watch.add_jump(jump.time_s, jump.reference_before_to_after)
                 events.append(jump)
         if probe_to_image is not None and self.pinholes is not None and len(self.pinholes):
             position = probe_to_image[:3, 3]
@@ -572,6 +633,7 @@ class TrustMonitor:
         self._visit = []
         found = find_checkpoints(time_s, position, direction, quality.astype(float), self.pinholes, self.settings)
         for checkpoint in found:
+            judge_slip(self.watch, checkpoint, self.pinholes)
             self.report.checkpoints.append(checkpoint)
             self.valid = checkpoint.ok
         return found

@@ -320,6 +320,12 @@ class EMRegController:
         self.results.navigation = result
         return result
 
+    def pose_status(self, navigation: NavigationResult, recording: TrackingRecording) -> np.ndarray:
+        """``OK`` / ``INVALID`` per pose of ``navigation`` (made from ``recording``), as ``navigation.csv`` has it (the
+        checkpoints' warnings are navigate's: not repeated)."""
+        _check_navigation(self, navigation, recording, warn=False)
+        return navigation.status
+
     def evaluate(self, navigation: TrackingRecording | None = None,
                  targets: tuple[list[str], np.ndarray] | None = None,
                  board: TrackingRecording | None = None, tolerant: bool = False,
@@ -328,7 +334,9 @@ class EMRegController:
         from a board recording, with the current registration (``[evaluation]``, ``[board]`` settings).
 
         ``tolerant`` (a run): a part that cannot be evaluated is "not evaluated" with its reason in the
-        result instead of an error; ``not_evaluated``: parts whose recording could not be read, and why."""
+        result instead of an error; ``not_evaluated``: parts whose recording could not be read, and why. The poses
+        that ``navigation.csv`` marks INVALID (the checkpoints and tracker flags of :meth:`navigate_recording`) are
+        left out of the TRE and counted."""
         self.results.require(registration=self.results.registration)
         from .evaluation import evaluate
 
@@ -339,7 +347,7 @@ class EMRegController:
                                        error_model=error_model(self.results.registration, self.settings),
                                        tolerant=tolerant, not_evaluated=not_evaluated,
                                        tip_to_probe=None if self.tool is None else self.tool.tip_to_probe,
-                                       settings_file=self.settings.source)
+                                       settings_file=self.settings.source, pose_status=self.pose_status)
         return self.results.evaluation
 
     # --- outputs ------------------------------------------------------------------------------
@@ -667,10 +675,10 @@ def _warn_series_unused(controller: EMRegController, path: str | os.PathLike[str
                    "folder: it is read as it is"])
 
 
-def _check_navigation(controller: EMRegController, result: NavigationResult,
-                      recording: TrackingRecording) -> CheckpointReport:
+def _check_navigation(controller: EMRegController, result: NavigationResult, recording: TrackingRecording,
+                      warn: bool = True) -> CheckpointReport:
     """Checkpoints at the detected markers' pinholes, reference jumps and the pose status of ``result``
-    (:mod:`EMRegModule.checkpoints`); their warnings join the recording's."""
+    (:mod:`EMRegModule.checkpoints`); their warnings join the recording's (``warn``)."""
     from .checkpoints import check_navigation, pinholes_from_detection
 
     pinholes = (None if controller.results.detection is None else
@@ -680,6 +688,7 @@ def _check_navigation(controller: EMRegController, result: NavigationResult,
     report = check_navigation(result, recording, pinholes, controller.reference_sensor, controller.settings.navigation)
     if pinholes is None:  # a point fit onto fiducials, or a registration folder without its markers
         report.note = "no detected markers (markers.json) beside the registration: no pinholes to check at"
-    recording.warnings.extend(n for n in report.warnings() if n not in recording.warnings)
+    if warn:
+        recording.warnings.extend(n for n in report.warnings() if n not in recording.warnings)
     return report
 

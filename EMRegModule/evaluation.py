@@ -3,7 +3,10 @@
 - **TRE.** The navigation recording is mapped into image space (paper Eq. 12); each dwell at
   a target (a labelled run, or an automatically found still period assigned to the nearest
   target) gives one error: the distance between the target and the dwell's robust mean
-  probe position. Per target: mean, std, number of dwells; overall: over all dwells.
+  probe position. Per target: mean, std, number of dwells; overall: over all dwells. Poses whose status is
+  ``INVALID`` (``navigation.csv``: after a failed checkpoint until one passes, or a tracker quality number worse
+  than ``[navigation] max_quality``; :mod:`EMRegModule.checkpoints`) are left out, as PLUS and SlicerIGT leave out
+  a transform whose status is not OK, and counted (``invalid_poses_left_out``, ``dwells_left_out``).
 - **Board.** The board recording's probe positions are taken in the Reference frame (no
   registration involved: this measures the tracker and the probe). Each hole dwell gives a
   hole position; a round is one pass over the holes in order (a new round starts when the
@@ -22,7 +25,7 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,11 +36,12 @@ from .error_model import ErrorBudget, ErrorModel, optimism_limit, repeated_dwell
 from .errors import EMRegError, NoSafeAnswerError
 from .io.atomic import atomic_write_json, read_json
 from .names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT, EVALUATION_JSON
-from .navigation import navigate_recording
+from .navigation import NavigationResult, navigate_recording
 from .settings import DwellSettings, EvaluationSettings
 from .tracking import TrackingRecording, probe_in_reference
 
-#: The name of the evaluation file in an output folder.
+#: The pose status of each navigated sample (``OK`` / ``INVALID``) of a recording, as ``navigation.csv`` gives it.
+PoseStatus = Callable[[NavigationResult, TrackingRecording], np.ndarray]
 
 
 # --- typed results ---------------------------------------------------------------------------
@@ -116,7 +120,9 @@ class TargetEvaluation:
     ``predictions``: per target the predicted end-to-end RMS TRE and its budget, when the evaluation
     had the registration's error model; ``tracking_rms_mm`` and ``tracking_source``: the probe's
     per-dwell error the predictions used and where it came from; ``warnings``: what the measured
-    errors say of the prediction (one that they show to be optimistic).
+    errors say of the prediction (one that they show to be optimistic). ``invalid_poses_left_out`` and
+    ``dwells_left_out``: the navigated poses of status INVALID left out and the dwells (found with them) that
+    were mostly theirs; None when no pose status was judged.
     """
 
     dwells: list[TargetDwell]
@@ -127,6 +133,8 @@ class TargetEvaluation:
     tracking_rms_mm: float | None = None
     tracking_source: str | None = None
     warnings: list[str] = field(default_factory=list)
+    invalid_poses_left_out: int | None = None
+    dwells_left_out: int | None = None
 
     @property
     def errors_mm(self) -> np.ndarray:
@@ -163,6 +171,9 @@ class TargetEvaluation:
         document = {"mean_mm": round(float(errors.mean()), 4), "std_mm": round(_std(errors), 4), "n": len(errors),
                     "max_mm": round(float(errors.max()), 4), "rms_mm": _rms(errors), "targets": targets,
                     "dwells": dwells, "unmatched_dwells": int(self.unmatched_dwells), "labelled": bool(self.labelled)}
+        if self.invalid_poses_left_out is not None:
+            document.update(invalid_poses_left_out=int(self.invalid_poses_left_out),
+                            dwells_left_out=int(self.dwells_left_out or 0))
         if self.predictions:
             document.update(predicted_rms_mm=_round(_finite_or_none(self.predicted_rms_mm)),
                             tracking_rms_mm=_round(self.tracking_rms_mm), tracking_source=self.tracking_source)
@@ -175,7 +186,9 @@ class TargetEvaluation:
                    {str(k): Stats.from_json(v) for k, v in targets.items()},
                    int(document.get("unmatched_dwells", 0)), bool(document.get("labelled", False)),
                    {str(k): TargetPrediction.from_json(v) for k, v in targets.items() if "predicted_rms_mm" in v},
-                   _maybe_float(document.get("tracking_rms_mm")), document.get("tracking_source"))
+                   _maybe_float(document.get("tracking_rms_mm")), document.get("tracking_source"),
+                   invalid_poses_left_out=_maybe_int(document.get("invalid_poses_left_out")),
+                   dwells_left_out=_maybe_int(document.get("dwells_left_out")))
 
 
 @dataclass
@@ -300,7 +313,9 @@ class Evaluation:
         lines = []
         if self.tre is not None:
             tre = self.tre.to_json()
-            lines.append(f"evaluate: TRE {tre['mean_mm']:.2f} +/- {tre['std_mm']:.2f} mm")
+            left_out = tre.get("invalid_poses_left_out")
+            lines.append(f"evaluate: TRE {tre['mean_mm']:.2f} +/- {tre['std_mm']:.2f} mm"
+                         + (f" ({left_out} INVALID poses left out)" if left_out else ""))
         if self.board is not None:
             edges = self.board.to_json()["edges"]
             lines.append("evaluate: board edges " + ", ".join(f"{k} {v['mean_mm']:.2f}" for k, v in edges.items()))
@@ -326,6 +341,7 @@ def evaluate(
     not_evaluated: Mapping[str, str] | None = None,
     tip_to_probe: np.ndarray | None = None,
     settings_file: str = "",
+    pose_status: PoseStatus | None = None,
 ) -> Evaluation:
     """TRE when a navigation recording and targets (labels, (K, 3) LPS mm) are given, the board table
     when a board recording is; ``reference_to_image``: Reference -> CT LPS (mm).
@@ -336,6 +352,8 @@ def evaluate(
     left out and named with its reason in ``not_evaluated`` and ``warnings`` instead of raising
     (``emreg evaluate`` raises); ``not_evaluated``: parts the caller could not even read, with why.
     ``tip_to_probe`` (4x4, mm): a tool's tip (:mod:`EMRegModule.tool`), the point put on the targets and holes.
+    ``pose_status``: the status of each navigated pose (as ``navigation.csv`` has it): INVALID ones are left out
+    of the TRE (None: every pose counts).
     """
     settings = settings or EvaluationSettings()
     result = Evaluation(not_evaluated=dict(not_evaluated or {}))
@@ -355,7 +373,7 @@ def evaluate(
         labels, positions = targets
         result.tre = part("tre", lambda: evaluate_targets(
             navigation, labels, positions, reference_to_image, reference_sensor, probe_sensor, settings,
-            settings.max_target_distance_mm, error_model, tip_to_probe))
+            settings.max_target_distance_mm, error_model, tip_to_probe, pose_status))
         result.warnings += navigation.warnings
         if result.tre is not None:
             result.warnings += result.tre.warnings
@@ -382,13 +400,15 @@ def evaluate_targets(
     max_target_distance_mm: float | None = None,
     error_model: ErrorModel | None = None,
     tip_to_probe: np.ndarray | None = None,
+    pose_status: PoseStatus | None = None,
 ) -> TargetEvaluation:
     """TRE per target over its dwells and overall (mm). ``targets_image`` (K, 3) LPS mm.
 
     ``max_target_distance_mm``: an unlabelled dwell farther from every target is not counted
     (default: the ``[evaluation]`` default). With ``error_model`` (the registration's), each target
     also gets the predicted end-to-end RMS TRE and its budget; the tracking term is then measured
-    from the scatter of repeated dwells at the same target when there are any.
+    from the scatter of repeated dwells at the same target when there are any. ``pose_status``: the
+    status of each navigated pose; INVALID poses are no part of any dwell (:func:`valid_poses`).
     """
     if max_target_distance_mm is None:
         max_target_distance_mm = EvaluationSettings().max_target_distance_mm
@@ -396,7 +416,7 @@ def evaluate_targets(
     if len(targets_image) == 0:
         raise EMRegError("evaluation: the targets file holds no target points")
     navigation = navigate_recording(recording, reference_to_image, reference_sensor, probe_sensor, tip_to_probe)
-    position = navigation.position_mm
+    position, invalid, left_out = valid_poses(navigation, recording, pose_status, settings)
     dwells = find_dwells(navigation.time_s, position, navigation.label, navigation.quality, settings,
                          source=recording.source, section="evaluation")
     index_of = {str(label): k for k, label in enumerate(target_labels)}
@@ -421,22 +441,55 @@ def evaluate_targets(
         per_target[label].append(error)
         found.append(TargetDwell(label, error, float(dwell.start_s), float(dwell.end_s), len(dwell), mean))
     if not found:
-        if dwells and dwells[0].label:
-            seen = ", ".join(sorted({d.label for d in dwells})[:6])
-            what = (f"{len(dwells)} labelled dwell(s), none with a target's label "
-                    f"({seen} vs {', '.join(map(str, list(target_labels)[:6]))})")
-        elif dwells:
-            what = (f"{len(dwells)} dwell(s), none within {max_target_distance_mm:g} mm of a target "
-                    "([evaluation] max_target_distance_mm)")
-        else:
-            what = describe_still_periods(navigation.time_s, position, navigation.quality, settings, targets_image,
-                                          "target")
+        what = _no_dwell(dwells, target_labels, targets_image, navigation.time_s, position, navigation.quality,
+                         settings, max_target_distance_mm)
+        if invalid is not None and invalid.any():
+            what += (f"; {int(invalid.sum())} INVALID poses (a failed checkpoint, a bad tracker quality) were left "
+                     f"out, {left_out} dwell(s) among them")
         raise EMRegError(f"{recording.source}: no probe dwell at any target was found: {what}")
     targets = {label: Stats.of(values) for label, values in per_target.items() if values}
     result = TargetEvaluation(found, targets, unmatched, bool(dwells and dwells[0].label))
+    if invalid is not None:
+        result.invalid_poses_left_out, result.dwells_left_out = int(invalid.sum()), left_out
+        if left_out:  # (a few bad samples alone, never part of a dwell anyway, are only counted)
+            result.warnings.append(
+                f"TRE: {int(invalid.sum())} of {len(invalid)} navigated poses are INVALID (after a failed checkpoint "
+                "until one passes, or a tracker quality number worse than [navigation] max_quality: navigation.csv) "
+                f"and left out; {left_out} dwell(s) were mostly theirs")
     if error_model is not None:
         _predict(result, target_labels, targets_image, error_model)
     return result
+
+
+def valid_poses(navigation: NavigationResult, recording: TrackingRecording, pose_status: PoseStatus | None,
+                settings: DwellSettings | None) -> tuple[np.ndarray, np.ndarray | None, int]:
+    """The navigated positions (N, 3, LPS mm) with the INVALID poses' set to NaN (no dwell uses them), the INVALID
+    mask (N,) and how many dwells found with every pose were mostly INVALID; (positions, None, 0) without
+    ``pose_status``."""
+    position = navigation.position_mm
+    if pose_status is None:
+        return position, None, 0
+    invalid = np.asarray(pose_status(navigation, recording)) == "INVALID"
+    if not invalid.any():
+        return position, invalid, 0
+    every = find_dwells(navigation.time_s, position, navigation.label, navigation.quality, settings,
+                        source=recording.source, section="evaluation")
+    left_out = sum(float(np.mean(invalid[d.indices])) > 0.5 for d in every)
+    return np.where(invalid[:, None], np.nan, position), invalid, int(left_out)
+
+
+def _no_dwell(dwells: list[Dwell], target_labels: Sequence[str], targets_image: np.ndarray, time_s: np.ndarray,
+              position: np.ndarray, quality: np.ndarray, settings: DwellSettings | None,
+              max_target_distance_mm: float) -> str:
+    """Why no dwell at a target was found (for the error message)."""
+    if dwells and dwells[0].label:
+        seen = ", ".join(sorted({d.label for d in dwells})[:6])
+        return (f"{len(dwells)} labelled dwell(s), none with a target's label "
+                f"({seen} vs {', '.join(map(str, list(target_labels)[:6]))})")
+    if dwells:
+        return (f"{len(dwells)} dwell(s), none within {max_target_distance_mm:g} mm of a target "
+                "([evaluation] max_target_distance_mm)")
+    return describe_still_periods(time_s, position, quality, settings, targets_image, "target")
 
 
 def _predict(result: TargetEvaluation, target_labels: Sequence[str], targets_image: np.ndarray,
@@ -589,6 +642,10 @@ def _finite_or_none(value: float | None) -> float | None:
 
 def _maybe_float(value: Any) -> float | None:
     return None if value is None else float(value)
+
+
+def _maybe_int(value: Any) -> int | None:
+    return None if value is None else int(value)
 
 
 def write_evaluation(result: Evaluation, path: str | os.PathLike[str]) -> None:

@@ -28,7 +28,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("model", ("tracking", "marker_model", "settings")),
     ("formats", ("io", "provenance")),
     ("core", ("em_field", "dwell", "error_model", "sensor_offset", "calibration", "pairing", "probe_axis",
-              "registration", "fiducial_registration", "distortion", "checkpoints", "navigation", "evaluation",
+              "registration", "fiducial_registration", "distortion", "slip", "checkpoints", "navigation", "evaluation",
               "tool", "tre_map", "detection")),
     ("products", ("rendering", "report", "slicer_export", "simulation", "run_folder", "live")),
     ("workflow", ("workflow", "controller", "outputs", "bundle_state")),

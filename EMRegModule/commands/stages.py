@@ -176,8 +176,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     controller = controller_of(args, case.settings)
     inputs = [p for p in (case.navigation, case.targets, case.board) if p is not None]
     folder = output_folder(args, "evaluate", [*inputs, Path(args.registration)], case.folder)
+    from ..checkpoints import markers_beside
+
+    markers, note = markers_beside(args.registration)
+    if markers is not None:  # the pose status (checkpoints at the pinholes) as navigate gives it: INVALID left out
+        controller.set_detection(markers)
     controller.load_registration(args.registration)
-    warn("evaluate", controller.use_ports(*given, args.registration))
+    warn("evaluate", ([note] if note else []) + controller.use_ports(*given, args.registration))
     case.settings = case.settings.with_sensors(controller.reference_sensor, controller.probe_sensor)
     controller.recorder.check_case_inputs(REGISTRATION_JSON, args.registration, case)
     controller.recorder.note_inputs(navigation=case.navigation, targets=case.targets, board=case.board)

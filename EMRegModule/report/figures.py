@@ -341,7 +341,10 @@ def render_tre_targets(data: ReportData) -> list[Figure]:
     return [Figure("tre_targets", "TRE per target",
                    "Mean and standard deviation over the dwells at each target"
                    + (", with the end-to-end RMS TRE the error model predicts (red)" if overlay else "")
-                   + " (paper: 1.38 +/- 0.32 mm over 6 targets x 15 placements).", _png(chart))]
+                   + " (paper: 1.38 +/- 0.32 mm over 6 targets x 15 placements)."
+                   + (f" {tre.invalid_poses_left_out} INVALID poses (after a failed checkpoint, or a bad tracker "
+                      f"quality) were left out, {tre.dwells_left_out or 0} dwell(s) among them."
+                      if tre.invalid_poses_left_out else ""), _png(chart))]
 
 
 def _has_tre(data: ReportData) -> bool:
@@ -420,12 +423,15 @@ def render_checkpoints(data: ReportData) -> list[Figure]:
                              [c["error_mm"] for c in checkpoints], [bool(c["ok"]) for c in checkpoints], limit,
                              [j["time_s"] for j in document.get("reference_jumps", [])])
     failed = sum(not c["ok"] for c in checkpoints)
+    by_slip = sum(not c["ok"] and bool((c.get("slip") or {}).get("fails")) for c in checkpoints)
     return [Figure("checkpoints", "Checkpoints during navigation",
                    f"Each rest of the probe in a marker's pinhole during navigation: the distance (mm) of the "
                    f"navigated probe from the pinhole at the solved l, where it must be; above the limit "
                    f"({limit:g} mm, [navigation] max_checkpoint_error_mm; red) the poses are INVALID until a "
                    f"checkpoint passes. {len(checkpoints)} checkpoint(s), {failed} failed; dotted lines: sudden jumps "
-                   "of the reference sensor (a bumped frame or a slipped reference).", _png(chart))]
+                   "of the reference sensor (a bumped frame or a slipped reference)."
+                   + (f" {by_slip} failed as the reference's slip (the error the jump predicts there, larger "
+                      "elsewhere on the frame), red even below the limit." if by_slip else ""), _png(chart))]
 
 
 # --- the registry ---------------------------------------------------------------------------------

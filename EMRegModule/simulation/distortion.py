@@ -66,6 +66,13 @@ class FieldDistortion:
         measured = coil_field(x) + induced_coupling(x, self.object_mm, self.polarisability)
         return error, _polar_rotation(coil_field(x + error) @ np.swapaxes(measured, -1, -2))
 
+    def distortion_mm(self, position_mm: np.ndarray) -> float:
+        """The size (mm) of the position error at full strength at a sensor at ``position_mm`` (3,, Tracker frame):
+        the :class:`~EMRegModule.simulation.tracker_flags.DistortionModel` the live simulators' flags (trakSTAR
+        METAL byte, Aurora RMS error) are made from, so the flags follow the same object that moves the poses."""
+        error = position_error(np.asarray(position_mm, dtype=float).reshape(1, 3), self.object_mm, self.polarisability)
+        return float(np.linalg.norm(error[0]))
+
     def distort(self, time_s: np.ndarray, poses_tracker: np.ndarray) -> np.ndarray:
         """Sensor poses (K, 4, 4, Tracker) as the tracker reports them at ``time_s`` (K,): true poses moved by
         the object's errors at its strength then (the rotation error scaled along its axis)."""

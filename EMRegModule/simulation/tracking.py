@@ -89,6 +89,18 @@ class ReferenceSlip:
 
 
 @dataclass
+class FrameBump:
+    """The frame (with the reference sensor in its slot and the patient) is knocked once, between two samples,
+    from the transition sample nearest to ``at_fraction`` of the recording on: it sits at ``BodyAfterToBodyBefore``
+    (``body_after_to_before``, 4x4, mm) in its former pose. Nothing navigated changes (everything moved together);
+    the reference jumps as in a slip. :func:`simulate_session` sets ``time_s``."""
+
+    at_fraction: float
+    body_after_to_before: np.ndarray
+    time_s: float | None = None
+
+
+@dataclass
 class FieldOnset:
     """A metal object rolled in once during a recording: its effect starts at the transition sample nearest to
     ``at_fraction`` of the recording (and ramps up over the object's ``ramp_s``); :func:`simulate_session` sets
@@ -231,6 +243,7 @@ def simulate_session(rng: np.random.Generator, visits: list[Visit], body_to_trac
                      noise: NoiseModel | None = None, start_time_s: float = 0.0,
                      reference_slip: ReferenceSlip | None = None,
                      distortion: FieldDistortion | None = None, distortion_onset: FieldOnset | None = None,
+                     frame_bump: FrameBump | None = None,
                      ) -> tuple[TrackingRecording, list[DwellTruth], list[np.ndarray]]:
     """A recording of the probe visiting ``visits`` in turn with the reference sensor recorded alongside.
 
@@ -239,8 +252,9 @@ def simulate_session(rng: np.random.Generator, visits: list[Visit], body_to_trac
     its slot once, between two samples while the probe moves (its ``time_s`` is set to the first
     sample after the slip). ``distortion``: a metal object distorting the field (both sensors, at
     its strength at each sample's time; :mod:`.distortion`); ``distortion_onset``: when it is rolled in (a
-    transition sample, like the slip; its ``time_s`` is set). Returns the recording (reported
-    poses), the dwell periods, and the ``BodyToTracker`` of each visit.
+    transition sample, like the slip; its ``time_s`` is set); ``frame_bump``: the frame knocked at once (a
+    transition sample; its ``time_s`` is set). Returns the recording (reported poses), the dwell periods, and the
+    ``BodyToTracker`` of each visit (before a knock of ``frame_bump``).
     """
     noise = noise or NoiseModel()
     bump_before = bump_before or {}
@@ -295,18 +309,26 @@ def simulate_session(rng: np.random.Generator, visits: list[Visit], body_to_trac
         add(p, current_body, -1, "")
     slip_index = None
     if reference_slip is not None:
-        moving = np.flatnonzero(np.asarray(track.dwell_index) < 0)
-        slip_index = int(moving[np.argmin(np.abs(moving - reference_slip.at_fraction * len(track.time_s)))])
+        slip_index = _event_index(track, reference_slip.at_fraction)
         reference_slip.time_s = float(track.time_s[slip_index])
     if distortion is not None and distortion_onset is not None:
-        moving = np.flatnonzero(np.asarray(track.dwell_index) < 0)
-        onset_index = int(moving[np.argmin(np.abs(moving - distortion_onset.at_fraction * len(track.time_s)))])
-        distortion_onset.time_s = float(track.time_s[onset_index])
+        distortion_onset.time_s = float(track.time_s[_event_index(track, distortion_onset.at_fraction)])
         distortion = replace(distortion, onset_s=distortion_onset.time_s)
+    if frame_bump is not None:
+        bump_index = _event_index(track, frame_bump.at_fraction)
+        frame_bump.time_s = float(track.time_s[bump_index])
+        track.body_to_tracker[bump_index:] = [b @ frame_bump.body_after_to_before
+                                              for b in track.body_to_tracker[bump_index:]]
     recording = _report(rng, track, np.asarray(reference_to_body, dtype=float), noise, len(visits),
                         None if reference_slip is None else (slip_index, reference_slip.reference_after_to_before),
                         distortion)
     return recording, dwells, visit_body_to_tracker
+
+
+def _event_index(track: _Track, at_fraction: float) -> int:
+    """The sample, while the probe moves, nearest to ``at_fraction`` of the recording (an event's first sample)."""
+    moving = np.flatnonzero(np.asarray(track.dwell_index) < 0)
+    return int(moving[np.argmin(np.abs(moving - at_fraction * len(track.time_s)))])
 
 
 #: Probe conventions the simulator can write (see :mod:`EMRegModule.probe_axis`).

@@ -284,12 +284,14 @@ def _prediction_summary(rows: list[dict]) -> Summary:
 #: Sessions per distortion size (RMS non-rigid mm at the pinholes; 0: clean) of ``emreg study trust``.
 TRUST_SESSIONS = {0.0: 40, 0.5: 20, 1.0: 40, 1.5: 20}
 TRUST_QUICK = {0.0: 2, 1.0: 2}
-#: Navigations with checkpoints of ``emreg study trust``: (event, tracker noise, hard tracking) -> sessions.
+#: Navigations with checkpoints of ``emreg study trust``: (event, tracker noise, hard tracking) -> sessions (a bump:
+#: the frame knocked as a whole, the control of the slip test; last, so the other sessions keep their seeds).
 TRUST_CHECKPOINTS = {("clean", 1.0, False): 20, ("clean", 2.0, False): 20, ("clean", 4.0, False): 20,
                      ("clean", 1.0, True): 20, ("slip", 1.0, False): 20, ("slip", 2.0, False): 20,
-                     ("slip", 1.0, True): 20, ("onset", 1.0, False): 20}
+                     ("slip", 1.0, True): 20, ("onset", 1.0, False): 20, ("bump", 1.0, False): 40,
+                     ("bump", 2.0, False): 20}
 TRUST_CHECKPOINTS_QUICK = {("clean", 1.0, False): 1, ("clean", 4.0, False): 1, ("slip", 1.0, False): 1,
-                           ("onset", 1.0, False): 1}
+                           ("onset", 1.0, False): 1, ("bump", 1.0, False): 1}
 
 
 def _trust_tasks(quick: bool) -> list[dict]:

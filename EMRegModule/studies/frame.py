@@ -34,6 +34,7 @@ from ..simulation.distortion import FieldDistortion
 from ..simulation.tracking import (
     DwellTruth,
     FieldOnset,
+    FrameBump,
     NoiseModel,
     ReferenceSlip,
     Visit,
@@ -192,13 +193,14 @@ def simulate_navigation(frame: Frame, rng: np.random.Generator, rounds: int = 15
 def simulate_checked_navigation(frame: Frame, rng: np.random.Generator, rounds: int, checkpoints: int,
                                 noise: NoiseModel | None = None, reference_to_tracker: np.ndarray | None = None,
                                 slip: ReferenceSlip | None = None, distortion: FieldDistortion | None = None,
-                                onset: FieldOnset | None = None,
-                                hesitation_rate: float = 0.0) -> tuple[TrackingRecording, list[DwellTruth]]:
+                                onset: FieldOnset | None = None, hesitation_rate: float = 0.0,
+                                bump: FrameBump | None = None) -> tuple[TrackingRecording, list[DwellTruth]]:
     """A navigation recording with ``checkpoints`` unlabelled rests of the probe in pinholes (markers in the CT,
     evenly among ``rounds`` rounds of the targets), and the dwells' truth. ``slip``: the reference sensor slips
     in its slot; ``distortion`` with ``onset``: a metal object rolled in mid-recording (both have their times
     set); ``reference_to_tracker``: as for :func:`simulate_calibration`; ``hesitation_rate``: the chance of a
-    short mid-air pause in a transition (the hard difficulty's)."""
+    short mid-air pause in a transition (the hard difficulty's); ``bump``: the frame knocked as a whole (its time
+    set)."""
     centre, visits = _target_visits(frame, rng, rounds, None)
     available = np.nonzero(frame.in_ct)[0]
     chosen = rng.choice(available, size=checkpoints, replace=len(available) < checkpoints)
@@ -210,7 +212,7 @@ def simulate_checked_navigation(frame: Frame, rng: np.random.Generator, rounds: 
     placement = reference_placement(rng) if reference_to_tracker is None else reference_to_tracker
     recording, dwells, _ = simulate_session(rng, visits, placement, np.eye(4), centre, lift_mm=20.0, noise=noise,
                                             hesitation_rate=hesitation_rate, reference_slip=slip,
-                                            distortion=distortion, distortion_onset=onset)
+                                            distortion=distortion, distortion_onset=onset, frame_bump=bump)
     return recording, dwells
 
 

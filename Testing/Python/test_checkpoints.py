@@ -33,7 +33,7 @@ from EMRegModule.navigation import navigate_recording
 from EMRegModule.registration import read_registration
 from EMRegModule.settings import NavigationSettings, Settings
 from EMRegModule.simulation.case import simulate_recordings
-from EMRegModule.transforms import axis_angle_to_rotation
+from EMRegModule.transforms import apply_transform, axis_angle_to_rotation, make_transform
 
 CHECKPOINTS = 4
 
@@ -316,3 +316,192 @@ def test_the_noise_aware_decision_flags_a_2mm_slip_at_the_first_checkpoint_after
     assert after and not after[0].ok
     assert all(1.5 <= c.threshold_mm < 2.0 and 0.2 < c.expected_mm < 1.0 for c in report.checkpoints), \
         [c.to_json() for c in report.checkpoints]
+
+
+# --- a reference jump judged at the next checkpoint: slip or bump (EMRegModule.slip) ------------------------------
+
+
+def _knocked(recording, time_s: float, tracker_motion: np.ndarray, sensors: tuple[int, ...]):
+    """A copy of ``recording`` whose ``sensors`` are moved by ``tracker_motion`` (4x4, Tracker frame) from ``time_s``
+    on: the reference alone (a slip in its slot) or every sensor (the frame and the probe in it knocked)."""
+    from EMRegModule.tracking import TrackingRecording
+
+    moved = (recording.time_s >= time_s) & np.isin(recording.sensor, sensors)
+    position, rotation = recording.position_mm.copy(), recording.rotation.copy()
+    position[moved] = position[moved] @ tracker_motion[:3, :3].T + tracker_motion[:3, 3]
+    rotation[moved] = tracker_motion[:3, :3] @ rotation[moved]
+    return TrackingRecording(recording.time_s, recording.sensor, position, rotation, recording.quality,
+                             recording.label, recording.source)
+
+
+@pytest.fixture(scope="module")
+def knock(sessions) -> dict:
+    """The clean session knocked between its 2nd and 3rd checkpoints by a 1 degree turn about an axis 60 mm from the
+    3rd checkpoint's pinhole (it moves 1 mm there, 2-3 mm at the far pinholes): applied to the reference alone (a
+    slip) or to both sensors (a bump). Returns the registration, pinholes, the time, the motion and the recording."""
+    registration = read_registration(sessions["registration"])
+    markers, _ = markers_beside(sessions["registration"])
+    pinholes = pinholes_from_detection(markers, registration.sensor_offset_l_mm, registration)
+    recording = read_recording(sessions["clean"]["case"] / "navigation.csv", Settings(), 1, 2)
+    clean = _checked(sessions["clean"]["case"], sessions["registration"].parent, True).checkpoints
+    time_s = 0.5 * (clean[1].end_s + clean[2].start_s)
+    reference = recording.for_sensor(1)
+    i = int(np.searchsorted(reference.time_s, time_s))
+    image_to_tracker = make_transform(reference.rotation[i], reference.position_mm[i]) \
+        @ np.linalg.inv(registration.reference_to_image)
+    checked = apply_transform(image_to_tracker, pinholes.position_image[pinholes.ids.index(clean[2].image_marker)])
+    away = apply_transform(image_to_tracker, pinholes.position_image.mean(axis=0)) - checked
+    away /= np.linalg.norm(away)
+    centre = checked + 60.0 * away
+    turn = axis_angle_to_rotation(np.cross(away, [0.0, 0.0, 1.0]), np.radians(1.0))
+    motion = make_transform(turn, centre - turn @ centre)
+    return {"registration": registration, "pinholes": pinholes, "time_s": time_s, "motion": motion,
+            "recording": recording, "reference_before": make_transform(reference.rotation[i - 1],
+                                                                       reference.position_mm[i - 1])}
+
+
+def _check(knock: dict, recording):
+    from EMRegModule.checkpoints import check_navigation
+
+    navigation = navigate_recording(recording, knock["registration"].reference_to_image)
+    return check_navigation(navigation, recording, knock["pinholes"], 1, NavigationSettings()), navigation
+
+
+def test_a_slip_whose_error_here_is_within_the_limit_is_confirmed_by_the_jump_it_made(knock):
+    """The reference turned 1 degree in its slot: the first checkpoint after it is off by about 1 mm, within the limit
+    and the noise-aware threshold (the decision without the jump passes it), but it matches the error the measured
+    jump predicts there, and the slip's predicted error elsewhere on the frame exceeds the limit: it fails, and the
+    next one too (a confirmed slip stands); every pose from the first is INVALID."""
+    report, navigation = _check(knock, _knocked(knock["recording"], knock["time_s"], knock["motion"], (1,)))
+    limit = NavigationSettings().max_checkpoint_error_mm
+    assert len(report.reference_jumps) == 1
+    jump = report.reference_jumps[0]
+    assert jump.time_s == pytest.approx(knock["time_s"], abs=0.02)
+    # the measured step is the applied one: ReferenceBeforeToReferenceAfter = inv(ReferenceToTracker) inv(M) RefToTr
+    truth = np.linalg.inv(knock["reference_before"]) @ np.linalg.inv(knock["motion"]) @ knock["reference_before"]
+    assert np.allclose(jump.reference_before_to_after[:3, 3], truth[:3, 3], atol=0.2)
+    assert np.allclose(jump.reference_before_to_after[:3, :3], truth[:3, :3], atol=np.radians(0.1))
+    before = [c for c in report.checkpoints if c.end_s < knock["time_s"]]
+    after = [c for c in report.checkpoints if c.start_s > knock["time_s"]]
+    assert len(before) == 2 and all(c.ok and c.slip is None for c in before)
+    first = after[0]
+    assert 0.5 < first.error_mm < limit and first.error_mm < first.threshold_mm  # the error alone would pass
+    assert not first.ok and first.slip.verdict == "confirmed" and first.slip.fails
+    assert first.slip.predicted_mm == pytest.approx(first.error_mm, abs=0.5) and first.slip.largest_mm > limit
+    assert not after[1].ok and after[1].slip.fails  # the slip stands
+    assert "confirms a slip of the reference" in first.describe(limit)
+    assert np.all(navigation.status[navigation.time_s >= first.start_s] == "INVALID")
+    document = report.to_json()
+    assert document["checkpoints"][2]["slip"]["verdict"] == "confirmed" and "slip_test" in document
+    assert len(document["reference_jumps"][0]["ReferenceBeforeToReferenceAfter"]) == 4
+    # live, one sample at a time: the same verdicts
+    monitor = TrustMonitor(knock["pinholes"])
+    recording = _knocked(knock["recording"], knock["time_s"], knock["motion"], (1,))
+    for t, probe_to_image, reference_to_tracker in _moments(recording, knock["registration"].reference_to_image):
+        monitor.observe(t, probe_to_image, reference_to_tracker)
+    monitor.flush()
+    assert [(c.image_marker, c.ok, None if c.slip is None else c.slip.verdict) for c in monitor.report.checkpoints] \
+        == [(c.image_marker, c.ok, None if c.slip is None else c.slip.verdict) for c in report.checkpoints]
+    assert not monitor.valid
+
+
+def test_a_bump_of_the_whole_frame_is_warned_and_ruled_out_as_a_slip_at_the_next_checkpoint(knock):
+    """The same motion applied to both sensors (the frame, the reference and the probe in its pinholes moved together):
+    the jump is warned, the checkpoints after it show no error where the slip would have made 1 mm: none confirms
+    it (with 8 markers the model's noise is known from 17 degrees of freedom: 1 mm is too little to rule it out at
+    once), and every checkpoint passes."""
+    report, navigation = _check(knock, _knocked(knock["recording"], knock["time_s"], knock["motion"], (1, 2)))
+    assert len(report.reference_jumps) == 1
+    assert all(c.ok for c in report.checkpoints) and len(report.checkpoints) == CHECKPOINTS
+    after = [c for c in report.checkpoints if c.start_s > knock["time_s"]]
+    assert after and all(c.slip.verdict in ("open", "ruled_out") and not c.slip.fails for c in after)
+    assert after[0].error_mm < 1.0 and after[0].slip.predicted_mm > 0.9 and after[0].slip.statistic < 1.0
+    assert not np.any((navigation.status == "INVALID") & (navigation.quality <= NavigationSettings().max_quality))
+
+
+def _moments(recording, reference_to_image: np.ndarray):
+    """(time, ProbeToImage, ReferenceToTracker) per moment of a two-sensor recording, as live navigation sees them."""
+    from EMRegModule.navigation import probe_to_image
+
+    reference, probe = recording.for_sensor(1), recording.for_sensor(2)
+    for k in range(min(len(reference.time_s), len(probe.time_s))):
+        reference_to_tracker = make_transform(reference.rotation[k], reference.position_mm[k])
+        probe_to_tracker = make_transform(probe.rotation[k], probe.position_mm[k])
+        yield (float(probe.time_s[k]), probe_to_image(reference_to_image, reference_to_tracker, probe_to_tracker),
+               reference_to_tracker)
+
+
+def test_slip_watch_confirms_lets_a_confirmed_slip_stand_rules_out_and_drops_what_fits_neither():
+    """Four pinholes on a line (image = Reference), the error model's covariance 0.3^2 mm^2 per axis: a jump that
+    turns the reference 1 degree about the first pinhole (errors 0, 1.75, 3.5, 5.2 mm along the line)."""
+    from EMRegModule.slip import SlipWatch
+
+    pinholes = np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [200.0, 0.0, 0.0], [300.0, 0.0, 0.0]])
+    ids = ["I01", "I02", "I03", "I04"]
+    covariance = 0.09 * np.eye(3)
+    step = make_transform(axis_angle_to_rotation([0.0, 0.0, 1.0], np.radians(1.0)), np.zeros(3))
+    predicted = apply_transform(step, pinholes) - pinholes
+    watch = SlipWatch(np.eye(4), pinholes, ids, 1.5)
+    assert watch.judge(np.zeros(3), covariance, 1) is None  # no jump yet: nothing to judge
+    watch.add_jump(10.0, step)
+    confirmed = watch.judge(predicted[1] + [0.1, -0.2, 0.1], covariance, 1)
+    assert confirmed.verdict == "confirmed" and confirmed.fails and confirmed.largest_at == "I04"
+    assert confirmed.largest_mm == pytest.approx(5.24, abs=0.01) and confirmed.since_s == 10.0
+    stands = watch.judge(np.array([0.2, 0.1, 0.0]), covariance, 0)  # where the slip makes no error: cannot tell
+    assert stands.verdict == "open" and stands.fails
+    ruled_out = watch.judge(np.array([0.1, 0.2, -0.1]), covariance, 2)  # no error where the slip makes 3.5 mm
+    assert ruled_out.verdict == "ruled_out" and not ruled_out.fails and watch.suspect is None
+    assert watch.judge(np.zeros(3), covariance, 2) is None
+    # an error a third of the way to the slip's, far from both: neither fits, the test is dropped, nothing fails
+    watch.add_jump(20.0, step)
+    neither = watch.judge(predicted[3] / 3.0, covariance, 3)
+    assert neither.verdict == "neither" and not neither.fails and watch.suspect is None
+    # a slip whose predicted error stays within the limit everywhere is confirmed but harmless
+    small = SlipWatch(np.eye(4), pinholes[:2], ids[:2], 2.0)
+    small.add_jump(5.0, step)
+    harmless = small.judge(predicted[1], covariance, 1)
+    assert harmless.verdict == "confirmed" and not harmless.fails
+
+
+# --- emreg evaluate leaves the INVALID poses out of the TRE ------------------------------------------------------
+
+
+def _evaluate(case: Path, registration: Path, out: Path) -> tuple[int, str]:
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        code = main(["evaluate", str(case), "--registration", str(registration), "--out", str(out), "--quiet"])
+    return code, err.getvalue()
+
+
+def test_evaluate_leaves_the_invalid_poses_out_of_the_tre_and_counts_them(sessions, small_case: Path, tmp_path: Path):
+    """``emreg evaluate`` on the slip session (the small case's targets beside it): the poses navigation.csv marks
+    INVALID (from the failed checkpoint after the slip on, and the tracker's bad samples) are left out of the TRE
+    and counted; the target dwells after the slip, off by the slip, no longer raise it. The clean session loses
+    only the bad samples and no dwell."""
+    from EMRegModule.evaluation import evaluate_targets
+    from EMRegModule.io.case import read_targets
+
+    targets = read_targets(small_case / "targets.mrk.json")
+    results = {}
+    for name in ("clean", "slip"):
+        case = sessions[name]["case"]
+        (case / "targets.mrk.json").write_bytes((small_case / "targets.mrk.json").read_bytes())
+        code, err = _evaluate(case, sessions["registration"], tmp_path / name)
+        assert code == 0, err
+        results[name] = (json.loads((tmp_path / name / "evaluation.json").read_text()), err)
+    rows = _rows(sessions["slip"]["out"] / "navigation.csv")  # emreg navigate's, of the same recording
+    tre, err = results["slip"][0]["tre"], results["slip"][1]
+    assert tre["invalid_poses_left_out"] == [r[5] for r in rows].count("INVALID") > 500
+    failed = next(c for c in sessions["slip"]["checkpoints"]["checkpoints"] if not c["ok"])
+    assert all(d["end_s"] < failed["start_s"] for d in tre["dwells"])  # no dwell from the INVALID period
+    assert tre["dwells_left_out"] >= 2 and "INVALID" in err and "left out" in err
+    # the same recording without the pose status: the dwells after the slip count, and raise the TRE
+    recording = read_recording(sessions["slip"]["case"] / "navigation.csv", Settings(), 1, 2)
+    every = evaluate_targets(recording, targets[0], targets[1],
+                             read_registration(sessions["registration"]).reference_to_image)
+    assert every.invalid_poses_left_out is None and len(every.dwells) == tre["n"] + tre["dwells_left_out"]
+    assert every.to_json()["rms_mm"] > tre["rms_mm"] + 0.3
+    clean = results["clean"][0]["tre"]
+    assert clean["dwells_left_out"] == 0 and "left out" not in results["clean"][1]
+    assert clean["invalid_poses_left_out"] == [r[5] for r in _rows(sessions["clean"]["out"] / "navigation.csv")
+                                               ].count("INVALID")

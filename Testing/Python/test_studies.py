@@ -69,7 +69,7 @@ def test_tool_study_compares_the_pinhole_probe_with_a_pivot_calibrated_pointer(s
 def test_trust_study_measures_checkpoints_latency_and_reference_jumps(standard_case, study_work, tmp_path):
     """The quick trust study's navigations with checkpoints: clean ones pass (at noise x1 and x4, where the fixed
     limit alone fails some), a 2 mm / 0.5 deg slip is flagged at the first checkpoint after it and warned as a
-    reference jump, and the alarm latency is measured."""
+    reference jump, the alarm latency is measured, and a bump of the whole frame is warned but fails nothing."""
     result = _study("trust", tmp_path, standard_case, study_work, "--workers", "1")
     header, table = result["summary"]["header"], result["summary"]["rows"]
     rows = {row[0]: dict(zip(header, row, strict=True)) for row in table}
@@ -83,3 +83,9 @@ def test_trust_study_measures_checkpoints_latency_and_reference_jumps(standard_c
     latency = next(r["latency_s"] for r in result["rows"] if r.get("checkpoints") == "slip")
     assert 0 < latency < 30
     assert rows["checkpoints: onset 1 mm, noise x1"]["sessions with a false jump warning"] == "0.0 % (0/1)"
+    # the frame knocked as a whole by as much: the jump is warned, the slip test rules the slip out, nothing fails
+    bump = rows["checkpoints: bump 2 mm/0.5 deg (false alarms), noise x1"]
+    assert bump["reference jump warned"] == "100.0 % (1/1)" and bump["clean checkpoints passed"].startswith("100.0 %")
+    assert bump["flagged at the first checkpoint after"] == "0.0 % (0/1)"
+    session = next(r for r in result["rows"] if r.get("checkpoints") == "bump")
+    assert session["first_slip_verdict"] in ("ruled_out", "neither") and session["first_true_error_mm"] == 0.0

@@ -80,6 +80,29 @@ def test_trakstar_metal_byte_follows_the_distortion_at_each_sensor():
     assert verdict.reason == "bad_quality" and "reference sensor (port 1) quality 24" in verdict.message
 
 
+def test_the_physical_dipole_model_drives_the_trakstar_metal_byte():
+    """The induced dipole that moves the simulated poses (:class:`FieldDistortion`) is a flag model as it is: a steel
+    rod 60 mm from the reference sensor gives the METAL byte its position error there, far less at the far ports."""
+    from EMRegModule.simulation.distortion import FieldDistortion
+
+    scene = BuiltinScene(1)
+    rod = FieldDistortion(scene.reference_position + [0.0, 0.0, 60.0], 1e5 * np.diag([1.0, 0.1, 0.1]))
+    size = rod.distortion_mm(scene.reference_position)
+    rod = rod.scaled(0.6 / size)  # 0.6 mm at the reference, to first order linear in the strength
+    assert rod.distortion_mm(scene.reference_position) == pytest.approx(0.6, rel=1e-6)
+    assert rod.distortion_mm(scene.reference_position) == pytest.approx(
+        float(np.linalg.norm(rod.errors_at(scene.reference_position)[0][0])))
+    with TrackerSimulator(scene, keep_truth=True, seed=1) as sim:
+        sim.distortion = rod
+        with TrakstarDriver(sim.path) as driver:
+            driver.configure("POSITION/ANGLES", metal=True, group=True)
+            samples = [s for _ in range(5) for s in driver.point_all()]
+    expected = {s: [float(trakstar_metal(rod.distortion_mm(t.pose.position_mm))) for t in sim.truth[-20:]
+                    if t.sensor == s] for s in (1, 2, 3, 4)}
+    assert {s: [x.quality for x in samples if x.sensor == s] for s in (1, 2, 3, 4)} == expected
+    assert set(expected[1]) == {round(0.6 * METAL_PER_MM)}
+
+
 @contextlib.contextmanager
 def _aurora(tmp_path, **flags):
     """An Aurora simulator with two 6-DOF tools, its ``distortion`` / ``volume`` set, and EMReg's driver on it."""
