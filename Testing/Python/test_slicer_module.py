@@ -675,18 +675,9 @@ def test_live_navigation_without_openigtlinkif_says_what_to_install(slicer_core)
 
 
 @pytest.fixture(scope="module")
-def run_output(standard_case, tmp_path_factory):
-    """``emreg run`` on the standard case (its summary lines and OUT)."""
-    import io
-    from contextlib import redirect_stdout
-
-    from EMRegModule.cli import main
-
-    out = tmp_path_factory.mktemp("slicer_run") / "out"
-    stdout = io.StringIO()
-    with redirect_stdout(stdout):
-        assert main(["run", str(standard_case), "--out", str(out), "--quiet"]) == 0
-    return stdout.getvalue(), out
+def run_output(standard_run):
+    """``emreg run`` on the standard case (its summary lines and OUT): conftest's, made once, read only."""
+    return standard_run.stdout, standard_run.out
 
 
 def _import_bundle(path: Path):
