@@ -20,13 +20,26 @@ targets, 2 navigation and 3 board rounds) with its ``emreg run`` done into ``sma
 sweeps of tracking recordings and of the report derive their variants from it and compare with that run
 (read only); about 4 s.
 
+``standard_run``: ``emreg run`` of the standard case (its OUT folder and the summary it printed), read only.
+
+``small_dicom_case``: the small case's simulation with its CT as a DICOM series (``ct/``), read only.
+
+Each is made once per test run: under pytest-xdist the workers share it (see :func:`_made_once`).
+
 ``load_truth(case_dir)`` returns the case's ``truth.json`` as a dict.
 """
 
 from __future__ import annotations
 
+import fcntl
+import io
+import os
+import shutil
 import signal
+from collections.abc import Callable
+from contextlib import redirect_stdout
 from pathlib import Path
+from typing import NamedTuple
 
 import pytest
 from versions import report_header
@@ -65,26 +78,81 @@ def _signal_handlers_restored():
             signal.signal(signum, handler)
 
 
+def _made_once(tmp_path_factory: pytest.TempPathFactory, name: str, make: Callable[[Path], None]) -> Path:
+    """The folder ``name``, filled by ``make(folder)`` once for the whole test run.
+
+    In one process that is a fresh temporary folder per session, as ``tmp_path_factory.mktemp`` gives. Under
+    pytest-xdist each worker is a session of its own: the workers of one run share the folder instead, in the
+    run's temporary folder (the parent of each worker's own). The first worker that needs it makes it while
+    holding a lock; the others wait for it rather than making it again, and a folder left half-made by a
+    worker that failed is made again from scratch. Whatever uses it must only read it, as in one process."""
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        folder = tmp_path_factory.mktemp(name)
+        make(folder)
+        return folder
+    shared = tmp_path_factory.getbasetemp().parent  # the run's, holding the workers' basetemps popen-gw0, ...
+    folder, done = shared / name, shared / f"{name}.done"
+    with open(shared / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, or when a crashed worker's process ends
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            make(folder)
+            done.touch()
+    return folder
+
+
 @pytest.fixture(scope="session")
 def standard_case(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A CI-sized standard simulated case folder (see module docstring)."""
-    folder = tmp_path_factory.mktemp("standard_case")
-    simulate_case(folder, seed=STANDARD_SEED, difficulty="standard", **CI_CASE_OPTIONS)
-    return folder
+    return _made_once(tmp_path_factory, "standard_case", lambda folder: simulate_case(
+        folder, seed=STANDARD_SEED, difficulty="standard", **CI_CASE_OPTIONS))
 
 
 @pytest.fixture(scope="session")
 def hard_case(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A CI-sized hard simulated case folder (see module docstring)."""
-    folder = tmp_path_factory.mktemp("hard_case")
-    simulate_case(folder, seed=HARD_SEED, difficulty="hard", **CI_CASE_OPTIONS)
-    return folder
+    return _made_once(tmp_path_factory, "hard_case", lambda folder: simulate_case(
+        folder, seed=HARD_SEED, difficulty="hard", **CI_CASE_OPTIONS))
+
+
+def _small_case_and_its_run(folder: Path) -> None:
+    simulate_case(folder / "case", seed=6, spacing_mm=1.0, **SMALL_CASE_OPTIONS)
+    assert main(["run", str(folder / "case"), "--out", str(folder / "out"), "--quiet"]) == 0
 
 
 @pytest.fixture(scope="session")
 def small_case(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The small case folder (see module docstring); its run's outputs are in ``small_case.parent / "out"``."""
-    folder = tmp_path_factory.mktemp("small_case") / "case"
-    simulate_case(folder, seed=6, spacing_mm=1.0, **SMALL_CASE_OPTIONS)
-    assert main(["run", str(folder), "--out", str(folder.parent / "out"), "--quiet"]) == 0
-    return folder
+    return _made_once(tmp_path_factory, "small_case", _small_case_and_its_run) / "case"
+
+
+@pytest.fixture(scope="session")
+def small_dicom_case(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The small case's simulation (seed 6, 1 mm voxels, 8 markers) with its CT a DICOM series (``ct/``)."""
+    return _made_once(tmp_path_factory, "small_dicom_case", lambda folder: simulate_case(
+        folder / "case", seed=6, spacing_mm=1.0, ct_format="dicom", **SMALL_CASE_OPTIONS)) / "case"
+
+
+class StandardRun(NamedTuple):
+    """``emreg run STANDARD_CASE --out OUT --quiet``: its OUT folder and what it printed (the summary)."""
+
+    out: Path
+    stdout: str
+
+
+def _standard_run(standard_case: Path) -> Callable[[Path], None]:
+    def make(folder: Path) -> None:
+        printed = io.StringIO()
+        with redirect_stdout(printed):
+            assert main(["run", str(standard_case), "--out", str(folder / "out"), "--quiet"]) == 0
+        (folder / "stdout.txt").write_text(printed.getvalue(), encoding="utf-8")
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def standard_run(standard_case: Path, tmp_path_factory: pytest.TempPathFactory) -> StandardRun:
+    """``emreg run`` of the standard case, made once for the modules that read its outputs (read only)."""
+    folder = _made_once(tmp_path_factory, "standard_run", _standard_run(standard_case))
+    return StandardRun(folder / "out", (folder / "stdout.txt").read_text(encoding="utf-8"))

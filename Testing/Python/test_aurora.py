@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import struct
 import subprocess
 import sys
@@ -20,6 +19,7 @@ import ndicapy
 import numpy as np
 import pyigtl
 import pytest
+from polling import announced_igtl_port
 
 from EMRegModule.errors import EMRegError
 from EMRegModule.frames import LPS_TO_RAS
@@ -487,12 +487,6 @@ def _wait(condition, timeout_s: float = 30.0) -> None:
 # --- the command line: record and live navigate, as for the trakSTAR ----------------------------------------
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_cli_record_and_live_navigate_from_the_aurora(tmp_path, replay):
     path, truth = replay
     sim = _Simulator(tmp_path, "--replay", str(path))
@@ -513,12 +507,12 @@ def test_cli_record_and_live_navigate_from_the_aurora(tmp_path, replay):
         registration = tmp_path / "registration.json"
         registration.write_text(json.dumps({"ReferenceToImage": reference_to_image.tolist(),
                                             "sensor_offset_l_mm": 14.0, "fre_mm": 0.5, "pairs": []}))
-        port = _free_port()
         nav = subprocess.Popen([*EMREG, "navigate", "--registration", str(registration), "--source",
-                                f"aurora://{sim.link}?baud=230400", "--igtl-port", str(port), "--max-samples", "200",
+                                f"aurora://{sim.link}?baud=230400", "--igtl-port", "0", "--max-samples", "200",
                                 "--stale-periods", "8",
                                 "--out", str(tmp_path / "out")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                text=True, env=ENV)
+        port, said = announced_igtl_port(nav)
         client = pyigtl.OpenIGTLinkClient("127.0.0.1", port)
         try:  # as long as navigate runs (a loaded machine starts it late), not for a fixed time
             end = time.monotonic() + 180
@@ -529,7 +523,7 @@ def test_cli_record_and_live_navigate_from_the_aurora(tmp_path, replay):
         finally:
             client.stop()
         stdout, stderr = nav.communicate(timeout=60)
-        assert nav.returncode == 0, stderr
+        assert nav.returncode == 0, said + stderr
         assert "probe poses published" in stdout
     finally:
         sim.stop()

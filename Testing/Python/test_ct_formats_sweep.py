@@ -40,7 +40,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import SimpleITK as sitk
-from conftest import SMALL_CASE_OPTIONS
 from ct_files import RAS_FROM_LPS, index_to_lps, write_nrrd
 from scipy.spatial.transform import Rotation
 
@@ -49,17 +48,15 @@ from EMRegModule.errors import EMRegError
 from EMRegModule.io.ct_stream import start_streamed_read
 from EMRegModule.io.fast_read import plain_storage, start_fast_read
 from EMRegModule.io.image import read_ct
-from EMRegModule.simulation.case import simulate_case
 
 ORIGIN_TOLERANCE_MM = 0.3  # well under the 1 mm voxel
 
 
 @pytest.fixture(scope="module")
-def case(tmp_path_factory) -> Path:
-    """A small simulated case (1 mm voxels, 8 markers) whose CT is a DICOM series (``case/ct``)."""
-    folder = tmp_path_factory.mktemp("ct_formats_sweep") / "case"
-    simulate_case(folder, seed=6, spacing_mm=1.0, ct_format="dicom", **SMALL_CASE_OPTIONS)
-    return folder
+def case(small_dicom_case) -> Path:
+    """A small simulated case (1 mm voxels, 8 markers) whose CT is a DICOM series (``case/ct``): conftest's
+    ``small_dicom_case``, read only."""
+    return small_dicom_case
 
 
 @pytest.fixture(scope="module")

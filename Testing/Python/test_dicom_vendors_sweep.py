@@ -36,7 +36,7 @@ import numpy as np
 import pydicom
 import pytest
 import SimpleITK as sitk
-from conftest import SMALL_CASE_OPTIONS, load_truth
+from conftest import load_truth
 from dicom_files import convert, make_volume, tools_available, uid, write_series
 from pydicom.dataelem import DataElement
 from test_detection_cases import errors_against_truth
@@ -45,7 +45,6 @@ from EMRegModule.cli import main
 from EMRegModule.detection import read_detection
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.image import open_ct, read_ct
-from EMRegModule.simulation.case import simulate_case
 
 _TOOLS = tools_available()
 
@@ -259,11 +258,10 @@ def test_a_series_mixing_two_slice_sizes_is_refused_naming_both_files(tmp_path, 
 
 
 @pytest.fixture(scope="module")
-def dicom_case(tmp_path_factory) -> Path:
-    """A small simulated case (1 mm voxels, 8 markers) whose CT is the simulator's DICOM series."""
-    folder = tmp_path_factory.mktemp("dicom_vendors") / "case"
-    simulate_case(folder, seed=6, spacing_mm=1.0, ct_format="dicom", **SMALL_CASE_OPTIONS)
-    return folder
+def dicom_case(small_dicom_case) -> Path:
+    """A small simulated case (1 mm voxels, 8 markers) whose CT is the simulator's DICOM series: conftest's
+    ``small_dicom_case``, read only (the tests copy it before changing its files)."""
+    return small_dicom_case
 
 
 def _unsigned_overlay_bits(files: list[Path]) -> None:

@@ -110,19 +110,11 @@ def _plus_like_sender(server: pyigtl.OpenIGTLinkServer, frames: int, invalid: se
         done.set()
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_the_igtl_source_never_uses_an_invalid_transform():
-    port = _free_port()
     invalid = {5, 6, 11, 17}
     done = threading.Event()
-    plus = pyigtl.OpenIGTLinkServer(port=port, local_server=True)
+    plus = pyigtl.OpenIGTLinkServer(port=0, local_server=True)  # any free port, chosen as it binds
+    port = plus.server_address[1]
     thread = threading.Thread(target=_plus_like_sender, args=(plus, 24, invalid, done), daemon=True)
     thread.start()
     source = IGTLSource(parse_device_url(f"igtl://127.0.0.1:{port}"), 1, 2)
@@ -153,10 +145,10 @@ def test_the_igtl_source_never_uses_an_invalid_transform():
 
 
 def test_record_from_a_plus_server_keeps_invalid_frames_invalid(tmp_path):
-    port = _free_port()
     invalid = {3, 8, 9}
     done = threading.Event()
-    plus = pyigtl.OpenIGTLinkServer(port=port, local_server=True)
+    plus = pyigtl.OpenIGTLinkServer(port=0, local_server=True)  # any free port, chosen as it binds
+    port = plus.server_address[1]
     thread = threading.Thread(target=_plus_like_sender, args=(plus, 16, invalid, done), daemon=True)
     thread.start()
     out = tmp_path / "plus.seq.mha"

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pyigtl
 import pytest
+from polling import announced_igtl_port
 
 from EMRegModule.frames import LPS_TO_RAS
 from EMRegModule.live.igtl_server import IGTLServer
@@ -67,12 +68,6 @@ def test_jump_filter_rejects_a_single_corrupted_pose_and_follows_real_motion():
 # --- the simulator on a real pty ---------------------------------------------------------------------
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _start_sim(link: Path, *extra: str) -> subprocess.Popen:
     sim = subprocess.Popen([*EMREG, "sim-tracker", "--link", str(link), *extra], stdout=subprocess.PIPE,
                            stderr=subprocess.PIPE, text=True, env=ENV)
@@ -96,13 +91,14 @@ def _truth_probe_in_image(emit_log: Path, reference_to_image: np.ndarray) -> np.
     return np.asarray(positions)
 
 
-def _navigate(tmp_path: Path, link: Path, port: int, duration: float, *extra: str,
-              rate_hz: float = 80.0) -> subprocess.Popen:
+def _navigate(tmp_path: Path, link: Path, duration: float, *extra: str, rate_hz: float = 80.0) -> subprocess.Popen:
+    """``emreg navigate`` from the simulator at ``link``, publishing on a port of its own choosing (see
+    :func:`polling.announced_igtl_port`) and recording into ``tmp_path / "out"``."""
     registration = tmp_path / "registration.json"
     registration.write_text(json.dumps({"ReferenceToImage": _reference_to_image().tolist(),
                                         "sensor_offset_l_mm": 14.0, "fre_mm": 0.5, "pairs": []}))
     return subprocess.Popen([*EMREG, "navigate", "--registration", str(registration), "--source",
-                             f"trakstar://{link}?rate={rate_hz:g}", "--igtl-port", str(port), "--duration",
+                             f"trakstar://{link}?rate={rate_hz:g}", "--igtl-port", "0", "--duration",
                              str(duration), "--out", str(tmp_path / "out"), *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
 
@@ -163,12 +159,13 @@ def test_live_navigation_under_byte_corruption_never_publishes_a_wrong_pose(tmp_
     link = tmp_path / "trakstar"
     faults = ["--fault", f"corrupt={corruption}"] if corruption else []
     sim = _start_sim(link, "--seed", "7", "--attached", "1,2", "--emit-log", str(tmp_path / "truth.csv"), *faults)
-    port = _free_port()
     try:
-        nav = _navigate(tmp_path, link, port, 4.0)
+        nav = _navigate(tmp_path, link, 4.0)
+        port, said = announced_igtl_port(nav)
         listener = _connect_listener(port)
         try:
             out, err = nav.communicate(timeout=60)
+            err = said + err
         finally:
             listener.close()
         assert nav.returncode == 0, err
@@ -223,10 +220,10 @@ def test_record_under_corruption_writes_no_wrong_row_and_no_empty_port(tmp_path)
 def test_lost_tracker_sends_a_not_ok_status_and_navigate_reconnects(tmp_path):
     link = tmp_path / "trakstar"
     sim = _start_sim(link, "--seed", "3")
-    port = _free_port()
     # the waits below are for events (up to 60 s: a loaded host only takes longer), and navigate keeps trying
     # to reconnect for as long as the second simulator may take to start
-    nav = _navigate(tmp_path, link, port, 240.0, "--reconnect", "120")
+    nav = _navigate(tmp_path, link, 240.0, "--reconnect", "120")
+    port, said = announced_igtl_port(nav)
     listener = _connect_listener(port)
     second = None
     try:
@@ -245,6 +242,7 @@ def test_lost_tracker_sends_a_not_ok_status_and_navigate_reconnects(tmp_path):
     finally:
         nav.send_signal(signal.SIGINT)
         out, err = nav.communicate(timeout=30)
+        err = said + err
         listener.close()
         if second is not None:
             second.send_signal(signal.SIGTERM)
@@ -256,14 +254,15 @@ def test_lost_tracker_sends_a_not_ok_status_and_navigate_reconnects(tmp_path):
 def test_navigate_gives_up_when_the_tracker_stays_away(tmp_path):
     link = tmp_path / "trakstar"
     sim = _start_sim(link, "--seed", "3")
-    port = _free_port()
-    nav = _navigate(tmp_path, link, port, 40.0, "--reconnect", "2")
+    nav = _navigate(tmp_path, link, 40.0, "--reconnect", "2")
+    port, said = announced_igtl_port(nav)
     listener = _connect_listener(port)
     try:
         assert _wait(lambda: len(listener.poses()) > 5, 60)
         sim.send_signal(signal.SIGKILL)
         sim.communicate(timeout=10)
         out, err = nav.communicate(timeout=30)
+        err = said + err
     finally:
         listener.close()
     assert nav.returncode == 2
@@ -314,7 +313,7 @@ def test_live_navigate_refuses_a_port_without_a_sensor(tmp_path):
     link = tmp_path / "trakstar"
     sim = _start_sim(link, "--attached", "1,2")
     try:
-        nav = _navigate(tmp_path, link, _free_port(), 5.0, "--probe-sensor", "3")
+        nav = _navigate(tmp_path, link, 5.0, "--probe-sensor", "3")
         out, err = nav.communicate(timeout=60)
     finally:
         sim.send_signal(signal.SIGTERM)
@@ -363,12 +362,13 @@ def _navigate_the_simulator(tmp_path: Path, sim_args: tuple[str, ...], duration:
     ended; ``until(listener)`` is waited for before the listener closes. Returns (returncode, out, err, listener)."""
     link = tmp_path / "trakstar"
     sim = _start_sim(link, *sim_args, *(("--emit-log", str(emit_log)) if emit_log else ()))
-    port = _free_port()
     try:
-        nav = _navigate(tmp_path, link, port, duration, *extra, rate_hz=rate_hz)
+        nav = _navigate(tmp_path, link, duration, *extra, rate_hz=rate_hz)
+        port, said = announced_igtl_port(nav)
         listener = _connect_listener(port)
         try:
             out, err = nav.communicate(timeout=timeout)
+            err = said + err
             if until is not None:
                 assert _wait(lambda: until(listener), 30), listener.statuses()
         finally:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import os
-import socket
+import queue
 import subprocess
 import sys
 import threading
@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pyigtl
 import pytest
-from polling import wait_for
+from polling import announced_igtl_port, wait_for
 
 from EMRegModule import cli
 from EMRegModule.frames import LPS_TO_RAS
@@ -41,10 +41,21 @@ def _sample(sensor: int, frame: int, status: str = "ok", quality: float = 0.0, p
                         frame=frame, received_ns=time.monotonic_ns())
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def _igtl_server_ports(monkeypatch) -> queue.Queue:
+    """The ports of the OpenIGTLink servers made from now on, in order. A command run in this process with
+    ``--igtl-port 0`` (any free port, chosen as its server binds) and ``--quiet`` says its port nowhere; a port
+    found free beforehand could be taken in between by another process (another pytest-xdist worker's test)."""
+    from EMRegModule.live import igtl_server
+
+    ports: queue.Queue = queue.Queue()
+
+    class PortSayingServer(igtl_server.IGTLServer):
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__(*args, **kwargs)
+            ports.put(self.port)
+
+    monkeypatch.setattr(igtl_server, "IGTLServer", PortSayingServer)
+    return ports
 
 
 def _reference_to_image(seed: int = 4) -> np.ndarray:
@@ -170,7 +181,7 @@ def test_navigator_publishes_only_good_frames_and_announces_changes(capsys):
 # --- ProbeToImage over TCP vs offline navigation -------------------------------------------------
 
 
-def test_replay_published_over_tcp_matches_offline_navigation(tmp_path):
+def test_replay_published_over_tcp_matches_offline_navigation(tmp_path, monkeypatch):
     recording = _recording()
     csv = tmp_path / "navigation_rec.csv"
     write_tracking_csv(recording, csv)
@@ -179,7 +190,7 @@ def test_replay_published_over_tcp_matches_offline_navigation(tmp_path):
     offline = navigate_recording(read_tracking_csv(csv), reference_to_image, 1, 2)
     assert cli.main(["navigate", "--registration", str(registration), "--source", f"replay:{csv}",
                      "--out", str(tmp_path / "offline")]) == 0
-    port = _free_port()
+    ports = _igtl_server_ports(monkeypatch)
     received = []
 
     # every message, decoded by pyigtl (polling pyigtl's client only sees the newest one: a loaded test thread
@@ -188,16 +199,18 @@ def test_replay_published_over_tcp_matches_offline_navigation(tmp_path):
         if message.device_name == "ProbeToImage" and message.metadata.get("TransformStatus") == "OK":
             received.append(np.asarray(message.matrix, dtype=float))
 
-    client = IGTLReceiver("127.0.0.1", port, collect, reconnect_s=0.01)
-    argv = ["navigate", "--registration", str(registration), "--source", f"replay:{csv}", "--igtl-port", str(port),
+    argv = ["navigate", "--registration", str(registration), "--source", f"replay:{csv}", "--igtl-port", "0",
             "--out", str(tmp_path / "live"), "--quiet"]
     result = {}
     runner = threading.Thread(target=lambda: result.setdefault("code", cli.main(argv)))
+    client = None
     try:
         runner.start()
+        client = IGTLReceiver("127.0.0.1", ports.get(timeout=120), collect, reconnect_s=0.01)
         runner.join(timeout=120)
     finally:
-        client.close()
+        if client is not None:
+            client.close()
     assert result.get("code") == 0
     # every pose received equals (float32) an offline ProbeToImage, in RAS
     offline_ras = LPS_TO_RAS @ offline.probe_to_image
@@ -351,7 +364,6 @@ def _wait_for_message_while_running(client, process, name: str = "ProbeToImage",
 def test_cli_sim_tracker_link_and_live_navigate(tmp_path):
     link = tmp_path / "trakstar"
     registration = _write_registration(tmp_path / "registration.json", _reference_to_image())
-    port = _free_port()
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     emreg = [sys.executable, "-m", "EMRegModule"]
     # the simulator runs until the test stops it (a fixed lifetime ran out on a loaded machine before navigate started)
@@ -361,16 +373,17 @@ def test_cli_sim_tracker_link_and_live_navigate(tmp_path):
         line = sim.stdout.readline()
         assert "trakSTAR simulator on /dev/pts/" in line and link.is_symlink()
         nav = subprocess.Popen([*emreg, "navigate", "--registration", str(registration), "--source",
-                                f"trakstar://{link}?baud=115200", "--igtl-port", str(port), "--max-samples", "200",
+                                f"trakstar://{link}?baud=115200", "--igtl-port", "0", "--max-samples", "200",
                                 "--out", str(tmp_path / "out")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                text=True, env=env)
+        port, said = announced_igtl_port(nav)
         client = pyigtl.OpenIGTLinkClient("127.0.0.1", port)
         try:
             message = _wait_for_message_while_running(client, nav)
         finally:
             client.stop()
         out, err = nav.communicate(timeout=60)
-        assert nav.returncode == 0, err
+        assert nav.returncode == 0, said + err
         assert "probe poses published" in out
     finally:
         sim.terminate()
@@ -385,18 +398,19 @@ def test_cli_sim_tracker_link_and_live_navigate(tmp_path):
     assert np.linalg.norm(positions - lps, axis=1).min() < 1e-2
 
 
-def test_cli_serve_publishes_tracker_transforms_as_measured(tmp_path):
+def test_cli_serve_publishes_tracker_transforms_as_measured(tmp_path, monkeypatch):
     recording = _recording(n_frames=60)
     csv = tmp_path / "rec.csv"
     write_tracking_csv(recording, csv)
-    port = _free_port()
-    client = pyigtl.OpenIGTLinkClient("127.0.0.1", port)
-    argv = ["serve", "--device", f"replay:{csv}", "--igtl-port", str(port), "--max-samples", "110", "--quiet"]
+    ports = _igtl_server_ports(monkeypatch)
+    argv = ["serve", "--device", f"replay:{csv}", "--igtl-port", "0", "--max-samples", "110", "--quiet"]
     result = {}
     runner = threading.Thread(target=lambda: result.setdefault("code", cli.main(argv)))
     got = {}
+    client = None
     try:
         runner.start()
+        client = pyigtl.OpenIGTLinkClient("127.0.0.1", ports.get(timeout=120))
         deadline = time.monotonic() + 15
         while runner.is_alive() and time.monotonic() < deadline and len(got) < 3:
             for message in client.get_latest_messages():
@@ -406,7 +420,8 @@ def test_cli_serve_publishes_tracker_transforms_as_measured(tmp_path):
         for message in client.get_latest_messages():  # what arrived after this thread last looked
             got.setdefault(message.device_name, message)
     finally:
-        client.stop()
+        if client is not None:
+            client.stop()
     assert result.get("code") == 0
     assert {"ReferenceToTracker", "ProbeToTracker", "Tracker"} <= set(got)
     assert isinstance(got["Tracker"], StatusMessage)

@@ -35,18 +35,19 @@ def _run(case: Path, out: Path) -> tuple[Path, Path, dict]:
 
 
 @pytest.fixture(scope="module")
-def standard_run(standard_case, tmp_path_factory):
-    return _run(standard_case, tmp_path_factory.mktemp("run_standard"))
+def standard_case_run(standard_case, standard_run):
+    """The session's ``emreg run`` of the standard case (conftest's ``standard_run``: made once, read only)."""
+    return standard_case, standard_run.out, load_truth(standard_case)
 
 
 @pytest.fixture(scope="module")
-def hard_run(hard_case, tmp_path_factory):
+def hard_case_run(hard_case, tmp_path_factory):
     return _run(hard_case, tmp_path_factory.mktemp("run_hard"))
 
 
 @pytest.fixture(params=["standard", "hard"])
 def run(request):
-    return request.getfixturevalue(f"{request.param}_run")
+    return request.getfixturevalue(f"{request.param}_case_run")
 
 
 def _load(out: Path, name: str) -> dict:
@@ -194,9 +195,9 @@ def test_tre_map_covers_the_ct_and_agrees_with_the_targets_predictions(run):
         assert at_target == pytest.approx(targets[label]["predicted_rms_mm"], rel=0.10)
 
 
-def test_run_names_the_dicom_series_it_used(hard_run):
+def test_run_names_the_dicom_series_it_used(hard_case_run):
     """The hard case's CT is a DICOM folder: run.json and markers.json name the series (issue 13)."""
-    hard_case, out, _ = hard_run
+    hard_case, out, _ = hard_case_run
     used = _load(out, "run.json")["ct_series"]
     assert used == _load(out, "markers.json")["ct_series"]
     assert used["modality"] == "CT" and used["others"] == []

@@ -55,7 +55,8 @@ def _with_invalid_frames(recording: TrackingRecording, rng: np.random.Generator)
 
 
 @pytest.fixture(scope="module")
-def runs(standard_case, tmp_path_factory):
+def runs(standard_case, standard_run, tmp_path_factory):
+    """The standard case's run (conftest's, read only) and the run of the same case as sequence metafiles."""
     root = tmp_path_factory.mktemp("sequence_case")
     seq_case = _case_copy(standard_case, root / "seq_case", recordings=False)
     rng = np.random.default_rng(5)
@@ -63,9 +64,8 @@ def runs(standard_case, tmp_path_factory):
     for stem in ("calibration", "navigation", "board"):
         text, invalid[stem] = _with_invalid_frames(read_tracking_csv(standard_case / f"{stem}.csv"), rng)
         (seq_case / f"{stem}.seq.mha").write_text(text)
-    assert main(["run", str(standard_case), "--out", str(root / "out_csv"), "--quiet"]) == 0
     assert main(["run", str(seq_case), "--out", str(root / "out_seq"), "--quiet"]) == 0
-    return {"csv": root / "out_csv", "seq": root / "out_seq", "invalid": invalid, "case": standard_case}
+    return {"csv": standard_run.out, "seq": root / "out_seq", "invalid": invalid, "case": standard_case}
 
 
 def _json(path: Path) -> dict:

@@ -516,10 +516,13 @@ def test_module_imports_without_qt_and_says_what_needs_the_application(slicer_co
         module.EMReg(types.SimpleNamespace())
 
 
-def test_self_test_runs_on_slicer_core_mrml(slicer_core, standard_case):
+def test_self_test_runs_on_slicer_core_mrml(slicer_core, standard_case, tmp_path, monkeypatch):
     """The module's own ScriptedLoadableModuleTest (simulated standard case, real controller, real MRML)."""
     module = slicer_core.load_module()
     module.EMRegTest.caseDirectory = str(standard_case)
+    # the temporary directory of this test alone: another test session on the machine (or its own self-test)
+    # would otherwise add or remove EMRegTest-* folders in the shared one while this one looks
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     temporary = Path(tempfile.gettempdir())
     before = set(temporary.glob("EMRegTest-*"))
     try:
@@ -675,18 +678,9 @@ def test_live_navigation_without_openigtlinkif_says_what_to_install(slicer_core)
 
 
 @pytest.fixture(scope="module")
-def run_output(standard_case, tmp_path_factory):
-    """``emreg run`` on the standard case (its summary lines and OUT)."""
-    import io
-    from contextlib import redirect_stdout
-
-    from EMRegModule.cli import main
-
-    out = tmp_path_factory.mktemp("slicer_run") / "out"
-    stdout = io.StringIO()
-    with redirect_stdout(stdout):
-        assert main(["run", str(standard_case), "--out", str(out), "--quiet"]) == 0
-    return stdout.getvalue(), out
+def run_output(standard_run):
+    """``emreg run`` on the standard case (its summary lines and OUT): conftest's, made once, read only."""
+    return standard_run.stdout, standard_run.out
 
 
 def _import_bundle(path: Path):
