@@ -17,8 +17,6 @@ from ..errors import EMRegError
 from ..provenance import BackgroundHash, note_read_digest
 from .ct_checks import check_ct_file, check_ct_geometry, check_ct_path, check_ct_voxels, check_file_placement
 from .ct_handle import CTHandle
-from .ct_header import check_data_length
-from .fast_read import start_fast_read
 from .itk_messages import quiet_itk, read_failure
 
 
@@ -56,6 +54,9 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compa
 
             fill, _ = open_dicom_series(path, series, compact=compact, voxels_only=voxels_only)
         else:
+            from .ct_header import check_data_length  # the file readers (ISA-L): not for a DICOM folder
+            from .fast_read import start_fast_read
+
             if path.stat().st_size == 0:
                 raise EMRegError(f"{path}: CT file is empty")
             check_ct_file(path)  # e.g. a damaged NIfTI magic, which ITK would read as Analyze (geometry lost)
