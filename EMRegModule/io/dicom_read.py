@@ -298,24 +298,35 @@ def _direct(header: SliceHeader) -> bool:
 
 def _file_bytes(path: Path, hashed: bool = True) -> tuple[memoryview, bytes | None]:
     """The whole file in this thread's reusable buffer, and its sha256 (one read, no allocation per slice; None
-    unless ``hashed``)."""
+    unless ``hashed``).
+
+    Read with the operating system's calls themselves (open, fstat, one read asking one byte more than the file
+    holds, close): each call lets go of the GIL and must take it back, which costs up to a switch interval (5 ms)
+    while the detection stage's import holds it, so a slice is read with as few as it takes."""
     try:
-        with path.open("rb", buffering=0) as stream:
-            size = os.fstat(stream.fileno()).st_size
-            buffer = getattr(_buffers, "buffer", None)
-            if buffer is None or len(buffer) < size:
-                buffer = _buffers.buffer = bytearray(max(size, 1 << 20))
-            view = memoryview(buffer)[:size]
-            filled = 0
-            while filled < size:
-                count = stream.readinto(view[filled:])
-                if not count:
-                    break
-                filled += count
-            if stream.read(1):
-                raise EMRegError(f"{path}: the file grew while it was read")
+        descriptor = os.open(path, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
     except OSError as exc:
         raise EMRegError(f"{path}: cannot read ({exc.strerror})") from None
+    try:
+        size = os.fstat(descriptor).st_size
+        buffer = getattr(_buffers, "buffer", None)
+        if buffer is None or len(buffer) <= size:
+            buffer = _buffers.buffer = bytearray(max(size + 1, 1 << 20))
+        view = memoryview(buffer)[:size + 1]
+        filled = 0
+        while filled <= size:
+            count = os.readv(descriptor, [view[filled:]])
+            if not count:
+                break  # the end, before the size fstat gave
+            filled += count
+            if filled == size:
+                break  # all of it: a read asked for one byte more stops short only at a regular file's end
+        if filled > size:
+            raise EMRegError(f"{path}: the file grew while it was read")
+    except OSError as exc:
+        raise EMRegError(f"{path}: cannot read ({exc.strerror})") from None
+    finally:
+        os.close(descriptor)
     view = view[:filled]
     return view, hashlib.sha256(view).digest() if hashed else None
 
@@ -432,11 +443,14 @@ def _decode_series(series: DicomSeries, handle: CTHandle, pixel_type: int, worke
             tasks = _slice_tasks(series.headers)
             futures = [pool.submit(decode, start, stop) for start, stop in tasks]
             try:
-                for (_, stop), future in zip(tasks, futures, strict=True):
+                for k, ((_, stop), future) in enumerate(zip(tasks, futures, strict=True)):
                     future.result()
                     if handle.cancelled:
                         raise EMRegError(f"{series.headers[0].path.parent}: reading the CT was cancelled")
-                    handle.announce(stop)
+                    if k + 1 == len(futures) or not futures[k + 1].done():
+                        # the slices in order so far, told once before waiting for the next: a reader waiting
+                        # for slices is woken (and takes the GIL) once per run of them, not once per slice
+                        handle.announce(stop)
             except BaseException:
                 for future in futures:
                     future.cancel()
