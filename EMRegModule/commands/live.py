@@ -22,12 +22,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import EMRegError
-from ..live.igtl_server import DEFAULT_PORT
-from ..live.link_quality import HoldBack, guard_for
-from ..live.port_check import SensorPortsError
-from ..live.trakstar import protocol as tp
-from ..names import CHECKPOINTS_JSON, NAVIGATION_CSV, REGISTRATION_JSON
+from ..names import CHECKPOINTS_JSON, DEFAULT_IGTL_PORT, DEFAULT_TRAKSTAR_BAUD, NAVIGATION_CSV, REGISTRATION_JSON
 from .args import AddCommand, sensor_ports
+
+# The tracker and OpenIGTLink modules (pyigtl, the trakSTAR protocol, the link guard) are imported by the commands
+# that run them: every command builds this module's parsers, ``emreg detect`` among them.
 
 if TYPE_CHECKING:
     from ..registration import RegistrationResult
@@ -201,7 +200,8 @@ def add_sim_tracker_arguments(parser: argparse.ArgumentParser) -> None:
                              "scikit-surgerynditracker use TX)")
     parser.add_argument("--replay", metavar="FILE.csv", help="replay this tracking recording (default: built-in scene)")
     parser.add_argument("--fast", action="store_true", help="STREAM as fast as the baud rate allows")
-    parser.add_argument("--baud", type=int, default=tp.DEFAULT_BAUD, help="line speed to emulate (default 115200)")
+    parser.add_argument("--baud", type=int, default=DEFAULT_TRAKSTAR_BAUD,
+                        help=f"line speed to emulate (default {DEFAULT_TRAKSTAR_BAUD})")
     parser.add_argument("--link", metavar="PATH", help="also make PATH a symbolic link to the pty (like socat's link)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the scene and of the faults")
     parser.add_argument("--fault", action="append", default=[], metavar="KIND=VALUE",
@@ -341,6 +341,7 @@ def add_record_arguments(parser: argparse.ArgumentParser) -> None:
 def run_record(args: argparse.Namespace) -> int:
     check_live_options(args)
     from ..io.sequence_metafile import is_sequence_file
+    from ..live.link_quality import HoldBack, guard_for
     from ..live.sources import open_source
     from ..live.writers import RecordingWriter, SequenceRecordingWriter
 
@@ -444,8 +445,8 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", required=True, metavar="URL",
                         help="trakstar:///dev/ttyUSB0?baud=115200, aurora:///dev/ttyUSB0, igtl://HOST:PORT or "
                              "replay:FILE.csv")
-    parser.add_argument("--igtl-port", type=int, default=DEFAULT_PORT, metavar="PORT",
-                        help=f"OpenIGTLink port (default {DEFAULT_PORT})")
+    parser.add_argument("--igtl-port", type=int, default=DEFAULT_IGTL_PORT, metavar="PORT",
+                        help=f"OpenIGTLink port (default {DEFAULT_IGTL_PORT})")
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     parser.add_argument("--reference-sensor", type=int, default=None, metavar="PORT")
     parser.add_argument("--probe-sensor", type=int, default=None, metavar="PORT")
@@ -457,6 +458,7 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
 def run_serve(args: argparse.Namespace) -> int:
     check_live_options(args)
     from ..live.igtl_server import IGTLServer
+    from ..live.link_quality import guard_for
     from ..live.navigator import TrackerPublisher
     from ..live.sources import open_source
 
@@ -510,7 +512,9 @@ def run_live_navigate(args: argparse.Namespace) -> int:
     """Live navigation: samples from ``--source`` -> ``ProbeToImage`` on ``--igtl-port`` and/or
     ``OUT/navigation.csv``."""
     from ..live.igtl_server import IGTLServer
+    from ..live.link_quality import guard_for
     from ..live.navigator import LiveNavigator
+    from ..live.port_check import SensorPortsError
     from ..live.sources import open_source
     from ..live.writers import NavigationWriter
 
@@ -602,6 +606,8 @@ def _trust_monitor(args: argparse.Namespace, registration: RegistrationResult):
 
 def _tick_or_refuse(navigator) -> None:
     """The watchdog's tick; raises :class:`SensorPortsError` once the port check found swapped ports."""
+    from ..live.port_check import SensorPortsError
+
     navigator.tick()
     if navigator.fatal:
         raise SensorPortsError(navigator.fatal)

@@ -29,9 +29,9 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
-import SimpleITK as sitk
 
 from ..errors import NoSafeAnswerError
 from ..io.ct_checks import check_ct_geometry
@@ -45,6 +45,9 @@ from .pose import fit_pose, model_moments, top_contrast
 from .result import DetectedMarker, DetectionResult, RejectedCandidate
 from .segmentation import Blob, CoarseScan, Region, TooLarge, blobs_in_region, region_around, with_fragments
 from .settings import DetectionSettings, default_settings
+
+if TYPE_CHECKING:  # an image handed over is SimpleITK's (its caller loaded it); a CT handle's voxels need none
+    import SimpleITK as sitk
 
 _Outcome = tuple[np.ndarray, DetectedMarker | RejectedCandidate]
 """A blob's centroid (LPS mm) and what became of it."""
@@ -70,8 +73,12 @@ def detect_markers(ct: CTHandle | sitk.Image | CTGeometry, model: MarkerModel | 
     check_ct_geometry(image)
     if isinstance(ct, CTHandle):
         volume, wait_for_slices = ct.array, ct.wait_for_slices
+    elif voxels is None:
+        import SimpleITK as sitk
+
+        volume = sitk.GetArrayViewFromImage(image)
     else:
-        volume = sitk.GetArrayViewFromImage(image) if voxels is None else voxels
+        volume = voxels
     spacing_zyx = np.asarray(image.GetSpacing(), dtype=float)[::-1]
     index_to_image = index_to_physical_matrix(image)
     outcomes, too_large = _one_pass(volume, spacing_zyx, index_to_image, model, options, progress,

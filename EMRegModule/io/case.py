@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -22,9 +22,9 @@ from ..names import (
     TARGETS_FILE,
 )
 from ..settings import Settings, load_settings
-from ..tracking import TrackingRecording
-from .markups import read_markups
-from .recording import find_recording
+
+if TYPE_CHECKING:  # the recording readers are imported where a recording is read (not by emreg detect)
+    from ..tracking import TrackingRecording
 
 
 @dataclass
@@ -68,6 +68,8 @@ class Case:
 def read_targets(path: str | os.PathLike[str]) -> tuple[list[str], np.ndarray]:
     """The targets (labels, (K, 3) LPS mm) of a markups file; one without any defined point is an
     :class:`EMRegError` naming it (a TRE over no target is no evaluation)."""
+    from .markups import read_markups
+
     labels, positions = read_markups(path)
     if len(positions) == 0:
         raise EMRegError(f"{path}: the targets file holds no target points (no defined control point)")
@@ -105,6 +107,8 @@ def run_ct_path(run: Any, case_dir: str | os.PathLike[str] | None = None) -> str
 def open_case(folder: str | os.PathLike[str], settings: Settings | None = None) -> Case:
     """Discover a case folder's files by the spec's names and read its ``case.toml`` (typed, checked);
     ``settings`` (``--settings FILE``) are used instead, and the case's own ``case.toml`` is then not read."""
+    from .recording import find_recording
+
     folder = Path(folder)
     if not folder.is_dir():
         raise EMRegError(f"{folder}: case folder not found")

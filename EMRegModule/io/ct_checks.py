@@ -24,11 +24,15 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import SimpleITK as sitk
 
 from ..errors import EMRegError
+from . import pixel_types
+
+if TYPE_CHECKING:
+    import SimpleITK as sitk
 
 #: Largest |D^T D - I| entry accepted for the direction cosines D (about 0.006 degrees of shear:
 #: 0.03 mm over a 300 mm field; DICOM direction cosines written with 6 digits stay well inside).
@@ -42,11 +46,8 @@ SPACING_RANGE_MM = (1e-6, 1e4)
 #: Largest |coordinate| (mm) of a CT's origin: a kilometre, where a scanner's are within a metre or two.
 ORIGIN_LIMIT_MM = 1e6
 
-_SCALAR_TYPES = {
-    sitk.sitkInt8, sitk.sitkUInt8, sitk.sitkInt16, sitk.sitkUInt16, sitk.sitkInt32,
-    sitk.sitkUInt32, sitk.sitkInt64, sitk.sitkUInt64, sitk.sitkFloat32, sitk.sitkFloat64,
-}
-_FLOAT_TYPES = {sitk.sitkFloat32, sitk.sitkFloat64}
+_SCALAR_TYPES = pixel_types.SCALAR
+_FLOAT_TYPES = pixel_types.FLOATS
 
 
 def check_ct_path(path: str | os.PathLike[str]) -> None:
@@ -118,6 +119,8 @@ def _check_space_units(path: str | os.PathLike[str]) -> None:
     """Refuse a NRRD whose ``space units`` are not millimetres: SimpleITK (EMReg's reader) and 3D Slicer ignore
     the field and read the numbers as mm, so a CT in cm would come out 10 times too small (its markers not
     found, or found at the wrong size) instead of being said wrong."""
+    if not Path(path).name.lower().endswith((".nrrd", ".nhdr")):
+        return  # no NRRD header (nrrd_header_fields reads none): a DICOM folder, another format
     import re
 
     from .ct_header import nrrd_header_fields
@@ -212,6 +215,8 @@ def check_ct_voxels(image: sitk.Image, source: str | os.PathLike[str] = "CT") ->
     """Refuse a CT holding NaN or +-inf voxels, naming how many (integer images cannot hold any)."""
     if image.GetPixelID() not in _FLOAT_TYPES:
         return
+    import SimpleITK as sitk
+
     counter = NonFiniteCounter()
     counter.add(sitk.GetArrayViewFromImage(image))
     counter.check(source)

@@ -27,15 +27,19 @@ from __future__ import annotations
 
 import ctypes
 import mmap
+import sys
 import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import SimpleITK as sitk
 
 from ..errors import EMRegError
 from ..provenance import Digest
+
+if TYPE_CHECKING:  # a handle of voxels in numpy memory (a DICOM series for emreg detect) needs no SimpleITK
+    import SimpleITK as sitk
 
 #: The getters of a ``SimpleITK.Image`` that a :class:`CTGeometry` answers (and the keys of its JSON form).
 GEOMETRY_GETTERS = ("GetSize", "GetSpacing", "GetOrigin", "GetDirection", "GetPixelID", "GetDimension",
@@ -69,7 +73,8 @@ class CTGeometry:
         another geometry."""
         if isinstance(source, CTGeometry):
             return source
-        if isinstance(source, sitk.ImageFileReader):
+        sitk = sys.modules.get("SimpleITK")  # whoever made ``source`` imported it
+        if sitk is not None and isinstance(source, sitk.ImageFileReader):
             return cls(source.GetSize(), source.GetSpacing(), source.GetOrigin(), source.GetDirection(),
                        source.GetPixelID(), source.GetDimension(), source.GetNumberOfComponents(),
                        sitk.GetPixelIDValueAsString(source.GetPixelID()))
@@ -136,6 +141,8 @@ def writable_bytes(image: sitk.Image) -> np.ndarray:
     SimpleITK only hands out read-only views; the buffer itself is the image's own, so it is
     written through its address. The returned array must not outlive ``image``.
     """
+    import SimpleITK as sitk
+
     view = sitk.GetArrayViewFromImage(image)  # also makes the buffer unique to this image
     address = view.__array_interface__["data"][0]
     return np.frombuffer((ctypes.c_char * view.nbytes).from_address(address), dtype=np.uint8)
@@ -207,9 +214,13 @@ class CTHandle:
                 geometry: CTGeometry | None = None) -> None:
         """The voxels' home, allocated: a SimpleITK ``image`` (``array`` defaults to its voxels) or an ``array``
         (k, j, i) with ``geometry`` (default: the handle's)."""
+        if array is None and image is not None:
+            import SimpleITK as sitk
+
+            array = sitk.GetArrayViewFromImage(image)
         with self._condition:
             self._image = image
-            self._array = sitk.GetArrayViewFromImage(image) if array is None and image is not None else array
+            self._array = array
             if geometry is not None:
                 self._geometry = geometry
             elif image is not None:

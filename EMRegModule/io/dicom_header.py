@@ -10,11 +10,13 @@ reads the file with pydicom; the tests compare both on every transfer syntax the
 
 from __future__ import annotations
 
+import os
 import struct
 from pathlib import Path
 from typing import Any
 
 _HEAD_BYTES = 1 << 16
+_FIRST_BYTES = 1 << 13  # read first: the whole header of the usual slice (its file meta and image tags)
 _PIXEL_DATA = (0x7FE0, 0x0010)
 _LONG_VRS = {b"OB", b"OW", b"OF", b"SQ", b"UT", b"UN", b"UC", b"UR", b"OD", b"OL", b"OV", b"SV", b"UV"}
 _IMPLICIT_LE = "1.2.840.10008.1.2"
@@ -51,11 +53,41 @@ def quick_header(path: Path) -> tuple[str, dict[str, Any]] | None:
     Values are strings (multi-valued ones split at ``\\``, a list) or ints for unsigned shorts, and
     ``values[PIXEL_DATA]`` = (offset of the Pixel Data value, its declared length or None when undefined);
     None also for a file that has a DICOMDIR's records or no Pixel Data within the first 64 KB.
+
+    The first :data:`_FIRST_BYTES` are walked first (a CT slice's header fits in them); only a walk they do not
+    finish is made again over the first 64 KB, with the same result a walk of those would have given at once.
     """
+    # the operating system's calls themselves: each lets go of the GIL and takes it back, which can wait a switch
+    # interval (5 ms) while another thread holds it (the detection stage's import, during a folder scan)
+    descriptor = os.open(path, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
     try:
-        with path.open("rb") as stream:
-            head = stream.read(_HEAD_BYTES)
-            whole = len(head) < _HEAD_BYTES or not stream.read(1)
+        head = _read_up_to(descriptor, _FIRST_BYTES)
+        if len(head) < _FIRST_BYTES:
+            return _parsed(head, whole=True)
+        found = _parsed(head, whole=False)
+        if found is not None:
+            return found
+        head += _read_up_to(descriptor, _HEAD_BYTES - _FIRST_BYTES)
+        whole = len(head) < _HEAD_BYTES or not os.read(descriptor, 1)
+    finally:
+        os.close(descriptor)
+    return _parsed(head, whole)
+
+
+def _read_up_to(descriptor: int, count: int) -> bytes:
+    """``count`` bytes from ``descriptor``, fewer only at the file's end (as a buffered read gives them)."""
+    data = os.read(descriptor, count)
+    while 0 < len(data) < count:
+        more = os.read(descriptor, count - len(data))
+        if not more:
+            break
+        data += more
+    return data
+
+
+def _parsed(head: bytes, whole: bool) -> tuple[str, dict[str, Any]] | None:
+    """:func:`quick_header` of a file's first bytes ``head`` (``whole``: all of the file)."""
+    try:
         if len(head) < 132 or head[128:132] != b"DICM":
             return None
         syntax, position = _meta(head)
@@ -89,37 +121,57 @@ def _explicit_element(head: bytes, position: int) -> tuple[bytes, int]:
     return head[start:start + length], start + length
 
 
+#: The tags of :data:`WANTED`, of Pixel Data and of a DICOMDIR's records as one little-endian 32-bit number each
+#: (group in the low half, element in the high half: how the tag's four bytes read as one unsigned int).
+_WANTED_BY_TAG = {group | element << 16: wanted for (group, element), wanted in WANTED.items()}
+_PIXEL_DATA_TAG = _PIXEL_DATA[0] | _PIXEL_DATA[1] << 16
+_DIRECTORY_RECORDS_TAG = 0x0004 | 0x1220 << 16
+_IMPLICIT_HEAD = struct.Struct("<II")  # tag, value length
+_EXPLICIT_HEAD = struct.Struct("<I2sH")  # tag, VR, 16-bit value length
+_U32 = struct.Struct("<I")
+_U16 = struct.Struct("<H")
+
+
 def _dataset(head: bytes, position: int, implicit: bool, whole: bool) -> dict[str, Any]:
+    """The :data:`WANTED` values of the dataset from ``position`` to Pixel Data (see :func:`quick_header`): one
+    unpack per element header (the walk is most of a folder scan's time)."""
     values: dict[str, Any] = {}
+    size = len(head)
     while True:
-        if position + 8 > len(head):
+        if position + 8 > size:
             if whole:
                 return values  # no pixel data: not an image (the caller says so)
             raise _UnusualError("header longer than the buffer")
-        group, element = struct.unpack_from("<HH", head, position)
-        if (group, element) == _PIXEL_DATA:
-            length, start = _element_length(head, position, implicit)
+        if implicit:
+            tag, length = _IMPLICIT_HEAD.unpack_from(head, position)
+            start = position + 8
+        else:
+            tag, vr, length = _EXPLICIT_HEAD.unpack_from(head, position)
+            if vr in _LONG_VRS:
+                (length,) = _U32.unpack_from(head, position + 8)
+                start = position + 12
+            else:
+                start = position + 8
+        if tag == _PIXEL_DATA_TAG:
             values[PIXEL_DATA] = (start, None if length == _UNDEFINED else length)
             return values
-        if (group, element) == (0x0004, 0x1220):
+        if tag == _DIRECTORY_RECORDS_TAG:
             raise _UnusualError("a DICOMDIR")
-        length, start = _element_length(head, position, implicit)
         if length == _UNDEFINED:
             position = _skip_undefined(head, start, implicit)
             continue
         end = start + length
-        if end > len(head):
+        if end > size:
             raise _UnusualError("element past the buffer")
-        wanted = WANTED.get((group, element))
+        wanted = _WANTED_BY_TAG.get(tag)
         if wanted is not None:
             keyword, kind = wanted
-            raw = head[start:end]
             if kind == "us":
-                if len(raw) != 2:
+                if length != 2:
                     raise _UnusualError(f"{keyword} is not one unsigned short")
-                values[keyword] = struct.unpack("<H", raw)[0]
+                values[keyword] = _U16.unpack_from(head, start)[0]
             else:
-                text = raw.decode("latin-1").rstrip("\0 ").strip()
+                text = head[start:end].decode("latin-1").rstrip("\0 ").strip()
                 parts = [p.strip() for p in text.split("\\")]
                 values[keyword] = parts if len(parts) > 1 else text
         position = end

@@ -22,16 +22,19 @@ import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import SimpleITK as sitk
 
 from ..errors import EMRegError
 from ..provenance import BackgroundHash, Digest, file_sha256, folder_members, folder_sha256
 from .ct_handle import CTGeometry, CTHandle, writable_bytes
 from .dicom_series import DicomSeries, SliceHeader, choose_series, scan_series, series_record
 from .itk_messages import quiet_itk
+from .pixel_types import FLOAT32, INT16, INT32, NAMES, UINT16
+
+if TYPE_CHECKING:  # SimpleITK is imported where an image is made or GDCM decodes: an uncompressed series read
+    import SimpleITK as sitk  # into numpy memory (emreg detect) needs none (its library takes 50 ms of CPU to load)
 
 # The threads that run SimpleITK (the read, the early allocation) are no daemons. A daemon thread still inside
 # SimpleITK (a volume being allocated, a slice decoded) when the interpreter exits, e.g. right after a one-line
@@ -105,6 +108,7 @@ class _EarlyImage:
                 or header.modality.upper() != "CT" or header.rows < 1 or header.columns < 1:
             return
         size, pixel = [header.columns, header.rows, count], self._voxel_type([header])
+        import SimpleITK as sitk
 
         def allocate() -> None:
             self._image = sitk.Image(size, pixel)
@@ -131,6 +135,8 @@ class _EarlyImage:
 def _read_multiframe(series: DicomSeries) -> sitk.Image:
     """A multi-frame file's volume: GDCM's pixels, frames in the order along the normal, the functional groups'
     geometry (:func:`_multiframe_geometry`); GDCM's own image for a file without functional groups."""
+    import SimpleITK as sitk
+
     path = series.headers[0].path
     check_pixel_data_length(series.headers[0], path.stat().st_size)
     if not series.frames:
@@ -196,6 +202,8 @@ def _pixel_bytes_by_pydicom(path: Path, data: bytes | memoryview | None) -> int 
 
 
 def _read_one(path: Path, pixel: int | None = None) -> sitk.Image:
+    import SimpleITK as sitk
+
     reader = sitk.ImageFileReader()
     reader.SetImageIO("GDCMImageIO")
     reader.SetFileName(str(path))
@@ -237,11 +245,11 @@ def voxel_type(headers: list[SliceHeader]) -> int:
     ranges = [_rescaled_range(h) for h in headers]
     low, high = min(r[0] for r in ranges), max(r[1] for r in ranges)
     if all(_integral(h) for h in headers):
-        for dtype, pixel in ((np.int16, sitk.sitkInt16), (np.uint16, sitk.sitkUInt16), (np.int32, sitk.sitkInt32)):
+        for dtype, pixel in ((np.int16, INT16), (np.uint16, UINT16), (np.int32, INT32)):
             info = np.iinfo(dtype)
             if info.min <= low and high <= info.max:
                 return pixel
-    return sitk.sitkFloat32
+    return FLOAT32
 
 
 def compact_voxel_type(headers: list[SliceHeader]) -> int:
@@ -253,8 +261,8 @@ def compact_voxel_type(headers: list[SliceHeader]) -> int:
     checks every slice (:class:`NarrowVoxelsError` when one does not fit).
     """
     exact = voxel_type(headers)
-    if exact == sitk.sitkInt32 and all(h.bits_allocated == 16 for h in headers):
-        return sitk.sitkInt16
+    if exact == INT32 and all(h.bits_allocated == 16 for h in headers):
+        return INT16
     return exact
 
 
@@ -290,24 +298,35 @@ def _direct(header: SliceHeader) -> bool:
 
 def _file_bytes(path: Path, hashed: bool = True) -> tuple[memoryview, bytes | None]:
     """The whole file in this thread's reusable buffer, and its sha256 (one read, no allocation per slice; None
-    unless ``hashed``)."""
+    unless ``hashed``).
+
+    Read with the operating system's calls themselves (open, fstat, one read asking one byte more than the file
+    holds, close): each call lets go of the GIL and must take it back, which costs up to a switch interval (5 ms)
+    while the detection stage's import holds it, so a slice is read with as few as it takes."""
     try:
-        with path.open("rb", buffering=0) as stream:
-            size = os.fstat(stream.fileno()).st_size
-            buffer = getattr(_buffers, "buffer", None)
-            if buffer is None or len(buffer) < size:
-                buffer = _buffers.buffer = bytearray(max(size, 1 << 20))
-            view = memoryview(buffer)[:size]
-            filled = 0
-            while filled < size:
-                count = stream.readinto(view[filled:])
-                if not count:
-                    break
-                filled += count
-            if stream.read(1):
-                raise EMRegError(f"{path}: the file grew while it was read")
+        descriptor = os.open(path, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
     except OSError as exc:
         raise EMRegError(f"{path}: cannot read ({exc.strerror})") from None
+    try:
+        size = os.fstat(descriptor).st_size
+        buffer = getattr(_buffers, "buffer", None)
+        if buffer is None or len(buffer) <= size:
+            buffer = _buffers.buffer = bytearray(max(size + 1, 1 << 20))
+        view = memoryview(buffer)[:size + 1]
+        filled = 0
+        while filled <= size:
+            count = os.readv(descriptor, [view[filled:]])
+            if not count:
+                break  # the end, before the size fstat gave
+            filled += count
+            if filled == size:
+                break  # all of it: a read asked for one byte more stops short only at a regular file's end
+        if filled > size:
+            raise EMRegError(f"{path}: the file grew while it was read")
+    except OSError as exc:
+        raise EMRegError(f"{path}: cannot read ({exc.strerror})") from None
+    finally:
+        os.close(descriptor)
     view = view[:filled]
     return view, hashlib.sha256(view).digest() if hashed else None
 
@@ -370,20 +389,18 @@ def _slice_tasks(headers: list[SliceHeader]) -> list[tuple[int, int]]:
     return tasks
 
 
-_NUMPY_TYPES = {sitk.sitkInt16: np.dtype(np.int16), sitk.sitkUInt16: np.dtype(np.uint16),
-                sitk.sitkInt32: np.dtype(np.int32)}
+_NUMPY_TYPES = {INT16: np.dtype(np.int16), UINT16: np.dtype(np.uint16), INT32: np.dtype(np.int32)}
 """The integer voxel types :func:`voxel_type` chooses, as numpy's (float32 voxels always go into a SimpleITK image,
 whose values ``check_ct_image`` checks)."""
 
 
 def _series_geometry(series: DicomSeries, pixel_type: int) -> CTGeometry:
-    """The geometry of ``series``' volume of ``pixel_type`` voxels, as the image SimpleITK would hold them gives it
-    (its getters' very values), without the image."""
-    probe = sitk.Image([1, 1, 1], pixel_type)
-    probe.SetSpacing(series.spacing)
-    probe.SetOrigin(series.origin)
-    probe.SetDirection(series.direction)
-    return CTGeometry.of(probe).with_size(series.size)
+    """The geometry of ``series``' volume of ``pixel_type`` voxels as the image SimpleITK would hold them gives it,
+    without the image (nor SimpleITK): ITK keeps the spacing, origin and direction it is given, number for number
+    (the tests compare both)."""
+    return CTGeometry(tuple(int(n) for n in series.size), tuple(float(v) for v in series.spacing),
+                      tuple(float(v) for v in series.origin), tuple(float(v) for v in series.direction), pixel_type,
+                      3, 1, NAMES[pixel_type])
 
 
 def _decode_series(series: DicomSeries, handle: CTHandle, pixel_type: int, workers: int, folder: Path,
@@ -426,11 +443,14 @@ def _decode_series(series: DicomSeries, handle: CTHandle, pixel_type: int, worke
             tasks = _slice_tasks(series.headers)
             futures = [pool.submit(decode, start, stop) for start, stop in tasks]
             try:
-                for (_, stop), future in zip(tasks, futures, strict=True):
+                for k, ((_, stop), future) in enumerate(zip(tasks, futures, strict=True)):
                     future.result()
                     if handle.cancelled:
                         raise EMRegError(f"{series.headers[0].path.parent}: reading the CT was cancelled")
-                    handle.announce(stop)
+                    if k + 1 == len(futures) or not futures[k + 1].done():
+                        # the slices in order so far, told once before waiting for the next: a reader waiting
+                        # for slices is woken (and takes the GIL) once per run of them, not once per slice
+                        handle.announce(stop)
             except BaseException:
                 for future in futures:
                     future.cancel()
@@ -448,6 +468,8 @@ def _decode_series(series: DicomSeries, handle: CTHandle, pixel_type: int, worke
 def _allocate(series: DicomSeries, handle: CTHandle, pixel_type: int, early: _EarlyImage | None) -> np.ndarray:
     """The SimpleITK image of ``series``' volume (the ``early`` one if it fits), provided to ``handle``; its
     voxels (k, j, i) as a writable array."""
+    import SimpleITK as sitk
+
     image = early.take(series) if early is not None else None  # allocated while the headers were read
     if image is None:
         image = sitk.Image(list(series.size), pixel_type)
@@ -476,6 +498,8 @@ def _hash_while_allocating(headers: list[SliceHeader], early: _EarlyImage, pool:
 def _decode_gdcm(headers: list[SliceHeader], out: np.ndarray, expected: tuple[int, int], pixel: int) -> None:
     """Decode consecutive slices with GDCM as ``pixel`` into ``out`` (one ImageSeriesReader call; file by file on
     an error, to name the file); :class:`NarrowVoxelsError` when a slice's values do not fit ``out``'s type."""
+    import SimpleITK as sitk
+
     if len(headers) > 1:
         reader = sitk.ImageSeriesReader()
         reader.SetImageIO("GDCMImageIO")

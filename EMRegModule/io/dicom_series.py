@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import SimpleITK as sitk
 
 from ..errors import EMRegError
 from .dicom_header import PIXEL_DATA, quick_header
@@ -443,6 +442,8 @@ def _multiframe_geometry(series: DicomSeries) -> str | None:
     cannot read, or whose frames rescale differently (GDCM applies one rescale to all), is refused.
     A multi-frame file without functional groups takes GDCM's geometry.
     """
+    import SimpleITK as sitk
+
     header = series.headers[0]
     path = header.path
     reader = sitk.ImageFileReader()

@@ -8,18 +8,18 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import SimpleITK as sitk
 
 from ..errors import EMRegError
 from ..provenance import BackgroundHash, note_read_digest
 from .ct_checks import check_ct_file, check_ct_geometry, check_ct_path, check_ct_voxels, check_file_placement
 from .ct_handle import CTHandle
-from .ct_header import check_data_length
-from .fast_read import start_fast_read
 from .itk_messages import quiet_itk, read_failure
+
+if TYPE_CHECKING:  # SimpleITK is imported where an image is read or written: a DICOM series read into numpy
+    import SimpleITK as sitk  # memory (emreg detect) needs none (its library takes 50 ms of CPU to load)
 
 
 def read_ct(path: str | os.PathLike[str], series: str | int | None = None) -> sitk.Image:
@@ -56,6 +56,9 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compa
 
             fill, _ = open_dicom_series(path, series, compact=compact, voxels_only=voxels_only)
         else:
+            from .ct_header import check_data_length  # the file readers (ISA-L): not for a DICOM folder
+            from .fast_read import start_fast_read
+
             if path.stat().st_size == 0:
                 raise EMRegError(f"{path}: CT file is empty")
             check_ct_file(path)  # e.g. a damaged NIfTI magic, which ITK would read as Analyze (geometry lost)
@@ -84,6 +87,8 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compa
 
 def _read_with_simpleitk(path: Path) -> sitk.Image:
     """``sitk.ReadImage``, ITK's own printing silenced; a failure is one line with the reason the reader gave."""
+    import SimpleITK as sitk
+
     failure = None
     with quiet_itk(capture=True) as printed:
         try:
@@ -115,6 +120,8 @@ def index_to_physical_matrix(image: sitk.Image) -> np.ndarray:
 
 def write_image(image: sitk.Image, path: str | os.PathLike[str], compress: bool = True) -> None:
     """Write an image atomically (format by extension)."""
+    import SimpleITK as sitk
+
     from .atomic import atomic_path, itk_write_errors
 
     with atomic_path(path) as tmp, itk_write_errors():

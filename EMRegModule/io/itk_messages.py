@@ -25,8 +25,6 @@ import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
-import SimpleITK as sitk
-
 _lock = threading.RLock()  # one capture of fd 2 at a time (a second one waits: captures are short)
 _users = 0  # readers inside quiet_itk: ITK's warning display is restored when the last one leaves
 _users_lock = threading.Lock()
@@ -48,6 +46,8 @@ class Captured:
 def quiet_itk(capture: bool = False) -> Iterator[Captured]:
     """Silence ITK's warnings (and, with ``capture``, C-level standard error) for the block; see the module."""
     global _users, _display_before
+    import SimpleITK as sitk  # what is quieted is SimpleITK's reading: it is loaded by then
+
     with _users_lock:
         if _users == 0:
             _display_before = bool(sitk.ProcessObject.GetGlobalWarningDisplay())

@@ -47,10 +47,11 @@ import numpy as np
 from pyigtl.messages import MessageBase, TransformMessage
 
 from ..errors import EMRegError
+from ..names import DEFAULT_IGTL_PORT
 from .igtl_status import StatusMessage
 from .tcp_backlog import PeerBacklog, unsent_or_unacked_bytes
 
-DEFAULT_PORT = 18944
+DEFAULT_PORT = DEFAULT_IGTL_PORT
 #: ``TransformStatus`` of a valid pose (PLUS's tool status names: ``OK``, ``INVALID``, ``MISSING`` ...).
 TRANSFORM_OK = "OK"
 TRANSFORM_INVALID = "INVALID"

@@ -292,8 +292,9 @@ def test_emreg_detect_decodes_the_series_into_fresh_memory_with_the_same_markers
     assert fill.result() is None  # no SimpleITK image holds the voxels
     geometry = fill.geometry
     np.testing.assert_array_equal(fill.voxels, _voxels(image))
-    for getter in ("GetSize", "GetSpacing", "GetOrigin", "GetDirection", "GetPixelID"):
-        assert getattr(geometry, getter)() == getattr(image, getter)()
+    for getter in ("GetSize", "GetSpacing", "GetOrigin", "GetDirection", "GetPixelID", "GetPixelIDTypeAsString",
+                   "GetDimension", "GetNumberOfComponentsPerPixel"):
+        assert getattr(geometry, getter)() == getattr(image, getter)()  # SimpleITK's numbers, without SimpleITK
     filled = []
     writable = dicom_read.writable_bytes
     monkeypatch.setattr(dicom_read, "writable_bytes", lambda image: filled.append(image) or writable(image))
@@ -304,6 +305,24 @@ def test_emreg_detect_decodes_the_series_into_fresh_memory_with_the_same_markers
     for document in documents:
         document.pop("provenance", None)
     assert documents[0] == documents[1] and documents[0]["markers"]
+
+
+def test_emreg_detect_on_an_uncompressed_series_does_not_load_simpleitk(hard_case, tmp_path):
+    """Nothing of an uncompressed series' read into fresh memory, nor detection on it, needs SimpleITK: its 270 MB
+    library (50 ms of CPU to load, before the first slice is decoded) stays unloaded, and the markers are the ones
+    of a read through it (above)."""
+    import os
+    import subprocess
+    import sys
+
+    script = ("import sys\n"
+              "from EMRegModule.cli import main\n"
+              f"code = main(['detect', {str(hard_case / 'ct')!r}, '--out', {str(tmp_path)!r}, '--quiet'])\n"
+              "print(code, 'SimpleITK' in sys.modules)\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
+                            env=dict(os.environ))
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split()[-2:] == ["0", "False"]
 
 
 @pytest.mark.skipif(bool(tools_available()), reason=f"DICOM tools missing: {tools_available()} (scripts/setup)")

@@ -249,3 +249,15 @@ def test_atomic_files_get_the_usual_permissions(tmp_path):
     mask = os.umask(0)
     os.umask(mask)
     assert (tmp_path / "a.json").stat().st_mode & 0o777 == 0o666 & ~mask
+
+
+def test_pixel_types_are_simpleitks_own():
+    """EMReg names SimpleITK's voxel types without loading SimpleITK where it needs no image (io.pixel_types):
+    the same values and names as SimpleITK's."""
+    from EMRegModule.io import pixel_types
+
+    for name in ("Int8", "UInt8", "Int16", "UInt16", "Int32", "UInt32", "Int64", "UInt64", "Float32", "Float64"):
+        value = getattr(pixel_types, name.upper())
+        assert value == getattr(sitk, f"sitk{name}")
+        assert pixel_types.NAMES[value] == sitk.GetPixelIDValueAsString(value)
+    assert pixel_types.FLOATS == {sitk.sitkFloat32, sitk.sitkFloat64}

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ...names import DEFAULT_TRAKSTAR_BAUD
 from ...transforms import angles_to_rotation, quaternion_to_rotation, rotation_to_angles, rotation_to_quaternion
 
 # --- serial line -------------------------------------------------------------------------------
@@ -37,7 +38,7 @@ from ...transforms import angles_to_rotation, quaternion_to_rotation, rotation_t
 #: Baud rates the trakSTAR RS-232 port supports ([TSG] rear-panel dip switches; [FOB] 2400..115200).
 BAUD_RATES = (2400, 4800, 9600, 19200, 38400, 57600, 115200)
 #: Default line speed used by EMReg (the fastest; [TSG] factory setting is also 115200 (choice)).
-DEFAULT_BAUD = 115200
+DEFAULT_BAUD = DEFAULT_TRAKSTAR_BAUD
 #: 8 data bits, no parity, 1 stop bit, no handshake ([FOB] "RS232 interface"; [IGSTK] opens 8N1):
 #: one start + 8 data + one stop bit = 10 bit times on the line per byte.
 BITS_PER_BYTE = 10
