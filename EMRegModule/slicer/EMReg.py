@@ -200,9 +200,10 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self.logic.stopLiveNavigation()
 
     def onSceneStartClose(self, caller, event):
-        if self.logic is not None:
-            self.logic.forgetNodes()
-        self.updateGUIFromLogic()
+        logic = getattr(self, "logic", None)  # gone too while the panel is torn down with the scene it observes
+        if logic is not None:
+            logic.forgetNodes()
+            self.updateGUIFromLogic()
 
     # --- buttons: each one calls the Logic and refreshes the panel ---------------------------------
 

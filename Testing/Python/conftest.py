@@ -156,3 +156,24 @@ def standard_run(standard_case: Path, tmp_path_factory: pytest.TempPathFactory) 
     """``emreg run`` of the standard case, made once for the modules that read its outputs (read only)."""
     folder = _made_once(tmp_path_factory, "standard_run", _standard_run(standard_case))
     return StandardRun(folder / "out", (folder / "stdout.txt").read_text(encoding="utf-8"))
+
+
+@pytest.fixture
+def slicer_app(monkeypatch):
+    """Slicer's MRML plus stand-ins for its Qt parts (for the Module and the Widget): ``test_slicer_module``'s
+    ``SlicerHarness``, closed after the test (its panels stop observing the scene, as Slicer's ``cleanup`` does)."""
+    from test_slicer_module import SlicerHarness
+
+    harness = SlicerHarness(monkeypatch, application=True)
+    yield harness
+    harness.close()
+
+
+@pytest.fixture
+def slicer_core(monkeypatch):
+    """Slicer's MRML only, as the slicer-core wheel gives it: no Qt, no ScriptedLoadableModule (closed after)."""
+    from test_slicer_module import SlicerHarness
+
+    harness = SlicerHarness(monkeypatch, application=False)
+    yield harness
+    harness.close()

@@ -499,12 +499,10 @@ def test_tool_tip_calibration_points_are_fitted_as_they_are():
 # --- 3D Slicer: fiducials from a markups node -------------------------------------------------------------
 
 
-def test_slicer_logic_registers_onto_a_markups_node(small_case, landmarks, tmp_path, monkeypatch):
+def test_slicer_logic_registers_onto_a_markups_node(small_case, landmarks, tmp_path, slicer_core):
     """A fiducial case opened in the Slicer module's Logic (no CT), registered onto a markups node of the scene
     (world RAS) instead of its fiducials.mrk.json: the point fit, shown as the fiducials node, at the truth."""
-    from test_slicer_module import SlicerHarness
-
-    harness = SlicerHarness(monkeypatch, application=False)
+    harness = slicer_core
     module = harness.load_module()
     labels, positions, truth = landmarks
     case = tmp_path / "case"
@@ -533,12 +531,10 @@ def test_slicer_logic_registers_onto_a_markups_node(small_case, landmarks, tmp_p
     assert shown is not None and shown.GetNumberOfControlPoints() == len(labels)
 
 
-def test_slicer_panel_uses_the_markups_node_chosen_in_its_selector(small_case, landmarks, tmp_path, monkeypatch):
+def test_slicer_panel_uses_the_markups_node_chosen_in_its_selector(small_case, landmarks, tmp_path, slicer_app):
     """The panel's fiducials row: nothing chosen is a shown error; a chosen point list of the scene becomes the
     registration's fiducials (the Logic's setFiducialsFromMarkupsNode)."""
-    from test_slicer_module import SlicerHarness
-
-    harness = SlicerHarness(monkeypatch, application=True)
+    harness = slicer_app
     module = harness.load_module()
     widget = module.EMRegWidget(parent=types.SimpleNamespace())
     widget.setup()

@@ -284,12 +284,15 @@ class FakeScriptedLoadableModule:
 
 
 class FakeScriptedLoadableModuleWidget:
-    """Stand-in for Slicer's widget base (a Qt layout)."""
+    """Stand-in for Slicer's widget base (a Qt layout). ``made``: the panels made, for :meth:`SlicerHarness.close`."""
+
+    made: list = []
 
     def __init__(self, parent=None) -> None:
         self.moduleName = type(self).__name__[: -len("Widget")]
         self.parent = parent or types.SimpleNamespace()
         self.layout = FakeLayout()
+        FakeScriptedLoadableModuleWidget.made.append(self)
 
     def setup(self) -> None:
         pass
@@ -351,24 +354,21 @@ class SlicerHarness:
             self.errors.append(f"{message} {exc}")
             raise
 
+    def close(self) -> None:
+        """What Slicer does when it closes: every panel made stops observing the scene (``cleanup``). Else the
+        scene, collected later with the panel it is in a cycle with, calls the panel's handler while the collector
+        takes the panel apart, in whatever test runs then (an AttributeError traceback on its stderr)."""
+        for panel in FakeScriptedLoadableModuleWidget.made:
+            if hasattr(panel, "cleanup"):
+                panel.cleanup()
+        FakeScriptedLoadableModuleWidget.made.clear()
+
     def load_module(self):
         spec = importlib.util.spec_from_file_location("EMReg", MODULE_FILE)
         module = importlib.util.module_from_spec(spec)
         self.monkeypatch.setitem(sys.modules, "EMReg", module)
         spec.loader.exec_module(module)
         return module
-
-
-@pytest.fixture
-def slicer_app(monkeypatch):
-    """Slicer's MRML plus stand-ins for its Qt parts (for the Module and the Widget)."""
-    return SlicerHarness(monkeypatch, application=True)
-
-
-@pytest.fixture
-def slicer_core(monkeypatch):
-    """Slicer's MRML only, as the slicer-core wheel gives it: no Qt, no ScriptedLoadableModule."""
-    return SlicerHarness(monkeypatch, application=False)
 
 
 def _world_points(node) -> np.ndarray:
