@@ -18,6 +18,7 @@ import SimpleITK as sitk
 
 from ..errors import EMRegError
 from .itk_messages import quiet_itk
+from .pixel_types import NUMPY_NAMES
 
 try:  # a declared dependency; without it a gzip-compressed NIfTI's layout is not read here (SimpleITK reads it)
     from isal import igzip_lib
@@ -44,11 +45,6 @@ _MET_TYPES = {
 }
 _NIFTI_TYPES = {2: "uint8", 4: "int16", 8: "int32", 16: "float32", 64: "float64", 256: "int8", 512: "uint16",
                 768: "uint32"}
-#: SimpleITK's pixel type of each numpy voxel type the readers here take.
-SITK_PIXEL_TYPES = {
-    "int8": sitk.sitkInt8, "uint8": sitk.sitkUInt8, "int16": sitk.sitkInt16, "uint16": sitk.sitkUInt16,
-    "int32": sitk.sitkInt32, "uint32": sitk.sitkUInt32, "float32": sitk.sitkFloat32, "float64": sitk.sitkFloat64,
-}
 
 
 @dataclass
@@ -251,7 +247,7 @@ def check_data_length(path: Path) -> None:
             info.ReadImageInformation()
     except RuntimeError:
         return  # SimpleITK's full read reports the problem
-    dtype_name = next((k for k, v in SITK_PIXEL_TYPES.items() if v == info.GetPixelID()), None)
+    dtype_name = NUMPY_NAMES.get(info.GetPixelID())
     if dtype_name is None:
         return
     expected = int(np.prod(info.GetSize(), dtype=np.int64)) * info.GetNumberOfComponents() \

@@ -31,7 +31,7 @@ from ..provenance import BackgroundHash, Digest, file_sha256, folder_members, fo
 from .ct_handle import CTGeometry, CTHandle, writable_bytes
 from .dicom_series import DicomSeries, SliceHeader, choose_series, scan_series, series_record
 from .itk_messages import quiet_itk
-from .pixel_types import FLOAT32, INT16, INT32, NAMES, UINT16
+from .pixel_types import FLOAT32, FLOATS, INT16, INT32, NAMES, NUMPY_NAMES, UINT16
 
 if TYPE_CHECKING:  # SimpleITK is imported where an image is made or GDCM decodes: an uncompressed series read
     import SimpleITK as sitk  # into numpy memory (emreg detect) needs none (its library takes 50 ms of CPU to load)
@@ -75,8 +75,9 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
         handle.sha256 = digest
     else:
         pixel_type = (compact_voxel_type if compact else voxel_type)(chosen.headers)
-        if voxels_only and pixel_type in _NUMPY_TYPES:
-            handle = CTHandle.in_anonymous_memory(_series_geometry(chosen, pixel_type), _NUMPY_TYPES[pixel_type])
+        if voxels_only and pixel_type not in FLOATS:  # float32 voxels go into an image, which check_ct_image checks
+            handle = CTHandle.in_anonymous_memory(_series_geometry(chosen, pixel_type),
+                                                  np.dtype(NUMPY_NAMES[pixel_type]))
         else:
             handle = CTHandle(len(chosen.headers))
         handle.sha256 = Digest()
@@ -245,8 +246,8 @@ def voxel_type(headers: list[SliceHeader]) -> int:
     ranges = [_rescaled_range(h) for h in headers]
     low, high = min(r[0] for r in ranges), max(r[1] for r in ranges)
     if all(_integral(h) for h in headers):
-        for dtype, pixel in ((np.int16, INT16), (np.uint16, UINT16), (np.int32, INT32)):
-            info = np.iinfo(dtype)
+        for pixel in (INT16, UINT16, INT32):
+            info = np.iinfo(NUMPY_NAMES[pixel])
             if info.min <= low and high <= info.max:
                 return pixel
     return FLOAT32
@@ -387,11 +388,6 @@ def _slice_tasks(headers: list[SliceHeader]) -> list[tuple[int, int]]:
         tasks.append((k, stop))
         k = stop
     return tasks
-
-
-_NUMPY_TYPES = {INT16: np.dtype(np.int16), UINT16: np.dtype(np.uint16), INT32: np.dtype(np.int32)}
-"""The integer voxel types :func:`voxel_type` chooses, as numpy's (float32 voxels always go into a SimpleITK image,
-whose values ``check_ct_image`` checks)."""
 
 
 def _series_geometry(series: DicomSeries, pixel_type: int) -> CTGeometry:

@@ -34,8 +34,9 @@ from ..errors import EMRegError
 from ..provenance import Digest
 from .ct_checks import NonFiniteCounter
 from .ct_handle import CancelledReadError, CTGeometry, CTHandle, writable_bytes
-from .ct_header import FILE_KINDS, SITK_PIXEL_TYPES, VoxelStorage, read_storage
+from .ct_header import FILE_KINDS, VoxelStorage, read_storage
 from .itk_messages import quiet_itk
+from .pixel_types import BY_NUMPY_NAME
 
 try:  # a declared dependency; without it SimpleITK reads the file (slower, same result)
     from isal import igzip_lib
@@ -67,7 +68,7 @@ def plain_storage(path: Path, kinds: tuple[str, ...] | None = None
             storage = read_storage(kind, stream)
     except (RuntimeError, OSError):
         return None
-    if storage is None or SITK_PIXEL_TYPES.get(storage.dtype.newbyteorder("=").name) != info.GetPixelID():
+    if storage is None or BY_NUMPY_NAME.get(storage.dtype.newbyteorder("=").name) != info.GetPixelID():
         return None
     return info, storage
 

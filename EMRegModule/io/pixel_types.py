@@ -19,3 +19,9 @@ NAMES = {INT8: "8-bit signed integer", UINT8: "8-bit unsigned integer", INT16: "
 #: The scalar types (one component per voxel).
 SCALAR = frozenset(NAMES)
 FLOATS = frozenset({FLOAT32, FLOAT64})
+
+#: The numpy voxel type (its name) of each type EMReg's own readers fill (the file layouts of :mod:`.ct_header`, the
+#: DICOM slices numpy decodes), and each of those names' SimpleITK type.
+NUMPY_NAMES = {INT8: "int8", UINT8: "uint8", INT16: "int16", UINT16: "uint16", INT32: "int32", UINT32: "uint32",
+               FLOAT32: "float32", FLOAT64: "float64"}
+BY_NUMPY_NAME = {name: value for value, name in NUMPY_NAMES.items()}

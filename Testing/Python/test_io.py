@@ -261,3 +261,6 @@ def test_pixel_types_are_simpleitks_own():
         assert value == getattr(sitk, f"sitk{name}")
         assert pixel_types.NAMES[value] == sitk.GetPixelIDValueAsString(value)
     assert pixel_types.FLOATS == {sitk.sitkFloat32, sitk.sitkFloat64}
+    for value, name in pixel_types.NUMPY_NAMES.items():  # the numpy type an image of each type holds
+        assert sitk.GetImageFromArray(np.zeros((2, 2, 2), dtype=name)).GetPixelID() == value
+        assert pixel_types.BY_NUMPY_NAME[name] == value
