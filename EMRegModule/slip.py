@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from .transforms import apply_transform, invert_rigid
+from .transforms import apply_transform, invert_rigid, quaternion_to_rotation, rotation_to_quaternion
 
 #: Chance that the checkpoint after a jump of a frame bumped as a whole fails by the slip test (the rate of the
 #: one-sided test along the slip's predicted error).
@@ -54,13 +54,10 @@ CONFIRMED, OPEN, RULED_OUT, NEITHER = "confirmed", "open", "ruled_out", "neither
 def robust_pose(position_mm: np.ndarray, rotation: np.ndarray) -> np.ndarray:
     """One pose (4x4) for samples of a still sensor: the median position (mm) and the normalised componentwise
     median of the quaternions (signs aligned with the first), so a wild sample does not move it."""
-    from scipy.spatial.transform import Rotation
-
-    quaternions = Rotation.from_matrix(np.asarray(rotation, dtype=float).reshape(-1, 3, 3)).as_quat()
+    quaternions = rotation_to_quaternion(np.asarray(rotation, dtype=float).reshape(-1, 3, 3))
     quaternions *= np.where(quaternions @ quaternions[0] < 0, -1.0, 1.0)[:, None]
-    median = np.median(quaternions, axis=0)
     pose = np.eye(4)
-    pose[:3, :3] = Rotation.from_quat(median / np.linalg.norm(median)).as_matrix()
+    pose[:3, :3] = quaternion_to_rotation(np.median(quaternions, axis=0))  # normalised there
     pose[:3, 3] = np.median(np.asarray(position_mm, dtype=float).reshape(-1, 3), axis=0)
     return pose
 
