@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from .checkpoints import POSE_INVALID
 from .dwell import Dwell, describe_still_periods, find_dwells, group_by_place, robust_mean
 from .error_model import ErrorBudget, ErrorModel, optimism_limit, repeated_dwell_ms, satterthwaite_dof
 from .errors import EMRegError, NoSafeAnswerError
@@ -469,7 +470,7 @@ def valid_poses(navigation: NavigationResult, recording: TrackingRecording, pose
     position = navigation.position_mm
     if pose_status is None:
         return position, None, 0
-    invalid = np.asarray(pose_status(navigation, recording)) == "INVALID"
+    invalid = np.asarray(pose_status(navigation, recording)) == POSE_INVALID
     if not invalid.any():
         return position, invalid, 0
     every = find_dwells(navigation.time_s, position, navigation.label, navigation.quality, settings,

@@ -53,8 +53,6 @@ from .sensor_offset import OffsetSolution, solve_sensor_offset
 from .settings import RegistrationSettings, Settings
 from .transforms import apply_rotation, apply_transform, check_rigid, invert_rigid, residuals
 
-#: Name of the ITK transform file written beside ``registration.json``.
-
 #: Median of a chi-squared variable with 3 degrees of freedom (robust RMS of 3D residuals).
 _CHI2_3_MEDIAN = 2.3660
 

@@ -51,7 +51,6 @@ from ..names import DEFAULT_IGTL_PORT
 from .igtl_status import StatusMessage
 from .tcp_backlog import PeerBacklog, unsent_or_unacked_bytes
 
-DEFAULT_PORT = DEFAULT_IGTL_PORT
 #: ``TransformStatus`` of a valid pose (PLUS's tool status names: ``OK``, ``INVALID``, ``MISSING`` ...).
 TRANSFORM_OK = "OK"
 TRANSFORM_INVALID = "INVALID"
@@ -124,7 +123,7 @@ class _Client:
 class IGTLServer:
     """OpenIGTLink TCP server: ``send(message)`` to every connected client."""
 
-    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, max_pending_bytes: int = 1 << 20,
+    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_IGTL_PORT, max_pending_bytes: int = 1 << 20,
                  stale_after_s: float | None = None, send_buffer_bytes: int | None = None,
                  hold_after_s: float | None = None, notsent_lowat: int | None = NOTSENT_LOWAT,
                  log: TextIO | None = None) -> None:
