@@ -606,10 +606,10 @@ def _trust_monitor(args: argparse.Namespace, registration: RegistrationResult):
 
 def _tick_or_refuse(navigator) -> None:
     """The watchdog's tick; raises :class:`SensorPortsError` once the port check found swapped ports."""
-    from ..live.port_check import SensorPortsError
-
     navigator.tick()
     if navigator.fatal:
+        from ..live.port_check import SensorPortsError
+
         raise SensorPortsError(navigator.fatal)
 
 
