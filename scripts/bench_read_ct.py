@@ -14,8 +14,9 @@ made in the same pass) against ``SimpleITK.ImageSeriesReader`` (``GetGDCMSeriesF
 ``Execute``); ``--dicom FOLDER`` adds a series of your own (e.g. ``bench_detect.py --dicom``'s).
 
 DICOM detection (issue 28): ``emreg detect`` on hard oblique uncompressed series (0.5 x 0.5 x 0.8 mm,
-``--difficulty hard``): the full frame (``emreg simulate``, the case ``bench_detect.py --dicom`` uses, 653 slices)
-and a CI-sized frame (220 x 220 x 140 mm, 16 markers, 388 slices), ``--detect-cases`` choosing, plus the folders
+``--difficulty hard``): a mid-sized frame (280 x 250 x 180 mm, 22 markers, 399 slices: the size of the issue's own
+series), the full frame (``emreg simulate``, the case ``bench_detect.py --dicom`` uses, 653 slices) and a CI-sized
+frame (220 x 220 x 140 mm, 16 markers, 388 slices), ``--detect-cases`` choosing, plus the folders
 of ``--dicom-detect``; against ``SimpleITK.ImageSeriesReader`` reading the same folder (``GetGDCMSeriesFileNames``
 + ``Execute``), each in its own process, alternated ``--repeat`` times after a warm-up; medians of ``emreg
 detect``'s whole process against the reader's ``Execute`` (goal <= 1.0) and against the reader's whole process,
@@ -24,7 +25,7 @@ times follow the CPU each process gets, so take the ratio from a run at low load
 revision's ``emreg detect`` (a git worktree of it) in the same rounds and compares the two ``markers.json``.
 
 Usage: ``.venv/bin/python scripts/bench_read_ct.py [--work DIR] [--repeat 3] [--dicom FOLDER ...] [--no-dicom]
-[--detect-only] [--detect-cases full,ci|none] [--dicom-detect FOLDER ...] [--before TREE]``
+[--detect-only] [--detect-cases mid,full,ci|none] [--dicom-detect FOLDER ...] [--before TREE]``
 """
 
 from __future__ import annotations
@@ -80,8 +81,12 @@ def best_time(read, path: Path, repeat: int) -> tuple[float, sitk.Image]:
 
 
 #: The DICOM detection cases (issue 28): the hard full frame of ``emreg simulate --difficulty hard`` (971 x 753 x 653
-#: voxels of 0.5 x 0.5 x 0.8 mm, oblique) and a CI-sized hard frame (220 x 220 x 140 mm, 16 markers: 613 x 447 x 388).
+#: voxels of 0.5 x 0.5 x 0.8 mm, oblique), a mid-sized hard frame (280 x 250 x 180 mm, 22 markers: 399 slices, 300 MB
+#: as int16, which SimpleITK's series read takes 0.90 s to read here: the size of the issue's own series, read in
+#: 0.88 s) and a CI-sized hard frame (220 x 220 x 140 mm, 16 markers: 613 x 447 x 388).
 DETECT_CASES = {
+    "mid": ("hard-dicom-mid", ["-c", "from EMRegModule.simulation.case import simulate_case; simulate_case('{case}', "
+                                     "seed=13, difficulty='hard', frame_size_mm=(280.0, 250.0, 180.0), n_markers=22)"]),
     "full": ("hard-dicom", ["-m", "EMRegModule", "simulate", "{case}", "--seed", "1", "--difficulty", "hard",
                             "--quiet"]),
     "ci": ("hard-dicom-ci", ["-c", "from EMRegModule.simulation.case import simulate_case; simulate_case('{case}', "
@@ -184,9 +189,9 @@ def main() -> None:
     parser.add_argument("--dicom", type=Path, nargs="*", default=[], help="more DICOM series folders to read")
     parser.add_argument("--no-dicom", action="store_true", help="leave out the DICOM copies of the CT")
     parser.add_argument("--detect-only", action="store_true", help="only emreg detect on the hard DICOM series")
-    parser.add_argument("--detect-cases", default="full,ci",
-                        help="DICOM detection cases, comma separated: full (the hard full frame), ci (a CI-sized hard "
-                             "frame, 388 slices), or none")
+    parser.add_argument("--detect-cases", default="mid,full,ci",
+                        help="DICOM detection cases, comma separated: mid (a mid-sized hard frame, 399 slices), full "
+                             "(the hard full frame, 653 slices), ci (a CI-sized hard frame, 388 slices), or none")
     parser.add_argument("--dicom-detect", type=Path, nargs="*", default=[], metavar="FOLDER",
                         help="more DICOM series folders to run emreg detect on against ImageSeriesReader")
     parser.add_argument("--before", type=Path, default=None, metavar="TREE",

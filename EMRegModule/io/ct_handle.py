@@ -29,6 +29,7 @@ import ctypes
 import mmap
 import sys
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -120,15 +121,16 @@ class CTGeometry:
         return self.pixel_type
 
 
-def anonymous_voxels(size: tuple[int, ...], dtype: np.dtype) -> tuple[mmap.mmap, np.ndarray]:
+def anonymous_voxels(size: tuple[int, ...], dtype: np.dtype, shared: bool = False) -> tuple[mmap.mmap, np.ndarray]:
     """Fresh anonymous memory for a volume of ``size`` (i, j, k) voxels of ``dtype``, and its (k, j, i) array of
     native byte order: each page is faulted in (zeroed by the kernel) only when written, and pages given back
     (``madvise(MADV_DONTNEED)``) are freed (the mapping is private). Huge pages only for slices of at least
-    :data:`HUGE_PAGE_BYTES`."""
+    :data:`HUGE_PAGE_BYTES`. ``shared``: a mapping that a child process forked afterwards writes into and this
+    one sees (pages are given back with ``MADV_REMOVE``)."""
     dtype = np.dtype(dtype)
     slice_bytes = int(size[0]) * int(size[1]) * dtype.itemsize
-    mapping = mmap.mmap(-1, max(1, slice_bytes * int(size[2])), flags=mmap.MAP_PRIVATE)
-    if hasattr(mmap, "MADV_HUGEPAGE") and slice_bytes >= HUGE_PAGE_BYTES:
+    mapping = mmap.mmap(-1, max(1, slice_bytes * int(size[2])), flags=mmap.MAP_SHARED if shared else mmap.MAP_PRIVATE)
+    if not shared and hasattr(mmap, "MADV_HUGEPAGE") and slice_bytes >= HUGE_PAGE_BYTES:
         mapping.madvise(mmap.MADV_HUGEPAGE)
     array = np.frombuffer(mapping, dtype=dtype.newbyteorder("="), count=int(np.prod(size)))
     return mapping, array.reshape(tuple(int(n) for n in size[::-1]))
@@ -165,6 +167,7 @@ class CTHandle:
         self._image: sitk.Image | None = None
         self._array: np.ndarray | None = None
         self._mapping: mmap.mmap | None = None
+        self._shared = False
         self._provided = False
         self._ready = 0
         self._released = 0
@@ -177,6 +180,7 @@ class CTHandle:
         self.series: dict | None = None
         self.path: Path | None = None
         self.memo: object | None = None
+        self.on_cancel: Callable[[], None] | None = None  # the reader's own way to stop (a reading process's)
 
     # --- making one -------------------------------------------------------------------------------
 
@@ -190,12 +194,13 @@ class CTHandle:
         return handle
 
     @classmethod
-    def in_anonymous_memory(cls, geometry: CTGeometry, dtype: np.dtype) -> CTHandle:
-        """A CT whose voxels (of ``dtype``) are to be read into :func:`anonymous_voxels`, slices given back with
-        :meth:`release_before`; ``result()`` is None (no SimpleITK image holds them)."""
+    def in_anonymous_memory(cls, geometry: CTGeometry, dtype: np.dtype, shared: bool = False) -> CTHandle:
+        """A CT whose voxels (of ``dtype``) are to be read into :func:`anonymous_voxels` (``shared``: by a child
+        process), slices given back with :meth:`release_before`; ``result()`` is None (no SimpleITK image holds
+        them)."""
         handle = cls(geometry.size[2], geometry)
-        mapping, array = anonymous_voxels(geometry.size, dtype)
-        handle._mapping = mapping
+        mapping, array = anonymous_voxels(geometry.size, dtype, shared)
+        handle._mapping, handle._shared = mapping, shared
         handle.provide(array=array)
         return handle
 
@@ -302,6 +307,8 @@ class CTHandle:
     def cancel(self) -> None:
         """Stop reading (the voxels are then incomplete and must not be used)."""
         self._cancelled = True
+        if self.on_cancel is not None:
+            self.on_cancel()
 
     def release_before(self, stop: int) -> None:
         """Give slices ``0 .. stop-1`` back to the system when the voxels are in anonymous memory (reading them
@@ -312,7 +319,8 @@ class CTHandle:
         slice_bytes = self._array[0].nbytes if self.slice_count else 0
         first, last = (start * slice_bytes) // mmap.PAGESIZE, (stop * slice_bytes) // mmap.PAGESIZE
         if last > first:
-            self._mapping.madvise(mmap.MADV_DONTNEED, first * mmap.PAGESIZE, (last - first) * mmap.PAGESIZE)
+            advice = mmap.MADV_REMOVE if self._shared else mmap.MADV_DONTNEED  # shared pages: freed only so
+            self._mapping.madvise(advice, first * mmap.PAGESIZE, (last - first) * mmap.PAGESIZE)
         self._released = max(start, stop)
 
     def release(self) -> None:

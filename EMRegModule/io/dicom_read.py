@@ -32,6 +32,7 @@ from .ct_handle import CTGeometry, CTHandle, writable_bytes
 from .dicom_series import DicomSeries, SliceHeader, choose_series, scan_series, series_record
 from .itk_messages import quiet_itk
 from .pixel_types import FLOAT32, FLOATS, INT16, INT32, NAMES, NUMPY_NAMES, UINT16
+from .read_process import can_fork_reader, fork_reader
 
 if TYPE_CHECKING:  # SimpleITK is imported where an image is made or GDCM decodes: an uncompressed series read
     import SimpleITK as sitk  # into numpy memory (emreg detect) needs none (its library takes 50 ms of CPU to load)
@@ -62,7 +63,10 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
     voxels go into anonymous memory (:meth:`CTHandle.in_anonymous_memory`: ``handle.voxels``, k, j, i;
     ``handle.image`` is only the geometry and ``result()`` None): SimpleITK fills a new image with zeros before a
     slice can be decoded into it (a pass over the whole volume, on one core, that the decoding waits for), where
-    these voxels are fresh memory that only the slices' decoding touches, page by page on the workers.
+    these voxels are fresh memory that only the slices' decoding touches, page by page on the workers. Where this
+    process may fork (:func:`~.read_process.can_fork_reader`: the command, alone on its thread), the slices are read
+    by a process of its own into memory shared with this one, so that the caller's work meanwhile (the detection
+    stage's import) does not hold up the read's threads.
     """
     folder = Path(folder)
     early = None if voxels_only else _EarlyImage(compact)
@@ -75,15 +79,20 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
         handle.sha256 = digest
     else:
         pixel_type = (compact_voxel_type if compact else voxel_type)(chosen.headers)
+        in_process = voxels_only and pixel_type not in FLOATS and can_fork_reader()
         if voxels_only and pixel_type not in FLOATS:  # float32 voxels go into an image, which check_ct_image checks
             handle = CTHandle.in_anonymous_memory(_series_geometry(chosen, pixel_type),
-                                                  np.dtype(NUMPY_NAMES[pixel_type]))
+                                                  np.dtype(NUMPY_NAMES[pixel_type]), shared=in_process)
         else:
             handle = CTHandle(len(chosen.headers))
         handle.sha256 = Digest()
         workers = workers or max(1, min(8, os.cpu_count() or 1))
-        threading.Thread(target=_decode_series, args=(chosen, handle, pixel_type, workers, folder, early),
-                         name="emreg-dicom-read").start()  # no daemon: see above
+        if in_process:  # read beside the caller's work, not sharing its interpreter lock (see read_process)
+            fork_reader(handle, lambda side: _decode_series(chosen, side, pixel_type, workers, folder), folder,
+                        (NarrowVoxelsError,))
+        else:
+            threading.Thread(target=_decode_series, args=(chosen, handle, pixel_type, workers, folder, early),
+                             name="emreg-dicom-read").start()  # no daemon: see above
     handle.series = record
     return handle, record
 

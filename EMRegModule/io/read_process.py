@@ -1,0 +1,171 @@
+"""A CT read in a child process, for a caller whose own process is busy meanwhile (``emreg detect``).
+
+A reader's threads share the interpreter's lock with the rest of the process: while the detection stage is
+imported (scipy, VTK: ~0.3 s of Python holding it), every slice read waits for it between its system calls, and the
+read of a few hundred MB stretches to the import's end. Forked, the reader has an interpreter of its own: the voxels
+go into memory shared with this process (:meth:`~EMRegModule.io.ct_handle.CTHandle.in_anonymous_memory`,
+``shared``) and what the reader tells its handle (slices in, the sha256, the end or its error) comes back over a
+pipe, one JSON line each, where a thread of this process hands it to the real handle.
+
+Only a process with no other thread than the one forking may fork (a lock held by another thread would stay held
+in the child for ever): :func:`can_fork_reader` says so, and the caller reads on threads otherwise.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from .. import errors
+from ..errors import EMRegError
+from .ct_handle import CancelledReadError, CTHandle
+
+
+def can_fork_reader() -> bool:
+    """Whether a reading process may be forked here: Linux (fork without exec is safe there for a process with a
+    single thread) and no thread but this one."""
+    return sys.platform.startswith("linux") and hasattr(os, "fork") and threading.active_count() == 1
+
+
+class ReaderSide:
+    """What a reading function needs of a :class:`CTHandle` (``voxels``, ``provided``, ``cancelled``, ``announce``,
+    ``sha256``, ``finish``), in the reading process: each call becomes a line on the pipe."""
+
+    provided = True
+    cancelled = False
+
+    def __init__(self, voxels: np.ndarray, descriptor: int) -> None:
+        self.voxels = voxels
+        self._descriptor = descriptor
+        self.sha256 = _PipedDigest(self)
+
+    def send(self, *message: object) -> None:
+        data = (json.dumps(message) + "\n").encode()
+        while data:
+            data = data[os.write(self._descriptor, data):]
+
+    def announce(self, slices: int) -> None:
+        self.send("slices", int(slices))
+
+    def finish(self, error: BaseException | None = None) -> None:
+        self.send("end", *([] if error is None else [type(error).__name__, str(error)]))
+
+
+class _PipedDigest:
+    """The reading process's side of :class:`~EMRegModule.provenance.Digest`."""
+
+    def __init__(self, side: ReaderSide) -> None:
+        self._side = side
+        self._done = False
+
+    def set(self, value: str) -> None:
+        self._done = True
+        self._side.send("sha256", value)
+
+    def fail(self, error: BaseException) -> None:
+        self._done = True
+        self._side.send("sha256-error", str(error))
+
+    def done(self) -> bool:
+        return self._done
+
+
+def fork_reader(handle: CTHandle, read: Callable[[ReaderSide], None], source: Path,
+                error_types: tuple[type[BaseException], ...] = ()) -> None:
+    """Run ``read`` (a reading function of ``handle``'s voxels, which must be ``shared``) in a forked process.
+
+    ``handle`` then learns what ``read`` tells its :class:`ReaderSide` on a thread of this process;
+    :meth:`CTHandle.cancel` kills the reader. An error the reader ends with comes back as its type where that is
+    :class:`~EMRegModule.errors.EMRegError` (or a subclass) or one of ``error_types``, with its message; a reader
+    that dies (a signal) ends the read with an :class:`EMRegError` naming ``source``.
+    """
+    voxels = handle.voxels
+    parent = os.getpid()
+    receive, send = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the reading process: it never returns into the caller's code
+        code = 0
+        try:
+            os.close(receive)
+            for number in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C reaches the whole process group: end
+                if signal.getsignal(number) is not signal.SIG_IGN:  # quietly (the command says it was
+                    signal.signal(number, signal.SIG_DFL)  # interrupted), or not at all when it ignores them
+            _die_with(parent)
+            read(ReaderSide(voxels, send))
+        except BaseException:  # noqa: BLE001 - nothing of the caller's may run in this process
+            code = 1
+        finally:
+            os._exit(code)
+    os.close(send)
+    lock = threading.Lock()
+    reaped = [False]
+
+    def stop() -> None:
+        with lock:
+            if not reaped[0]:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+
+    handle.on_cancel = stop
+    known = {error.__name__: error for error in error_types}
+
+    def follow() -> None:
+        ended, error, digest_error = False, None, None
+        with os.fdopen(receive, "rb") as stream:
+            for line in stream:
+                kind, *value = json.loads(line)
+                if kind == "slices":
+                    handle.announce(value[0])
+                elif kind == "sha256":
+                    handle.sha256.set(value[0])
+                elif kind == "sha256-error":
+                    digest_error = EMRegError(value[0])
+                elif kind == "end":
+                    ended, error = True, _error_of(value, known)
+        with lock:
+            _, status = os.waitpid(pid, 0)
+            reaped[0] = True
+        if not ended:
+            error = CancelledReadError(f"{source}: reading the CT was cancelled") if handle.cancelled else \
+                EMRegError(f"{source}: the process reading the CT ended unexpectedly ({_status_text(status)})")
+        if not handle.sha256.done():
+            handle.sha256.fail(digest_error or error or EMRegError(f"{source}: the CT's sha256 was not made"))
+        handle.finish(error)
+
+    threading.Thread(target=follow, name="emreg-read-process").start()  # no daemon: it reaps the reader
+
+
+def _error_of(value: list, known: dict[str, type[BaseException]]) -> BaseException | None:
+    """The error a reader's ``end`` line names (None for none): its own type where known, else EMRegError."""
+    if not value:
+        return None
+    name, message = value
+    kind = known.get(name) or getattr(errors, name, None)
+    if isinstance(kind, type) and (issubclass(kind, EMRegError) or name in known):
+        return kind(message)
+    return EMRegError(f"{message} ({name})" if message else name)
+
+
+def _status_text(status: int) -> str:
+    if os.WIFSIGNALED(status):
+        return f"killed by {signal.Signals(os.WTERMSIG(status)).name}"
+    return f"exit status {os.WEXITSTATUS(status)}"
+
+
+def _die_with(parent: int) -> None:
+    """Have the kernel kill this process when its parent dies (Linux ``prctl(PR_SET_PDEATHSIG)``), so that a
+    reader does not go on alone after ``kill -9`` of the command."""
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() != parent:  # the parent died before the prctl
+        os._exit(1)
