@@ -647,12 +647,12 @@ def _open_and_detect(controller: EMRegController, path: str | os.PathLike[str], 
     # switch interval to take it back from the import (a 653-file series: emreg detect 2.41 -> 2.34 s alternated
     # directly, 2.31 -> 2.29 s in bench_read_ct's rounds; medians of 11). A CT refused while it is opened is
     # refused before the import starts.
-    import_in_background("EMRegModule.detection.detect")
+    import_in_background("EMRegModule.detection.detect").wait()  # all of it: detection may fork (.detection.examiners)
     from .detection import detect_markers
 
     try:
         result = detect_markers(fill.image, controller.marker_model, controller.settings.detection, controller.progress,
-                                wait_for_slices=fill.wait_for_slices, voxels=fill.voxels)
+                                wait_for_slices=fill.wait_for_slices, voxels=fill.voxels, shared=fill.shared)
         image = fill.result()  # the checksum is verified only at the end
     except BaseException as exc:
         fill.cancel()

@@ -83,3 +83,17 @@ def vtk_imports_uninterrupted() -> None:
 
     loader.exec_module = exec_module
     loader.emreg_uninterrupted = True
+
+
+def die_with_parent(parent: int) -> None:
+    """In a forked helper process: have the kernel kill it when its parent (pid ``parent``) dies (Linux
+    ``prctl(PR_SET_PDEATHSIG, SIGKILL)``), so that a helper does not go on alone, or wait for work for ever, after
+    ``kill -9`` of the command; ends it at once if the parent died before."""
+    import os
+
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() != parent:
+        os._exit(1)

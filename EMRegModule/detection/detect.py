@@ -25,9 +25,8 @@ and nothing is written. Registration needs three or more and checks that itself.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
-from contextlib import contextmanager
+from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
@@ -40,6 +39,7 @@ from ..io.image import image_geometry, index_to_physical_matrix
 from ..marker_model import MarkerModel
 from ..progress import QUIET, Progress
 from ..transforms import apply_transform
+from .examiners import Examiners
 from .measure import measure_blob, metal_distance_mm
 from .pose import fit_pose, model_moments, top_contrast
 from .result import DetectedMarker, DetectionResult, RejectedCandidate
@@ -56,14 +56,16 @@ _Outcome = tuple[np.ndarray, DetectedMarker | RejectedCandidate]
 def detect_markers(ct: CTHandle | sitk.Image | CTGeometry, model: MarkerModel | None = None,
                    settings: DetectionSettings | None = None, progress: Progress | None = None,
                    wait_for_slices: Callable[[int], None] | None = None,
-                   voxels: np.ndarray | None = None) -> DetectionResult:
+                   voxels: np.ndarray | None = None, shared: bool = False) -> DetectionResult:
     """Markers in a scalar 3D CT in HU: origins (bottom-face centres) and +Y axes, LPS mm.
 
     ``ct``: a :class:`~EMRegModule.io.ct_handle.CTHandle`, possibly still being read: detection follows its slices
     as they arrive (``wait_for_slices``), working on those already read while the rest arrives, with the same
     result; or a ``SimpleITK.Image`` read in full. ``settings`` is the ``[detection]`` table (None: the defaults for
     ``model``). ``wait_for_slices`` and ``voxels`` are a handle's parts for a caller that passes its ``image``
-    (``voxels``: numpy k, j, i, ``ct`` then only their geometry).
+    (``voxels``: numpy k, j, i, ``ct`` then only their geometry); ``shared``: the voxels are memory that a forked
+    process sees as it is written (a CT read by a reading process: ``CTHandle.shared``), so that one of the
+    examiners of the candidate regions may be such a process (:mod:`.examiners`).
     Raises :class:`NoSafeAnswerError` (exit 3) when fewer than ``min_markers`` markers are found.
     """
     model = model or MarkerModel()
@@ -72,7 +74,7 @@ def detect_markers(ct: CTHandle | sitk.Image | CTGeometry, model: MarkerModel | 
     image = ct.image if isinstance(ct, CTHandle) else ct
     check_ct_geometry(image)
     if isinstance(ct, CTHandle):
-        volume, wait_for_slices = ct.array, ct.wait_for_slices
+        volume, wait_for_slices, shared = ct.array, ct.wait_for_slices, ct.shared
     elif voxels is None:
         import SimpleITK as sitk
 
@@ -81,8 +83,23 @@ def detect_markers(ct: CTHandle | sitk.Image | CTGeometry, model: MarkerModel | 
         volume = voxels
     spacing_zyx = np.asarray(image.GetSpacing(), dtype=float)[::-1]
     index_to_image = index_to_physical_matrix(image)
+    with Examiners(volume, _workers(), fork=shared) as examiners:
+        outcomes, too_large, options, band = _passes(volume, spacing_zyx, index_to_image, model, options, progress,
+                                                     wait_for_slices, examiners)
+    result = _result(outcomes, too_large, index_to_image, options, image, volume, model)
+    final = _marker_hu_estimate(outcomes, model, options, markers_only=True)
+    band["marker_hu"] = None if final is None else round(final, 1)
+    result.band = band
+    return result
+
+
+def _passes(volume: np.ndarray, spacing_zyx: np.ndarray, index_to_image: np.ndarray, model: MarkerModel,
+            options: DetectionSettings, progress: Progress, wait_for_slices: Callable[[int], None] | None,
+            examiners: Examiners) -> tuple[list[_Outcome], list[TooLarge], DetectionSettings, dict]:
+    """The detection passes: the band of ``options``, then, unless the band was set, one around the markers' own
+    intensity when it suits them better; the outcomes kept, the settings of their pass and the band's record."""
     outcomes, too_large = _one_pass(volume, spacing_zyx, index_to_image, model, options, progress,
-                                    wait_for_slices)
+                                    wait_for_slices, examiners)
     defaults = DetectionSettings()
     explicit = not options.estimate_band or (options.low_hu, options.high_hu) != (defaults.low_hu, defaults.high_hu)
     band = {"low_hu": options.low_hu, "high_hu": options.high_hu,
@@ -91,30 +108,27 @@ def detect_markers(ct: CTHandle | sitk.Image | CTGeometry, model: MarkerModel | 
     if not explicit and estimate is None:
         with progress.step("few markers in the default band: measuring the markers with the band's top "
                            "raised to the metal level"):
-            estimate = _bright_marker_estimate(volume, spacing_zyx, index_to_image, model, options, progress)
+            estimate = _bright_marker_estimate(volume, spacing_zyx, index_to_image, model, options, progress,
+                                               examiners)
     if not explicit and estimate is not None and not _band_suits(estimate, options):
         scaled = _band_around(estimate, options)
         with progress.step(f"markers read {estimate:.0f} HU: detecting again with the band "
                            f"{scaled.low_hu:.0f}..{scaled.high_hu:.0f} HU"):
             again, again_large = _one_pass(volume, spacing_zyx, index_to_image, model, scaled, progress,
-                                           None)  # the image is whole by now
+                                           None, examiners)  # the image is whole by now
         if _marker_count(again) >= max(1, _marker_count(outcomes)):
             outcomes, too_large, options = again, again_large, scaled
             band = {"low_hu": scaled.low_hu, "high_hu": scaled.high_hu,
                     "source": f"estimated from the markers' intensity ({estimate:.0f} HU in the default band)"}
-    result = _result(outcomes, too_large, index_to_image, options, image, volume, model)
-    final = _marker_hu_estimate(outcomes, model, options, markers_only=True)
-    band["marker_hu"] = None if final is None else round(final, 1)
-    result.band = band
-    return result
+    return outcomes, too_large, options, band
 
 
 def _one_pass(volume: np.ndarray, spacing_zyx: np.ndarray, index_to_image: np.ndarray, model: MarkerModel,
-              options: DetectionSettings, progress: Progress,
-              wait_for_slices: Callable[[int], None] | None) -> tuple[list[_Outcome], list[TooLarge]]:
+              options: DetectionSettings, progress: Progress, wait_for_slices: Callable[[int], None] | None,
+              examiners: Examiners) -> tuple[list[_Outcome], list[TooLarge]]:
     """One detection of every marker of ``volume`` (numpy order k, j, i; ``index_to_image`` maps (i, j, k)
     to LPS mm) with the band of ``options``: the coarse scan slice block by slice block (waiting for
-    them when streaming), each candidate region examined on a worker as soon as its slices are read."""
+    them when streaming), each candidate region examined by one of ``examiners`` as soon as its slices are read."""
     slice_count = volume.shape[0]
     scan = CoarseScan(volume, spacing_zyx, model, options)
     guard = _guard_slices(model, options, index_to_image)
@@ -122,23 +136,7 @@ def _one_pass(volume: np.ndarray, spacing_zyx: np.ndarray, index_to_image: np.nd
     too_large: list[TooLarge] = []
     examined: list[tuple[Region, Future]] = []
 
-    def examine(region: Region, metal_zyx: np.ndarray) -> list[_Outcome]:
-        found = []
-        for blob in blobs_in_region(volume, region, index_to_image, spacing_zyx, model, options):
-            if blob.touches_region_edge:
-                blob = _regrown(volume, blob, index_to_image, spacing_zyx, model, options)
-            outcome = _classify(blob, metal_zyx, index_to_image, model, options)
-            if isinstance(outcome, RejectedCandidate) and outcome.code in _SPLIT_CODES \
-                    and not blob.touches_region_edge:
-                joined = with_fragments(volume, blob, index_to_image, spacing_zyx, model, options)
-                if joined is not None and not joined.touches_region_edge:
-                    whole = _classify(joined, metal_zyx, index_to_image, model, options)
-                    if isinstance(whole, DetectedMarker):
-                        outcome = whole
-            found.append((blob.centroid(), outcome))
-        return found
-
-    def start_ready(pool: ThreadPoolExecutor, slices: int) -> None:
+    def start_ready(slices: int) -> None:
         """Start the regions whose slices, and all a check of theirs may look at, are read."""
         ready: list[Region] = []
         waiting: list[Region] = []
@@ -146,28 +144,46 @@ def _one_pass(volume: np.ndarray, spacing_zyx: np.ndarray, index_to_image: np.nd
             (ready if slices >= slice_count or region.slices[0].stop + guard <= slices else waiting).append(region)
         if ready:
             metal_zyx = scan.metal_zyx  # complete within ``guard`` of the ready regions
-            examined.extend((region, pool.submit(examine, region, metal_zyx)) for region in ready)
+            examined.extend((region, examiners.submit(_examine, region, metal_zyx, index_to_image, spacing_zyx, model,
+                                                      options)) for region in ready)
             queued[:] = waiting
 
-    with ThreadPoolExecutor(max_workers=_workers()) as pool, _cancel_on_error(pool):
-        streaming = wait_for_slices is not None
-        with progress.step("reading CT and finding candidates" if streaming else "finding candidates"):
-            step_slices = _STEP_ROWS * int(scan.strides[0]) if streaming else slice_count
-            for slices in range(step_slices, slice_count + step_slices, step_slices):
-                slices = min(slices, slice_count)
-                if streaming:
-                    wait_for_slices(slices)
-                regions, large = scan.advance(slices)
-                queued.extend(regions)
-                too_large.extend(large)
-                start_ready(pool, slices)
-        with progress.step("fitting markers", total=len(examined) + len(queued)) as step:
-            start_ready(pool, slice_count)
-            outcomes: list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]] = []
-            for _, future in sorted(examined, key=lambda item: _region_key(item[0])):  # the order of a whole read
-                outcomes.extend(future.result())
-                step.advance()
+    streaming = wait_for_slices is not None
+    with progress.step("reading CT and finding candidates" if streaming else "finding candidates"):
+        step_slices = _STEP_ROWS * int(scan.strides[0]) if streaming else slice_count
+        for slices in range(step_slices, slice_count + step_slices, step_slices):
+            slices = min(slices, slice_count)
+            if streaming:
+                wait_for_slices(slices)
+            regions, large = scan.advance(slices)
+            queued.extend(regions)
+            too_large.extend(large)
+            start_ready(slices)
+    with progress.step("fitting markers", total=len(examined) + len(queued)) as step:
+        start_ready(slice_count)
+        outcomes: list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]] = []
+        for _, future in sorted(examined, key=lambda item: _region_key(item[0])):  # the order of a whole read
+            outcomes.extend(future.result())
+            step.advance()
     return outcomes, too_large
+
+
+def _examine(volume: np.ndarray, region: Region, metal_zyx: np.ndarray, index_to_image: np.ndarray,
+             spacing_zyx: np.ndarray, model: MarkerModel, options: DetectionSettings) -> list[_Outcome]:
+    """What became of each blob of ``region`` (numpy slices of ``volume``), with its centroid (LPS mm)."""
+    found = []
+    for blob in blobs_in_region(volume, region, index_to_image, spacing_zyx, model, options):
+        if blob.touches_region_edge:
+            blob = _regrown(volume, blob, index_to_image, spacing_zyx, model, options)
+        outcome = _classify(blob, metal_zyx, index_to_image, model, options)
+        if isinstance(outcome, RejectedCandidate) and outcome.code in _SPLIT_CODES and not blob.touches_region_edge:
+            joined = with_fragments(volume, blob, index_to_image, spacing_zyx, model, options)
+            if joined is not None and not joined.touches_region_edge:
+                whole = _classify(joined, metal_zyx, index_to_image, model, options)
+                if isinstance(whole, DetectedMarker):
+                    outcome = whole
+        found.append((blob.centroid(), outcome))
+    return found
 
 
 def _marker_count(outcomes: list[_Outcome]) -> int:
@@ -193,7 +209,8 @@ def _marker_hu_estimate(outcomes: list[_Outcome], model: MarkerModel, options: D
 
 
 def _bright_marker_estimate(volume: np.ndarray, spacing_zyx: np.ndarray, index_to_image: np.ndarray,
-                            model: MarkerModel, options: DetectionSettings, progress: Progress) -> float | None:
+                            model: MarkerModel, options: DetectionSettings, progress: Progress,
+                            examiners: Examiners) -> float | None:
     """The intensity (HU) of markers brighter than the band's top, measured with the top raised to ``metal_hu``;
     None unless at least three markers are found that way.
 
@@ -202,7 +219,7 @@ def _bright_marker_estimate(volume: np.ndarray, spacing_zyx: np.ndarray, index_t
     :func:`_marker_hu_estimate` to measure. Called only when the default band found too little to measure.
     """
     wide = replace(options, high_hu=options.metal_hu)
-    outcomes, _ = _one_pass(volume, spacing_zyx, index_to_image, model, wide, progress, None)
+    outcomes, _ = _one_pass(volume, spacing_zyx, index_to_image, model, wide, progress, None, examiners)
     markers = [o.marker_hu for _, o in outcomes if isinstance(o, DetectedMarker) and np.isfinite(o.marker_hu)]
     return float(np.median(markers)) if len(markers) >= 3 else None
 
@@ -239,16 +256,6 @@ _STEP_ROWS = 16
 
 _REGROW_ROUNDS = 2
 """Times a blob cut by its region is regrown in a larger one (``_regrown``; ``_guard_slices`` counts on it)."""
-
-
-@contextmanager
-def _cancel_on_error(pool: ThreadPoolExecutor) -> Iterator[None]:
-    """Drop the regions not started yet when detection fails (e.g. the CT turns out truncated)."""
-    try:
-        yield
-    except BaseException:
-        pool.shutdown(wait=False, cancel_futures=True)
-        raise
 
 
 def _guard_slices(model: MarkerModel, options: DetectionSettings, index_to_image: np.ndarray) -> int:

@@ -252,6 +252,11 @@ class CTHandle:
         return self._provided
 
     @property
+    def shared(self) -> bool:
+        """Whether the voxels are memory that a forked process sees as it is written (read by a reading process)."""
+        return self._shared
+
+    @property
     def cancelled(self) -> bool:
         """Whether the user asked the read to stop (:meth:`cancel`)."""
         return self._cancelled

@@ -26,6 +26,7 @@ import numpy as np
 
 from .. import errors
 from ..errors import EMRegError
+from ..interrupts import die_with_parent
 from .ct_handle import CancelledReadError, CTHandle
 
 
@@ -98,7 +99,7 @@ def fork_reader(handle: CTHandle, read: Callable[[ReaderSide], None], source: Pa
             for number in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C reaches the whole process group: end
                 if signal.getsignal(number) is not signal.SIG_IGN:  # quietly (the command says it was
                     signal.signal(number, signal.SIG_DFL)  # interrupted), or not at all when it ignores them
-            _die_with(parent)
+            die_with_parent(parent)
             read(ReaderSide(voxels, send))
         except BaseException:  # noqa: BLE001 - nothing of the caller's may run in this process
             code = 1
@@ -158,14 +159,3 @@ def _status_text(status: int) -> str:
     if os.WIFSIGNALED(status):
         return f"killed by {signal.Signals(os.WTERMSIG(status)).name}"
     return f"exit status {os.WEXITSTATUS(status)}"
-
-
-def _die_with(parent: int) -> None:
-    """Have the kernel kill this process when its parent dies (Linux ``prctl(PR_SET_PDEATHSIG)``), so that a
-    reader does not go on alone after ``kill -9`` of the command."""
-    with contextlib.suppress(Exception):
-        import ctypes
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    if os.getppid() != parent:  # the parent died before the prctl
-        os._exit(1)

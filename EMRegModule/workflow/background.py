@@ -11,7 +11,7 @@ _gc_pauses = 0  # imports running with the cyclic garbage collector paused
 _gc_was_enabled = False
 
 
-def import_in_background(module: str) -> None:
+def import_in_background(module: str) -> threading.Event:
     """Start importing a heavy module on a thread; a later ``import`` waits for it or finds it done.
 
     SimpleITK's reader releases the GIL, so importing the detection stage (scipy, VTK) while a
@@ -26,19 +26,27 @@ def import_in_background(module: str) -> None:
     The cyclic garbage collector is paused during the import (:func:`gc_paused`): scipy's and VTK's modules are
     some 10^5 objects that live as long as the process, which the collector would otherwise walk again and again
     while they are made (42 ms of an ``emreg detect``, all of it holding the GIL the CT's read and the detection
-    wait for). A module imported already is not imported again (nor the collector paused).
+    wait for). A module imported already is not imported again (nor the collector paused). Returns an event set
+    once the import and its pause are over (not the thread: a thread object let go in the caller's thread runs a
+    weak reference's callback there, where an interrupt's exception is lost).
     """
     import importlib
     import sys
 
+    done = threading.Event()
     if module in sys.modules:
-        return
+        done.set()
+        return done
 
     def run() -> None:
-        with contextlib.suppress(Exception), gc_paused():
-            importlib.import_module(module)
+        try:
+            with contextlib.suppress(Exception), gc_paused():
+                importlib.import_module(module)
+        finally:
+            done.set()
 
     threading.Thread(target=run, name=f"import {module}").start()  # no daemon: see above
+    return done
 
 
 @contextlib.contextmanager
