@@ -38,6 +38,26 @@ def _start_examiner(parent: int) -> None:
     die_with_parent(parent)
 
 
+def _forked_examiner(volume: np.ndarray) -> Any:
+    """A pool of one forked process examining ``volume`` (a ``ProcessPoolExecutor``), forked now; None when the
+    system refuses a process (too many, too little memory): the threads then examine every region."""
+    import multiprocessing
+    from concurrent.futures import BrokenExecutor, ProcessPoolExecutor
+
+    _VOLUME[:] = [volume]
+    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork"), initializer=_start_examiner,
+                               initargs=(os.getpid(),))
+    try:
+        with warnings.catch_warnings():  # Python 3.12 warns of a fork beside other threads (see above)
+            warnings.simplefilter("ignore", DeprecationWarning)
+            pool.submit(int).result()  # the fork, now: before the caller's threads exist
+    except (OSError, BrokenExecutor):
+        pool.shutdown(wait=False, cancel_futures=True)
+        _VOLUME.clear()
+        return None
+    return pool
+
+
 class Examiners:
     """``workers`` examiners of ``volume``'s regions: with ``fork``, one is a forked process, the others threads.
 
@@ -49,16 +69,8 @@ class Examiners:
         self._volume = volume
         self._process = None
         if fork and workers >= 2:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
-            _VOLUME[:] = [volume]
-            self._process = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork"),
-                                                initializer=_start_examiner, initargs=(os.getpid(),))
-            with warnings.catch_warnings():  # Python 3.12 warns of a fork beside other threads (see above)
-                warnings.simplefilter("ignore", DeprecationWarning)
-                self._process.submit(int).result()  # the fork, now: before the threads below exist
-            workers -= 1
+            self._process = _forked_examiner(volume)
+            workers -= 1 if self._process is not None else 0
         self._threads = ThreadPoolExecutor(max_workers=workers)
         self._thread_count = workers
         self._outstanding: dict[str, list[Future]] = {"process": [], "threads": []}

@@ -88,9 +88,12 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
         handle.sha256 = Digest()
         workers = workers or max(1, min(8, os.cpu_count() or 1))
         if in_process:  # read beside the caller's work, not sharing its interpreter lock (see read_process)
-            fork_reader(handle, lambda side: _decode_series(chosen, side, pixel_type, workers, folder), folder,
-                        (NarrowVoxelsError,))
-        else:
+            try:
+                fork_reader(handle, lambda side: _decode_series(chosen, side, pixel_type, workers, folder), folder,
+                            (NarrowVoxelsError,))
+            except OSError:  # the system refuses a process: threads
+                in_process = False
+        if not in_process:
             threading.Thread(target=_decode_series, args=(chosen, handle, pixel_type, workers, folder, early),
                              name="emreg-dicom-read").start()  # no daemon: see above
     handle.series = record

@@ -86,12 +86,18 @@ def fork_reader(handle: CTHandle, read: Callable[[ReaderSide], None], source: Pa
     ``handle`` then learns what ``read`` tells its :class:`ReaderSide` on a thread of this process;
     :meth:`CTHandle.cancel` kills the reader. An error the reader ends with comes back as its type where that is
     :class:`~EMRegModule.errors.EMRegError` (or a subclass) or one of ``error_types``, with its message; a reader
-    that dies (a signal) ends the read with an :class:`EMRegError` naming ``source``.
+    that dies (a signal) ends the read with an :class:`EMRegError` naming ``source``. :class:`OSError` when the
+    system refuses a process (nothing started).
     """
     voxels = handle.voxels
     parent = os.getpid()
     receive, send = os.pipe()
-    pid = os.fork()
+    try:
+        pid = os.fork()
+    except OSError:  # the system refuses a process (EAGAIN, ENOMEM): the caller reads on threads
+        os.close(receive)
+        os.close(send)
+        raise
     if pid == 0:  # the reading process: it never returns into the caller's code
         code = 0
         try:

@@ -5,6 +5,7 @@ command (``interrupts.die_with_parent``). The scripts run in a fresh interpreter
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -88,3 +89,15 @@ def _alive(pid: int) -> bool:
             return stat.read().split(")")[-1].split()[0] != "Z"
     except FileNotFoundError:
         return False
+
+
+def test_examiners_fall_back_to_threads_when_the_system_refuses_a_process(monkeypatch):
+    """A fork refused (too many processes, too little memory: EAGAIN / ENOMEM) is no reason to fail a detection."""
+    def refused() -> int:
+        raise BlockingIOError(11, "Resource temporarily unavailable")
+
+    monkeypatch.setattr(os, "fork", refused)
+    volume = np.ones((3, 4, 5), dtype=np.int16)
+    with Examiners(volume, 2, fork=True) as examiners:
+        assert not examiners.forked
+        assert examiners.submit(lambda voxels, k: int(voxels[k].sum()), 1).result() == 20

@@ -48,13 +48,13 @@ print(json.dumps(report))
 
 
 def _open_in_fresh_process(folder: Path, tmp_path: Path, compact: bool = False, patch: str = "",
-                           act: str = "") -> dict:
+                           act: str = "", forked: bool = True) -> dict:
     script = _OPEN.format(patch=patch, act=act)
     done = subprocess.run([sys.executable, "-c", script, str(folder), "compact" if compact else "exact",
                            str(tmp_path / "voxels.npy")], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     report = json.loads(done.stdout.splitlines()[-1])
-    assert report["forked"], "a single-threaded process reads through a forked reader"
+    assert report["forked"] == forked, "a single-threaded process reads through a forked reader, if it may fork"
     assert not report["children left"], "the reader is reaped"
     return report
 
@@ -85,6 +85,16 @@ def test_a_reading_process_gives_the_voxels_and_sha256_of_a_read_on_threads(tmp_
     np.testing.assert_array_equal(forked, sitk.GetArrayFromImage(read_ct(folder)))  # SimpleITK's values
     assert forked.dtype == np.int16
     assert report["sha256"] == fill.sha256.result()
+
+
+def test_a_series_is_read_on_threads_when_the_system_refuses_a_reading_process(tmp_path):
+    folder, _ = _series(tmp_path)
+    refuse = ("def refused():\n"
+              "    raise BlockingIOError(11, 'Resource temporarily unavailable')\n"
+              "dicom_read.os.fork = refused")  # EAGAIN: too many processes
+    report = _open_in_fresh_process(folder, tmp_path, patch=refuse, forked=False)
+    assert "error" not in report and report["sha256"]
+    np.testing.assert_array_equal(np.load(tmp_path / "voxels.npy"), sitk.GetArrayFromImage(read_ct(folder)))
 
 
 def test_a_short_slice_read_by_a_reading_process_is_refused_naming_the_file(tmp_path):
