@@ -7,6 +7,12 @@ go into memory shared with this process (:meth:`~EMRegModule.io.ct_handle.CTHand
 ``shared``) and what the reader tells its handle (slices in, the sha256, the end or its error) comes back over a
 pipe, one JSON line each, where a thread of this process hands it to the real handle.
 
+A reader that read the CT well stays until this process lets go of the handle (or ends), then ends itself: the
+last process that maps the voxels gives their pages back to the system, 0.05-0.1 s for a few hundred MB, and that
+is then the reader, after the command's end, rather than the command before it (``emreg detect`` on a 300 MB
+series: 1.22 -> 1.11 s). It holds nothing else of the command's (its standard streams are /dev/null) and dies
+with it.
+
 Only a process with no other thread than the one forking may fork (a lock held by another thread would stay held
 in the child for ever): :func:`can_fork_reader` says so, and the caller reads on threads otherwise.
 """
@@ -19,6 +25,7 @@ import os
 import signal
 import sys
 import threading
+import weakref
 from collections.abc import Callable
 from pathlib import Path
 
@@ -47,6 +54,7 @@ class ReaderSide:
         self.voxels = voxels
         self._descriptor = descriptor
         self.sha256 = _PipedDigest(self)
+        self.failed = True  # until the read ends well
 
     def send(self, *message: object) -> None:
         data = (json.dumps(message) + "\n").encode()
@@ -57,6 +65,7 @@ class ReaderSide:
         self.send("slices", int(slices))
 
     def finish(self, error: BaseException | None = None) -> None:
+        self.failed = error is not None
         self.send("end", *([] if error is None else [type(error).__name__, str(error)]))
 
 
@@ -92,26 +101,31 @@ def fork_reader(handle: CTHandle, read: Callable[[ReaderSide], None], source: Pa
     voxels = handle.voxels
     parent = os.getpid()
     receive, send = os.pipe()
+    held, holding = os.pipe()  # this process's end open while it holds the voxels
     try:
         pid = os.fork()
     except OSError:  # the system refuses a process (EAGAIN, ENOMEM): the caller reads on threads
-        os.close(receive)
-        os.close(send)
+        for descriptor in (receive, send, held, holding):
+            os.close(descriptor)
         raise
     if pid == 0:  # the reading process: it never returns into the caller's code
         code = 0
         try:
             os.close(receive)
-            for number in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C reaches the whole process group: end
-                if signal.getsignal(number) is not signal.SIG_IGN:  # quietly (the command says it was
-                    signal.signal(number, signal.SIG_DFL)  # interrupted), or not at all when it ignores them
-            die_with_parent(parent)
-            read(ReaderSide(voxels, send))
+            os.close(holding)
+            _quiet(parent)
+            side = ReaderSide(voxels, send)
+            read(side)
+            os.close(send)  # the end of the read, for the command
+            if not side.failed:  # keep the voxels until the command lets go of them (module docstring)
+                os.read(held, 1)
         except BaseException:  # noqa: BLE001 - nothing of the caller's may run in this process
             code = 1
         finally:
             os._exit(code)
     os.close(send)
+    os.close(held)
+    weakref.finalize(handle, os.close, holding)
     lock = threading.Lock()
     reaped = [False]
 
@@ -123,6 +137,12 @@ def fork_reader(handle: CTHandle, read: Callable[[ReaderSide], None], source: Pa
 
     handle.on_cancel = stop
     known = {error.__name__: error for error in error_types}
+
+    def reap() -> int:
+        _, status = os.waitpid(pid, 0)
+        with lock:
+            reaped[0] = True
+        return status
 
     def follow() -> None:
         ended, error, digest_error = False, None, None
@@ -137,17 +157,32 @@ def fork_reader(handle: CTHandle, read: Callable[[ReaderSide], None], source: Pa
                     digest_error = EMRegError(value[0])
                 elif kind == "end":
                     ended, error = True, _error_of(value, known)
-        with lock:
-            _, status = os.waitpid(pid, 0)
-            reaped[0] = True
-        if not ended:
-            error = CancelledReadError(f"{source}: reading the CT was cancelled") if handle.cancelled else \
-                EMRegError(f"{source}: the process reading the CT ended unexpectedly ({_status_text(status)})")
+        if ended and error is None:  # the reader now waits for the voxels to be let go: reaped when it ends
+            threading.Thread(target=reap, name="emreg-read-process-end", daemon=True).start()
+        else:
+            status = reap()
+            if not ended:
+                error = CancelledReadError(f"{source}: reading the CT was cancelled") if handle.cancelled else \
+                    EMRegError(f"{source}: the process reading the CT ended unexpectedly ({_status_text(status)})")
         if not handle.sha256.done():
             handle.sha256.fail(digest_error or error or EMRegError(f"{source}: the CT's sha256 was not made"))
         handle.finish(error)
 
-    threading.Thread(target=follow, name="emreg-read-process").start()  # no daemon: it reaps the reader
+    threading.Thread(target=follow, name="emreg-read-process").start()  # no daemon: it reaps a failed reader
+
+
+def _quiet(parent: int) -> None:
+    """The reading process's start: standard input, output and error on /dev/null (a caller reading the command's
+    output sees its end when the command ends, not when this process does), SIGINT / SIGTERM as the command takes
+    them, killed when the command dies."""
+    null = os.open(os.devnull, os.O_RDWR)
+    for descriptor in (0, 1, 2):
+        os.dup2(null, descriptor)
+    os.close(null)
+    for number in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C reaches the whole process group: end quietly (the
+        if signal.getsignal(number) is not signal.SIG_IGN:  # command says it was interrupted), or not at all
+            signal.signal(number, signal.SIG_DFL)  # when the command ignores them
+    die_with_parent(parent)
 
 
 def _error_of(value: list, known: dict[str, type[BaseException]]) -> BaseException | None:
