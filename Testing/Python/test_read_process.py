@@ -40,7 +40,14 @@ except BaseException as exc:
     report["error"] = [type(exc).__name__, str(exc)]
 import os, time
 def children():
-    return [c for t in os.listdir("/proc/self/task") for c in open(f"/proc/self/task/{{t}}/children").read().split()]
+    found = []
+    for task in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{{task}}/children") as listed:
+                found += listed.read().split()
+        except FileNotFoundError:  # a thread that has just ended
+            pass
+    return found
 report["reader while held"] = bool(children())
 del fill
 for _ in range(4000):  # until the reader, let go, has ended and been reaped
