@@ -651,8 +651,7 @@ def _open_and_detect(controller: EMRegController, path: str | os.PathLike[str], 
     from .detection import detect_markers
 
     try:
-        result = detect_markers(fill.image, controller.marker_model, controller.settings.detection, controller.progress,
-                                wait_for_slices=fill.wait_for_slices, voxels=fill.voxels, shared=fill.shared)
+        result = detect_markers(fill, controller.marker_model, controller.settings.detection, controller.progress)
         image = fill.result()  # the checksum is verified only at the end
     except BaseException as exc:
         fill.cancel()

@@ -53,19 +53,16 @@ _Outcome = tuple[np.ndarray, DetectedMarker | RejectedCandidate]
 """A blob's centroid (LPS mm) and what became of it."""
 
 
-def detect_markers(ct: CTHandle | sitk.Image | CTGeometry, model: MarkerModel | None = None,
+def detect_markers(ct: CTHandle | sitk.Image, model: MarkerModel | None = None,
                    settings: DetectionSettings | None = None, progress: Progress | None = None,
-                   wait_for_slices: Callable[[int], None] | None = None,
-                   voxels: np.ndarray | None = None, shared: bool = False) -> DetectionResult:
+                   wait_for_slices: Callable[[int], None] | None = None) -> DetectionResult:
     """Markers in a scalar 3D CT in HU: origins (bottom-face centres) and +Y axes, LPS mm.
 
     ``ct``: a :class:`~EMRegModule.io.ct_handle.CTHandle`, possibly still being read: detection follows its slices
-    as they arrive (``wait_for_slices``), working on those already read while the rest arrives, with the same
-    result; or a ``SimpleITK.Image`` read in full. ``settings`` is the ``[detection]`` table (None: the defaults for
-    ``model``). ``wait_for_slices`` and ``voxels`` are a handle's parts for a caller that passes its ``image``
-    (``voxels``: numpy k, j, i, ``ct`` then only their geometry); ``shared``: the voxels are memory that a forked
-    process sees as it is written (a CT read by a reading process: ``CTHandle.shared``), so that one of the
-    examiners of the candidate regions may be such a process (:mod:`.examiners`).
+    as they arrive, working on those already read while the rest arrives, with the same result (voxels a forked
+    process sees as they are written, ``CTHandle.shared``, let one of the examiners of the candidate regions be such
+    a process: :mod:`.examiners`); or a ``SimpleITK.Image``, read in full or, given ``wait_for_slices``, whose
+    slices are still arriving. ``settings`` is the ``[detection]`` table (None: the defaults for ``model``).
     Raises :class:`NoSafeAnswerError` (exit 3) when fewer than ``min_markers`` markers are found.
     """
     model = model or MarkerModel()
@@ -73,14 +70,13 @@ def detect_markers(ct: CTHandle | sitk.Image | CTGeometry, model: MarkerModel | 
     progress = progress or QUIET
     image = ct.image if isinstance(ct, CTHandle) else ct
     check_ct_geometry(image)
+    shared = False
     if isinstance(ct, CTHandle):
         volume, wait_for_slices, shared = ct.array, ct.wait_for_slices, ct.shared
-    elif voxels is None:
+    else:
         import SimpleITK as sitk
 
         volume = sitk.GetArrayViewFromImage(image)
-    else:
-        volume = voxels
     spacing_zyx = np.asarray(image.GetSpacing(), dtype=float)[::-1]
     index_to_image = index_to_physical_matrix(image)
     with Examiners(volume, _workers(), fork=shared) as examiners:
