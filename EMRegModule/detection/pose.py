@@ -451,10 +451,10 @@ def fit_pose(mask_zyx: np.ndarray, mask_to_image: np.ndarray, values_zyx: np.nda
     # 1597 fits over 79 cases with coarser voxels and 3 mm slices (up to 26% on fits above 0.3 mm: 0.417 -> 0.309)
     hopeless_rms_mm = None if good_rms_mm is None else good_rms_mm / HOPELESS_FRACTION
 
-    def fit_from(pose: np.ndarray, give_up_rms_mm: float | None = None) -> PoseFit:
+    def fit_from(pose: np.ndarray, give_up_early: bool = False) -> PoseFit:
         if len(surface) >= 50:
             pose = refine_with(surface, pose, model, max_iterations=5, max_landmarks=len(surface), tolerance_mm=0.05)
-        return _edge_fit(pose, edges, model, trim_mm, hopeless_rms_mm, give_up_rms_mm)
+        return _edge_fit(pose, edges, model, trim_mm, hopeless_rms_mm, give_up_early)
 
     fit = fit_from(start)
     if good_rms_mm is None:
@@ -471,7 +471,7 @@ def fit_pose(mask_zyx: np.ndarray, mask_to_image: np.ndarray, values_zyx: np.nda
         # slices, streaks, 4-5 mm tops, decoys; 2735 fits from other starts) every one that ended good on a marker,
         # the right way up or turned over (412), was at most 0.30 mm there against the bound's 0.44; of those that
         # ended not good, 1335 of 2270 were beyond it: a third of the time the other starts take (decoys try all)
-        fits = [fit, *(fit_from(other, hopeless_rms_mm) for other in other_starts(voxels_image, model, start[:3, 1]))]
+        fits = [fit, *(fit_from(other, True) for other in other_starts(voxels_image, model, start[:3, 1]))]
     good = [f for f in fits if f.fit_rms_mm <= good_rms_mm]
     return max(good, key=lambda f: level(f.marker_to_image)) if good else fit
 
@@ -550,12 +550,12 @@ def interior_points(model: MarkerModel, step_mm: float = 0.75, depth_mm: float =
 
 
 def _edge_fit(pose: np.ndarray, edges: Callable[[np.ndarray, EdgeSamples], EdgeHits], model: MarkerModel,
-              trim_mm: float, hopeless_rms_mm: float | None = None, give_up_rms_mm: float | None = None) -> PoseFit:
+              trim_mm: float, hopeless_rms_mm: float | None = None, give_up_early: bool = False) -> PoseFit:
     """Point-to-plane steps on edge points found along the CAD normals, then a final VTK ICP.
 
     A fit whose RMS exceeds ``hopeless_rms_mm`` once the steps have converged is returned as it is,
-    without the final ICP (which only polishes a pose that is then rejected). ``give_up_rms_mm``: a fit whose RMS
-    on every profile exceeds it when the sparse steps have settled is returned there."""
+    without the final ICP (which only polishes a pose that is then rejected); with ``give_up_early``, already once
+    the sparse steps have settled (its RMS on every profile then)."""
     samples = edge_samples(model)
     sparse = sparse_edge_samples(model)
     # sparse profiles while the steps are large, every profile once they are small; the last
@@ -578,9 +578,9 @@ def _edge_fit(pose: np.ndarray, edges: Callable[[np.ndarray, EdgeSamples], EdgeH
         elif current is samples and moved_mm < 0.02:  # Gauss-Newton: the next step would be ~1e-4 mm
             break
         hits = edges(pose, current)
-        if settled and give_up_rms_mm is not None:
+        if settled and give_up_early and hopeless_rms_mm is not None:
             fit = _scored_fit(pose, hits, model, trim_mm, len(samples.points))
-            if fit.fit_rms_mm > give_up_rms_mm:
+            if fit.fit_rms_mm > hopeless_rms_mm:
                 return fit
     if len(hits) < 30 or current is sparse:
         return PoseFit(pose, float("inf"), 0.0, len(hits))

@@ -46,9 +46,6 @@ SPACING_RANGE_MM = (1e-6, 1e4)
 #: Largest |coordinate| (mm) of a CT's origin: a kilometre, where a scanner's are within a metre or two.
 ORIGIN_LIMIT_MM = 1e6
 
-_SCALAR_TYPES = pixel_types.SCALAR
-_FLOAT_TYPES = pixel_types.FLOATS
-
 
 def check_ct_path(path: str | os.PathLike[str]) -> None:
     """Refuse a CT path that does not exist, naming a symbolic-link loop or a broken link as such."""
@@ -137,7 +134,7 @@ def check_ct_geometry(image: sitk.Image, source: str | os.PathLike[str] = "CT") 
     """Refuse a CT EMReg cannot place exactly: not 3D, not scalar, degenerate, or sheared directions."""
     if image.GetDimension() != 3:
         raise EMRegError(f"{source}: CT must be a 3D volume, got a {image.GetDimension()}D image")
-    if image.GetNumberOfComponentsPerPixel() != 1 or image.GetPixelID() not in _SCALAR_TYPES:
+    if image.GetNumberOfComponentsPerPixel() != 1 or image.GetPixelID() not in pixel_types.SCALAR:
         raise EMRegError(
             f"{source}: CT must hold scalar intensities (HU), got pixel type {image.GetPixelIDTypeAsString()}"
         )
@@ -213,7 +210,7 @@ class NonFiniteCounter:
 
 def check_ct_voxels(image: sitk.Image, source: str | os.PathLike[str] = "CT") -> None:
     """Refuse a CT holding NaN or +-inf voxels, naming how many (integer images cannot hold any)."""
-    if image.GetPixelID() not in _FLOAT_TYPES:
+    if image.GetPixelID() not in pixel_types.FLOATS:
         return
     import SimpleITK as sitk
 

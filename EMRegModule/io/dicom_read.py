@@ -79,8 +79,9 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
         handle.sha256 = digest
     else:
         pixel_type = (compact_voxel_type if compact else voxel_type)(chosen.headers)
-        in_process = voxels_only and pixel_type not in FLOATS and can_fork_reader()
-        if voxels_only and pixel_type not in FLOATS:  # float32 voxels go into an image, which check_ct_image checks
+        in_memory = voxels_only and pixel_type not in FLOATS  # float32 voxels go into an image (check_ct_image)
+        in_process = in_memory and can_fork_reader()
+        if in_memory:
             handle = CTHandle.in_anonymous_memory(_series_geometry(chosen, pixel_type),
                                                   np.dtype(NUMPY_NAMES[pixel_type]), shared=in_process)
         else:
