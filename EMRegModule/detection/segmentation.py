@@ -107,10 +107,10 @@ class CoarseScan:
         self.spacing_zyx = np.asarray(spacing_zyx, dtype=float)
         self.strides = coarse_strides(self.spacing_zyx, settings.coarse_step_mm)
         self.shape = np.array(volume_zyx.shape)
-        sz, sy, sx = (int(v) for v in self.strides)
-        self._sample = volume_zyx[::sz, ::sy, ::sx]  # a view: nothing is copied
-        self._band = np.zeros(self._sample.shape, dtype=bool)
-        self._in_band = _band_test(self._sample.dtype, settings.low_hu, settings.high_hu)
+        self._volume = volume_zyx  # sampled slab by slab (_sample_rows): a view of numpy voxels, nothing copied
+        sample_shape = tuple(-(-int(n) // int(s)) for n, s in zip(volume_zyx.shape, self.strides, strict=True))
+        self._band = np.zeros(sample_shape, dtype=bool)
+        self._in_band = _band_test(volume_zyx.dtype, settings.low_hu, settings.high_hu)
         self._metal_hu = settings.metal_hu
         self._metal: list[np.ndarray] = []
         self._rows = 0  # coarse rows sampled so far
@@ -130,7 +130,7 @@ class CoarseScan:
 
     def advance(self, slices: int) -> tuple[list[Region], list[TooLarge]]:
         """Components completed by the first ``slices`` slices (all of them once ``slices`` is the last)."""
-        total_rows = self._sample.shape[0]
+        total_rows = self._band.shape[0]
         rows = min(total_rows, -(-int(slices) // int(self.strides[0])))
         if rows <= self._rows:
             return [], []
@@ -172,7 +172,8 @@ class CoarseScan:
 
         def one_slab(z0: int) -> np.ndarray | None:
             z1 = min(z0 + slab, stop)
-            block = self._sample[z0:z1]
+            sz, sy, sx = (int(v) for v in self.strides)
+            block = self._volume[z0 * sz:z1 * sz:sz, ::sy, ::sx]
             self._in_band(block, self._band[z0:z1])
             metal = block >= self._metal_hu
             if not metal.any():

@@ -205,6 +205,19 @@ class CTHandle:
         return handle
 
     @classmethod
+    def on_files(cls, geometry: CTGeometry, voxels: object, shared: bool = False) -> CTHandle:
+        """A CT whose voxels are read from its files where they are looked at (``voxels``: a
+        :class:`~EMRegModule.io.dicom_slices.DicomSliceStack`, indexed like a numpy array of them, k, j, i): every
+        slice is there at once; the read ends (:meth:`finish`) once the source's sha256 is made. ``result()`` is
+        None. ``shared``: a process forked later reads the same voxels, and may be forked (the caller's process has
+        no thread of its own, :func:`~.read_process.can_fork_reader`)."""
+        handle = cls(geometry.size[2], geometry)
+        handle.provide(array=voxels)
+        handle._shared = shared
+        handle._ready = handle.slice_count
+        return handle
+
+    @classmethod
     def without_voxels(cls, geometry: CTGeometry, sha256: Digest | None = None) -> CTHandle:
         """A CT known by its geometry (and sha256) alone: ``array`` and ``result()`` are None."""
         handle = cls(geometry.size[2] if len(geometry.size) > 2 else 1, geometry)
@@ -253,7 +266,8 @@ class CTHandle:
 
     @property
     def shared(self) -> bool:
-        """Whether the voxels are memory that a forked process sees as it is written (read by a reading process)."""
+        """Whether a forked process sees the voxels as they are written (memory a reading process fills, or voxels
+        read from the files where they are looked at: :meth:`on_files`)."""
         return self._shared
 
     @property

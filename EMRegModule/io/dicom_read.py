@@ -6,8 +6,9 @@ Uncompressed 16-bit greyscale slices are read whole (one read, which also gives 
 numpy straight into the volume; every other transfer syntax is decoded by GDCM through SimpleITK, a run of
 consecutive slices per ``ImageSeriesReader`` call, the rescale slope/intercept of each slice applied. The volume is
 allocated while the folder's headers are read (a SimpleITK image), or, for a caller that needs the voxels only
-while it works on them, is fresh anonymous memory that only the slices' decoding touches. A multi-frame file is
-decoded whole by GDCM.
+while it works on them, is fresh anonymous memory that only the slices' decoding touches; such a caller gets an
+uncompressed 16-bit series as its files themselves, indexed where it looks (:mod:`.dicom_slices`), its folder hashed
+beside. A multi-frame file is decoded whole by GDCM.
 
 Frames: the voxels are numpy (k, j, i); the geometry (LPS mm) is the series' (:class:`.dicom_series.DicomSeries`),
 as SimpleITK's ``ImageSeriesReader`` gives it.
@@ -16,10 +17,8 @@ as SimpleITK's ``ImageSeriesReader`` gives it.
 from __future__ import annotations
 
 import hashlib
-import math
 import os
 import threading
-import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -29,7 +28,17 @@ import numpy as np
 from ..errors import EMRegError
 from ..provenance import BackgroundHash, Digest, file_sha256, folder_members, folder_sha256
 from .ct_handle import CTGeometry, CTHandle, writable_bytes
+from .dicom_pixels import (
+    UNCOMPRESSED,
+    NarrowVoxelsError,
+    check_fits,
+    check_pixel_data_length,
+    native_16bit,
+    rescaled_range,
+    stored_to_voxels,
+)
 from .dicom_series import DicomSeries, SliceHeader, choose_series, scan_series, series_record
+from .dicom_slices import DicomSliceStack
 from .itk_messages import quiet_itk
 from .pixel_types import FLOAT32, FLOATS, INT16, INT32, NAMES, NUMPY_NAMES, UINT16
 from .read_process import can_fork_reader, fork_reader
@@ -59,8 +68,11 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
     it but the CT's own values, as CTs' do, fit), half the memory to fill; a slice holding a value
     beyond it ends the read with :class:`NarrowVoxelsError` (read again without ``compact``).
 
-    ``voxels_only``: for a caller that needs the voxels only while it works on them (``emreg detect``), integer
-    voxels go into anonymous memory (:meth:`CTHandle.in_anonymous_memory`: ``handle.voxels``, k, j, i;
+    ``voxels_only``: for a caller that needs the voxels only while it works on them (``emreg detect``): an
+    uncompressed 16-bit series is not read into memory at all but indexed where it is looked at
+    (:class:`~.dicom_slices.DicomSliceStack`, ``handle.voxels``), while its folder is hashed beside the caller's
+    work (by a process of its own where this one may fork, else on threads); other integer voxels go into
+    anonymous memory (:meth:`CTHandle.in_anonymous_memory`: ``handle.voxels``, k, j, i;
     ``handle.image`` is only the geometry and ``result()`` None): SimpleITK fills a new image with zeros before a
     slice can be decoded into it (a pass over the whole volume, on one core, that the decoding waits for), where
     these voxels are fresh memory that only the slices' decoding touches, page by page on the workers. Where this
@@ -81,24 +93,56 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
         pixel_type = (compact_voxel_type if compact else voxel_type)(chosen.headers)
         in_memory = voxels_only and pixel_type not in FLOATS  # float32 voxels go into an image (check_ct_image)
         in_process = in_memory and can_fork_reader()
-        if in_memory:
+        stack = DicomSliceStack.of(chosen.headers, NUMPY_NAMES[pixel_type]) if in_memory else None
+        if stack is not None:
+            handle = CTHandle.on_files(_series_geometry(chosen, pixel_type), stack, shared=in_process)
+            handle.sha256 = Digest()
+            _hash_beside(handle, folder, workers or max(1, min(8, os.cpu_count() or 1)), in_process)
+        elif in_memory:
             handle = CTHandle.in_anonymous_memory(_series_geometry(chosen, pixel_type),
                                                   np.dtype(NUMPY_NAMES[pixel_type]), shared=in_process)
         else:
             handle = CTHandle(len(chosen.headers))
-        handle.sha256 = Digest()
-        workers = workers or max(1, min(8, os.cpu_count() or 1))
-        if in_process:  # read beside the caller's work, not sharing its interpreter lock (see read_process)
-            try:
-                fork_reader(handle, lambda side: _decode_series(chosen, side, pixel_type, workers, folder), folder,
-                            (NarrowVoxelsError,))
-            except OSError:  # the system refuses a process: threads
-                in_process = False
-        if not in_process:
-            threading.Thread(target=_decode_series, args=(chosen, handle, pixel_type, workers, folder, early),
-                             name="emreg-dicom-read").start()  # no daemon: see above
+        if stack is None:
+            _read_beside(handle, chosen, pixel_type, workers or max(1, min(8, os.cpu_count() or 1)), folder, early,
+                         in_process)
     handle.series = record
     return handle, record
+
+
+def _read_beside(handle: CTHandle, series: DicomSeries, pixel_type: int, workers: int, folder: Path,
+                 early: _EarlyImage | None, in_process: bool) -> None:
+    """Start decoding ``series`` into ``handle``: in a process of its own (``in_process``, voxels ``shared``: not
+    sharing the caller's interpreter lock, see :mod:`.read_process`), else, or when the system refuses a process,
+    on a thread."""
+    handle.sha256 = Digest()
+    if in_process:
+        try:
+            fork_reader(handle, lambda side: _decode_series(series, side, pixel_type, workers, folder), folder,
+                        (NarrowVoxelsError,))
+            return
+        except OSError:  # the system refuses a process: threads
+            pass
+    threading.Thread(target=_decode_series, args=(series, handle, pixel_type, workers, folder, early),
+                     name="emreg-dicom-read").start()  # no daemon: see above
+
+
+def _hash_beside(handle: CTHandle, folder: Path, workers: int, in_process: bool) -> None:
+    """Start making ``handle``'s sha256 (the folder's, :func:`~EMRegModule.provenance.file_sha256`), then end its
+    read: in a process of its own (``in_process``), else, or when the system refuses a process, on a thread."""
+
+    def run(side: CTHandle) -> None:
+        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="emreg-dicom-hash") as pool:
+            _finish_digest(side, folder, {}, pool)
+        side.finish()
+
+    if in_process:
+        try:
+            fork_reader(handle, run, folder, holds_voxels=False)
+            return
+        except OSError:  # the system refuses a process: a thread
+            pass
+    threading.Thread(target=run, args=(handle,), name="emreg-dicom-hash").start()  # no daemon: see above
 
 
 class _EarlyImage:
@@ -165,56 +209,6 @@ def _read_multiframe(series: DicomSeries) -> sitk.Image:
     return image
 
 
-#: Transfer syntaxes whose Pixel Data is the pixels themselves (not encapsulated): uncompressed, or deflated as a
-#: whole dataset.
-_NATIVE_PIXELS = {"1.2.840.10008.1.2", "1.2.840.10008.1.2.1", "1.2.840.10008.1.2.2", "1.2.840.10008.1.2.1.99"}
-
-
-def check_pixel_data_length(header: SliceHeader, file_size: int, data: bytes | memoryview | None = None) -> None:
-    """Refuse a file whose native Pixel Data holds fewer bytes than its image needs (rows x columns x frames x
-    samples x bits allocated), declared so or cut off by the file's end: GDCM decodes such a slice without an
-    error, its missing pixels made of whatever memory follows. ``data``: the file's bytes, if read already.
-
-    The quick header walk gives where Pixel Data starts and its declared length; a header pydicom read (big
-    endian, deflate, no preamble) is measured by pydicom from the file's bytes. An undefined length (an
-    encapsulated, compressed image: its decoder finds a short stream) is not checked."""
-    if header.pixel_data is not None:
-        start, declared = header.pixel_data
-        if declared is None:
-            return
-        held = max(0, min(declared, file_size - start))
-    elif header.transfer_syntax in _NATIVE_PIXELS:
-        held = _pixel_bytes_by_pydicom(header.path, data)
-        if held is None:
-            return
-    else:
-        return
-    pixels = header.rows * header.columns * header.frames * header.samples
-    needed = (pixels * header.bits_allocated + 7) // 8
-    if held < needed:
-        raise EMRegError(f"{header.path}: DICOM pixel data is cut short: {held} bytes where its {header.columns}x"
-                         f"{header.rows} image of {header.bits_allocated}-bit pixels"
-                         f"{f' x {header.frames} frames' if header.frames > 1 else ''} needs {needed}; export the "
-                         "series again")
-
-
-def _pixel_bytes_by_pydicom(path: Path, data: bytes | memoryview | None) -> int | None:
-    """The bytes of ``path``'s Pixel Data value as pydicom reads them (``data``: the file's bytes, if read), or
-    None when pydicom finds none (or cannot read the file: GDCM's decoding then says why)."""
-    import io
-
-    import pydicom
-
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            source = io.BytesIO(bytes(data)) if data is not None else path
-            value = pydicom.dcmread(source, force=True).get("PixelData")
-    except Exception:  # noqa: BLE001 - pydicom raises many types for a broken file
-        return None
-    return None if value is None else len(value)
-
-
 def _read_one(path: Path, pixel: int | None = None) -> sitk.Image:
     import SimpleITK as sitk
 
@@ -232,31 +226,13 @@ def _read_one(path: Path, pixel: int | None = None) -> sitk.Image:
         raise EMRegError(f"{path}: cannot decode the DICOM image ({detail})") from None
 
 
-class NarrowVoxelsError(Exception):
-    """A slice of a ``compact`` read holds a value beyond :func:`compact_voxel_type`: read the series again
-    without ``compact`` (not an input error: nothing is wrong with the file)."""
-
-
-def _stored_range(header: SliceHeader) -> tuple[int, int]:
-    """The values ``header``'s stored bits can hold (before its rescale)."""
-    bits = min(max(header.bits_stored, 1), 32)
-    return (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if header.signed else (0, (1 << bits) - 1)
-
-
-def _rescaled_range(header: SliceHeader) -> tuple[float, float]:
-    """The values ``header``'s slice can hold after its rescale (HU)."""
-    stored = _stored_range(header)
-    low, high = sorted((stored[0] * header.slope + header.intercept, stored[1] * header.slope + header.intercept))
-    return low, high
-
-
 def _integral(header: SliceHeader) -> bool:
     return float(header.slope).is_integer() and float(header.intercept).is_integer()
 
 
 def voxel_type(headers: list[SliceHeader]) -> int:
     """The SimpleITK pixel type holding every slice's rescaled values exactly (int16 if it can)."""
-    ranges = [_rescaled_range(h) for h in headers]
+    ranges = [rescaled_range(h) for h in headers]
     low, high = min(r[0] for r in ranges), max(r[1] for r in ranges)
     if all(_integral(h) for h in headers):
         for pixel in (INT16, UINT16, INT32):
@@ -280,34 +256,9 @@ def compact_voxel_type(headers: list[SliceHeader]) -> int:
     return exact
 
 
-def _check_fits(values: np.ndarray, header: SliceHeader, dtype: np.dtype, stored: bool) -> None:
-    """Raise :class:`NarrowVoxelsError` when some of ``values`` (the slice's stored values if ``stored``, else
-    its rescaled ones) would not fit ``dtype`` once rescaled; nothing is checked where the header's range fits."""
-    if dtype.kind not in "iu":
-        return
-    info = np.iinfo(dtype)
-    low, high = _rescaled_range(header)
-    if info.min <= low and high <= info.max:
-        return
-    if stored:  # the stored values whose rescaled values fit (slope and intercept are integers here)
-        bounds = sorted(((info.min - header.intercept) / header.slope, (info.max - header.intercept) / header.slope))
-        allowed, held = (math.ceil(bounds[0]), math.floor(bounds[1])), _stored_range(header)
-    else:
-        allowed, held = (info.min, info.max), (low, high)
-    if (held[0] < allowed[0] and values.min() < allowed[0]) or (held[1] > allowed[1] and values.max() > allowed[1]):
-        raise NarrowVoxelsError(f"{header.name}: values beyond {dtype.name}")
-
-
-_UNCOMPRESSED = {"1.2.840.10008.1.2": "<", "1.2.840.10008.1.2.1": "<", "1.2.840.10008.1.2.2": ">"}
 _PIXEL_DATA_TAG = {"<": b"\xe0\x7f\x10\x00", ">": b"\x7f\xe0\x00\x10"}
 _CHUNK_SLICES = 8  # compressed slices decoded by one ImageSeriesReader call
 _buffers = threading.local()
-
-
-def _direct(header: SliceHeader) -> bool:
-    """Whether ``header``'s slice may be an uncompressed 16-bit greyscale one that numpy reads directly."""
-    return header.transfer_syntax in _UNCOMPRESSED and header.bits_allocated == 16 and header.frames == 1 \
-        and header.samples == 1 and header.photometric == "MONOCHROME2" and 1 <= header.bits_stored <= 16
 
 
 def _file_bytes(path: Path, hashed: bool = True) -> tuple[memoryview, bytes | None]:
@@ -355,9 +306,9 @@ def _read_uncompressed(header: SliceHeader, data: memoryview, out: np.ndarray) -
     intercept applied. Anything else is decoded by GDCM. The tests compare both with
     ``SimpleITK.ImageSeriesReader``.
     """
-    if not _direct(header):
+    if not native_16bit(header):
         return False
-    order = _UNCOMPRESSED[header.transfer_syntax]
+    order = UNCOMPRESSED[header.transfer_syntax]
     count = header.rows * header.columns
     explicit = header.transfer_syntax != "1.2.840.10008.1.2"
     start = len(data) - 2 * count
@@ -370,22 +321,7 @@ def _read_uncompressed(header: SliceHeader, data: memoryview, out: np.ndarray) -
         return False
     stored = np.frombuffer(data, dtype=np.dtype("i2" if header.signed else "u2").newbyteorder(order), count=count,
                            offset=start)
-    stored = stored.astype(stored.dtype.newbyteorder("="), copy=False).reshape(header.rows, header.columns)
-    unused = 16 - header.bits_stored
-    if unused and header.signed:
-        stored = (stored << unused) >> unused  # sign-extend the stored bits
-    elif unused:
-        stored = stored & ((1 << header.bits_stored) - 1)
-    _check_fits(stored, header, out.dtype, stored=True)
-    if header.slope == 1.0 and out.dtype.kind in "iu" and float(header.intercept).is_integer():
-        if out.dtype.itemsize == 2:
-            # modulo 2**16 in the output's own type: the same bits as int32 sums cast to it, one pass
-            intercept = np.array(int(header.intercept) % 65536, dtype=np.uint16).view(out.dtype)
-            np.add(stored.view(out.dtype), intercept, out=out)
-        else:
-            np.add(stored, np.int32(header.intercept), out=out, casting="unsafe")  # int32 sums, then the output type
-    else:
-        np.copyto(out, stored * np.float32(header.slope) + np.float32(header.intercept), casting="unsafe")
+    stored_to_voxels(stored.reshape(header.rows, header.columns), header, out)
     return True
 
 
@@ -395,8 +331,8 @@ def _slice_tasks(headers: list[SliceHeader]) -> list[tuple[int, int]]:
     k = 0
     while k < len(headers):
         stop = k + 1
-        if not _direct(headers[k]):
-            while stop < len(headers) and stop - k < _CHUNK_SLICES and not _direct(headers[stop]):
+        if not native_16bit(headers[k]):
+            while stop < len(headers) and stop - k < _CHUNK_SLICES and not native_16bit(headers[stop]):
                 stop += 1
         tasks.append((k, stop))
         k = stop
@@ -524,7 +460,7 @@ def _decode_gdcm(headers: list[SliceHeader], out: np.ndarray, expected: tuple[in
             values = sitk.GetArrayViewFromImage(chunk)
             if values.shape == (len(headers), *expected):
                 for header, slice_values in zip(headers, values, strict=True):
-                    _check_fits(slice_values, header, out.dtype, stored=False)
+                    check_fits(slice_values, header, out.dtype, stored=False)
                 np.copyto(out, values, casting="unsafe")
                 return
     for k, header in enumerate(headers):
@@ -534,7 +470,7 @@ def _decode_gdcm(headers: list[SliceHeader], out: np.ndarray, expected: tuple[in
         if values.shape != expected or slice_image.GetNumberOfComponentsPerPixel() != 1:
             raise EMRegError(f"{header.path}: the decoded image ({values.shape[-1]}x{values.shape[-2]}) disagrees "
                              f"with its header ({expected[1]}x{expected[0]})")
-        _check_fits(values, header, out.dtype, stored=False)
+        check_fits(values, header, out.dtype, stored=False)
         np.copyto(out[k], values, casting="unsafe")
 
 

@@ -89,8 +89,11 @@ class _PipedDigest:
 
 
 def fork_reader(handle: CTHandle, read: Callable[[ReaderSide], None], source: Path,
-                error_types: tuple[type[BaseException], ...] = ()) -> None:
+                error_types: tuple[type[BaseException], ...] = (), holds_voxels: bool = True) -> None:
     """Run ``read`` (a reading function of ``handle``'s voxels, which must be ``shared``) in a forked process.
+
+    ``holds_voxels=False``: ``read`` only hashes the source (the voxels are read elsewhere,
+    :meth:`CTHandle.on_files`); its process ends with it rather than staying until the handle is let go.
 
     ``handle`` then learns what ``read`` tells its :class:`ReaderSide` on a thread of this process;
     :meth:`CTHandle.cancel` kills the reader. An error the reader ends with comes back as its type where that is
@@ -117,7 +120,7 @@ def fork_reader(handle: CTHandle, read: Callable[[ReaderSide], None], source: Pa
             side = ReaderSide(voxels, send)
             read(side)
             os.close(send)  # the end of the read, for the command
-            if not side.failed:  # keep the voxels until the command lets go of them (module docstring)
+            if holds_voxels and not side.failed:  # keep the voxels until the command lets go of them (docstring)
                 os.read(held, 1)
         except BaseException:  # noqa: BLE001 - nothing of the caller's may run in this process
             code = 1

@@ -277,10 +277,11 @@ def test_detection_while_decoding_gives_the_markers_of_the_whole_image(hard_case
     np.testing.assert_array_equal(streamed.axes, whole.axes)
 
 
-def test_emreg_detect_decodes_the_series_into_fresh_memory_with_the_same_markers(hard_case, tmp_path, monkeypatch):
-    """``emreg detect`` needs the voxels only while it detects: the slices go into fresh memory (``voxels_only``:
-    no SimpleITK image of the volume, which SimpleITK fills with zeros before the first slice), with the same
-    voxels and geometry as the image, and the same markers as a detection that keeps the image."""
+def test_emreg_detect_reads_the_series_without_an_image_with_the_same_markers(hard_case, tmp_path, monkeypatch):
+    """``emreg detect`` needs the voxels only while it detects: an uncompressed series is indexed in its files
+    (``voxels_only``: no SimpleITK image of the volume, which SimpleITK fills with zeros before the first slice, nor
+    any copy of it), with the same voxels and geometry as the image, and the same markers as a detection that keeps
+    the image."""
     from EMRegModule.controller import EMRegController
     from EMRegModule.detection import write_detection
     from EMRegModule.io import dicom_read

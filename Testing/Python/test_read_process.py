@@ -1,6 +1,10 @@
-"""``emreg detect`` reads a DICOM series in a forked process (``EMRegModule.io.read_process``), beside the import of
-the detection stage: the same voxels and sha256 as a read on threads, its errors (a short slice, values beyond a
-compact read) coming back as the same one-line errors, a reader that dies or is cancelled ending the read cleanly.
+"""``emreg detect`` reads a DICOM series that it cannot index in its files (compressed slices, 8- or 32-bit ones:
+not a :class:`~EMRegModule.io.dicom_slices.DicomSliceStack`) in a forked process (``EMRegModule.io.read_process``),
+beside the import of the detection stage: the same voxels and sha256 as a read on threads, its errors (a short
+slice, values beyond a compact read) coming back as the same one-line errors, a reader that dies or is cancelled
+ending the read cleanly. The series here are plain 16-bit ones, which the stack is kept from taking
+(in the reading scripts and the test process): what the reading process does does not depend on how the slices are
+stored.
 
 A process may fork a reader only while it has a single thread; the scripts here run in a fresh interpreter so that
 they do (the test process may run others: pytest-xdist's), and each says whether its read went through a reader.
@@ -28,6 +32,7 @@ import json, sys
 import numpy as np
 from EMRegModule.io import dicom_read
 folder, compact, out = sys.argv[1], sys.argv[2] == "compact", sys.argv[3]
+dicom_read.DicomSliceStack.of = lambda *args, **kw: None  # read into memory (module docstring)
 {patch}
 fill, _ = dicom_read.open_dicom_series(folder, compact=compact, voxels_only=True)
 report = {{"forked": fill.on_cancel is not None}}
@@ -90,6 +95,7 @@ def test_a_reading_process_gives_the_voxels_and_sha256_of_a_read_on_threads(tmp_
     report = _open_in_fresh_process(folder, tmp_path, compact=True)
     forked = np.load(tmp_path / "voxels.npy")
     monkeypatch.setattr(dicom_read, "can_fork_reader", lambda: False)  # this process: threads
+    monkeypatch.setattr(dicom_read.DicomSliceStack, "of", lambda *args, **kw: None)
     fill, _ = open_dicom_series(folder, compact=True, voxels_only=True)
     fill.result()
     assert fill.on_cancel is None
