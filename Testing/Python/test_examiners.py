@@ -101,3 +101,38 @@ def test_examiners_fall_back_to_threads_when_the_system_refuses_a_process(monkey
     with Examiners(volume, 2, fork=True) as examiners:
         assert not examiners.forked
         assert examiners.submit(lambda voxels, k: int(voxels[k].sum()), 1).result() == 20
+
+
+def test_no_region_waits_behind_a_slow_one_while_an_examiner_is_free():
+    """Regions wait in the examiners' common queue, not in one examiner's: while one examiner is held by a slow
+    region (a decoy tried from every start), every later region goes to the other."""
+    import threading
+    from concurrent.futures import wait
+
+    release = threading.Event()
+
+    def slow(voxels, _):
+        release.wait(120)
+        return "slow"
+
+    volume = np.zeros((2, 2, 2), dtype=np.int16)
+    with Examiners(volume, 2) as examiners:
+        held = examiners.submit(slow, 0)
+        quick = [examiners.submit(lambda voxels, k: k, k) for k in range(6)]
+        done, _ = wait(quick, timeout=120)
+        assert len(done) == 6 and not held.done(), "a region waited behind the slow one"
+        release.set()
+        assert held.result() == "slow" and [f.result() for f in quick] == list(range(6))
+
+
+def test_shutting_examiners_down_on_a_failure_drops_the_regions_not_started():
+    import threading
+
+    release = threading.Event()
+    volume = np.zeros((2, 2, 2), dtype=np.int16)
+    examiners = Examiners(volume, 1)
+    held = examiners.submit(lambda voxels: release.wait(120))
+    waiting = [examiners.submit(lambda voxels, k: k, k) for k in range(3)]
+    waiting[-1].add_done_callback(lambda _: release.set())  # the held region ends once the others are dropped
+    examiners.shutdown(cancel=True)
+    assert held.result() is True and all(f.cancelled() for f in waiting)
