@@ -17,6 +17,7 @@ from .dicom_series import SliceHeader
 #: Uncompressed transfer syntaxes and the byte order of their values.
 UNCOMPRESSED = {"1.2.840.10008.1.2": "<", "1.2.840.10008.1.2.1": "<", "1.2.840.10008.1.2.2": ">"}
 
+
 def native_16bit(header: SliceHeader) -> bool:
     """Whether ``header``'s slice may be an uncompressed 16-bit greyscale one that numpy reads directly."""
     return header.transfer_syntax in UNCOMPRESSED and header.bits_allocated == 16 and header.frames == 1 \

@@ -93,19 +93,19 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
         pixel_type = (compact_voxel_type if compact else voxel_type)(chosen.headers)
         in_memory = voxels_only and pixel_type not in FLOATS  # float32 voxels go into an image (check_ct_image)
         in_process = in_memory and can_fork_reader()
+        workers = workers or max(1, min(8, os.cpu_count() or 1))
         stack = DicomSliceStack.of(chosen.headers, NUMPY_NAMES[pixel_type]) if in_memory else None
         if stack is not None:
             handle = CTHandle.on_files(_series_geometry(chosen, pixel_type), stack, shared=in_process)
             handle.sha256 = Digest()
-            _hash_beside(handle, folder, workers or max(1, min(8, os.cpu_count() or 1)), in_process)
+            _hash_beside(handle, folder, workers, in_process)
         elif in_memory:
             handle = CTHandle.in_anonymous_memory(_series_geometry(chosen, pixel_type),
                                                   np.dtype(NUMPY_NAMES[pixel_type]), shared=in_process)
         else:
             handle = CTHandle(len(chosen.headers))
         if stack is None:
-            _read_beside(handle, chosen, pixel_type, workers or max(1, min(8, os.cpu_count() or 1)), folder, early,
-                         in_process)
+            _read_beside(handle, chosen, pixel_type, workers, folder, early, in_process)
     handle.series = record
     return handle, record
 
