@@ -45,8 +45,10 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compa
     this read takes.
     ``compact``: a DICOM series whose headers call for int32 voxels is read as int16 (half the memory to fill)
     and ends with :class:`~EMRegModule.io.dicom_read.NarrowVoxelsError` if a slice does not fit it.
-    ``voxels_only``: a DICOM series' integer voxels may come as ``fill.voxels`` (numpy, k, j, i) with ``fill.image``
-    only their geometry, for a caller that needs them only while it works on them (see ``open_dicom_series``).
+    ``voxels_only``: a DICOM series' integer voxels may come as ``fill.voxels`` (numpy, k, j, i, or for an
+    uncompressed series a :class:`~EMRegModule.io.dicom_slices.DicomSliceStack` indexed like it, read from the
+    files where it is indexed and hashed by a pass of its own) with ``fill.image`` only their geometry, for a
+    caller that needs them only while it works on them (see ``open_dicom_series``).
     """
     path = Path(path)
     check_ct_path(path)
