@@ -57,11 +57,16 @@ def _gdcm(folder: Path) -> sitk.Image:
 
 
 def _assert_as_gdcm(folder: Path) -> None:
-    """EMReg's voxels (exact and compact reads) and geometry are GDCM's."""
+    """EMReg's voxels (exact and compact reads, and ``emreg detect``'s: the series indexed in its files where it
+    can be, ``voxels_only``) and geometry are GDCM's."""
     expected, image = _gdcm(folder), read_ct(folder)
     values = sitk.GetArrayFromImage(image)
     np.testing.assert_array_equal(values.astype(float), sitk.GetArrayFromImage(expected).astype(float))
     np.testing.assert_array_equal(sitk.GetArrayFromImage(open_ct(folder, compact=True).result()), values)
+    for_detection = open_ct(folder, compact=True, voxels_only=True)
+    image_held = for_detection.result()  # float voxels (slopes) are held by an image
+    voxels = sitk.GetArrayFromImage(image_held) if for_detection.voxels is None else for_detection.voxels
+    np.testing.assert_array_equal(np.asarray(voxels), values)
     for name in ("GetOrigin", "GetSpacing", "GetDirection"):
         np.testing.assert_allclose(getattr(image, name)(), getattr(expected, name)(), atol=1e-5, err_msg=name)
 
