@@ -1,6 +1,6 @@
 """Where detection examines its candidate regions: threads of this process, and a forked process beside them when
-the volume is memory that such a process sees as it is written (a CT read by a reading process:
-:attr:`~EMRegModule.io.ct_handle.CTHandle.shared`).
+such a process sees the volume as it is written (a CT read by a reading process into shared memory, or indexed
+in its files: :attr:`~EMRegModule.io.ct_handle.CTHandle.shared`).
 
 Examining a region (segmentation, measures, pose fits) is numpy, scipy.ndimage and VTK between lines of Python:
 two threads at it share the interpreter's lock and use some 1.45 of 2 cores, while a process of its own takes a

@@ -170,9 +170,10 @@ class CoarseScan:
         16-bit values). Slabs keep the temporaries small; numpy releases the GIL.
         """
 
+        sz, sy, sx = (int(v) for v in self.strides)
+
         def one_slab(z0: int) -> np.ndarray | None:
             z1 = min(z0 + slab, stop)
-            sz, sy, sx = (int(v) for v in self.strides)
             block = self._volume[z0 * sz:z1 * sz:sz, ::sy, ::sx]
             self._in_band(block, self._band[z0:z1])
             metal = block >= self._metal_hu
