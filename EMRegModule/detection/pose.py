@@ -44,12 +44,7 @@ import numpy as np
 from scipy import ndimage
 from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from vtkmodules.vtkCommonCore import vtkPoints
-from vtkmodules.vtkCommonDataModel import (
-    vtkCellLocator,
-    vtkImageData,
-    vtkIterativeClosestPointTransform,
-    vtkPolyData,
-)
+from vtkmodules.vtkCommonDataModel import vtkImageData, vtkIterativeClosestPointTransform, vtkPolyData
 from vtkmodules.vtkFiltersCore import vtkFlyingEdges3D
 
 from ..marker_model import MarkerModel
@@ -142,24 +137,17 @@ def sparse_edge_samples(model: MarkerModel, every: int = 3) -> EdgeSamples:
 _PER_THREAD = threading.local()
 
 
-def cad_target(model: MarkerModel) -> tuple[vtkPolyData, vtkCellLocator]:
-    """The CAD surface (marker frame) the ICP fits onto, and its ``vtkCellLocator`` as
-    ``vtkIterativeClosestPointTransform`` builds its own (one cell per bucket, automatic); per model and per thread.
+def cad_surface(model: MarkerModel) -> vtkPolyData:
+    """The CAD surface (marker frame) used as the ICP target; cached per model and per thread.
 
-    The ICP then finds the locator built (its build time newer than the surface's) rather than building one per fit
-    (0.3 ms of a 1.2 ms fit). Each thread has its own: VTK builds a polydata's cell links and bounds lazily on first
-    use, and a locator's closest-point queries use a scratch cell of its own."""
-    cache = getattr(_PER_THREAD, "targets", None)
+    VTK builds a polydata's cell links and bounds lazily on first use, so threads that pose
+    markers at the same time each get their own copy.
+    """
+    cache = getattr(_PER_THREAD, "surfaces", None)
     if cache is None:
-        cache = _PER_THREAD.targets = {}
+        cache = _PER_THREAD.surfaces = {}
     if model not in cache:
-        surface = model.surface_polydata(resolution=96)
-        locator = vtkCellLocator()
-        locator.SetDataSet(surface)
-        locator.SetNumberOfCellsPerBucket(1)
-        locator.SetAutomatic(1)
-        locator.BuildLocator()
-        cache[model] = surface, locator
+        cache[model] = model.surface_polydata(resolution=96)
     return cache[model]
 
 
@@ -295,9 +283,7 @@ def icp_to_model(points_marker: np.ndarray, model: MarkerModel, max_iterations: 
     source.SetPoints(vtk_points)
     icp = vtkIterativeClosestPointTransform()
     icp.SetSource(source)
-    target, locator = cad_target(model)
-    icp.SetTarget(target)
-    icp.SetLocator(locator)
+    icp.SetTarget(cad_surface(model))
     icp.GetLandmarkTransform().SetModeToRigidBody()
     icp.SetMaximumNumberOfIterations(max_iterations)
     icp.SetMaximumNumberOfLandmarks(max_landmarks)
