@@ -1,6 +1,7 @@
 """Detection's examiners (``EMRegModule.detection.examiners``): a forked process beside the threads works on the
 voxels as they are written into shared memory, gives the same answers, hands its errors back, and dies with the
-command (``interrupts.die_with_parent``). The scripts run in a fresh interpreter (a single thread, as the command)."""
+command (``interrupts.die_with_parent``); regions wait in one queue for whichever examiner is free. The scripts run
+in a fresh interpreter (a single thread, as the command)."""
 
 from __future__ import annotations
 
