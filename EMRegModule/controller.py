@@ -642,11 +642,11 @@ def _open_and_detect(controller: EMRegController, path: str | os.PathLike[str], 
 
     with controller.progress.step("opening CT"):
         fill = open_ct(path, _series_choice(controller.settings), compact=compact, voxels_only=not keep_image)
-    # The detection stage (scipy, VTK: ~0.4 s holding the GIL) is imported while the slices are read, not while
-    # open_ct scans a DICOM folder's headers: every file the scan opens gives the GIL away and waits up to a
-    # switch interval to take it back from the import (a 653-file series: emreg detect 2.41 -> 2.34 s alternated
-    # directly, 2.31 -> 2.29 s in bench_read_ct's rounds; medians of 11). A CT refused while it is opened is
-    # refused before the import starts.
+    # The detection stage (scipy, VTK: ~0.4 s holding the GIL) is imported while the slices are read (or, for a
+    # DICOM series indexed in its files, the folder hashed), not while open_ct scans a DICOM folder's headers: every
+    # file the scan opens gives the GIL away and waits up to a switch interval to take it back from the import (a
+    # 653-file series: emreg detect 2.41 -> 2.34 s alternated directly, 2.31 -> 2.29 s in bench_read_ct's rounds;
+    # medians of 11). A CT refused while it is opened is refused before the import starts.
     import_in_background("EMRegModule.detection.detect").wait()  # all of it: detection may fork (.detection.examiners)
     from .detection import detect_markers
 

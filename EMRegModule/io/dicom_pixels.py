@@ -110,6 +110,12 @@ def check_fits(values: np.ndarray, header: SliceHeader, dtype: np.dtype, stored:
         raise NarrowVoxelsError(f"{header.name}: values beyond {dtype.name}")
 
 
+def stored_dtype(header: SliceHeader) -> np.dtype:
+    """The type of ``header``'s stored 16-bit values in its file (:func:`native_16bit` slices): signed or not, in
+    its transfer syntax's byte order."""
+    return np.dtype("i2" if header.signed else "u2").newbyteorder(UNCOMPRESSED[header.transfer_syntax])
+
+
 def stored_to_voxels(stored: np.ndarray, header: SliceHeader, out: np.ndarray) -> None:
     """``header``'s slice's stored 16-bit values (any part of it, in the file's byte order) as voxels of ``out``'s
     type into ``out``: the stored bits masked (unsigned) or sign-extended (signed) as DICOM defines, then the slice's

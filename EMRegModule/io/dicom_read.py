@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import os
 import threading
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -35,6 +36,7 @@ from .dicom_pixels import (
     check_pixel_data_length,
     native_16bit,
     rescaled_range,
+    stored_dtype,
     stored_to_voxels,
 )
 from .dicom_series import DicomSeries, SliceHeader, choose_series, scan_series, series_record
@@ -97,52 +99,42 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
         stack = DicomSliceStack.of(chosen.headers, NUMPY_NAMES[pixel_type]) if in_memory else None
         if stack is not None:
             handle = CTHandle.on_files(_series_geometry(chosen, pixel_type), stack, shared=in_process)
-            handle.sha256 = Digest()
-            _hash_beside(handle, folder, workers, in_process)
         elif in_memory:
             handle = CTHandle.in_anonymous_memory(_series_geometry(chosen, pixel_type),
                                                   np.dtype(NUMPY_NAMES[pixel_type]), shared=in_process)
         else:
             handle = CTHandle(len(chosen.headers))
-        if stack is None:
-            _read_beside(handle, chosen, pixel_type, workers, folder, early, in_process)
+        handle.sha256 = Digest()
+        if stack is not None:  # only the folder's sha256 is left to make (then the read ends)
+            _start_beside(handle, lambda side: _hash_folder(side, folder, workers), folder, in_process,
+                          "emreg-dicom-hash", holds_voxels=False)
+        else:
+            _start_beside(handle, lambda side: _decode_series(chosen, side, pixel_type, workers, folder, early),
+                          folder, in_process, "emreg-dicom-read", error_types=(NarrowVoxelsError,))
     handle.series = record
     return handle, record
 
 
-def _read_beside(handle: CTHandle, series: DicomSeries, pixel_type: int, workers: int, folder: Path,
-                 early: _EarlyImage | None, in_process: bool) -> None:
-    """Start decoding ``series`` into ``handle``: in a process of its own (``in_process``, voxels ``shared``: not
-    sharing the caller's interpreter lock, see :mod:`.read_process`), else, or when the system refuses a process,
-    on a thread."""
-    handle.sha256 = Digest()
+def _start_beside(handle: CTHandle, run: Callable[[CTHandle], None], folder: Path, in_process: bool, name: str,
+                  **process_options: Any) -> None:
+    """Start ``run(handle)`` (reading or hashing the series): in a process of its own where ``in_process`` (not
+    sharing the caller's interpreter lock, see :mod:`.read_process`; ``process_options`` are
+    :func:`~.read_process.fork_reader`'s), else, or when the system refuses a process, on a thread named
+    ``name``."""
     if in_process:
         try:
-            fork_reader(handle, lambda side: _decode_series(series, side, pixel_type, workers, folder), folder,
-                        (NarrowVoxelsError,))
-            return
-        except OSError:  # the system refuses a process: threads
-            pass
-    threading.Thread(target=_decode_series, args=(series, handle, pixel_type, workers, folder, early),
-                     name="emreg-dicom-read").start()  # no daemon: see above
-
-
-def _hash_beside(handle: CTHandle, folder: Path, workers: int, in_process: bool) -> None:
-    """Start making ``handle``'s sha256 (the folder's, :func:`~EMRegModule.provenance.file_sha256`), then end its
-    read: in a process of its own (``in_process``), else, or when the system refuses a process, on a thread."""
-
-    def run(side: CTHandle) -> None:
-        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="emreg-dicom-hash") as pool:
-            _finish_digest(side, folder, {}, pool)
-        side.finish()
-
-    if in_process:
-        try:
-            fork_reader(handle, run, folder, holds_voxels=False)
+            fork_reader(handle, run, folder, **process_options)
             return
         except OSError:  # the system refuses a process: a thread
             pass
-    threading.Thread(target=run, args=(handle,), name="emreg-dicom-hash").start()  # no daemon: see above
+    threading.Thread(target=run, args=(handle,), name=name).start()  # no daemon: see above
+
+
+def _hash_folder(handle: CTHandle, folder: Path, workers: int) -> None:
+    """Make ``handle``'s sha256 (the folder's, :func:`~EMRegModule.provenance.file_sha256`), then end its read."""
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="emreg-dicom-hash") as pool:
+        _finish_digest(handle, folder, {}, pool)
+    handle.finish()
 
 
 class _EarlyImage:
@@ -319,8 +311,7 @@ def _read_uncompressed(header: SliceHeader, data: memoryview, out: np.ndarray) -
     if element[:4] != _PIXEL_DATA_TAG[order] or length != 2 * count \
             or (explicit and element[4:6] not in (b"OW", b"OB")):
         return False
-    stored = np.frombuffer(data, dtype=np.dtype("i2" if header.signed else "u2").newbyteorder(order), count=count,
-                           offset=start)
+    stored = np.frombuffer(data, dtype=stored_dtype(header), count=count, offset=start)
     stored_to_voxels(stored.reshape(header.rows, header.columns), header, out)
     return True
 

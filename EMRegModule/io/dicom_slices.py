@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import EMRegError
-from .dicom_pixels import UNCOMPRESSED, check_pixel_data_length, native_16bit, stored_to_voxels
+from .dicom_pixels import check_pixel_data_length, native_16bit, stored_dtype, stored_to_voxels
 from .dicom_series import SliceHeader
 
 _buffers = threading.local()
@@ -71,9 +71,7 @@ class DicomSliceStack:
             except OSError as exc:
                 raise EMRegError(f"{header.path}: cannot read ({exc.strerror})") from None
             check_pixel_data_length(header, size)
-            order = UNCOMPRESSED[header.transfer_syntax]
-            stored = np.dtype("i2" if header.signed else "u2").newbyteorder(order)
-            slices.append(_SliceFile(header, header.pixel_data[0], stored))
+            slices.append(_SliceFile(header, header.pixel_data[0], stored_dtype(header)))
         return cls(slices, rows, columns, dtype)
 
     def __array__(self, dtype: np.dtype | None = None, copy: bool | None = None) -> np.ndarray:
