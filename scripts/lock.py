@@ -7,7 +7,8 @@ itself. Its header records a digest of the declarations it was resolved from, so
 edited without re-locking is caught before anything is installed.
 
     python scripts/lock.py check          # exit 1, one line, when the lock does not match pyproject.toml
-    python scripts/lock.py refresh        # re-resolve the lock from pyproject.toml's ranges (newest allowed)
+    python scripts/lock.py refresh        # re-resolve the lock from pyproject.toml, keeping the versions it pins
+    python scripts/lock.py upgrade        # re-resolve the lock from pyproject.toml's ranges (newest allowed)
     python scripts/lock.py pins           # print "name==version" for every locked distribution
     python scripts/lock.py pip            # print pip's own locked requirement (with its hashes)
     python scripts/lock.py diff           # compare the installed distributions with the lock
@@ -32,7 +33,7 @@ ROOT = Path(__file__).resolve().parent.parent
 PYPROJECT = ROOT / "pyproject.toml"
 LOCK = ROOT / "requirements.lock"
 # The extras scripts/setup installs; the lock covers exactly these.
-EXTRAS = ("test", "aurora", "slicer", "studies", "lock")
+EXTRAS = ("test", "aurora", "slicer", "studies", "docs", "lock")
 # Installed outside the resolution of pyproject's dependencies, but locked all the same.
 TOOLING = ("pip",)
 PYTHON_VERSION = "3.11"
@@ -119,18 +120,22 @@ def _uv() -> list[str]:
     return [str(tool / "bin" / "uv")]
 
 
-def refresh() -> int:
-    """Resolve the newest versions pyproject.toml allows into requirements.lock (hashes of every file)."""
+def refresh(upgrade: bool = False) -> int:
+    """Resolve pyproject.toml into requirements.lock (hashes of every file). The versions the lock pins already
+    are kept wherever the declarations still allow them (uv prefers the pins of the file it writes), so adding
+    one dependency does not move every other; ``upgrade`` resolves the newest versions the ranges allow."""
     data = tomllib.loads(PYPROJECT.read_text(encoding="utf-8"))
     with tempfile.TemporaryDirectory() as tmp:
         extra_inputs = Path(tmp) / "build-and-tooling.in"
         extra_inputs.write_text("\n".join([*data["build-system"]["requires"], *TOOLING]) + "\n")
         resolved = Path(tmp) / "requirements.lock"
+        if LOCK.is_file() and not upgrade:
+            resolved.write_text(LOCK.read_text(encoding="utf-8"), encoding="utf-8")
         command = [
             *_uv(), "pip", "compile", str(PYPROJECT), str(extra_inputs),
             *[arg for extra in EXTRAS for arg in ("--extra", extra)],
             "--generate-hashes", "--python-version", PYTHON_VERSION, "--python-platform", PLATFORM,
-            "--no-header", "--quiet", "--output-file", str(resolved),
+            "--no-header", "--quiet", "--output-file", str(resolved), *(["--upgrade"] if upgrade else []),
         ]
         subprocess.run(command, check=True, cwd=ROOT, env={**os.environ, "UV_NO_CONFIG": "1"})
         body = resolved.read_text(encoding="utf-8").replace(tmp + "/", "").replace(str(ROOT) + "/", "")
@@ -166,8 +171,8 @@ def main(argv: list[str]) -> int:
     command = argv[0] if argv else "check"
     if command == "check":
         return check()
-    if command == "refresh":
-        return refresh()
+    if command in ("refresh", "upgrade"):
+        return refresh(upgrade=command == "upgrade")
     if command == "pins":
         print("\n".join(f"{name}=={version}" for name, version in sorted(pins().items())))
         return 0
