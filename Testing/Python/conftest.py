@@ -63,18 +63,26 @@ def pytest_report_header(config) -> list[str]:
     return report_header()
 
 
-@pytest.fixture(autouse=True)
-def _signal_handlers_restored():
-    """Every test starts with the SIGINT / SIGTERM handlers the session started with.
+#: SIGINT / SIGTERM as a Python process started in the foreground of a terminal has them, which is how users run
+#: ``emreg``: Ctrl-C raises KeyboardInterrupt, SIGTERM ends the process.
+_FOREGROUND_HANDLERS = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
 
-    Whatever a test leaves installed would otherwise meet later tests: pyigtl's server and client install
-    handlers of their own in the thread that makes them and never put the previous ones back, and
-    ``emreg`` commands run in-process install their SIGTERM handler. A test that sends itself SIGINT then met
-    a stale handler and the run it interrupted ended 0 (a full CI run, not reproduced alone)."""
-    saved = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+
+@pytest.fixture(autouse=True)
+def _foreground_signal_handlers():
+    """Every test starts with SIGINT / SIGTERM as a foreground process has them, and the session's are put back
+    after it, whatever the test (or a library it used) left installed.
+
+    Not the session's own: a pytest started in the background of a non-interactive shell (``scripts/test &``, a
+    CI harness, ``nohup``) inherits SIGINT ignored and Python keeps it ignored, so a test that sends itself
+    SIGINT saw nothing happen; and pyigtl's server and client install handlers of their own that they never put
+    back, and ``emreg`` commands run in-process install their SIGTERM handler."""
+    session = {signum: signal.getsignal(signum) for signum in _FOREGROUND_HANDLERS}
+    for signum, handler in _FOREGROUND_HANDLERS.items():
+        signal.signal(signum, handler)
     yield
-    for signum, handler in saved.items():
-        if handler is not None and signal.getsignal(signum) is not handler:
+    for signum, handler in session.items():
+        if handler is not None:
             signal.signal(signum, handler)
 
 
