@@ -65,17 +65,31 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``emreg`` console script.
 
     SIGINT and SIGTERM end a command with one line on stderr and exit code 130 / 143; temporary
-    files are removed on the way out and an interrupted ``emreg run`` says so in ``OUT/run.json``.
+    files are removed on the way out and an interrupted ``emreg run`` says so in ``OUT/run.json``. The
+    handlers are the command's only: the process's own are put back when it returns (a test, the Slicer
+    module or a script calling it goes on with what it had).
     """
-    from .interrupts import interrupted_by, note_interrupt
-
     parser = build_parser()
     args = parser.parse_args(argv)
-    note_interrupt(None)
-    if threading.current_thread() is threading.main_thread():
+    if threading.current_thread() is not threading.main_thread():
+        return _command(args)
+    previous = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
         signal.signal(signal.SIGTERM, _on_sigterm)
-        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        if previous[signal.SIGINT] is signal.default_int_handler:
             signal.signal(signal.SIGINT, _on_sigint)
+        return _command(args)
+    finally:
+        for signum, handler in previous.items():
+            if handler is not None:  # None: installed outside Python, nothing to put back
+                signal.signal(signum, handler)
+
+
+def _command(args: argparse.Namespace) -> int:
+    """Run the parsed command; its errors, interrupts and file-system failures end as one line and an exit code."""
+    from .interrupts import interrupted_by, note_interrupt
+
+    note_interrupt(None)
     try:
         try:
             return int(args.func(args) or 0)

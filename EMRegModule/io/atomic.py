@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
+import locale
 import os
 import tempfile
 from collections.abc import Iterator
@@ -57,12 +58,27 @@ def cannot_write(path: Path, exc: OSError) -> Exception:
 
 
 @contextlib.contextmanager
+def locale_kept() -> Iterator[None]:
+    """The process's C locale as it was before the block, put back after it. GDCM's DICOM writer (SimpleITK's,
+    for ``.dcm`` files) sets every category to "C" and leaves it there: Python's default text encoding then
+    became ASCII for the rest of the process, and any later ``open()`` or ``read_text()`` without an explicit
+    encoding failed on the first non-ASCII character."""
+    kept = locale.setlocale(locale.LC_ALL)
+    try:
+        yield
+    finally:
+        if locale.setlocale(locale.LC_ALL) != kept:
+            locale.setlocale(locale.LC_ALL, kept)
+
+
+@contextlib.contextmanager
 def itk_write_errors() -> Iterator[None]:
     """Inside :func:`atomic_path`: a SimpleITK writer's failure (it raises RuntimeError, e.g. "couldn't write gzip
     data" on a full disk, where the OS would raise OSError) is treated as the file-system error it is, so that it
-    ends as one line naming the file."""
+    ends as one line naming the file; the writer leaves the process's locale as it found it (:func:`locale_kept`)."""
     try:
-        yield
+        with locale_kept():
+            yield
     except RuntimeError:
         raise OSError(errno.EIO, "the ITK image writer failed: disk full or no permission?") from None
 

@@ -39,7 +39,7 @@ import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage
 
-from ..io.atomic import atomic_path, itk_write_errors
+from ..io.atomic import atomic_path, itk_write_errors, locale_kept
 from ..progress import QUIET, Progress
 from .shapes import F32, Shape
 
@@ -398,7 +398,7 @@ def _write_slices(image: sitk.Image, folder: Path, seed: int, description: str, 
     writer = sitk.ImageFileWriter()
     writer.KeepOriginalImageUIDOn()
     n = image.GetSize()[2]
-    with progress.step("write DICOM series", total=n) as step:
+    with progress.step("write DICOM series", total=n) as step, locale_kept():
         for k in range(n):
             slice_k = stored[:, :, k]
             for tag, value in common.items():

@@ -16,6 +16,7 @@ import contextlib
 import csv
 import io
 import json
+import os
 import zlib
 from collections.abc import Iterator
 from pathlib import Path
@@ -52,9 +53,23 @@ def dask_client(scheduler: str | None, workers: int | None) -> Iterator[object]:
         with client:
             yield client
         return
-    with LocalCluster(n_workers=workers or 2, threads_per_worker=1, processes=True, dashboard_address=None) \
-            as cluster, Client(cluster) as client:
+    with _environment_kept(), LocalCluster(n_workers=workers or 2, threads_per_worker=1, processes=True,
+                                            dashboard_address=None) as cluster, Client(cluster) as client:
         yield client
+
+
+@contextlib.contextmanager
+def _environment_kept() -> Iterator[None]:
+    """``os.environ`` as it was before the block, put back after it: distributed's nanny sets the variables it
+    gives its workers (OMP_NUM_THREADS=1, PYTHONHASHSEED, ...) in this process's own environment, where a caller
+    that goes on after the study (the Slicer module, a script, a test) would pass them to every process it starts."""
+    kept = dict(os.environ)
+    try:
+        yield
+    finally:
+        if dict(os.environ) != kept:
+            os.environ.clear()
+            os.environ.update(kept)
 
 
 def run_study(name: str, out: Path, quick: bool = False, scheduler: str | None = None, workers: int | None = None,

@@ -31,11 +31,14 @@ Each is made once per test run: under pytest-xdist the workers share it (see :fu
 
 from __future__ import annotations
 
+import faulthandler
 import fcntl
 import io
+import locale
 import os
 import shutil
 import signal
+import sys
 from collections.abc import Callable
 from contextlib import redirect_stdout
 from pathlib import Path
@@ -84,6 +87,31 @@ def _foreground_signal_handlers():
     for signum, handler in session.items():
         if handler is not None:
             signal.signal(signum, handler)
+
+
+@pytest.fixture(autouse=True)
+def _process_state_restored():
+    """The working directory, the environment variables, the C locale and faulthandler as they were before each
+    test, put back after it, so that no test's result depends on which tests ran before it in the same worker
+    (the suite runs in a random order: pytest-randomly).
+
+    The product keeps them itself where it touches them (``emreg`` commands called in-process put their signal
+    handlers back, its DICOM writes keep the locale, a study's local Dask cluster keeps the environment: tested
+    in test_process_state.py and test_studies.py); this catches what tests do directly, e.g. writing DICOM
+    fixtures with SimpleITK, whose GDCM writer leaves every locale category at "C" (Python's default text
+    encoding then turned ASCII for every later test in the worker)."""
+    cwd, environment = os.getcwd(), dict(os.environ)
+    kept_locale, faulthandler_on = locale.setlocale(locale.LC_ALL), faulthandler.is_enabled()
+    yield
+    if os.getcwd() != cwd:
+        os.chdir(cwd)
+    if dict(os.environ) != environment:
+        os.environ.clear()
+        os.environ.update(environment)
+    if locale.setlocale(locale.LC_ALL) != kept_locale:
+        locale.setlocale(locale.LC_ALL, kept_locale)
+    if faulthandler.is_enabled() != faulthandler_on:
+        faulthandler.enable(sys.__stderr__) if faulthandler_on else faulthandler.disable()
 
 
 def _made_once(tmp_path_factory: pytest.TempPathFactory, name: str, make: Callable[[Path], None]) -> Path:

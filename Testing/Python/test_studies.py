@@ -4,6 +4,7 @@ depend on the number of workers."""
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -26,8 +27,10 @@ def _study(name: str, out, case, work, *options: str) -> dict:
 
 
 def test_results_do_not_depend_on_the_number_of_workers(standard_case, study_work, tmp_path):
+    environment = dict(os.environ)
     one = _study("calibration", tmp_path / "one", standard_case, study_work, "--workers", "1")
     two = _study("calibration", tmp_path / "two", standard_case, study_work, "--workers", "2")
+    assert dict(os.environ) == environment  # the local cluster's worker settings stay out of this process
     assert one == two
     assert len(one["rows"]) == 3 and len({r["fre_mm"] for r in one["rows"]}) == 3  # different sessions
     assert (tmp_path / "one" / "calibration.csv").read_text() == (tmp_path / "two" / "calibration.csv").read_text()
