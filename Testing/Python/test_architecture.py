@@ -40,12 +40,6 @@ def test_no_import_circle(shape):
     assert shape.circles == []
 
 
-def test_functions_and_modules_stay_small(shape):
-    assert shape.long_functions == []
-    assert shape.big_modules == []
-    assert shape.big_classes == []
-
-
 def test_no_private_name_is_imported_from_another_module(shape):
     assert shape.private_imports == []
 
