@@ -71,47 +71,62 @@ def pytest_report_header(config) -> list[str]:
 _FOREGROUND_HANDLERS = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
 
 
-@pytest.fixture(autouse=True)
-def _foreground_signal_handlers():
-    """Every test starts with SIGINT / SIGTERM as a foreground process has them, and the session's are put back
-    after it, whatever the test (or a library it used) left installed.
+class _ProcessState(NamedTuple):
+    """What one test could change for every later test of its worker: the working directory, the environment
+    variables, the C locale, faulthandler, and the SIGINT / SIGTERM handlers."""
 
-    Not the session's own: a pytest started in the background of a non-interactive shell (``scripts/test &``, a
-    CI harness, ``nohup``) inherits SIGINT ignored and Python keeps it ignored, so a test that sends itself
-    SIGINT saw nothing happen; and pyigtl's server and client install handlers of their own that they never put
-    back, and ``emreg`` commands run in-process install their SIGTERM handler."""
-    session = {signum: signal.getsignal(signum) for signum in _FOREGROUND_HANDLERS}
+    cwd: str
+    environment: dict[str, str]
+    locale: str
+    faulthandler: bool
+    handlers: dict[int, object]
+
+    @classmethod
+    def now(cls) -> _ProcessState:
+        return cls(os.getcwd(), dict(os.environ), locale.setlocale(locale.LC_ALL), faulthandler.is_enabled(),
+                   {signum: signal.getsignal(signum) for signum in _FOREGROUND_HANDLERS})
+
+    def restore(self) -> None:
+        if os.getcwd() != self.cwd:
+            os.chdir(self.cwd)
+        if dict(os.environ) != self.environment:
+            os.environ.clear()
+            os.environ.update(self.environment)
+        if locale.setlocale(locale.LC_ALL) != self.locale:
+            locale.setlocale(locale.LC_ALL, self.locale)
+        if faulthandler.is_enabled() != self.faulthandler:
+            faulthandler.enable(sys.__stderr__) if self.faulthandler else faulthandler.disable()
+        for signum, handler in self.handlers.items():
+            if handler is not None:
+                signal.signal(signum, handler)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _session_process_state() -> _ProcessState:
+    """The process's state as the session began, before any other fixture (autouse, widest scope)."""
+    return _ProcessState.now()
+
+
+@pytest.fixture(autouse=True)
+def _process_state_restored(_session_process_state: _ProcessState):
+    """Every test starts with SIGINT / SIGTERM as a foreground process has them; after it, the process's state is
+    put back as the session began (:class:`_ProcessState`), whatever the test, a fixture of a wider scope or a
+    library left behind, so that no test's result depends on which tests ran before it in the same worker (the
+    suite runs in a random order: pytest-randomly).
+
+    - Signals: a pytest started in the background of a non-interactive shell (``scripts/test &``, a CI harness,
+      ``nohup``) inherits SIGINT ignored and Python keeps it ignored, so a test that sends itself SIGINT saw
+      nothing happen (issue 35's three failures); pyigtl's server and client install handlers of their own that
+      they never put back.
+    - Locale: SimpleITK's GDCM writer leaves every category at "C" (Python's default text encoding then turned
+      ASCII for every later test in the worker); tests write DICOM fixtures with it directly.
+    The product keeps these itself where it touches them (``emreg`` commands called in-process put their signal
+    handlers back, its DICOM writes keep the locale, a study's local Dask cluster keeps the environment: tested in
+    test_process_state.py and test_studies.py)."""
     for signum, handler in _FOREGROUND_HANDLERS.items():
         signal.signal(signum, handler)
     yield
-    for signum, handler in session.items():
-        if handler is not None:
-            signal.signal(signum, handler)
-
-
-@pytest.fixture(autouse=True)
-def _process_state_restored():
-    """The working directory, the environment variables, the C locale and faulthandler as they were before each
-    test, put back after it, so that no test's result depends on which tests ran before it in the same worker
-    (the suite runs in a random order: pytest-randomly).
-
-    The product keeps them itself where it touches them (``emreg`` commands called in-process put their signal
-    handlers back, its DICOM writes keep the locale, a study's local Dask cluster keeps the environment: tested
-    in test_process_state.py and test_studies.py); this catches what tests do directly, e.g. writing DICOM
-    fixtures with SimpleITK, whose GDCM writer leaves every locale category at "C" (Python's default text
-    encoding then turned ASCII for every later test in the worker)."""
-    cwd, environment = os.getcwd(), dict(os.environ)
-    kept_locale, faulthandler_on = locale.setlocale(locale.LC_ALL), faulthandler.is_enabled()
-    yield
-    if os.getcwd() != cwd:
-        os.chdir(cwd)
-    if dict(os.environ) != environment:
-        os.environ.clear()
-        os.environ.update(environment)
-    if locale.setlocale(locale.LC_ALL) != kept_locale:
-        locale.setlocale(locale.LC_ALL, kept_locale)
-    if faulthandler.is_enabled() != faulthandler_on:
-        faulthandler.enable(sys.__stderr__) if faulthandler_on else faulthandler.disable()
+    _session_process_state.restore()
 
 
 def _made_once(tmp_path_factory: pytest.TempPathFactory, name: str, make: Callable[[Path], None]) -> Path:
