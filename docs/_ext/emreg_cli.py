@@ -3,7 +3,8 @@
 ``{cli}`emreg run CASE --out OUT``` renders as code and links to that command in the generated command line
 reference. Every subcommand and every option it names must exist in ``EMRegModule.cli.build_parser()``;
 otherwise the build warns, and since ``scripts/test`` builds with ``-W``, a renamed or removed option that the
-prose still mentions fails the tests.
+prose still mentions fails the tests. The ``emreg`` lines of the manual's shell code blocks (``bash``, ``console``,
+``sh``, ``shell``) are checked the same way.
 """
 
 from __future__ import annotations
@@ -69,6 +70,24 @@ def cli_role(name, rawtext, text, lineno, inliner, options=None, content=None):
     return [xref], []
 
 
+SHELL_LANGUAGES = {"bash", "console", "sh", "shell"}
+
+
+def check_code_blocks(app, doctree) -> None:
+    """Warn about every ``emreg`` command line of a shell code block that the parser does not know."""
+    for block in doctree.findall(nodes.literal_block):
+        if block.get("language") not in SHELL_LANGUAGES:
+            continue
+        text = block.astext().replace("\\\n", " ")  # a command continued on the next line is one command
+        for line in text.splitlines():
+            command = line.split(" #", 1)[0].strip().removeprefix("$ ")
+            if command.startswith("emreg ") or command == "emreg":
+                for problem in problems(command)[1]:
+                    logger.warning("code block line %r: %s (see EMRegModule.cli.build_parser)", command, problem,
+                                   location=block)
+
+
 def setup(app):
     app.add_role("cli", cli_role)
+    app.connect("doctree-read", check_code_blocks)
     return {"parallel_read_safe": True, "parallel_write_safe": True}
