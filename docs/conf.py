@@ -44,6 +44,10 @@ suppress_warnings = ["ref.python"]
 # A package documents what it defines; what it re-exports is documented where it is defined.
 autodoc_default_options = {"members": True, "ignore-module-all": True}
 autodoc_member_order = "bysource"
+# numpy's ArrayLike by its name, not the union it stands for (a dozen lines in every signature)
+autodoc_type_aliases = {"ArrayLike": "ArrayLike", "NDArray": "NDArray"}
+add_module_names = False
+python_maximum_signature_line_length = 100
 # Optional extras and 3D Slicer's application: documented from their source without importing them.
 autodoc_mock_imports = ["qt", "ndicapi", "dask", "distributed"]
 nitpicky = False
