@@ -6,15 +6,11 @@ extension come from the locked environment.
 """
 
 import sys
-import types
 from pathlib import Path
 
 DOCS = Path(__file__).resolve().parent
 sys.path.insert(0, str(DOCS.parent))  # EMRegModule of this checkout, for autodoc and the CLI reference
 sys.path.insert(0, str(DOCS / "_ext"))
-# ``python -m EMRegModule`` runs the command line when imported: the API reference lists the package's modules
-# by importing them, so it gets an empty stand-in.
-sys.modules.setdefault("EMRegModule.__main__", types.ModuleType("EMRegModule.__main__"))
 
 from EMRegModule import __version__  # noqa: E402
 
