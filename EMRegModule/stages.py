@@ -1,5 +1,7 @@
 """The one definition of EMReg's pipeline: each stage, what it needs, what it writes, what it is made from.
 
+::
+
     CT image ──────────────> detect ─┐
                                       ├─> register ─> navigate ─┐
     calibration recording -> calibrate┘       └────> evaluate ─> tre_map ─> report ─> bundle

@@ -1,6 +1,7 @@
 """Rigid transforms, trakSTAR angles, rigid point fitting and registration error figures.
 
 Conventions:
+
 - A transform named ``AToB`` is a 4x4 homogeneous matrix mapping points given in frame A
   into frame B: ``p_B = AToB @ [p_A, 1]``.
 - Lengths in millimetres, angles in degrees unless a name says ``_rad``.

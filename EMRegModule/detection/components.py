@@ -32,7 +32,7 @@ class Component:
 
 
 class GrowingComponents:
-    """26-connected components of rows ``0 .. n-1`` of a boolean volume, fed a block of rows at a time."""
+    """26-connected components of rows ``0..n-1`` of a boolean volume, fed a block of rows at a time."""
 
     def __init__(self) -> None:
         self._rows = 0

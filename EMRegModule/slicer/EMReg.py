@@ -1,9 +1,11 @@
 """EMReg: automatic patient-to-image registration for EM navigation, as a 3D Slicer scripted module.
 
 Load it by adding this folder (``<repository>/EMRegModule/slicer``) to Slicer's additional
-module paths (Edit > Application Settings > Modules); nothing needs to be pip-installed into
-Slicer for the module to load. The module puts the repository root on ``sys.path`` itself
-and names, in Slicer's log and in its panel, every Python package that is missing.
+module paths (Edit > Application Settings > Modules), or build the extension (``CMakeLists.txt``: the
+package ``EMRegModule/`` and ``Resources/`` then sit beside this file). The module puts the package's
+folder on ``sys.path`` itself; the first time its panel or Logic is made in the Slicer application it
+installs the Python packages that are missing with ``slicer.util.pip_install``, and says so in Slicer's
+log and in its panel, which names any package still missing.
 
 Layout (Slicer's scripted-module template): ``EMReg`` (module description), ``EMRegWidget``
 (loads ``Resources/UI/EMReg.ui`` of the repository and only wires its buttons),
@@ -36,7 +38,8 @@ import slicer
 from slicer.util import VTKObservationMixin
 
 MODULE_DIR = Path(__file__).resolve().parent
-REPOSITORY_ROOT = MODULE_DIR.parents[1]
+# a clone: <repository>/EMRegModule/slicer/EMReg.py; the built extension: EMRegModule/ and Resources/ beside this file
+REPOSITORY_ROOT = MODULE_DIR if (MODULE_DIR / "EMRegModule").is_dir() else MODULE_DIR.parents[1]
 UI_FILE = REPOSITORY_ROOT / "Resources" / "UI" / "EMReg.ui"
 ICON_FILE = REPOSITORY_ROOT / "Resources" / "Icons" / "EMReg.png"
 
@@ -82,11 +85,15 @@ ESSENTIAL = ("python", "numpy", "scipy", "SimpleITK", "vtk")
 #: EMReg's package needs Python 3.11 (tomllib, zip(strict=...)): 3D Slicer 5.10 and later (Python 3.12);
 #: Slicer 5.8 and older ship Python 3.9. This file itself stays Python 3.9 so old Slicers can say so.
 MINIMUM_PYTHON = (3, 11)
+#: The packages this module installed into Slicer (``slicer.util.pip_install``), shown in its panel.
+INSTALLED = []
 
 
-def ensureEMRegImportable():
+def ensureEMRegImportable(install=False):
     """Put the repository root on ``sys.path``; return the missing dependencies (logged clearly).
 
+    With ``install``, inside the 3D Slicer application (``slicer.app``), the missing packages are first installed
+    with ``slicer.util.pip_install`` (once: then none is missing), which the log says and :data:`INSTALLED` keeps.
     Returns a list of ``(import name, pip name, what needs it)`` for every package that is absent.
     """
     if sys.version_info < MINIMUM_PYTHON:
@@ -100,6 +107,17 @@ def ensureEMRegImportable():
     for module, (pip_name, needed_by) in DEPENDENCIES.items():
         if importlib.util.find_spec(module) is None:
             missing.append((module, pip_name, needed_by))
+    if install and missing and getattr(slicer, "app", None) is not None:
+        requirements = " ".join(pip_name for _, pip_name, _ in missing)
+        logging.warning("EMReg: installing the Python packages it needs into this Slicer (once, it may take a few "
+                        "minutes): slicer.util.pip_install('%s')", requirements)
+        try:
+            slicer.util.pip_install(requirements)
+        except Exception as error:  # offline, no permission...: what is still missing is named below
+            logging.error("EMReg: installing %s failed: %s", requirements, error)
+        importlib.invalidate_caches()
+        INSTALLED.extend(m for m, _, _ in missing if importlib.util.find_spec(m) is not None)
+        missing = [entry for entry in missing if importlib.util.find_spec(entry[0]) is None]
     if importlib.util.find_spec("EMRegModule") is None:
         logging.error("EMReg: the EMRegModule package was not found under %s; keep this module file inside the "
                       "EMReg repository (EMRegModule/slicer/EMReg.py)", root)
@@ -108,11 +126,6 @@ def ensureEMRegImportable():
         logging.log(level, "EMReg: Python package '%s' is missing (needed for %s). Install it from Slicer's Python "
                            "console with: slicer.util.pip_install('%s')", module, needed_by, pip_name)
     return missing
-
-
-#
-# EMReg
-#
 
 
 class EMReg(ScriptedLoadableModule):
@@ -139,11 +152,6 @@ class EMReg(ScriptedLoadableModule):
         self.missingDependencies = ensureEMRegImportable()
 
 
-#
-# EMRegWidget
-#
-
-
 class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     """The panel: loads ``Resources/UI/EMReg.ui`` and wires its buttons to the Logic; no work here."""
 
@@ -160,7 +168,7 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui = slicer.util.childWidgetVariables(uiWidget)
         uiWidget.setMRMLScene(slicer.mrmlScene)
 
-        missing = ensureEMRegImportable()
+        missing = ensureEMRegImportable(install=True)
         if any(module == "python" for module, _, _ in missing):
             self.ui.dependenciesLabel.text = (f"EMReg needs 3D Slicer 5.10 or later (Python "
                                               f"{MINIMUM_PYTHON[0]}.{MINIMUM_PYTHON[1]}+); this Slicer runs "
@@ -169,7 +177,8 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self.ui.dependenciesLabel.text = "Missing Python packages: " + ", ".join(
                 f"{module} (slicer.util.pip_install('{pip}'), for {needed})" for module, pip, needed in missing)
         else:
-            self.ui.dependenciesLabel.text = "All Python packages found."
+            self.ui.dependenciesLabel.text = "All Python packages found" + (
+                f" (installed with slicer.util.pip_install: {', '.join(INSTALLED)})." if INSTALLED else ".")
         if any(module in ESSENTIAL for module, _, _ in missing):
             self.ui.workflowCollapsibleButton.enabled = False
             self.ui.statusLabel.text = "EMReg cannot run: see the missing packages below and Slicer's log."
@@ -289,11 +298,6 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.resultsLabel.text = self.logic.resultsText()
 
 
-#
-# EMRegLogic
-#
-
-
 class EMRegLogic(ScriptedLoadableModuleLogic):
     """The EMReg workflow for Slicer: the command line's controller plus MRML nodes showing its results.
 
@@ -320,7 +324,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
     def __init__(self, settings=None, scene=None):
         ScriptedLoadableModuleLogic.__init__(self)
-        ensureEMRegImportable()
+        ensureEMRegImportable(install=True)
         from EMRegModule.controller import EMRegController
 
         self._scene = scene
@@ -598,11 +602,6 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         if self.reportPath is not None:
             lines.append(f"report: {self.reportPath}")
         return "\n".join(lines)
-
-
-#
-# EMRegTest
-#
 
 
 class EMRegTest(ScriptedLoadableModuleTest):

@@ -443,6 +443,96 @@ def test_missing_dependency_is_named_in_the_log_and_the_panel(slicer_app, monkey
     assert widget.ui.workflowCollapsibleButton.enabled is False and widget.logic is None
 
 
+def test_first_load_in_slicer_installs_the_missing_packages_and_says_so(slicer_app, monkeypatch, caplog):
+    """Inside the Slicer application (``slicer.app``), opening the panel pip-installs what is missing, once, with
+    ``slicer.util.pip_install``; the log and the panel say so, and the workflow is enabled. Outside it (the other
+    tests, slicer-core) nothing is installed."""
+    import slicer
+    import slicer.util
+
+    module = slicer_app.load_module()
+    absent = {"scipy", "pyvista"}
+    real_find_spec = importlib.util.find_spec
+    monkeypatch.setattr(module.importlib.util, "find_spec",
+                        lambda name, *args: None if name in absent else real_find_spec(name, *args))
+    installs = []
+
+    def pip_install(requirements):
+        installs.append(requirements)
+        absent.clear()
+
+    monkeypatch.setattr(slicer.util, "pip_install", pip_install)
+    monkeypatch.setattr(slicer, "app", object(), raising=False)
+    monkeypatch.setattr(module, "INSTALLED", [])
+    with caplog.at_level(logging.WARNING):
+        widget = module.EMRegWidget(parent=types.SimpleNamespace())
+        widget.setup()
+    assert installs == ["scipy pyvista"]
+    assert "installing the Python packages" in caplog.text and "slicer.util.pip_install('scipy pyvista')" in caplog.text
+    assert "installed with slicer.util.pip_install: scipy, pyvista" in widget.ui.dependenciesLabel.text
+    assert widget.logic is not None and module.ensureEMRegImportable(install=True) == []
+    assert installs == ["scipy pyvista"]  # nothing missing any more: not installed twice
+
+
+def test_a_failed_install_names_what_is_still_missing(slicer_app, monkeypatch, caplog):
+    import slicer
+    import slicer.util
+
+    module = slicer_app.load_module()
+    real_find_spec = importlib.util.find_spec
+    monkeypatch.setattr(module.importlib.util, "find_spec",
+                        lambda name, *args: None if name == "scipy" else real_find_spec(name, *args))
+
+    def offline(requirements):
+        raise RuntimeError("no network")
+
+    monkeypatch.setattr(slicer.util, "pip_install", offline)
+    monkeypatch.setattr(slicer, "app", object(), raising=False)
+    with caplog.at_level(logging.WARNING):
+        missing = module.ensureEMRegImportable(install=True)
+    assert [m[0] for m in missing] == ["scipy"]
+    assert "installing scipy failed: no network" in caplog.text
+    assert "slicer.util.pip_install('scipy')" in caplog.text
+
+
+def test_the_built_extension_finds_the_package_and_resources_beside_the_module(tmp_path):
+    """The extension's layout (``CMakeLists.txt``): EMReg.py with ``EMRegModule/`` and ``Resources/`` beside it."""
+    import shutil
+
+    (tmp_path / "EMRegModule").mkdir()
+    shutil.copy(MODULE_FILE, tmp_path / "EMReg.py")
+    source = (tmp_path / "EMReg.py").read_text(encoding="utf-8")
+    namespace = {"__file__": str(tmp_path / "EMReg.py")}
+    head = source[source.index("MODULE_DIR ="):source.index("if str(REPOSITORY_ROOT) not in sys.path")]
+    exec("from pathlib import Path\n" + head, namespace)  # the layout lines only: no import of Slicer
+    assert namespace["REPOSITORY_ROOT"] == tmp_path
+    assert namespace["UI_FILE"] == tmp_path / "Resources" / "UI" / "EMReg.ui"
+
+
+def test_the_extension_description_agrees_with_the_cmake_files_and_the_module():
+    """``EMReg.s4ext`` (the Extensions Index), the top-level ``CMakeLists.txt`` (the build and the Extension
+    Manager) and the module say the same, and the module's CMakeLists names files that exist."""
+    import re
+
+    s4ext = {}
+    for line in (ROOT / "EMReg.s4ext").read_text(encoding="utf-8").splitlines():
+        if line.strip() and not line.startswith("#"):
+            key, _, value = line.partition(" ")
+            s4ext[key] = value.strip()
+    cmake = (ROOT / "CMakeLists.txt").read_text(encoding="utf-8")
+    meta = dict(re.findall(r'^set\(EXTENSION_(\w+) "([^"]*)"', cmake, re.M))
+    url = re.search(r'^set\(EMReg_REPOSITORY_URL "([^"]+)"', cmake, re.M).group(1)
+    assert re.search(r"^project\(EMReg\)$", cmake, re.M) and "add_subdirectory(EMRegModule/slicer)" in cmake
+    assert s4ext["description"] == meta["DESCRIPTION"] and s4ext["category"] == meta["CATEGORY"] == "IGT"
+    assert s4ext["homepage"] == url and s4ext["scmurl"] == url + ".git" and s4ext["build_subdirectory"] == "."
+    assert s4ext["iconurl"] == meta["ICONURL"].replace("${EMReg_REPOSITORY_URL}", url)
+    assert s4ext["depends"] == meta["DEPENDS"] == "NA"
+    module_cmake = (MODULE_DIR / "CMakeLists.txt").read_text(encoding="utf-8")
+    assert "slicerMacroBuildScriptedModule(" in module_cmake and "set(MODULE_NAME EMReg)" in module_cmake
+    for resource in ("Resources/Icons/${MODULE_NAME}.png", "Resources/UI/${MODULE_NAME}.ui"):
+        assert resource in module_cmake and (ROOT / resource.replace("${MODULE_NAME}", "EMReg")).is_file()
+
+
 def test_old_slicer_python_is_refused_with_the_supported_versions(slicer_app, monkeypatch, caplog):
     module = slicer_app.load_module()
     monkeypatch.setattr(module.sys, "version_info", (3, 9, 10, "final", 0))
