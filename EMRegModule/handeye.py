@@ -47,9 +47,10 @@ SCAN_STEP_S = 0.01
 #: Median |v| of a 3D Gaussian vector with per-axis standard deviation 1.
 _MEDIAN_NORM_3D = 1.5382
 
-#: Frames with the flange slower than these count as still (mm/s, rad/s).
-STILL_SPEED_MM_S = 2.0
-STILL_SPEED_RAD_S = np.radians(0.5)
+#: Frames with the flange slower than these count as still (mm/s, rad/s), its speed taken over this window (s).
+STILL_SPEED_MM_S = 3.0
+STILL_SPEED_RAD_S = np.radians(1.0)
+STILL_WINDOW_S = 0.3
 
 
 @dataclass(frozen=True)
@@ -373,7 +374,7 @@ def _refine(frames: _Frames, rows: np.ndarray, keep: np.ndarray, start: tuple[np
 
 
 def _prepare(robot_time_s: np.ndarray, flange_to_base: np.ndarray, tracker_time_s: np.ndarray,
-             sensor_to_tracker: np.ndarray) -> _Frames:
+             sensor_to_tracker: np.ndarray, settings: HandEyeSettings) -> _Frames:
     """Check the arrays (shapes, finite numbers, enough samples) and sort the robot's log by time."""
     robot_time_s, tracker_time_s = np.asarray(robot_time_s, float), np.asarray(tracker_time_s, float)
     flange_to_base, sensor_to_tracker = np.asarray(flange_to_base, float), np.asarray(sensor_to_tracker, float)
@@ -383,8 +384,9 @@ def _prepare(robot_time_s: np.ndarray, flange_to_base: np.ndarray, tracker_time_
             raise EMRegError(f"hand-eye: {name} must be N times and N 4x4 poses")
         if not (np.all(np.isfinite(poses)) and np.all(np.isfinite(times))):
             raise EMRegError(f"hand-eye: {name} hold NaN or infinite values")
-        if len(times) < 2:
-            raise NoSafeAnswerError(f"hand-eye: too few frames: {len(times)} {name}")
+        if len(times) < max(settings.min_frames, 2):
+            raise NoSafeAnswerError(f"hand-eye: too few frames: {len(times)} {name} (at least "
+                                    f"{max(settings.min_frames, 2)}, [handeye] min_frames); record longer")
     order = np.argsort(robot_time_s, kind="stable")
     robot_time_s, flange_to_base = robot_time_s[order], flange_to_base[order]
     distinct = np.concatenate([[True], np.diff(robot_time_s) > 0])
@@ -453,7 +455,7 @@ def calibrate_hand_eye(robot_time_s: np.ndarray, flange_to_base: np.ndarray, tra
     few frames, too small a rotation, rotations about one axis, no clock offset, too many frames in
     disagreement, a predicted tool-tip error above ``max_tip_uncertainty_mm``). See the module docstring."""
     settings = settings or HandEyeSettings()
-    frames = _prepare(robot_time_s, flange_to_base, tracker_time_s, sensor_to_tracker)
+    frames = _prepare(robot_time_s, flange_to_base, tracker_time_s, sensor_to_tracker, settings)
     clock = _time_offset(frames, settings)
     rows, rejected = _pairable(frames, clock.offset_s)
     flange, _ = frames.flange_at(clock.offset_s, rows)
@@ -486,7 +488,8 @@ def _result(frames: _Frames, fit: _Fit, clock, used: np.ndarray, rejected: list[
     """The typed result, with the predicted errors; refused (exit 3) above ``max_tip_uncertainty_mm``."""
     flange, _ = frames.flange_at(fit.offset_s, used)
     turn, shift = pose_residuals(flange, frames.sensor_to_tracker[used], fit.sensor_to_flange, fit.tracker_to_base)
-    linear, angular = pose_speeds(frames.robot_time_s, frames.flange_to_base, frames.time_s[used] - fit.offset_s)
+    linear, angular = pose_speeds(frames.robot_time_s, frames.flange_to_base, frames.time_s[used] - fit.offset_s,
+                                  STILL_WINDOW_S)
     still = (linear < STILL_SPEED_MM_S) & (angular < STILL_SPEED_RAD_S)
     tip = np.asarray(settings.tool_tip_mm, dtype=float)
     point = np.asarray(TRACKER_POINT_MM)
@@ -497,6 +500,12 @@ def _result(frames: _Frames, fit: _Fit, clock, used: np.ndarray, rejected: list[
         np.degrees(np.linalg.norm(turn, axis=1)), np.linalg.norm(shift, axis=1), tuple(rejected),
         int(np.count_nonzero(still)), _dwells(frames.time_s[used], still), float(np.degrees(fit.sigmas[0])),
         fit.sigmas[1], motion[0], motion[1], fit.covariance, tip, tip_cov, point, point_cov)
+    if result.noise_position_mm > settings.max_noise_mm or result.noise_rotation_deg > settings.max_noise_deg:
+        raise NoSafeAnswerError(
+            f"hand-eye: the robot's and the tracker's poses disagree by {result.noise_position_mm:.2f} mm and "
+            f"{result.noise_rotation_deg:.2f} deg per axis where the flange is slow (at most {settings.max_noise_mm:g} "
+            f"mm, {settings.max_noise_deg:g} deg, [handeye] max_noise_mm, max_noise_deg): not the same motion, the "
+            "wrong sensor, or a moved field generator?")
     if result.tool_tip_rms_mm > settings.max_tip_uncertainty_mm:
         raise NoSafeAnswerError(f"hand-eye: the predicted error at the tool point {tip.tolist()} mm is "
                                 f"{result.tool_tip_rms_mm:.2f} mm RMS (at most {settings.max_tip_uncertainty_mm:g}, "

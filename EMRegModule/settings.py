@@ -374,6 +374,8 @@ class HandEyeSettings:
       the motion cannot determine the answer (exit 3).
     - ``min_correlation`` (0.5): a weaker peak of the angular-speed cross-correlation finds no clock offset.
     - ``outlier_limit`` (5.0): a frame whose noise-normalised residual exceeds this is rejected.
+    - ``max_noise_mm`` (5.0), ``max_noise_deg`` (3.0): a still frame's typical residual above these means the
+      two recordings disagree (not the same motion, the wrong sensor, a moved field generator): exit 3.
     - ``tool_tip_mm`` (0, 0, 150): the tool point (Sensor frame, mm) whose predicted error is reported;
       ``max_tip_uncertainty_mm`` (2.0): above this predicted RMS error there is no safe answer (exit 3).
     """
@@ -387,6 +389,8 @@ class HandEyeSettings:
     min_second_axis_deg: float = positive(3.0)
     min_correlation: float = fraction(0.5)
     outlier_limit: float = positive(5.0)
+    max_noise_mm: float = positive(5.0)
+    max_noise_deg: float = positive(3.0)
     tool_tip_mm: tuple[float, ...] = (0.0, 0.0, 150.0)
     max_tip_uncertainty_mm: float = positive(2.0)
 

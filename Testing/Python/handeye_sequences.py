@@ -61,12 +61,15 @@ class HandEyeCase:
                          f"{q[3]:.7f},,")
         path.write_text("\n".join(lines) + "\n")
 
-    def write_sequence(self, path: Path, name: str = "SensorToTracker") -> None:
-        """The tracker's recording as a PLUS sequence metafile with one transform."""
+    def write_sequence(self, path: Path, name: str = "SensorToTracker", robot: bool = False) -> None:
+        """The tracker's recording (or, with ``robot``, the robot's log) as a PLUS sequence metafile with one
+        transform ``name``."""
+        times, poses = (self.robot_time_s, self.flange_to_base) if robot else (self.tracker_time_s,
+                                                                                 self.sensor_to_tracker)
         lines = ["ObjectType = Image", "NDims = 3", "BinaryData = True", "BinaryDataByteOrderMSB = False",
-                 "CompressedData = False", f"DimSize = 0 0 {len(self.tracker_time_s)}", "ElementType = MET_UCHAR",
+                 "CompressedData = False", f"DimSize = 0 0 {len(times)}", "ElementType = MET_UCHAR",
                  "Kinds = domain domain list"]
-        for k, (t, pose) in enumerate(zip(self.tracker_time_s, self.sensor_to_tracker, strict=True)):
+        for k, (t, pose) in enumerate(zip(times, poses, strict=True)):
             lines.append(f"Seq_Frame{k:04d}_{name}Transform = " + " ".join(f"{v:.9g}" for v in pose.ravel()))
             lines.append(f"Seq_Frame{k:04d}_{name}TransformStatus = OK")
             lines.append(f"Seq_Frame{k:04d}_Timestamp = {t:.6f}")
@@ -75,10 +78,11 @@ class HandEyeCase:
 
 
 def _config(name: str, robot: str, family: str, seed: int, time_offset_s: float, tracker_rate_hz: float,
-            robot_rate_hz: float, duration_s: float):
+            robot_rate_hz: float, duration_s: float, family_params: dict | None):
     from kinhec import SequenceConfig
 
     params = {} if family == "joint_sinusoid" else {"n_waypoints": 10, "speed_frac": 0.35, "dwell_range": (0.8, 1.6)}
+    params.update(family_params or {})
     return SequenceConfig(
         sequence_id=name, track="emreg", level="test", seed=seed, robot=ROBOTS.get(robot, robot),
         configuration="eye_to_hand", family=family, family_params=params,
@@ -135,15 +139,18 @@ def _em_noise(rng: np.random.Generator, poses: np.ndarray, position_mm: float, r
 def kinhec_case(robot: str = "panda", family: str = "joint_sinusoid", seed: int = 1, time_offset_s: float = 0.037,
                 outlier_fraction: float = 0.0, noise: bool = True, em_position_mm: float = 0.2,
                 em_rotation_deg: float = 0.1, tail_dof: float | None = 3.0, tracker_rate_hz: float = 40.0,
-                robot_rate_hz: float = 200.0, duration_s: float = 20.0) -> HandEyeCase:
+                robot_rate_hz: float = 200.0, duration_s: float = 20.0, family_params: dict | None = None
+                ) -> HandEyeCase:
     """A KinHEC eye-to-hand sequence as an EM recording (see the module docstring). ``family``:
     ``joint_sinusoid`` (continuous motion) or ``joint_waypoints`` (move and dwell). ``time_offset_s``: the
     clocks' offset on top of their different epochs. ``noise`` False: KinHEC's robot log without its noise
-    and the tracker without EM noise (outliers still as asked)."""
+    and the tracker without EM noise (outliers still as asked). ``family_params``: KinHEC's trajectory
+    parameters (``joints``, ``amplitude_frac``...)."""
     from kinhec import Sequence, generate_sequence
 
     name = f"{robot}-{'continuous' if family == 'joint_sinusoid' else 'dwell'}-{seed}"
-    config = _config(name, robot, family, seed, time_offset_s, tracker_rate_hz, robot_rate_hz, duration_s)
+    config = _config(name, robot, family, seed, time_offset_s, tracker_rate_hz, robot_rate_hz, duration_s,
+                     family_params)
     if not noise:
         config.robot_noise = {**config.robot_noise, "models": ["none"]}
     record = generate_sequence(config)

@@ -1,0 +1,111 @@
+"""``emreg handeye``: hand-eye and robot-world calibration with the EM tracker from recordings.
+
+``emreg handeye --robot-poses ROBOT --tracker TRACKER [--sensor NAME|PORT] [--settings case.toml] --out OUT``
+writes ``OUT/robot_calibration.json`` (``SensorToFlange``, ``TrackerToBase``: 4x4 mm, with
+``FlangeToBase @ SensorToFlange = TrackerToBase @ SensorToTracker``; ``time_offset_s`` with
+``t_tracker = t_robot + time_offset_s``; residuals, frames used and rejected, predicted uncertainty) and the two
+transforms for 3D Slicer, ``OUT/SensorToFlange.h5`` and ``OUT/TrackerToBase.h5``. Exit 2 for bad input, 3 when
+the motion cannot determine the answer; nothing is written then.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from .args import AddCommand, out_folder, settings_of, warn
+
+if TYPE_CHECKING:
+    from ..handeye import HandEyeResult
+
+ROBOT_CALIBRATION_JSON = "robot_calibration.json"
+EQUATION = "FlangeToBase @ SensorToFlange = TrackerToBase @ SensorToTracker; t_tracker = t_robot + time_offset_s"
+
+
+def _stats(values: np.ndarray) -> dict[str, float]:
+    return {"rms": float(np.sqrt(np.mean(values ** 2))), "median": float(np.median(values)),
+            "p95": float(np.percentile(values, 95)), "max": float(np.max(values))}
+
+
+def calibration_document(result: HandEyeResult, inputs: dict[str, Any], warnings: list[str]) -> dict[str, Any]:
+    """``robot_calibration.json``'s content for a result (mm, degrees, seconds)."""
+    reasons: dict[str, int] = {}
+    for frame in result.rejected:
+        key = frame.reason.split(":")[-1].strip() if "times the expected noise" in frame.reason else frame.reason
+        reasons[key] = reasons.get(key, 0) + 1
+    return {
+        "SensorToFlange": result.sensor_to_flange.tolist(),
+        "TrackerToBase": result.tracker_to_base.tolist(),
+        "time_offset_s": result.time_offset_s,
+        "equation": EQUATION,
+        "time_offset": {"cross_correlation_s": result.xcorr_offset_s, "correlation": result.correlation,
+                        "std_s": result.time_offset_std_s},
+        "residuals": {"rotation_deg": _stats(result.rotation_residual_deg),
+                      "translation_mm": _stats(result.translation_residual_mm),
+                      "noise_rotation_deg": result.noise_rotation_deg, "noise_position_mm": result.noise_position_mm},
+        "frames": {"used": len(result.used), "rejected": len(result.rejected), "still": result.still,
+                   "dwells": result.dwells, "rejected_by_reason": reasons,
+                   "rejected_frames": [{"index": f.index, "time_s": f.time_s, "reason": f.reason}
+                                       for f in result.rejected]},
+        "motion": {"rotation_range_deg": result.rotation_range_deg, "second_axis_rms_deg": result.second_axis_deg},
+        "uncertainty": {
+            "tool_tip_mm": result.tool_tip_mm.tolist(), "tool_tip_rms_mm": result.tool_tip_rms_mm,
+            "tool_tip_covariance_mm2": result.tool_tip_covariance_mm2.tolist(),
+            "tracker_point_mm": result.tracker_point_mm.tolist(), "tracker_point_rms_mm": result.tracker_point_rms_mm,
+            "tracker_point_covariance_mm2": result.tracker_point_covariance_mm2.tolist(),
+            "note": "predicted from the residuals (Gauss-Newton covariance): the tool point's place in the Flange "
+                    "frame, the tracker point's in the Base frame"},
+        "inputs": inputs,
+        "warnings": warnings,
+    }
+
+
+def cmd_handeye(args: argparse.Namespace) -> int:
+    from .. import __version__
+    from ..handeye import calibrate_hand_eye
+    from ..io.atomic import atomic_write_json
+    from ..io.handeye_inputs import read_robot_poses, read_sensor_poses
+    from ..io.itk_transform import write_slicer_frame_transform
+    from ..provenance import file_sha256
+
+    settings = settings_of(args)
+    out = out_folder(args.out)
+    assert out is not None
+    handeye = settings.handeye
+    sensor = args.sensor if args.sensor is not None else handeye.sensor
+    robot = read_robot_poses(args.robot_poses, handeye.flange_transform)
+    tracker = read_sensor_poses(args.tracker, sensor)
+    result = calibrate_hand_eye(robot.time_s, robot.poses, tracker.time_s, tracker.poses, handeye)
+    inputs = {"robot_poses": {"path": str(args.robot_poses), "sha256": file_sha256(args.robot_poses),
+                              "transform": robot.name, "samples": len(robot.time_s)},
+              "tracker": {"path": str(args.tracker), "sha256": file_sha256(args.tracker), "sensor": tracker.name,
+                          "samples": len(tracker.time_s)},
+              "settings": settings.source or None, "emreg_version": __version__}
+    warnings = robot.warnings + tracker.warnings
+    document = calibration_document(result, inputs, warnings)
+    write_slicer_frame_transform(out / "SensorToFlange.h5", result.sensor_to_flange)
+    write_slicer_frame_transform(out / "TrackerToBase.h5", result.tracker_to_base)
+    atomic_write_json(out / ROBOT_CALIBRATION_JSON, document)
+    warn("handeye", warnings)
+    print(f"SensorToFlange and TrackerToBase from {len(result.used)} frames ({len(result.rejected)} left out); "
+          f"time offset {result.time_offset_s:.4f} s; residual RMS {document['residuals']['rotation_deg']['rms']:.3f}"
+          f" deg, {document['residuals']['translation_mm']['rms']:.3f} mm; predicted tool-point error "
+          f"{result.tool_tip_rms_mm:.3f} mm RMS -> {Path(out) / ROBOT_CALIBRATION_JSON}")
+    return 0
+
+
+def add_parsers(add: AddCommand) -> None:
+    """The subcommands of this module (``add``: :data:`~EMRegModule.commands.args.AddCommand`)."""
+    p = add("handeye", cmd_handeye, "hand-eye (SensorToFlange) and robot-world (TrackerToBase) calibration with the "
+            "EM tracker, from a robot's log and a tracker recording on two clocks")
+    p.add_argument("--robot-poses", required=True, metavar="ROBOT",
+                   help="the flange's poses in the robot base frame (FlangeToBase): a TUM trajectory file "
+                        "(timestamp tx ty tz qx qy qz qw; s, m) or a PLUS sequence file ([handeye] flange_transform)")
+    p.add_argument("--tracker", required=True, metavar="TRACKER",
+                   help="the flange sensor's recording: a PLUS sequence file or EMReg tracking CSV")
+    p.add_argument("--sensor", default=None, metavar="NAME|PORT",
+                   help="the flange's sensor when TRACKER holds several: a transform name or a port")
+    p.add_argument("--out", required=True, metavar="OUT", help="output folder (robot_calibration.json, .h5)")

@@ -1,0 +1,175 @@
+"""``emreg handeye`` (issue 39, section 1) on recordings with known truth from KinHEC (published Panda, UR and
+iiwa kinematics, a generator we did not write), made into what a user has: the robot's log as a TUM file or a PLUS
+sequence file, the tracker's recording as EMReg CSV or a PLUS sequence file, with heavy-tailed EM noise, a clock
+offset on top of different epochs, and wrong poses (glitches, distorted bursts). Then the refusals: motion that
+cannot determine the answer (exit 3) and bad input (exit 2), with nothing written.
+
+Tolerances: the issue asks for a tool-tip error (150 mm out) of at most 0.5 mm at EM noise; EMReg measures
+0.01-0.1 mm on these recordings, so the tests hold it to 0.25 mm (a regression shows), and to its own prediction.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from EMRegModule.cli import main
+from EMRegModule.handeye import motion_spread, solve_ax_yb
+from EMRegModule.io.itk_transform import read_slicer_frame_transform
+from EMRegModule.io.tum import read_tum, write_tum
+
+sys.path.insert(0, str(Path(__file__).parent))
+from handeye_sequences import (  # noqa: E402
+    kinhec_case,
+    rotation_error_deg,
+    tip_error_mm,
+    tracker_point_error_mm,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+KEYS = {"SensorToFlange", "TrackerToBase", "time_offset_s", "residuals", "frames", "uncertainty"}
+
+
+def _check_calibration(out: Path, case, tip_mm: float = 0.25) -> dict:
+    """The answer against KinHEC's truth: tool tip 150 mm out, rotation, a point 300 mm before the tracker, the
+    clock offset; the prediction honest; the Slicer transforms the same as the JSON."""
+    document = json.loads((out / "robot_calibration.json").read_text())
+    assert KEYS <= set(document)
+    sensor_to_flange, tracker_to_base = np.array(document["SensorToFlange"]), np.array(document["TrackerToBase"])
+    tip = tip_error_mm(sensor_to_flange, case.sensor_to_flange)
+    assert tip <= tip_mm
+    assert tip <= 5.0 * document["uncertainty"]["tool_tip_rms_mm"] + 0.02
+    assert rotation_error_deg(sensor_to_flange, case.sensor_to_flange) <= 0.05
+    assert tracker_point_error_mm(tracker_to_base, case.tracker_to_base) <= 0.6
+    assert abs(document["time_offset_s"] - case.time_offset_s) <= 0.002
+    np.testing.assert_allclose(read_slicer_frame_transform(out / "SensorToFlange.h5"), sensor_to_flange, atol=1e-6)
+    np.testing.assert_allclose(read_slicer_frame_transform(out / "TrackerToBase.h5"), tracker_to_base, atol=1e-6)
+    return document
+
+
+@pytest.fixture(scope="module")
+def continuous_case():
+    return kinhec_case("panda", "joint_sinusoid", seed=11, outlier_fraction=0.04)
+
+
+def test_continuous_motion_with_clock_offset_and_wrong_poses(continuous_case, tmp_path, capsys):
+    """Panda, continuous motion, 4% wrong poses, the flange sensor on port 3 of a CSV that also holds a reference
+    sensor: --sensor picks it; every injected glitch is rejected with a reason."""
+    case = continuous_case
+    case.write_tum(tmp_path / "robot.tum")
+    case.write_csv(tmp_path / "tracker.csv", port=3, with_reference=True)
+    code = main(["handeye", "--robot-poses", str(tmp_path / "robot.tum"), "--tracker", str(tmp_path / "tracker.csv"),
+                 "--sensor", "3", "--out", str(tmp_path / "out")])
+    assert code == 0, capsys.readouterr().err
+    document = _check_calibration(tmp_path / "out", case)
+    rejected = {frame["index"] for frame in document["frames"]["rejected_frames"]}
+    assert set(np.nonzero(case.outlier)[0]) <= rejected
+    assert all(frame["reason"] for frame in document["frames"]["rejected_frames"])
+    assert len(rejected) <= 3 * np.count_nonzero(case.outlier)  # heavy tails cost some good frames, not many
+    assert "robot_calibration.json" in capsys.readouterr().out
+
+
+def test_move_and_dwell_from_plus_sequence(tmp_path, capsys):
+    """iiwa, move and dwell, 3% wrong poses, the tracker's recording a PLUS sequence file with one transform: the
+    dwells are found and the answer is as good."""
+    case = kinhec_case("iiwa", "joint_waypoints", seed=12, outlier_fraction=0.03)
+    case.write_tum(tmp_path / "robot.tum")
+    case.write_sequence(tmp_path / "tracker.seq.mha")
+    code = main(["handeye", "--robot-poses", str(tmp_path / "robot.tum"), "--tracker",
+                 str(tmp_path / "tracker.seq.mha"), "--out", str(tmp_path / "out"), "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    document = _check_calibration(tmp_path / "out", case, tip_mm=0.1)
+    assert document["frames"]["dwells"] >= 5
+    assert document["frames"]["still"] >= 100
+
+
+def test_robot_log_as_plus_sequence_file_in_a_process(tmp_path):
+    """UR5e, continuous, the robot's log a PLUS sequence file (FlangeToBase), run as a user runs emreg."""
+    case = kinhec_case("ur", "joint_sinusoid", seed=13, outlier_fraction=0.02)
+    case.write_sequence(tmp_path / "robot.seq.mha", name="FlangeToBase", robot=True)
+    case.write_csv(tmp_path / "tracker.csv")
+    result = subprocess.run([sys.executable, "-m", "EMRegModule", "handeye", "--robot-poses",
+                             str(tmp_path / "robot.seq.mha"), "--tracker", str(tmp_path / "tracker.csv"), "--out",
+                             str(tmp_path / "out")], capture_output=True, text=True, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    _check_calibration(tmp_path / "out", case)
+
+
+def test_closed_form_recovers_noise_free_truth():
+    """The closed-form start is exact on noise-free pose pairs (KinHEC's truth at the tracker's instants)."""
+    case = kinhec_case("panda", "joint_sinusoid", seed=14, noise=False, duration_s=6.0)
+    sensor_to_flange, tracker_to_base = solve_ax_yb(case.true_flange_to_base, case.sensor_to_tracker)
+    np.testing.assert_allclose(sensor_to_flange, case.sensor_to_flange, atol=1e-6)
+    np.testing.assert_allclose(tracker_to_base, case.tracker_to_base, atol=1e-5)
+
+
+@pytest.mark.parametrize(("family_params", "duration_s", "message"), [
+    ({"joints": [6]}, 20.0, "about one axis only"),
+    ({"amplitude_frac": 0.01}, 20.0, "too small a range"),
+    ({}, 0.4, "too few frames"),
+])
+def test_motion_that_cannot_determine_the_answer_is_refused(tmp_path, capsys, family_params, duration_s, message):
+    """Exit 3 and one line, nothing written: the wrist's last joint alone (one axis), a tiny motion, 16 frames."""
+    case = kinhec_case("panda", "joint_sinusoid", seed=15, family_params=family_params, duration_s=duration_s)
+    case.write_tum(tmp_path / "robot.tum")
+    case.write_csv(tmp_path / "tracker.csv")
+    code = main(["handeye", "--robot-poses", str(tmp_path / "robot.tum"), "--tracker", str(tmp_path / "tracker.csv"),
+                 "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 3
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert list((tmp_path / "out").iterdir()) == []
+
+
+def test_recordings_of_different_motions_are_refused(continuous_case, tmp_path, capsys):
+    """A robot log and a tracker recording that do not belong together: exit 3, not a calibration."""
+    other = kinhec_case("panda", "joint_sinusoid", seed=16)
+    continuous_case.write_tum(tmp_path / "robot.tum")
+    other.write_csv(tmp_path / "tracker.csv")
+    code = main(["handeye", "--robot-poses", str(tmp_path / "robot.tum"), "--tracker", str(tmp_path / "tracker.csv"),
+                 "--out", str(tmp_path / "out")])
+    assert code == 3, capsys.readouterr().err
+    assert not (tmp_path / "out" / "robot_calibration.json").exists()
+
+
+def _bad_tum(path: Path, text: str) -> None:
+    path.write_text("# timestamp tx ty tz qx qy qz qw\n0.0 0.1 0.2 0.3 0 0 0 1\n" + text)
+
+
+@pytest.mark.parametrize(("robot_text", "sensor", "message"), [
+    ("0.1 0.1 0.2 0.3 0 0 1\n", "3", "line 3: 7 fields"),
+    ("0.1 0.1 0.2 abc 0 0 0 1\n", "3", "line 3: holds a non-numeric value"),
+    ("0.1 100 200 300 0 0 0 1\n", "3", "in millimetres"),
+    ("0.1 0.1 0.2 0.3 0 0 0 2\n", "3", "length 2"),
+    ("0.05 0.1 0.2 0.3 0 0 0 1\n-0.1 0.1 0.2 0.3 0 0 0 1\n", "3", "the time goes back"),
+    ("0.1 0.1 0.2 0.3 0 0 0 1\n", "7", "no sensor '7'"),
+    ("0.1 0.1 0.2 0.3 0 0 0 1\n", None, "choose the flange's sensor"),
+])
+def test_bad_input_is_one_line_and_exit_2(continuous_case, tmp_path, capsys, robot_text, sensor, message):
+    """Malformed TUM lines, a missing sensor, an ambiguous one (no --sensor for a file with two): exit 2, one line
+    naming the file, nothing written."""
+    _bad_tum(tmp_path / "robot.tum", robot_text)
+    continuous_case.write_csv(tmp_path / "tracker.csv", port=3, with_reference=True)
+    argv = ["handeye", "--robot-poses", str(tmp_path / "robot.tum"), "--tracker", str(tmp_path / "tracker.csv"),
+            "--out", str(tmp_path / "out")] + (["--sensor", sensor] if sensor else [])
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "out" / "robot_calibration.json").exists()
+
+
+def test_tum_round_trip_and_motion_spread(continuous_case, tmp_path):
+    """write_tum / read_tum keep poses to the micrometre (metres on file, mm in EMReg); the motion's spread is
+    that of the flange."""
+    write_tum(tmp_path / "t.tum", continuous_case.robot_time_s, continuous_case.flange_to_base)
+    time_s, poses = read_tum(tmp_path / "t.tum")
+    np.testing.assert_allclose(time_s, continuous_case.robot_time_s, atol=1e-6)
+    np.testing.assert_allclose(poses, continuous_case.flange_to_base, atol=1e-5)
+    spread, second = motion_spread(poses)
+    assert spread > 20.0 and second > 3.0
