@@ -44,6 +44,10 @@ LEVER_MM = 150.0
 SCAN_HALF_WIDTH_S = 0.2
 SCAN_STEP_S = 0.01
 
+#: The robust start and the offset scan rank their candidates on at most this many frames, spread over the
+#: recording.
+MOST_SCORED = 400
+
 #: Median |v| of a 3D Gaussian vector with per-axis standard deviation 1.
 _MEDIAN_NORM_3D = 1.5382
 
@@ -179,6 +183,11 @@ def _distances(flange_to_base: np.ndarray, sensor_to_tracker: np.ndarray, sensor
     return np.hypot(np.linalg.norm(shift, axis=1), LEVER_MM * np.linalg.norm(turn, axis=1))
 
 
+def _spread_rows(n: int, most: int = MOST_SCORED) -> np.ndarray:
+    """At most ``most`` indices of ``n`` frames, evenly spread over them."""
+    return np.unique(np.linspace(0, n - 1, min(n, most)).round().astype(int))
+
+
 def robust_start(flange_to_base: np.ndarray, sensor_to_tracker: np.ndarray, trials: int = 120, size: int = 6,
                  seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closed-form ``(SensorToFlange, TrackerToBase, inliers)`` robust to wrong poses: least median of the
@@ -187,6 +196,7 @@ def robust_start(flange_to_base: np.ndarray, sensor_to_tracker: np.ndarray, tria
     n = len(flange_to_base)
     rng = np.random.default_rng(seed)
     bins = np.array_split(np.arange(n), size)
+    scored = _spread_rows(n)  # the median of a few hundred frames ranks the candidates as well as all
     best, best_score = None, np.inf
     for _ in range(trials):
         pick = np.array([rng.choice(b) for b in bins if len(b)])
@@ -194,7 +204,7 @@ def robust_start(flange_to_base: np.ndarray, sensor_to_tracker: np.ndarray, tria
             x, y = solve_ax_yb(flange_to_base[pick], sensor_to_tracker[pick])
         except np.linalg.LinAlgError:
             continue
-        score = float(np.median(_distances(flange_to_base, sensor_to_tracker, x, y)))
+        score = float(np.median(_distances(flange_to_base[scored], sensor_to_tracker[scored], x, y)))
         if score < best_score:
             best, best_score = (x, y), score
     if best is None:
@@ -224,6 +234,7 @@ class _Frames:
 def _scan_offset(frames: _Frames, rows: np.ndarray, offset_s: float) -> float:
     """The offset (s) near ``offset_s`` with the smallest median residual distance of a closed-form solve on
     the frames ``rows`` (paired at every offset scanned), refined by a parabola through the best three."""
+    rows = rows[_spread_rows(len(rows))]
     steps = np.arange(-SCAN_HALF_WIDTH_S, SCAN_HALF_WIDTH_S + SCAN_STEP_S / 2, SCAN_STEP_S)
     costs = np.full(len(steps), np.inf)
     for k, step in enumerate(steps):
