@@ -99,6 +99,8 @@ class HandEyeResult:
     tool_tip_covariance_mm2: np.ndarray
     tracker_point_mm: np.ndarray
     tracker_point_covariance_mm2: np.ndarray
+    #: The flange's mean orientation over the frames used (3x3, Base frame): a pose the robot has reached.
+    mean_flange_rotation: np.ndarray
 
     @property
     def time_offset_std_s(self) -> float:
@@ -510,7 +512,8 @@ def _result(frames: _Frames, fit: _Fit, clock, used: np.ndarray, rejected: list[
         fit.sensor_to_flange, fit.tracker_to_base, fit.offset_s, clock.offset_s, clock.correlation, used,
         np.degrees(np.linalg.norm(turn, axis=1)), np.linalg.norm(shift, axis=1), tuple(rejected),
         int(np.count_nonzero(still)), _dwells(frames.time_s[used], still), float(np.degrees(fit.sigmas[0])),
-        fit.sigmas[1], motion[0], motion[1], fit.covariance, tip, tip_cov, point, point_cov)
+        fit.sigmas[1], motion[0], motion[1], fit.covariance, tip, tip_cov, point, point_cov,
+        _project_rotation(flange[:, :3, :3].sum(axis=0)))
     if result.noise_position_mm > settings.max_noise_mm or result.noise_rotation_deg > settings.max_noise_deg:
         raise NoSafeAnswerError(
             f"hand-eye: the robot's and the tracker's poses disagree by {result.noise_position_mm:.2f} mm and "

@@ -1,4 +1,4 @@
-"""``emreg handeye``: hand-eye and robot-world calibration with the EM tracker from recordings.
+"""The robot commands: ``emreg handeye`` (hand-eye and robot-world calibration with the EM tracker, from recordings)
 
 ``emreg handeye --robot-poses ROBOT --tracker TRACKER [--sensor NAME|PORT] [--settings case.toml] --out OUT``
 writes ``OUT/robot_calibration.json`` (``SensorToFlange``, ``TrackerToBase``: 4x4 mm, with
@@ -22,6 +22,9 @@ if TYPE_CHECKING:
     from ..handeye import HandEyeResult
 
 ROBOT_CALIBRATION_JSON = "robot_calibration.json"
+PARAMETERS = ("SensorToFlange rotation vector applied on the right (rad, 3), SensorToFlange translation (mm, 3), "
+              "TrackerToBase rotation vector on the right (rad, 3), TrackerToBase translation (mm, 3), "
+              "time_offset_s (s)")
 EQUATION = "FlangeToBase @ SensorToFlange = TrackerToBase @ SensorToTracker; t_tracker = t_robot + time_offset_s"
 
 
@@ -50,14 +53,17 @@ def calibration_document(result: HandEyeResult, inputs: dict[str, Any], warnings
                    "dwells": result.dwells, "rejected_by_reason": reasons,
                    "rejected_frames": [{"index": f.index, "time_s": f.time_s, "reason": f.reason}
                                        for f in result.rejected]},
-        "motion": {"rotation_range_deg": result.rotation_range_deg, "second_axis_rms_deg": result.second_axis_deg},
+        "motion": {"rotation_range_deg": result.rotation_range_deg, "second_axis_rms_deg": result.second_axis_deg,
+                   "mean_flange_rotation": result.mean_flange_rotation.tolist()},
         "uncertainty": {
             "tool_tip_mm": result.tool_tip_mm.tolist(), "tool_tip_rms_mm": result.tool_tip_rms_mm,
             "tool_tip_covariance_mm2": result.tool_tip_covariance_mm2.tolist(),
             "tracker_point_mm": result.tracker_point_mm.tolist(), "tracker_point_rms_mm": result.tracker_point_rms_mm,
             "tracker_point_covariance_mm2": result.tracker_point_covariance_mm2.tolist(),
             "note": "predicted from the residuals (Gauss-Newton covariance): the tool point's place in the Flange "
-                    "frame, the tracker point's in the Base frame"},
+                    "frame, the tracker point's in the Base frame",
+            "parameter_covariance": result.covariance.tolist(),
+            "parameters": PARAMETERS},
         "inputs": inputs,
         "warnings": warnings,
     }
