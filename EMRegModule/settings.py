@@ -402,6 +402,24 @@ class HandEyeSettings:
             raise SettingError("must be three numbers (x, y, z in the Sensor frame, mm)", "tool_tip_mm")
 
 
+# --- [robot] -----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RobotSettings:
+    """``[robot]``: targeting with the robot (``emreg robot-target``, :mod:`EMRegModule.robot_target`).
+
+    - ``standoff_mm`` (0): the guide's exit this far before Entry, back along the planned axis (0: on Entry).
+    - ``max_tracker_distance_mm`` (660): Entry and Target must lie within this distance of the field generator
+      (the tracker's characterised volume; 660 mm is a trakSTAR mid-range transmitter's), else exit 3.
+    - ``reach_mm`` (None): the flange must stay within this distance of the robot's base (None: not checked).
+    """
+
+    standoff_mm: float = non_negative(0.0)
+    max_tracker_distance_mm: float = positive(660.0)
+    reach_mm: float | None = positive(None)
+
+
 # --- the tree ----------------------------------------------------------------------------------
 
 
@@ -425,13 +443,14 @@ class Settings:
     ct: CTSettings = field(default_factory=CTSettings)
     tool: ToolSettings = field(default_factory=ToolSettings)
     handeye: HandEyeSettings = field(default_factory=HandEyeSettings)
+    robot: RobotSettings = field(default_factory=RobotSettings)
     source: str = ""
     given: frozenset[str] = field(default=frozenset(), compare=False)
 
     #: The tables, by TOML name (every field but ``source``).
     TABLES: ClassVar[tuple[str, ...]] = ("sensors", "marker", "detection", "calibration", "registration",
                                          "evaluation", "board", "report", "ct", "tool", "navigation",
-                                         "handeye")
+                                         "handeye", "robot")
 
     @classmethod
     def from_mapping(cls, mapping: Any, source: str = "case.toml") -> Settings:
@@ -521,6 +540,7 @@ _TABLE_CLASSES: dict[str, type] = {
     "calibration": CalibrationSettings, "registration": RegistrationSettings, "evaluation": EvaluationSettings,
     "board": BoardSettings, "report": ReportSettings, "ct": CTSettings, "tool": ToolSettings,
     "navigation": NavigationSettings, "handeye": HandEyeSettings,
+    "robot": RobotSettings,
 }
 
 

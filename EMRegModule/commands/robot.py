@@ -78,8 +78,7 @@ def cmd_handeye(args: argparse.Namespace) -> int:
     from ..provenance import file_sha256
 
     settings = settings_of(args)
-    out = out_folder(args.out)
-    assert out is not None
+    out = Path(out_folder(args.out) or args.out)
     handeye = settings.handeye
     sensor = args.sensor if args.sensor is not None else handeye.sensor
     robot = read_robot_poses(args.robot_poses, handeye.flange_transform)
@@ -103,6 +102,106 @@ def cmd_handeye(args: argparse.Namespace) -> int:
     return 0
 
 
+def _plan_points(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """Entry and Target (LPS mm) of a plan: points labelled Entry and Target, else a Line's two points."""
+    from ..errors import EMRegError
+    from ..io.markups import read_markups
+
+    labels, positions = read_markups(path)
+    named = {label.strip().lower(): k for k, label in enumerate(labels)}
+    if "entry" in named and "target" in named:
+        return positions[named["entry"]], positions[named["target"]]
+    if len(positions) == 2:
+        return positions[0], positions[1]
+    raise EMRegError(f"{path}: a plan is a markups Line (Entry, Target) or points labelled Entry and Target; "
+                     f"this file holds {len(positions)} point(s) ({', '.join(labels) or 'none'})")
+
+
+def _needle_guide(path: str) -> tuple[np.ndarray, float]:
+    """``NeedleGuideToSensor`` (4x4, mm) and its calibration's RMS error (mm, 0 when the file gives none)."""
+    from ..io.handeye_inputs import read_device_set_transform
+    from ..tool import check_tip_to_probe, read_tool
+
+    if Path(path).suffix.lower() == ".xml":
+        matrix = read_device_set_transform(path, "NeedleGuide", "Sensor")
+        return check_tip_to_probe(matrix, f'{path} (From="NeedleGuide" To="Sensor")'), 0.0
+    tool = read_tool(path)
+    return tool.tip_to_probe, float(tool.rms_mm or 0.0)
+
+
+def _robot_calibration(path: str) -> dict[str, Any]:
+    """``robot_calibration.json``: X, Y (checked rigid), the parameter covariance, the flange's mean rotation."""
+    from ..errors import EMRegError
+    from ..io.atomic import read_json
+    from ..transforms import check_rigid
+
+    document = read_json(path, "robot calibration JSON")
+    try:
+        out = {key: np.asarray(document[key], dtype=float) for key in ("SensorToFlange", "TrackerToBase")}
+        for key, matrix in out.items():
+            check_rigid(matrix, f"{path}: {key}")
+        covariance = document.get("uncertainty", {}).get("parameter_covariance")
+        out["covariance"] = np.asarray(covariance, dtype=float) if covariance is not None else np.zeros((13, 13))
+        rotation = document.get("motion", {}).get("mean_flange_rotation")
+        out["preferred"] = np.asarray(rotation, dtype=float) if rotation is not None else None
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise EMRegError(f"{path}: not a robot calibration (robot_calibration.json; {exc!s:.80})") from None
+    return out
+
+
+def _reference_now(args: argparse.Namespace, settings) -> np.ndarray:
+    """``ReferenceToTracker`` now: the robust mean of a recording's reference samples."""
+    from ..errors import EMRegError
+    from ..io.handeye_inputs import robust_mean_pose
+    from ..io.recording import read_recording
+
+    if "://" in str(args.reference):
+        raise EMRegError(f"{args.reference}: a live reference source is not supported by robot-target yet; record "
+                         "the reference sensor (emreg record) and give the file")
+    port = args.reference_sensor or settings.sensors.reference
+    recording = read_recording(args.reference, settings, reference_port=port)
+    rows = (recording.sensor == port) & np.all(np.isfinite(recording.rotation), axis=(1, 2))
+    if not np.any(rows):
+        raise EMRegError(f"{args.reference}: no full pose of the reference sensor (port {port}); ports present: "
+                         f"{recording.sensors} (--reference-sensor)")
+    return robust_mean_pose(recording.transforms()[rows])
+
+
+def cmd_robot_target(args: argparse.Namespace) -> int:
+    from ..io.atomic import atomic_write_json
+    from ..registration import read_registration
+    from ..robot_target import robot_target
+
+    settings = settings_of(args)
+    out = out_folder(args.out)
+    registration = read_registration(args.registration, settings.registration.max_fre_mm)
+    calibration = _robot_calibration(args.robot_calibration)
+    reference_to_tracker = _reference_now(args, settings)
+    entry, target = _plan_points(args.plan)
+    guide_to_sensor, tool_rms = _needle_guide(args.tool)
+    registration_ms = (float(np.trace(registration.error.covariance.at(target[None])[0]))
+                       if registration.error is not None else registration.fre_mm ** 2)
+    robot = settings.robot
+    answer = robot_target(entry, target, registration.reference_to_image, reference_to_tracker,
+                          calibration["TrackerToBase"], calibration["SensorToFlange"], guide_to_sensor,
+                          calibration["covariance"], registration_ms, tool_rms, robot.standoff_mm,
+                          calibration["preferred"], robot.max_tracker_distance_mm, robot.reach_mm)
+    document = {"FlangeToBase": answer.flange_to_base.tolist(),
+                "NeedleGuideToBase": answer.needle_guide_to_base.tolist(),
+                "entry_base_mm": answer.entry_base_mm.tolist(), "target_base_mm": answer.target_base_mm.tolist(),
+                "depth_mm": answer.depth_mm, "standoff_mm": robot.standoff_mm, "roll_deg": answer.roll_deg,
+                "predicted_error_mm": answer.predicted_error_mm,
+                "ReferenceToTracker": reference_to_tracker.tolist(),
+                "inputs": {"registration": str(args.registration), "robot_calibration": str(args.robot_calibration),
+                           "reference": str(args.reference), "plan": str(args.plan), "tool": str(args.tool)},
+                "note": "FlangeToBase puts the guide's exit on Entry (standoff_mm before it) with its +z along "
+                        "Entry -> Target; predicted_error_mm is the RMS error at the target"}
+    atomic_write_json(Path(out) / "robot_target.json", document)
+    print(f"FlangeToBase for the plan: guide exit on Entry, {answer.depth_mm:.1f} mm to the target; predicted error "
+          f"at the target {answer.predicted_error_mm['total']:.2f} mm RMS -> {Path(out) / 'robot_target.json'}")
+    return 0
+
+
 def add_parsers(add: AddCommand) -> None:
     """The subcommands of this module (``add``: :data:`~EMRegModule.commands.args.AddCommand`)."""
     p = add("handeye", cmd_handeye, "hand-eye (SensorToFlange) and robot-world (TrackerToBase) calibration with the "
@@ -115,3 +214,17 @@ def add_parsers(add: AddCommand) -> None:
     p.add_argument("--sensor", default=None, metavar="NAME|PORT",
                    help="the flange's sensor when TRACKER holds several: a transform name or a port")
     p.add_argument("--out", required=True, metavar="OUT", help="output folder (robot_calibration.json, .h5)")
+    t = add("robot-target", cmd_robot_target, "the flange pose (FlangeToBase) that puts the needle guide on a "
+            "trajectory planned in the CT")
+    t.add_argument("--registration", required=True, metavar="R", help="registration.json (ReferenceToImage)")
+    t.add_argument("--robot-calibration", required=True, metavar="C", help="robot_calibration.json (emreg handeye)")
+    t.add_argument("--reference", required=True, metavar="REF",
+                   help="the reference sensor now: a recording (its samples averaged robustly)")
+    t.add_argument("--reference-sensor", type=int, default=None, metavar="PORT",
+                   help="the reference sensor's port (default [sensors] reference)")
+    t.add_argument("--plan", required=True, metavar="PLAN",
+                   help="Slicer markups: a Line Entry -> Target, or points labelled Entry and Target")
+    t.add_argument("--tool", required=True, metavar="GUIDE",
+                   help="the needle guide on the flange sensor: a PLUS device set (From=NeedleGuide To=Sensor), an "
+                        "ITK/Slicer transform or tool_calibration.json")
+    t.add_argument("--out", required=True, metavar="OUT", help="output folder (robot_target.json)")

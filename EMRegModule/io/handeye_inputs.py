@@ -97,3 +97,35 @@ def read_sensor_poses(path: str | os.PathLike[str], sensor: str | int | None = N
     chosen = recording.select(rows)
     order = np.argsort(chosen.timeline_s, kind="stable")
     return PoseStream(chosen.timeline_s[order], chosen.transforms()[order], f"port {port}", warnings)
+
+
+def read_device_set_transform(path: str | os.PathLike[str], source: str, target: str) -> np.ndarray:
+    """The 4x4 (mm) of ``<Transform From="source" To="target" Matrix="...">`` in a PLUS device set's
+    ``CoordinateDefinitions`` (e.g. ``NeedleGuide`` -> ``Sensor``); one line (exit 2) when absent or malformed."""
+    from xml.etree import ElementTree
+
+    path = Path(path)
+    try:
+        root = ElementTree.parse(path).getroot()
+    except (ElementTree.ParseError, OSError, UnicodeDecodeError) as exc:
+        raise EMRegError(f"{path}: not a readable XML file ({exc!s:.80})") from None
+    found = [e for e in root.iter("Transform") if e.get("From") == source and e.get("To") == target]
+    if not found:
+        raise EMRegError(f'{path}: no <Transform From="{source}" To="{target}" Matrix="..."/> in the device set')
+    try:
+        numbers = np.array([float(v) for v in found[0].get("Matrix", "").split()])
+    except ValueError:
+        raise EMRegError(f'{path}: the Matrix of From="{source}" To="{target}" holds a non-number') from None
+    if numbers.size != 16:
+        raise EMRegError(f'{path}: the Matrix of From="{source}" To="{target}" has {numbers.size} numbers, 16 expected')
+    return numbers.reshape(4, 4)
+
+
+def robust_mean_pose(poses: np.ndarray) -> np.ndarray:
+    """The mean (4x4, mm) of a still sensor's poses (N, 4, 4), samples farther than 3 robust standard deviations
+    from the median position left out (a glitch)."""
+    from ..transforms import mean_rigid
+
+    distance = np.linalg.norm(poses[:, :3, 3] - np.median(poses[:, :3, 3], axis=0), axis=1)
+    keep = distance <= max(3.0 * 1.4826 * float(np.median(distance)), 1e-6)
+    return mean_rigid(poses[keep])

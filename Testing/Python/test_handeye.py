@@ -173,3 +173,104 @@ def test_tum_round_trip_and_motion_spread(continuous_case, tmp_path):
     np.testing.assert_allclose(poses, continuous_case.flange_to_base, atol=1e-5)
     spread, second = motion_spread(poses)
     assert spread > 20.0 and second > 3.0
+
+
+# --- emreg robot-target (issue 39, section 2) ----------------------------------------------------------------------
+
+
+def _pose(rotvec_deg, translation) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+    pose[:3, 3] = translation
+    return pose
+
+
+@pytest.fixture(scope="module")
+def targeting_case(continuous_case, tmp_path_factory):
+    """A hand-eye calibration made by emreg handeye from the KinHEC recording, a registration, the reference
+    sensor's recording (300 mm before the field generator), a plan and a needle guide, with the truth beside."""
+    from EMRegModule.registration import RegistrationResult, write_registration
+
+    folder = tmp_path_factory.mktemp("target")
+    continuous_case.write_tum(folder / "robot.tum")
+    continuous_case.write_csv(folder / "tracker.csv", port=3, with_reference=True)
+    assert main(["handeye", "--robot-poses", str(folder / "robot.tum"), "--tracker", str(folder / "tracker.csv"),
+                 "--sensor", "3", "--out", str(folder / "calib"), "--quiet"]) == 0
+    reference_to_image = _pose([10.0, -20.0, 150.0], [-40.0, 120.0, -300.0])
+    write_registration(RegistrationResult(reference_to_image, 14.0, 0.2, []), folder / "reg")
+    reference_to_tracker = _pose([5.0, 30.0, -10.0], [20.0, -30.0, 300.0])
+    rng = np.random.default_rng(3)
+    lines = ["time_s,sensor,x_mm,y_mm,z_mm,qw,qx,qy,qz,quality,label"]
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_matrix(reference_to_tracker[:3, :3]).as_quat()
+    for k in range(60):
+        p = reference_to_tracker[:3, 3] + rng.normal(0.0, 0.1, 3)
+        lines.append(f"{k / 40:.4f},1,{p[0]:.4f},{p[1]:.4f},{p[2]:.4f},{q[3]:.8f},{q[0]:.8f},{q[1]:.8f},{q[2]:.8f},,")
+    (folder / "reference.csv").write_text("\n".join(lines) + "\n")
+    entry_ref, target_ref = np.array([30.0, 10.0, 60.0]), np.array([10.0, -15.0, -20.0])
+    entry = (reference_to_image @ np.append(entry_ref, 1))[:3]
+    target = (reference_to_image @ np.append(target_ref, 1))[:3]
+    plan = {"@schema": "https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/Markups/Resources/"
+                       "Schema/markups-schema-v1.0.3.json#",
+            "markups": [{"type": "Line", "coordinateSystem": "LPS", "controlPoints": [
+                {"label": "Entry", "position": entry.tolist()}, {"label": "Target", "position": target.tolist()}]}]}
+    (folder / "plan.mrk.json").write_text(json.dumps(plan))
+    guide_to_sensor = _pose([0.0, 20.0, 0.0], [5.0, -3.0, 60.0])
+    (folder / "guide.json").write_text(json.dumps({"TipToProbe": guide_to_sensor.tolist(), "rms_mm": 0.1}))
+    matrix = " ".join(f"{v:.9g}" for v in guide_to_sensor.ravel())
+    (folder / "guide.xml").write_text(f'<PlusConfiguration><CoordinateDefinitions><Transform From="NeedleGuide" '
+                                      f'To="Sensor" Matrix="{matrix}"/></CoordinateDefinitions></PlusConfiguration>')
+    return {"folder": folder, "reference_to_image": reference_to_image, "reference_to_tracker": reference_to_tracker,
+            "entry": entry, "target": target, "guide_to_sensor": guide_to_sensor, "case": continuous_case}
+
+
+def _target_args(folder: Path, tool: str = "guide.json", plan: str = "plan.mrk.json", out: str = "out") -> list[str]:
+    return ["robot-target", "--registration", str(folder / "reg" / "registration.json"), "--robot-calibration",
+            str(folder / "calib" / "robot_calibration.json"), "--reference", str(folder / "reference.csv"),
+            "--plan", str(folder / plan), "--tool", str(folder / tool), "--out", str(folder / out)]
+
+
+@pytest.mark.parametrize("tool", ["guide.json", "guide.xml"])
+def test_robot_target_puts_the_guide_on_the_plan(targeting_case, capsys, tool):
+    """The flange pose, applied with the TRUE hand-eye and robot-world transforms: the guide's exit lands on Entry,
+    its axis along Entry -> Target and the needle tip at the planned depth on Target, within the predicted error."""
+    folder, case = targeting_case["folder"], targeting_case["case"]
+    out = f"out-{tool}"
+    assert main(_target_args(folder, tool, out=out)) == 0, capsys.readouterr().err
+    document = json.loads((folder / out / "robot_target.json").read_text())
+    flange_to_base = np.array(document["FlangeToBase"])
+    guide_to_base = flange_to_base @ case.sensor_to_flange @ targeting_case["guide_to_sensor"]
+    image_to_base = case.tracker_to_base @ targeting_case["reference_to_tracker"] @ np.linalg.inv(
+        targeting_case["reference_to_image"])
+    guide_in_image = np.linalg.inv(image_to_base) @ guide_to_base
+    entry, target = targeting_case["entry"], targeting_case["target"]
+    axis = (target - entry) / np.linalg.norm(target - entry)
+    exit_error = np.linalg.norm(guide_in_image[:3, 3] - entry)
+    tip = guide_in_image[:3, 3] + document["depth_mm"] * guide_in_image[:3, 2]
+    predicted = document["predicted_error_mm"]["total"]
+    angle = np.degrees(np.arccos(np.clip(guide_in_image[:3, 2] @ axis, -1, 1)))
+    print(f"exit {exit_error:.3f} mm, tip {np.linalg.norm(tip - target):.3f} mm, axis {angle:.4f} deg, "
+          f"predicted {predicted:.3f} mm")
+    assert exit_error <= 3.0 * predicted
+    assert np.linalg.norm(tip - target) <= 3.0 * predicted
+    assert angle <= 0.2
+    assert 0.2 <= predicted <= 1.0  # the registration's 0.2 mm, the guide's 0.1 mm, the hand-eye's share
+
+
+def test_robot_target_refusals(targeting_case, capsys):
+    """A plan beyond the tracker's volume: exit 3; a live reference URL (not supported yet): exit 2."""
+    folder = targeting_case["folder"]
+    far = json.loads((folder / "plan.mrk.json").read_text())
+    for point in far["markups"][0]["controlPoints"]:
+        point["position"] = (np.array(point["position"]) + [0.0, 0.0, 2000.0]).tolist()
+    (folder / "far.mrk.json").write_text(json.dumps(far))
+    assert main(_target_args(folder, plan="far.mrk.json", out="far")) == 3
+    assert "outside the tracker's volume" in capsys.readouterr().err
+    args = _target_args(folder, out="live")
+    args[args.index("--reference") + 1] = "trakstar:///dev/ttyUSB0"
+    assert main(args) == 2
+    assert "live reference" in capsys.readouterr().err
+    assert not (folder / "far" / "robot_target.json").exists()
