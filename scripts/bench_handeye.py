@@ -8,13 +8,14 @@ a fixed field generator), continuous motion (``joint_sinusoid``, 20 s) and move-
 (a) synchronous clocks, no wrong poses; (b) a 40 ms clock offset on top of different epochs, 4% wrong poses.
 
 Peers, on the same data in the same run: every method of OpenCV's ``cv2.calibrateHandEye`` (TSAI, PARK, HORAUD,
-ANDREFF, DANIILIDIS) and ``cv2.calibrateRobotWorldHandEye`` (SHAH, LI), and KinHEC's reference solvers (Shah,
-Li, Park-Martin, Daniilidis, and KinHEC's own pipeline: its cross-correlation clock offset, Shah, its robust
-(Huber) Levenberg-Marquardt). The peers have no clock model: they get each tracker sample paired with the robot
-sample nearest in time after the epochs are lined up (as if both clocks were set by NTP), so a clock offset stays
-in their pairs; the KinHEC pipeline estimates it. They get KinHEC's own keyframe protocol (poses at least 5 deg or
-2 cm apart, at most 200). Before any comparison, every peer is run on noise-free pairs and must recover the truth
-(a peer wrong on clean data would mean a wrong frame mapping).
+ANDREFF, DANIILIDIS) and ``cv2.calibrateRobotWorldHandEye`` (SHAH, LI), and every reference solver KinHEC ships
+(Shah, Li for A X = Y B; Tsai-Lenz, Park-Martin, Horaud-Dornaika, Daniilidis, Andreff for A X = X B; its RANSAC;
+and KinHEC's own pipeline: its cross-correlation clock offset, Shah, its robust (Huber) Levenberg-Marquardt). The
+peers have no clock model: they get each tracker sample paired with the robot sample nearest in time after the
+epochs are lined up (as if both clocks were set by NTP), so a clock offset stays in their pairs; the KinHEC
+pipeline estimates it. They get KinHEC's own keyframe protocol (poses at least 5 deg or 2 cm apart, at most 200).
+Before any comparison, every peer is run on noise-free pairs and must recover the truth (a peer wrong on clean data
+would mean a wrong frame mapping).
 
 Accuracy: the error of ``SensorToFlange`` at a tool tip 150 mm out (Sensor +z) and of ``TrackerToBase`` at a point
 300 mm in front of the tracker (Tracker +z), in mm; time: the solver's wall time (EMReg's includes finding the
@@ -142,6 +143,16 @@ def _kinhec_axxb(name: str) -> Solver:
     return solve
 
 
+def _kinhec_ransac(flange: np.ndarray, tracker: np.ndarray, case: HandEyeCase) -> tuple[np.ndarray, np.ndarray]:
+    """KinHEC's robust A X = X B: RANSAC over consecutive keyframe motions (Park-Martin), then its Huber LM."""
+    from kinhec import solvers
+
+    a, b = _metres(flange), _metres(tracker)
+    x, _ = solvers.ransac_axxb(_inverse(a[:-1]) @ a[1:], _inverse(b[:-1]) @ b[1:], np.random.default_rng(0))
+    x = _millimetres(x)
+    return x, _world_from_hand_eye(flange, tracker, x)
+
+
 def _kinhec_pipeline(flange: np.ndarray, tracker: np.ndarray, case: HandEyeCase) -> tuple[np.ndarray, np.ndarray]:
     """KinHEC's own chain: its angular-speed cross-correlation offset, the robot interpolated there, keyframes,
     Shah, then its robust (Huber) LM refinement. Gets the raw streams (epochs lined up), not the naive pairs."""
@@ -167,8 +178,9 @@ def peers() -> dict[str, Solver]:
     table.update({f"cv2.RWHE.{n}": _opencv_robot_world(getattr(cv2, f"CALIB_ROBOT_WORLD_HAND_EYE_{n}"))
                   for n in ("SHAH", "LI")})
     table.update({"kinhec.shah": _kinhec_axyb("shah"), "kinhec.li_kronecker": _kinhec_axyb("li_kronecker"),
-                  "kinhec.park_martin": _kinhec_axxb("park_martin"), "kinhec.daniilidis": _kinhec_axxb("daniilidis"),
-                  "kinhec.xcorr+shah+LM": _kinhec_pipeline})
+                  "kinhec.xcorr+shah+LM": _kinhec_pipeline, "kinhec.ransac_axxb": _kinhec_ransac})
+    table.update({f"kinhec.{n}": _kinhec_axxb(n) for n in ("tsai_lenz", "park_martin", "horaud_dornaika",
+                                                          "daniilidis", "andreff")})
     return table
 
 

@@ -1,11 +1,16 @@
-"""The robot commands: ``emreg handeye`` (hand-eye and robot-world calibration with the EM tracker, from recordings)
+"""The robot commands (issue 39): ``emreg handeye`` and ``emreg robot-target``.
 
 ``emreg handeye --robot-poses ROBOT --tracker TRACKER [--sensor NAME|PORT] [--settings case.toml] --out OUT``
 writes ``OUT/robot_calibration.json`` (``SensorToFlange``, ``TrackerToBase``: 4x4 mm, with
 ``FlangeToBase @ SensorToFlange = TrackerToBase @ SensorToTracker``; ``time_offset_s`` with
 ``t_tracker = t_robot + time_offset_s``; residuals, frames used and rejected, predicted uncertainty) and the two
-transforms for 3D Slicer, ``OUT/SensorToFlange.h5`` and ``OUT/TrackerToBase.h5``. Exit 2 for bad input, 3 when
-the motion cannot determine the answer; nothing is written then.
+transforms for 3D Slicer, ``OUT/SensorToFlange.h5`` and ``OUT/TrackerToBase.h5``.
+
+``emreg robot-target --registration R --robot-calibration C --reference REF --plan PLAN --tool GUIDE --out OUT``
+writes ``OUT/robot_target.json``: the ``FlangeToBase`` (4x4 mm) that puts the needle guide's exit on Entry with
+its +z along Entry -> Target, and the predicted error at the target.
+
+Exit 2 for bad input, 3 when the data do not allow a safe answer; nothing is written then.
 """
 
 from __future__ import annotations

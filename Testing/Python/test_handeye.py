@@ -274,3 +274,19 @@ def test_robot_target_refusals(targeting_case, capsys):
     assert main(args) == 2
     assert "live reference" in capsys.readouterr().err
     assert not (folder / "far" / "robot_target.json").exists()
+
+
+def test_the_roll_keeps_the_flange_nearest_its_preferred_orientation():
+    """best_roll's closed form is the best of every roll about the guide's axis."""
+    from scipy.spatial.transform import Rotation
+
+    from EMRegModule.robot_target import best_roll
+
+    rng = np.random.default_rng(5)
+    guide, guide_to_flange, preferred = Rotation.random(3, random_state=rng).as_matrix()
+    rolls = np.radians(np.arange(0.0, 360.0, 0.5))
+    distance = [np.linalg.norm(guide @ Rotation.from_rotvec([0, 0, r]).as_matrix() @ guide_to_flange.T - preferred)
+                for r in rolls]
+    roll = best_roll(guide, guide_to_flange, preferred)
+    best = guide @ Rotation.from_rotvec([0, 0, roll]).as_matrix() @ guide_to_flange.T
+    assert np.linalg.norm(best - preferred) <= min(distance) + 1e-9
