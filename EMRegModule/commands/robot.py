@@ -16,6 +16,7 @@ Exit 2 for bad input, 3 when the data do not allow a safe answer; nothing is wri
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -77,7 +78,7 @@ def calibration_document(result: HandEyeResult, inputs: dict[str, Any], warnings
 def cmd_handeye(args: argparse.Namespace) -> int:
     from .. import __version__
     from ..handeye import calibrate_hand_eye
-    from ..io.atomic import atomic_write_json
+    from ..io.atomic import atomic_path, to_jsonable
     from ..io.handeye_inputs import read_robot_poses, read_sensor_poses
     from ..io.itk_transform import write_slicer_frame_transform
     from ..provenance import file_sha256
@@ -96,9 +97,12 @@ def cmd_handeye(args: argparse.Namespace) -> int:
               "settings": settings.source or None, "emreg_version": __version__}
     warnings = robot.warnings + tracker.warnings
     document = calibration_document(result, inputs, warnings)
-    write_slicer_frame_transform(out / "SensorToFlange.h5", result.sensor_to_flange)
-    write_slicer_frame_transform(out / "TrackerToBase.h5", result.tracker_to_base)
-    atomic_write_json(out / ROBOT_CALIBRATION_JSON, document)
+    # the three files appear together or not at all: each is written to a temporary beside it, renamed at the end
+    with atomic_path(out / "SensorToFlange.h5") as x_tmp, atomic_path(out / "TrackerToBase.h5") as y_tmp, \
+            atomic_path(out / ROBOT_CALIBRATION_JSON) as json_tmp:
+        write_slicer_frame_transform(x_tmp, result.sensor_to_flange)
+        write_slicer_frame_transform(y_tmp, result.tracker_to_base)
+        json_tmp.write_text(json.dumps(to_jsonable(document), indent=2) + "\n", encoding="utf-8")
     warn("handeye", warnings)
     print(f"SensorToFlange and TrackerToBase from {len(result.used)} frames ({len(result.rejected)} left out); "
           f"time offset {result.time_offset_s:.4f} s; residual RMS {document['residuals']['rotation_deg']['rms']:.3f}"

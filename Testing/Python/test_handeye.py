@@ -290,3 +290,21 @@ def test_the_roll_keeps_the_flange_nearest_its_preferred_orientation():
     roll = best_roll(guide, guide_to_flange, preferred)
     best = guide @ Rotation.from_rotvec([0, 0, roll]).as_matrix() @ guide_to_flange.T
     assert np.linalg.norm(best - preferred) <= min(distance) + 1e-9
+
+
+def test_slicer_reads_the_calibration_transforms_as_they_are(slicer_core, tmp_path):
+    """3D Slicer's own transform storage node reads SensorToFlange.h5 / TrackerToBase.h5 as a linear transform
+    whose "to parent" matrix is exactly the calibration's (robot and tracker frames are not converted)."""
+    import slicer.util
+
+    from EMRegModule.io.itk_transform import write_slicer_frame_transform
+
+    a_to_b = _pose([20.0, -35.0, 110.0], [-41.4, 26.3, 80.1])
+    write_slicer_frame_transform(tmp_path / "SensorToFlange.h5", a_to_b)
+    scene = slicer_core.scene
+    transform = scene.AddNewNodeByClass("vtkMRMLLinearTransformNode", "read")
+    storage = scene.AddNewNodeByClass("vtkMRMLTransformStorageNode")
+    storage.SetFileName(str(tmp_path / "SensorToFlange.h5"))
+    assert storage.ReadData(transform) == 1
+    assert transform.IsLinear()
+    np.testing.assert_allclose(slicer.util.arrayFromTransformMatrix(transform), a_to_b, atol=1e-6)
