@@ -158,16 +158,53 @@ def _robot_calibration(path: str) -> dict[str, Any]:
     return out
 
 
+#: A live reference is the robust mean of this many samples, taken within ``LIVE_TIMEOUT_S``.
+LIVE_SAMPLES = 40
+LIVE_TIMEOUT_S = 10.0
+
+
+def _reference_live(url: str, port: int) -> np.ndarray:
+    """``LIVE_SAMPLES`` valid poses (N, 4, 4, mm) of the reference sensor from a live source (a device URL)."""
+    import threading
+    import time
+
+    from ..errors import EMRegError
+    from ..live.samples import STATUS_OK
+    from ..live.sources import open_source
+
+    poses: list[np.ndarray] = []
+    enough = threading.Event()
+
+    def take(sample) -> None:
+        if sample.sensor == port and sample.status == STATUS_OK and np.all(np.isfinite(sample.rotation)):
+            pose = np.eye(4)
+            pose[:3, :3], pose[:3, 3] = sample.rotation, sample.position_mm
+            poses.append(pose)
+            if len(poses) >= LIVE_SAMPLES:
+                enough.set()
+
+    with open_source(url, reference_sensor=port, fast=True) as source:
+        source.start(take)
+        end = time.monotonic() + LIVE_TIMEOUT_S
+        while not enough.wait(0.05) and not source.finished.is_set() and time.monotonic() < end:
+            pass
+    if len(poses) < 5:
+        raise EMRegError(f"{url}: {len(poses)} valid samples of the reference sensor (port {port}) within "
+                         f"{LIVE_TIMEOUT_S:g} s; is it connected and in the field (--reference-sensor)?")
+    return np.asarray(poses[:LIVE_SAMPLES])
+
+
 def _reference_now(args: argparse.Namespace, settings) -> np.ndarray:
-    """``ReferenceToTracker`` now: the robust mean of a recording's reference samples."""
+    """``ReferenceToTracker`` now: the robust mean of a recording's reference samples, or of a live source's
+    (a device URL: ``trakstar:``, ``aurora:``, ``igtl:``, ``replay:``)."""
     from ..errors import EMRegError
     from ..io.handeye_inputs import robust_mean_pose
     from ..io.recording import read_recording
+    from ..live.device_url import SCHEMES
 
-    if "://" in str(args.reference):
-        raise EMRegError(f"{args.reference}: a live reference source is not supported by robot-target yet; record "
-                         "the reference sensor (emreg record) and give the file")
     port = args.reference_sensor or settings.sensors.reference
+    if str(args.reference).split(":", 1)[0] in SCHEMES and ":" in str(args.reference):
+        return robust_mean_pose(_reference_live(str(args.reference), port))
     recording = read_recording(args.reference, settings, reference_port=port)
     rows = (recording.sensor == port) & np.all(np.isfinite(recording.rotation), axis=(1, 2))
     if not np.any(rows):
@@ -228,7 +265,8 @@ def add_parsers(add: AddCommand) -> None:
     t.add_argument("--registration", required=True, metavar="R", help="registration.json (ReferenceToImage)")
     t.add_argument("--robot-calibration", required=True, metavar="C", help="robot_calibration.json (emreg handeye)")
     t.add_argument("--reference", required=True, metavar="REF",
-                   help="the reference sensor now: a recording (its samples averaged robustly)")
+                   help="the reference sensor now: a recording or a live source URL (trakstar:, aurora:, igtl:, "
+                        "replay:), its samples averaged robustly")
     t.add_argument("--reference-sensor", type=int, default=None, metavar="PORT",
                    help="the reference sensor's port (default [sensors] reference)")
     t.add_argument("--plan", required=True, metavar="PLAN",

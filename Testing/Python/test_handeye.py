@@ -260,8 +260,20 @@ def test_robot_target_puts_the_guide_on_the_plan(targeting_case, capsys, tool):
     assert 0.2 <= predicted <= 1.0  # the registration's 0.2 mm, the guide's 0.1 mm, the hand-eye's share
 
 
+def test_robot_target_with_a_live_reference(targeting_case, capsys):
+    """The reference sensor from a live source (the replay device of the same recording): the same flange pose."""
+    folder = targeting_case["folder"]
+    args = _target_args(folder, out="live")
+    args[args.index("--reference") + 1] = f"replay:{folder / 'reference.csv'}"
+    assert main(args) == 0, capsys.readouterr().err
+    live = json.loads((folder / "live" / "robot_target.json").read_text())
+    assert main(_target_args(folder, out="recorded")) == 0
+    recorded = json.loads((folder / "recorded" / "robot_target.json").read_text())
+    np.testing.assert_allclose(live["FlangeToBase"], recorded["FlangeToBase"], atol=0.05)
+
+
 def test_robot_target_refusals(targeting_case, capsys):
-    """A plan beyond the tracker's volume: exit 3; a live reference URL (not supported yet): exit 2."""
+    """A plan beyond the tracker's volume: exit 3; a live source without the reference sensor: exit 2."""
     folder = targeting_case["folder"]
     far = json.loads((folder / "plan.mrk.json").read_text())
     for point in far["markups"][0]["controlPoints"]:
@@ -269,10 +281,10 @@ def test_robot_target_refusals(targeting_case, capsys):
     (folder / "far.mrk.json").write_text(json.dumps(far))
     assert main(_target_args(folder, plan="far.mrk.json", out="far")) == 3
     assert "outside the tracker's volume" in capsys.readouterr().err
-    args = _target_args(folder, out="live")
-    args[args.index("--reference") + 1] = "trakstar:///dev/ttyUSB0"
+    args = _target_args(folder, out="absent") + ["--reference-sensor", "4"]
+    args[args.index("--reference") + 1] = f"replay:{folder / 'reference.csv'}"
     assert main(args) == 2
-    assert "live reference" in capsys.readouterr().err
+    assert "valid samples of the reference sensor (port 4)" in capsys.readouterr().err
     assert not (folder / "far" / "robot_target.json").exists()
 
 
