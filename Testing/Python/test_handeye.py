@@ -320,3 +320,22 @@ def test_slicer_reads_the_calibration_transforms_as_they_are(slicer_core, tmp_pa
     assert storage.ReadData(transform) == 1
     assert transform.IsLinear()
     np.testing.assert_allclose(slicer.util.arrayFromTransformMatrix(transform), a_to_b, atol=1e-6)
+
+
+def test_a_robot_log_shorter_than_the_tracker_recording_and_with_a_gap():
+    """The robot's log covers the middle of the tracker's recording and misses half a second: the frames without
+    a robot pose are left out with that reason, the answer stays as good (150 ms clock offset)."""
+    from EMRegModule.handeye import calibrate_hand_eye
+
+    case = kinhec_case("panda", "joint_sinusoid", seed=61, outlier_fraction=0.03, time_offset_s=0.15)
+    n = len(case.robot_time_s)
+    keep = np.zeros(n, dtype=bool)
+    keep[int(0.2 * n):int(0.8 * n)] = True
+    keep[n // 2:n // 2 + 100] = False
+    result = calibrate_hand_eye(case.robot_time_s[keep], case.flange_to_base[keep], case.tracker_time_s,
+                                case.sensor_to_tracker)
+    assert tip_error_mm(result.sensor_to_flange, case.sensor_to_flange) <= 0.25
+    assert abs(result.time_offset_s - case.time_offset_s) <= 0.002
+    no_pose = [r for r in result.rejected if r.reason.startswith("no robot pose")]
+    assert len(no_pose) >= 0.4 * len(case.tracker_time_s)
+    assert not set(result.used) & {r.index for r in result.rejected}
