@@ -245,6 +245,8 @@ def _scan_offset(frames: _Frames, rows: np.ndarray, offset_s: float) -> float:
             continue
         x, y = solve_ax_yb(flange[valid], frames.sensor_to_tracker[rows][valid])
         costs[k] = np.median(_distances(flange[valid], frames.sensor_to_tracker[rows][valid], x, y))
+    if not np.any(np.isfinite(costs)):
+        return float(offset_s)
     k = int(np.argmin(costs))
     best = offset_s + steps[k]
     if 0 < k < len(steps) - 1 and np.all(np.isfinite(costs[k - 1:k + 2])):
