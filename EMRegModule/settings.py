@@ -355,6 +355,71 @@ class ToolSettings:
             raise SettingError(f"must be a transform name such as 'Stylus', got {self.name!r}", "name")
 
 
+# --- [handeye] ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class HandEyeSettings:
+    """``[handeye]``: hand-eye and robot-world calibration with the EM tracker (:mod:`EMRegModule.handeye`).
+
+    - ``flange_transform`` (``FlangeToBase``): the robot flange's transform name in a PLUS sequence file of
+      robot poses; ``sensor`` (None): the flange sensor in the tracker recording (a transform name or a port;
+      ``--sensor`` overrides it; None: the recording's only sensor).
+    - ``max_time_offset_s`` (None): the largest clock offset searched, s (None: any offset that keeps the two
+      recordings overlapping, for clocks with different epochs).
+    - ``timing_jitter_s`` (0.002): the uncertainty of a tracker time stamp, s; a moving frame's residual
+      allows ``speed x jitter`` more, so the still frames of dwells count most.
+    - ``min_frames`` (20), ``min_rotation_deg`` (10), ``min_second_axis_deg`` (3): below these (frames used;
+      the largest rotation of the flange from its mean orientation; the RMS rotation about the second axis)
+      the motion cannot determine the answer (exit 3).
+    - ``min_correlation`` (0.5): a weaker peak of the angular-speed cross-correlation finds no clock offset.
+    - ``outlier_limit`` (5.0): a frame whose noise-normalised residual exceeds this is rejected.
+    - ``max_noise_mm`` (5.0), ``max_noise_deg`` (3.0): a still frame's typical residual above these means the
+      two recordings disagree (not the same motion, the wrong sensor, a moved field generator): exit 3.
+    - ``tool_tip_mm`` (0, 0, 150): the tool point (Sensor frame, mm) whose predicted error is reported;
+      ``max_tip_uncertainty_mm`` (2.0): above this predicted RMS error there is no safe answer (exit 3).
+    """
+
+    flange_transform: str = "FlangeToBase"
+    sensor: str | int | None = None
+    max_time_offset_s: float | None = positive(None)
+    timing_jitter_s: float = non_negative(0.002)
+    min_frames: int = positive(20)
+    min_rotation_deg: float = positive(10.0)
+    min_second_axis_deg: float = positive(3.0)
+    min_correlation: float = fraction(0.5)
+    outlier_limit: float = positive(5.0)
+    max_noise_mm: float = positive(5.0)
+    max_noise_deg: float = positive(3.0)
+    tool_tip_mm: tuple[float, ...] = (0.0, 0.0, 150.0)
+    max_tip_uncertainty_mm: float = positive(2.0)
+
+    def validate(self) -> None:
+        if not self.flange_transform.strip().isidentifier():
+            raise SettingError(f"must be a transform name such as 'FlangeToBase', got {self.flange_transform!r}",
+                               "flange_transform")
+        if len(self.tool_tip_mm) != 3:
+            raise SettingError("must be three numbers (x, y, z in the Sensor frame, mm)", "tool_tip_mm")
+
+
+# --- [robot] -----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RobotSettings:
+    """``[robot]``: targeting with the robot (``emreg robot-target``, :mod:`EMRegModule.robot_target`).
+
+    - ``standoff_mm`` (0): the guide's exit this far before Entry, back along the planned axis (0: on Entry).
+    - ``max_tracker_distance_mm`` (660): Entry and Target must lie within this distance of the field generator
+      (the tracker's characterised volume; 660 mm is a trakSTAR mid-range transmitter's), else exit 3.
+    - ``reach_mm`` (None): the flange must stay within this distance of the robot's base (None: not checked).
+    """
+
+    standoff_mm: float = non_negative(0.0)
+    max_tracker_distance_mm: float = positive(660.0)
+    reach_mm: float | None = positive(None)
+
+
 # --- the tree ----------------------------------------------------------------------------------
 
 
@@ -377,12 +442,15 @@ class Settings:
     report: ReportSettings = field(default_factory=ReportSettings)
     ct: CTSettings = field(default_factory=CTSettings)
     tool: ToolSettings = field(default_factory=ToolSettings)
+    handeye: HandEyeSettings = field(default_factory=HandEyeSettings)
+    robot: RobotSettings = field(default_factory=RobotSettings)
     source: str = ""
     given: frozenset[str] = field(default=frozenset(), compare=False)
 
     #: The tables, by TOML name (every field but ``source``).
     TABLES: ClassVar[tuple[str, ...]] = ("sensors", "marker", "detection", "calibration", "registration",
-                                         "evaluation", "board", "report", "ct", "tool", "navigation")
+                                         "evaluation", "board", "report", "ct", "tool", "navigation",
+                                         "handeye", "robot")
 
     @classmethod
     def from_mapping(cls, mapping: Any, source: str = "case.toml") -> Settings:
@@ -471,7 +539,8 @@ _TABLE_CLASSES: dict[str, type] = {
     "sensors": SensorSettings, "marker": MarkerModel, "detection": DetectionSettings,
     "calibration": CalibrationSettings, "registration": RegistrationSettings, "evaluation": EvaluationSettings,
     "board": BoardSettings, "report": ReportSettings, "ct": CTSettings, "tool": ToolSettings,
-    "navigation": NavigationSettings,
+    "navigation": NavigationSettings, "handeye": HandEyeSettings,
+    "robot": RobotSettings,
 }
 
 

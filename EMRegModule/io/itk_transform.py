@@ -76,3 +76,16 @@ def read_itk_linear_matrix(path: str | os.PathLike[str]) -> np.ndarray:
     center = np.asarray(affine.GetCenter())
     stored[:3, 3] = np.asarray(affine.GetTranslation()) + center - stored[:3, :3] @ center
     return stored
+
+
+def write_slicer_frame_transform(path: str | os.PathLike[str], a_to_b: np.ndarray) -> None:
+    """Write ``AToB`` (4x4, mm) between two frames that 3D Slicer uses as they are (tracker or robot side:
+    ``SensorToFlange``, ``TrackerToBase``), so that Slicer loads it as a linear transform node whose "to
+    parent" is exactly ``AToB``: ITK stores the inverse in LPS, Slicer converts it to RAS on reading, so the
+    file holds ``F @ inv(AToB) @ F`` with ``F = diag(-1, -1, 1)``."""
+    write_itk_linear_matrix(path, LPS_TO_RAS @ invert_rigid(a_to_b) @ LPS_TO_RAS)
+
+
+def read_slicer_frame_transform(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read a file written by :func:`write_slicer_frame_transform` back as ``AToB`` (4x4, mm)."""
+    return np.linalg.inv(LPS_TO_RAS @ read_itk_linear_matrix(path) @ LPS_TO_RAS)

@@ -1,0 +1,341 @@
+"""``emreg handeye`` (issue 39, section 1) on recordings with known truth from KinHEC (published Panda, UR and
+iiwa kinematics, a generator we did not write), made into what a user has: the robot's log as a TUM file or a PLUS
+sequence file, the tracker's recording as EMReg CSV or a PLUS sequence file, with heavy-tailed EM noise, a clock
+offset on top of different epochs, and wrong poses (glitches, distorted bursts). Then the refusals: motion that
+cannot determine the answer (exit 3) and bad input (exit 2), with nothing written.
+
+Tolerances: the issue asks for a tool-tip error (150 mm out) of at most 0.5 mm at EM noise; EMReg measures
+0.01-0.1 mm on these recordings, so the tests hold it to 0.25 mm (a regression shows), and to its own prediction.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from EMRegModule.cli import main
+from EMRegModule.handeye import motion_spread, solve_ax_yb
+from EMRegModule.io.itk_transform import read_slicer_frame_transform
+from EMRegModule.io.tum import read_tum, write_tum
+
+sys.path.insert(0, str(Path(__file__).parent))
+from handeye_sequences import (  # noqa: E402
+    kinhec_case,
+    rotation_error_deg,
+    tip_error_mm,
+    tracker_point_error_mm,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+KEYS = {"SensorToFlange", "TrackerToBase", "time_offset_s", "residuals", "frames", "uncertainty"}
+
+
+def _check_calibration(out: Path, case, tip_mm: float = 0.25) -> dict:
+    """The answer against KinHEC's truth: tool tip 150 mm out, rotation, a point 300 mm before the tracker, the
+    clock offset; the prediction honest; the Slicer transforms the same as the JSON."""
+    document = json.loads((out / "robot_calibration.json").read_text())
+    assert KEYS <= set(document)
+    sensor_to_flange, tracker_to_base = np.array(document["SensorToFlange"]), np.array(document["TrackerToBase"])
+    tip = tip_error_mm(sensor_to_flange, case.sensor_to_flange)
+    assert tip <= tip_mm
+    assert tip <= 5.0 * document["uncertainty"]["tool_tip_rms_mm"] + 0.02
+    assert rotation_error_deg(sensor_to_flange, case.sensor_to_flange) <= 0.05
+    assert tracker_point_error_mm(tracker_to_base, case.tracker_to_base) <= 0.6
+    assert abs(document["time_offset_s"] - case.time_offset_s) <= 0.002
+    np.testing.assert_allclose(read_slicer_frame_transform(out / "SensorToFlange.h5"), sensor_to_flange, atol=1e-6)
+    np.testing.assert_allclose(read_slicer_frame_transform(out / "TrackerToBase.h5"), tracker_to_base, atol=1e-6)
+    return document
+
+
+@pytest.fixture(scope="module")
+def continuous_case():
+    return kinhec_case("panda", "joint_sinusoid", seed=11, outlier_fraction=0.04)
+
+
+def test_continuous_motion_with_clock_offset_and_wrong_poses(continuous_case, tmp_path, capsys):
+    """Panda, continuous motion, 4% wrong poses, the flange sensor on port 3 of a CSV that also holds a reference
+    sensor: --sensor picks it; every injected glitch is rejected with a reason."""
+    case = continuous_case
+    case.write_tum(tmp_path / "robot.tum")
+    case.write_csv(tmp_path / "tracker.csv", port=3, with_reference=True)
+    code = main(["handeye", "--robot-poses", str(tmp_path / "robot.tum"), "--tracker", str(tmp_path / "tracker.csv"),
+                 "--sensor", "3", "--out", str(tmp_path / "out")])
+    assert code == 0, capsys.readouterr().err
+    document = _check_calibration(tmp_path / "out", case)
+    rejected = {frame["index"] for frame in document["frames"]["rejected_frames"]}
+    assert set(np.nonzero(case.outlier)[0]) <= rejected
+    assert all(frame["reason"] for frame in document["frames"]["rejected_frames"])
+    assert len(rejected) <= 3 * np.count_nonzero(case.outlier)  # heavy tails cost some good frames, not many
+    assert "robot_calibration.json" in capsys.readouterr().out
+
+
+def test_move_and_dwell_from_plus_sequence(tmp_path, capsys):
+    """iiwa, move and dwell, 3% wrong poses, the tracker's recording a PLUS sequence file with one transform: the
+    dwells are found and the answer is as good."""
+    case = kinhec_case("iiwa", "joint_waypoints", seed=12, outlier_fraction=0.03)
+    case.write_tum(tmp_path / "robot.tum")
+    case.write_sequence(tmp_path / "tracker.seq.mha")
+    code = main(["handeye", "--robot-poses", str(tmp_path / "robot.tum"), "--tracker",
+                 str(tmp_path / "tracker.seq.mha"), "--out", str(tmp_path / "out"), "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    document = _check_calibration(tmp_path / "out", case, tip_mm=0.1)
+    assert document["frames"]["dwells"] >= 5
+    assert document["frames"]["still"] >= 100
+
+
+def test_robot_log_as_plus_sequence_file_in_a_process(tmp_path):
+    """UR5e, continuous, the robot's log a PLUS sequence file (FlangeToBase), run as a user runs emreg."""
+    case = kinhec_case("ur", "joint_sinusoid", seed=13, outlier_fraction=0.02)
+    case.write_sequence(tmp_path / "robot.seq.mha", name="FlangeToBase", robot=True)
+    case.write_csv(tmp_path / "tracker.csv")
+    result = subprocess.run([sys.executable, "-m", "EMRegModule", "handeye", "--robot-poses",
+                             str(tmp_path / "robot.seq.mha"), "--tracker", str(tmp_path / "tracker.csv"), "--out",
+                             str(tmp_path / "out")], capture_output=True, text=True, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    _check_calibration(tmp_path / "out", case)
+
+
+def test_closed_form_recovers_noise_free_truth():
+    """The closed-form start is exact on noise-free pose pairs (KinHEC's truth at the tracker's instants)."""
+    case = kinhec_case("panda", "joint_sinusoid", seed=14, noise=False, duration_s=6.0)
+    sensor_to_flange, tracker_to_base = solve_ax_yb(case.true_flange_to_base, case.sensor_to_tracker)
+    np.testing.assert_allclose(sensor_to_flange, case.sensor_to_flange, atol=1e-6)
+    np.testing.assert_allclose(tracker_to_base, case.tracker_to_base, atol=1e-5)
+
+
+@pytest.mark.parametrize(("family_params", "duration_s", "message"), [
+    ({"joints": [6]}, 20.0, "about one axis only"),
+    ({"amplitude_frac": 0.01}, 20.0, "too small a range"),
+    ({}, 0.4, "too few frames"),
+])
+def test_motion_that_cannot_determine_the_answer_is_refused(tmp_path, capsys, family_params, duration_s, message):
+    """Exit 3 and one line, nothing written: the wrist's last joint alone (one axis), a tiny motion, 16 frames."""
+    case = kinhec_case("panda", "joint_sinusoid", seed=15, family_params=family_params, duration_s=duration_s)
+    case.write_tum(tmp_path / "robot.tum")
+    case.write_csv(tmp_path / "tracker.csv")
+    code = main(["handeye", "--robot-poses", str(tmp_path / "robot.tum"), "--tracker", str(tmp_path / "tracker.csv"),
+                 "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 3
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert list((tmp_path / "out").iterdir()) == []
+
+
+def test_recordings_of_different_motions_are_refused(continuous_case, tmp_path, capsys):
+    """A robot log and a tracker recording that do not belong together: exit 3, not a calibration."""
+    other = kinhec_case("panda", "joint_sinusoid", seed=16)
+    continuous_case.write_tum(tmp_path / "robot.tum")
+    other.write_csv(tmp_path / "tracker.csv")
+    code = main(["handeye", "--robot-poses", str(tmp_path / "robot.tum"), "--tracker", str(tmp_path / "tracker.csv"),
+                 "--out", str(tmp_path / "out")])
+    assert code == 3, capsys.readouterr().err
+    assert not (tmp_path / "out" / "robot_calibration.json").exists()
+
+
+def _bad_tum(path: Path, text: str) -> None:
+    path.write_text("# timestamp tx ty tz qx qy qz qw\n0.0 0.1 0.2 0.3 0 0 0 1\n" + text)
+
+
+@pytest.mark.parametrize(("robot_text", "sensor", "message"), [
+    ("0.1 0.1 0.2 0.3 0 0 1\n", "3", "line 3: 7 fields"),
+    ("0.1 0.1 0.2 abc 0 0 0 1\n", "3", "line 3: holds a non-numeric value"),
+    ("0.1 100 200 300 0 0 0 1\n", "3", "in millimetres"),
+    ("0.1 0.1 0.2 0.3 0 0 0 2\n", "3", "length 2"),
+    ("0.05 0.1 0.2 0.3 0 0 0 1\n-0.1 0.1 0.2 0.3 0 0 0 1\n", "3", "the time goes back"),
+    ("0.1 0.1 0.2 0.3 0 0 0 1\n", "7", "no sensor '7'"),
+    ("0.1 0.1 0.2 0.3 0 0 0 1\n", None, "choose the flange's sensor"),
+])
+def test_bad_input_is_one_line_and_exit_2(continuous_case, tmp_path, capsys, robot_text, sensor, message):
+    """Malformed TUM lines, a missing sensor, an ambiguous one (no --sensor for a file with two): exit 2, one line
+    naming the file, nothing written."""
+    _bad_tum(tmp_path / "robot.tum", robot_text)
+    continuous_case.write_csv(tmp_path / "tracker.csv", port=3, with_reference=True)
+    argv = ["handeye", "--robot-poses", str(tmp_path / "robot.tum"), "--tracker", str(tmp_path / "tracker.csv"),
+            "--out", str(tmp_path / "out")] + (["--sensor", sensor] if sensor else [])
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "out" / "robot_calibration.json").exists()
+
+
+def test_tum_round_trip_and_motion_spread(continuous_case, tmp_path):
+    """write_tum / read_tum keep poses to the micrometre (metres on file, mm in EMReg); the motion's spread is
+    that of the flange."""
+    write_tum(tmp_path / "t.tum", continuous_case.robot_time_s, continuous_case.flange_to_base)
+    time_s, poses = read_tum(tmp_path / "t.tum")
+    np.testing.assert_allclose(time_s, continuous_case.robot_time_s, atol=1e-6)
+    np.testing.assert_allclose(poses, continuous_case.flange_to_base, atol=1e-5)
+    spread, second = motion_spread(poses)
+    assert spread > 20.0 and second > 3.0
+
+
+# --- emreg robot-target (issue 39, section 2) ----------------------------------------------------------------------
+
+
+def _pose(rotvec_deg, translation) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+    pose[:3, 3] = translation
+    return pose
+
+
+@pytest.fixture(scope="module")
+def targeting_case(continuous_case, tmp_path_factory):
+    """A hand-eye calibration made by emreg handeye from the KinHEC recording, a registration, the reference
+    sensor's recording (300 mm before the field generator), a plan and a needle guide, with the truth beside."""
+    from EMRegModule.registration import RegistrationResult, write_registration
+
+    folder = tmp_path_factory.mktemp("target")
+    continuous_case.write_tum(folder / "robot.tum")
+    continuous_case.write_csv(folder / "tracker.csv", port=3, with_reference=True)
+    assert main(["handeye", "--robot-poses", str(folder / "robot.tum"), "--tracker", str(folder / "tracker.csv"),
+                 "--sensor", "3", "--out", str(folder / "calib"), "--quiet"]) == 0
+    reference_to_image = _pose([10.0, -20.0, 150.0], [-40.0, 120.0, -300.0])
+    write_registration(RegistrationResult(reference_to_image, 14.0, 0.2, []), folder / "reg")
+    reference_to_tracker = _pose([5.0, 30.0, -10.0], [20.0, -30.0, 300.0])
+    rng = np.random.default_rng(3)
+    lines = ["time_s,sensor,x_mm,y_mm,z_mm,qw,qx,qy,qz,quality,label"]
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_matrix(reference_to_tracker[:3, :3]).as_quat()
+    for k in range(60):
+        p = reference_to_tracker[:3, 3] + rng.normal(0.0, 0.1, 3)
+        lines.append(f"{k / 40:.4f},1,{p[0]:.4f},{p[1]:.4f},{p[2]:.4f},{q[3]:.8f},{q[0]:.8f},{q[1]:.8f},{q[2]:.8f},,")
+    (folder / "reference.csv").write_text("\n".join(lines) + "\n")
+    entry_ref, target_ref = np.array([30.0, 10.0, 60.0]), np.array([10.0, -15.0, -20.0])
+    entry = (reference_to_image @ np.append(entry_ref, 1))[:3]
+    target = (reference_to_image @ np.append(target_ref, 1))[:3]
+    plan = {"@schema": "https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/Markups/Resources/"
+                       "Schema/markups-schema-v1.0.3.json#",
+            "markups": [{"type": "Line", "coordinateSystem": "LPS", "controlPoints": [
+                {"label": "Entry", "position": entry.tolist()}, {"label": "Target", "position": target.tolist()}]}]}
+    (folder / "plan.mrk.json").write_text(json.dumps(plan))
+    guide_to_sensor = _pose([0.0, 20.0, 0.0], [5.0, -3.0, 60.0])
+    (folder / "guide.json").write_text(json.dumps({"TipToProbe": guide_to_sensor.tolist(), "rms_mm": 0.1}))
+    matrix = " ".join(f"{v:.9g}" for v in guide_to_sensor.ravel())
+    (folder / "guide.xml").write_text(f'<PlusConfiguration><CoordinateDefinitions><Transform From="NeedleGuide" '
+                                      f'To="Sensor" Matrix="{matrix}"/></CoordinateDefinitions></PlusConfiguration>')
+    return {"folder": folder, "reference_to_image": reference_to_image, "reference_to_tracker": reference_to_tracker,
+            "entry": entry, "target": target, "guide_to_sensor": guide_to_sensor, "case": continuous_case}
+
+
+def _target_args(folder: Path, tool: str = "guide.json", plan: str = "plan.mrk.json", out: str = "out") -> list[str]:
+    return ["robot-target", "--registration", str(folder / "reg" / "registration.json"), "--robot-calibration",
+            str(folder / "calib" / "robot_calibration.json"), "--reference", str(folder / "reference.csv"),
+            "--plan", str(folder / plan), "--tool", str(folder / tool), "--out", str(folder / out)]
+
+
+@pytest.mark.parametrize("tool", ["guide.json", "guide.xml"])
+def test_robot_target_puts_the_guide_on_the_plan(targeting_case, capsys, tool):
+    """The flange pose, applied with the TRUE hand-eye and robot-world transforms: the guide's exit lands on Entry,
+    its axis along Entry -> Target and the needle tip at the planned depth on Target, within the predicted error."""
+    folder, case = targeting_case["folder"], targeting_case["case"]
+    out = f"out-{tool}"
+    assert main(_target_args(folder, tool, out=out)) == 0, capsys.readouterr().err
+    document = json.loads((folder / out / "robot_target.json").read_text())
+    flange_to_base = np.array(document["FlangeToBase"])
+    guide_to_base = flange_to_base @ case.sensor_to_flange @ targeting_case["guide_to_sensor"]
+    image_to_base = case.tracker_to_base @ targeting_case["reference_to_tracker"] @ np.linalg.inv(
+        targeting_case["reference_to_image"])
+    guide_in_image = np.linalg.inv(image_to_base) @ guide_to_base
+    entry, target = targeting_case["entry"], targeting_case["target"]
+    axis = (target - entry) / np.linalg.norm(target - entry)
+    exit_error = np.linalg.norm(guide_in_image[:3, 3] - entry)
+    tip = guide_in_image[:3, 3] + document["depth_mm"] * guide_in_image[:3, 2]
+    predicted = document["predicted_error_mm"]["total"]
+    angle = np.degrees(np.arccos(np.clip(guide_in_image[:3, 2] @ axis, -1, 1)))
+    print(f"exit {exit_error:.3f} mm, tip {np.linalg.norm(tip - target):.3f} mm, axis {angle:.4f} deg, "
+          f"predicted {predicted:.3f} mm")
+    assert exit_error <= 3.0 * predicted
+    assert np.linalg.norm(tip - target) <= 3.0 * predicted
+    assert angle <= 0.2
+    assert 0.2 <= predicted <= 1.0  # the registration's 0.2 mm, the guide's 0.1 mm, the hand-eye's share
+
+
+def test_robot_target_with_a_live_reference(targeting_case, capsys):
+    """The reference sensor from a live source (the replay device of the same recording): the same flange pose."""
+    folder = targeting_case["folder"]
+    args = _target_args(folder, out="live")
+    args[args.index("--reference") + 1] = f"replay:{folder / 'reference.csv'}"
+    assert main(args) == 0, capsys.readouterr().err
+    live = json.loads((folder / "live" / "robot_target.json").read_text())
+    assert main(_target_args(folder, out="recorded")) == 0
+    recorded = json.loads((folder / "recorded" / "robot_target.json").read_text())
+    np.testing.assert_allclose(live["FlangeToBase"], recorded["FlangeToBase"], atol=0.05)
+
+
+def test_robot_target_refusals(targeting_case, capsys):
+    """A plan beyond the tracker's volume: exit 3; a live source without the reference sensor: exit 2."""
+    folder = targeting_case["folder"]
+    far = json.loads((folder / "plan.mrk.json").read_text())
+    for point in far["markups"][0]["controlPoints"]:
+        point["position"] = (np.array(point["position"]) + [0.0, 0.0, 2000.0]).tolist()
+    (folder / "far.mrk.json").write_text(json.dumps(far))
+    assert main(_target_args(folder, plan="far.mrk.json", out="far")) == 3
+    assert "outside the tracker's volume" in capsys.readouterr().err
+    args = _target_args(folder, out="absent") + ["--reference-sensor", "4"]
+    args[args.index("--reference") + 1] = f"replay:{folder / 'reference.csv'}"
+    assert main(args) == 2
+    assert "valid samples of the reference sensor (port 4)" in capsys.readouterr().err
+    assert not (folder / "far" / "robot_target.json").exists()
+
+
+def test_the_roll_keeps_the_flange_nearest_its_preferred_orientation():
+    """best_roll's closed form is the best of every roll about the guide's axis."""
+    from scipy.spatial.transform import Rotation
+
+    from EMRegModule.robot_target import best_roll
+
+    rng = np.random.default_rng(5)
+    guide, guide_to_flange, preferred = Rotation.random(3, random_state=rng).as_matrix()
+    rolls = np.radians(np.arange(0.0, 360.0, 0.5))
+    distance = [np.linalg.norm(guide @ Rotation.from_rotvec([0, 0, r]).as_matrix() @ guide_to_flange.T - preferred)
+                for r in rolls]
+    roll = best_roll(guide, guide_to_flange, preferred)
+    best = guide @ Rotation.from_rotvec([0, 0, roll]).as_matrix() @ guide_to_flange.T
+    assert np.linalg.norm(best - preferred) <= min(distance) + 1e-9
+
+
+def test_slicer_reads_the_calibration_transforms_as_they_are(slicer_core, tmp_path):
+    """3D Slicer's own transform storage node reads SensorToFlange.h5 / TrackerToBase.h5 as a linear transform
+    whose "to parent" matrix is exactly the calibration's (robot and tracker frames are not converted)."""
+    import slicer.util
+
+    from EMRegModule.io.itk_transform import write_slicer_frame_transform
+
+    a_to_b = _pose([20.0, -35.0, 110.0], [-41.4, 26.3, 80.1])
+    write_slicer_frame_transform(tmp_path / "SensorToFlange.h5", a_to_b)
+    scene = slicer_core.scene
+    transform = scene.AddNewNodeByClass("vtkMRMLLinearTransformNode", "read")
+    storage = scene.AddNewNodeByClass("vtkMRMLTransformStorageNode")
+    storage.SetFileName(str(tmp_path / "SensorToFlange.h5"))
+    assert storage.ReadData(transform) == 1
+    assert transform.IsLinear()
+    np.testing.assert_allclose(slicer.util.arrayFromTransformMatrix(transform), a_to_b, atol=1e-6)
+
+
+def test_a_robot_log_shorter_than_the_tracker_recording_and_with_a_gap():
+    """The robot's log covers the middle of the tracker's recording and misses half a second: the frames without
+    a robot pose are left out with that reason, the answer stays as good (150 ms clock offset)."""
+    from EMRegModule.handeye import calibrate_hand_eye
+
+    case = kinhec_case("panda", "joint_sinusoid", seed=61, outlier_fraction=0.03, time_offset_s=0.15)
+    n = len(case.robot_time_s)
+    keep = np.zeros(n, dtype=bool)
+    keep[int(0.2 * n):int(0.8 * n)] = True
+    keep[n // 2:n // 2 + 100] = False
+    result = calibrate_hand_eye(case.robot_time_s[keep], case.flange_to_base[keep], case.tracker_time_s,
+                                case.sensor_to_tracker)
+    assert tip_error_mm(result.sensor_to_flange, case.sensor_to_flange) <= 0.25
+    assert abs(result.time_offset_s - case.time_offset_s) <= 0.002
+    no_pose = [r for r in result.rejected if r.reason.startswith("no robot pose")]
+    assert len(no_pose) >= 0.4 * len(case.tracker_time_s)
+    assert not set(result.used) & {r.index for r in result.rejected}
