@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parent.parent
 PYPROJECT = ROOT / "pyproject.toml"
 LOCK = ROOT / "requirements.lock"
 # The extras scripts/setup installs; the lock covers exactly these.
-EXTRAS = ("test", "aurora", "slicer", "studies", "docs", "lock")
+EXTRAS = ("test", "aurora", "slicer", "studies", "docs", "robot", "lock")
 # Installed outside the resolution of pyproject's dependencies, but locked all the same.
 TOOLING = ("pip",)
 PYTHON_VERSION = "3.11"

@@ -28,7 +28,7 @@ def _declared_requirements() -> list[Requirement]:
     data = tomllib.loads((ROOT / "pyproject.toml").read_text())
     project = data["project"]
     declared = [*project["dependencies"], *data["build-system"]["requires"]]
-    for extra in ("test", "aurora", "slicer", "studies", "docs", "lock"):
+    for extra in ("test", "aurora", "slicer", "studies", "docs", "robot", "lock"):
         declared += project["optional-dependencies"][extra]
     return [Requirement(text) for text in declared]
 
