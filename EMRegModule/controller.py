@@ -74,6 +74,7 @@ class EMRegController:
         self.calibration_recording: TrackingRecording | None = None
         self.tool: ToolCalibration | None = None  # a tracked tool's tip (None: the paper's pinhole probe)
         self.tool_auto = False  # --tool auto: the tip is solved from the calibration recording's pivoting touches
+        self._calibrated: FrameCalibration | None = None  # the one calibrate_frame made (its touches: tool tips)
         self.results = WorkflowResults()
         self.recorder = RunRecorder(self.settings, command)
         self.exporter = Exporter(self.recorder, self.settings, self.progress)
@@ -183,10 +184,12 @@ class EMRegController:
         return self.load_tool(path)
 
     def set_tool(self, tool: ToolCalibration | None) -> None:
-        """Use a tool (None: the pinhole probe); drops the frame calibration and what follows."""
-        self.tool = tool
-        self.tool_auto = False
-        self.results.drop("calibrate")
+        """Use a tool (None: the pinhole probe); drops the navigation and evaluation (they map its tip), and the frame
+        calibration on when calibrate_frame made it from its touches (one read from a file stays)."""
+        self.tool, self.tool_auto = tool, False
+        made_here = self.results.frame_calibration is not None and self.results.frame_calibration is self._calibrated
+        for stage in ("calibrate",) if made_here else ("navigate", "evaluate"):
+            self.results.drop(stage)
 
     def set_calibration_recording(self, recording: TrackingRecording) -> None:
         self.calibration_recording = recording
@@ -264,6 +267,7 @@ class EMRegController:
         if result.solved_tool is not None:  # --tool auto: navigation and evaluation use the tip solved here
             self.tool = result.solved_tool
         self.set_frame_calibration(result)
+        self._calibrated = result
         return result
 
     def set_frame_calibration(self, frame_calibration: FrameCalibration) -> None:
@@ -631,8 +635,6 @@ def check_case_image_side(case: Case) -> None:
     if case.ct is not None and case.fiducials is not None:
         raise EMRegError(f"{case.folder}: holds both a CT ({case.ct.name}) and fiducials.mrk.json: register onto one "
                          "of them; move the other out of the case folder")
-
-
 
 
 def _open_and_detect(controller: EMRegController, path: str | os.PathLike[str], compact: bool,
