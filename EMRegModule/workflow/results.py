@@ -20,6 +20,7 @@ if TYPE_CHECKING:
     from ..checkpoints import CheckpointReport
     from ..detection import DetectionResult
     from ..evaluation import Evaluation
+    from ..guidance import GuidanceReport
     from ..io.fiducials import Fiducials
     from ..navigation import NavigationResult
     from ..registration import RegistrationResult
@@ -64,6 +65,8 @@ class WorkflowResults:
     navigation: NavigationResult | None = None
     #: The checkpoints, reference jumps and pose status of ``navigation`` (:mod:`EMRegModule.checkpoints`).
     checkpoints: CheckpointReport | None = None
+    #: With a plan: the predicted error at its target and the closest approach (:mod:`EMRegModule.guidance`).
+    guidance: GuidanceReport | None = None
     evaluation: Evaluation | None = None
 
     def drop(self, stage: str) -> None:
