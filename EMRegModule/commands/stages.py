@@ -130,11 +130,6 @@ def cmd_navigate(args: argparse.Namespace) -> int:
     if args.igtl_port is not None or not args.source.startswith("replay:"):
         from .live import run_live_navigate
 
-        if args.tool or settings_of(args).tool.calibration:  # the live path streams the sensor's pose, not a tip
-            raise EMRegError("navigate: a tool (--tool or [tool] calibration) is used with replay:FILE only; live "
-                             "navigation streams the probe sensor's pose (ProbeToImage), not the tip")
-        if args.plan or settings_of(args).navigation.plan:
-            raise EMRegError("navigate: a plan (--plan or [navigation] plan) is used with replay:FILE only for now")
         return run_live_navigate(args)
     if not args.out:
         raise EMRegError("navigate: --out DIR is needed to write navigation.csv from a replay")
