@@ -66,7 +66,8 @@ def live_tool_and_guide(args: argparse.Namespace, registration: RegistrationResu
         import numpy as np
 
         rms = float(model.budget(np.asarray(plan.target_mm, dtype=float)[None]).rms_mm[0])
-        prediction = predicted_at_target(rms, None if tool is None else tool.rms_mm)
+        prediction = (predicted_at_target(rms) if tool is None else
+                      predicted_at_target(rms, tool.rms_mm, float(np.linalg.norm(tool.tip_mm))))
     return tool, LiveGuide(plan, None if tool is None else shaft_in_tip(tool.tip_to_probe), prediction)
 
 

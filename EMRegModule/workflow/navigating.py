@@ -91,15 +91,17 @@ class Planner:
         check_plan_in_image(self.plan, detection.image, ct_name)
 
     def predicted_at_target(self, model: ErrorModel | None, tool: ToolCalibration | None) -> TargetPrediction | None:
-        """The predicted error at the plan's target (mm): the error model's end-to-end RMS TRE there and the tool's
-        own calibration RMS (its file's ``rms_mm`` / PLUS ``Error``), in quadrature, with the 95 % radius; None
-        without a plan or without an error model."""
+        """The predicted error at the plan's target (mm): the error model's end-to-end RMS TRE there, the tool's own
+        calibration RMS (its file's ``rms_mm`` / PLUS ``Error``) and its lever arm (:mod:`EMRegModule.guidance`), in
+        quadrature, with the 95 % radius; None without a plan or without an error model."""
         if self.plan is None or model is None:
             return None
         from ..guidance import predicted_at_target
 
         rms = float(model.budget(np.asarray(self.plan.target_mm, dtype=float)[None]).rms_mm[0])
-        return predicted_at_target(rms, None if tool is None else tool.rms_mm)
+        if tool is None:
+            return predicted_at_target(rms)
+        return predicted_at_target(rms, tool.rms_mm, float(np.linalg.norm(tool.tip_mm)))
 
     def guide(self, result: NavigationResult, tool: ToolCalibration | None,
               model: ErrorModel | None) -> GuidanceReport | None:

@@ -22,7 +22,7 @@ from test_navigate_tool import (
 from EMRegModule.cli import main
 from EMRegModule.controller import error_model
 from EMRegModule.errors import EMRegError
-from EMRegModule.guidance import RADIUS_95_PER_RMS, Plan, guidance, shaft_in_tip
+from EMRegModule.guidance import RADIUS_95_PER_RMS, TOOL_ROTATION_SIGMA_DEG, Plan, guidance, shaft_in_tip
 from EMRegModule.io.recording import read_recording
 from EMRegModule.navigation import GUIDANCE_COLUMNS, NAVIGATION_HEADER, navigate_recording
 from EMRegModule.plan import check_plan_in_image, read_plan
@@ -228,8 +228,9 @@ def test_navigate_with_a_plan_writes_each_rows_guidance_from_its_own_tip(needle,
     document = json.loads((tmp_path / "nav" / "navigation.json").read_text())
     at_target = float(error_model(registration, Settings()).budget(plan.target_mm[None]).rms_mm[0])
     prediction = document["predicted_at_target"]
-    assert prediction["rms_mm"] == pytest.approx(np.hypot(at_target, 0.4), abs=1e-3)
-    assert prediction["tool_rms_mm"] == 0.4
+    lever = np.sqrt(2) * NEEDLE_TIP_MM[0] * np.radians(TOOL_ROTATION_SIGMA_DEG)
+    assert prediction["rms_mm"] == pytest.approx(np.sqrt(at_target**2 + 0.4**2 + lever**2), abs=1e-3)
+    assert prediction["tool_rms_mm"] == 0.4 and prediction["lever_rms_mm"] == pytest.approx(lever, abs=1e-3)
     assert prediction["radius_95_mm"] == pytest.approx(RADIUS_95_PER_RMS * prediction["rms_mm"], abs=1e-3)
     assert f"target {prediction['rms_mm']:.1f} mm predicted (95 %: {prediction['radius_95_mm']:.1f} mm)" in printed
     closest = document["closest_approach"]
@@ -241,24 +242,27 @@ def test_navigate_with_a_plan_writes_each_rows_guidance_from_its_own_tip(needle,
 
 
 def test_the_error_at_the_target_measured_at_its_dwells_against_the_prediction(needle, tmp_path):  # noqa: F811
-    """At every dwell on the plan's target the median tip's distance to it: the measured error at the target. The
-    error model has no term for the sensor's orientation error times the 118 mm lever arm (the simulator's 0.25
-    degree per axis, ~0.7 mm RMS here), so the measured error may exceed the prediction by that much; it must
-    stay within the 95 % radius plus that lever-arm term."""
+    """A plan on each target in turn; at every dwell on it the median tip's distance to it is the error measured at
+    the target. Their RMS over the 6 dwells is the predicted RMS within sampling (0.6x to 1.4x): the simulated
+    needle's tip is exact (its file says Error 0), so the prediction is the error model's at the target plus the
+    sensor's orientation error over the 118 mm lever arm, without which it would be about half what is measured."""
     truth = needle["truth"]
+    tool = write_plus_device_set(tmp_path / "needle.xml", needle_tip_to_probe(), error_mm=0.0)
+    measured, predicted = [], []
     for label in ("T1", "T2", "T3"):
         plan_file = plan_at_target(tmp_path / f"{label}.mrk.json", truth, label)
         out = tmp_path / label
-        assert _navigate(needle, out, "--quiet", "--tool", str(write_plus_device_set(
-            tmp_path / "needle.xml", needle_tip_to_probe(), error_mm=0.4)), "--plan", str(plan_file)) == 0
-        header, rows = read_navigation(out / "navigation.csv")
+        assert _navigate(needle, out, "--quiet", "--tool", str(tool), "--plan", str(plan_file)) == 0
+        _, rows = read_navigation(out / "navigation.csv")
         time_s, _, ok = tip_positions(rows)
         distance = np.array([float(r["target_distance_mm"]) for r in rows])
-        measured = [np.median(distance[(time_s >= d["start_s"]) & (time_s <= d["end_s"]) & ok])
-                    for d in needle["dwells"] if d["name"] == label]
+        at_target = [np.median(distance[(time_s >= d["start_s"]) & (time_s <= d["end_s"]) & ok])
+                     for d in needle["dwells"] if d["name"] == label]
         prediction = json.loads((out / "navigation.json").read_text())["predicted_at_target"]
-        lever_arm_rms = np.sqrt(3) * np.radians(0.25) * NEEDLE_TIP_MM[0]
-        assert max(measured) < prediction["radius_95_mm"] + 2.0 * lever_arm_rms, (label, measured, prediction)
+        measured += at_target
+        predicted += [prediction["rms_mm"]] * len(at_target)
+    ratio = np.sqrt(np.mean(np.square(measured))) / np.sqrt(np.mean(np.square(predicted)))
+    assert 0.6 <= ratio <= 1.4, (measured, predicted, ratio)  # measured here: 0.94 mm RMS, predicted 0.85 mm
 
 
 def test_a_target_only_plan_leaves_lateral_angle_and_to_go_empty(needle, tmp_path):  # noqa: F811
