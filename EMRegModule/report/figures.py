@@ -434,6 +434,37 @@ def render_checkpoints(data: ReportData) -> list[Figure]:
                       "elsewhere on the frame), red even below the limit." if by_slip else ""), _png(chart))]
 
 
+def _has_guidance(data: ReportData) -> bool:
+    series = data.inputs.folder.guidance_series
+    return data.inputs.folder.guidance is not None and series is not None and bool(series["ok"].any())
+
+
+def render_guidance(data: ReportData) -> list[Figure]:
+    """The tip's approach to the planned target (``navigation.json`` and the guidance columns of ``navigation.csv``):
+    its distance to the target and to the line over time, and (with an Entry) its path beside the planned line."""
+    from ..rendering.guidance_chart import approach_chart, plan_view_chart
+
+    document, series = data.inputs.folder.guidance, data.inputs.folder.guidance_series
+    series = {name: values[series["ok"]] for name, values in series.items()}  # the poses shown as valid
+    closest = document.get("closest_approach") or {}
+    radius = (document.get("predicted_at_target") or {}).get("radius_95_mm")
+    figures = [Figure("guidance_approach", "Approach to the target",
+                      "The navigated tip's distance to the planned target (blue) and to the planned line (grey) over "
+                      "the navigation (mm), OK poses only; red dot: the closest approach; dashed: the 95 % radius of "
+                      "the error predicted at the target.",
+                      _png(approach_chart(series["time_s"], series["target_distance_mm"], series["lateral_mm"],
+                                          closest.get("time_s"), radius)))]
+    length = (document.get("plan") or {}).get("length_mm")
+    if length:
+        depth = float(length) - series["to_go_mm"]
+        figures.append(Figure("guidance_plan_view", "Tip path beside the planned line",
+                              "Every navigated tip position in the plan's own frame: its depth along the plan from the "
+                              "Entry (mm) against its distance from the planned line (mm); red: the planned line "
+                              "from Entry to Target.", _png(plan_view_chart(depth, series["lateral_mm"],
+                                                                            float(length)))))
+    return figures
+
+
 # --- the registry ---------------------------------------------------------------------------------
 
 
@@ -465,6 +496,7 @@ FIGURES: tuple[FigureSpec, ...] = (
     FigureSpec(("error_budget",), _has_budget, render_error_budget),
     FigureSpec(("tre_map",), lambda d: d.inputs.folder.tre_map_path is not None, render_tre_map),
     FigureSpec(("checkpoints",), lambda d: read_checkpoints(d) is not None, render_checkpoints),
+    FigureSpec(("guidance_approach", "guidance_plan_view"), _has_guidance, render_guidance),
     FigureSpec(("distortion",), lambda d: _distortion(d) is not None, render_distortion),
 )
 

@@ -325,6 +325,13 @@ def test_emreg_run_with_a_plan_in_case_toml_and_on_the_command_line(small_case, 
     np.testing.assert_allclose(document["plan"]["target_mm"], truth["targets"][1]["position"], atol=1e-3)
     run = json.loads((tmp_path / "out" / "run.json").read_text())
     assert "navigation.json" in run["outputs"] and "plan" in run["inputs"]
+    html = (tmp_path / "out" / "report.html").read_text(encoding="utf-8")  # the report's guidance section
+    section = html[html.index("<h2>Guidance to the plan</h2>"):]
+    section = section[:section.index("<h2>", 5)]
+    closest = document["closest_approach"]
+    assert f"<td class=\"l\">{closest['target_distance_mm']:.2f}</td>" in section
+    assert f"<td class=\"l\">{closest['time_s']:.2f}</td>" in section
+    assert 'id="fig-guidance_approach"' in section and 'id="fig-guidance_plan_view"' in section
     other = plan_at_target(tmp_path / "other.mrk.json", truth, "T3")
     assert main(["run", str(case), "--out", str(tmp_path / "out2"), "--plan", str(other), "--quiet"]) == 0
     document = json.loads((tmp_path / "out2" / "navigation.json").read_text())
