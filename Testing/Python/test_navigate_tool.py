@@ -169,3 +169,45 @@ def test_evaluate_with_a_tool_after_a_registration_read_from_its_file(needle, sm
                  str(tool), "--out", str(tmp_path / "eval"), "--quiet"]) == 0
     evaluation = json.loads((tmp_path / "eval" / "evaluation.json").read_text())
     assert evaluation["tre"]["mean_mm"] < 2.0  # the tip on the targets; the sensor would be 118 mm off
+
+
+# --- PLUS's real recording, with the tool of its own device set ------------------------------------------
+
+
+def test_plus_recording_navigates_the_stylus_tip_as_plus_defines_it(tmp_path):
+    """PLUS's landmark recording (a hand-held stylus touching the fCal phantom's 8 landmarks, ``StylusToTracker``),
+    its own device set as the tool (``StylusTip`` -> ``Stylus``, Error 0.46 mm), registered onto the device set's
+    landmarks by EMReg, navigated with a plan from landmark 1 to landmark 2. The judge is PLUS's definition of the
+    tip placed by PLUS's own ``PhantomToReference`` on this recording: every row within PLUS's reported
+    registration error (0.198 mm) of it near the landmarks and twice that anywhere (measured 0.13 / 0.22 mm); the
+    tip's closest approach to landmark 2 is the touch there (within 0.5 mm; measured 0.20 mm); navigation.json
+    counts the tool's Error."""
+    from test_tool import DEVICE_SET, LANDMARK_RECORDING, PLUS_RESULT, _plus_landmarks, _plus_matrix
+
+    from EMRegModule.io.sequence_metafile import read_sequence_metafile
+
+    assert main(["calibrate", str(LANDMARK_RECORDING), "--tool", str(DEVICE_SET), "--out", str(tmp_path / "cal"),
+                 "--quiet"]) == 0
+    assert main(["register", "--fiducials", str(DEVICE_SET), "--calibration", str(tmp_path / "cal" /
+                 "frame_calibration.json"), "--out", str(tmp_path / "reg"), "--quiet"]) == 0
+    landmarks = _plus_landmarks(DEVICE_SET)
+    plan = tmp_path / "plan.mrk.json"
+    plan.write_text(json.dumps({"markups": [{"type": "Line", "coordinateSystem": "LPS", "controlPoints": [
+        {"label": "Entry", "position": list(landmarks[0])}, {"label": "Target", "position": list(landmarks[1])}]}]}))
+    assert main(["navigate", "--registration", str(tmp_path / "reg" / "registration.json"), "--source",
+                 f"replay:{LANDMARK_RECORDING}", "--tool", str(DEVICE_SET), "--plan", str(plan), "--out",
+                 str(tmp_path / "nav"), "--quiet"]) == 0
+    _, rows = read_navigation(tmp_path / "nav" / "navigation.csv")
+    _, tip, _ = tip_positions(rows)
+    stylus_tip_to_stylus, _ = _plus_matrix(DEVICE_SET, "StylusTip", "Stylus")
+    phantom_to_reference, plus_error = _plus_matrix(PLUS_RESULT, "Phantom", "Reference")
+    plus_tip = navigate_recording(read_sequence_metafile(LANDMARK_RECORDING), np.linalg.inv(phantom_to_reference),
+                                  1, 2, stylus_tip_to_stylus).position_mm
+    assert len(plus_tip) == len(tip)
+    off = np.linalg.norm(tip - plus_tip, axis=1)
+    near = np.linalg.norm(tip[:, None] - landmarks[None], axis=2).min(axis=1) < 20.0
+    assert near.sum() > 500 and off[near].max() < plus_error and off.max() < 2 * plus_error
+    document = json.loads((tmp_path / "nav" / "navigation.json").read_text())
+    assert document["closest_approach"]["target_distance_mm"] < 0.5
+    assert document["tool"]["calibration_rms_mm"] == pytest.approx(_plus_matrix(DEVICE_SET, "StylusTip",
+                                                                                  "Stylus")[1], abs=1e-3)
