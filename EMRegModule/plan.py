@@ -38,17 +38,25 @@ def read_plan(path: str | os.PathLike[str]) -> Plan:
     labels, positions, declared = read_markups_with_frame(path)
     document = read_json(path, "markups JSON")
     lines = _line_points(document, labels, positions, path)
-    where = f"{path}: plan"
-    if lines is not None:
-        if len(lines) != 2:
-            raise EMRegError(f"{where}: the Line markup has {len(lines)} defined control point(s); a planned line "
+    return plan_from_points(labels, positions, lines, str(path), declared["coordinate_system"])
+
+
+def plan_from_points(labels: list[str], positions: np.ndarray, line: list[tuple[str, np.ndarray]] | None,
+                     source: str, coordinate_system: str = "LPS") -> Plan:
+    """The plan of labelled points (LPS mm, (N, 3)) by the rules of the module docstring; ``line``: the (label,
+    position) points of a Line markup, when there is one (they then make the plan). ``source`` names them in the
+    one-line refusals (a file, a 3D Slicer markups node)."""
+    where = f"{source}: plan"
+    if line is not None:
+        if len(line) != 2:
+            raise EMRegError(f"{where}: the Line markup has {len(line)} defined control point(s); a planned line "
                              "needs two (Entry, then Target)")
-        named = {label.strip().lower(): p for label, p in lines}
+        named = {label.strip().lower(): p for label, p in line}
         if set(named) == {ENTRY_LABEL, TARGET_LABEL}:
             entry, target = named[ENTRY_LABEL], named[TARGET_LABEL]
         else:
-            entry, target = lines[0][1], lines[1][1]
-        return _checked(Plan(target, entry, str(path), declared["coordinate_system"]), where)
+            entry, target = line[0][1], line[1][1]
+        return _checked(Plan(target, entry, source, coordinate_system), where)
     keys = [label.strip().lower() for label in labels]
     for name in (TARGET_LABEL, ENTRY_LABEL):
         if keys.count(name) > 1:
@@ -57,11 +65,11 @@ def read_plan(path: str | os.PathLike[str]) -> Plan:
     if TARGET_LABEL in keys:
         target = positions[keys.index(TARGET_LABEL)]
         entry = positions[keys.index(ENTRY_LABEL)] if ENTRY_LABEL in keys else None
-        return _checked(Plan(target, entry, str(path), declared["coordinate_system"]), where)
+        return _checked(Plan(target, entry, source, coordinate_system), where)
     if ENTRY_LABEL in keys:
         raise EMRegError(f"{where}: a point labelled Entry but none labelled Target; label the target point Target")
     if len(labels) == 1:
-        return Plan(positions[0], None, str(path), declared["coordinate_system"])
+        return Plan(positions[0], None, source, coordinate_system)
     if not labels:
         raise EMRegError(f"{where}: no defined control point; give a Line (Entry, Target), points labelled Entry "
                          "and Target, or a single target point")

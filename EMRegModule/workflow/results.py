@@ -140,6 +140,28 @@ class WorkflowResults:
         return "; ".join(parts)
 
 
+def results_lines(results: WorkflowResults, evaluation: Evaluation | None = None,
+                  report_path: object = None) -> list[str]:
+    """A few lines of figures (the 3D Slicer module's panel): the FRE, unpaired points, the TRE (of ``evaluation``),
+    the guidance to a plan (closest approach, predicted error at the target, mm), the report's path."""
+    lines = []
+    registration = results.registration
+    if registration is not None:
+        lines.append(f"FRE {registration.fre_mm:.2f} mm over {len(registration.pairs)} pairs; "
+                     f"{offset_summary(registration)}")
+        if registration.unpaired_image_markers or registration.unpaired_calibration_points:
+            lines.append(f"unpaired: {len(registration.unpaired_image_markers)} markers, "
+                         f"{len(registration.unpaired_calibration_points)} calibration points")
+    tre = evaluation.tre if evaluation is not None else None
+    if tre is not None:
+        lines.append(f"TRE {tre.mean_mm:.2f} +/- {tre.std_mm:.2f} mm")
+    if results.guidance is not None:
+        lines.append(f"guidance: {results.guidance.summary()}")
+    if report_path is not None:
+        lines.append(f"report: {report_path}")
+    return lines
+
+
 def offset_summary(registration: RegistrationResult) -> str:
     """The sensor offset of a summary line: ``l = 14.20 mm``, or that a point fit onto fiducials has none."""
     if getattr(registration, "point_fit", False):  # (a registration-like object without it: the pinhole route)

@@ -358,3 +358,50 @@ def test_emreg_run_refuses_a_plan_with_nothing_to_register(small_case, tmp_path,
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "needs a registration" in err[0]
     assert not (tmp_path / "out" / "markers.json").exists()
+
+
+# --- the 3D Slicer module's plan selector ----------------------------------------------------------------
+
+
+def test_slicer_panel_plan_selector_gives_the_guidance_of_a_markups_line(slicer_app, small_case, tmp_path):
+    """In the module's panel (Slicer's MRML, Qt stand-ins): a markups line (world RAS) chosen as the plan; the replay
+    writes the guidance columns and navigation.json with the line's points in LPS, and the panel shows the closest
+    approach and the predicted error. A point list with two points labelled Target is refused with the panel's
+    error (the plan stays as it was)."""
+    import types
+
+    from vtkmodules.vtkCommonDataModel import vtkVector3d
+
+    module = slicer_app.load_module()
+    widget = module.EMRegWidget(parent=types.SimpleNamespace())
+    widget.setup()
+    ui = widget.ui
+    ui.caseDirectoryPathLineEdit.currentPath = str(small_case)
+    ui.outputDirectoryPathLineEdit.currentPath = str(tmp_path / "out")
+    ui.loadCaseButton.click()
+    ui.calibrateButton.click()
+    ui.detectButton.click()
+    ui.registerButton.click()
+    truth = json.loads((small_case / "truth.json").read_text())
+    target = np.array(truth["targets"][0]["position"])
+    entry = target + np.array([0.0, 0.0, 40.0])
+    line = slicer_app.scene.AddNewNodeByClass("vtkMRMLMarkupsLineNode", "trajectory")
+    for label, lps in (("L-1", entry), ("L-2", target)):
+        line.AddControlPoint(vtkVector3d(-lps[0], -lps[1], lps[2]), label)  # RAS, as Slicer places it
+    ui.planNodeComboBox.setCurrentNode(line)
+    np.testing.assert_allclose(widget.logic.controller.planner.plan.target_mm, target, atol=1e-6)
+    ui.navigateButton.click()
+    header, _ = read_navigation(tmp_path / "out" / "navigation.csv")
+    assert header[-4:] == list(GUIDANCE_COLUMNS)
+    document = json.loads((tmp_path / "out" / "navigation.json").read_text())
+    np.testing.assert_allclose(document["plan"]["entry_mm"], entry, atol=1e-3)
+    assert "guidance: closest" in ui.resultsLabel.text and "mm predicted (95 %:" in ui.resultsLabel.text
+
+    points = slicer_app.scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "two targets")
+    for lps in (target, entry):
+        points.AddControlPoint(vtkVector3d(-lps[0], -lps[1], lps[2]), "Target")
+    with pytest.raises(Exception, match="labelled 'Target'"):
+        ui.planNodeComboBox.setCurrentNode(points)
+    assert slicer_app.errors and "Using the plan failed." in slicer_app.errors[-1]
+    np.testing.assert_allclose(widget.logic.controller.planner.plan.entry_mm, entry, atol=1e-6)
+    widget.cleanup()
