@@ -285,3 +285,20 @@ def test_a_tool_off_the_axis_of_a_5dof_sensor_or_on_an_empty_port_is_refused(gui
     assert code_port == 2 and len(errors_port) == 1
     assert "no sensor on the probe port 3 for the tool of" in errors_port[0]
     assert not (tmp_path / "out" / "navigation.csv").exists()
+
+
+def test_igtl_source_navigates_the_tip_to_the_plan(guided, tmp_path):
+    """``emreg serve`` publishes the needle replay's sensors (ReferenceToTracker, ProbeToTracker); live navigation
+    from ``igtl://`` with the tool and the plan writes the same tips and guidance as the offline replay (float32
+    transforms: within 1e-3 mm)."""
+    serve = subprocess.Popen([*EMREG, "serve", "--device", f"replay:{guided['recording']}", "--igtl-port", "0",
+                              "--duration", "300"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    try:
+        port, said = announced_igtl_port(serve)
+        got, stdout, rows = _live_navigate(guided, f"igtl://127.0.0.1:{port}", tmp_path / "out", "--max-samples", "200")
+    finally:
+        serve.terminate()
+        serve.communicate(timeout=20)
+    assert "tool tip poses published" in stdout
+    assert all(got[name] is not None for name in got), got
+    _check_rows_against_offline(rows, guided, 1e-3)
