@@ -405,3 +405,19 @@ def test_slicer_panel_plan_selector_gives_the_guidance_of_a_markups_line(slicer_
     assert slicer_app.errors and "Using the plan failed." in slicer_app.errors[-1]
     np.testing.assert_allclose(widget.logic.controller.planner.plan.entry_mm, entry, atol=1e-6)
     widget.cleanup()
+
+
+def test_navigate_takes_the_plan_of_a_settings_file_relative_to_it(needle, tmp_path):  # noqa: F811
+    """``[navigation] plan`` of ``--settings FILE`` (a path relative to that file's folder) as ``--plan`` would give it;
+    ``--plan`` on the command line wins over it."""
+    settings = tmp_path / "settings" / "case.toml"
+    settings.parent.mkdir()
+    plan_at_target(settings.parent / "plan.mrk.json", needle["truth"], "T2")
+    settings.write_text('[navigation]\nplan = "plan.mrk.json"\n')
+    assert _navigate(needle, tmp_path / "nav", "--quiet", "--settings", str(settings)) == 0
+    document = json.loads((tmp_path / "nav" / "navigation.json").read_text())
+    np.testing.assert_allclose(document["plan"]["target_mm"], needle["truth"]["targets"][1]["position"], atol=1e-3)
+    other = plan_at_target(tmp_path / "T3.mrk.json", needle["truth"], "T3")
+    assert _navigate(needle, tmp_path / "nav3", "--quiet", "--settings", str(settings), "--plan", str(other)) == 0
+    document = json.loads((tmp_path / "nav3" / "navigation.json").read_text())
+    np.testing.assert_allclose(document["plan"]["target_mm"], needle["truth"]["targets"][2]["position"], atol=1e-3)
