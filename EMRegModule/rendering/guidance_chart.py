@@ -93,3 +93,50 @@ def plan_view_chart(depth_mm: np.ndarray, lateral_mm: np.ndarray, length_mm: flo
     for a, b in zip(depth_mm[inside], lateral_mm[inside], strict=True):
         cv2.circle(canvas, (int(round(axes.x(a))), int(round(axes.y(b)))), 1, plots.LINE, -1)
     return canvas
+
+
+def plan_ct_views(sample, entry_mm: np.ndarray, target_mm: np.ndarray, tips_mm: np.ndarray,
+                  closest_mm: np.ndarray | None = None, mm_per_px: float = 0.5, half_width_mm: float = 60.0,
+                  near_mm: float = 3.0) -> np.ndarray:
+    """Two CT planes containing the planned line (image LPS mm), side by side: the line (red, Entry to Target), the tip
+    positions within ``near_mm`` of each plane (blue) and the closest approach (yellow). ``sample(points (..., 3))``
+    gives the CT's values there (NaN outside). Each plane runs along the plan from 30 mm before the Entry to 30 mm
+    beyond the Target (vertical, Entry at the top) and ``half_width_mm`` to each side; ``mm_per_px`` per pixel."""
+    entry, target = np.asarray(entry_mm, dtype=float), np.asarray(target_mm, dtype=float)
+    length = float(np.linalg.norm(target - entry))
+    u = (target - entry) / length
+    helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    across_1 = np.cross(u, helper)
+    across_1 /= np.linalg.norm(across_1)
+    across_2 = np.cross(u, across_1)
+    down = np.arange(-30.0, length + 30.0, mm_per_px)
+    side = np.arange(-half_width_mm, half_width_mm, mm_per_px)
+    tips = np.asarray(tips_mm, dtype=float).reshape(-1, 3)
+    panels = []
+    for name, across, normal in (("plane 1", across_1, across_2), ("plane 2", across_2, across_1)):
+        points = entry + down[:, None, None] * u + side[None, :, None] * across
+        values = np.asarray(sample(points), dtype=float)
+        finite = values[np.isfinite(values)]
+        low, high = (np.percentile(finite, [1, 99]) if finite.size else (0.0, 1.0))
+        grey = np.clip((np.nan_to_num(values, nan=low) - low) / max(high - low, 1e-6) * 255, 0, 255).astype(np.uint8)
+        panel = np.repeat(grey[:, :, None], 3, axis=2).copy()
+
+        def pixel(p: np.ndarray, across: np.ndarray = across) -> tuple[int, int]:
+            d = p - entry
+            return (int(round((d @ across + half_width_mm) / mm_per_px)), int(round((d @ u + 30.0) / mm_per_px)))
+
+        cv2.line(panel, pixel(entry), pixel(target), plots.HIGHLIGHT, 2,
+                 cv2.LINE_AA)
+        offsets = (tips - entry) @ normal
+        for tip in tips[np.abs(offsets) <= near_mm]:
+            cv2.circle(panel, pixel(tip), 1, (80, 160, 255), -1)
+        if closest_mm is not None:
+            cv2.circle(panel, pixel(np.asarray(closest_mm, dtype=float)), 4, (255, 220, 0), -1, cv2.LINE_AA)
+        for where, label in ((entry, "Entry"), (target, "Target")):
+            x, y = pixel(where)
+            put_text(panel, label, x + 8, y + 4, 0.4, (255, 255, 255))
+        cv2.rectangle(panel, (0, 0), (60, 22), (32, 32, 36), -1)
+        put_text(panel, name, 6, 16, 0.4, (255, 255, 255))
+        panels.append(panel)
+    gap = np.full((panels[0].shape[0], 6, 3), 255, dtype=np.uint8)
+    return np.concatenate([panels[0], gap, panels[1]], axis=1)

@@ -465,6 +465,39 @@ def render_guidance(data: ReportData) -> list[Figure]:
     return figures
 
 
+def _has_plan_in_ct(data: ReportData) -> bool:
+    return _has_guidance(data) and bool((data.inputs.folder.guidance.get("plan") or {}).get("entry_mm"))
+
+
+def render_plan_in_ct(data: ReportData) -> list[Figure]:
+    """Two CT planes containing the planned line (from the block-averaged CT the 3D view uses), with the tip path."""
+    from scipy.ndimage import map_coordinates
+
+    from ..rendering.guidance_chart import plan_ct_views
+
+    prepare_ct_products(data)
+    binned = data.binned
+    if binned is None:
+        return []
+    image_to_index = np.linalg.inv(binned.index_to_image)
+
+    def sample(points: np.ndarray) -> np.ndarray:
+        index = apply_transform(image_to_index, points.reshape(-1, 3))
+        return map_coordinates(binned.values, index[:, ::-1].T, order=1, mode="constant", cval=np.nan,
+                               output=np.float32).reshape(points.shape[:-1])
+
+    document, series = data.inputs.folder.guidance, data.inputs.folder.guidance_series
+    plan, closest = document["plan"], document.get("closest_approach") or {}
+    tips = data.inputs.navigation_positions[series["ok"]] if data.inputs.navigation_positions is not None else []
+    views = plan_ct_views(sample, np.array(plan["entry_mm"]), np.array(plan["target_mm"]), tips,
+                          None if not closest else np.array(closest["position_mm"]))
+    voxel = float(np.max(np.linalg.norm(binned.index_to_image[:3, :3], axis=0)))
+    return [Figure("guidance_ct", "The planned line in the CT",
+                   "Two CT planes containing the planned line (red, Entry at the top), at right angles to each other: "
+                   f"the block-averaged CT of the 3D view ({voxel:.1f} mm voxels), 0.5 mm per pixel; blue: the OK "
+                   "tip positions within 3 mm of the plane; yellow: the closest approach.", _png(views))]
+
+
 # --- the registry ---------------------------------------------------------------------------------
 
 
@@ -497,6 +530,8 @@ FIGURES: tuple[FigureSpec, ...] = (
     FigureSpec(("tre_map",), lambda d: d.inputs.folder.tre_map_path is not None, render_tre_map),
     FigureSpec(("checkpoints",), lambda d: read_checkpoints(d) is not None, render_checkpoints),
     FigureSpec(("guidance_approach", "guidance_plan_view"), _has_guidance, render_guidance),
+    FigureSpec(("guidance_ct",), lambda d: _has_plan_in_ct(d) and d.inputs.ct is not None, render_plan_in_ct,
+               uses_ct=True, needs_ct=True),
     FigureSpec(("distortion",), lambda d: _distortion(d) is not None, render_distortion),
 )
 

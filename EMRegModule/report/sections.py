@@ -286,7 +286,7 @@ def guidance_section(data: ReportData, figures: dict[str, Figure]) -> str:
             ("then: off the line (mm), angle (degrees), to go (mm)",
              f"{num(closest.get('lateral_mm'))}, {num(closest.get('angle_deg'))}, {num(closest.get('to_go_mm'))}")]
     return "\n".join(["<h2>Guidance to the plan</h2>", table(("item", "value"), rows, left_columns=2),
-                      _figures(figures, "guidance_approach", "guidance_plan_view"),
+                      _figures(figures, "guidance_approach", "guidance_plan_view", "guidance_ct"),
                       note("The predicted error at the target: the error model's end-to-end RMS TRE there, the tool "
                            "file's calibration error and the sensor's orientation error over the tool's lever arm, in "
                            "quadrature; 95 %: the radius holding 95 % of an isotropic Gaussian error of that RMS.")])

@@ -332,6 +332,7 @@ def test_emreg_run_with_a_plan_in_case_toml_and_on_the_command_line(small_case, 
     assert f"<td class=\"l\">{closest['target_distance_mm']:.2f}</td>" in section
     assert f"<td class=\"l\">{closest['time_s']:.2f}</td>" in section
     assert 'id="fig-guidance_approach"' in section and 'id="fig-guidance_plan_view"' in section
+    assert 'id="fig-guidance_ct"' in section  # the planned line in two CT planes
     other = plan_at_target(tmp_path / "other.mrk.json", truth, "T3")
     assert main(["run", str(case), "--out", str(tmp_path / "out2"), "--plan", str(other), "--quiet"]) == 0
     document = json.loads((tmp_path / "out2" / "navigation.json").read_text())
