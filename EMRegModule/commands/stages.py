@@ -226,7 +226,9 @@ def add_parsers(add: AddCommand) -> None:
     p.add_argument("--source", required=True, metavar="URL",
                    help="replay:FILE.csv, trakstar:///dev/ttyUSB0?baud=115200 or igtl://HOST:PORT")
     p.add_argument("--out", metavar="OUT")
-    p.add_argument("--igtl-port", type=int, default=None, metavar="PORT", help="publish ProbeToImage over OpenIGTLink")
+    p.add_argument("--igtl-port", type=int, default=None, metavar="PORT",
+                   help="publish ProbeToImage over OpenIGTLink (with --tool: <Name>TipToImage; with --plan also "
+                        "TrajectoryToImage, the POINT Plan and the STRING Guidance)")
     add_sensor_options(p)
     add_tool_option(p)
     add_plan_option(p)
