@@ -34,6 +34,7 @@ from .settings import Settings, choose_ports
 from .stages import STAGE, STAGES
 from .workflow.background import import_in_background
 from .workflow.exporters import Exporter
+from .workflow.navigating import Planner, check_navigation
 from .workflow.recorder import RunRecorder
 from .workflow.results import WorkflowResults, offset_summary
 
@@ -41,7 +42,6 @@ if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only wh
     import SimpleITK as sitk
 
     from .calibration import FrameCalibration
-    from .checkpoints import CheckpointReport
     from .detection import DetectionResult
     from .error_model import ErrorModel
     from .evaluation import Evaluation
@@ -74,8 +74,10 @@ class EMRegController:
         self.calibration_recording: TrackingRecording | None = None
         self.tool: ToolCalibration | None = None  # a tracked tool's tip (None: the paper's pinhole probe)
         self.tool_auto = False  # --tool auto: the tip is solved from the calibration recording's pivoting touches
+        self._calibrated: FrameCalibration | None = None  # the one calibrate_frame made (its touches: tool tips)
         self.results = WorkflowResults()
         self.recorder = RunRecorder(self.settings, command)
+        self.planner = Planner(self.results, self.recorder, self.settings)  # the plan guided to (``planner.plan``)
         self.exporter = Exporter(self.recorder, self.settings, self.progress)
 
     @classmethod
@@ -183,10 +185,12 @@ class EMRegController:
         return self.load_tool(path)
 
     def set_tool(self, tool: ToolCalibration | None) -> None:
-        """Use a tool (None: the pinhole probe); drops the frame calibration and what follows."""
-        self.tool = tool
-        self.tool_auto = False
-        self.results.drop("calibrate")
+        """Use a tool (None: the pinhole probe); drops the navigation and evaluation (they map its tip), and the frame
+        calibration on when calibrate_frame made it from its touches (one read from a file stays)."""
+        self.tool, self.tool_auto = tool, False
+        made_here = self.results.frame_calibration is not None and self.results.frame_calibration is self._calibrated
+        for stage in ("calibrate",) if made_here else ("navigate", "evaluate"):
+            self.results.drop(stage)
 
     def set_calibration_recording(self, recording: TrackingRecording) -> None:
         self.calibration_recording = recording
@@ -264,6 +268,7 @@ class EMRegController:
         if result.solved_tool is not None:  # --tool auto: navigation and evaluation use the tip solved here
             self.tool = result.solved_tool
         self.set_frame_calibration(result)
+        self._calibrated = result
         return result
 
     def set_frame_calibration(self, frame_calibration: FrameCalibration) -> None:
@@ -315,14 +320,16 @@ class EMRegController:
         note = unpaired_probe_note(recording, result, self.probe_sensor)
         if note and note not in recording.warnings:  # said with the recording's own warnings
             recording.warnings.append(note)
-        self.results.checkpoints = _check_navigation(self, result, recording)
+        results = self.results
+        results.checkpoints = check_navigation(results, self.settings, self.reference_sensor, result, recording)
+        results.guidance = self.planner.guide(result, self.tool, error_model(results.registration, self.settings))
         self.results.navigation = result
         return result
 
     def pose_status(self, navigation: NavigationResult, recording: TrackingRecording) -> np.ndarray:
         """``OK`` / ``INVALID`` per pose of ``navigation`` (made from ``recording``), as ``navigation.csv`` has it (the
         checkpoints' warnings are navigate's: not repeated)."""
-        _check_navigation(self, navigation, recording, warn=False)
+        check_navigation(self.results, self.settings, self.reference_sensor, navigation, recording, warn=False)
         return navigation.status
 
     def evaluate(self, navigation: TrackingRecording | None = None,
@@ -412,6 +419,7 @@ class EMRegController:
         self.recorder.note_inputs(**inputs)
         if self.tool is None and not self.tool_auto:
             self.load_tool_from_settings()  # [tool] calibration = "FILE" (a --tool given first wins)
+        self.planner.for_run(case)  # [navigation] plan = "FILE" (a --plan given first wins)
         folder = OutputFolder(out, recorder.command)
         summary: list[str] = []
         stage = "start"
@@ -468,6 +476,7 @@ def _run_detect(controller: EMRegController, case: Case, folder: OutputFolder, s
         summary.append(f"detect: skipped (no CT): {len(fiducials)} fiducials from {case.fiducials.name}")
         return
     detection = controller.load_ct_and_detect(case.ct)
+    controller.planner.check_in_ct(str(case.ct))  # a plan outside this CT: refused before any output is written
     controller.save("detect", folder)
     if detection.ct_series is not None:
         folder.manifest["ct_series"] = detection.ct_series
@@ -531,8 +540,10 @@ def _run_navigate(controller: EMRegController, case: Case, folder: OutputFolder,
     controller.recorder.warn(recording.warnings)
     controller.save("navigate", folder)
     checkpoints = controller.results.checkpoints
-    summary.append(f"navigate: {len(navigation)} probe samples"
-                   + ("" if checkpoints is None else f"; {checkpoints.summary()}"))
+    guided = controller.results.guidance
+    summary.append(f"navigate: {len(navigation)} probe samples" + ("" if checkpoints is None else
+                                                                   f"; {checkpoints.summary()}")
+                   + ("" if guided is None else f"; {guided.summary()}"))
 
 
 def _run_evaluate(controller: EMRegController, case: Case, folder: OutputFolder, summary: list[str]) -> None:
@@ -677,22 +688,4 @@ def _warn_series_unused(controller: EMRegController, path: str | os.PathLike[str
         controller.recorder.warn([f"the series {_series_choice(controller.settings)!r} was asked for, but {path} is "
                                   "one image, not a DICOM "
                    "folder: it is read as it is"])
-
-
-def _check_navigation(controller: EMRegController, result: NavigationResult, recording: TrackingRecording,
-                      warn: bool = True) -> CheckpointReport:
-    """Checkpoints at the detected markers' pinholes, reference jumps and the pose status of ``result``
-    (:mod:`EMRegModule.checkpoints`); their warnings join the recording's (``warn``)."""
-    from .checkpoints import check_navigation, pinholes_from_detection
-
-    pinholes = (None if controller.results.detection is None else
-                pinholes_from_detection(controller.results.detection,
-                                        controller.results.registration.sensor_offset_l_mm,
-                                        controller.results.registration))  # judged against the error model
-    report = check_navigation(result, recording, pinholes, controller.reference_sensor, controller.settings.navigation)
-    if pinholes is None:  # a point fit onto fiducials, or a registration folder without its markers
-        report.note = "no detected markers (markers.json) beside the registration: no pinholes to check at"
-    if warn:
-        recording.warnings.extend(n for n in report.warnings() if n not in recording.warnings)
-    return report
 

@@ -32,6 +32,7 @@ REGISTRATION_JSON = "registration.json"
 REFERENCE_TO_IMAGE_H5 = "ReferenceToImage.h5"
 NAVIGATION_CSV = "navigation.csv"
 CHECKPOINTS_JSON = "checkpoints.json"
+NAVIGATION_JSON = "navigation.json"  # with a plan: the plan, the predicted error at the target, the closest approach
 EVALUATION_JSON = "evaluation.json"
 TRE_MAP_NRRD = "tre_map.nrrd"
 REPORT_HTML = "report.html"

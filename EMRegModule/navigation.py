@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .guidance import Guidance
 from .io.atomic import atomic_path
 from .names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from .tracking import SAME_MOMENT_S, TrackingRecording, invert_rigid_batch, sensor_pair
@@ -22,6 +23,9 @@ from .tracking import SAME_MOMENT_S, TrackingRecording, invert_rigid_batch, sens
 #: ``status`` (added): the pose's status, ``OK`` or ``INVALID`` (PLUS's TransformStatus names; see
 #: :mod:`EMRegModule.checkpoints`); the spec's five columns come first, unchanged.
 NAVIGATION_HEADER = "time_s,x_mm,y_mm,z_mm,label,status"
+
+#: The guidance columns appended, in this order, when a plan is given (:mod:`EMRegModule.guidance`).
+GUIDANCE_COLUMNS = ("target_distance_mm", "lateral_mm", "angle_deg", "to_go_mm")
 
 
 def probe_to_image(reference_to_image: np.ndarray, reference_to_tracker: np.ndarray,
@@ -40,13 +44,15 @@ def probe_to_image(reference_to_image: np.ndarray, reference_to_tracker: np.ndar
 class NavigationResult:
     """Probe samples in image space: ``time_s`` (N,), ``probe_to_image`` (N, 4, 4),
     ``label`` (N,) (the recording's labels), ``quality`` (N,) (worst of both sensors) and ``status`` (N,)
-    (``OK`` / ``INVALID``, set by :func:`EMRegModule.checkpoints.check_navigation`; None: not judged, OK)."""
+    (``OK`` / ``INVALID``, set by :func:`EMRegModule.checkpoints.check_navigation`; None: not judged, OK);
+    ``guidance``: the guidance numbers against a plan (:mod:`EMRegModule.guidance`), None without one."""
 
     time_s: np.ndarray
     probe_to_image: np.ndarray
     label: np.ndarray
     quality: np.ndarray
     status: np.ndarray | None = None
+    guidance: Guidance | None = None
 
     def __len__(self) -> int:
         return len(self.time_s)
@@ -102,14 +108,24 @@ def unpaired_probe_note(recording: TrackingRecording, result: NavigationResult,
 
 
 def format_navigation_csv(result: NavigationResult) -> str:
-    """``time_s,x_mm,y_mm,z_mm,label,status`` text, one row per probe sample (positions in LPS mm)."""
+    """``time_s,x_mm,y_mm,z_mm,label,status`` text, one row per probe sample (positions in LPS mm), followed by
+    :data:`GUIDANCE_COLUMNS` (mm, degrees; empty where undefined) when the result has guidance numbers."""
     position = result.position_mm
     status = ["OK"] * len(result) if result.status is None else result.status.tolist()
     rows = zip(result.time_s.tolist(), position[:, 0].tolist(), position[:, 1].tolist(), position[:, 2].tolist(),
                result.label.tolist(), status, strict=True)
-    lines = [NAVIGATION_HEADER]
+    lines = [NAVIGATION_HEADER if result.guidance is None else ",".join((NAVIGATION_HEADER, *GUIDANCE_COLUMNS))]
     lines.extend(f"{t:.4f},{x:.4f},{y:.4f},{z:.4f},{_csv_label(label)},{s}" for t, x, y, z, label, s in rows)
+    if result.guidance is not None:
+        numbers = result.guidance
+        extra = zip(*(getattr(numbers, name).tolist() for name in GUIDANCE_COLUMNS), strict=True)
+        lines[1:] = [f"{line},{guidance_fields(values)}" for line, values in zip(lines[1:], extra, strict=True)]
     return "\n".join(lines) + "\n"
+
+
+def guidance_fields(values: tuple[float, ...] | list[float]) -> str:
+    """The guidance columns of one row: each number with 4 decimals, empty where it is undefined (NaN)."""
+    return ",".join("" if v != v else f"{v:.4f}" for v in values)
 
 
 def _csv_label(label: object) -> str:

@@ -25,13 +25,14 @@ from .detection.result import DetectionResult, read_detection
 from .errors import EMRegError
 from .evaluation import Evaluation, read_evaluation
 from .io.atomic import read_json
-from .io.navigation_csv import read_navigation_csv
+from .io.navigation_csv import read_guidance_columns, read_navigation_csv
 from .names import (
     CHECKPOINTS_JSON,
     EVALUATION_JSON,
     FRAME_CALIBRATION_JSON,
     MARKERS_JSON,
     NAVIGATION_CSV,
+    NAVIGATION_JSON,
     REGISTRATION_JSON,
     RUN_JSON,
     TRE_MAP_NRRD,
@@ -58,6 +59,9 @@ class RunFolder:
     - ``navigation_positions``: ``navigation.csv``'s probe positions (N, 3; image LPS, mm), ``navigation_labels``
       its labels.
     - ``checkpoints``: ``checkpoints.json`` when it holds at least one checkpoint (errors in mm, times in s).
+    - ``guidance``: ``navigation.json`` (a navigation with a plan: the plan, the predicted error at the target, the
+      closest approach) and ``guidance_series``: the time and guidance columns of ``navigation.csv``
+      (:func:`~EMRegModule.io.navigation_csv.read_guidance_columns`); None without a plan.
     - ``tre_map_path``: ``tre_map.nrrd`` (predicted TRE, mm, on an image-space grid) when it is there.
     - ``notes``: why files were turned down (tolerant reading only), in the order read.
     """
@@ -71,6 +75,8 @@ class RunFolder:
     navigation_positions: np.ndarray | None = None
     navigation_labels: list[str] | None = None
     checkpoints: Mapping[str, Any] | None = None
+    guidance: Mapping[str, Any] | None = None
+    guidance_series: Mapping[str, np.ndarray] | None = None
     tre_map_path: Path | None = None
     notes: tuple[str, ...] = ()
 
@@ -100,9 +106,13 @@ def read_run_folder(out_dir: str | os.PathLike[str], manifest: Mapping[str, Any]
     evaluation = _read(out / EVALUATION_JSON, read_evaluation, kept)
     navigation = _read(out / NAVIGATION_CSV, read_navigation_csv, kept)
     positions, labels = navigation if navigation is not None else (None, None)
+    guidance = _read(out / NAVIGATION_JSON, _read_json_object("navigation summary"), kept) \
+        if navigation is not None else None
+    series = _read(out / NAVIGATION_CSV, read_guidance_columns, kept) if guidance is not None else None
     return RunFolder(out_dir=out, manifest=manifest, detection=detection, frame_calibration=frame_calibration,
                      registration=registration, evaluation=evaluation, navigation_positions=positions,
                      navigation_labels=labels, checkpoints=_read_checkpoints(out / CHECKPOINTS_JSON),
+                     guidance=guidance, guidance_series=series,
                      tre_map_path=out / TRE_MAP_NRRD if (out / TRE_MAP_NRRD).is_file() else None, notes=tuple(notes))
 
 

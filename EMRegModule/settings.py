@@ -205,7 +205,11 @@ class NavigationSettings(DwellSettings):
     quality number is an INVALID pose and no part of a checkpoint. ``reference_jump_mm`` (0.5) /
     ``reference_jump_deg`` (0.3): a step of the reference sensor between two samples larger than
     this, and than 8 times the recording's own sample-to-sample noise, that stays (not a lone wild
-    sample) is warned about as a possible slip of the reference in its slot."""
+    sample) is warned about as a possible slip of the reference in its slot.
+
+    ``plan``: a plan file (a Slicer markups JSON: a Line Entry -> Target, points labelled Entry and Target, or one
+    target point; :mod:`EMRegModule.plan`), relative to ``case.toml``'s folder; None: no plan, no guidance
+    columns. Left out of the settings' JSON and digest when not given (settings without it stay as they were)."""
 
     min_duration_s: float = positive(0.5)
     still_radius_mm: float = positive(0.5)
@@ -215,8 +219,11 @@ class NavigationSettings(DwellSettings):
     checkpoint_angle_deg: float = positive(20.0)
     reference_jump_mm: float = positive(0.5)
     reference_jump_deg: float = positive(0.3)
+    plan: str | None = None
 
     def validate(self) -> None:
+        if self.plan is not None and not self.plan.strip():
+            raise SettingError("must be a markups file name, got an empty string", "plan")
         if self.max_checkpoint_error_mm >= self.checkpoint_radius_mm:
             raise SettingError(f"must be below checkpoint_radius_mm ({self.checkpoint_radius_mm:g}), got "
                                f"{self.max_checkpoint_error_mm:g}", "max_checkpoint_error_mm")
@@ -494,12 +501,20 @@ class Settings:
 
     def to_json(self) -> dict[str, Any]:
         """Every table and value (defaults included), as a JSON-ready dict (tuples as lists)."""
-        return json.loads(json.dumps({name: asdict(getattr(self, name)) for name in self.TABLES}))
+        document = json.loads(json.dumps({name: asdict(getattr(self, name)) for name in self.TABLES}))
+        for table, key in OMITTED_WHEN_NONE:  # keys added later: settings without them keep their JSON and digest
+            if document[table].get(key, 0) is None:
+                del document[table][key]
+        return document
 
     def digest(self) -> str:
         """sha256 of :meth:`to_json` in canonical form: equal digests, equal settings."""
         text = json.dumps(self.to_json(), sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+#: ``(table, key)`` left out of :meth:`Settings.to_json` (and so of the digest) while None (not given).
+OMITTED_WHEN_NONE = (("navigation", "plan"),)
 
 
 def sensor_ports_given(settings: Settings) -> tuple[int | None, int | None]:

@@ -47,8 +47,8 @@ STAGES: tuple[Stage, ...] = (
           ("calibration", "tool"), ("frame_calibration",)),  # the tool's files: --tool auto
     Stage("register", ("detect", "calibrate"), (names.REGISTRATION_JSON, names.REFERENCE_TO_IMAGE_H5),
           ("targets", "fiducials"), ("registration",)),
-    Stage("navigate", ("register",), (names.NAVIGATION_CSV, names.CHECKPOINTS_JSON), ("navigation", "tool"),
-          ("navigation", "checkpoints")),
+    Stage("navigate", ("register",), (names.NAVIGATION_CSV, names.CHECKPOINTS_JSON, names.NAVIGATION_JSON),
+          ("navigation", "tool", "plan"), ("navigation", "checkpoints", "guidance")),
     Stage("evaluate", ("register",), (names.EVALUATION_JSON,), ("navigation", "targets", "board"), ("evaluation",)),
     Stage("tre_map", ("register", "evaluate"), (names.TRE_MAP_NRRD,)),
     Stage("report", ("detect", "calibrate", "register", "navigate", "evaluate", "tre_map"),

@@ -130,6 +130,27 @@ def use_tool(args: argparse.Namespace, controller: EMRegController, solves: bool
                          "tool_calibration.json that emreg calibrate or emreg run wrote with it instead")
 
 
+def use_plan(args: argparse.Namespace, controller: EMRegController) -> None:
+    """``--plan FILE`` (else ``[navigation] plan`` of the settings): the planned target (and entry) the guidance
+    numbers are computed against; refused (one line) before the controller has a registration."""
+    if not getattr(args, "plan", None) and not controller.settings.navigation.plan:
+        return
+    if controller.results.registration is None:
+        raise EMRegError(f"emreg {args.command}: a plan (--plan or [navigation] plan) needs a registration; give "
+                         "--registration registration.json")
+    if getattr(args, "plan", None):
+        controller.planner.load(args.plan)
+    else:
+        controller.planner.load_from_settings()
+
+
+def add_plan_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--plan", default=None, metavar="PLAN.mrk.json",
+                        help="a planned trajectory, for guidance numbers: a Slicer markups Line (Entry, Target), "
+                             "points labelled Entry and Target, or one target point; LPS or RAS as the file "
+                             "declares (default: [navigation] plan)")
+
+
 def add_sensor_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reference-sensor", type=int, default=None, metavar="PORT",
                         help="port of the reference sensor (default 1 or case.toml [sensors])")

@@ -24,6 +24,7 @@ import numpy as np
 from ..errors import EMRegError
 from ..names import CHECKPOINTS_JSON, DEFAULT_IGTL_PORT, DEFAULT_TRAKSTAR_BAUD, NAVIGATION_CSV, REGISTRATION_JSON
 from .args import AddCommand, sensor_ports
+from .live_guidance import live_guidance_summary, live_tool_and_guide, tip_device_name, write_live_guidance
 
 # The tracker and OpenIGTLink modules (pyigtl, the trakSTAR protocol, the link guard) are imported by the commands
 # that run them: every command builds this module's parsers, ``emreg detect`` among them.
@@ -34,13 +35,23 @@ if TYPE_CHECKING:
 # --- shared helpers ---------------------------------------------------------------------------
 
 
-def _check_ports_attached(source, reference: int, probe: int) -> None:
+def _check_ports_attached(source, reference: int, probe: int, tool=None) -> None:
     """Refuse (exit 2) a reference or probe port without a sensor, when the source can tell; a replay's
-    recording is judged whole, as the offline commands judge it (absent, still or swapped ports)."""
+    recording is judged whole, as the offline commands judge it (absent, still or swapped ports). ``tool``: the
+    tool on the probe port, refused on a 5-DOF sensor unless its tip lies on the sensor's axis
+    (:func:`~EMRegModule.live.guide_setup.check_tool_on_port`)."""
     check = getattr(source, "check_ports", None)
     if callable(check):
         try:
             check(reference, probe)
+        except EMRegError:
+            source.stop()
+            raise
+    if tool is not None:
+        from ..live.guide_setup import check_tool_on_port
+
+        try:
+            check_tool_on_port(source, probe, tool)
         except EMRegError:
             source.stop()
             raise
@@ -51,7 +62,8 @@ def _check_ports_attached(source, reference: int, probe: int) -> None:
     for role, port in (("reference", reference), ("probe", probe)):
         if port not in attached:
             source.stop()
-            raise EMRegError(f"{source.description}: no sensor on the {role} port {port} (sensors on ports "
+            what = "" if tool is None or role == "reference" else f" for the tool of {tool.source}"
+            raise EMRegError(f"{source.description}: no sensor on the {role} port {port}{what} (sensors on ports "
                              f"{', '.join(map(str, attached)) or 'none'}); set --{role}-sensor")
 
 
@@ -523,28 +535,32 @@ def run_live_navigate(args: argparse.Namespace) -> int:
     registration = load_registration(args.registration, getattr(args, "settings", None))
     reference_to_image = np.asarray(registration.reference_to_image, dtype=float)
     reference, probe = sensor_ports(args, registration)
+    tool, guide = live_tool_and_guide(args, registration)  # refused (one line) before the tracker is opened
     source = open_source(args.source, reference, probe, fast=args.fast, loop=args.loop)
-    _check_ports_attached(source, reference, probe)
+    _check_ports_attached(source, reference, probe, tool)
     args.source_max_quality = getattr(source, "default_max_quality", None)
     server = writer = None
     try:
         if args.igtl_port is not None:
             server = IGTLServer(args.host, args.igtl_port, log=None if args.quiet else sys.stderr)
         if args.out:
-            writer = NavigationWriter(Path(args.out) / NAVIGATION_CSV)
+            writer = NavigationWriter(Path(args.out) / NAVIGATION_CSV, guidance=guide is not None)
     except BaseException:
         source.stop()
         if server is not None:
             server.close()
         raise
     link = guard_for(source)
-    trust = _trust_monitor(args, registration)
+    trust = _trust_monitor(args, registration, tool is None)
+    device = tip_device_name(tool)
     navigator = LiveNavigator(reference_to_image, reference, probe, server, writer, source.period_s,
                               args.stale_periods, _max_quality(args), out=None if args.quiet else sys.stderr,
-                              link=link, check_ports=link is not None,  # a tracker's ports are judged live
-                              trust=trust)
+                              device_name=device, link=link, check_ports=link is not None,  # ports judged live
+                              trust=trust, tip_to_probe=None if tool is None else tool.tip_to_probe, guide=guide)
     navigator.max_frames = args.max_samples
-    where = f"OpenIGTLink {args.host}:{server.port} (ProbeToImage, RAS)" if server else ""
+    if guide is not None and server is not None:
+        guide.keep_plan_published(server)
+    where = f"OpenIGTLink {args.host}:{server.port} ({device}, RAS)" if server else ""
     if writer:
         where += (" and " if where else "") + str(writer.path)
     _say(args, f"[emreg] navigating from {source.description} -> {where}")
@@ -583,23 +599,27 @@ def run_live_navigate(args: argparse.Namespace) -> int:
             from ..checkpoints import write_checkpoints
 
             write_checkpoints(trust.report, Path(args.out) / CHECKPOINTS_JSON)
+            if guide is not None:
+                write_live_guidance(Path(args.out), guide, tool, navigator.frames)
     again = f", {reconnects} reconnection(s)" if reconnects else ""
-    print(f"{navigator.published} probe poses published, {navigator.withheld} withheld by the watchdog "
-          f"({why}{again}); {trust.report.summary()}")
+    guided = "" if guide is None else f"; {live_guidance_summary(guide)}"
+    print(f"{navigator.published} {'probe' if tool is None else 'tool tip'} poses published, {navigator.withheld} "
+          f"withheld by the watchdog ({why}{again}); {trust.report.summary()}{guided}")
     _report_framing(args, source)
     return 0
 
 
-def _trust_monitor(args: argparse.Namespace, registration: RegistrationResult):
+def _trust_monitor(args: argparse.Namespace, registration: RegistrationResult, pinhole_probe: bool = True):
     """The live checkpoints and reference-jump watch (:class:`EMRegModule.checkpoints.TrustMonitor`) at the pinholes
-    of the markers beside ``--registration`` (``[navigation]`` of ``--settings``); without them, jumps only."""
+    of the markers beside ``--registration`` (``[navigation]`` of ``--settings``); without them, jumps only. A tool
+    on the probe port (``pinhole_probe`` False) never rests in a pinhole: reference jumps only."""
     from ..checkpoints import TrustMonitor, markers_beside, pinholes_from_detection
     from ..settings import load_settings
 
     markers, note = markers_beside(args.registration)
-    if note or markers is None:
+    if pinhole_probe and (note or markers is None):
         _say(args, f"[emreg] warning: {note or 'no markers.json beside the registration: no checkpoints'}")
-    pinholes = (None if markers is None else
+    pinholes = (None if markers is None or not pinhole_probe else
                 pinholes_from_detection(markers, registration.sensor_offset_l_mm, registration))
     return TrustMonitor(pinholes, load_settings(getattr(args, "settings", None)).navigation)
 

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from .args import (
     AddCommand,
+    add_plan_option,
     add_sensor_options,
     add_series_option,
     add_tool_option,
@@ -31,6 +32,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     controller = controller_of(args, case.settings)
     if args.tool:
         controller.load_tool(args.tool)
+    if args.plan:
+        controller.planner.load(args.plan)
     controller.exporter.keep_ct = False  # nothing uses the CT after the run: freed as soon as nothing needs it
     for line in controller.run(case, Path(args.out)):
         print(line)
@@ -63,6 +66,7 @@ def add_parsers(add: AddCommand) -> None:
     add_series_option(p)
     add_sensor_options(p)
     add_tool_option(p)
+    add_plan_option(p)
     p = add("demo", cmd_demo, "simulate the built-in sample case and run it")
     p.add_argument("--out", default="demo-output", metavar="DIR")
     p.add_argument("--seed", type=int, default=0)

@@ -12,6 +12,7 @@ from ..errors import EMRegError, NoSafeAnswerError
 from ..names import REGISTRATION_JSON
 from .args import (
     AddCommand,
+    add_plan_option,
     add_sensor_options,
     add_series_option,
     add_tool_option,
@@ -20,6 +21,7 @@ from .args import (
     output_folder,
     ports_given,
     settings_of,
+    use_plan,
     use_tool,
     warn,
     with_series_of,
@@ -128,9 +130,6 @@ def cmd_navigate(args: argparse.Namespace) -> int:
     if args.igtl_port is not None or not args.source.startswith("replay:"):
         from .live import run_live_navigate
 
-        if args.tool or settings_of(args).tool.calibration:  # the live path streams the sensor's pose, not a tip
-            raise EMRegError("navigate: a tool (--tool or [tool] calibration) is used with replay:FILE only; live "
-                             "navigation streams the probe sensor's pose (ProbeToImage), not the tip")
         return run_live_navigate(args)
     if not args.out:
         raise EMRegError("navigate: --out DIR is needed to write navigation.csv from a replay")
@@ -147,16 +146,19 @@ def cmd_navigate(args: argparse.Namespace) -> int:
     warn("navigate", [note] if note else [])
     warn("navigate", controller.use_ports(*ports_given(args, controller.settings), args.registration))
     use_tool(args, controller, solves=False)
+    use_plan(args, controller)
     recording = (read_recording(recording_path, controller.settings, controller.reference_sensor,
                                 controller.probe_sensor) if controller.tool is None
                  else controller.read_recording(recording_path))
-    folder = output_folder(args, "navigate", [recording_path, Path(args.registration)])
+    folder = output_folder(args, "navigate", [recording_path, Path(args.registration)]
+                           + ([Path(controller.planner.plan.source)] if controller.planner.plan is not None else []))
     controller.recorder.note_inputs(navigation=recording_path)
     result = controller.navigate_recording(recording)
     controller.recorder.warn(recording.warnings)
     controller.save("navigate", folder)
     checkpoints = controller.results.checkpoints
-    print(f"{len(result)} probe samples mapped into image space; {checkpoints.summary()} -> {args.out}")
+    guided = "" if controller.results.guidance is None else f"; {controller.results.guidance.summary()}"
+    print(f"{len(result)} probe samples mapped into image space; {checkpoints.summary()}{guided} -> {args.out}")
     return 0
 
 
@@ -224,9 +226,12 @@ def add_parsers(add: AddCommand) -> None:
     p.add_argument("--source", required=True, metavar="URL",
                    help="replay:FILE.csv, trakstar:///dev/ttyUSB0?baud=115200 or igtl://HOST:PORT")
     p.add_argument("--out", metavar="OUT")
-    p.add_argument("--igtl-port", type=int, default=None, metavar="PORT", help="publish ProbeToImage over OpenIGTLink")
+    p.add_argument("--igtl-port", type=int, default=None, metavar="PORT",
+                   help="publish ProbeToImage over OpenIGTLink (with --tool: <Name>TipToImage; with --plan also "
+                        "TrajectoryToImage, the POINT Plan and the STRING Guidance)")
     add_sensor_options(p)
     add_tool_option(p)
+    add_plan_option(p)
     add_live_navigate_arguments(p)
     p = add("evaluate", cmd_evaluate, "TRE at targets and the board table: OUT/evaluation.json")
     p.add_argument("case", metavar="CASE")

@@ -50,3 +50,23 @@ def read_navigation_csv(path: Path) -> tuple[np.ndarray, list[str]]:
 def _field(line: str, index: int) -> str:
     fields = line.split(",")
     return fields[index].strip() if index < len(fields) else ""
+
+
+#: The columns :func:`read_guidance_columns` returns (the time, and the guidance columns of a navigation with a plan).
+GUIDANCE_SERIES = ("time_s", "target_distance_mm", "lateral_mm", "angle_deg", "to_go_mm")
+
+
+def read_guidance_columns(path: Path) -> dict[str, np.ndarray] | None:
+    """The time (s) and the guidance columns (mm, degrees; NaN where empty) of an ``OUT/navigation.csv`` written with
+    a plan, and ``ok`` (the rows whose status is OK); None when it has no guidance columns."""
+    with open(path, newline="", encoding="utf-8") as handle:
+        reader = csv.DictReader(handle)
+        if not set(GUIDANCE_SERIES) <= set(reader.fieldnames or ()):
+            return None
+        rows = list(reader)
+    try:
+        series = {name: np.array([float(r[name]) if r[name] else np.nan for r in rows]) for name in GUIDANCE_SERIES}
+    except (TypeError, ValueError):
+        raise EMRegError(f"{path}: navigation CSV holds a non-numeric guidance value") from None
+    series["ok"] = np.array([(r.get("status") or "OK") == "OK" for r in rows])
+    return series

@@ -266,15 +266,22 @@ class LiveNavigator(_WatchedPublisher):
     Feed it with ``on_sample`` (any thread) and call ``tick()`` regularly (it notices staleness
     when no samples come at all). ``server``: an :class:`~.igtl_server.IGTLServer` or None;
     ``writer``: a :class:`~.writers.NavigationWriter` or None. ``check_ports``: judge the sensor ports
-    from the first cycles before publishing (:mod:`.port_check`; for raw tracker links).
+    from the first cycles before publishing (:mod:`.port_check`; for raw tracker links). ``tip_to_probe`` (4x4, mm):
+    a tool on the probe port, whose tip is then published (``TipToImage = ProbeToImage @ TipToProbe``, under
+    ``device_name``) and written; the checkpoints (``trust``) still watch the sensor's own pose. ``guide``: a
+    :class:`~.guide.LiveGuide` (a plan): each pose's guidance numbers go into ``navigation.csv`` and, at most 20 times
+    a second, into a STRING ``Guidance``, and the plan is published once a second.
     """
 
     def __init__(self, reference_to_image: np.ndarray, reference_sensor: int = DEFAULT_REFERENCE_PORT,
                  probe_sensor: int = DEFAULT_PROBE_PORT, server=None, writer=None, period_s: float | None = None,
                  stale_periods: float = 3.0, max_quality: float | None = DEFAULT_MAX_QUALITY,
                  out: TextIO | None = sys.stderr, device_name: str = "ProbeToImage", status_name: str = "Navigation",
-                 link=None, check_ports: bool = False, trust=None) -> None:
+                 link=None, check_ports: bool = False, trust=None, tip_to_probe: np.ndarray | None = None,
+                 guide=None) -> None:
         self.reference_to_image = np.asarray(reference_to_image, dtype=float)
+        self.tip_to_probe = None if tip_to_probe is None else np.asarray(tip_to_probe, dtype=float)
+        self.guide = guide
         self.reference_sensor = reference_sensor
         self.probe_sensor = probe_sensor
         self.server = server
@@ -308,6 +315,14 @@ class LiveNavigator(_WatchedPublisher):
     @property
     def verdict(self) -> Verdict | None:
         return self.announcer.current
+
+    def tick(self) -> Verdict:
+        """The watchdog's re-evaluation, and the plan published again when it is due (clients that connect later)."""
+        verdict = super().tick()
+        if self.guide is not None and self.server is not None:
+            with self._lock:
+                self.guide.keep_plan_published(self.server)
+        return verdict
 
     def device_back(self, link=None) -> None:
         super().device_back(link)
@@ -349,16 +364,23 @@ class LiveNavigator(_WatchedPublisher):
                 return
             reference_to_tracker = reference.transform()
             probe_to_image = probe_to_image_pose(self.reference_to_image, reference_to_tracker, probe.transform())
-            self.last_probe_to_image = probe_to_image
+            pose = probe_to_image if self.tip_to_probe is None else probe_to_image @ self.tip_to_probe
+            self.last_probe_to_image = pose
             received_ns = max(reference.received_ns, probe.received_ns)
             status = TRANSFORM_OK if self.trust is None or self.trust.valid else TRANSFORM_INVALID
             if self.server is not None:
                 stamp = time.time() - (time.monotonic_ns() - received_ns) / 1e9
-                sent_ns = self.server.send_transform(self.device_name, LPS_TO_RAS @ probe_to_image, stamp, status)
+                sent_ns = self.server.send_transform(self.device_name, LPS_TO_RAS @ pose, stamp, status)
                 self.latencies.append((probe.frame, received_ns, sent_ns))
+            numbers = None if self.guide is None else self.guide.numbers(pose)
             if self.writer is not None:
-                self.writer.write_position(probe.time_s, probe_to_image[:3, 3], probe.label, status)
+                self.writer.write_position(probe.time_s, pose[:3, 3], probe.label, status, numbers)
             self.published += 1
+            if self.guide is not None:  # after the send: off the latency path
+                if status == TRANSFORM_OK:
+                    self.guide.observe(probe.time_s, pose[:3, 3], numbers)
+                if self.server is not None:
+                    self.guide.publish(self.server, numbers, now)
             if self.trust is not None:  # after the send: off the latency path
                 quality = float(np.fmax(reference.quality, probe.quality))
                 self._announce_trust(self.trust.observe(probe.time_s, probe_to_image, reference_to_tracker, quality))

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..io.tracking_csv import HEADER_ANGLES
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
+from ..navigation import GUIDANCE_COLUMNS, guidance_fields
 from ..transforms import rotation_to_angles
 from .samples import SensorSample
 
@@ -130,11 +131,16 @@ class SequenceRecordingWriter(RecordingWriter):
 
 
 class NavigationWriter(StreamingCSV):
-    """``navigation.csv`` (``time_s,x_mm,y_mm,z_mm,label,status``): the probe position in LPS image space and
-    the pose's status (``OK``, or ``INVALID`` after a failed checkpoint), as the offline ``emreg navigate``."""
+    """``navigation.csv`` (``time_s,x_mm,y_mm,z_mm,label,status``): the probe position (a tool's tip) in LPS image
+    space and the pose's status (``OK``, or ``INVALID`` after a failed checkpoint), as the offline ``emreg
+    navigate``; ``guidance``: with a plan, the guidance columns follow (mm, degrees; empty where undefined)."""
 
-    def __init__(self, path: str | os.PathLike[str], flush_interval_s: float = 1.0) -> None:
-        super().__init__(path, NAVIGATION_HEADER, flush_interval_s)
+    def __init__(self, path: str | os.PathLike[str], flush_interval_s: float = 1.0, guidance: bool = False) -> None:
+        super().__init__(path, NAVIGATION_HEADER + (GUIDANCE_COLUMNS if guidance else ()), flush_interval_s)
 
-    def write_position(self, time_s: float, position_image_mm: np.ndarray, label: str = "", status: str = "OK") -> None:
-        self.write_row([f"{time_s:.4f}", *(f"{v:.4f}" for v in position_image_mm), label, status])
+    def write_position(self, time_s: float, position_image_mm: np.ndarray, label: str = "", status: str = "OK",
+                       numbers: tuple[float, ...] | None = None) -> None:
+        cells = [f"{time_s:.4f}", *(f"{v:.4f}" for v in position_image_mm), label, status]
+        if numbers is not None:
+            cells.append(guidance_fields(numbers))
+        self.write_row(cells)

@@ -434,6 +434,70 @@ def render_checkpoints(data: ReportData) -> list[Figure]:
                       "elsewhere on the frame), red even below the limit." if by_slip else ""), _png(chart))]
 
 
+def _has_guidance(data: ReportData) -> bool:
+    series = data.inputs.folder.guidance_series
+    return data.inputs.folder.guidance is not None and series is not None and bool(series["ok"].any())
+
+
+def render_guidance(data: ReportData) -> list[Figure]:
+    """The tip's approach to the planned target (``navigation.json`` and the guidance columns of ``navigation.csv``):
+    its distance to the target and to the line over time, and (with an Entry) its path beside the planned line."""
+    from ..rendering.guidance_chart import approach_chart, plan_view_chart
+
+    document, series = data.inputs.folder.guidance, data.inputs.folder.guidance_series
+    series = {name: values[series["ok"]] for name, values in series.items()}  # the poses shown as valid
+    closest = document.get("closest_approach") or {}
+    radius = (document.get("predicted_at_target") or {}).get("radius_95_mm")
+    figures = [Figure("guidance_approach", "Approach to the target",
+                      "The navigated tip's distance to the planned target (blue) and to the planned line (grey) over "
+                      "the navigation (mm), OK poses only; red dot: the closest approach; dashed: the 95 % radius of "
+                      "the error predicted at the target.",
+                      _png(approach_chart(series["time_s"], series["target_distance_mm"], series["lateral_mm"],
+                                          closest.get("time_s"), radius)))]
+    length = (document.get("plan") or {}).get("length_mm")
+    if length:
+        depth = float(length) - series["to_go_mm"]
+        figures.append(Figure("guidance_plan_view", "Tip path beside the planned line",
+                              "Every navigated tip position in the plan's own frame: its depth along the plan from the "
+                              "Entry (mm) against its distance from the planned line (mm); red: the planned line "
+                              "from Entry to Target.", _png(plan_view_chart(depth, series["lateral_mm"],
+                                                                            float(length)))))
+    return figures
+
+
+def _has_plan_in_ct(data: ReportData) -> bool:
+    return _has_guidance(data) and bool((data.inputs.folder.guidance.get("plan") or {}).get("entry_mm"))
+
+
+def render_plan_in_ct(data: ReportData) -> list[Figure]:
+    """Two CT planes containing the planned line (from the block-averaged CT the 3D view uses), with the tip path."""
+    from scipy.ndimage import map_coordinates
+
+    from ..rendering.guidance_chart import plan_ct_views
+
+    prepare_ct_products(data)
+    binned = data.binned
+    if binned is None:
+        return []
+    image_to_index = np.linalg.inv(binned.index_to_image)
+
+    def sample(points: np.ndarray) -> np.ndarray:
+        index = apply_transform(image_to_index, points.reshape(-1, 3))
+        return map_coordinates(binned.values, index[:, ::-1].T, order=1, mode="constant", cval=np.nan,
+                               output=np.float32).reshape(points.shape[:-1])
+
+    document, series = data.inputs.folder.guidance, data.inputs.folder.guidance_series
+    plan, closest = document["plan"], document.get("closest_approach") or {}
+    tips = data.inputs.navigation_positions[series["ok"]] if data.inputs.navigation_positions is not None else []
+    views = plan_ct_views(sample, np.array(plan["entry_mm"]), np.array(plan["target_mm"]), tips,
+                          None if not closest else np.array(closest["position_mm"]))
+    voxel = float(np.max(np.linalg.norm(binned.index_to_image[:3, :3], axis=0)))
+    return [Figure("guidance_ct", "The planned line in the CT",
+                   "Two CT planes containing the planned line (red, Entry at the top), at right angles to each other: "
+                   f"the block-averaged CT of the 3D view ({voxel:.1f} mm voxels), 0.5 mm per pixel; blue: the OK "
+                   "tip positions within 3 mm of the plane; yellow: the closest approach.", _png(views))]
+
+
 # --- the registry ---------------------------------------------------------------------------------
 
 
@@ -465,6 +529,9 @@ FIGURES: tuple[FigureSpec, ...] = (
     FigureSpec(("error_budget",), _has_budget, render_error_budget),
     FigureSpec(("tre_map",), lambda d: d.inputs.folder.tre_map_path is not None, render_tre_map),
     FigureSpec(("checkpoints",), lambda d: read_checkpoints(d) is not None, render_checkpoints),
+    FigureSpec(("guidance_approach", "guidance_plan_view"), _has_guidance, render_guidance),
+    FigureSpec(("guidance_ct",), lambda d: _has_plan_in_ct(d) and d.inputs.ct is not None, render_plan_in_ct,
+               uses_ct=True, needs_ct=True),
     FigureSpec(("distortion",), lambda d: _distortion(d) is not None, render_distortion),
 )
 

@@ -260,6 +260,38 @@ def checkpoints_section(data: ReportData, figures: dict[str, Figure]) -> str:
                       table(("marker", "from (s)", "to (s)", "error (mm)", "verdict"), rows)])
 
 
+def guidance_section(data: ReportData, figures: dict[str, Figure]) -> str:
+    """The navigation to a plan (``navigation.json``): the plan, the tool, the predicted error at the target, the
+    closest approach with its time, and the approach figures."""
+    document = data.inputs.folder.guidance
+    if document is None:
+        return ""
+    plan = document.get("plan") or {}
+    prediction = document.get("predicted_at_target") or {}
+    closest = document.get("closest_approach") or {}
+    tool = document.get("tool") or {}
+
+    def point(values: object) -> str:
+        return DASH if not values else esc(", ".join(f"{float(v):.2f}" for v in values))  # type: ignore[union-attr]
+
+    rows = [("Target (LPS, mm)", point(plan.get("target_mm"))), ("Entry (LPS, mm)", point(plan.get("entry_mm"))),
+            ("planned length (mm)", num(plan.get("length_mm"))),
+            ("plan file", esc(f"{plan.get('source', '')} ({plan.get('declared_coordinate_system', 'LPS')})")),
+            ("tool", esc(f"{tool.get('source')}: tip at {point(tool.get('tip_mm'))} mm" if tool else
+                         "none: the probe sensor is navigated")),
+            ("predicted error at the target (RMS, mm)", num(prediction.get("rms_mm"))),
+            ("predicted 95 % radius (mm)", num(prediction.get("radius_95_mm"))),
+            ("closest approach (mm)", num(closest.get("target_distance_mm"))),
+            ("at (s)", num(closest.get("time_s"), 2)),
+            ("then: off the line (mm), angle (degrees), to go (mm)",
+             f"{num(closest.get('lateral_mm'))}, {num(closest.get('angle_deg'))}, {num(closest.get('to_go_mm'))}")]
+    return "\n".join(["<h2>Guidance to the plan</h2>", table(("item", "value"), rows, left_columns=2),
+                      _figures(figures, "guidance_approach", "guidance_plan_view", "guidance_ct"),
+                      note("The predicted error at the target: the error model's end-to-end RMS TRE there, the tool "
+                           "file's calibration error and the sensor's orientation error over the tool's lever arm, in "
+                           "quadrature; 95 %: the radius holding 95 % of an isotropic Gaussian error of that RMS.")])
+
+
 def _board_row(i: int, name: str, edge: BoardEdge, nominal: list) -> tuple[str, ...]:
     reference = finite_or_none(edge.nominal_mm)
     if reference is None and i < len(nominal):
@@ -302,7 +334,7 @@ def run_log_section(data: ReportData, figures: dict[str, Figure]) -> str:
 
 SECTIONS: tuple[Callable[[ReportData, dict[str, Figure]], str], ...] = (
     summary_section, warnings_section, scene_section, registration_section, markers_section, calibration_section,
-    tre_section, checkpoints_section, board_section, run_log_section)
+    tre_section, checkpoints_section, guidance_section, board_section, run_log_section)
 
 
 def _image_space(registration: RegistrationResult | None) -> str:

@@ -201,6 +201,8 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.pivotButton.connect("clicked(bool)", self.onPivot)
         self.ui.fiducialsNodeComboBox.setMRMLScene(slicer.mrmlScene)
         self.ui.useFiducialsButton.connect("clicked(bool)", self.onUseFiducials)
+        self.ui.planNodeComboBox.setMRMLScene(slicer.mrmlScene)
+        self.ui.planNodeComboBox.connect("currentNodeChanged(vtkMRMLNode*)", self.onPlanChanged)
         self.updateGUIFromLogic()
 
     def cleanup(self):
@@ -245,6 +247,9 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     def onPivot(self):
         self._run("Pivot calibration failed.", self.logic.pivotCalibrate,
                   self.ui.pivotRecordingPathLineEdit.currentPath)
+
+    def onPlanChanged(self, node=None):
+        self._run("Using the plan failed.", self.logic.setPlanFromMarkupsNode, self.ui.planNodeComboBox.currentNode())
 
     def onUseFiducials(self):
         self._run("Using the fiducials failed.", self._useFiducials)
@@ -393,6 +398,15 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         self.controller.set_fiducials(fiducials)
         self.showResults()
         return fiducials
+
+    def setPlanFromMarkupsNode(self, markupsNode):
+        """The plan from a markups node (world RAS, kept in LPS): a line (Entry, Target), points labelled Entry and
+        Target, or one target point (:mod:`EMRegModule.plan`); None: no plan. Each navigation then gets the guidance
+        numbers (``navigation.csv``, ``navigation.json``) and the panel the closest approach and the predicted error."""
+        from EMRegModule.slicer_export.nodes import plan_from_markups_node
+
+        self.controller.planner.set(None if markupsNode is None else plan_from_markups_node(markupsNode))
+        return self.controller.planner.plan
 
     def setSensors(self, referenceSensor, probeSensor):
         """Sensor ports (1..4); a change drops the frame calibration and what follows."""
@@ -585,23 +599,10 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         return build_run_scene(self.scene, self.resultsContent(), self.nodes)
 
     def resultsText(self):
-        """A few lines of figures for the panel."""
-        lines = []
-        registration = self.controller.results.registration
-        if registration is not None:
-            from EMRegModule.workflow.results import offset_summary
+        """A few lines of figures for the panel (with a plan: the closest approach and the predicted error)."""
+        from EMRegModule.workflow.results import results_lines
 
-            lines.append(f"FRE {registration.fre_mm:.2f} mm over {len(registration.pairs)} pairs; "
-                         f"{offset_summary(registration)}")
-            if registration.unpaired_image_markers or registration.unpaired_calibration_points:
-                lines.append(f"unpaired: {len(registration.unpaired_image_markers)} markers, "
-                             f"{len(registration.unpaired_calibration_points)} calibration points")
-        tre = self.evaluation.tre if self.evaluation is not None else None
-        if tre is not None:
-            lines.append(f"TRE {tre.mean_mm:.2f} +/- {tre.std_mm:.2f} mm")
-        if self.reportPath is not None:
-            lines.append(f"report: {self.reportPath}")
-        return "\n".join(lines)
+        return "\n".join(results_lines(self.controller.results, self.evaluation, self.reportPath))
 
 
 class EMRegTest(ScriptedLoadableModuleTest):

@@ -264,6 +264,17 @@ def markups_points_lps(node: Any) -> tuple[list[str], np.ndarray]:
     return labels, np.asarray(positions, dtype=float).reshape(-1, 3)
 
 
+def plan_from_markups_node(node: Any) -> Any:
+    """The :class:`~EMRegModule.guidance.Plan` (LPS mm) of a markups node as :func:`EMRegModule.plan.read_plan` reads a
+    file: a line node's two points (Entry, Target), else points labelled Entry and Target, or a single point."""
+    from ..plan import plan_from_points
+
+    labels, positions = markups_points_lps(node)
+    is_line = node.IsA("vtkMRMLMarkupsLineNode")
+    line = list(zip(labels, positions, strict=True)) if is_line else None
+    return plan_from_points(labels, positions, line, f"markups node {node.GetName()}", "RAS (world)")
+
+
 def connect_igtl_client(scene: Any, host: str, port: int, name: str = CONNECTOR_NODE_NAME) -> Any:
     """An OpenIGTLinkIF connector node connected as a client to ``host:port`` (an ``emreg navigate --igtl-port``
     server); :class:`EMRegError` without the SlicerOpenIGTLink extension or when nothing answers there."""

@@ -154,6 +154,11 @@ def _write_navigation(results: WorkflowResults, out: Path, provenance: Provenanc
 
         results.checkpoints.provenance = provenance.to_json()
         write_checkpoints(results.checkpoints, out / names.CHECKPOINTS_JSON)
+    if results.guidance is not None:
+        from ..io.atomic import atomic_write_json
+
+        atomic_write_json(out / names.NAVIGATION_JSON, {**results.guidance.to_json(),
+                                                        "provenance": provenance.to_json()})
 
 
 def _write_evaluation(results: WorkflowResults, out: Path, provenance: Provenance) -> None:

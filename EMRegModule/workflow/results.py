@@ -20,6 +20,7 @@ if TYPE_CHECKING:
     from ..checkpoints import CheckpointReport
     from ..detection import DetectionResult
     from ..evaluation import Evaluation
+    from ..guidance import GuidanceReport
     from ..io.fiducials import Fiducials
     from ..navigation import NavigationResult
     from ..registration import RegistrationResult
@@ -64,6 +65,8 @@ class WorkflowResults:
     navigation: NavigationResult | None = None
     #: The checkpoints, reference jumps and pose status of ``navigation`` (:mod:`EMRegModule.checkpoints`).
     checkpoints: CheckpointReport | None = None
+    #: With a plan: the predicted error at its target and the closest approach (:mod:`EMRegModule.guidance`).
+    guidance: GuidanceReport | None = None
     evaluation: Evaluation | None = None
 
     def drop(self, stage: str) -> None:
@@ -135,6 +138,28 @@ class WorkflowResults:
         if self.registration is not None:
             parts.append(f"FRE {self.registration.fre_mm:.2f} mm, {offset_summary(self.registration)}")
         return "; ".join(parts)
+
+
+def results_lines(results: WorkflowResults, evaluation: Evaluation | None = None,
+                  report_path: object = None) -> list[str]:
+    """A few lines of figures (the 3D Slicer module's panel): the FRE, unpaired points, the TRE (of ``evaluation``),
+    the guidance to a plan (closest approach, predicted error at the target, mm), the report's path."""
+    lines = []
+    registration = results.registration
+    if registration is not None:
+        lines.append(f"FRE {registration.fre_mm:.2f} mm over {len(registration.pairs)} pairs; "
+                     f"{offset_summary(registration)}")
+        if registration.unpaired_image_markers or registration.unpaired_calibration_points:
+            lines.append(f"unpaired: {len(registration.unpaired_image_markers)} markers, "
+                         f"{len(registration.unpaired_calibration_points)} calibration points")
+    tre = evaluation.tre if evaluation is not None else None
+    if tre is not None:
+        lines.append(f"TRE {tre.mean_mm:.2f} +/- {tre.std_mm:.2f} mm")
+    if results.guidance is not None:
+        lines.append(f"guidance: {results.guidance.summary()}")
+    if report_path is not None:
+        lines.append(f"report: {report_path}")
+    return lines
 
 
 def offset_summary(registration: RegistrationResult) -> str:

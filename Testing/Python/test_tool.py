@@ -432,11 +432,13 @@ def test_navigate_with_tool_auto_is_refused(stylus_case, tmp_path, capsys):
     assert code == 2 and len(err) == 1 and "tool_calibration.json" in err[0]
 
 
-def test_live_navigation_with_a_tool_is_refused_not_ignored(capsys):
-    code = main(["navigate", "--registration", "registration.json", "--source", "trakstar:///dev/null", "--tool",
-                 str(DEVICE_SET), "--quiet"])
+def test_live_navigation_with_tool_auto_is_refused(stylus_case, capsys):
+    """Live navigation navigates a tool (test_live_guidance); ``--tool auto`` has nothing to solve the tip from."""
+    folder, _, _ = stylus_case
+    code = main(["navigate", "--registration", str(folder / "out" / "registration.json"), "--source",
+                 "trakstar:///dev/null", "--tool", "auto", "--igtl-port", "0", "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and "replay:FILE only" in err[0]
+    assert code == 2 and len(err) == 1 and "tool_calibration.json" in err[0]
 
 
 def test_the_report_shows_the_tool_and_each_touch(stylus_case):

@@ -1,0 +1,55 @@
+"""What a tool needs of the sensor it is on, checked before live navigation starts: a 5-DOF sensor (an Aurora
+needle's or catheter's coil) measures its axis but not its roll, so only a tip on that axis has a known position.
+
+Frames: ``TipToProbe`` (4x4, mm) maps the tip frame into the sensor's frame; a 5-DOF sensor's axis is its +X as EMReg
+reports it (:data:`EMRegModule.live.aurora.driver.FIVE_DOF_X_TO_NDI`), so the tip's offset from the axis is the
+length of its (y, z) in the sensor frame.
+"""
+
+from __future__ import annotations
+
+import math
+
+from ..errors import EMRegError
+
+#: A tip farther than this (mm) from a 5-DOF sensor's axis is refused: as the unmeasured roll turns, such a tip
+#: moves on a circle of this radius (up to twice it from side to side; PLUS issue #286: 2-30 mm, unnoticed).
+MAX_5DOF_OFF_AXIS_MM = 0.2
+
+
+def port_dof(source, port: int) -> int | None:
+    """The degrees of freedom of the sensor on ``port`` (5 or 6) when the source knows it (an Aurora's tools), else
+    None (a trakSTAR's sensors are all 6-DOF; an OpenIGTLink or replay source does not say)."""
+    driver = getattr(source, "driver", None)
+    for tool in getattr(driver, "tools", None) or ():
+        if getattr(tool, "sensor", None) == port:
+            return int(getattr(tool, "dof", 6))
+    return None
+
+
+def connected_ports(source) -> list[int] | None:
+    """The ports with a sensor, when the source can tell (an Aurora's enabled tools), else None."""
+    tools = getattr(getattr(source, "driver", None), "tools", None)
+    if not tools:
+        return None
+    return sorted(int(t.sensor) for t in tools if getattr(t, "sensor", None) is not None)
+
+
+def check_tool_on_port(source, port: int, tool) -> None:
+    """Refuse (:class:`EMRegError`, one line naming the port) a tool on a port the source knows has no sensor, and
+    one whose tip is off the axis of the 5-DOF sensor on ``port`` (naming the offset); a 6-DOF sensor, or one the
+    source cannot tell, takes any tool."""
+    ports = connected_ports(source)
+    if ports is not None and port not in ports:
+        raise EMRegError(f"{source.description}: no sensor on the probe port {port} for the tool of {tool.source} "
+                         f"(sensors on ports {', '.join(map(str, ports))}); plug it in or set --probe-sensor")
+    if port_dof(source, port) != 5:
+        return
+    tip = tool.tip_mm
+    off_axis = math.hypot(float(tip[1]), float(tip[2]))
+    if off_axis > MAX_5DOF_OFF_AXIS_MM:
+        where = ", ".join(f"{v:.2f}" for v in tip)
+        raise EMRegError(f"{source.description}: port {port} holds a 5-DOF sensor (no roll), and the tool of "
+                         f"{tool.source} puts its tip {off_axis:.2f} mm off the sensor's axis (tip [{where}] mm in "
+                         "the sensor frame): its position would depend on the unmeasured roll; use a tip on the "
+                         f"axis (within {MAX_5DOF_OFF_AXIS_MM:g} mm) or a 6-DOF sensor")
