@@ -505,6 +505,9 @@ class Settings:
         for table, key in OMITTED_WHEN_NONE:  # keys added later: settings without them keep their JSON and digest
             if document[table].get(key, 0) is None:
                 del document[table][key]
+        for table in OMITTED_WHEN_DEFAULT:  # tables added later, likewise while they hold their defaults
+            if getattr(self, table) == type(getattr(self, table))():
+                del document[table]
         return document
 
     def digest(self) -> str:
@@ -515,6 +518,9 @@ class Settings:
 
 #: ``(table, key)`` left out of :meth:`Settings.to_json` (and so of the digest) while None (not given).
 OMITTED_WHEN_NONE = (("navigation", "plan"),)
+#: Tables left out of :meth:`Settings.to_json` (and so of the digest) while every key holds its default: the robot's,
+#: which no registration stage reads, so a run's provenance is the same as before they existed.
+OMITTED_WHEN_DEFAULT = ("handeye", "robot")
 
 
 def sensor_ports_given(settings: Settings) -> tuple[int | None, int | None]:

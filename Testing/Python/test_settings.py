@@ -153,13 +153,24 @@ def test_docs_settings_table_lists_every_key():
 
     page = (Path(__file__).resolve().parents[2] / "docs" / "guide" / "settings.md").read_text(encoding="utf-8")
     rows = {m.group(1): m.group(2) for m in re.finditer(r"^ *\| `\[(\w+)\]` \| (.*) \|$", page, re.M)}
-    for table in ("detection", "calibration", "registration", "evaluation", "navigation", "report"):
+    for table in ("detection", "calibration", "registration", "evaluation", "navigation", "report", "handeye", "robot"):
         documented = set(re.findall(r"`(\w+)`", rows[table]))
         keys = set(table_keys(type(getattr(Settings(), table))))
         if table in ("evaluation", "navigation"):  # "the dwell keys of [calibration]", "the dwell keys (...)"
             documented |= set(table_keys(DwellSettings))
         assert keys <= documented, (table, sorted(keys - documented))
         assert documented <= keys, (table, sorted(documented - keys))
+
+
+def test_the_robots_tables_stay_out_of_a_runs_settings_until_given(tmp_path):
+    """[handeye] and [robot], which no registration stage reads, are in a run's settings JSON (and its digest, the
+    provenance of every output) only when the file gives them: runs made before they existed keep their digest."""
+    defaults = Settings().to_json()
+    assert "handeye" not in defaults and "robot" not in defaults and "navigation" in defaults
+    (tmp_path / "case.toml").write_text("[robot]\nstandoff_mm = 5.0\n")
+    given = load_settings(tmp_path / "case.toml")
+    assert given.to_json()["robot"]["standoff_mm"] == 5.0 and "handeye" not in given.to_json()
+    assert given.digest() != Settings().digest()
 
 
 def test_emreg_refuses_a_typo_with_one_line(tmp_path):
