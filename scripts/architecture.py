@@ -32,7 +32,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("core", ("em_field", "dwell", "error_model", "sensor_offset", "calibration", "pairing", "probe_axis",
               "registration", "fiducial_registration", "distortion", "slip", "checkpoints", "navigation", "evaluation",
               "tool", "tre_map", "detection", "handeye", "handeye_sync",
-              "robot_target")),
+              "robot_target", "robot_motion")),
     ("products", ("rendering", "report", "slicer_export", "simulation", "run_folder", "live")),
     ("workflow", ("workflow", "controller", "outputs", "bundle_state")),
     ("faces", ("commands", "cli", "__main__", "slicer", "studies")),
