@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 import threading
 import time
 from pathlib import Path
@@ -29,6 +30,8 @@ from robot_sim import FlangeScene, RobotSim  # noqa: E402
 
 from EMRegModule.cli import main  # noqa: E402
 from EMRegModule.errors import EMRegError, NoSafeAnswerError  # noqa: E402
+from EMRegModule.frames import LPS_TO_RAS  # noqa: E402
+from EMRegModule.live.igtl_client import IGTLReceiver  # noqa: E402
 from EMRegModule.live.robot.driver import MotionLimits  # noqa: E402
 from EMRegModule.live.robot.guard import TrackerWatch, guarded_move, wait_for_tracker  # noqa: E402
 from EMRegModule.live.robot.url import open_robot, parse_robot_url  # noqa: E402
@@ -55,7 +58,7 @@ measure_s = 0.3
 approach_mm = 20.0
 tolerance_mm = 0.4
 tolerance_deg = 0.3
-stale_s = 0.5
+stale_s = 1.0
 """
 
 
@@ -114,7 +117,7 @@ def watched(world):
     """The driver, the tracker's source and a watch on flange and reference; the robot is back at the start after."""
     robot = open_robot(world.robot.url)
     source = open_source(world.tracker_url, probe_sensor=FLANGE_PORT)
-    watch = TrackerWatch(FLANGE_PORT, 1, 660.0, 0.5)
+    watch = TrackerWatch(FLANGE_PORT, 1, 660.0, 1.0)  # generous: the test machine is shared
     source.start(watch.on_sample)
     wait_for_tracker(watch)
     yield robot, watch
@@ -150,7 +153,7 @@ def test_calibrate_and_go(world, tmp_path, capsys) -> None:
 
     started = time.monotonic()
     assert main(["robot-calibrate", "--robot", world.robot.url, "--tracker", world.tracker_url, "--out", str(calib),
-                 "--settings", str(world.settings), "--execute"]) == 0
+                 "--settings", str(world.settings), "--execute"]) == 0, capsys.readouterr().err
     calibration_s = time.monotonic() - started
     document = json.loads((calib / "robot_calibration.json").read_text())
     x, y = np.asarray(document["SensorToFlange"]), np.asarray(document["TrackerToBase"])
@@ -195,17 +198,32 @@ def test_calibrate_and_go(world, tmp_path, capsys) -> None:
     assert "dry run, nothing moved" in capsys.readouterr().out
     assert np.linalg.norm(world.robot.flange_to_base()[:3, 3] - before[:3, 3]) < 0.2
 
+    # an OpenIGTLink client (it retries until robot-go's server is up) receives the guide's pose
+    received = []
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        igtl_port = probe.getsockname()[1]
+    client = IGTLReceiver("127.0.0.1", igtl_port, lambda message: received.append(message), reconnect_s=0.05)
     started = time.monotonic()
-    assert main(["robot-go", "--robot", world.robot.url, "--tracker", world.tracker_url, "--target",
-                 str(target_file), "--settings", str(world.settings), "--igtl-port", "0", "--out", str(go),
-                 "--execute"]) == 0
+    try:
+        assert main(["robot-go", "--robot", world.robot.url, "--tracker", world.tracker_url, "--target",
+                     str(target_file), "--settings", str(world.settings), "--igtl-port", str(igtl_port), "--out",
+                     str(go), "--execute"]) == 0, capsys.readouterr().err
+    finally:
+        client.close()
     go_s = time.monotonic() - started
     result = json.loads((go / "robot_go.json").read_text())
+    guides = [m for m in received if m.device_name == "NeedleGuideToRAS"]
+    guide_true_ras = LPS_TO_RAS @ reference_to_image @ invert_rigid(world.scene.reference_to_tracker) @ \
+        world.scene.sensor_to_tracker() @ world.guide
+    streamed_mm = float(np.linalg.norm(np.asarray(guides[-1].matrix)[:3, 3] - guide_true_ras[:3, 3]))
+    assert len(guides) > 20 and streamed_mm < 0.5
     # the truth: the guide where the simulated flange truly is, the plan where the moved patient truly is
     image_to_base = world.y @ world.scene.reference_to_tracker @ invert_rigid(reference_to_image)
     entry_true, target_true = apply_transform(image_to_base, np.vstack([entry_image, target_image]))
     true_error = guide_error(world.robot.flange_to_base() @ world.x @ world.guide, entry_true, target_true)
     first = result["measurements"][0]
+    figures.append(f"OpenIGTLink: {len(guides)} NeedleGuideToRAS, the last {streamed_mm:.2f} mm from the truth")
     figures.append(f"robot-go {go_s:.1f} s: open loop (measured) exit {first['exit_mm']:.2f} mm, tip "
                    f"{first['tip_mm']:.2f} mm, axis {first['angle_deg']:.2f} deg (predicted {predicted:.2f} mm RMS "
                    "at the target); after "
@@ -221,7 +239,7 @@ def test_calibrate_and_go(world, tmp_path, capsys) -> None:
         started = time.monotonic()
         assert main(["robot-go", "--robot", world.robot.url, "--tracker", world.tracker_url, "--target",
                      str(target_file), "--settings", str(world.settings), "--igtl-port", "0", "--out", str(go),
-                     "--execute"]) == 0
+                     "--execute"]) == 0, capsys.readouterr().err
         go_s = time.monotonic() - started
         result = json.loads((go / "robot_go.json").read_text())
         true_error = guide_error(world.robot.flange_to_base() @ world.scene.sensor_to_flange @ world.guide,
@@ -281,7 +299,7 @@ def test_safety_stops(world, watched, fault, words) -> None:
     robot, watch = watched
     actions = {
         "invalid": lambda: world.tracker.set_state("unplug", FLANGE_PORT, True),
-        "stale": lambda: world.tracker.stall(1.0),
+        "stale": lambda: world.tracker.stall(2.0),
         "jump": lambda: setattr(world.scene, "reference_to_tracker",
                                 _pose([0, 0, 0], [3.0, 0.0, 0.0]) @ world.reference),
         "out_of_range": lambda: world.tracker.set_state("out-of-range", FLANGE_PORT, True),

@@ -52,8 +52,14 @@ class FrankaRobot:
         self._closed = False
 
     def flange_to_base(self) -> np.ndarray:
-        """``FlangeToBase`` now (4x4, mm): the robot's ``O_T_EE``."""
-        matrix = np.array(self.robot.current_cartesian_state.pose.end_effector_pose.matrix, dtype=float)
+        """``FlangeToBase`` now (4x4, mm): the end-effector frame at the measured joint angles, through the robot's
+        own kinematic model (libfranka's ``Model``: what ``O_T_EE`` is on the robot).
+
+        Not the state's ``O_T_EE`` field itself: between moves, franky-sim 1.0.4 sends every other state with the
+        ``O_T_EE`` the last move ended on while its joints still settle (its joint angles are always current)."""
+        state = self.robot.state
+        pose = self.robot.model.pose(self.franky.Frame.EndEffector, state.q, state.F_T_EE, state.EE_T_K)
+        matrix = np.array(pose.matrix, dtype=float)
         matrix[:3, 3] *= 1000.0
         return matrix
 
