@@ -270,10 +270,10 @@ SLOW = MotionLimits(50.0, 250.0, 20.0, 90.0)
 
 
 def _during_move(robot, watch, world, fault, direction, limits=SLOW):
-    """Start a 60 mm move along ``direction`` (base frame), apply ``fault`` 0.3 s in; the stop's message, and how
-    far from the target the flange truly stands still."""
+    """Start a 100 mm move from the start along ``direction`` (base frame), apply ``fault`` 0.3 s in; the stop's
+    message, and how far from the target the flange truly stands still."""
     target = world.start.copy()
-    target[:3, 3] += 60.0 * np.asarray(direction) / np.linalg.norm(direction)
+    target[:3, 3] += 100.0 * np.asarray(direction) / np.linalg.norm(direction)
     timer = threading.Timer(0.3, fault)
     timer.start()
     try:
@@ -305,6 +305,7 @@ def test_safety_stops(world, watched, fault, words) -> None:
         "out_of_range": lambda: world.tracker.set_state("out-of-range", FLANGE_PORT, True),
         "volume": lambda: None,
     }
+    guarded_move(robot, world.start, MotionLimits(150.0, 600.0, 60.0, 240.0), watch)
     direction = [0.0, 1.0, 0.0]
     if fault == "volume":  # the volume's edge 10 mm farther than the sensor now, the move away from the generator
         sensor = world.scene.sensor_to_tracker()[:3, 3]

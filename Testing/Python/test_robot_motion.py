@@ -70,3 +70,27 @@ def test_guide_error_and_the_closed_loop_step() -> None:
     check_step(flange, corrected, 20.0, 5.0)
     with pytest.raises(NoSafeAnswerError, match="correction would move the flange"):
         check_step(flange, corrected, 0.5, 5.0)
+
+
+def test_the_watch_stops_on_a_reference_jump_between_moves() -> None:
+    """Between moves (nothing held), the slip detector's jump test on the reference's recent samples stops the
+    robot; a still reference and a lone wild sample do not."""
+    from EMRegModule.live.robot.guard import TrackerWatch
+    from EMRegModule.live.samples import SensorSample
+
+    rng = np.random.default_rng(1)
+    watch = TrackerWatch(flange_port=3, reference_port=1, max_tracker_distance_mm=660.0, stale_s=10.0)
+    rotation = axis_angle_to_rotation(np.array([0.0, 0.0, 1.0]), 0.3)
+
+    def feed(position, count) -> None:
+        for _ in range(count):
+            watch.on_sample(SensorSample(1, 0.0, position + rng.normal(0, 0.02, 3), rotation))
+            watch.on_sample(SensorSample(3, 0.0, np.array([300.0, 50.0, 100.0]), np.eye(3)))
+
+    feed(np.array([200.0, 0.0, 50.0]), 40)
+    assert watch.check() is None
+    feed(np.array([205.0, 0.0, 50.0]), 1)  # one wild sample
+    feed(np.array([200.0, 0.0, 50.0]), 12)
+    assert watch.check() is None
+    feed(np.array([202.0, 0.0, 50.0]), 12)  # the reference jumped 2 mm and stays
+    assert "the reference sensor jumped (the slip detector" in watch.check()
