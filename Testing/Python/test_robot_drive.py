@@ -342,3 +342,20 @@ def test_velocity_limit(world, watched) -> None:
         thread.join()
     print(f"\nlargest speed {max(speeds):.1f} mm/s (limit 40)")
     assert 15.0 < max(speeds) < 40.0 * 1.1  # a loaded machine runs the simulation slower, never faster
+
+
+def test_refusals(world, tmp_path, capsys) -> None:
+    """A robot URL that is not one: exit 2. A flange whose sensor stands too near the edge of the tracker's volume
+    for any calibration pose to keep it inside: exit 3, nothing moves, nothing is written."""
+    assert main(["robot-calibrate", "--robot", "ur://10.0.0.1", "--tracker", world.tracker_url, "--out",
+                 str(tmp_path / "a")]) == 2
+    assert "use franka://HOST" in capsys.readouterr().err
+    tight = tmp_path / "tight.toml"
+    edge = float(np.linalg.norm(world.scene.sensor_to_tracker()[:3, 3])) + 30.0
+    tight.write_text(SETTINGS + f"max_tracker_distance_mm = {edge:.1f}\n", encoding="utf-8")
+    before = world.robot.flange_to_base()
+    assert main(["robot-calibrate", "--robot", world.robot.url, "--tracker", world.tracker_url, "--out",
+                 str(tmp_path / "b"), "--settings", str(tight), "--execute"]) == 3
+    assert "within the tracker's volume" in capsys.readouterr().err
+    assert np.linalg.norm(world.robot.flange_to_base()[:3, 3] - before[:3, 3]) < 0.5
+    assert not (tmp_path / "b" / "robot_calibration.json").exists()
