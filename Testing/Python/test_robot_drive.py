@@ -119,17 +119,19 @@ def watched(world):
     source = open_source(world.tracker_url, probe_sensor=FLANGE_PORT)
     watch = TrackerWatch(FLANGE_PORT, 1, 660.0, 1.0)  # generous: the test machine is shared
     source.start(watch.on_sample)
-    wait_for_tracker(watch)
-    yield robot, watch
-    for kind in ("unplug", "out-of-range"):
-        world.tracker.set_state(kind, FLANGE_PORT, False)
-    world.scene.reference_to_tracker = world.reference
-    time.sleep(0.3)
-    watch.max_tracker_distance_mm = 660.0
-    wait_for_tracker(watch)
-    guarded_move(robot, world.start, MotionLimits(150.0, 600.0, 60.0, 240.0), watch)
-    source.stop()
-    robot.close()
+    try:
+        wait_for_tracker(watch)
+        yield robot, watch
+        for kind in ("unplug", "out-of-range"):
+            world.tracker.set_state(kind, FLANGE_PORT, False)
+        world.scene.reference_to_tracker = world.reference
+        time.sleep(0.3)
+        watch.max_tracker_distance_mm = 660.0
+        wait_for_tracker(watch)
+        guarded_move(robot, world.start, MotionLimits(150.0, 600.0, 60.0, 240.0), watch)
+    finally:
+        source.stop()
+        robot.close()  # the protocol serves one client at a time: the next test connects after this
 
 
 def test_robot_url() -> None:
@@ -344,12 +346,22 @@ def test_velocity_limit(world, watched) -> None:
     assert 15.0 < max(speeds) < 40.0 * 1.1  # a loaded machine runs the simulation slower, never faster
 
 
-def test_refusals(world, tmp_path, capsys) -> None:
-    """A robot URL that is not one: exit 2. A flange whose sensor stands too near the edge of the tracker's volume
-    for any calibration pose to keep it inside: exit 3, nothing moves, nothing is written."""
+def test_refusals(world, tmp_path, capsys, monkeypatch) -> None:
+    """A robot URL that is not one: exit 2. A robot another client holds: exit 2 after the connection timeout. A
+    flange whose sensor stands too near the edge of the tracker's volume for any calibration pose to keep it inside:
+    exit 3, nothing moves, nothing is written."""
     assert main(["robot-calibrate", "--robot", "ur://10.0.0.1", "--tracker", world.tracker_url, "--out",
                  str(tmp_path / "a")]) == 2
     assert "use franka://HOST" in capsys.readouterr().err
+    monkeypatch.setattr("EMRegModule.live.robot.franka.CONNECT_TIMEOUT_S", 1.0)
+    holder = open_robot(world.robot.url)
+    try:
+        assert main(["robot-calibrate", "--robot", world.robot.url, "--tracker", world.tracker_url, "--out",
+                     str(tmp_path / "a")]) == 2
+        assert "is another program in control of the robot?" in capsys.readouterr().err
+    finally:
+        holder.close()
+    monkeypatch.undo()
     tight = tmp_path / "tight.toml"
     edge = float(np.linalg.norm(world.scene.sensor_to_tracker()[:3, 3])) + 30.0
     tight.write_text(SETTINGS + f"max_tracker_distance_mm = {edge:.1f}\n", encoding="utf-8")

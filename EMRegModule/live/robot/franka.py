@@ -11,12 +11,15 @@ and jerk limits set here); a move runs in the background, so that :mod:`.guard` 
 from __future__ import annotations
 
 import contextlib
+import threading
 
 import numpy as np
 
 from ...errors import EMRegError, NoSafeAnswerError
 from .driver import MotionLimits
 
+#: Seconds to wait for the robot to take the connection (a second client waits while another is connected).
+CONNECT_TIMEOUT_S = 10.0
 #: Jerk limits follow the acceleration limits: this many times the acceleration, per second.
 JERK_PER_ACCELERATION = 10.0
 
@@ -41,15 +44,40 @@ class FrankaRobot:
         franky = _franky()
         self.franky = franky
         self.host = host
-        try:
-            self.robot = franky.Robot(host, realtime_config=franky.RealtimeConfig.Ignore)
-        except Exception as exc:  # franky.NetworkException, IncompatibleVersionException...
-            raise EMRegError(f"franka://{host}: cannot connect ({type(exc).__name__}: {str(exc)[:120]}); is the "
-                             "robot (or franky-sim) on, FCI active and the host right?") from None
+        self.robot = self._connect(franky, host)
         with contextlib.suppress(Exception):
             self.robot.recover_from_errors()
         self.description = f"Franka robot at {host} (franky-control, libfranka protocol)"
         self._closed = False
+
+    @staticmethod
+    def _connect(franky, host: str):
+        """franky's client, connected; :class:`EMRegError` when the robot refuses or does not answer within
+        ``CONNECT_TIMEOUT_S`` (the protocol serves one client at a time: a second one waits)."""
+        answer: dict[str, object] = {}
+
+        def connect() -> None:
+            try:
+                robot = franky.Robot(host, realtime_config=franky.RealtimeConfig.Ignore)
+            except Exception as exc:  # franky.NetworkException, IncompatibleVersionException...
+                answer["error"] = exc
+                return
+            if not answer.get("abandoned"):
+                answer["robot"] = robot
+            # given up meanwhile: dropped here, which disconnects, so that it never holds the robot
+
+        thread = threading.Thread(target=connect, name="franka-connect", daemon=True)
+        thread.start()
+        thread.join(CONNECT_TIMEOUT_S)
+        if thread.is_alive():
+            answer["abandoned"] = True
+            raise EMRegError(f"franka://{host}: no answer within {CONNECT_TIMEOUT_S:g} s; is another program in "
+                             "control of the robot?")
+        if "error" in answer:
+            exc = answer["error"]
+            raise EMRegError(f"franka://{host}: cannot connect ({type(exc).__name__}: {str(exc)[:120]}); is the "
+                             "robot (or franky-sim) on, FCI active and the host right?")
+        return answer["robot"]
 
     def flange_to_base(self) -> np.ndarray:
         """``FlangeToBase`` now (4x4, mm): the end-effector frame at the measured joint angles, through the robot's
