@@ -26,7 +26,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``emreg`` argument parser: each command family adds its own subcommands, in the order of ``--help``."""
-    from .commands import convert, live, report, robot, run, stages, study
+    from .commands import convert, live, report, robot, robot_live, run, stages, study
 
     parser = _Parser(prog="emreg", description="Automatic patient-to-image registration for EM navigation.")
     parser.add_argument("--version", action="version", version=f"emreg {__version__}")
@@ -41,7 +41,8 @@ def build_parser() -> argparse.ArgumentParser:
         return p
 
     for add_parsers in (study.add_simulate_parser, stages.add_parsers, convert.add_parsers, report.add_parsers,
-                        run.add_parsers, study.add_parsers, live.add_parsers, robot.add_parsers):
+                        run.add_parsers, study.add_parsers, live.add_parsers, robot.add_parsers,
+                        robot_live.add_parsers):
         add_parsers(add)
     return parser
 

@@ -420,11 +420,48 @@ class RobotSettings:
     - ``max_tracker_distance_mm`` (660): Entry and Target must lie within this distance of the field generator
       (the tracker's characterised volume; 660 mm is a trakSTAR mid-range transmitter's), else exit 3.
     - ``reach_mm`` (None): the flange must stay within this distance of the robot's base (None: not checked).
+
+    Driving the robot (``emreg robot-calibrate``, ``emreg robot-go``; :mod:`EMRegModule.robot_motion`):
+
+    - ``flange_sensor`` (3): the tracker port of the EM sensor on the flange's guide (``--sensor`` overrides it).
+    - ``max_velocity_mm_s`` (50), ``max_acceleration_mm_s2`` (250), ``max_rotation_deg_s`` (20),
+      ``max_rotation_acceleration_deg_s2`` (90): every move's limits (the robot's own maxima cap them).
+    - ``stale_s`` (0.25): a sensor without a sample for this long stops the robot.
+    - ``calibration_poses`` (12), ``calibration_angle_deg`` (25), ``calibration_translation_mm`` (20): the poses
+      ``robot-calibrate`` plans; ``sensor_radius_mm`` (150): the farthest the sensor may sit from the flange's
+      origin, for keeping it in the tracker's volume before the calibration knows; ``dwell_s`` (0.8): the still
+      time recorded at each pose; ``motion_jitter_s`` (0.05): while the robot moves, its reported flange pose
+      runs ahead of the real flange (the controller's tracking error) by up to this time: ``robot-calibrate``
+      solves with ``[handeye] timing_jitter_s`` at least this, so that the still frames of the dwells count most.
+    - ``approach_mm`` (30): ``robot-go`` first goes this far back along the planned axis, then along it;
+      ``tolerance_mm`` (0.5), ``tolerance_deg`` (0.5): the guide is on the plan when its exit and its needle tip
+      at the planned depth are within ``tolerance_mm`` and its axis within ``tolerance_deg``; ``max_corrections``
+      (5): corrections before giving up (exit 3); ``measure_s`` (0.5): the tracker's samples averaged per
+      measurement; ``max_correction_mm`` (20), ``max_correction_deg`` (5): a larger correction is refused.
     """
 
     standoff_mm: float = non_negative(0.0)
     max_tracker_distance_mm: float = positive(660.0)
     reach_mm: float | None = positive(None)
+    flange_sensor: int = port(3)
+    max_velocity_mm_s: float = positive(50.0)
+    max_acceleration_mm_s2: float = positive(250.0)
+    max_rotation_deg_s: float = positive(20.0)
+    max_rotation_acceleration_deg_s2: float = positive(90.0)
+    stale_s: float = positive(0.25)
+    calibration_poses: int = positive(12)
+    calibration_angle_deg: float = positive(25.0)
+    calibration_translation_mm: float = non_negative(20.0)
+    sensor_radius_mm: float = non_negative(150.0)
+    dwell_s: float = positive(0.8)
+    motion_jitter_s: float = non_negative(0.05)
+    approach_mm: float = non_negative(30.0)
+    tolerance_mm: float = positive(0.5)
+    tolerance_deg: float = positive(0.5)
+    max_corrections: int = non_negative(5)
+    measure_s: float = positive(0.5)
+    max_correction_mm: float = positive(20.0)
+    max_correction_deg: float = positive(5.0)
 
 
 # --- the tree ----------------------------------------------------------------------------------

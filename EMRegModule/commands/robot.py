@@ -75,12 +75,25 @@ def calibration_document(result: HandEyeResult, inputs: dict[str, Any], warnings
     }
 
 
+def write_calibration(out: Path, result: HandEyeResult, inputs: dict[str, Any], warnings: list[str]) -> dict:
+    """Write ``OUT/robot_calibration.json``, ``SensorToFlange.h5`` and ``TrackerToBase.h5`` together or not at all
+    (each to a temporary beside it, all renamed at the end); returns the document."""
+    from ..io.atomic import atomic_path, to_jsonable
+    from ..io.itk_transform import write_slicer_frame_transform
+
+    document = calibration_document(result, inputs, warnings)
+    with atomic_path(out / "SensorToFlange.h5") as x_tmp, atomic_path(out / "TrackerToBase.h5") as y_tmp, \
+            atomic_path(out / ROBOT_CALIBRATION_JSON) as json_tmp:
+        write_slicer_frame_transform(x_tmp, result.sensor_to_flange)
+        write_slicer_frame_transform(y_tmp, result.tracker_to_base)
+        json_tmp.write_text(json.dumps(to_jsonable(document), indent=2) + "\n", encoding="utf-8")
+    return document
+
+
 def cmd_handeye(args: argparse.Namespace) -> int:
     from .. import __version__
     from ..handeye import calibrate_hand_eye
-    from ..io.atomic import atomic_path, to_jsonable
     from ..io.handeye_inputs import read_robot_poses, read_sensor_poses
-    from ..io.itk_transform import write_slicer_frame_transform
     from ..provenance import file_sha256
 
     settings = settings_of(args)
@@ -96,13 +109,7 @@ def cmd_handeye(args: argparse.Namespace) -> int:
                           "samples": len(tracker.time_s)},
               "settings": settings.source or None, "emreg_version": __version__}
     warnings = robot.warnings + tracker.warnings
-    document = calibration_document(result, inputs, warnings)
-    # the three files appear together or not at all: each is written to a temporary beside it, renamed at the end
-    with atomic_path(out / "SensorToFlange.h5") as x_tmp, atomic_path(out / "TrackerToBase.h5") as y_tmp, \
-            atomic_path(out / ROBOT_CALIBRATION_JSON) as json_tmp:
-        write_slicer_frame_transform(x_tmp, result.sensor_to_flange)
-        write_slicer_frame_transform(y_tmp, result.tracker_to_base)
-        json_tmp.write_text(json.dumps(to_jsonable(document), indent=2) + "\n", encoding="utf-8")
+    document = write_calibration(out, result, inputs, warnings)
     warn("handeye", warnings)
     print(f"SensorToFlange and TrackerToBase from {len(result.used)} frames ({len(result.rejected)} left out); "
           f"time offset {result.time_offset_s:.4f} s; residual RMS {document['residuals']['rotation_deg']['rms']:.3f}"
@@ -238,6 +245,13 @@ def cmd_robot_target(args: argparse.Namespace) -> int:
                 "depth_mm": answer.depth_mm, "standoff_mm": robot.standoff_mm, "roll_deg": answer.roll_deg,
                 "predicted_error_mm": answer.predicted_error_mm,
                 "ReferenceToTracker": reference_to_tracker.tolist(),
+                # what emreg robot-go needs to verify the guide with the tracker and follow the reference
+                "SensorToFlange": calibration["SensorToFlange"].tolist(),
+                "TrackerToBase": calibration["TrackerToBase"].tolist(),
+                "NeedleGuideToSensor": guide_to_sensor.tolist(),
+                "ReferenceToImage": registration.reference_to_image.tolist(),
+                "entry_image_mm": np.asarray(entry, dtype=float).tolist(),
+                "target_image_mm": np.asarray(target, dtype=float).tolist(),
                 "inputs": {"registration": str(args.registration), "robot_calibration": str(args.robot_calibration),
                            "reference": str(args.reference), "plan": str(args.plan), "tool": str(args.tool)},
                 "note": "FlangeToBase puts the guide's exit on Entry (standoff_mm before it) with its +z along "

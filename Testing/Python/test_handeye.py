@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from EMRegModule.cli import main
+from EMRegModule.commands.robot_live import read_target
 from EMRegModule.handeye import motion_spread, solve_ax_yb
 from EMRegModule.io.itk_transform import read_slicer_frame_transform
 from EMRegModule.io.tum import read_tum, write_tum
@@ -258,6 +259,10 @@ def test_robot_target_puts_the_guide_on_the_plan(targeting_case, capsys, tool):
     assert np.linalg.norm(tip - target) <= 3.0 * predicted
     assert angle <= 0.2
     assert 0.2 <= predicted <= 1.0  # the registration's 0.2 mm, the guide's 0.1 mm, the hand-eye's share
+    # emreg robot-go takes all it needs from the file alone (the calibration, the guide, the registration, the plan)
+    plan = read_target(str(folder / out / "robot_target.json"))
+    assert np.allclose(plan["NeedleGuideToSensor"], targeting_case["guide_to_sensor"], atol=1e-9)
+    assert np.allclose(plan["entry"], entry) and np.allclose(plan["target"], target)
 
 
 def test_robot_target_with_a_live_reference(targeting_case, capsys):
