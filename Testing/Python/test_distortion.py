@@ -205,9 +205,10 @@ def test_trust_study_summary_counts_detections_false_alarms_and_the_prediction()
     rows.append({"distortion_mm": 1.0, "refused": "the EM field is distorted"})
     summary = STUDIES["trust"].summarize(rows)
     clean, distorted = summary.rows
-    assert clean[:4] == ["0", "20", "0", "5.0 %"]
-    assert distorted[:4] == ["1", "5", "1", "75.0 %"]
-    assert distorted[7:9] == ["1.10", "0.55"]  # predicted / measured RMS, and without the distortion term
+    assert clean[:5] == ["clean, noise x1", "20", "0", "5.0 %", "5.0 %"]
+    assert distorted[:5] == ["dipole (development) 1 mm, noise x1", "5", "1", "75.0 %", "80.0 %"]  # refused: caught
+    assert distorted[9:11] == ["1.10", "0.55"]  # predicted / measured RMS, and without the distortion term
+    assert any("held out (never tuned on) magpylib, multi" in n for n in summary.notes)
     assert summary.figure.ndim == 3
 
 
