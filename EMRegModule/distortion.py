@@ -722,9 +722,32 @@ def fit_field(points_reference: np.ndarray, residuals_reference: np.ndarray, axe
     z = scan.basis.T @ residuals.reshape(-1)
     if not np.any(z):
         return None
-    _, share, best = scan.best(z)
-    return _fitted(scan, z, int(best), points, residuals, axes, poses, [f"P{k + 1:02d}" for k in range(len(points))],
-                   (), float(share), float("nan"), 0.0, "")
+    best = _cross_validated(scan, points, poses, residuals)
+    share = float(scan.best(z)[1])
+    return _fitted(scan, z, best, points, residuals, axes, poses, [f"P{k + 1:02d}" for k in range(len(points))],
+                   (), share, float("nan"), 0.0, "")
+
+
+def _cross_validated(scan: _Scan, points: np.ndarray, poses: np.ndarray | None, residuals: np.ndarray) -> int:
+    """The candidate that best predicts each pinhole's residual from the others (leave-one-out, closed form:
+    ``(I - H_ii)^-1 e_i`` per pinhole, H the fit's hat matrix): the field to extend beyond the pinholes, where a
+    candidate chosen by its fit alone may be the one with most columns."""
+    r = residuals.reshape(-1)
+    n = len(points)
+    scores = []
+    for candidate in scan.candidates:
+        design = scan.basis @ (scan.basis.T @ _stack(candidate.columns(points, poses, scan.seen)))
+        u, singular, _ = np.linalg.svd(design, full_matrices=False)
+        u = u[:, singular > singular[0] * 1e-9] if singular[0] > 0 else u[:, :0]
+        left = (r - u @ (u.T @ r)).reshape(n, 3)
+        hat = np.einsum("iap,ibp->iab", u.reshape(n, 3, -1), u.reshape(n, 3, -1))
+        try:
+            loo = np.linalg.solve(np.eye(3) - hat, left[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            scores.append(np.inf)
+            continue
+        scores.append(float(np.sum(loo**2)))
+    return int(np.argmin(scores))
 
 
 def _several_points(p_without: float, share: float, p_outlier: float, axial: float = 1.0) -> bool:

@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .calibration import CalibrationPoint, FrameCalibration
-from .distortion import DistortionEstimate, estimate_distortion, fit_field
+from .distortion import SUSPECT_LEVEL, DistortionEstimate, estimate_distortion, fit_field
 from .error_model import RegistrationError, registration_error
 from .errors import EMRegError, NoSafeAnswerError
 from .io.atomic import atomic_write_json, read_json
@@ -373,6 +373,13 @@ def _unpaired_warnings(image_markers: list[str], calibration_points: list[str],
                      f"paired pinholes, largest near {distortion.where()}) may have moved them beyond the pairing "
                      "tolerance; remove metal from near the frame and transmitter and calibrate again (or that "
                      "marker was not found in the CT: see 'rejected' in markers.json)")
+    elif calibration_points and _suspected(distortion):
+        lines.append(f"calibration point(s) {', '.join(calibration_points)} paired with no marker of the CT, left "
+                     "out of the registration: the paired pinholes' residuals are more coherent than noise "
+                     f"(p = {distortion.p_value:.2g}, below the distortion test's false-alarm rate only at "
+                     f"{SUSPECT_LEVEL:g}): a field distortion may have moved them beyond the pairing tolerance; remove "
+                     "metal from near the frame and transmitter and calibrate again (or the probe was not in the "
+                     "pinhole, or that marker was not found in the CT: see 'rejected' in markers.json)")
     elif calibration_points:
         lines.append(f"calibration point(s) {', '.join(calibration_points)} paired with no marker of the CT, left "
                      "out of the registration: the probe was likely not in a pinhole while recorded there, or that "
@@ -381,11 +388,21 @@ def _unpaired_warnings(image_markers: list[str], calibration_points: list[str],
         lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
                      "registration: the field distortion may have moved their calibration points out of pairing "
                      "(or their pinholes were not recorded in the calibration)")
+    elif image_markers and calibration_points and _suspected(distortion):
+        lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
+                     "registration: a field distortion, suspected from the paired pinholes' residuals, may have moved "
+                     "their calibration points out of pairing (or their pinholes were not recorded)")
     elif image_markers:
         lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
                      "registration: their pinholes were likely not recorded in the calibration (or their dwells "
                      "not found)")
     return lines
+
+
+def _suspected(distortion: DistortionEstimate | None) -> bool:
+    """A distortion not detected but suspected: the residuals more coherent than noise at :data:`SUSPECT_LEVEL`."""
+    return distortion is not None and distortion.tested and not distortion.detected \
+        and distortion.p_value <= SUSPECT_LEVEL
 
 
 def _distortion_evidence(distortion: DistortionEstimate, solution: OffsetSolution, points_reference: np.ndarray,
