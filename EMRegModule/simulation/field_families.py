@@ -44,6 +44,8 @@ HELD_OUT = ("magpylib", "multi")
 #: Gauss-Newton iterations of the tracker's free-space position solve.
 SOLVE_ITERATIONS = 6
 _STEP_MM = 0.05
+#: Largest move (mm) of one Gauss-Newton step.
+MAX_STEP_MM = 20.0
 
 
 def _invariant(points_mm: np.ndarray) -> np.ndarray:
@@ -67,7 +69,11 @@ def solve_position(measured: np.ndarray, start_mm: np.ndarray) -> np.ndarray:
             jacobian[:, :, axis] = (_invariant(x + step) - _invariant(x - step)).reshape(-1, 9) \
                 * (scale[:, None] / (2 * _STEP_MM))
         jt = np.swapaxes(jacobian, -1, -2)
-        x = x - np.linalg.solve(jt @ jacobian, (jt @ residual[..., None]))[..., 0]
+        normal = jt @ jacobian
+        damping = 1e-9 * np.trace(normal, axis1=-2, axis2=-1)[:, None, None] * np.eye(3)
+        step = np.linalg.solve(normal + damping, (jt @ residual[..., None]))[..., 0]
+        size = np.linalg.norm(step, axis=1, keepdims=True)
+        x = x - step * np.minimum(1.0, MAX_STEP_MM / np.maximum(size, 1e-300))  # a trust region
     return x
 
 
@@ -305,9 +311,9 @@ def scale_to(distortion: Any, points_body: np.ndarray, body_to_tracker: np.ndarr
     for _step in range(6):
         _, nonrigid = nonrigid_errors(distortion, points_body, body_to_tracker, reference_to_body)
         rms = float(np.sqrt(np.mean(np.sum(nonrigid**2, axis=1))))
-        if rms <= 0 or abs(rms - nonrigid_rms_mm) < 1e-3 * max(nonrigid_rms_mm, 1e-3):
+        if not np.isfinite(rms) or rms <= 0 or abs(rms - nonrigid_rms_mm) < 1e-3 * max(nonrigid_rms_mm, 1e-3):
             break
-        distortion = distortion.scaled(nonrigid_rms_mm / rms)
+        distortion = distortion.scaled(float(np.clip(nonrigid_rms_mm / rms, 0.2, 5.0)))
     return distortion
 
 
@@ -317,6 +323,24 @@ def place_field(family: str, rng: np.random.Generator, points_body: np.ndarray, 
     ``body_to_tracker``, scaled to ``nonrigid_rms_mm`` RMS non-rigid error at them (Reference frame, mm)."""
     if family == "dipole":
         return place_object(rng, points_body, body_to_tracker, reference_to_body, nonrigid_rms_mm)
+    if family not in FAMILIES:
+        raise ValueError(f"unknown field family {family!r}; families: {', '.join(FAMILIES)}")
+    for _attempt in range(20):  # a body so placed that its size cannot be reached (or solved) is drawn again
+        with np.errstate(all="ignore"):
+            try:
+                distortion = _draw(family, rng, points_body, body_to_tracker, reference_to_body, nonrigid_rms_mm)
+            except np.linalg.LinAlgError:
+                continue
+            _, nonrigid = nonrigid_errors(distortion, points_body, body_to_tracker, reference_to_body)
+        rms = float(np.sqrt(np.mean(np.sum(nonrigid**2, axis=1))))
+        if np.isfinite(rms) and abs(rms - nonrigid_rms_mm) < 0.01 * nonrigid_rms_mm:
+            return distortion
+    raise RuntimeError(f"no {family} field of {nonrigid_rms_mm} mm could be placed")
+
+
+def _draw(family: str, rng: np.random.Generator, points_body: np.ndarray, body_to_tracker: np.ndarray,
+          reference_to_body: np.ndarray, nonrigid_rms_mm: float) -> Any:
+    """One random field of ``family`` (not ``dipole``) scaled to ``nonrigid_rms_mm`` (see :func:`place_field`)."""
     points_tracker = apply_transform(body_to_tracker, np.asarray(points_body, dtype=float))
     centre = points_tracker.mean(axis=0)
     radius = float(np.max(np.linalg.norm(points_tracker - centre, axis=1)))
@@ -338,6 +362,4 @@ def place_field(family: str, rng: np.random.Generator, points_body: np.ndarray, 
         weights = [scale_to(BodiesField((source,), _gentle(source, points_tracker)), points_body, body_to_tracker,
                             reference_to_body, 1.0).gain * rng.uniform(0.3, 1.0) for source in sources]
         distortion = BodiesField(tuple(sources), 1.0, "multi", tuple(weights))
-    else:
-        raise ValueError(f"unknown field family {family!r}; families: {', '.join(FAMILIES)}")
     return scale_to(distortion, points_body, body_to_tracker, reference_to_body, nonrigid_rms_mm)

@@ -287,7 +287,7 @@ def _prediction_summary(rows: list[dict]) -> Summary:
 #: (development: dipole, gp; held out: magpylib, multi).
 TRUST_SIZES_MM = (0.5, 1.0, 1.5, 2.0)
 TRUST_NOISES = (1.0, 2.0, 4.0)
-TRUST_SESSIONS = 6
+TRUST_SESSIONS = 8
 TRUST_CLEAN = 40
 TRUST_QUICK = {("clean", 0.0, 1.0): 2, ("dipole", 1.0, 1.0): 1, ("magpylib", 1.0, 1.0): 1}
 #: Navigations with checkpoints of ``emreg study trust``: (event, tracker noise, hard tracking) -> sessions (a bump:
