@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .calibration import CalibrationPoint, FrameCalibration
-from .distortion import DistortionEstimate, estimate_distortion
+from .distortion import SUSPECT_LEVEL, DistortionEstimate, estimate_distortion, fit_field
 from .error_model import RegistrationError, registration_error
 from .errors import EMRegError, NoSafeAnswerError
 from .io.atomic import atomic_write_json, read_json
@@ -139,6 +139,7 @@ class RegistrationResult:
             document["error_model"] = self.error.to_json()
             if self.error.distortion is not None:
                 document["distortion"] = self.error.distortion.to_json()
+                document["prediction_trust"] = self.error.distortion.prediction_trust()
         if self.fiducials is not None:
             document["fiducials"] = self.fiducials
         if self.provenance is not None:
@@ -311,8 +312,12 @@ def register(
     ]
     paired_images = set(image_index.tolist())
     paired_cal = set(cal_index.tolist())
+    moved = _moved_by_field(distortion, solution, points, labels, paired_cal, origins, axes, image_ids,
+                            paired_images, config.pairing.point_tolerance_mm)
     warnings += _unpaired_warnings([m for k, m in enumerate(image_ids) if k not in paired_images],
-                                   [p for k, p in enumerate(labels) if k not in paired_cal], distortion)
+                                   [p for k, p in enumerate(labels) if k not in paired_cal and p not in moved],
+                                   distortion)
+    warnings += list(moved.values())
     warnings += _distortion_evidence(distortion, solution, points, labels, paired_cal, origins, axes, image_ids,
                                      paired_images)
     return RegistrationResult(
@@ -368,6 +373,13 @@ def _unpaired_warnings(image_markers: list[str], calibration_points: list[str],
                      f"paired pinholes, largest near {distortion.where()}) may have moved them beyond the pairing "
                      "tolerance; remove metal from near the frame and transmitter and calibrate again (or that "
                      "marker was not found in the CT: see 'rejected' in markers.json)")
+    elif calibration_points and _suspected(distortion):
+        lines.append(f"calibration point(s) {', '.join(calibration_points)} paired with no marker of the CT, left "
+                     "out of the registration: the paired pinholes' residuals are more coherent than noise "
+                     f"(p = {distortion.p_value:.2g}, below the distortion test's false-alarm rate only at "
+                     f"{SUSPECT_LEVEL:g}): a field distortion may have moved them beyond the pairing tolerance; remove "
+                     "metal from near the frame and transmitter and calibrate again (or the probe was not in the "
+                     "pinhole, or that marker was not found in the CT: see 'rejected' in markers.json)")
     elif calibration_points:
         lines.append(f"calibration point(s) {', '.join(calibration_points)} paired with no marker of the CT, left "
                      "out of the registration: the probe was likely not in a pinhole while recorded there, or that "
@@ -376,11 +388,21 @@ def _unpaired_warnings(image_markers: list[str], calibration_points: list[str],
         lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
                      "registration: the field distortion may have moved their calibration points out of pairing "
                      "(or their pinholes were not recorded in the calibration)")
+    elif image_markers and calibration_points and _suspected(distortion):
+        lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
+                     "registration: a field distortion, suspected from the paired pinholes' residuals, may have moved "
+                     "their calibration points out of pairing (or their pinholes were not recorded)")
     elif image_markers:
         lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
                      "registration: their pinholes were likely not recorded in the calibration (or their dwells "
                      "not found)")
     return lines
+
+
+def _suspected(distortion: DistortionEstimate | None) -> bool:
+    """A distortion not detected but suspected: the residuals more coherent than noise at :data:`SUSPECT_LEVEL`."""
+    return distortion is not None and distortion.tested and not distortion.detected \
+        and distortion.p_value <= SUSPECT_LEVEL
 
 
 def _distortion_evidence(distortion: DistortionEstimate, solution: OffsetSolution, points_reference: np.ndarray,
@@ -403,6 +425,42 @@ def _distortion_evidence(distortion: DistortionEstimate, solution: OffsetSolutio
         lines.append(f"{labels[k]}: {gaps[nearest]:.1f} mm from CT marker {image_ids[unpaired_images[nearest]]}'s "
                      f"pinhole as measured, {np.linalg.norm(pinholes[nearest] - after):.1f} mm once the fitted field "
                      "distortion is taken off")
+    return lines
+
+
+def _moved_by_field(distortion: DistortionEstimate, solution: OffsetSolution, points_reference: np.ndarray,
+                    labels: list[str], paired_cal: set[int], origins_image: np.ndarray, axes_image: np.ndarray,
+                    image_ids: list[str], paired_images: set[int], tolerance_mm: float) -> dict[str, str]:
+    """Before an unpaired calibration point is put down to the user: when no distortion was detected, whether the
+    smooth field fitted to the paired pinholes anyway (:func:`EMRegModule.distortion.fit_field`) explains where it
+    lies, i.e. takes it to within ``tolerance_mm`` of an unpaired CT pinhole it was farther from. Returns, per such
+    point's label, a line naming the distortion, how much and where (Reference frame, mm)."""
+    unpaired_cal = [k for k in range(len(labels)) if k not in paired_cal]
+    unpaired_images = [k for k in range(len(image_ids)) if k not in paired_images]
+    if distortion.detected or not unpaired_cal or not unpaired_images or distortion.model is not None:
+        return {}
+    paired = sorted(paired_cal)
+    if len(paired) != len(distortion.points_mm):
+        return {}
+    field = fit_field(distortion.points_mm, distortion.residuals_mm, None, None)
+    if field is None:
+        return {}
+    pinholes = apply_transform(invert_rigid(solution.reference_to_image),
+                               origins_image[unpaired_images] + solution.l_mm * axes_image[unpaired_images])
+    lines = {}
+    for k in unpaired_cal:
+        measured = points_reference[k]
+        shift = field.field_at(measured[None])[0]
+        gaps = np.linalg.norm(pinholes - measured, axis=1)
+        nearest = int(np.argmin(np.linalg.norm(pinholes - (measured - shift), axis=1)))
+        after = float(np.linalg.norm(pinholes[nearest] - (measured - shift)))
+        if after <= tolerance_mm < gaps[nearest]:
+            lines[labels[k]] = (
+                f"calibration point {labels[k]} paired with no marker of the CT: a smooth field distortion fitted to "
+                f"the paired pinholes (not significant there alone) explains where it lies: it moved it "
+                f"{np.linalg.norm(shift):.1f} mm, {gaps[nearest]:.1f} mm from CT marker "
+                f"{image_ids[unpaired_images[nearest]]}'s pinhole as measured, {after:.1f} mm once the field is taken "
+                "off; remove metal from near the frame and transmitter and calibrate again")
     return lines
 
 

@@ -394,8 +394,16 @@ def render_distortion(data: ReportData) -> list[Figure]:
                    "The registration's residual at each pinhole (black arrow: the calibration point minus its CT "
                    "pinhole, in the Reference frame, magnified) and the non-rigid field distortion fitted to them "
                    "(magenta; colour: its size on the plane through the pinholes, in two views along their "
-                   "principal axes). Noise scatters the black arrows at random; a field moves neighbours alike.",
-                   _png(image))]
+                   "principal axes). Noise scatters the black arrows at random; a field moves neighbours alike. "
+                   + _trust_words(estimate), _png(image))]
+
+
+def _trust_words(estimate: DistortionEstimate) -> str:
+    """Whether the predicted error can be relied on, in words for the surgeon (``prediction_trust``)."""
+    trust = estimate.prediction_trust()
+    if trust["trusted"]:
+        return "The residuals show no sign of a distorted field: the predicted error rests on a model they agree with."
+    return "Do not rely on the predicted error alone: " + "; ".join(trust["reasons"]) + "."
 
 
 def render_tre_map(data: ReportData) -> list[Figure]:

@@ -26,7 +26,7 @@ from ..transforms import apply_transform, fit_rigid, invert_rigid
 DEFAULT_RAMP_S = 2.0
 
 
-def _polar_rotation(matrices: np.ndarray) -> np.ndarray:
+def polar_rotation(matrices: np.ndarray) -> np.ndarray:
     """The rotation part (K, 3, 3) of near-rotation-times-positive matrices (polar decomposition)."""
     u, _, vt = np.linalg.svd(matrices)
     sign = np.sign(np.linalg.det(u @ vt))
@@ -64,7 +64,7 @@ class FieldDistortion:
         x = np.asarray(points_mm, dtype=float).reshape(-1, 3)
         error = position_error(x, self.object_mm, self.polarisability)
         measured = coil_field(x) + induced_coupling(x, self.object_mm, self.polarisability)
-        return error, _polar_rotation(coil_field(x + error) @ np.swapaxes(measured, -1, -2))
+        return error, polar_rotation(coil_field(x + error) @ np.swapaxes(measured, -1, -2))
 
     def distortion_mm(self, position_mm: np.ndarray) -> float:
         """The size (mm) of the position error at full strength at a sensor at ``position_mm`` (3,, Tracker frame):
@@ -84,7 +84,7 @@ class FieldDistortion:
         position_error, rotation_error = self.errors_at(poses[active, :3, 3])
         s = strength[active]
         poses[active, :3, 3] += s[:, None] * position_error
-        poses[active, :3, :3] = _scaled_rotation(rotation_error, s) @ poses[active, :3, :3]
+        poses[active, :3, :3] = scaled_rotation(rotation_error, s) @ poses[active, :3, :3]
         return poses
 
     def scaled(self, factor: float) -> FieldDistortion:
@@ -106,7 +106,7 @@ class FieldDistortion:
                    float("-inf") if onset is None else float(onset), float(document.get("ramp_s", DEFAULT_RAMP_S)))
 
 
-def _scaled_rotation(rotations: np.ndarray, fraction: np.ndarray) -> np.ndarray:
+def scaled_rotation(rotations: np.ndarray, fraction: np.ndarray) -> np.ndarray:
     """Rotations (K, 3, 3) turned by ``fraction`` (K,) of their angle about their own axis."""
     from scipy.spatial.transform import Rotation
 

@@ -76,7 +76,8 @@ def test_trust_study_measures_checkpoints_latency_and_reference_jumps(standard_c
     result = _study("trust", tmp_path, standard_case, study_work, "--workers", "1")
     header, table = result["summary"]["header"], result["summary"]["rows"]
     rows = {row[0]: dict(zip(header, row, strict=True)) for row in table}
-    assert {"0", "1"} <= set(rows)  # the distortion rows stay
+    assert {"clean, noise x1", "dipole (development) 1 mm, noise x1", "magpylib (held out) 1 mm, noise x1"} <= set(rows)
+    assert rows["clean, noise x1"]["detected"] == "0.0 %"
     for noise in ("1", "4"):
         clean = rows[f"checkpoints: clean, noise x{noise}"]
         assert clean["clean checkpoints passed"].startswith("100.0 %"), clean
