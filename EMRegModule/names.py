@@ -53,6 +53,9 @@ TIP_NODE_NAME = "TipToProbe"
 TRE_MAP_NODE_NAME = "EMReg predicted TRE (mm)"
 FIDUCIALS_NODE_NAME = "EMReg fiducials"
 CONNECTOR_NODE_NAME = "EMReg OpenIGTLink"
+#: The OpenIGTLink STRING of the guidance numbers (``emreg navigate --plan``): OpenIGTLinkIF makes it a text node
+#: of this name, which the module's panel shows as it changes.
+GUIDANCE_NAME = "Guidance"
 
 # --- tracker ports ---------------------------------------------------------------------------------
 #: trakSTAR / Aurora ports of the reference sensor and the probe when nothing says otherwise (``[sensors]``).

@@ -24,6 +24,7 @@ import time
 import numpy as np
 from pyigtl.messages import PointMessage, StringMessage
 
+from .. import names
 from ..frames import LPS_TO_RAS
 from ..guidance import Guidance, Plan, TargetPrediction
 
@@ -31,7 +32,7 @@ from ..guidance import Guidance, Plan, TargetPrediction
 TRAJECTORY_NAME = "TrajectoryToImage"
 TARGET_NAME = "TargetToImage"
 PLAN_POINTS_NAME = "Plan"
-GUIDANCE_NAME = "Guidance"
+GUIDANCE_NAME = names.GUIDANCE_NAME
 
 #: Least time (s) between two STRING ``Guidance`` messages (20 Hz: a readout a person reads).
 GUIDANCE_INTERVAL_S = 0.05

@@ -203,6 +203,9 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.useFiducialsButton.connect("clicked(bool)", self.onUseFiducials)
         self.ui.planNodeComboBox.setMRMLScene(slicer.mrmlScene)
         self.ui.planNodeComboBox.connect("currentNodeChanged(vtkMRMLNode*)", self.onPlanChanged)
+        # the live guidance readout: OpenIGTLinkIF makes the Guidance STRING a text node and updates it as it arrives
+        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.NodeAddedEvent, self.onNodeAdded)
+        self.onNodeAdded()
         self.updateGUIFromLogic()
 
     def cleanup(self):
@@ -247,6 +250,16 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     def onPivot(self):
         self._run("Pivot calibration failed.", self.logic.pivotCalibrate,
                   self.ui.pivotRecordingPathLineEdit.currentPath)
+
+    def onNodeAdded(self, caller=None, event=None):
+        """Watch the guidance text node once it exists (made by OpenIGTLinkIF when the first STRING arrives)."""
+        node = self.logic.guidanceNode()
+        if node is not None and not self.hasObserver(node, node.TextModifiedEvent, self.onGuidanceModified):
+            self.addObserver(node, node.TextModifiedEvent, self.onGuidanceModified)
+            self.onGuidanceModified()
+
+    def onGuidanceModified(self, caller=None, event=None):
+        self.ui.guidanceLabel.text = self.logic.guidanceReadout()
 
     def onPlanChanged(self, node=None):
         self._run("Using the plan failed.", self.logic.setPlanFromMarkupsNode, self.ui.planNodeComboBox.currentNode())
@@ -538,6 +551,18 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         logging.info("EMReg: OpenIGTLink client connected to %s:%s; ProbeToImage will appear as a transform node",
                      host, port)
         return connector
+
+    def guidanceNode(self):
+        """The text node of the live guidance numbers (``names.GUIDANCE_NAME``, the STRING ``emreg navigate --plan``
+        sends, which OpenIGTLinkIF turns into a text node), or None before the first one arrived."""
+        nodes = self.scene.GetNodesByClassByName("vtkMRMLTextNode", names.GUIDANCE_NAME)
+        return nodes.GetItemAsObject(0) if nodes.GetNumberOfItems() else None
+
+    def guidanceReadout(self):
+        """The latest guidance numbers (tip to target, off the line, angle, depth to go, the predicted error at the
+        target), as the navigation sent them; empty before any."""
+        node = self.guidanceNode()
+        return (node.GetText() or "") if node is not None else ""
 
     def stopLiveNavigation(self):
         if self.connectorNode is not None:

@@ -408,6 +408,34 @@ def test_slicer_panel_plan_selector_gives_the_guidance_of_a_markups_line(slicer_
     widget.cleanup()
 
 
+def test_slicer_panel_shows_the_live_guidance_as_it_arrives(slicer_app):
+    """Live, ``emreg navigate --plan --igtl-port`` sends the numbers as the STRING ``Guidance``, which OpenIGTLinkIF
+    keeps in a text node of that name (played here: slicer-core has no OpenIGTLinkIF): the panel's readout shows
+    each new text as it arrives, whether the node appears after the panel or was there before it."""
+    import types
+
+    module = slicer_app.load_module()
+    widget = module.EMRegWidget(parent=types.SimpleNamespace())
+    widget.setup()
+    assert widget.ui.guidanceLabel.text == ""
+    slicer_app.scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", "Guidance")  # not a text node: not the readout
+    assert widget.ui.guidanceLabel.text == ""
+    node = slicer_app.scene.AddNewNodeByClass("vtkMRMLTextNode", "Guidance")
+    for text in ("target 12.31 mm; lateral 1.02 mm; angle 4.40 deg; to go 11.80 mm",
+                 "target 3.05 mm; lateral 0.41 mm; angle 1.20 deg; to go 2.97 mm; target 0.9 mm predicted (95 %: "
+                 "1.6 mm)"):
+        node.SetText(text)
+        assert widget.ui.guidanceLabel.text == text
+    widget.cleanup()
+
+    later = module.EMRegWidget(parent=types.SimpleNamespace())  # a panel made while the navigation runs
+    later.setup()
+    assert later.ui.guidanceLabel.text.startswith("target 3.05 mm")
+    node.SetText("target 0.52 mm; lateral 0.10 mm; angle 0.90 deg; to go 0.50 mm")
+    assert later.ui.guidanceLabel.text.startswith("target 0.52 mm")
+    later.cleanup()
+
+
 def test_navigate_takes_the_plan_of_a_settings_file_relative_to_it(needle, tmp_path):  # noqa: F811
     """``[navigation] plan`` of ``--settings FILE`` (a path relative to that file's folder) as ``--plan`` would give it;
     ``--plan`` on the command line wins over it."""
