@@ -45,8 +45,10 @@ def matches(sample, truth: EmittedRecord, scale: float) -> bool:
     return not (record.quaternion is not None and np.max(np.abs(record.quaternion - pose.quaternion)) > 4 / 32768 + EPS)
 
 
-def assert_subsequence_of_truth(samples, truth: list[EmittedRecord], scale: float) -> int:
-    """Each sensor's decoded samples must be, in order, uncorrupted records the simulator sent."""
+def assert_subsequence_of_truth(samples, truth: list[EmittedRecord], scale: float,
+                                matched: list[EmittedRecord] | None = None) -> int:
+    """Each sensor's decoded samples must be, in order, uncorrupted records the simulator sent (each one's record
+    appended to ``matched`` when given)."""
     checked = 0
     for sensor in {s.sensor for s in samples}:
         sent = [t for t in truth if t.sensor == sensor]
@@ -58,6 +60,8 @@ def assert_subsequence_of_truth(samples, truth: list[EmittedRecord], scale: floa
                 i += 1
             assert i < len(sent), f"sensor {sensor}: decoded pose {sample.position_mm} matches no intact record sent"
             assert sample.status == ("ok" if sent[i].status in ("ok", "distorted") else sent[i].status)
+            if matched is not None:
+                matched.append(sent[i])
             i += 1
             checked += 1
     return checked
@@ -230,11 +234,16 @@ def test_faults_never_yield_a_wrong_pose():
         stream_truth = [t for t in sim.truth if t.emit_ns]
     corrupted = sum(t.corrupted for t in stream_truth)
     assert corrupted > 20, "the fault injection did not corrupt enough records to test anything"
-    checked = assert_subsequence_of_truth(got, stream_truth, 36)
+    matched: list[EmittedRecord] = []
+    checked = assert_subsequence_of_truth(got, stream_truth, 36, matched)
     stats = driver.stats
     assert checked == len(got)
     assert stats.phase_errors + stats.follow_errors + stats.address_errors > 0
-    clean = len(stream_truth) - corrupted
+    # the intact records sent up to the last one delivered: what the reader had reached when the stream stopped
+    # (stop_stream discards what a reader late on a loaded host still held; that is no loss of the resync's)
+    reached = max(t.emit_ns for t in matched)
+    clean = sum(not t.corrupted for t in stream_truth if t.emit_ns <= reached)
+    assert clean >= 100, "the reader reached too little of the stream to judge"
     assert len(got) >= 0.8 * clean, (len(got), clean, stats)
 
 
