@@ -19,7 +19,7 @@ what EMReg publishes or records:
   next one agrees with it (``confirm``), so a single corrupted record can never become the anchor.
 
 The defaults come from measurements on the simulator (``scripts/measure_link_quality.py``, real pty,
-real driver, 80 Hz, four ports in group mode; the README's "Live path" section has the table): on a clean
+real driver, 80 Hz, four ports in group mode; the table is on the manual's page docs/guide/live.md): on a clean
 link no record failed and the built-in scene's probe moved at most 0.42 m/s and deviated at most 0.7 mm
 from the constant-velocity prediction; data-bit corruption of 0.2 % / 1 % / 5 % of the bytes made 0.6 % /
 4.5 % / 22 % of the records fail (dropped bytes: 3 % / 12 % / 51 % at 0.2 % / 1 % / 5 %). A threshold of
