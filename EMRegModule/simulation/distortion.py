@@ -34,8 +34,41 @@ def polar_rotation(matrices: np.ndarray) -> np.ndarray:
     return u @ vt
 
 
+class TimedField:
+    """What every simulated field distortion shares: when it is there and how it moves the poses a tracker reports.
+
+    A subclass has ``onset_s`` / ``ramp_s`` (it arrives at ``onset_s``, recording time in s, and reaches full effect
+    ``ramp_s`` later; ``onset_s = -inf``: there all along) and ``errors_at(points_mm)``: at full strength, the
+    reported position's error (K, 3, mm) and the rotation error ``Q`` (K, 3, 3; reported sensor axes = ``Q @``
+    true axes) at true sensor positions (K, 3), Tracker frame."""
+
+    def strength(self, time_s: np.ndarray | float) -> np.ndarray:
+        """The field's effect (0..1) at recording times ``time_s`` (s)."""
+        t = np.asarray(time_s, dtype=float)
+        if not np.isfinite(self.onset_s):
+            return np.ones_like(t)
+        if self.ramp_s <= 0:
+            return (t >= self.onset_s).astype(float)
+        s = np.clip((t - self.onset_s) / self.ramp_s, 0.0, 1.0)
+        return s * s * (3.0 - 2.0 * s)  # smooth start and stop
+
+    def distort(self, time_s: np.ndarray, poses_tracker: np.ndarray) -> np.ndarray:
+        """Sensor poses (K, 4, 4, Tracker) as the tracker reports them at ``time_s`` (K,): true poses moved by the
+        field's errors at its strength then (the rotation error scaled along its axis)."""
+        poses = np.array(poses_tracker, dtype=float, copy=True)
+        strength = self.strength(time_s)
+        active = strength > 0
+        if not np.any(active):
+            return poses
+        position_error, rotation_error = self.errors_at(poses[active, :3, 3])
+        s = strength[active]
+        poses[active, :3, 3] += s[:, None] * position_error
+        poses[active, :3, :3] = scaled_rotation(rotation_error, s) @ poses[active, :3, :3]
+        return poses
+
+
 @dataclass(frozen=True)
-class FieldDistortion:
+class FieldDistortion(TimedField):
     """A metal object in the transmitter's field (Tracker frame, mm) and when it is there.
 
     ``object_mm`` (3,): its position; ``polarisability`` (3, 3, mm^3): its induced moment per unit
@@ -47,16 +80,6 @@ class FieldDistortion:
     polarisability: np.ndarray
     onset_s: float = float("-inf")
     ramp_s: float = DEFAULT_RAMP_S
-
-    def strength(self, time_s: np.ndarray | float) -> np.ndarray:
-        """The object's effect (0..1) at recording times ``time_s`` (s)."""
-        t = np.asarray(time_s, dtype=float)
-        if not np.isfinite(self.onset_s):
-            return np.ones_like(t)
-        if self.ramp_s <= 0:
-            return (t >= self.onset_s).astype(float)
-        s = np.clip((t - self.onset_s) / self.ramp_s, 0.0, 1.0)
-        return s * s * (3.0 - 2.0 * s)  # smooth start and stop
 
     def errors_at(self, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """At full strength: the reported position's error (K, 3, mm) and the rotation error ``Q`` (K, 3, 3)
@@ -72,20 +95,6 @@ class FieldDistortion:
         METAL byte, Aurora RMS error) are made from, so the flags follow the same object that moves the poses."""
         error = position_error(np.asarray(position_mm, dtype=float).reshape(1, 3), self.object_mm, self.polarisability)
         return float(np.linalg.norm(error[0]))
-
-    def distort(self, time_s: np.ndarray, poses_tracker: np.ndarray) -> np.ndarray:
-        """Sensor poses (K, 4, 4, Tracker) as the tracker reports them at ``time_s`` (K,): true poses moved by
-        the object's errors at its strength then (the rotation error scaled along its axis)."""
-        poses = np.array(poses_tracker, dtype=float, copy=True)
-        strength = self.strength(time_s)
-        active = strength > 0
-        if not np.any(active):
-            return poses
-        position_error, rotation_error = self.errors_at(poses[active, :3, 3])
-        s = strength[active]
-        poses[active, :3, 3] += s[:, None] * position_error
-        poses[active, :3, :3] = scaled_rotation(rotation_error, s) @ poses[active, :3, :3]
-        return poses
 
     def scaled(self, factor: float) -> FieldDistortion:
         """The same object, ``factor`` times as strongly polarised (errors scale with it, to first order)."""

@@ -34,7 +34,7 @@ import numpy as np
 
 from ..em_field import coil_field, induced_coupling
 from ..transforms import apply_transform
-from .distortion import DEFAULT_RAMP_S, nonrigid_errors, place_object, polar_rotation, scaled_rotation
+from .distortion import DEFAULT_RAMP_S, TimedField, nonrigid_errors, place_object, polar_rotation
 
 #: The families, development first.
 FAMILIES = ("dipole", "gp", "magpylib", "multi")
@@ -179,32 +179,10 @@ class Gradient:
 
 
 @dataclass(frozen=True)
-class _Timed:
-    """What every field shares with :class:`~EMRegModule.simulation.distortion.FieldDistortion`: when it is
-    there (``onset_s``, ``ramp_s``) and how strongly (``gain``)."""
-
-    def strength(self, time_s: np.ndarray | float) -> np.ndarray:
-        """The field's effect (0..1) at recording times ``time_s`` (s)."""
-        t = np.asarray(time_s, dtype=float)
-        if not np.isfinite(self.onset_s):
-            return np.ones_like(t)
-        if self.ramp_s <= 0:
-            return (t >= self.onset_s).astype(float)
-        s = np.clip((t - self.onset_s) / self.ramp_s, 0.0, 1.0)
-        return s * s * (3.0 - 2.0 * s)
-
-    def distort(self, time_s: np.ndarray, poses_tracker: np.ndarray) -> np.ndarray:
-        """Sensor poses (K, 4, 4, Tracker) as reported at ``time_s`` (K,): true poses moved by the field."""
-        poses = np.array(poses_tracker, dtype=float, copy=True)
-        strength = self.strength(time_s)
-        active = strength > 0
-        if not np.any(active):
-            return poses
-        position_error, rotation_error = self.errors_at(poses[active, :3, 3])
-        s = strength[active]
-        poses[active, :3, 3] += s[:, None] * position_error
-        poses[active, :3, :3] = scaled_rotation(rotation_error, s) @ poses[active, :3, :3]
-        return poses
+class _Timed(TimedField):
+    """What every field here shares with :class:`~EMRegModule.simulation.distortion.FieldDistortion` (when it is
+    there, how it moves the poses: :class:`~EMRegModule.simulation.distortion.TimedField`), and how strongly
+    (``gain``)."""
 
     def distortion_mm(self, position_mm: np.ndarray) -> float:
         """The position error's size (mm) at full strength at ``position_mm`` (3,, Tracker)."""
