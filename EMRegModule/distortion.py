@@ -626,15 +626,36 @@ def _refine(scan: _Scan, model: Any, points: np.ndarray, poses: np.ndarray | Non
         if result.fun < remaining(model.object_mm) else model
 
 
-def _test(points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None,
-          residuals: np.ndarray) -> tuple[_Scan, np.ndarray, float, float, int] | None:
-    """The scan, z, statistic's share, p-value and best candidate of residuals (None: too few to test)."""
+def _projected(points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None,
+               residuals: np.ndarray) -> tuple[_Scan, np.ndarray] | None:
+    """The candidates' scan of these pinholes and the residuals projected beyond the rigid fit, ``z`` (None: too few
+    degrees of freedom to test, or nothing left beyond the fit)."""
     scan = _Scan.of(points, axes, poses)
     if not scan.groups or scan.dof < MIN_DOF + 3:
         return None
     z = scan.basis.T @ residuals.reshape(-1)
-    if not np.any(z):
+    return (scan, z) if np.any(z) else None
+
+
+def _arrays(points_reference: np.ndarray, residuals_reference: np.ndarray, axes_reference: np.ndarray | None,
+            tracker_to_reference: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
+                                                              np.ndarray | None]:
+    """The inputs of :func:`estimate_distortion` / :func:`fit_field` as float arrays: points and residuals (N, 3),
+    axes (N, 3) or None, the transmitter's poses (N, 4, 4) or None."""
+    points = np.asarray(points_reference, dtype=float).reshape(-1, 3)
+    residuals = np.asarray(residuals_reference, dtype=float).reshape(-1, 3)
+    axes = None if axes_reference is None else np.asarray(axes_reference, dtype=float).reshape(-1, 3)
+    poses = None if tracker_to_reference is None else np.asarray(tracker_to_reference, dtype=float).reshape(-1, 4, 4)
+    return points, residuals, axes, poses
+
+
+def _test(points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None,
+          residuals: np.ndarray) -> tuple[_Scan, np.ndarray, float, float, int] | None:
+    """The scan, z, statistic's share, p-value and best candidate of residuals (None: too few to test)."""
+    projected = _projected(points, axes, poses, residuals)
+    if projected is None:
         return None
+    scan, z = projected
     smallest, share, best = scan.best(z)
     return scan, z, float(share), _p_value(scan, float(smallest), residuals), int(best)
 
@@ -652,10 +673,8 @@ def estimate_distortion(points_reference: np.ndarray, residuals_reference: np.nd
     ``tracker_to_reference`` (N, 4, 4): the transmitter's pose at each point's dwells (None: unknown, no
     dipole candidates; the generic smooth fields and bumps still are).
     """
-    points = np.asarray(points_reference, dtype=float).reshape(-1, 3)
-    residuals = np.asarray(residuals_reference, dtype=float).reshape(-1, 3)
-    axes = None if axes_reference is None else np.asarray(axes_reference, dtype=float).reshape(-1, 3)
-    poses = None if tracker_to_reference is None else np.asarray(tracker_to_reference, dtype=float).reshape(-1, 4, 4)
+    points, residuals, axes, poses = _arrays(points_reference, residuals_reference, axes_reference,
+                                             tracker_to_reference)
     labels = list(labels) or [f"P{k + 1:02d}" for k in range(len(points))]
     rms = float(np.sqrt(np.mean(residuals**2))) if len(residuals) else 0.0
     note = "" if poses is not None else ("the calibration does not say where the transmitter was (an older "
@@ -719,18 +738,12 @@ def fit_field(points_reference: np.ndarray, residuals_reference: np.ndarray, axe
     """The smooth field the test picks, fitted to the residuals whether significant or not (None: too few points):
     to ask whether it explains where points left out of the pairing lie (:meth:`DistortionEstimate.field_at`).
     Frames and units as :func:`estimate_distortion`."""
-    points = np.asarray(points_reference, dtype=float).reshape(-1, 3)
-    residuals = np.asarray(residuals_reference, dtype=float).reshape(-1, 3)
-    axes = None if axes_reference is None else np.asarray(axes_reference, dtype=float).reshape(-1, 3)
-    poses = None if tracker_to_reference is None else np.asarray(tracker_to_reference, dtype=float).reshape(-1, 4, 4)
-    if len(points) < 4:
+    points, residuals, axes, poses = _arrays(points_reference, residuals_reference, axes_reference,
+                                             tracker_to_reference)
+    projected = _projected(points, axes, poses, residuals) if len(points) >= 4 else None
+    if projected is None:
         return None
-    scan = _Scan.of(points, axes, poses)
-    if not scan.groups or scan.dof < MIN_DOF + 3:
-        return None
-    z = scan.basis.T @ residuals.reshape(-1)
-    if not np.any(z):
-        return None
+    scan, z = projected
     best = _cross_validated(scan, points, poses, residuals)
     share = float(scan.best(z)[1])
     return _fitted(scan, z, best, points, residuals, axes, poses, [f"P{k + 1:02d}" for k in range(len(points))],
