@@ -539,12 +539,12 @@ class Settings:
     def to_json(self) -> dict[str, Any]:
         """Every table and value (defaults included), as a JSON-ready dict (tuples as lists)."""
         document = json.loads(json.dumps({name: asdict(getattr(self, name)) for name in self.TABLES}))
-        for table, key in OMITTED_WHEN_NONE:  # keys added later: settings without them keep their JSON and digest
-            if document[table].get(key, 0) is None:
-                del document[table][key]
-        for table in OMITTED_WHEN_DEFAULT:  # tables added later, likewise while they hold their defaults
-            if getattr(self, table) == type(getattr(self, table))():
+        for table, key in ADDED_LATER:  # settings without them keep the JSON and digest they had
+            given, default = getattr(self, table), type(getattr(self, table))()
+            if key is None and given == default:
                 del document[table]
+            elif key is not None and getattr(given, key) == getattr(default, key):
+                del document[table][key]
         return document
 
     def digest(self) -> str:
@@ -553,11 +553,10 @@ class Settings:
         return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
-#: ``(table, key)`` left out of :meth:`Settings.to_json` (and so of the digest) while None (not given).
-OMITTED_WHEN_NONE = (("navigation", "plan"),)
-#: Tables left out of :meth:`Settings.to_json` (and so of the digest) while every key holds its default: the robot's,
-#: which no registration stage reads, so a run's provenance is the same as before they existed.
-OMITTED_WHEN_DEFAULT = ("handeye", "robot")
+#: ``(table, key)`` added to the settings later, left out of :meth:`Settings.to_json` (and so of the digest, the
+#: provenance of every output) while at its default; key None: the whole table (the robot's, which no registration
+#: stage reads).
+ADDED_LATER: tuple[tuple[str, str | None], ...] = (("navigation", "plan"), ("handeye", None), ("robot", None))
 
 
 def sensor_ports_given(settings: Settings) -> tuple[int | None, int | None]:
