@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from .error_model import skew
 from .errors import EMRegError, NoSafeAnswerError
 from .handeye_sync import estimate_clock_offset, interpolate_poses, pose_speeds
 from .settings import HandEyeSettings
@@ -277,14 +278,6 @@ def _params_to_poses(x: np.ndarray, start: tuple[np.ndarray, np.ndarray]) -> tup
     return poses[0], poses[1]
 
 
-def _skew(vectors: np.ndarray) -> np.ndarray:
-    """Cross-product matrices (N, 3, 3) of vectors (N, 3)."""
-    out = np.zeros(vectors.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -vectors[..., 2], vectors[..., 1], -vectors[..., 0]
-    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = vectors[..., 2], -vectors[..., 1], vectors[..., 0]
-    return out
-
-
 def _linearise(frames: _Frames, rows: np.ndarray, pose: tuple[np.ndarray, np.ndarray], offset_s: float,
                scales: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Noise-normalised residuals (N, 6: rotation, position) of the frames ``rows`` and their Jacobian (N, 6, 13)
@@ -296,14 +289,16 @@ def _linearise(frames: _Frames, rows: np.ndarray, pose: tuple[np.ndarray, np.nda
     h = 1e-3  # s: the offset's column by a central difference of the robot's interpolated motion
     later, _ = frames.flange_at(offset_s + h, rows)
     sooner, _ = frames.flange_at(offset_s - h, rows)
-    turn_dt = (pose_residuals(later, tracker, *pose)[0] - pose_residuals(sooner, tracker, *pose)[0]) / (2 * h)
-    shift_dt = (pose_residuals(later, tracker, *pose)[1] - pose_residuals(sooner, tracker, *pose)[1]) / (2 * h)
+    turn_later, shift_later = pose_residuals(later, tracker, *pose)
+    turn_sooner, shift_sooner = pose_residuals(sooner, tracker, *pose)
+    turn_dt = (turn_later - turn_sooner) / (2 * h)
+    shift_dt = (shift_later - shift_sooner) / (2 * h)
     jac = np.zeros((len(rows), 6, 13))
     jac[:, :3, 0:3] = np.eye(3)
     jac[:, :3, 6:9] = -np.swapaxes(tracker[:, :3, :3], 1, 2)
     jac[:, :3, 12] = turn_dt
     jac[:, 3:, 3:6] = flange[:, :3, :3]
-    jac[:, 3:, 6:9] = tracker_to_base[:3, :3] @ _skew(tracker[:, :3, 3])
+    jac[:, 3:, 6:9] = tracker_to_base[:3, :3] @ skew(tracker[:, :3, 3])
     jac[:, 3:, 9:12] = -np.eye(3)
     jac[:, 3:, 12] = shift_dt
     divide = np.concatenate([np.repeat(scales[0][:, None], 3, 1), np.repeat(scales[1][:, None], 3, 1)], axis=1)
@@ -336,7 +331,7 @@ def _gauss_newton(frames: _Frames, rows: np.ndarray, pose: tuple[np.ndarray, np.
 def _point_covariance(pose: np.ndarray, block: np.ndarray, point: np.ndarray) -> np.ndarray:
     """Covariance (mm^2) of ``pose @ point`` from the 6x6 covariance of the pose's parameters (rotation
     vector on the right, rad; translation, mm)."""
-    jac = np.hstack([-pose[:3, :3] @ _skew(point), np.eye(3)])
+    jac = np.hstack([-pose[:3, :3] @ skew(point), np.eye(3)])
     return jac @ block @ jac.T
 
 

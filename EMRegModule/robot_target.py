@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .error_model import skew
 from .errors import NoSafeAnswerError
 from .transforms import apply_transform, invert_rigid
 
@@ -84,10 +85,6 @@ def plan_flange_pose(entry_image: np.ndarray, target_image: np.ndarray, referenc
     return guide_to_base @ invert_rigid(guide_to_flange), guide_to_base, roll
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def hand_eye_ms_at(target_sensor_mm: np.ndarray, target_tracker_mm: np.ndarray, sensor_to_flange: np.ndarray,
                    tracker_to_base: np.ndarray, parameter_covariance: np.ndarray) -> float:
     """Mean-square error (mm^2) at the target from the hand-eye calibration's 12 pose parameters (X's and Y's
@@ -96,7 +93,7 @@ def hand_eye_ms_at(target_sensor_mm: np.ndarray, target_tracker_mm: np.ndarray, 
     covariance = np.asarray(parameter_covariance, dtype=float)
     total = 0.0
     for k, (pose, point) in enumerate(((sensor_to_flange, target_sensor_mm), (tracker_to_base, target_tracker_mm))):
-        jac = np.hstack([-pose[:3, :3] @ _skew(point), np.eye(3)])
+        jac = np.hstack([-pose[:3, :3] @ skew(point), np.eye(3)])
         total += float(np.trace(jac @ covariance[6 * k:6 * k + 6, 6 * k:6 * k + 6] @ jac.T))
     return total
 

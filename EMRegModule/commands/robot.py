@@ -176,17 +176,14 @@ def _reference_live(url: str, port: int) -> np.ndarray:
     import time
 
     from ..errors import EMRegError
-    from ..live.samples import STATUS_OK
     from ..live.sources import open_source
 
     poses: list[np.ndarray] = []
     enough = threading.Event()
 
     def take(sample) -> None:
-        if sample.sensor == port and sample.status == STATUS_OK and np.all(np.isfinite(sample.rotation)):
-            pose = np.eye(4)
-            pose[:3, :3], pose[:3, 3] = sample.rotation, sample.position_mm
-            poses.append(pose)
+        if sample.sensor == port and sample.valid:
+            poses.append(sample.transform())
             if len(poses) >= LIVE_SAMPLES:
                 enough.set()
 

@@ -14,7 +14,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import EMRegError
-from .atomic import atomic_path
+from .atomic import atomic_write_text
 
 #: A flange this far (m) from its robot's base means the file is not in metres (millimetres, most likely).
 MAX_REACH_M = 20.0
@@ -97,5 +97,4 @@ def format_tum(time_s: np.ndarray, poses_mm: np.ndarray, comment: str = "") -> s
 
 def write_tum(path: str | os.PathLike[str], time_s: np.ndarray, poses_mm: np.ndarray, comment: str = "") -> None:
     """Write a TUM trajectory atomically (see :func:`format_tum`)."""
-    with atomic_path(path) as tmp:
-        tmp.write_text(format_tum(time_s, poses_mm, comment), encoding="utf-8")
+    atomic_write_text(path, format_tum(time_s, poses_mm, comment))
