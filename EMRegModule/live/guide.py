@@ -105,12 +105,11 @@ class LiveGuide:
 
     def publish(self, server, numbers: tuple[float, float, float, float], now_s: float | None = None) -> None:
         """Send the ``Guidance`` STRING of ``numbers`` unless one went out less than :data:`GUIDANCE_INTERVAL_S`
-        ago, and the plan when it is due (:meth:`keep_plan_published`)."""
+        ago (the plan is kept published by the navigator's tick, not on each pose: :meth:`keep_plan_published`)."""
         now_s = time.monotonic() if now_s is None else now_s
         if now_s - self._guidance_sent_s >= GUIDANCE_INTERVAL_S:
             self._guidance_sent_s = now_s
             server.send(StringMessage(self.text(numbers), device_name=GUIDANCE_NAME))
-        self.keep_plan_published(server, now_s)
 
     def keep_plan_published(self, server, now_s: float | None = None) -> None:
         """Send the plan (TRANSFORM ``TrajectoryToImage`` / ``TargetToImage`` and POINT ``Plan``, RAS) if it was
