@@ -17,15 +17,13 @@ import numpy as np
 
 from .guidance import Guidance
 from .io.atomic import atomic_path
+from .io.navigation_csv import GUIDANCE_COLUMNS
 from .names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from .tracking import SAME_MOMENT_S, TrackingRecording, invert_rigid_batch, sensor_pair
 
 #: ``status`` (added): the pose's status, ``OK`` or ``INVALID`` (PLUS's TransformStatus names; see
 #: :mod:`EMRegModule.checkpoints`); the spec's five columns come first, unchanged.
 NAVIGATION_HEADER = "time_s,x_mm,y_mm,z_mm,label,status"
-
-#: The guidance columns appended, in this order, when a plan is given (:mod:`EMRegModule.guidance`).
-GUIDANCE_COLUMNS = ("target_distance_mm", "lateral_mm", "angle_deg", "to_go_mm")
 
 
 def probe_to_image(reference_to_image: np.ndarray, reference_to_tracker: np.ndarray,

@@ -52,8 +52,11 @@ def _field(line: str, index: int) -> str:
     return fields[index].strip() if index < len(fields) else ""
 
 
+#: The guidance columns appended to ``navigation.csv``, in this order, when a plan is given
+#: (:mod:`EMRegModule.guidance`).
+GUIDANCE_COLUMNS = ("target_distance_mm", "lateral_mm", "angle_deg", "to_go_mm")
 #: The columns :func:`read_guidance_columns` returns (the time, and the guidance columns of a navigation with a plan).
-GUIDANCE_SERIES = ("time_s", "target_distance_mm", "lateral_mm", "angle_deg", "to_go_mm")
+GUIDANCE_SERIES = ("time_s", *GUIDANCE_COLUMNS)
 
 
 def read_guidance_columns(path: Path) -> dict[str, np.ndarray] | None:
