@@ -26,6 +26,7 @@ and gives the 95 % radius of an isotropic 3D Gaussian error with that RMS (:data
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -182,6 +183,17 @@ def predicted_at_target(end_to_end_rms_mm: float, tool_rms_mm: float | None = No
     rms = float(np.sqrt(float(end_to_end_rms_mm) ** 2 + tool**2 + lever**2))
     return TargetPrediction(rms, RADIUS_95_PER_RMS * rms, float(end_to_end_rms_mm), tool, lever)
 
+
+
+def predicted_at(model: Any, target_mm: np.ndarray, tool: Any = None) -> TargetPrediction:
+    """:func:`predicted_at_target` at ``target_mm`` (3,, image LPS mm): ``model`` an
+    :class:`~EMRegModule.error_model.ErrorModel` (its end-to-end RMS TRE there), ``tool`` a
+    :class:`~EMRegModule.tool.ToolCalibration` (its ``rms_mm`` and its tip's lever ``|tip_mm|``) or None (the sensor
+    is navigated)."""
+    rms = float(model.budget(np.asarray(target_mm, dtype=float)[None]).rms_mm[0])
+    if tool is None:
+        return predicted_at_target(rms)
+    return predicted_at_target(rms, tool.rms_mm, float(np.linalg.norm(tool.tip_mm)))
 
 @dataclass(frozen=True)
 class GuidanceReport:

@@ -52,7 +52,7 @@ def live_tool_and_guide(args: argparse.Namespace, registration: RegistrationResu
         return tool, None
     from ..checkpoints import markers_beside
     from ..controller import error_model
-    from ..guidance import predicted_at_target, shaft_in_tip
+    from ..guidance import predicted_at, shaft_in_tip
     from ..live.guide import LiveGuide
     from ..plan import check_plan_in_image, read_plan
 
@@ -61,13 +61,7 @@ def live_tool_and_guide(args: argparse.Namespace, registration: RegistrationResu
     if markers is not None and getattr(markers, "image", None):
         check_plan_in_image(plan, markers.image)
     model = error_model(registration, settings)
-    prediction = None
-    if model is not None:
-        import numpy as np
-
-        rms = float(model.budget(np.asarray(plan.target_mm, dtype=float)[None]).rms_mm[0])
-        prediction = (predicted_at_target(rms) if tool is None else
-                      predicted_at_target(rms, tool.rms_mm, float(np.linalg.norm(tool.tip_mm))))
+    prediction = None if model is None else predicted_at(model, plan.target_mm, tool)
     return tool, LiveGuide(plan, None if tool is None else shaft_in_tip(tool.tip_to_probe), prediction)
 
 

@@ -96,12 +96,9 @@ class Planner:
         quadrature, with the 95 % radius; None without a plan or without an error model."""
         if self.plan is None or model is None:
             return None
-        from ..guidance import predicted_at_target
+        from ..guidance import predicted_at
 
-        rms = float(model.budget(np.asarray(self.plan.target_mm, dtype=float)[None]).rms_mm[0])
-        if tool is None:
-            return predicted_at_target(rms)
-        return predicted_at_target(rms, tool.rms_mm, float(np.linalg.norm(tool.tip_mm)))
+        return predicted_at(model, self.plan.target_mm, tool)
 
     def guide(self, result: NavigationResult, tool: ToolCalibration | None,
               model: ErrorModel | None) -> GuidanceReport | None:
