@@ -49,6 +49,7 @@ from .dwell import good_quality_mask, robust_mean, still_periods
 from .names import MARKERS_JSON
 from .settings import NavigationSettings
 from .slip import SlipVerdict, SlipWatch, jump_transform
+from .transforms import rotation_angle_deg
 
 if TYPE_CHECKING:
     from .registration import RegistrationResult
@@ -433,15 +434,9 @@ def _step_excess(position_mm: np.ndarray, rotation: np.ndarray,
     before = steps[:, None] + np.arange(-w, 0)  # (m, w) the previous steps
     step = position_mm[steps + 1] - position_mm[steps]
     motion = np.median(position_mm[before + 1] - position_mm[before], axis=1)
-    angle = _pair_angle_deg(rotation[steps], rotation[steps + 1])
-    turning = np.median(_pair_angle_deg(rotation[before], rotation[before + 1]), axis=1)
+    angle = rotation_angle_deg(rotation[steps], rotation[steps + 1])
+    turning = np.median(rotation_angle_deg(rotation[before], rotation[before + 1]), axis=1)
     return np.linalg.norm(step - motion, axis=1), angle - turning, motion
-
-
-def _pair_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angle (degrees) between rotations ``a`` and ``b`` (..., 3, 3)."""
-    trace = np.einsum("...ji,...ji->...", a, b)
-    return np.degrees(np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0)))
 
 
 #: Steps :func:`step_noise` looks at, at most (evenly spread): the median of a few thousand is as good as all.
@@ -482,7 +477,7 @@ def reference_jumps(time_s: np.ndarray, position_mm: np.ndarray, rotation: np.nd
     # candidates: a step, or its change from the step before, beyond half the floor (a jump changes the step by
     # its size whatever the motion); only they are measured against the motion before them
     step = np.diff(position_mm, axis=0)
-    angle = _pair_angle_deg(rotation[:-1], rotation[1:])
+    angle = rotation_angle_deg(rotation[:-1], rotation[1:])
     change = np.linalg.norm(np.diff(step, axis=0), axis=1)
     steps = np.arange(w, len(position_mm) - w)  # w steps before, a window of w samples after
     loose_mm, loose_deg = 0.5 * settings.reference_jump_mm, 0.5 * settings.reference_jump_deg
@@ -498,7 +493,7 @@ def reference_jumps(time_s: np.ndarray, position_mm: np.ndarray, rotation: np.nd
         i = int(steps[j]) + 1  # the first sample after the step
         before, after = slice(i - w, i), slice(i, i + w)
         moved = np.median(position_mm[after], axis=0) - np.median(position_mm[before], axis=0) - w * motion[j]
-        turned = float(_pair_angle_deg(rotation[i - 1 - w // 2], rotation[i + w // 2 - 1]))
+        turned = float(rotation_angle_deg(rotation[i - 1 - w // 2], rotation[i + w // 2 - 1]))
         e_mm, e_deg = float(excess_mm[j]), float(excess_deg[j])
         # a steady turn before the step (beyond the angles' own noise, which is never negative) is taken out
         turning = max(float(np.median(angle[i - 1 - w:i - 1])) - 2.0 * noise_deg, 0.0)

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import NoSafeAnswerError
-from .transforms import axis_angle_to_rotation, invert_rigid
+from .transforms import axis_angle_to_rotation, invert_rigid, rotation_angle_deg
 
 
 def spread_axes(count: int) -> np.ndarray:
@@ -65,8 +65,7 @@ def sensor_reach_mm(start_flange_to_base: np.ndarray, pose: np.ndarray, pivot_fl
     to ``pose``: the pivot's displacement plus the turn's chord at that radius."""
     pivot = np.append(np.asarray(pivot_flange_mm, dtype=float), 1.0)
     moved = float(np.linalg.norm((pose @ pivot - start_flange_to_base @ pivot)[:3]))
-    turn = start_flange_to_base[:3, :3].T @ pose[:3, :3]
-    angle = float(np.arccos(np.clip((np.trace(turn) - 1.0) / 2.0, -1.0, 1.0)))
+    angle = float(np.radians(rotation_angle_deg(start_flange_to_base[:3, :3], pose[:3, :3])))
     return moved + 2.0 * np.sin(angle / 2.0) * sensor_radius_mm
 
 
@@ -142,8 +141,7 @@ def check_step(flange_to_base_now: np.ndarray, flange_to_base_next: np.ndarray, 
     """Refuse (:class:`NoSafeAnswerError`) a correction larger than a correction can be: something is wrong (the
     reference moved, the wrong calibration) and moving further would not be safe."""
     moved = float(np.linalg.norm(flange_to_base_next[:3, 3] - flange_to_base_now[:3, 3]))
-    turn = flange_to_base_now[:3, :3].T @ flange_to_base_next[:3, :3]
-    angle = float(np.degrees(np.arccos(np.clip((np.trace(turn) - 1.0) / 2.0, -1.0, 1.0))))
+    angle = float(rotation_angle_deg(flange_to_base_now[:3, :3], flange_to_base_next[:3, :3]))
     if moved > max_step_mm or angle > max_step_deg:
         raise NoSafeAnswerError(f"robot-go: the correction would move the flange {moved:.1f} mm and turn it "
                                 f"{angle:.1f} deg (more than [robot] max_correction_mm {max_step_mm:g} / "

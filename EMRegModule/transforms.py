@@ -266,6 +266,13 @@ def fre(a_to_b: ArrayLike, points_a: ArrayLike, points_b: ArrayLike) -> float:
     return float(np.sqrt(np.mean(residuals(a_to_b, points_a, points_b) ** 2)))
 
 
+def rotation_angle_deg(a: ArrayLike, b: ArrayLike) -> Array:
+    """Angle(s) in degrees of the rotation between rotation matrices ``a`` and ``b`` (..., 3, 3): that of
+    ``a.T @ b``."""
+    trace = np.einsum("...ji,...ji->...", np.asarray(a, dtype=float), np.asarray(b, dtype=float))
+    return np.degrees(np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0)))
+
+
 def angle_between_deg(u: ArrayLike, v: ArrayLike) -> Array:
     """Angle(s) in degrees between vectors (..., 3)."""
     u = np.asarray(u, dtype=float)

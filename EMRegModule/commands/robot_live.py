@@ -42,8 +42,9 @@ def _limits(robot_settings):
 
 
 def _describe_move(name: str, start: np.ndarray, pose: np.ndarray) -> str:
-    turn = start[:3, :3].T @ pose[:3, :3]
-    angle = float(np.degrees(np.arccos(np.clip((np.trace(turn) - 1.0) / 2.0, -1.0, 1.0))))
+    from ..transforms import rotation_angle_deg
+
+    angle = float(rotation_angle_deg(start[:3, :3], pose[:3, :3]))
     position = ", ".join(f"{v:.1f}" for v in pose[:3, 3])
     return (f"  {name}: flange at ({position}) mm in the base frame, {np.linalg.norm(pose[:3, 3] - start[:3, 3]):.1f}"
             f" mm and {angle:.1f} deg from where it stands")

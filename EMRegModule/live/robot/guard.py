@@ -25,6 +25,7 @@ from ...checkpoints import reference_jumps
 from ...errors import NoSafeAnswerError
 from ...io.handeye_inputs import robust_mean_pose
 from ...settings import NavigationSettings
+from ...transforms import rotation_angle_deg
 from ..samples import STATUS_OUT_OF_RANGE, SensorSample
 from .driver import MotionLimits, RobotDriver
 
@@ -103,8 +104,7 @@ class TrackerWatch:
         if self._held is not None and len(poses) >= 3:
             now_pose = robust_mean_pose(poses[-5:])
             moved = float(np.linalg.norm(now_pose[:3, 3] - self._held[:3, 3]))
-            turn = self._held[:3, :3].T @ now_pose[:3, :3]
-            angle = float(np.degrees(np.arccos(np.clip((np.trace(turn) - 1.0) / 2.0, -1.0, 1.0))))
+            angle = float(rotation_angle_deg(self._held[:3, :3], now_pose[:3, :3]))
             if moved > self.navigation.reference_jump_mm or angle > self.navigation.reference_jump_deg:
                 return (f"the reference sensor moved {moved:.2f} mm / {angle:.2f} deg since the motion began (limits "
                         f"{self.navigation.reference_jump_mm:g} mm / {self.navigation.reference_jump_deg:g} deg, "
