@@ -2,7 +2,7 @@
 
 The package is a GUI-free core (transforms, I/O, CT marker detection, tracking, pairing,
 calibration, registration, navigation, evaluation, rendering) driven by a controller
-(:mod:`EMRegModule.controller`) and thin faces: the ``emreg`` command, the 3D Slicer
+(:mod:`EMRegModule.pipeline.controller`) and thin faces: the ``emreg`` command, the 3D Slicer
 scripted module and an OpenIGTLink server.
 
 Conventions: millimetres and degrees; image space is the CT's LPS physical space as

@@ -63,5 +63,5 @@ DEFAULT_REFERENCE_PORT = 1
 DEFAULT_PROBE_PORT = 2
 #: OpenIGTLink's registered port (the server's default, as in PLUS and Slicer's OpenIGTLinkIF).
 DEFAULT_IGTL_PORT = 18944
-#: The trakSTAR's line speed when nothing says otherwise (:data:`EMRegModule.live.trakstar.protocol.DEFAULT_BAUD`).
+#: The trakSTAR's line speed when nothing says otherwise (:data:`EMRegModule.devices.trakstar.protocol.DEFAULT_BAUD`).
 DEFAULT_TRAKSTAR_BAUD = 115200

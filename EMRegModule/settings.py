@@ -8,7 +8,7 @@ value out of range, with one line naming the file, the table and the key (see
 their own table (``settings.registration`` ...), never a raw dict.
 
 Adding a key is one line: a field with its default (and range) in its table class below.
-The stage modules re-export their table (``EMRegModule.registration.RegistrationSettings`` ...).
+The stage modules re-export their table (``EMRegModule.core.registration.RegistrationSettings`` ...).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from .tables import SettingError, fraction, non_negative, one_of, parse_table, p
 class SensorSettings:
     """``[sensors]``: the tracker ports of the reference sensor (Model 800) and of the probe (Model 90);
     ``probe_axis`` (``auto``, ``+x_in``, ``+x_out``, ``none``; None: ``auto`` for a calibration, the
-    calibration's own for a registration; see :mod:`EMRegModule.probe_axis`); the transform names of
+    calibration's own for a registration; see :mod:`EMRegModule.core.probe_axis`); the transform names of
     the two sensors in a PLUS sequence file (None: ``ReferenceToTracker``, ``ProbeToTracker``)."""
 
     reference: int = port(DEFAULT_REFERENCE_PORT)
@@ -169,7 +169,7 @@ class EvaluationSettings(DwellSettings):
     ``max_target_distance_mm`` (15): an unlabelled dwell farther than this from every target is not
     counted for TRE.
 
-    The error model's priors (:mod:`EMRegModule.error_model`): ``reference_error_mm`` and
+    The error model's priors (:mod:`EMRegModule.core.error_model`): ``reference_error_mm`` and
     ``reference_error_deg``, the reference sensor's per-axis pose error (default: a quarter of the
     probe's measured per-dwell error, and the rotation that moves a point 100 mm away by as much);
     ``placement_error_mm`` (0), the 3D RMS error of putting the probe on a target.
@@ -191,7 +191,7 @@ class EvaluationSettings(DwellSettings):
 
 @dataclass(frozen=True)
 class NavigationSettings(DwellSettings):
-    """``[navigation]``: what EMReg checks while it navigates (:mod:`EMRegModule.checkpoints`).
+    """``[navigation]``: what EMReg checks while it navigates (:mod:`EMRegModule.core.checkpoints`).
 
     Checkpoints: a rest of the probe (the dwell keys; a probe resting in a pinhole: 0.5 s within
     0.5 mm, as at calibration) whose centre lies within ``checkpoint_radius_mm`` (5) of a detected
@@ -208,7 +208,7 @@ class NavigationSettings(DwellSettings):
     sample) is warned about as a possible slip of the reference in its slot.
 
     ``plan``: a plan file (a Slicer markups JSON: a Line Entry -> Target, points labelled Entry and Target, or one
-    target point; :mod:`EMRegModule.plan`), relative to ``case.toml``'s folder; None: no plan, no guidance
+    target point; :mod:`EMRegModule.core.plan`), relative to ``case.toml``'s folder; None: no plan, no guidance
     columns. Left out of the settings' JSON and digest when not given (settings without it stay as they were)."""
 
     min_duration_s: float = positive(0.5)
@@ -285,7 +285,7 @@ class RegistrationSettings:
     ``outlier_min_mm``; ``exclude_outliers`` refits without them), the l uncertainty that earns a warning
     (``warn_l_std_mm``) or a refusal (``max_l_std_mm``), and the pairing keys (:class:`PairingSettings`).
 
-    Field distortion (:mod:`EMRegModule.distortion`): a detected one (false-alarm rate
+    Field distortion (:mod:`EMRegModule.core.distortion`): a detected one (false-alarm rate
     ``distortion_false_alarm``, 0.002) whose RMS at the pinholes beyond the rigid fit is above
     ``max_distortion_mm`` (1.5 mm) is refused: alone it would take most of a 2 mm accuracy budget (the
     FRE limit), so the field is no place to navigate in; below, it is warned about and predicted."""
@@ -341,7 +341,7 @@ class CTSettings:
 
 @dataclass(frozen=True)
 class ToolSettings:
-    """``[tool]``: a tracked tool instead of the paper's pinhole probe (:mod:`EMRegModule.tool`).
+    """``[tool]``: a tracked tool instead of the paper's pinhole probe (:mod:`EMRegModule.core.tool`).
 
     - ``calibration``: the tool file (``tool_calibration.json``, an ITK/Slicer ``TipToProbe`` transform, or a
       PLUS device-set XML), relative to ``case.toml``'s folder; None: the pinhole probe (sensor at depth l).
@@ -367,7 +367,7 @@ class ToolSettings:
 
 @dataclass(frozen=True)
 class HandEyeSettings:
-    """``[handeye]``: hand-eye and robot-world calibration with the EM tracker (:mod:`EMRegModule.handeye`).
+    """``[handeye]``: hand-eye and robot-world calibration with the EM tracker (:mod:`EMRegModule.core.handeye`).
 
     - ``flange_transform`` (``FlangeToBase``): the robot flange's transform name in a PLUS sequence file of
       robot poses; ``sensor`` (None): the flange sensor in the tracker recording (a transform name or a port;
@@ -414,14 +414,14 @@ class HandEyeSettings:
 
 @dataclass(frozen=True)
 class RobotSettings:
-    """``[robot]``: targeting with the robot (``emreg robot-target``, :mod:`EMRegModule.robot_target`).
+    """``[robot]``: targeting with the robot (``emreg robot-target``, :mod:`EMRegModule.core.robot_target`).
 
     - ``standoff_mm`` (0): the guide's exit this far before Entry, back along the planned axis (0: on Entry).
     - ``max_tracker_distance_mm`` (660): Entry and Target must lie within this distance of the field generator
       (the tracker's characterised volume; 660 mm is a trakSTAR mid-range transmitter's), else exit 3.
     - ``reach_mm`` (None): the flange must stay within this distance of the robot's base (None: not checked).
 
-    Driving the robot (``emreg robot-calibrate``, ``emreg robot-go``; :mod:`EMRegModule.robot_motion`):
+    Driving the robot (``emreg robot-calibrate``, ``emreg robot-go``; :mod:`EMRegModule.core.robot_motion`):
 
     - ``flange_sensor`` (3): the tracker port of the EM sensor on the flange's guide (``--sensor`` overrides it).
     - ``max_velocity_mm_s`` (50), ``max_acceleration_mm_s2`` (250), ``max_rotation_deg_s`` (20),
@@ -562,7 +562,7 @@ ADDED_LATER: tuple[tuple[str, str | None], ...] = (("navigation", "plan"), ("han
 def sensor_ports_given(settings: Settings) -> tuple[int | None, int | None]:
     """The ports (reference, probe) that the settings file itself gives in ``[sensors]`` (None where it gives
     none, or when the settings are the defaults): a port left out there is not a user's choice, so a
-    consumer may take it from the registration (:meth:`EMRegModule.controller.EMRegController.use_ports`)."""
+    consumer may take it from the registration (:meth:`EMRegModule.pipeline.controller.EMRegController.use_ports`)."""
     return (settings.sensors.reference if settings.gives("sensors", "reference") else None,
             settings.sensors.probe if settings.gives("sensors", "probe") else None)
 

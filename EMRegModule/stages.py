@@ -7,8 +7,9 @@
     calibration recording -> calibrate┘       └────> evaluate ─> tre_map ─> report ─> bundle
 
 Everything else follows from :data:`STAGES`: the outputs of each stage (:data:`STAGE_OUTPUTS`), the stages a new
-result makes stale (:data:`DEPENDENTS`, :func:`outputs_from`, used by :class:`~EMRegModule.outputs.OutputFolder`
-and by :class:`~EMRegModule.workflow.results.WorkflowResults`), the provenance of each output (``inputs``: the input
+result makes stale (:data:`DEPENDENTS`, :func:`outputs_from`, used by
+:class:`~EMRegModule.io.output_folder.OutputFolder`
+and by :class:`~EMRegModule.pipeline.results.WorkflowResults`), the provenance of each output (``inputs``: the input
 roles it is made from; :func:`uses`: the upstream outputs), and the order ``emreg run`` executes them in. File
 names come from :mod:`EMRegModule.names`. This module imports nothing heavy: ``emreg --help`` loads it.
 """
@@ -26,7 +27,7 @@ class Stage:
 
     ``needs``: the earlier stages whose results it is made from; ``writes``: its outputs in OUT (the first is the
     one later stages name in their provenance's ``uses``); ``inputs``: the input roles (``ct``, ``calibration``...)
-    its provenance records; ``results``: the fields of :class:`~EMRegModule.workflow.results.WorkflowResults` that
+    its provenance records; ``results``: the fields of :class:`~EMRegModule.pipeline.results.WorkflowResults` that
     hold its result; ``uses_present``: made from every output present in OUT (the report, the bundle);
     ``export``: a product of the rendering libraries, left out of a run without them (3D Slicer without pyvista).
     """

@@ -26,17 +26,22 @@ from pathlib import Path
 
 #: The layers, lowest first: a module may import from its own layer and the layers below it, never above.
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("base", ("__init__", "errors", "names", "frames", "tables", "progress", "interrupts", "transforms", "stages")),
-    ("model", ("tracking", "marker_model", "settings")),
-    ("formats", ("io", "provenance")),
-    ("core", ("em_field", "dwell", "error_model", "sensor_offset", "calibration", "pairing", "probe_axis",
-              "registration", "fiducial_registration", "distortion", "slip", "checkpoints", "navigation", "evaluation",
-              "tool", "tre_map", "detection", "guidance", "plan", "handeye", "handeye_sync", "robot_target",
-              "robot_motion")),
-    ("products", ("rendering", "report", "slicer_export", "simulation", "run_folder", "live")),
-    ("workflow", ("workflow", "controller", "outputs", "bundle_state")),
-    ("faces", ("commands", "cli", "__main__", "slicer", "studies")),
+    ("base", ("__init__", "errors", "names", "tables", "progress", "interrupts", "marker_model", "settings",
+              "stages")),
+    ("core", ("core",)),
+    ("io", ("io",)),
+    ("devices", ("devices",)),
+    ("products", ("rendering", "report", "slicer_export", "simulation")),
+    ("pipeline", ("pipeline", "live")),
+    ("faces", ("cli", "__main__", "slicer", "studies")),
 )
+#: The front ends (they parse, call the pipeline and print) and the only layers they may import from.
+FRONT_ENDS = ("cli", "slicer", "__main__")
+FRONT_END_REACH = ("base", "io", "devices", "pipeline")
+#: The one place imports inside a function are allowed: optional extras (installed with an extra, or present only
+#: inside 3D Slicer) and the heavy libraries a command loads only when it gets to the step that needs them, each with
+#: its reason. Every other import is at the top of its module, where a reader sees what depends on what.
+DEFERRED_IMPORTS: dict[str, str] = {}
 MAX_FUNCTION_LINES = 90
 MAX_MODULE_LINES = 700
 MAX_METHODS = 30
@@ -58,6 +63,8 @@ class Shape:
     big_modules: list[tuple[int, str]] = field(default_factory=list)
     big_classes: list[tuple[int, str, str]] = field(default_factory=list)
     private_imports: list[tuple[str, str, str]] = field(default_factory=list)
+    inner_imports: list[tuple[str, str]] = field(default_factory=list)
+    front_end_reach: list[tuple[str, str]] = field(default_factory=list)
     unlayered: list[str] = field(default_factory=list)
 
 
@@ -66,6 +73,27 @@ def layer_of(module: str) -> int | None:
     parts = module.split(".")
     top = parts[1] if len(parts) > 1 else "__init__"
     return next((i for i, (_, names) in enumerate(LAYERS) if top in names), None)
+
+
+def _top(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "__init__"
+
+
+def _deferred(target: str) -> bool:
+    return any(target == name or target.startswith(name + ".") for name in DEFERRED_IMPORTS)
+
+
+def _inner_imports(module: str, tree: ast.Module, is_package: bool) -> Iterator[str]:
+    """The modules imported inside a function of ``module`` (absolute names; ``__future__`` aside)."""
+    for function in ast.walk(tree):
+        if not isinstance(function, ast.FunctionDef | ast.AsyncFunctionDef):
+            continue
+        for node in ast.walk(function):
+            if isinstance(node, ast.Import):
+                yield from (alias.name for alias in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                yield _target(module, node, is_package)
 
 
 def _modules(root: Path) -> dict[str, Path]:
@@ -152,6 +180,8 @@ def survey(root: Path) -> Shape:
         shape.lines[name] = text.count("\n")
         tree = ast.parse(text)
         shape.imports[name] = set(_imports(name, tree, path.name == "__init__.py", modules, shape)) - {name}
+        shape.inner_imports += [(name, target) for target in _inner_imports(name, tree, path.name == "__init__.py")
+                                if not _deferred(target)]
         for node in ast.walk(tree):
             if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
                 length = node.end_lineno - node.lineno + 1
@@ -166,6 +196,11 @@ def survey(root: Path) -> Shape:
         if layer_of(name) is None:
             shape.unlayered.append(name)
     shape.circles = _circles(shape.imports)
+    front_end_layers = {i for i, (layer, _) in enumerate(LAYERS) if layer in FRONT_END_REACH}
+    for name, targets in shape.imports.items():
+        if _top(name) in FRONT_ENDS:
+            shape.front_end_reach += [(name, t) for t in sorted(targets)
+                                      if _top(t) not in FRONT_ENDS and layer_of(t) not in front_end_layers]
     for name, targets in shape.imports.items():
         here = layer_of(name)
         shape.upward += [(name, t) for t in sorted(targets)
@@ -195,6 +230,10 @@ def describe(shape: Shape) -> list[str]:
     lines += [f"  {n} {m}.{c}" for n, m, c in shape.big_classes]
     lines.append(f"private names imported across modules: {len(shape.private_imports)}")
     lines += [f"  {m} imports {t}.{n}" for m, t, n in shape.private_imports]
+    lines.append(f"imports inside functions, not in DEFERRED_IMPORTS: {len(shape.inner_imports)}")
+    lines += [f"  {m} imports {t}" for m, t in shape.inner_imports]
+    lines.append(f"front-end imports beyond {', '.join(FRONT_END_REACH)}: {len(shape.front_end_reach)}")
+    lines += [f"  {m} imports {t}" for m, t in shape.front_end_reach]
     lines.append(f"modules in no layer: {len(shape.unlayered)}" + "".join(f"\n  {m}" for m in shape.unlayered))
     return lines
 

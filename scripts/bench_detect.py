@@ -268,8 +268,8 @@ print(f"read {t1 - t0:.4f} pipeline {t2 - t1:.4f} components {len(centroids)}")
 
 def pose_timing(ct: Path) -> tuple[float, int]:
     """Time ``fit_pose`` for every marker the detection keeps (in this process, one thread)."""
-    from EMRegModule.detection import detect as detect_module
-    from EMRegModule.detection import detect_markers
+    from EMRegModule.core.detection import detect as detect_module
+    from EMRegModule.core.detection import detect_markers
     from EMRegModule.io.image import read_ct
     from EMRegModule.marker_model import MarkerModel
 
@@ -297,7 +297,7 @@ def pose_timing(ct: Path) -> tuple[float, int]:
 
 
 def accuracy(markers_json: Path, truth_json: Path) -> str:
-    from EMRegModule.transforms import angle_between_deg
+    from EMRegModule.core.transforms import angle_between_deg
 
     truth = json.loads(truth_json.read_text())
     found = json.loads(markers_json.read_text())["markers"]

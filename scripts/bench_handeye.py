@@ -46,7 +46,7 @@ from handeye_sequences import (  # noqa: E402
     tracker_point_error_mm,
 )
 
-from EMRegModule.handeye import calibrate_hand_eye  # noqa: E402
+from EMRegModule.core.handeye import calibrate_hand_eye  # noqa: E402
 
 Solver = Callable[[np.ndarray, np.ndarray, HandEyeCase], tuple[np.ndarray, np.ndarray]]
 

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+from EMRegModule.core.tracking import TrackingRecording, probe_in_reference
+from EMRegModule.core.transforms import angles_to_rotation
 from EMRegModule.io.tracking_csv import read_tracking_csv, write_tracking_csv
-from EMRegModule.tracking import TrackingRecording, probe_in_reference
-from EMRegModule.transforms import angles_to_rotation
 
 
 def _timed(func, repeat: int = 3) -> tuple[float, object]:

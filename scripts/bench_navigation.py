@@ -2,7 +2,7 @@
 """Benchmark: offline navigation throughput (paper Eq. 12) against a per-sample Python loop.
 
 A recording of ``--samples`` probe samples (plus as many reference samples, 80 Hz, the frame
-moving) is mapped into image space by :func:`EMRegModule.navigation.navigate_recording`
+moving) is mapped into image space by :func:`EMRegModule.core.navigation.navigate_recording`
 (vectorised); the baseline maps each sample with the single-pose function in a Python loop
 (building each sample's two 4x4 poses, the way a naive replay would), on a slice, both
 in the same run. Prints samples per second
@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from EMRegModule.navigation import navigate_recording, probe_to_image, write_navigation_csv
-from EMRegModule.tracking import TrackingRecording
-from EMRegModule.transforms import make_transform, quaternion_to_rotation, random_rotation
+from EMRegModule.core.navigation import navigate_recording, probe_to_image, write_navigation_csv
+from EMRegModule.core.tracking import TrackingRecording
+from EMRegModule.core.transforms import make_transform, quaternion_to_rotation, random_rotation
 
 
 def synthetic_recording(n: int, seed: int = 0) -> TrackingRecording:

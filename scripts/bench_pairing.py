@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "Testing" / "Python
 
 from synth_registration import pairing_problem  # noqa: E402
 
-from EMRegModule.pairing import pair_markers  # noqa: E402
+from EMRegModule.core.pairing import pair_markers  # noqa: E402
 
 L_RANGE = (11.0, 18.5)
 

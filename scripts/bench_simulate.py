@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
+from EMRegModule.core.transforms import apply_transform, invert_rigid
 from EMRegModule.marker_model import MarkerModel
 from EMRegModule.simulation import ct
 from EMRegModule.simulation.case import _frame_to_image, _rng, simulate_case
 from EMRegModule.simulation.frame import build_phantom
 from EMRegModule.simulation.options import resolve_options
-from EMRegModule.transforms import apply_transform, invert_rigid
 
 
 def plain_paint(volume: np.ndarray, grid: ct.Grid, image_to_frame: np.ndarray, layers: list[ct.Layer]) -> None:

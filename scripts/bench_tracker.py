@@ -48,14 +48,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from EMRegModule.live.aurora import protocol as ndi  # noqa: E402
-from EMRegModule.live.device_url import parse_device_url  # noqa: E402
-from EMRegModule.live.igtl_server import IGTLServer  # noqa: E402
+from EMRegModule.devices.aurora import protocol as ndi  # noqa: E402
+from EMRegModule.devices.device_url import parse_device_url  # noqa: E402
+from EMRegModule.devices.igtl_server import IGTLServer  # noqa: E402
+from EMRegModule.devices.simulator.scene import BuiltinScene  # noqa: E402
+from EMRegModule.devices.sources import open_source  # noqa: E402
+from EMRegModule.devices.trakstar import protocol as tp  # noqa: E402
+from EMRegModule.devices.trakstar.source import TrakstarSource  # noqa: E402
 from EMRegModule.live.navigator import LiveNavigator  # noqa: E402
-from EMRegModule.live.simulator.scene import BuiltinScene  # noqa: E402
-from EMRegModule.live.sources import open_source  # noqa: E402
-from EMRegModule.live.trakstar import protocol as tp  # noqa: E402
-from EMRegModule.live.trakstar.source import TrakstarSource  # noqa: E402
 
 DRAIN = """
 import socket, sys
@@ -110,9 +110,9 @@ def match_emits(poses: list[np.ndarray], emitted: list[tuple[int, np.ndarray]]) 
 
 def _trust():
     """The checkpoint and reference-jump watch live ``emreg navigate`` runs beside every pose (28 pinholes of a
-    full frame, 350 x 350 mm, around the scene's probe), as :func:`EMRegModule.commands.live.run_live_navigate`
+    full frame, 350 x 350 mm, around the scene's probe), as :func:`EMRegModule.cli.live.run_live_navigate`
     builds it."""
-    from EMRegModule.checkpoints import Pinholes, TrustMonitor
+    from EMRegModule.core.checkpoints import Pinholes, TrustMonitor
 
     rng = np.random.default_rng(0)
     axis = rng.normal(size=(28, 3))
@@ -122,8 +122,8 @@ def _trust():
 
 def _guided() -> dict:
     """A needle (tip 118 mm along the sensor's +x) and a plan of 80 mm ending 40 mm from the scene's reference, as
-    live ``emreg navigate --tool --plan`` builds them (:mod:`EMRegModule.commands.live_guidance`)."""
-    from EMRegModule.guidance import Plan, predicted_at_target, shaft_in_tip
+    live ``emreg navigate --tool --plan`` builds them (:mod:`EMRegModule.cli.live_guidance`)."""
+    from EMRegModule.core.guidance import Plan, predicted_at_target, shaft_in_tip
     from EMRegModule.live.guide import LiveGuide
 
     tip_to_probe = np.eye(4)

@@ -173,7 +173,7 @@ def main() -> int:
     if args.pyigtl_child is not None:
         _pyigtl_child(args.pyigtl_child, args.seconds)
         return 0
-    from EMRegModule.live.igtl_server import IGTLServer
+    from EMRegModule.devices.igtl_server import IGTLServer
 
     print(f"load average {os.getloadavg()[0]:.2f}; {args.rate:g} Hz, client stops reading for {args.stall:g} s")
     print(reset_discards_nothing())

@@ -1,7 +1,7 @@
 """Evidence for the live link guard's limits: rejected fractions and pose errors per fault level.
 
 Runs the trakSTAR simulator on a real pseudo-terminal, reads it with the real driver, passes every
-sample through a :class:`~EMRegModule.live.link_quality.LinkGuard` and compares each sample with the
+sample through a :class:`~EMRegModule.devices.link_quality.LinkGuard` and compares each sample with the
 pose the simulator really sent (its truth log). For each fault level it prints:
 
 - records read, rejected by framing / value checks, rejected by the jump test;
@@ -20,11 +20,11 @@ import time
 
 import numpy as np
 
-from EMRegModule.live.device_url import parse_device_url
-from EMRegModule.live.link_quality import LinkGuard, LinkQualityMonitor
-from EMRegModule.live.simulator.faults import FaultPlan
-from EMRegModule.live.simulator.trakstar import TrackerSimulator
-from EMRegModule.live.trakstar.source import TrakstarSource
+from EMRegModule.devices.device_url import parse_device_url
+from EMRegModule.devices.link_quality import LinkGuard, LinkQualityMonitor
+from EMRegModule.devices.simulator.faults import FaultPlan
+from EMRegModule.devices.simulator.trakstar import TrackerSimulator
+from EMRegModule.devices.trakstar.source import TrakstarSource
 
 WRONG_MM = 1.0
 
@@ -35,8 +35,8 @@ def measure(level: float, seconds: float, seed: int, kind: str, replay: str | No
     states = []
     scene = None
     if replay:
+        from EMRegModule.devices.simulator.scene import ReplayScene
         from EMRegModule.io.tracking_csv import read_tracking_csv
-        from EMRegModule.live.simulator.scene import ReplayScene
 
         scene = ReplayScene(read_tracking_csv(replay))
     with TrackerSimulator(scene, faults=faults, seed=seed, keep_truth=True, attached=(1, 2)) as sim:

@@ -13,18 +13,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..errors import EMRegError
-from ..names import (
-    CASE_FIDUCIALS_FILE,
-    CT_FILE_NAMES,
-    CT_FOLDER_NAME,
-    RECORDING_SUFFIXES,
-    SETTINGS_FILE,
-    TARGETS_FILE,
-)
+from ..names import CASE_FIDUCIALS_FILE, CT_FILE_NAMES, CT_FOLDER_NAME, RECORDING_SUFFIXES, SETTINGS_FILE, TARGETS_FILE
 from ..settings import Settings, load_settings
 
 if TYPE_CHECKING:  # the recording readers are imported where a recording is read (not by emreg detect)
-    from ..tracking import TrackingRecording
+    from ..core.tracking import TrackingRecording
 
 
 @dataclass

@@ -14,7 +14,7 @@ on this module. The handle answers four things:
   order); :meth:`CTHandle.wait_for_slices` returns once slices ``0 .. n-1`` (numpy axis 0, the image's k index)
   hold their final values; :meth:`CTHandle.result` waits for the whole read and raises its error.
 - **sha256**: :attr:`CTHandle.sha256`, the source's sha256 (hex, for provenance) computed from the very bytes
-  the read takes (:class:`~EMRegModule.provenance.Digest`); for voxels read from the files where they are looked
+  the read takes (:class:`~EMRegModule.io.provenance.Digest`); for voxels read from the files where they are looked
   at (:meth:`CTHandle.on_files`), by a pass of its own over the files beside that work.
 - **release**: :meth:`CTHandle.release_before` gives slices back to the system (voxels in an anonymous
   mapping: :func:`anonymous_voxels`), :meth:`CTHandle.release` lets go of every voxel (the geometry stays),
@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import EMRegError
-from ..provenance import Digest
+from .provenance import Digest
 
 if TYPE_CHECKING:  # a handle of voxels in numpy memory (a DICOM series for emreg detect) needs no SimpleITK
     import SimpleITK as sitk

@@ -2,7 +2,7 @@
 stores its voxels, the file a detached header names, and the voxel data's length against the header's sizes.
 
 No voxel is decoded here (the readers are :mod:`.fast_read` and SimpleITK); the geometry is always SimpleITK's
-own reading of the header. Provenance (:func:`~EMRegModule.provenance.file_sha256`) uses
+own reading of the header. Provenance (:func:`~EMRegModule.io.provenance.file_sha256`) uses
 :func:`detached_data_file`, the CT checks (:mod:`.ct_checks`) :func:`nrrd_header_fields`.
 """
 

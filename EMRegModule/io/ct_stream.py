@@ -19,10 +19,10 @@ import mmap
 import threading
 from pathlib import Path
 
-from ..provenance import Digest
 from . import fast_read
 from .ct_checks import check_ct_file, check_ct_geometry, check_file_placement
 from .ct_handle import CTGeometry, CTHandle
+from .provenance import Digest
 
 
 def start_streamed_read(path: str | Path) -> CTHandle | None:

@@ -27,7 +27,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..errors import EMRegError
-from ..provenance import BackgroundHash, Digest, file_sha256, folder_members, folder_sha256
 from .ct_handle import CTGeometry, CTHandle, writable_bytes
 from .dicom_pixels import (
     UNCOMPRESSED,
@@ -43,6 +42,7 @@ from .dicom_series import DicomSeries, SliceHeader, choose_series, scan_series, 
 from .dicom_slices import DicomSliceStack
 from .itk_messages import quiet_itk
 from .pixel_types import FLOAT32, FLOATS, INT16, INT32, NAMES, NUMPY_NAMES, UINT16
+from .provenance import BackgroundHash, Digest, file_sha256, folder_members, folder_sha256
 from .read_process import can_fork_reader, fork_reader
 
 if TYPE_CHECKING:  # SimpleITK is imported where an image is made or GDCM decodes: an uncompressed series read
@@ -63,7 +63,7 @@ def open_dicom_series(folder: str | os.PathLike[str], series: str | int | None =
     Slices are decoded on ``workers`` threads (default: the CPU count, at most 8) and announced
     in order (``wait_for_slices``). A slice GDCM cannot decode, or whose size disagrees with its
     header, ends the read with an :class:`EMRegError` naming the file. ``handle.sha256`` is the
-    folder's sha256 (:func:`~EMRegModule.provenance.file_sha256`), made from each slice's bytes
+    folder's sha256 (:func:`~EMRegModule.io.provenance.file_sha256`), made from each slice's bytes
     as they are read for decoding (the first ones, read while the volume is allocated, are hashed then).
 
     ``compact``: voxels of :func:`compact_voxel_type` (int16 where the headers allow values beyond
@@ -131,7 +131,7 @@ def _start_beside(handle: CTHandle, run: Callable[[CTHandle], None], folder: Pat
 
 
 def _hash_folder(handle: CTHandle, folder: Path, workers: int) -> None:
-    """Make ``handle``'s sha256 (the folder's, :func:`~EMRegModule.provenance.file_sha256`), then end its read."""
+    """Make ``handle``'s sha256 (the folder's, :func:`~EMRegModule.io.provenance.file_sha256`), then end its read."""
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="emreg-dicom-hash") as pool:
         _finish_digest(handle, folder, {}, pool)
     handle.finish()

@@ -31,8 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from ..core.frames import lps_to_ras_points
 from ..errors import EMRegError
-from ..frames import lps_to_ras_points
 from ..names import MARKERS_JSON
 from .markups import read_markups_with_frame
 

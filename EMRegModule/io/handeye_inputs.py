@@ -124,7 +124,7 @@ def read_device_set_transform(path: str | os.PathLike[str], source: str, target:
 def robust_mean_pose(poses: np.ndarray) -> np.ndarray:
     """The mean (4x4, mm) of a still sensor's poses (N, 4, 4), samples farther than 3 robust standard deviations
     from the median position left out (a glitch)."""
-    from ..transforms import mean_rigid
+    from ..core.transforms import mean_rigid
 
     distance = np.linalg.norm(poses[:, :3, 3] - np.median(poses[:, :3, 3], axis=0), axis=1)
     keep = distance <= max(3.0 * 1.4826 * float(np.median(distance)), 1e-6)

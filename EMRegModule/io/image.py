@@ -13,10 +13,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..errors import EMRegError
-from ..provenance import BackgroundHash, note_read_digest
 from .ct_checks import check_ct_file, check_ct_geometry, check_ct_path, check_ct_voxels, check_file_placement
 from .ct_handle import CTHandle
 from .itk_messages import quiet_itk, read_failure
+from .provenance import BackgroundHash, note_read_digest
 
 if TYPE_CHECKING:  # SimpleITK is imported where an image is read or written: a DICOM series read into numpy
     import SimpleITK as sitk  # memory (emreg detect) needs none (its library takes 50 ms of CPU to load)

@@ -26,9 +26,9 @@ import os
 
 import numpy as np
 
+from ..core.frames import LPS_TO_RAS
+from ..core.transforms import invert_rigid
 from ..errors import EMRegError
-from ..frames import LPS_TO_RAS
-from ..transforms import invert_rigid
 from .atomic import atomic_path, itk_write_errors
 
 

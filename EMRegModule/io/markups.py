@@ -12,8 +12,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ..core.frames import LPS_TO_RAS_3X3
 from ..errors import EMRegError
-from ..frames import LPS_TO_RAS_3X3
 from .atomic import atomic_write_json, read_json
 
 MARKUPS_SCHEMA = (

@@ -1,6 +1,6 @@
 """Reading ``OUT/navigation.csv`` (``time_s,x_mm,y_mm,z_mm,label``; positions in image space, LPS mm).
 
-Written by :func:`EMRegModule.navigation.write_navigation_csv`; read by the report and the 3D Slicer bundle.
+Written by :func:`EMRegModule.core.navigation.write_navigation_csv`; read by the report and the 3D Slicer bundle.
 The numbers are parsed by ``numpy.loadtxt`` (a full recording: ~20 ms instead of ~0.1 s row by row); a file
 it cannot take (quoted labels, ragged rows) is read row by row with :mod:`csv`, with the same result.
 """
@@ -53,7 +53,7 @@ def _field(line: str, index: int) -> str:
 
 
 #: The guidance columns appended to ``navigation.csv``, in this order, when a plan is given
-#: (:mod:`EMRegModule.guidance`).
+#: (:mod:`EMRegModule.core.guidance`).
 GUIDANCE_COLUMNS = ("target_distance_mm", "lateral_mm", "angle_deg", "to_go_mm")
 #: The columns :func:`read_guidance_columns` returns (the time, and the guidance columns of a navigation with a plan).
 GUIDANCE_SERIES = ("time_s", *GUIDANCE_COLUMNS)

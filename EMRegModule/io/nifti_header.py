@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.frames import LPS_TO_RAS_3X3
 from ..errors import EMRegError
-from ..frames import LPS_TO_RAS_3X3
 
 #: Largest distance (mm) between where the sform and SimpleITK's geometry put a corner voxel of the grid
 #: that still counts as agreement (the float32 rounding of either is far below it; a voxel is >= 0.2 mm).

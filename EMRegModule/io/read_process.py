@@ -70,7 +70,7 @@ class ReaderSide:
 
 
 class _PipedDigest:
-    """The reading process's side of :class:`~EMRegModule.provenance.Digest`."""
+    """The reading process's side of :class:`~EMRegModule.io.provenance.Digest`."""
 
     def __init__(self, side: ReaderSide) -> None:
         self._side = side

@@ -15,10 +15,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from ..core.tracking import TrackingRecording
 from ..errors import EMRegError
 from ..names import RECORDING_SUFFIXES  # in order of preference (the spec's CSV first)
 from ..settings import Settings
-from ..tracking import TrackingRecording
 from .sequence_metafile import (
     DEFAULT_PROBE_TRANSFORM,
     DEFAULT_REFERENCE_TRANSFORM,

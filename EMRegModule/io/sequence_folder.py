@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.tracking import SAME_MOMENT_LIMIT_S, SAME_MOMENT_S, TrackingRecording
 from ..errors import EMRegError
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
-from ..tracking import SAME_MOMENT_LIMIT_S, SAME_MOMENT_S, TrackingRecording
 from .sequence_metafile import (
     DEFAULT_PROBE_TRANSFORM,
     DEFAULT_REFERENCE_TRANSFORM,

@@ -30,10 +30,11 @@ Transform names: with no ``<probe>Transform`` in the file but exactly two transf
 other is taken as the tool (with a warning): ``ReferenceToTracker`` + ``StylusToTracker`` as PLUS records them.
 
 Bad input (a broken header, a frame without its timestamp, a matrix that is not rigid
-within :data:`~EMRegModule.transforms.RIGID_TOLERANCE`, NaN values, a sensor's time repeated) raises :class:`EMRegError`
+within :data:`~EMRegModule.core.transforms.RIGID_TOLERANCE`, NaN values, a sensor's time repeated) raises
+:class:`EMRegError`
 with one line naming the file and the frame. Timestamps that go back (a clock reset) or pause for
 more than 2 s split the recording into time segments with a warning naming the frame, by the same
-rule as a tracking CSV (:func:`EMRegModule.tracking.split_time_segments`): nothing is dropped and
+rule as a tracking CSV (:func:`EMRegModule.core.tracking.split_time_segments`): nothing is dropped and
 samples are never matched across a reset. Writing keeps the segments in order, each with its own
 timestamps, so a reset survives a conversion either way.
 """
@@ -47,10 +48,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.tracking import SAME_MOMENT_LIMIT_S, TrackingRecording, split_time_segments
+from ..core.transforms import RIGID_TOLERANCE, check_rigid
 from ..errors import EMRegError
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
-from ..tracking import SAME_MOMENT_LIMIT_S, TrackingRecording, split_time_segments
-from ..transforms import RIGID_TOLERANCE, check_rigid
 from .atomic import atomic_path
 
 #: File name endings read and written as sequence metafiles.

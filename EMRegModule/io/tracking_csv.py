@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.tracking import TrackingRecording, split_time_segments
+from ..core.transforms import angles_to_rotation, quaternion_to_rotation, rotation_to_angles, rotation_to_quaternion
 from ..errors import EMRegError
-from ..tracking import TrackingRecording, split_time_segments
-from ..transforms import angles_to_rotation, quaternion_to_rotation, rotation_to_angles, rotation_to_quaternion
 from .atomic import atomic_path
 
 ANGLE_COLUMNS = ("azimuth_deg", "elevation_deg", "roll_deg")

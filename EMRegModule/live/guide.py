@@ -12,7 +12,7 @@ Published (positions in Slicer's RAS world, as every TRANSFORM of live navigatio
   (95 %: 1.0 mm)`` (``-`` where a number is undefined), for the newest published pose, at most
   :data:`GUIDANCE_INTERVAL_S` apart (a readout, not a stream: the tip's TRANSFORM carries every pose).
 
-The numbers are :func:`EMRegModule.guidance.guidance`'s, computed per pose without building arrays
+The numbers are :func:`EMRegModule.core.guidance.guidance`'s, computed per pose without building arrays
 (:meth:`LiveGuide.numbers`: a few scalar products, microseconds on the tracker's thread).
 """
 
@@ -25,8 +25,8 @@ import numpy as np
 from pyigtl.messages import PointMessage, StringMessage
 
 from .. import names
-from ..frames import LPS_TO_RAS
-from ..guidance import Guidance, Plan, TargetPrediction
+from ..core.frames import LPS_TO_RAS
+from ..core.guidance import Guidance, Plan, TargetPrediction
 
 #: Device names of what :class:`LiveGuide` publishes.
 TRAJECTORY_NAME = "TrajectoryToImage"
@@ -58,7 +58,7 @@ def trajectory_to_image(plan: Plan) -> np.ndarray:
 
 class LiveGuide:
     """The guidance of live navigation against ``plan`` (image LPS mm); ``shaft_tip``: the tool's axis in its tip
-    frame (:func:`EMRegModule.guidance.shaft_in_tip`; None: no angle); ``prediction``: the predicted error at the
+    frame (:func:`EMRegModule.core.guidance.shaft_in_tip`; None: no angle); ``prediction``: the predicted error at the
     target, said in every ``Guidance`` STRING. Keeps the closest approach of the OK poses it was given."""
 
     def __init__(self, plan: Plan, shaft_tip: np.ndarray | None = None,
@@ -74,7 +74,7 @@ class LiveGuide:
 
     def numbers(self, tip_to_image: np.ndarray) -> tuple[float, float, float, float]:
         """(target_distance_mm, lateral_mm, angle_deg, to_go_mm) of one tip pose (4x4, image LPS mm); NaN where
-        undefined (module :mod:`EMRegModule.guidance`)."""
+        undefined (module :mod:`EMRegModule.core.guidance`)."""
         to_target = self._target - tip_to_image[:3, 3]
         distance = math.sqrt(float(to_target @ to_target))
         if self._u is None:
@@ -129,7 +129,7 @@ class LiveGuide:
 
 
 def closest_numbers(guide: LiveGuide) -> Guidance | None:
-    """The closest approach's numbers as a one-sample :class:`~EMRegModule.guidance.Guidance` (None before any)."""
+    """The closest approach's numbers as a one-sample :class:`~EMRegModule.core.guidance.Guidance` (None before any)."""
     if guide.closest is None:
         return None
     return Guidance(*(np.array([v]) for v in guide.closest[3]))

@@ -2,7 +2,7 @@
 needle's or catheter's coil) measures its axis but not its roll, so only a tip on that axis has a known position.
 
 Frames: ``TipToProbe`` (4x4, mm) maps the tip frame into the sensor's frame; a 5-DOF sensor's axis is its +X as EMReg
-reports it (:data:`EMRegModule.live.aurora.driver.FIVE_DOF_X_TO_NDI`), so the tip's offset from the axis is the
+reports it (:data:`EMRegModule.devices.aurora.driver.FIVE_DOF_X_TO_NDI`), so the tip's offset from the axis is the
 length of its (y, z) in the sensor frame.
 """
 

@@ -32,14 +32,13 @@ from typing import TextIO
 
 import numpy as np
 
-from ..frames import LPS_TO_RAS
-from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
-from ..navigation import probe_to_image as probe_to_image_pose
-from . import igtl_status as st
-from .igtl_server import TRANSFORM_INVALID, TRANSFORM_OK
-from .igtl_status import StatusMessage
-from .port_check import PORT_REASONS, PortRoleCheck
-from .samples import (  # noqa: F401
+from ..core.frames import LPS_TO_RAS
+from ..core.navigation import probe_to_image as probe_to_image_pose
+from ..devices import igtl_status as st
+from ..devices.igtl_server import TRANSFORM_INVALID, TRANSFORM_OK
+from ..devices.igtl_status import StatusMessage
+from ..devices.port_check import PORT_REASONS, PortRoleCheck
+from ..devices.samples import (
     FLAG_MISSING,
     FLAG_OUT_OF_VOLUME,
     FLAG_PARTLY_OUT_OF_VOLUME,
@@ -47,6 +46,7 @@ from .samples import (  # noqa: F401
     STATUS_OUT_OF_RANGE,
     SensorSample,
 )
+from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 
 #: Device name of the STATUS messages that carry checkpoint results and reference jumps (live navigation).
 CHECKPOINT_STATUS_NAME = "Checkpoint"
@@ -306,7 +306,8 @@ class LiveNavigator(_WatchedPublisher):
         self.invalid_sent = 0  # TRANSFORMs sent with TransformStatus INVALID (poses withheld)
         #: frames handled at most (``--max-samples``); later samples are ignored (None: no limit)
         self.max_frames: int | None = None
-        #: checkpoints and reference jumps (a :class:`EMRegModule.checkpoints.TrustMonitor`, or None): after a failed
+        #: checkpoints and reference jumps (a :class:`EMRegModule.core.checkpoints.TrustMonitor`, or None): after a
+        # failed
         #: checkpoint the poses go out with TransformStatus INVALID until one passes; each result is a STATUS
         #: ``Checkpoint`` (sticky: a client that connects later learns it) and one terminal line
         self.trust = trust
@@ -393,7 +394,7 @@ class LiveNavigator(_WatchedPublisher):
 
     def _announce_trust(self, events: list) -> None:
         """A STATUS ``Checkpoint`` and a terminal line per checkpoint result or reference jump."""
-        from ..checkpoints import Checkpoint
+        from ..core.checkpoints import Checkpoint
 
         for event in events:
             if isinstance(event, Checkpoint):

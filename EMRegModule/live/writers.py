@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.navigation import GUIDANCE_COLUMNS, guidance_fields
+from ..core.transforms import rotation_to_angles
+from ..devices.samples import SensorSample
 from ..io.tracking_csv import HEADER_ANGLES
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
-from ..navigation import GUIDANCE_COLUMNS, guidance_fields
-from ..transforms import rotation_to_angles
-from .samples import SensorSample
 
 NAVIGATION_HEADER = ("time_s", "x_mm", "y_mm", "z_mm", "label", "status")
 
@@ -114,9 +114,9 @@ class SequenceRecordingWriter(RecordingWriter):
         if not was_open:
             return
         if self._samples:
+            from ..core.tracking import TrackingRecording
             from ..io.atomic import atomic_write_text
             from ..io.sequence_metafile import format_sequence_metafile
-            from ..tracking import TrackingRecording
 
             time_s, sensor, position, rotation, quality, status = zip(*self._samples, strict=True)
             recording = TrackingRecording(np.array(time_s), np.array(sensor), np.array(position).reshape(-1, 3),

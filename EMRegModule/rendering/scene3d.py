@@ -18,8 +18,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..core.transforms import apply_transform
 from ..marker_model import MarkerModel
-from ..transforms import apply_transform
 from .colors import CALIBRATION, DEFAULT_COLORMAP, GREY, NAVIGATION, SENSOR, TARGET, colormap_table, residual_range
 from .context import MAX_CONTEXT_VOXELS, binned_ct, context_surface
 

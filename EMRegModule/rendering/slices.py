@@ -21,8 +21,8 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from ..core.transforms import apply_transform, invert_rigid
 from ..marker_model import MarkerModel
-from ..transforms import apply_transform, invert_rigid
 from .colors import CALIBRATION, PAIRED, SENSOR, UNPAIRED
 from .text import put_text, recorded_text, relay_text
 

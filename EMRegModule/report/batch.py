@@ -107,7 +107,7 @@ def _bundle_needs_ct(folder: Path) -> bool:
 
 def _batch_worker(folder: str, bundle: bool = False,
                   settings_file: str | None = None) -> tuple[str, str | None, str | None, BundleResult | None]:
-    from ..run_folder import check_outputs
+    from ..io.run_folder import check_outputs
     from ..settings import load_settings
     from .writer import write_report_keeping_ct
 
@@ -138,7 +138,8 @@ def write_reports_batch(folders: Sequence[str | os.PathLike[str]], jobs: int = 1
     Folders without any run output are skipped (with a message); ``jobs`` is lowered to what the
     available memory holds (:func:`memory_limited_jobs`). Each report finds its CT through its
     ``run.json``; its outputs are first checked to belong together
-    (:func:`~EMRegModule.run_folder.check_outputs`: a folder mixing two runs' outputs fails). Returns the written pages
+    (:func:`~EMRegModule.io.run_folder.check_outputs`: a folder mixing two runs' outputs fails). Returns the written
+    pages
     in the order of ``folders``; when a folder fails the others are still rendered, then :class:`EMRegError` lists
     the failures.
 

@@ -1,10 +1,10 @@
 """What a reviewer must see first: refused steps, outliers, unpaired points, suspicious figures.
 
 The checks apply the stages' own policies with the case's own settings rather than rules of
-the report's: outliers by :func:`EMRegModule.registration.flag_outliers` (``outlier_factor``
+the report's: outliers by :func:`EMRegModule.core.registration.flag_outliers` (``outlier_factor``
 x the robust RMS residual and above ``outlier_min_mm``), the FRE limit ``max_fre_mm`` of
-:class:`~EMRegModule.registration.RegistrationSettings`, a moving probe by the dwell's
-``still_radius_mm`` (:class:`~EMRegModule.dwell.DwellSettings`). What a stage already warned
+:class:`~EMRegModule.core.registration.RegistrationSettings`, a moving probe by the dwell's
+``still_radius_mm`` (:class:`~EMRegModule.core.dwell.DwellSettings`). What a stage already warned
 about (its ``warnings``) is shown once, in its own words.
 """
 
@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..core.registration import RegistrationResult, RegistrationSettings, flag_outliers
 from ..io.image import image_geometry
-from ..registration import RegistrationResult, RegistrationSettings, flag_outliers
 from .derived import MarkerRow
 from .inputs import ReportInputs
 

@@ -31,9 +31,9 @@ import numpy as np
 
 from ..io.atomic import atomic_path, atomic_write_bytes
 from ..io.ct_handle import CTGeometry, CTHandle
+from ..io.provenance import BackgroundHash
 from ..marker_model import MarkerModel
 from ..names import PREVIOUS_FOLDER, REPORT_FIGURES
-from ..provenance import BackgroundHash
 
 if TYPE_CHECKING:
     from ..rendering.context import BinnedCT, ContextSurface

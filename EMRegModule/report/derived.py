@@ -11,15 +11,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .. import sensor_offset
-from ..calibration import CalibrationPoint, FrameCalibration
-from ..detection.result import DetectedMarker, DetectionResult
-from ..registration import RegistrationResult
-from ..transforms import apply_transform
+from ..core import sensor_offset
+from ..core.calibration import CalibrationPoint, FrameCalibration
+from ..core.detection.result import DetectedMarker, DetectionResult
+from ..core.registration import RegistrationResult
+from ..core.transforms import apply_transform
 from .inputs import ReportInputs
 
 if TYPE_CHECKING:
-    from ..evaluation import Evaluation
+    from ..core.evaluation import Evaluation
 
 #: Samples of the FRE(l) curve over the pinhole range [a, b] when the registration stored none.
 FRE_CURVE_SAMPLES = 151
@@ -100,7 +100,7 @@ def calibration_points(frame_calibration: FrameCalibration | None) -> dict[str, 
 
 def fre_curve(rows: Sequence[MarkerRow], points: dict[str, CalibrationPoint], l_range: tuple[float, float],
               samples: int = FRE_CURVE_SAMPLES) -> tuple[np.ndarray, np.ndarray] | None:
-    """FRE(l) (paper Eq. 10, :func:`EMRegModule.sensor_offset.fre_curve`) over the pinhole range for the
+    """FRE(l) (paper Eq. 10, :func:`EMRegModule.core.sensor_offset.fre_curve`) over the pinhole range for the
     paired markers: (l values, FRE values) in mm; None with fewer than 3 pairs."""
     paired = [r for r in rows if r.calibration_label in points]
     if len(paired) < 3:

@@ -17,8 +17,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import SimpleITK as sitk
 
-from ..calibration import CalibrationPoint
-from ..distortion import DistortionEstimate
+from ..core.calibration import CalibrationPoint
+from ..core.distortion import DistortionEstimate
+from ..core.transforms import apply_transform
 from ..errors import EMRegError
 from ..progress import QUIET, Progress
 from ..rendering.checkpoint_chart import checkpoint_chart
@@ -27,7 +28,6 @@ from ..rendering.context import ContextSurface, bin_factor, binned_ct, context_s
 from ..rendering.error_views import distortion_views, error_budget_chart, tre_map_slices
 from ..rendering.images import encode_png
 from ..rendering.plots import bar_chart, fit_text, line_chart
-from ..transforms import apply_transform
 from .checks import ReportWarning
 from .derived import MarkerRow, calibration_points_in_image, finite_or_none, tre_figures
 from .inputs import ReportInputs

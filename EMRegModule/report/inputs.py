@@ -1,4 +1,4 @@
-"""What a report is made of: the typed outputs of a run (:class:`~EMRegModule.run_folder.RunFolder`, read back by
+"""What a report is made of: the typed outputs of a run (:class:`~EMRegModule.io.run_folder.RunFolder`, read back by
 the stages' own readers), the case's settings and targets, and its CT.
 
 A file that is missing is None; one that a reader turns down is None with a note
@@ -18,23 +18,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..calibration import FrameCalibration
-from ..detection.result import DetectionResult
+from ..core.calibration import FrameCalibration
+from ..core.detection.result import DetectionResult
+from ..core.evaluation import Evaluation
+from ..core.registration import RegistrationResult
 from ..errors import EMRegError
-from ..evaluation import Evaluation
 from ..io.case import open_case
 from ..io.markups import read_markups
+from ..io.run_folder import RunFolder, read_manifest, read_run_folder
 from ..marker_model import MarkerModel
-from ..names import (
-    EVALUATION_JSON,
-    FRAME_CALIBRATION_JSON,
-    MARKERS_JSON,
-    NAVIGATION_CSV,
-    REGISTRATION_JSON,
-    RUN_JSON,
-)
-from ..registration import RegistrationResult
-from ..run_folder import RunFolder, read_manifest, read_run_folder
+from ..names import EVALUATION_JSON, FRAME_CALIBRATION_JSON, MARKERS_JSON, NAVIGATION_CSV, REGISTRATION_JSON, RUN_JSON
 from ..settings import Settings
 
 if TYPE_CHECKING:
@@ -184,7 +177,7 @@ def _start_ct(inputs: ReportInputs, image: sitk.Image | CTHandle | None, read_im
     if image is not None:
         inputs.ct = handle if handle is not None else CTHandle.of_image(image)
     elif read_image and inputs.ct_path is not None:
-        from ..run_folder import recorded_series_uid
+        from ..io.run_folder import recorded_series_uid
 
         # a DICOM folder: the series the run detected in
         inputs.ct_series = recorded_series_uid(inputs.run) or inputs.settings.ct.series

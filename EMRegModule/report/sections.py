@@ -18,8 +18,8 @@ from .figures import Figure, ReportData
 from .html import CSS, DASH, esc, figure_html, note, num, table, vec
 
 if TYPE_CHECKING:
-    from ..evaluation import BoardEdge
-    from ..registration import RegistrationResult
+    from ..core.evaluation import BoardEdge
+    from ..core.registration import RegistrationResult
 
 
 def _left_out(data: ReportData, part: str | None, absent: str) -> str:

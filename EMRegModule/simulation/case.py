@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from ..core.transforms import apply_transform, axis_angle_to_rotation, invert_rigid, random_rotation
 from ..errors import EMRegError
 from ..io.atomic import atomic_write_json, atomic_write_text, read_json
 from ..io.markups import write_markups
@@ -21,7 +22,6 @@ from ..io.tracking_csv import write_tracking_csv
 from ..marker_model import MarkerModel
 from ..names import CT_FILE_NAMES, CT_FOLDER_NAME, TARGETS_FILE
 from ..progress import QUIET, Progress
-from ..transforms import apply_transform, axis_angle_to_rotation, invert_rigid, random_rotation
 from . import ct
 from .distortion import FieldDistortion, nonrigid_errors, place_object, truth_at_points
 from .frame import REFERENCE_SENSOR_DIAMETER_MM, REFERENCE_SENSOR_LENGTH_MM, Phantom, build_phantom
@@ -493,7 +493,7 @@ def _case_toml(seed: int, difficulty: str, opts: SimulationOptions, model: Marke
 def _write_tool(out_dir: Path, seed: int, opts: SimulationOptions) -> None:
     """A stylus case's ``tool_calibration.json`` (the true tip) and pivot recording ``pivot.csv``; removed
     (stale) for the pinhole probe."""
-    from ..tool import ToolCalibration, write_tool_calibration
+    from ..core.tool import ToolCalibration, write_tool_calibration
     from .stylus import simulate_pivot_recording
 
     if opts.tool_tip_mm is None:

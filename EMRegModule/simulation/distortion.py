@@ -1,6 +1,6 @@
 """A metal object near the frame distorting the EM field, for simulated recordings (ground truth).
 
-The physics is :mod:`EMRegModule.em_field` (a dipole transmitter; the object an induced dipole; first
+The physics is :mod:`EMRegModule.core.em_field` (a dipole transmitter; the object an induced dipole; first
 order): a steel rod of a C-arm, an instrument tray or a table rail moves the reported positions of the
 sensors near it and turns their reported axes. Published sizes: near a steel rod the Aurora's position
 error reaches 4 mm (Hummel et al. 2005); the trakSTAR behaves alike. The reported orientation is
@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from ..em_field import coil_field, induced_coupling, position_error
-from ..transforms import apply_transform, fit_rigid, invert_rigid
+from ..core.em_field import coil_field, induced_coupling, position_error
+from ..core.transforms import apply_transform, fit_rigid, invert_rigid
 
 #: Time (s) over which an object rolled in reaches its full effect.
 DEFAULT_RAMP_S = 2.0

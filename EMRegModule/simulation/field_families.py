@@ -1,7 +1,7 @@
 """Distorted fields of other families than EMReg's induced dipole, to validate the detector on (issue 37).
 
-EMReg's detector (:mod:`EMRegModule.distortion`) was designed around the first-order induced dipole of
-:mod:`EMRegModule.em_field`; a study that measures it only on that same dipole measures itself. The families
+EMReg's detector (:mod:`EMRegModule.core.distortion`) was designed around the first-order induced dipole of
+:mod:`EMRegModule.core.em_field`; a study that measures it only on that same dipole measures itself. The families
 here are made differently, each a drop-in for :class:`~EMRegModule.simulation.distortion.FieldDistortion`
 (``errors_at``, ``distort``, ``strength``, ``scaled``, ``distortion_mm``) so the session simulator distorts
 both sensors with them:
@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from ..em_field import coil_field, induced_coupling
-from ..transforms import apply_transform
+from ..core.em_field import coil_field, induced_coupling
+from ..core.transforms import apply_transform
 from .distortion import DEFAULT_RAMP_S, TimedField, nonrigid_errors, place_object, polar_rotation
 
 #: The families, development first.
@@ -55,7 +55,7 @@ def _invariant(points_mm: np.ndarray) -> np.ndarray:
 
 def solve_position(measured: np.ndarray, start_mm: np.ndarray) -> np.ndarray:
     """Positions (K, 3, Tracker mm) the free-space dipole model assigns to measured couplings (K, 3, 3; columns per
-    coil, the units of :func:`EMRegModule.em_field.coil_field`), from ``start_mm`` (K, 3): ``G(x') = M^T M``
+    coil, the units of :func:`EMRegModule.core.em_field.coil_field`), from ``start_mm`` (K, 3): ``G(x') = M^T M``
     solved by Gauss-Newton with a relative residual (vectorised over K)."""
     target = (np.swapaxes(measured, -1, -2) @ measured).reshape(-1, 9)
     scale = 1.0 / np.linalg.norm(target, axis=1)
@@ -150,7 +150,7 @@ class EddyRing:
 
 @dataclass(frozen=True)
 class ExactDipole:
-    """EMReg's induced dipole (:func:`EMRegModule.em_field.induced_coupling`), solved exactly rather than to first
+    """EMReg's induced dipole (:func:`EMRegModule.core.em_field.induced_coupling`), solved exactly rather than to first
     order: one object among several of ``multi``."""
 
     object_mm: np.ndarray

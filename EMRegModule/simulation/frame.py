@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..core.transforms import rotation_from_y_axis
 from ..marker_model import MarkerModel
-from ..transforms import rotation_from_y_axis
 from .ct import Layer
 from .shapes import (
     Box,

@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from ..tracking import TrackingRecording
-from ..transforms import axis_angle_to_rotation, make_transform, random_rotation
+from ..core.tracking import TrackingRecording
+from ..core.transforms import axis_angle_to_rotation, make_transform, random_rotation
 from .tracking import NoiseModel, Visit, probe_rotation_into, simulate_session
 
 #: The default simulated stylus: the tip 150 mm along the sensor's +X (a pointer with the sensor in its

@@ -1,9 +1,9 @@
 """What a simulated tracker says about the field at a sensor: its own distortion and volume flags.
 
 The trackers report how far they trust a pose: the trakSTAR appends a METAL byte to each record (0 = no
-distortion .. 127, :mod:`EMRegModule.live.trakstar.protocol`); the Aurora reports each tool's RMS error (mm)
-and port status bits (out of volume 0x40, partially out of volume 0x80, :mod:`EMRegModule.live.aurora.protocol`).
-Both simulators (:mod:`EMRegModule.live.simulator.trakstar`, :mod:`EMRegModule.live.simulator.aurora`) take
+distortion .. 127, :mod:`EMRegModule.devices.trakstar.protocol`); the Aurora reports each tool's RMS error (mm)
+and port status bits (out of volume 0x40, partially out of volume 0x80, :mod:`EMRegModule.devices.aurora.protocol`).
+Both simulators (:mod:`EMRegModule.devices.simulator.trakstar`, :mod:`EMRegModule.devices.simulator.aurora`) take
 them from the same inputs here:
 
 - a **distortion model**: anything with ``distortion_mm(position_mm) -> float``, the size of the position error

@@ -23,8 +23,8 @@ import numpy as np
 from scipy.signal import lfilter
 from scipy.spatial.transform import Rotation, Slerp
 
-from ..tracking import TrackingRecording
-from ..transforms import axis_angle_to_rotation, random_rotation
+from ..core.tracking import TrackingRecording
+from ..core.transforms import axis_angle_to_rotation, random_rotation
 from .distortion import FieldDistortion
 
 RATE_HZ = 80.0
@@ -331,7 +331,7 @@ def _event_index(track: _Track, at_fraction: float) -> int:
     return int(moving[np.argmin(np.abs(moving - at_fraction * len(track.time_s)))])
 
 
-#: Probe conventions the simulator can write (see :mod:`EMRegModule.probe_axis`).
+#: Probe conventions the simulator can write (see :mod:`EMRegModule.core.probe_axis`).
 PROBE_CONVENTIONS = ("+x_in", "+x_out", "none")
 
 

@@ -10,7 +10,7 @@ log and in its panel, which names any package still missing.
 Layout (Slicer's scripted-module template): ``EMReg`` (module description), ``EMRegWidget``
 (loads ``Resources/UI/EMReg.ui`` of the repository and only wires its buttons),
 ``EMRegLogic`` (the very controller the ``emreg`` command uses,
-:class:`EMRegModule.controller.EMRegController`, plus the MRML nodes that show its results)
+:class:`EMRegModule.pipeline.controller.EMRegController`, plus the MRML nodes that show its results)
 and ``EMRegTest`` (drives the Logic end to end on a simulated case).
 
 The Logic needs only MRML nodes and ``slicer.util``: inside Slicer they are the application's;
@@ -319,7 +319,7 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 class EMRegLogic(ScriptedLoadableModuleLogic):
     """The EMReg workflow for Slicer: the command line's controller plus MRML nodes showing its results.
 
-    ``self.controller`` is an :class:`EMRegModule.controller.EMRegController`; every step is one
+    ``self.controller`` is an :class:`EMRegModule.pipeline.controller.EMRegController`; every step is one
     of its methods, then the result is written to the output folder (the same files as
     ``emreg run``) and shown in the scene. Usable without the panel (Python console, tests) and
     without Qt: it needs only MRML nodes and ``slicer.util`` (3D Slicer's, or the slicer-core
@@ -343,7 +343,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     def __init__(self, settings=None, scene=None):
         ScriptedLoadableModuleLogic.__init__(self)
         ensureEMRegImportable(install=True)
-        from EMRegModule.controller import EMRegController
+        from EMRegModule.pipeline.controller import EMRegController
 
         self._scene = scene
         self.controller = EMRegController(settings, command=self.COMMAND)
@@ -367,9 +367,9 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
         ``outputDirectory`` receives the result files (default: ``<case>/emreg-output``).
         """
-        from EMRegModule.controller import EMRegController, check_case_image_side
         from EMRegModule.errors import EMRegError
         from EMRegModule.io.case import open_case
+        from EMRegModule.pipeline.controller import EMRegController, check_case_image_side
 
         if not caseDirectory:
             raise EMRegError("choose a case folder first")
@@ -414,7 +414,8 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
     def setPlanFromMarkupsNode(self, markupsNode):
         """The plan from a markups node (world RAS, kept in LPS): a line (Entry, Target), points labelled Entry and
-        Target, or one target point (:mod:`EMRegModule.plan`); None: no plan. Each navigation then gets the guidance
+        Target, or one target point (:mod:`EMRegModule.core.plan`); None: no plan. Each navigation then gets the
+        guidance
         numbers (``navigation.csv``, ``navigation.json``) and the panel the closest approach and the predicted error."""
         from EMRegModule.slicer_export.nodes import plan_from_markups_node
 
@@ -429,7 +430,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     # --- stages -------------------------------------------------------------------------------------
 
     def loadTool(self, path):
-        """Use a tracked tool's tip (a tool file, or ``auto``; :mod:`EMRegModule.tool`); empty: the pinhole probe.
+        """Use a tracked tool's tip (a tool file, or ``auto``; :mod:`EMRegModule.core.tool`); empty: the pinhole probe.
         The frame calibration is made again with it."""
         if not path:
             self.controller.set_tool(None)
@@ -439,8 +440,8 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     def pivotCalibrate(self, recordingPath, outputDirectory=None):
         """``emreg pivot``: the tool's tip from a pivot recording, written as ``tool_calibration.json`` and
         ``TipToProbe.h5`` into ``outputDirectory`` (default: the output folder, else ``pivot/`` beside the
-        recording), then used. Returns the :class:`~EMRegModule.tool.ToolCalibration`."""
-        from EMRegModule.tool import pivot_calibration, pivot_poses, write_tool_calibration
+        recording), then used. Returns the :class:`~EMRegModule.core.tool.ToolCalibration`."""
+        from EMRegModule.core.tool import pivot_calibration, pivot_poses, write_tool_calibration
 
         poses, frame, name, _ = pivot_poses(recordingPath, self.controller.settings, self.controller.reference_sensor,
                                             self.controller.probe_sensor)
@@ -498,7 +499,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     def evaluate(self):
         """TRE at the targets and the board table when the case has the recordings; writes ``evaluation.json``.
         The same step as ``emreg run``'s: a part that cannot be made is "not evaluated" with its reason."""
-        from EMRegModule.controller import STEPS
+        from EMRegModule.pipeline.controller import STEPS
 
         if self.case is None or (self.case.navigation is None and self.case.board is None):
             return None
@@ -534,7 +535,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     def _lastProbePose(self, recording):
         """The last probe pose straight from the recording (Reference frame); Slicer composes it with
         ReferenceToRAS."""
-        from EMRegModule.tracking import probe_in_reference
+        from EMRegModule.core.tracking import probe_in_reference
 
         inReference = probe_in_reference(recording, self.controller.reference_sensor, self.controller.probe_sensor)
         self.probeToReference = inReference.probe_to_reference[-1]
@@ -581,7 +582,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         """The output folder for one step: that step's earlier outputs and those of later steps move to
         ``previous/`` (stale once this step has a new result)."""
         from EMRegModule.errors import EMRegError
-        from EMRegModule.outputs import OutputFolder
+        from EMRegModule.io.output_folder import OutputFolder
 
         if self.outputDirectory is None:
             raise EMRegError("load a case (or set an output folder) first")
@@ -603,9 +604,9 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
     def resultsContent(self):
         """What the scene shows, from the controller's results: the run's typed view
-        (:class:`~EMRegModule.run_folder.RunFolder`, in memory) turned into a scene as the bundle's is."""
+        (:class:`~EMRegModule.io.run_folder.RunFolder`, in memory) turned into a scene as the bundle's is."""
         from EMRegModule.io.markups import read_markups
-        from EMRegModule.run_folder import RunFolder
+        from EMRegModule.io.run_folder import RunFolder
         from EMRegModule.slicer_export.run_scene import run_scene_of
 
         results = self.controller.results
@@ -625,7 +626,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
     def resultsText(self):
         """A few lines of figures for the panel (with a plan: the closest approach and the predicted error)."""
-        from EMRegModule.workflow.results import results_lines
+        from EMRegModule.pipeline.results import results_lines
 
         return "\n".join(results_lines(self.controller.results, self.evaluation, self.reportPath))
 
@@ -677,9 +678,9 @@ class EMRegTest(ScriptedLoadableModuleTest):
 
         import numpy as np
 
+        from EMRegModule.core.transforms import apply_transform
         from EMRegModule.simulation.case import load_truth
         from EMRegModule.slicer_export.scene_check import scene_disagreements
-        from EMRegModule.transforms import apply_transform
 
         self.delayDisplay("Starting the EMReg test")
         case = self._case()

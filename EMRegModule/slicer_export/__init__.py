@@ -9,7 +9,7 @@ logics and ``slicer.util`` array helpers, without Qt. This package uses nothing 
 Modules, one way (each only imports those before it): :mod:`.mrml` (Slicer's MRML: is it there, a scene with
 the module logics Slicer registers), :mod:`.mrb` (the bundle's zip: Slicer's scene folder zipped by EMReg, the
 CT's voxels copied from its file or compressed from memory), :mod:`.nodes` (one node per kind of result, on any
-scene), :mod:`.run_scene` (what a run shows, from :class:`~EMRegModule.run_folder.RunFolder`, and the nodes of
+scene), :mod:`.run_scene` (what a run shows, from :class:`~EMRegModule.io.run_folder.RunFolder`, and the nodes of
 it), :mod:`.bundle` (``OUT/EMReg.mrb`` of a run, in this process or a child process).
 
 Frames: EMReg's image space is the CT's LPS space; Slicer's world is RAS. Points of image

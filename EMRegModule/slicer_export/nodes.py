@@ -12,15 +12,9 @@ from typing import Any
 
 import numpy as np
 
+from ..core.frames import LPS_TO_RAS
 from ..errors import EMRegError
-from ..frames import LPS_TO_RAS
-from ..names import (
-    CONNECTOR_NODE_NAME,
-    RESIDUALS_NODE_NAME,
-    TRANSFORM_NODE_NAME,
-    TRE_MAP_NODE_NAME,
-    VOLUME_NODE_NAME,
-)
+from ..names import CONNECTOR_NODE_NAME, RESIDUALS_NODE_NAME, TRANSFORM_NODE_NAME, TRE_MAP_NODE_NAME, VOLUME_NODE_NAME
 from .mrb import StoredVoxels, placeholder_of
 
 
@@ -265,9 +259,10 @@ def markups_points_lps(node: Any) -> tuple[list[str], np.ndarray]:
 
 
 def plan_from_markups_node(node: Any) -> Any:
-    """The :class:`~EMRegModule.guidance.Plan` (LPS mm) of a markups node as :func:`EMRegModule.plan.read_plan` reads a
+    """The :class:`~EMRegModule.core.guidance.Plan` (LPS mm) of a markups node as
+    :func:`EMRegModule.core.plan.read_plan` reads a
     file: a line node's two points (Entry, Target), else points labelled Entry and Target, or a single point."""
-    from ..plan import plan_from_points
+    from ..core.plan import plan_from_points
 
     labels, positions = markups_points_lps(node)
     is_line = node.IsA("vtkMRMLMarkupsLineNode")

@@ -12,8 +12,10 @@ from typing import Any
 
 import numpy as np
 
+from ..core.frames import lps_to_ras_points
+from ..core.registration import RegistrationResult
 from ..errors import EMRegError
-from ..frames import lps_to_ras_points
+from ..io.run_folder import RunFolder, read_manifest, read_run_folder
 from ..names import (
     CALIBRATION_NODE_NAME,
     FIDUCIALS_NODE_NAME,
@@ -29,8 +31,6 @@ from ..names import (
     TRE_MAP_NODE_NAME,
     VOLUME_NODE_NAME,
 )
-from ..registration import RegistrationResult
-from ..run_folder import RunFolder, read_manifest, read_run_folder
 from .mrb import StoredVoxels, stored_voxels
 from .nodes import (
     show_curve,
@@ -96,7 +96,7 @@ def run_scene_of(folder: RunFolder, targets: tuple[list[str], np.ndarray] | None
 
 def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None = None,
                 image: Any = None) -> RunScene:
-    """Read a run's outputs (:func:`~EMRegModule.run_folder.read_run_folder`: an unreadable file raises
+    """Read a run's outputs (:func:`~EMRegModule.io.run_folder.read_run_folder`: an unreadable file raises
     :class:`EMRegError`), the case's targets and its CT: when the CT that ``run.json`` names (per-stage
     outputs: the case's, :func:`~EMRegModule.io.case.run_ct_path`) is a plain NRRD (:func:`stored_voxels`)
     and ``image``, if given, has its grid, the file's stored voxels (a bundle copies them, nothing is read
@@ -104,7 +104,7 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
     detected in, as ``markers.json`` / ``run.json`` name it, not the folder's default choice: the run may
     have forced another with ``--series``)."""
     from ..io.case import run_ct_path
-    from ..run_folder import recorded_series_uid
+    from ..io.run_folder import recorded_series_uid
 
     out = Path(out_dir)
     run = read_manifest(out) or {}

@@ -7,10 +7,10 @@ from typing import Any
 
 import numpy as np
 
-from ..detection.result import DetectionResult
-from ..frames import LPS_TO_RAS, lps_to_ras_points
+from ..core.detection.result import DetectionResult
+from ..core.frames import LPS_TO_RAS, lps_to_ras_points
+from ..core.registration import RegistrationResult
 from ..names import CALIBRATION_NODE_NAME, MARKERS_NODE_NAME, PROBE_NODE_NAME, TRANSFORM_NODE_NAME
-from ..registration import RegistrationResult
 
 
 def scene_disagreements(scene: Any, detection: DetectionResult, registration: RegistrationResult,

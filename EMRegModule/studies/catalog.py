@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..error_model import ErrorModel
-from ..evaluation import evaluate_board, evaluate_targets
+from ..core.error_model import ErrorModel
+from ..core.evaluation import evaluate_board, evaluate_targets
 from ..io.case import open_case
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from ..rendering.plots import bar_chart, line_chart
@@ -171,9 +171,9 @@ def _tool_rows(frame: Frame, params: dict, rng: np.random.Generator) -> list[dic
     """One session of a route on the same frame and noise: ``pinhole`` (the paper's probe, depth l solved by FRE)
     or ``pivot`` (a pointer calibrated by a simulated pivot, then touching the pinholes and the targets with its
     tip). Rows: the tip's error, FRE, the registration's RMS error at the targets, the measured end-to-end TRE."""
+    from ..core.tool import pivot_calibration
+    from ..core.tracking import probe_in_reference
     from ..simulation.stylus import simulate_pivot_recording
-    from ..tool import pivot_calibration
-    from ..tracking import probe_in_reference
 
     noise = noise_model(params.get("noise", 1.0))
     tool, tip_error, true_tip = None, None, None
@@ -357,7 +357,7 @@ def _trust_rows(frame: Frame, params: dict, rng: np.random.Generator) -> list[di
     return [row]
 
 
-#: Words of a warning that put a left-out point down to the user (see :func:`EMRegModule.registration.register`).
+#: Words of a warning that put a left-out point down to the user (see :func:`EMRegModule.core.registration.register`).
 USER_BLAMED = ("likely not in a pinhole", "likely not recorded")
 
 

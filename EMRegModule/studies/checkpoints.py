@@ -2,10 +2,10 @@
 
 One task: a calibration and registration (the real code), then a navigation of the targets with unlabelled
 rests of the probe in marker pinholes, navigated and checked by the real code
-(:func:`EMRegModule.checkpoints.check_navigation`, the case's ``[navigation]`` settings, the registration's
+(:func:`EMRegModule.core.checkpoints.check_navigation`, the case's ``[navigation]`` settings, the registration's
 error model). The session is clean, or the reference sensor slips in its slot (``SLIP_MM`` / ``SLIP_DEG``)
 halfway through, or the frame is knocked as a whole by as much (a bump: the reference jumps as in a slip but
-nothing navigated changes, the control of the slip test of :mod:`EMRegModule.slip`), or a steel rod
+nothing navigated changes, the control of the slip test of :mod:`EMRegModule.core.slip`), or a steel rod
 (``ONSET_MM`` RMS non-rigid at the pinholes) is rolled in halfway through. Measured against the simulator's
 truth: false checkpoint failures on clean sessions (and those of the fixed limit alone, for comparison; after a
 bump every checkpoint is a clean one), whether the first checkpoint after the event failed (after a bump: a false
@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..checkpoints import Pinholes, check_navigation, find_checkpoints, pinholes_from_detection
+from ..core.checkpoints import Pinholes, check_navigation, find_checkpoints, pinholes_from_detection
+from ..core.navigation import navigate_recording
+from ..core.transforms import apply_transform, axis_angle_to_rotation, invert_rigid, make_transform
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
-from ..navigation import navigate_recording
 from ..simulation.distortion import nonrigid_errors, place_object
 from ..simulation.tracking import FieldOnset, FrameBump, ReferenceSlip
-from ..transforms import apply_transform, axis_angle_to_rotation, invert_rigid, make_transform
 from .frame import (
     Frame,
     calibrate_and_register,

@@ -20,14 +20,23 @@ from pathlib import Path
 
 import numpy as np
 
-from ..calibration import calibrate_frame
-from ..controller import EMRegController
-from ..detection.result import DetectionResult, read_detection, write_detection
+from ..core.calibration import calibrate_frame
+from ..core.detection.result import DetectionResult, read_detection, write_detection
+from ..core.registration import RegistrationResult, register
+from ..core.tracking import TrackingRecording
+from ..core.transforms import (
+    apply_rotation,
+    apply_transform,
+    axis_angle_to_rotation,
+    invert_rigid,
+    make_transform,
+    random_rotation,
+)
 from ..errors import EMRegError
 from ..io.case import open_case
 from ..marker_model import MarkerModel
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT, MARKERS_JSON
-from ..registration import RegistrationResult, register
+from ..pipeline.controller import EMRegController
 from ..settings import Settings
 from ..simulation.case import load_truth, simulate_case
 from ..simulation.distortion import FieldDistortion
@@ -40,15 +49,6 @@ from ..simulation.tracking import (
     Visit,
     probe_rotation_into,
     simulate_session,
-)
-from ..tracking import TrackingRecording
-from ..transforms import (
-    apply_rotation,
-    apply_transform,
-    axis_angle_to_rotation,
-    invert_rigid,
-    make_transform,
-    random_rotation,
 )
 
 #: Options of the smaller frame of ``--quick`` studies (as the CI-sized test cases).
@@ -232,7 +232,7 @@ def calibrate_and_register(frame: Frame, rng: np.random.Generator, noise: NoiseM
                            true_tip_mm: np.ndarray | None = None, reference_to_tracker: np.ndarray | None = None,
                            distortion: FieldDistortion | None = None) -> Session:
     """Simulate a calibration session, then the real calibration and registration; errors vs the truth.
-    ``tool`` (a :class:`~EMRegModule.tool.ToolCalibration`): the session touches with a stylus whose tip is
+    ``tool`` (a :class:`~EMRegModule.core.tool.ToolCalibration`): the session touches with a stylus whose tip is
     truly at ``true_tip_mm`` and is calibrated with ``tool``'s; ``reference_to_tracker``, ``distortion``: as
     for :func:`simulate_calibration`."""
     recording = simulate_calibration(frame, rng, noise, subset, tip_mm=true_tip_mm,

@@ -47,7 +47,7 @@ from typing import NamedTuple
 import pytest
 from versions import report_header
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
 from EMRegModule.simulation.case import load_truth, simulate_case
 
 #: Options of the CI-sized cases (shared so tests can state what they rely on).

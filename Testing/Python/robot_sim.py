@@ -80,8 +80,8 @@ class FlangeScene:
         return np.linalg.inv(self.tracker_to_base) @ self.robot.flange_to_base() @ self.sensor_to_flange
 
     def pose(self, sensor: int, t_s: float):
-        from EMRegModule.live.trakstar.protocol import Pose
-        from EMRegModule.transforms import rotation_to_angles
+        from EMRegModule.core.transforms import rotation_to_angles
+        from EMRegModule.devices.trakstar.protocol import Pose
 
         truth = self.reference_to_tracker if sensor == 1 else self.sensor_to_tracker()
         angles = rotation_to_angles(truth[:3, :3][None])[0] + self.rng.normal(0.0, self.noise_deg, 3)

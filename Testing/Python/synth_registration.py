@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from EMRegModule.tracking import TrackingRecording
-from EMRegModule.transforms import axis_angle_to_rotation, make_transform, random_rotation, rotation_from_y_axis
+from EMRegModule.core.tracking import TrackingRecording
+from EMRegModule.core.transforms import axis_angle_to_rotation, make_transform, random_rotation, rotation_from_y_axis
 
 
 @dataclass

@@ -49,10 +49,12 @@ def test_the_survey_sees_a_planted_circle_and_an_upward_import(tmp_path):
     package = tmp_path / "EMRegModule"
     package.mkdir()
     (package / "__init__.py").write_text("")
-    (package / "transforms.py").write_text("from .cli import main\n\ndef _helper():\n    pass\n")
-    (package / "cli.py").write_text("from .transforms import _helper\n\ndef main():\n" + "    x = 1\n" * 95)
+    (package / "core").mkdir()
+    (package / "core" / "__init__.py").write_text("")
+    (package / "core" / "transforms.py").write_text("from ..cli import main\n\ndef _helper():\n    pass\n")
+    (package / "cli.py").write_text("from .core.transforms import _helper\n\ndef main():\n" + "    x = 1\n" * 95)
     found = _architecture().survey(tmp_path)
-    assert found.circles == [["EMRegModule.cli", "EMRegModule.transforms"]]
-    assert found.upward == [("EMRegModule.transforms", "EMRegModule.cli")]
-    assert found.private_imports == [("EMRegModule.cli", "EMRegModule.transforms", "_helper")]
+    assert found.circles == [["EMRegModule.cli", "EMRegModule.core.transforms"]]
+    assert found.upward == [("EMRegModule.core.transforms", "EMRegModule.cli")]
+    assert found.private_imports == [("EMRegModule.cli", "EMRegModule.core.transforms", "_helper")]
     assert [(name, function) for _, name, function in found.long_functions] == [("EMRegModule.cli", "main")]

@@ -21,22 +21,22 @@ import pyigtl
 import pytest
 from polling import announced_igtl_port
 
-from EMRegModule.errors import EMRegError
-from EMRegModule.frames import LPS_TO_RAS
-from EMRegModule.io.tracking_csv import read_tracking_csv, write_tracking_csv
-from EMRegModule.live.aurora import protocol as ndi
-from EMRegModule.live.aurora.driver import AuroraDriver
-from EMRegModule.live.device_url import parse_device_url
-from EMRegModule.live.samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE
-from EMRegModule.live.simulator.aurora import AuroraSimulator, parse_tools
-from EMRegModule.tracking import TrackingRecording
-from EMRegModule.transforms import (
+from EMRegModule.core.frames import LPS_TO_RAS
+from EMRegModule.core.tracking import TrackingRecording
+from EMRegModule.core.transforms import (
     invert_rigid,
     make_transform,
     quaternion_to_rotation,
     random_rotation,
     rotation_to_quaternion,
 )
+from EMRegModule.devices.aurora import protocol as ndi
+from EMRegModule.devices.aurora.driver import AuroraDriver
+from EMRegModule.devices.device_url import parse_device_url
+from EMRegModule.devices.samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE
+from EMRegModule.devices.simulator.aurora import AuroraSimulator, parse_tools
+from EMRegModule.errors import EMRegError
+from EMRegModule.io.tracking_csv import read_tracking_csv, write_tracking_csv
 
 EMREG = [sys.executable, "-m", "EMRegModule"]
 ENV = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -361,10 +361,10 @@ def test_driver_reads_every_tool_with_states_and_5dof(tmp_path):
 
 
 def test_watchdog_with_the_aurora_stops_and_resumes(tmp_path):
-    from EMRegModule.live.igtl_server import IGTLServer
-    from EMRegModule.live.link_quality import guard_for
+    from EMRegModule.devices.igtl_server import IGTLServer
+    from EMRegModule.devices.link_quality import guard_for
+    from EMRegModule.devices.sources import open_source
     from EMRegModule.live.navigator import LiveNavigator
-    from EMRegModule.live.sources import open_source
 
     with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof"), link=tmp_path / "aurora", seed=6) as sim:
         source = open_source(f"aurora://{tmp_path / 'aurora'}?rate=40")
@@ -436,7 +436,7 @@ def test_driver_survives_a_dropped_byte_without_a_wrong_pose(tmp_path):
 
 
 def test_driver_on_a_noisy_line_starts_and_never_makes_a_wrong_pose(tmp_path):
-    from EMRegModule.live.simulator.faults import AuroraFaults
+    from EMRegModule.devices.simulator.faults import AuroraFaults
 
     # 0.2 % of the bytes with a flipped bit: about one reply in six is damaged, start-up replies included
     with AuroraSimulator(tools=parse_tools("1:6dof,2:6dof"), link=tmp_path / "aurora", seed=11,
@@ -555,8 +555,8 @@ def test_cli_record_and_live_navigate_from_the_aurora(tmp_path, replay):
 def test_quality_limit_defaults_to_the_sources_scale():
     import argparse
 
-    from EMRegModule.commands.live import _max_quality
-    from EMRegModule.live.aurora.source import AuroraSource
+    from EMRegModule.cli.live import _max_quality
+    from EMRegModule.devices.aurora.source import AuroraSource
 
     aurora = argparse.Namespace(max_quality=None, source_max_quality=AuroraSource.default_max_quality)
     assert _max_quality(aurora) == 1.0  # the Aurora's RMS error, mm

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
 
 
 def _refused(capsys, argv, *needles, code=2):
@@ -82,8 +82,8 @@ def test_non_finite_voxels_are_refused_with_their_count(tmp_path, capsys, kind, 
 
 
 def test_non_finite_voxels_of_an_image_in_memory_are_refused():
-    from EMRegModule.controller import EMRegController
     from EMRegModule.errors import EMRegError
+    from EMRegModule.pipeline.controller import EMRegController
 
     values = np.zeros((12, 14, 16), np.float64)
     values[0, 0, :3] = np.nan
@@ -228,9 +228,9 @@ def test_fixed_sensor_offset_outside_the_pinhole_is_refused():
     from synth_registration import pairing_problem
     from test_registration import _inputs
 
+    from EMRegModule.core.registration import RegistrationSettings, register
     from EMRegModule.errors import EMRegError
     from EMRegModule.marker_model import MarkerModel
-    from EMRegModule.registration import RegistrationSettings, register
 
     markers, calibration = _inputs(pairing_problem(3))
     for l_mm in (1000.0, 5.0, 18.6):
@@ -363,8 +363,8 @@ def test_time_that_does_not_increase_within_a_segment_is_refused(tmp_path, capsy
 
 
 def test_segments_are_never_matched_across_a_reset():
+    from EMRegModule.core.tracking import match_moments
     from EMRegModule.io.tracking_csv import parse_tracking_csv
-    from EMRegModule.tracking import match_moments
 
     text = _recording_text(n=100, times=np.r_[np.arange(50) / 40.0, np.arange(50) / 40.0])
     recording = parse_tracking_csv(text)

@@ -40,7 +40,7 @@ import SimpleITK as sitk  # noqa: E402
 from conftest import SMALL_CASE_OPTIONS  # noqa: E402
 from ct_files import write_nrrd  # noqa: E402
 
-from EMRegModule.cli import main  # noqa: E402
+from EMRegModule.cli.main import main  # noqa: E402
 from EMRegModule.simulation.case import simulate_case  # noqa: E402
 
 SMALL = {**SMALL_CASE_OPTIONS, "board_rounds": 1}

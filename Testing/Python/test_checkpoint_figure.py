@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 from conftest import SMALL_CASE_OPTIONS
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
 from EMRegModule.rendering.checkpoint_chart import checkpoint_chart
 from EMRegModule.rendering.plots import HIGHLIGHT, LINE
 from EMRegModule.simulation.case import simulate_recordings

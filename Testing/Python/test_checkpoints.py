@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 from conftest import SMALL_CASE_OPTIONS
 
-from EMRegModule.checkpoints import (
+from EMRegModule.cli.main import main
+from EMRegModule.core.checkpoints import (
     Checkpoint,
     Pinholes,
     TrustMonitor,
@@ -27,13 +28,12 @@ from EMRegModule.checkpoints import (
     pose_status,
     reference_jumps,
 )
-from EMRegModule.cli import main
+from EMRegModule.core.navigation import navigate_recording
+from EMRegModule.core.registration import read_registration
+from EMRegModule.core.transforms import apply_transform, axis_angle_to_rotation, make_transform
 from EMRegModule.io.recording import read_recording
-from EMRegModule.navigation import navigate_recording
-from EMRegModule.registration import read_registration
 from EMRegModule.settings import NavigationSettings, Settings
 from EMRegModule.simulation.case import simulate_recordings
-from EMRegModule.transforms import apply_transform, axis_angle_to_rotation, make_transform
 
 CHECKPOINTS = 4
 
@@ -149,8 +149,8 @@ def test_live_navigation_streams_checkpoints_and_invalidates_poses(sessions, tmp
 def test_live_navigator_sends_checkpoint_status_and_invalid_transforms(sessions):
     """LiveNavigator with a TrustMonitor: a STATUS ``Checkpoint`` per result (OK, then the jump, then failed) and,
     after the failed checkpoint, every ProbeToImage with TransformStatus INVALID."""
+    from EMRegModule.devices.samples import SensorSample
     from EMRegModule.live.navigator import CHECKPOINT_STATUS_NAME, LiveNavigator
-    from EMRegModule.live.samples import SensorSample
 
     class Server:
         def __init__(self):
@@ -272,7 +272,7 @@ def test_navigation_settings_are_checked_when_read():
 def _checked(case: Path, out: Path, with_model: bool):
     """The checkpoints of ``case/navigation.csv`` navigated with the registration in ``out`` (``emreg run``'s),
     judged with its error model (``with_model``) or by the fixed limit alone."""
-    from EMRegModule.checkpoints import check_navigation
+    from EMRegModule.core.checkpoints import check_navigation
 
     registration = read_registration(out / "registration.json")
     markers, note = markers_beside(out / "registration.json")
@@ -318,13 +318,13 @@ def test_the_noise_aware_decision_flags_a_2mm_slip_at_the_first_checkpoint_after
         [c.to_json() for c in report.checkpoints]
 
 
-# --- a reference jump judged at the next checkpoint: slip or bump (EMRegModule.slip) ------------------------------
+# --- a reference jump judged at the next checkpoint: slip or bump (EMRegModule.core.slip) -----------------------------
 
 
 def _knocked(recording, time_s: float, tracker_motion: np.ndarray, sensors: tuple[int, ...]):
     """A copy of ``recording`` whose ``sensors`` are moved by ``tracker_motion`` (4x4, Tracker frame) from ``time_s``
     on: the reference alone (a slip in its slot) or every sensor (the frame and the probe in it knocked)."""
-    from EMRegModule.tracking import TrackingRecording
+    from EMRegModule.core.tracking import TrackingRecording
 
     moved = (recording.time_s >= time_s) & np.isin(recording.sensor, sensors)
     position, rotation = recording.position_mm.copy(), recording.rotation.copy()
@@ -361,7 +361,7 @@ def knock(sessions) -> dict:
 
 
 def _check(knock: dict, recording):
-    from EMRegModule.checkpoints import check_navigation
+    from EMRegModule.core.checkpoints import check_navigation
 
     navigation = navigate_recording(recording, knock["registration"].reference_to_image)
     return check_navigation(navigation, recording, knock["pinholes"], 1, NavigationSettings()), navigation
@@ -421,7 +421,7 @@ def test_a_bump_of_the_whole_frame_is_warned_and_ruled_out_as_a_slip_at_the_next
 
 def _moments(recording, reference_to_image: np.ndarray):
     """(time, ProbeToImage, ReferenceToTracker) per moment of a two-sensor recording, as live navigation sees them."""
-    from EMRegModule.navigation import probe_to_image
+    from EMRegModule.core.navigation import probe_to_image
 
     reference, probe = recording.for_sensor(1), recording.for_sensor(2)
     for k in range(min(len(reference.time_s), len(probe.time_s))):
@@ -434,7 +434,7 @@ def _moments(recording, reference_to_image: np.ndarray):
 def test_slip_watch_confirms_lets_a_confirmed_slip_stand_rules_out_and_drops_what_fits_neither():
     """Four pinholes on a line (image = Reference), the error model's covariance 0.3^2 mm^2 per axis: a jump that
     turns the reference 1 degree about the first pinhole (errors 0, 1.75, 3.5, 5.2 mm along the line)."""
-    from EMRegModule.slip import SlipWatch
+    from EMRegModule.core.slip import SlipWatch
 
     pinholes = np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [200.0, 0.0, 0.0], [300.0, 0.0, 0.0]])
     ids = ["I01", "I02", "I03", "I04"]
@@ -478,7 +478,7 @@ def test_evaluate_leaves_the_invalid_poses_out_of_the_tre_and_counts_them(sessio
     INVALID (from the failed checkpoint after the slip on, and the tracker's bad samples) are left out of the TRE
     and counted; the target dwells after the slip, off by the slip, no longer raise it. The clean session loses
     only the bad samples and no dwell."""
-    from EMRegModule.evaluation import evaluate_targets
+    from EMRegModule.core.evaluation import evaluate_targets
     from EMRegModule.io.case import read_targets
 
     targets = read_targets(small_case / "targets.mrk.json")

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from EMRegModule.cli import build_parser, main
+from EMRegModule.cli.main import build_parser, main
 
 
 def test_version_and_help_through_the_console_script():
@@ -63,13 +63,13 @@ def test_parser_knows_every_spec_option():
 @pytest.mark.parametrize("source", ["raise KeyboardInterrupt", 'exec("raise KeyboardInterrupt")'])
 def test_ctrl_c_inside_a_string_exec_still_exits_130_under_python_m(tmp_path, source):
     """Ctrl-C landing while a library runs a string ``exec`` (dataclasses and namedtuples are made that way,
-    so any lazy import can be the place) made ``python -m EMRegModule.cli`` die by SIGINT (-2) after printing
+    so any lazy import can be the place) made ``python -m EMRegModule.cli.main`` die by SIGINT (-2) after printing
     its one line, although ``main`` returned 130: CPython then remembers the interrupt as unhandled."""
     (tmp_path / "interrupted_cli.py").write_text(
-        "import sys\nfrom EMRegModule import cli\nfrom EMRegModule.commands import stages\n"
+        "import sys\nfrom EMRegModule.cli import stages\nfrom EMRegModule.cli.main import main\n"
         f"def interrupted(args):\n    exec({source!r})\n"
         "stages.cmd_detect = interrupted\n"
-        "sys.exit(cli.main(['detect', 'CT', '--out', 'OUT']))\n")
+        "sys.exit(main(['detect', 'CT', '--out', 'OUT']))\n")
     result = subprocess.run([sys.executable, "-m", "interrupted_cli"], cwd=tmp_path, capture_output=True,
                             text=True, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
     assert result.returncode == 130, result.stderr

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from EMRegModule.controller import EMRegController
 from EMRegModule.errors import EMRegError
+from EMRegModule.pipeline.controller import EMRegController
+from EMRegModule.pipeline.results import WorkflowError, WorkflowState
 from EMRegModule.settings import Settings
-from EMRegModule.workflow.results import WorkflowError, WorkflowState
 
 
 def _detection():

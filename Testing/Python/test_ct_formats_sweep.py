@@ -43,7 +43,7 @@ import SimpleITK as sitk
 from ct_files import RAS_FROM_LPS, index_to_lps, write_nrrd
 from scipy.spatial.transform import Rotation
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.ct_stream import start_streamed_read
 from EMRegModule.io.fast_read import plain_storage, start_fast_read
@@ -161,7 +161,7 @@ def test_nrrd_space_units_other_than_mm_are_refused(case, hu, tmp_path, capsys, 
 def test_the_sha256_of_a_detached_header_covers_its_voxels(hu, tmp_path, header, data):
     """Provenance: a CT whose voxels are in a file beside its header changes its sha256 when the voxels change
     (it covered the header's bytes only, so outputs made from the earlier voxels still passed as this CT's)."""
-    from EMRegModule.provenance import file_sha256
+    from EMRegModule.io.provenance import file_sha256
 
     small = hu[:40, :30, :20]
     if header.endswith(".nhdr"):

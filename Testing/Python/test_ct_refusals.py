@@ -338,7 +338,7 @@ def test_a_refusal_exits_after_the_background_import_not_during_it(tmp_path):
         "pathlib.Path(sys.argv[1]).write_text('imported')\n")
     done = tmp_path / "done.txt"
     script = ("import sys\n"
-              "from EMRegModule.workflow.background import import_in_background\n"
+              "from EMRegModule.pipeline.background import import_in_background\n"
               "import_in_background('slow_module')\n"
               "sys.exit(2)\n")
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), *sys.path]))

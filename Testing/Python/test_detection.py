@@ -16,18 +16,18 @@ import pytest
 import SimpleITK as sitk
 from fixtures import phantom as ph
 
-from EMRegModule.detection import (
+from EMRegModule.core.detection import (
     DetectionResult,
     detect_markers,
     read_detection,
     settings_from_dict,
     write_detection,
 )
-from EMRegModule.detection.pose import edge_samples, fit_pose, surface_distances
+from EMRegModule.core.detection.pose import edge_samples, fit_pose, surface_distances
+from EMRegModule.core.transforms import angle_between_deg, apply_transform
 from EMRegModule.errors import EMRegError, NoSafeAnswerError
 from EMRegModule.io.markups import read_markups
 from EMRegModule.marker_model import MarkerModel
-from EMRegModule.transforms import angle_between_deg, apply_transform
 
 
 def match(result: DetectionResult, truth: list[dict], tolerance_mm: float = 3.0):
@@ -143,7 +143,7 @@ def test_pose_from_a_poor_start_converges():
 def test_a_hopeless_fit_is_not_polished_and_is_rejected_as_it_would_be(monkeypatch):
     """A decoy like a marker (a PVC cylinder of its volume) fits no start within the good RMS: no start gets the final
     ICP, and the RMS it is rejected with is within 0.01 mm of the polished one; a marker's fit is polished."""
-    from EMRegModule.detection import pose
+    from EMRegModule.core.detection import pose
 
     model = MarkerModel()
     geometry = ph.make_image_geometry((64, 64, 64), (0.6, 0.6, 0.6))
@@ -303,9 +303,9 @@ def test_bad_markers_json_is_refused(tmp_path, document, message):
 
 def test_a_marker_cut_by_its_coarse_region_is_regrown():
     """When the coarse pass splits a marker (its region cuts the blob), the whole marker is recovered."""
-    from EMRegModule.detection.detect import _regrown
-    from EMRegModule.detection.segmentation import Region, blobs_in_region
-    from EMRegModule.detection.settings import default_settings
+    from EMRegModule.core.detection.detect import _regrown
+    from EMRegModule.core.detection.segmentation import Region, blobs_in_region
+    from EMRegModule.core.detection.settings import default_settings
     from EMRegModule.io.image import index_to_physical_matrix
 
     model = MarkerModel()
@@ -333,7 +333,7 @@ def test_thick_slices_along_the_axis_do_not_confuse_the_start(spacing):
     The start's axis must come from the skewness (wide bottom, narrow top), not from the second
     moments (which were up to 20 deg off here and, on a simulated 0.9 x 0.9 x 1.25 mm case, 116 deg).
     """
-    from EMRegModule.detection.pose import principal_start
+    from EMRegModule.core.detection.pose import principal_start
 
     model = MarkerModel()
     geometry = ph.make_image_geometry([int(40 / s) for s in spacing], spacing)
@@ -355,7 +355,7 @@ def test_box_morphology_matches_scipy_exactly():
     """The separable morphology of segmentation/measure gives scipy's masks and minima, borders included."""
     from scipy import ndimage
 
-    from EMRegModule.detection.segmentation import ball, box_extreme, dilate_ball, erode_ball, open_ball
+    from EMRegModule.core.detection.segmentation import ball, box_extreme, dilate_ball, erode_ball, open_ball
 
     rng = np.random.default_rng(0)
     for spacing in ((0.6, 0.6, 0.6), (1.25, 0.9, 0.9), (0.3, 0.3, 0.3), (2.0, 0.7, 0.7)):
@@ -376,7 +376,7 @@ def test_box_morphology_matches_scipy_exactly():
 @pytest.mark.parametrize("low, high", [(600, 1800), (600.5, 1800.5), (-40000, 100), (2000, 3000), (32000, 40000),
                                        (100, 100)])
 def test_int16_band_test_is_exact_over_every_value(low, high):
-    from EMRegModule.detection.segmentation import _band_test
+    from EMRegModule.core.detection.segmentation import _band_test
 
     values = np.arange(-32768, 32768).astype(np.int16)
     out = np.empty(values.shape, dtype=bool)

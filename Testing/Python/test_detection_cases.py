@@ -17,11 +17,11 @@ import SimpleITK as sitk
 from conftest import CI_CASE_OPTIONS, load_truth
 from fixtures import phantom as ph
 
-from EMRegModule.cli import main
-from EMRegModule.detection import DetectionResult, read_detection
+from EMRegModule.cli.main import main
+from EMRegModule.core.detection import DetectionResult, read_detection
+from EMRegModule.core.transforms import angle_between_deg
 from EMRegModule.io.markups import read_markups
 from EMRegModule.simulation.case import simulate_case
-from EMRegModule.transforms import angle_between_deg
 
 
 def run_detect(case: Path, out: Path, capsys) -> tuple[int, str, str]:

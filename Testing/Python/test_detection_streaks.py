@@ -13,9 +13,9 @@ import pytest
 from conftest import CI_CASE_OPTIONS, load_truth
 from test_detection_cases import errors_against_truth
 
-from EMRegModule.cli import main
-from EMRegModule.detection import detect as detect_module
-from EMRegModule.detection import read_detection
+from EMRegModule.cli.main import main
+from EMRegModule.core.detection import detect as detect_module
+from EMRegModule.core.detection import read_detection
 from EMRegModule.simulation.case import simulate_case
 
 

@@ -19,8 +19,8 @@ import SimpleITK as sitk
 from conftest import load_truth
 from dicom_files import TRANSFER_SYNTAXES, convert, make_volume, tools_available, transfer_syntax_uid, uid, write_series
 
-from EMRegModule.cli import main
-from EMRegModule.detection import read_detection
+from EMRegModule.cli.main import main
+from EMRegModule.core.detection import read_detection
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.dicom_read import open_dicom_series
 from EMRegModule.io.dicom_series import choose_series, scan_series
@@ -267,8 +267,8 @@ def test_uncompressed_slices_are_read_directly_and_match_gdcm(tmp_path, monkeypa
 
 def test_detection_while_decoding_gives_the_markers_of_the_whole_image(hard_case, hard_export):
     """Detection on slices as they are decoded (thread pool) equals detection on the image read whole."""
-    from EMRegModule.controller import EMRegController
-    from EMRegModule.detection import detect_markers
+    from EMRegModule.core.detection import detect_markers
+    from EMRegModule.pipeline.controller import EMRegController
 
     streamed = EMRegController().load_ct_and_detect(hard_export)
     whole = detect_markers(read_ct(hard_case / "ct"))
@@ -282,9 +282,9 @@ def test_emreg_detect_reads_the_series_without_an_image_with_the_same_markers(ha
     (``voxels_only``: no SimpleITK image of the volume, which SimpleITK fills with zeros before the first slice, nor
     any copy of it), with the same voxels and geometry as the image, and the same markers as a detection that keeps
     the image."""
-    from EMRegModule.controller import EMRegController
-    from EMRegModule.detection import write_detection
+    from EMRegModule.core.detection import write_detection
     from EMRegModule.io import dicom_read
+    from EMRegModule.pipeline.controller import EMRegController
 
     kept = EMRegController()
     whole = kept.load_ct_and_detect(hard_case / "ct")
@@ -317,7 +317,7 @@ def test_emreg_detect_on_an_uncompressed_series_does_not_load_simpleitk(hard_cas
     import sys
 
     script = ("import sys\n"
-              "from EMRegModule.cli import main\n"
+              "from EMRegModule.cli.main import main\n"
               f"code = main(['detect', {str(hard_case / 'ct')!r}, '--out', {str(tmp_path)!r}, '--quiet'])\n"
               "print(code, 'SimpleITK' in sys.modules)\n")
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
@@ -359,7 +359,7 @@ def test_the_folder_sha256_comes_from_the_read_and_equals_a_pass_of_its_own(tmp_
     folder's other files (another series, a README): the same value as ``file_sha256`` of the folder."""
     import hashlib
 
-    from EMRegModule.provenance import file_sha256, folder_sha256
+    from EMRegModule.io.provenance import file_sha256, folder_sha256
 
     _export(tmp_path)
     convert(sorted((tmp_path / "S2").iterdir()), "jpeg-lossless")  # chunks decoded by GDCM
@@ -382,7 +382,7 @@ def test_slices_hashed_while_the_volume_is_allocated_are_not_hashed_again_and_th
     decoding reads them without hashing them again, and the folder's sha256 and the voxels are those of a plain
     read."""
     from EMRegModule.io import dicom_read
-    from EMRegModule.provenance import file_sha256
+    from EMRegModule.io.provenance import file_sha256
 
     _export(tmp_path)
     rounds = iter([True, True, True])
@@ -482,9 +482,9 @@ def test_compressed_runs_of_slices_keep_each_slices_own_rescale(tmp_path):
 def test_a_compact_read_holds_int16_and_a_slice_beyond_it_is_read_again_exactly(tmp_path, syntax):
     """16 stored bits with intercept -1024 take int32 to hold what the headers allow; detection reads such a
     series as int16 (the CT's own values fit), and reads it again as int32 when one slice does not fit."""
-    from EMRegModule.controller import EMRegController
     from EMRegModule.errors import NoSafeAnswerError
     from EMRegModule.io.dicom_read import NarrowVoxelsError
+    from EMRegModule.pipeline.controller import EMRegController
     from EMRegModule.progress import Progress
 
     if syntax != "uncompressed" and tools_available():

@@ -16,7 +16,7 @@ from EMRegModule.io.dicom_read import NarrowVoxelsError, open_dicom_series
 from EMRegModule.io.dicom_series import choose_series, scan_series
 from EMRegModule.io.dicom_slices import DicomSliceStack
 from EMRegModule.io.image import read_ct
-from EMRegModule.provenance import file_sha256
+from EMRegModule.io.provenance import file_sha256
 
 _KEYS = [
     (slice(None), slice(None), slice(None)),

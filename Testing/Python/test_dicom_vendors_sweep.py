@@ -41,8 +41,8 @@ from dicom_files import convert, make_volume, tools_available, uid, write_series
 from pydicom.dataelem import DataElement
 from test_detection_cases import errors_against_truth
 
-from EMRegModule.cli import main
-from EMRegModule.detection import read_detection
+from EMRegModule.cli.main import main
+from EMRegModule.core.detection import read_detection
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.image import open_ct, read_ct
 

@@ -16,13 +16,13 @@ import pytest
 from conftest import SMALL_CASE_OPTIONS
 from scipy.optimize import least_squares
 
-from EMRegModule.cli import main
-from EMRegModule.distortion import DistortionEstimate, estimate_distortion
-from EMRegModule.em_field import coil_field, induced_coupling, position_error
-from EMRegModule.registration import read_registration
+from EMRegModule.cli.main import main
+from EMRegModule.core.distortion import DistortionEstimate, estimate_distortion
+from EMRegModule.core.em_field import coil_field, induced_coupling, position_error
+from EMRegModule.core.registration import read_registration
+from EMRegModule.core.transforms import apply_transform, fit_rigid, invert_rigid, make_transform, random_rotation
 from EMRegModule.simulation.case import load_truth, simulate_case
 from EMRegModule.simulation.distortion import FieldDistortion, nonrigid_errors, place_object
-from EMRegModule.transforms import apply_transform, fit_rigid, invert_rigid, make_transform, random_rotation
 
 DISTORTED_OPTIONS = {**SMALL_CASE_OPTIONS, "frame_size_mm": (220.0, 220.0, 140.0), "n_markers": 16}
 
@@ -183,7 +183,7 @@ def test_simulate_command_passes_the_distortion_options(tmp_path: Path, monkeypa
 
 
 def test_unpaired_point_is_not_blamed_on_the_user_when_distortion_is_detected():
-    from EMRegModule.registration import _unpaired_warnings
+    from EMRegModule.core.registration import _unpaired_warnings
 
     points, residuals, axes, poses = _residuals(np.random.default_rng(23), 1.0)
     estimate = estimate_distortion(points, residuals, axes, 0.002, tracker_to_reference=poses)
@@ -217,7 +217,7 @@ def test_an_unpaired_point_is_measured_against_the_field_fitted_to_the_others():
     calibration point brings it nearer its CT pinhole."""
     from types import SimpleNamespace
 
-    from EMRegModule.registration import _distortion_evidence
+    from EMRegModule.core.registration import _distortion_evidence
 
     rng = np.random.default_rng(24)
     points, axes, reference_to_tracker = _frame(rng)
@@ -281,7 +281,7 @@ def test_the_false_alarm_rate_holds_on_noise_of_any_size():
 def test_one_bad_pair_needs_every_sign_of_one_to_overrule_the_test():
     """The rule that puts the evidence down to one bad pair: all of an outlier by itself, the others not even weakly
     significant, not predicted by their field, and along its pinhole's axis."""
-    from EMRegModule.distortion import _several_points
+    from EMRegModule.core.distortion import _several_points
 
     assert not _several_points(0.4, 0.1, 0.001, 0.95)  # a probe not fully inserted: one point, along its axis
     assert _several_points(0.4, 0.1, 0.2, 0.95)  # not an outlier by itself: the field is spread
@@ -308,7 +308,7 @@ def test_the_distortion_term_never_falls_below_what_the_pinholes_measured():
 def test_a_suspected_distortion_is_named_before_the_user_is_blamed():
     from dataclasses import replace
 
-    from EMRegModule.registration import _unpaired_warnings
+    from EMRegModule.core.registration import _unpaired_warnings
 
     clean = estimate_distortion(*_residuals(np.random.default_rng(21), 0.0)[:3], 0.002)
     suspected = replace(clean, p_value=0.01)
@@ -323,7 +323,7 @@ def test_a_smooth_field_fitted_to_the_paired_points_explains_an_unpaired_one():
     left out of the pairing: nearer its pinhole in most of 10 random smooth fields (beyond the pinholes a field of
     unknown shape extrapolates only roughly, so the registration claims it only when it lands within the pairing
     tolerance)."""
-    from EMRegModule.distortion import fit_field
+    from EMRegModule.core.distortion import fit_field
     from EMRegModule.simulation.field_families import place_field
 
     improved = 0

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from EMRegModule.dwell import describe_still_periods, find_dwells
+from EMRegModule.core.dwell import describe_still_periods, find_dwells
 from EMRegModule.settings import EvaluationSettings, Settings
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from EMRegModule.error_model import (
+from EMRegModule.core.error_model import (
     ErrorModel,
     RegistrationError,
     estimate_isotropic_fle,
@@ -15,8 +15,8 @@ from EMRegModule.error_model import (
     registration_error,
     repeated_dwell_ms,
 )
-from EMRegModule.registration import solve_sensor_offset
-from EMRegModule.transforms import apply_transform, fit_rigid, invert_rigid, make_transform
+from EMRegModule.core.registration import solve_sensor_offset
+from EMRegModule.core.transforms import apply_transform, fit_rigid, invert_rigid, make_transform
 
 
 def _frame(rng: np.random.Generator, n: int, spread_mm: float = 80.0):

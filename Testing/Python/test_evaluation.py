@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from synth_registration import calibration_recording, make_frame
 
+from EMRegModule.core.evaluation import Evaluation, evaluate, evaluate_board, read_evaluation, write_evaluation
+from EMRegModule.core.transforms import apply_transform, invert_rigid, make_transform, random_rotation
 from EMRegModule.errors import EMRegError
-from EMRegModule.evaluation import Evaluation, evaluate, evaluate_board, read_evaluation, write_evaluation
 from EMRegModule.io.case import open_case
 from EMRegModule.io.markups import write_markups
 from EMRegModule.io.tracking_csv import write_tracking_csv
-from EMRegModule.transforms import apply_transform, invert_rigid, make_transform, random_rotation
 
 TARGETS = ["T1", "T2", "T3"]
 EDGES = [75.3, 60.4, 75.5, 60.4]
@@ -156,8 +156,8 @@ def test_write_evaluation_spec_layout(case_folder, tmp_path):
 
 
 def test_emreg_evaluate_command(case_folder, tmp_path):
-    from EMRegModule.cli import main
-    from EMRegModule.registration import RegistrationResult, write_registration
+    from EMRegModule.cli.main import main
+    from EMRegModule.core.registration import RegistrationResult, write_registration
 
     folder, frame, *_ = case_folder
     write_registration(RegistrationResult(frame.reference_to_image, 14.0, 0.5, []), tmp_path / "reg")

@@ -1,4 +1,4 @@
-"""Detection's examiners (``EMRegModule.detection.examiners``): a forked process beside the threads works on the
+"""Detection's examiners (``EMRegModule.core.detection.examiners``): a forked process beside the threads works on the
 voxels as they are written into shared memory, gives the same answers, hands its errors back, and dies with the
 command (``interrupts.die_with_parent``); regions wait in one queue for whichever examiner is free. The scripts run
 in a fresh interpreter (a single thread, as the command)."""
@@ -12,12 +12,12 @@ import sys
 
 import numpy as np
 
-from EMRegModule.detection.examiners import Examiners
+from EMRegModule.core.detection.examiners import Examiners
 
 _SCRIPT = """
 import json, os
 import numpy as np
-from EMRegModule.detection.examiners import Examiners
+from EMRegModule.core.detection.examiners import Examiners
 from EMRegModule.io.ct_handle import anonymous_voxels
 
 _, volume = anonymous_voxels((8, 6, 5), np.int16, shared=True)  # 5 slices of 6 x 8, written after the fork

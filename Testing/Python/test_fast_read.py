@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from EMRegModule import transforms as tf
+from EMRegModule.core import transforms as tf
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.fast_read import start_fast_read
 from EMRegModule.io.image import read_ct
-from EMRegModule.provenance import file_sha256
+from EMRegModule.io.provenance import file_sha256
 
 SIZE_IJK = (37, 29, 23)  # odd sizes: no axis can be swapped unnoticed
 

@@ -24,12 +24,12 @@ import numpy as np
 import pytest
 from conftest import load_truth
 
-from EMRegModule.calibration import CalibrationPoint, FrameCalibration, write_frame_calibration
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
+from EMRegModule.core.calibration import CalibrationPoint, FrameCalibration, write_frame_calibration
+from EMRegModule.core.transforms import apply_transform, invert_rigid
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.fiducials import FORMAT_FCSV, FORMAT_MARKUPS, FORMAT_PLUS, read_fiducials
 from EMRegModule.io.markups import markups_document
-from EMRegModule.transforms import apply_transform, invert_rigid
 
 PLUS_DATA = Path(__file__).resolve().parents[1] / "Data" / "PlusLibData"
 PLUS_DEVICE_SET = PLUS_DATA / "PlusDeviceSet_fCal_Sim_RecordPhantomLandmarks.xml"  # fCal 2.0
@@ -475,7 +475,7 @@ def test_unknown_position_status_is_refused(tmp_path):
 def test_tool_tip_calibration_points_are_fitted_as_they_are():
     """A calibration whose points are a tool's tips (``tool`` set, as the tool calibration leaves it) is fitted as
     it is and says so; a pinhole-probe calibration is taken as a pointer whose tip is its sensor, with a warning."""
-    from EMRegModule.fiducial_registration import register_fiducials
+    from EMRegModule.core.fiducial_registration import register_fiducials
     from EMRegModule.io.fiducials import Fiducials
 
     reference_to_image = np.eye(4)

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from EMRegModule.em_field import coil_field, induced_coupling, position_error
+from EMRegModule.core.em_field import coil_field, induced_coupling, position_error
+from EMRegModule.core.transforms import make_transform, random_rotation
 from EMRegModule.simulation.distortion import nonrigid_errors
 from EMRegModule.simulation.field_families import (
     DEVELOPMENT,
@@ -18,7 +19,6 @@ from EMRegModule.simulation.field_families import (
     place_field,
     solve_position,
 )
-from EMRegModule.transforms import make_transform, random_rotation
 
 
 def _frame(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -68,8 +68,8 @@ def test_each_family_is_scaled_to_the_nonrigid_size_asked_for(family: str):
 def test_families_differ_from_the_induced_dipole_in_shape():
     """The held-out fields are not one first-order dipole: the best dipole fitted to a magpylib body's or several
     bodies' errors leaves part of them unexplained, while it explains the simulator's own rod all but exactly."""
-    from EMRegModule.distortion import estimate_distortion
-    from EMRegModule.transforms import invert_rigid
+    from EMRegModule.core.distortion import estimate_distortion
+    from EMRegModule.core.transforms import invert_rigid
 
     rng = np.random.default_rng(8)
     points, reference_to_tracker = _frame(rng)

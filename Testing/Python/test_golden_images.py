@@ -171,7 +171,7 @@ def _oblique_flipped_copy(image):
     """The same CT resampled onto a rotated (30 degrees), left-handed, anisotropic voxel grid."""
     import SimpleITK as sitk
 
-    from EMRegModule.transforms import axis_angle_to_rotation
+    from EMRegModule.core.transforms import axis_angle_to_rotation
 
     direction = axis_angle_to_rotation([0.3, -0.5, 1.0], np.radians(30.0)) @ np.diag([-1.0, 1.0, 1.0])
     spacing = np.array([0.45, 0.5, 0.6])

@@ -19,16 +19,16 @@ from test_navigate_tool import (
     write_plus_device_set,
 )
 
-from EMRegModule.cli import main
-from EMRegModule.controller import error_model
+from EMRegModule.cli.main import main
+from EMRegModule.core.guidance import RADIUS_95_PER_RMS, TOOL_ROTATION_SIGMA_DEG, Plan, guidance, shaft_in_tip
+from EMRegModule.core.navigation import GUIDANCE_COLUMNS, NAVIGATION_HEADER, navigate_recording
+from EMRegModule.core.plan import check_plan_in_image, read_plan
+from EMRegModule.core.registration import read_registration
+from EMRegModule.core.transforms import make_transform, random_rotation
 from EMRegModule.errors import EMRegError
-from EMRegModule.guidance import RADIUS_95_PER_RMS, TOOL_ROTATION_SIGMA_DEG, Plan, guidance, shaft_in_tip
 from EMRegModule.io.recording import read_recording
-from EMRegModule.navigation import GUIDANCE_COLUMNS, NAVIGATION_HEADER, navigate_recording
-from EMRegModule.plan import check_plan_in_image, read_plan
-from EMRegModule.registration import read_registration
+from EMRegModule.pipeline.controller import error_model
 from EMRegModule.settings import Settings, load_settings
-from EMRegModule.transforms import make_transform, random_rotation
 
 # --- the geometry -------------------------------------------------------------------------------------
 

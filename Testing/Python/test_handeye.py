@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from EMRegModule.cli import main
-from EMRegModule.commands.robot_live import read_target
-from EMRegModule.handeye import motion_spread, solve_ax_yb
+from EMRegModule.cli.main import main
+from EMRegModule.cli.robot_live import read_target
+from EMRegModule.core.handeye import motion_spread, solve_ax_yb
 from EMRegModule.io.itk_transform import read_slicer_frame_transform
 from EMRegModule.io.tum import read_tum, write_tum
 
@@ -192,7 +192,7 @@ def _pose(rotvec_deg, translation) -> np.ndarray:
 def targeting_case(continuous_case, tmp_path_factory):
     """A hand-eye calibration made by emreg handeye from the KinHEC recording, a registration, the reference
     sensor's recording (300 mm before the field generator), a plan and a needle guide, with the truth beside."""
-    from EMRegModule.registration import RegistrationResult, write_registration
+    from EMRegModule.core.registration import RegistrationResult, write_registration
 
     folder = tmp_path_factory.mktemp("target")
     continuous_case.write_tum(folder / "robot.tum")
@@ -297,7 +297,7 @@ def test_the_roll_keeps_the_flange_nearest_its_preferred_orientation():
     """best_roll's closed form is the best of every roll about the guide's axis."""
     from scipy.spatial.transform import Rotation
 
-    from EMRegModule.robot_target import best_roll
+    from EMRegModule.core.robot_target import best_roll
 
     rng = np.random.default_rng(5)
     guide, guide_to_flange, preferred = Rotation.random(3, random_state=rng).as_matrix()
@@ -330,7 +330,7 @@ def test_slicer_reads_the_calibration_transforms_as_they_are(slicer_core, tmp_pa
 def test_a_robot_log_shorter_than_the_tracker_recording_and_with_a_gap():
     """The robot's log covers the middle of the tracker's recording and misses half a second: the frames without
     a robot pose are left out with that reason, the answer stays as good (150 ms clock offset)."""
-    from EMRegModule.handeye import calibrate_hand_eye
+    from EMRegModule.core.handeye import calibrate_hand_eye
 
     case = kinhec_case("panda", "joint_sinusoid", seed=61, outlier_fraction=0.03, time_offset_s=0.15)
     n = len(case.robot_time_s)

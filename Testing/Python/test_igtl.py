@@ -12,10 +12,10 @@ import pyigtl
 import pytest
 from pyigtl.messages import CRC64, MessageBase, TransformMessage
 
+from EMRegModule.devices.igtl_client import IGTLReceiver
+from EMRegModule.devices.igtl_server import IGTLServer
+from EMRegModule.devices.igtl_status import STATUS_NOT_PRESENT, StatusMessage
 from EMRegModule.errors import EMRegError
-from EMRegModule.live.igtl_client import IGTLReceiver
-from EMRegModule.live.igtl_server import IGTLServer
-from EMRegModule.live.igtl_status import STATUS_NOT_PRESENT, StatusMessage
 
 
 def _parse_with_pyigtl(data: bytes) -> MessageBase:

@@ -17,16 +17,16 @@ import numpy as np
 import pyigtl
 import pytest
 
-from EMRegModule.cli import main
-from EMRegModule.frames import LPS_TO_RAS
+from EMRegModule.cli.main import main
+from EMRegModule.core.frames import LPS_TO_RAS
+from EMRegModule.core.transforms import make_transform
+from EMRegModule.devices.device_url import parse_device_url
+from EMRegModule.devices.igtl_server import IGTLServer
+from EMRegModule.devices.igtl_status import StatusMessage
+from EMRegModule.devices.samples import STATUS_OUT_OF_RANGE, SensorSample
+from EMRegModule.devices.sources import IGTLSource
 from EMRegModule.io.sequence_metafile import read_sequence_frames
-from EMRegModule.live.device_url import parse_device_url
-from EMRegModule.live.igtl_server import IGTLServer
-from EMRegModule.live.igtl_status import StatusMessage
 from EMRegModule.live.navigator import LiveNavigator
-from EMRegModule.live.samples import STATUS_OUT_OF_RANGE, SensorSample
-from EMRegModule.live.sources import IGTLSource
-from EMRegModule.transforms import make_transform
 
 
 def _sample(sensor: int, frame: int, status: str = "ok", position=(100.0, 0.0, 0.0)) -> SensorSample:

@@ -15,9 +15,9 @@ import subprocess
 import sys
 
 #: Modules each command imports before it knows what it will do (command line, controller, stage modules).
-CORE = ("EMRegModule.cli", "EMRegModule.controller", "EMRegModule.detection.detect", "EMRegModule.registration",
-        "EMRegModule.calibration", "EMRegModule.evaluation", "EMRegModule.navigation", "EMRegModule.report.writer",
-        "EMRegModule.report.batch",
+CORE = ("EMRegModule.cli.main", "EMRegModule.pipeline.controller", "EMRegModule.core.detection.detect",
+        "EMRegModule.core.registration", "EMRegModule.core.calibration", "EMRegModule.core.evaluation",
+        "EMRegModule.core.navigation", "EMRegModule.report.writer", "EMRegModule.report.batch",
         "EMRegModule.slicer_export.bundle", "EMRegModule.slicer_export.run_scene", "EMRegModule.io.image")
 
 #: Libraries none of them may load at import time.

@@ -6,16 +6,16 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from EMRegModule import transforms as tf
+from EMRegModule.core import transforms as tf
+from EMRegModule.core.frames import LPS_TO_RAS
+from EMRegModule.core.tracking import TrackingRecording, probe_in_reference
 from EMRegModule.errors import EMRegError
-from EMRegModule.frames import LPS_TO_RAS
 from EMRegModule.io.atomic import atomic_path, atomic_write_json
 from EMRegModule.io.case import open_case
 from EMRegModule.io.image import image_geometry, index_to_physical_matrix, read_ct
 from EMRegModule.io.itk_transform import read_slicer_linear_transform, write_slicer_linear_transform
 from EMRegModule.io.markups import read_markups, write_markups
 from EMRegModule.io.tracking_csv import format_tracking_csv, parse_tracking_csv, read_tracking_csv, write_tracking_csv
-from EMRegModule.tracking import TrackingRecording, probe_in_reference
 
 HEADER = "time_s,sensor,x_mm,y_mm,z_mm,azimuth_deg,elevation_deg,roll_deg,quality,label\n"
 

@@ -21,10 +21,10 @@ import pyigtl
 import pytest
 from polling import announced_igtl_port
 
-from EMRegModule.frames import LPS_TO_RAS
-from EMRegModule.live.igtl_server import IGTLServer
-from EMRegModule.live.link_quality import JumpFilter, LinkQualityMonitor
-from EMRegModule.transforms import angles_to_rotation, invert_rigid, make_transform, random_rotation
+from EMRegModule.core.frames import LPS_TO_RAS
+from EMRegModule.core.transforms import angles_to_rotation, invert_rigid, make_transform, random_rotation
+from EMRegModule.devices.igtl_server import IGTLServer
+from EMRegModule.devices.link_quality import JumpFilter, LinkQualityMonitor
 
 WRONG_MM = 1.0
 EMREG = [sys.executable, "-m", "EMRegModule"]
@@ -111,13 +111,13 @@ class _StatusListener:
     """A raw OpenIGTLink client: every TRANSFORM ProbeToImage and STATUS, in arrival order."""
 
     def __init__(self, port: int) -> None:
-        from EMRegModule.live.igtl_client import IGTLReceiver
+        from EMRegModule.devices.igtl_client import IGTLReceiver
 
         self.messages: list = []
         self.receiver = IGTLReceiver("127.0.0.1", port, self.messages.append)
 
     def poses(self) -> np.ndarray:
-        from EMRegModule.live.igtl_server import transform_status
+        from EMRegModule.devices.igtl_server import transform_status
 
         # a client uses only the poses whose TransformStatus is OK (an INVALID one repeats the last pose)
         matrices = [np.asarray(m.matrix, dtype=float) for m in list(self.messages)
@@ -337,8 +337,8 @@ REPLAY_WATCHDOG = ("--stale-periods", "50")
 def _replay_csv(path: Path, still_s: float, move_s: float, rate_hz: float = REPLAY_RATE_HZ) -> Path:
     """A tracking CSV: the reference at rest; the probe fixed relative to it for ``still_s`` seconds, then
     moving 40 mm away over ``move_s`` seconds (``move_s`` 0: a probe that never moves)."""
+    from EMRegModule.core.tracking import TrackingRecording
     from EMRegModule.io.tracking_csv import write_tracking_csv
-    from EMRegModule.tracking import TrackingRecording
 
     rng = np.random.default_rng(12)
     reference = make_transform(random_rotation(rng, 40), [250.0, 30.0, 100.0])
@@ -432,7 +432,7 @@ def test_live_navigate_starts_publishing_once_the_probe_moves(tmp_path):
 def test_the_fault_names_both_simulators_share_are_accepted_by_both(capsys, model):
     """One --fault grammar: the names both devices have mean the same and are spelt the same (``_`` for ``-``,
     any case, a window without END); the simulator runs and ends by itself."""
-    from EMRegModule.cli import main
+    from EMRegModule.cli.main import main
 
     faults = ["drop=0.001", "FLIP=0.001", "stall=5:0.1", "unplug=3@0-0.1", "out_of_range=2@0.05", "distort=1@0-1"]
     assert main(["sim-tracker", "--model", model, *(a for f in faults for a in ("--fault", f)), "--duration",

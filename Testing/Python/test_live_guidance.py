@@ -29,16 +29,16 @@ from test_navigate_tool import (
     write_plus_device_set,
 )
 
-from EMRegModule.cli import main
-from EMRegModule.frames import LPS_TO_RAS
+from EMRegModule.cli.main import main
+from EMRegModule.core.frames import LPS_TO_RAS
+from EMRegModule.core.navigation import GUIDANCE_COLUMNS, NAVIGATION_HEADER
+from EMRegModule.core.plan import read_plan
+from EMRegModule.core.tracking import TrackingRecording
+from EMRegModule.devices.aurora.driver import FIVE_DOF_X_TO_NDI
+from EMRegModule.devices.igtl_client import IGTLReceiver
 from EMRegModule.io.recording import read_recording
 from EMRegModule.io.tracking_csv import write_tracking_csv
-from EMRegModule.live.aurora.driver import FIVE_DOF_X_TO_NDI
 from EMRegModule.live.guide import LiveGuide, trajectory_to_image
-from EMRegModule.live.igtl_client import IGTLReceiver
-from EMRegModule.navigation import GUIDANCE_COLUMNS, NAVIGATION_HEADER
-from EMRegModule.plan import read_plan
-from EMRegModule.tracking import TrackingRecording
 
 EMREG = [sys.executable, "-m", "EMRegModule"]
 ENV = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -79,10 +79,10 @@ def _check_rows_against_offline(rows: list[dict[str, str]], guided: dict, tolera
 
 
 def test_live_numbers_are_the_offline_ones():
-    """:class:`LiveGuide`'s per-pose scalar arithmetic against :func:`EMRegModule.guidance.guidance` on random
+    """:class:`LiveGuide`'s per-pose scalar arithmetic against :func:`EMRegModule.core.guidance.guidance` on random
     poses, for a line, a target alone and a tool without a shaft."""
-    from EMRegModule.guidance import Plan, guidance
-    from EMRegModule.transforms import make_transform, random_rotation
+    from EMRegModule.core.guidance import Plan, guidance
+    from EMRegModule.core.transforms import make_transform, random_rotation
 
     rng = np.random.default_rng(3)
     poses = np.array([make_transform(random_rotation(rng), rng.uniform(-100, 100, 3)) for _ in range(40)])

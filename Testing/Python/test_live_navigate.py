@@ -17,21 +17,21 @@ import pyigtl
 import pytest
 from polling import announced_igtl_port, wait_for
 
-from EMRegModule import cli
-from EMRegModule.frames import LPS_TO_RAS
+from EMRegModule.cli.main import main as cli
+from EMRegModule.core.frames import LPS_TO_RAS
+from EMRegModule.core.navigation import navigate_recording
+from EMRegModule.core.tracking import TrackingRecording
+from EMRegModule.core.transforms import invert_rigid, make_transform, random_rotation
+from EMRegModule.devices.device_url import parse_device_url
+from EMRegModule.devices.igtl_client import IGTLReceiver
+from EMRegModule.devices.igtl_server import IGTLServer
+from EMRegModule.devices.igtl_status import StatusMessage
+from EMRegModule.devices.samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE, SensorSample
+from EMRegModule.devices.simulator.trakstar import TrackerSimulator
+from EMRegModule.devices.sources import IGTLSource
+from EMRegModule.devices.trakstar.source import TrakstarSource
 from EMRegModule.io.tracking_csv import read_tracking_csv, write_tracking_csv
-from EMRegModule.live.device_url import parse_device_url
-from EMRegModule.live.igtl_client import IGTLReceiver
-from EMRegModule.live.igtl_server import IGTLServer
-from EMRegModule.live.igtl_status import StatusMessage
 from EMRegModule.live.navigator import LiveNavigator, TrackerPublisher, Watchdog
-from EMRegModule.live.samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE, SensorSample
-from EMRegModule.live.simulator.trakstar import TrackerSimulator
-from EMRegModule.live.sources import IGTLSource
-from EMRegModule.live.trakstar.source import TrakstarSource
-from EMRegModule.navigation import navigate_recording
-from EMRegModule.tracking import TrackingRecording
-from EMRegModule.transforms import invert_rigid, make_transform, random_rotation
 
 # --- helpers --------------------------------------------------------------------------------
 
@@ -45,7 +45,7 @@ def _igtl_server_ports(monkeypatch) -> queue.Queue:
     """The ports of the OpenIGTLink servers made from now on, in order. A command run in this process with
     ``--igtl-port 0`` (any free port, chosen as its server binds) and ``--quiet`` says its port nowhere; a port
     found free beforehand could be taken in between by another process (another pytest-xdist worker's test)."""
-    from EMRegModule.live import igtl_server
+    from EMRegModule.devices import igtl_server
 
     ports: queue.Queue = queue.Queue()
 

@@ -33,14 +33,14 @@ import sys
 import numpy as np
 from polling import wait_for
 
+from EMRegModule.devices.aurora import protocol as ndi
+from EMRegModule.devices.aurora.driver import AuroraDriver
+from EMRegModule.devices.samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE
+from EMRegModule.devices.simulator.aurora import AuroraSimulator, parse_tools
+from EMRegModule.devices.simulator.trakstar import TrackerSimulator
+from EMRegModule.devices.trakstar import protocol as tp
+from EMRegModule.devices.trakstar.protocol import Pose
 from EMRegModule.io.tracking_csv import read_tracking_csv
-from EMRegModule.live.aurora import protocol as ndi
-from EMRegModule.live.aurora.driver import AuroraDriver
-from EMRegModule.live.samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE
-from EMRegModule.live.simulator.aurora import AuroraSimulator, parse_tools
-from EMRegModule.live.simulator.trakstar import TrackerSimulator
-from EMRegModule.live.trakstar import protocol as tp
-from EMRegModule.live.trakstar.protocol import Pose
 
 EMREG = [sys.executable, "-m", "EMRegModule"]
 ENV = dict(os.environ, PYTHONUNBUFFERED="1")

@@ -18,13 +18,13 @@ import pytest
 import SimpleITK as sitk
 from conftest import SMALL_CASE_OPTIONS
 
-from EMRegModule.cli import main
-from EMRegModule.controller import error_model
-from EMRegModule.frames import LPS_TO_RAS
+from EMRegModule.cli.main import main
+from EMRegModule.core.frames import LPS_TO_RAS
+from EMRegModule.core.navigation import NAVIGATION_HEADER, navigate_recording
+from EMRegModule.core.registration import read_registration
 from EMRegModule.io.recording import read_recording
 from EMRegModule.io.tracking_csv import write_tracking_csv
-from EMRegModule.navigation import NAVIGATION_HEADER, navigate_recording
-from EMRegModule.registration import read_registration
+from EMRegModule.pipeline.controller import error_model
 from EMRegModule.settings import Settings
 from EMRegModule.simulation.case import load_truth, simulate_recordings
 from EMRegModule.simulation.stylus import simulate_pivot_recording

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from synth_registration import make_frame, pairing_problem, symmetric_layout
 
+from EMRegModule.core.pairing import PairingSettings, pair_markers
 from EMRegModule.errors import NoSafeAnswerError
-from EMRegModule.pairing import PairingSettings, pair_markers
 
 L_RANGE = (11.0, 18.5)
 

@@ -19,11 +19,11 @@ import numpy as np
 import pytest
 from conftest import load_truth
 
-from EMRegModule.cli import main
-from EMRegModule.evaluation import evaluate
+from EMRegModule.cli.main import main
+from EMRegModule.core.evaluation import evaluate
+from EMRegModule.core.transforms import fit_rigid
 from EMRegModule.io.case import open_case
 from EMRegModule.io.itk_transform import read_slicer_linear_transform
-from EMRegModule.transforms import fit_rigid
 
 SPEC_OUTPUTS = ("markers.json", "markers.mrk.json", "frame_calibration.json", "registration.json",
                 "ReferenceToImage.h5", "navigation.csv", "evaluation.json")

@@ -35,11 +35,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from EMRegModule.cli import main
-from EMRegModule.error_model import optimism_limit
+from EMRegModule.cli.main import main
+from EMRegModule.core.error_model import optimism_limit
+from EMRegModule.core.tracking import TrackingRecording
 from EMRegModule.io.tracking_csv import read_tracking_csv, write_tracking_csv
 from EMRegModule.simulation.case import simulate_case
-from EMRegModule.tracking import TrackingRecording
 
 SMALL = {"frame_size_mm": (200.0, 200.0, 110.0), "n_markers": 8, "navigation_rounds": 3, "board_rounds": 0,
          "n_targets": 5}

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from synth_registration import calibration_recording, make_frame, pairing_problem, symmetric_layout
 
-from EMRegModule.calibration import FrameCalibration, calibrate_frame
+from EMRegModule.core.calibration import FrameCalibration, calibrate_frame
+from EMRegModule.core.pairing import PairingSettings
+from EMRegModule.core.probe_axis import check_probe_axis, pair_with_probe_axis
 from EMRegModule.errors import EMRegError, NoSafeAnswerError
 from EMRegModule.io.tracking_csv import format_tracking_csv, parse_tracking_csv
-from EMRegModule.pairing import PairingSettings
-from EMRegModule.probe_axis import check_probe_axis, pair_with_probe_axis
 from EMRegModule.simulation.tracking import apply_probe_convention
 
 L_RANGE = (11.0, 18.5)
@@ -136,7 +136,7 @@ def three_conventions(standard_case, tmp_path_factory):
     bumped twice) by a probe of each convention; ``emreg calibrate`` and ``emreg register`` on each."""
     from conftest import CI_CASE_OPTIONS, STANDARD_SEED
 
-    from EMRegModule.cli import main
+    from EMRegModule.cli.main import main
     from EMRegModule.simulation.case import simulate_recordings
 
     root = tmp_path_factory.mktemp("probe_conventions")
@@ -163,7 +163,7 @@ def _json(path):
 def test_three_conventions_give_the_same_pairing_l_and_registration(three_conventions, standard_case):
     from conftest import load_truth
 
-    from EMRegModule.transforms import apply_transform, invert_rigid
+    from EMRegModule.core.transforms import apply_transform, invert_rigid
 
     truth = load_truth(standard_case)
     true_reference_to_image = np.asarray(truth["ReferenceToImage"])

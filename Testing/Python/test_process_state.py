@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
 from EMRegModule.io.image import write_image
 from EMRegModule.simulation.ct import write_dicom_series
 
@@ -40,7 +40,7 @@ def test_a_command_puts_the_callers_signal_handlers_back(tmp_path, capsys, sigin
 
 def test_a_command_interrupted_puts_the_callers_signal_handlers_back(tmp_path, capsys, monkeypatch):
     """SIGTERM inside a command ends it as interrupted (143); the caller's own handler is back afterwards."""
-    from EMRegModule.commands import run as run_command
+    from EMRegModule.cli.main import run as run_command
 
     def terminated(args):
         signal.raise_signal(signal.SIGTERM)

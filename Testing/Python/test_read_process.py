@@ -173,7 +173,7 @@ def test_emreg_detect_reads_through_a_process_only_when_it_may_fork(small_dicom_
     threads alone. The same markers either way."""
     script = ("import json, sys, threading\n"
               "from EMRegModule.io import read_process\n"
-              "from EMRegModule.cli import main\n"
+              "from EMRegModule.cli.main import main\n"
               "forks = []\n"
               "original = read_process.os.fork\n"
               "read_process.os.fork = lambda: forks.append(1) or original()\n"

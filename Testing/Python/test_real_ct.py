@@ -23,12 +23,12 @@ import pytest
 import SimpleITK as sitk
 from scipy import ndimage
 
-from EMRegModule.cli import main
-from EMRegModule.detection import read_detection
+from EMRegModule.cli.main import main
+from EMRegModule.core.detection import read_detection
+from EMRegModule.core.transforms import angle_between_deg, make_transform, random_rotation
 from EMRegModule.marker_model import MarkerModel
 from EMRegModule.simulation.ct import Grid, Layer, paint_layers
 from EMRegModule.simulation.shapes import MarkerSolid, Posed
-from EMRegModule.transforms import angle_between_deg, make_transform, random_rotation
 
 CRANIUM = Path("/usr/share/doc/invesalius-examples/examples/Cranium.inv3")
 

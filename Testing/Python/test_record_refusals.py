@@ -14,14 +14,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
+from EMRegModule.devices.link_quality import JumpFilter, LinkGuard, LinkQualityMonitor
+from EMRegModule.devices.samples import SensorSample
+from EMRegModule.devices.simulator.faults import FaultPlan
+from EMRegModule.devices.simulator.scene import ReplayScene
+from EMRegModule.devices.simulator.trakstar import TrackerSimulator
 from EMRegModule.io.recording import read_recording
 from EMRegModule.io.tracking_csv import HEADER_ANGLES, read_tracking_csv
-from EMRegModule.live.link_quality import JumpFilter, LinkGuard, LinkQualityMonitor
-from EMRegModule.live.samples import SensorSample
-from EMRegModule.live.simulator.faults import FaultPlan
-from EMRegModule.live.simulator.scene import ReplayScene
-from EMRegModule.live.simulator.trakstar import TrackerSimulator
 
 RATE_HZ = 80.0
 PROBE_START_MM = np.array([250.0, 60.0, 100.0])
@@ -84,7 +84,7 @@ def _sample(sensor: int, frame: int, position) -> SensorSample:
 
 
 def test_hold_back_passes_on_in_order_only_what_the_guard_confirmed():
-    from EMRegModule.live.link_quality import HoldBack
+    from EMRegModule.devices.link_quality import HoldBack
 
     counts = [0, 0]
     guard = LinkGuard(lambda: tuple(counts), LinkQualityMonitor(min_records=4), JumpFilter(),

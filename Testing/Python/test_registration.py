@@ -8,18 +8,13 @@ import numpy as np
 import pytest
 from synth_registration import calibration_recording, make_frame, pairing_problem
 
-from EMRegModule.calibration import CalibrationPoint, FrameCalibration, calibrate_frame
+from EMRegModule.core.calibration import CalibrationPoint, FrameCalibration, calibrate_frame
+from EMRegModule.core.registration import RegistrationSettings, read_registration, register, write_registration
+from EMRegModule.core.sensor_offset import solve_sensor_offset
+from EMRegModule.core.transforms import apply_transform, invert_rigid
 from EMRegModule.errors import EMRegError, NoSafeAnswerError
 from EMRegModule.io.itk_transform import read_slicer_linear_transform
 from EMRegModule.marker_model import MarkerModel
-from EMRegModule.registration import (
-    RegistrationSettings,
-    read_registration,
-    register,
-    write_registration,
-)
-from EMRegModule.sensor_offset import solve_sensor_offset
-from EMRegModule.transforms import apply_transform, invert_rigid
 
 MODEL = MarkerModel()
 
@@ -180,7 +175,7 @@ def test_register_from_a_recording_with_bumps():
 
 
 def _write_inputs(problem, folder):
-    from EMRegModule.calibration import write_frame_calibration
+    from EMRegModule.core.calibration import write_frame_calibration
     from EMRegModule.io.atomic import atomic_write_json
 
     markers, calibration = _inputs(problem)
@@ -196,7 +191,7 @@ def _write_inputs(problem, folder):
 def test_emreg_register_command_and_its_refusal_of_a_symmetric_frame(tmp_path, capsys):
     from synth_registration import symmetric_layout
 
-    from EMRegModule.cli import main
+    from EMRegModule.cli.main import main
 
     good = tmp_path / "good"
     good.mkdir()

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
 from EMRegModule.simulation.case import simulate_case
 
 SMALL = {"frame_size_mm": (200.0, 200.0, 110.0), "n_markers": 8, "navigation_rounds": 2, "board_rounds": 3,

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from fixtures.samples import write_sample_run
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
 from EMRegModule.errors import EMRegError
 from EMRegModule.names import REPORT_FIGURES
 from EMRegModule.progress import Progress

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
 from EMRegModule.report.ct_memo import MEMO_NAME
 
 FIGURES = "report_figures"
@@ -134,7 +134,7 @@ def test_the_bundle_is_written_again_when_what_it_shows_changed(small_case, tmp_
     run = json.loads((out / "run.json").read_text(encoding="utf-8"))
     written = run["outputs"]["EMReg.mrb"]
     assert written["sha256"] != listed or change == "bundle edited"
-    from EMRegModule.provenance import file_sha256
+    from EMRegModule.io.provenance import file_sha256
 
     assert file_sha256(out / "EMReg.mrb") == written["sha256"]
     assert written["provenance"]["inputs"]["ct"] == run["inputs"]["ct"]

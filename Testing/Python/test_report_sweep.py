@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
 from EMRegModule.rendering.error_views import error_budget_chart
 from EMRegModule.rendering.plots import BAR, bar_chart
 

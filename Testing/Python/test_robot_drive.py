@@ -28,18 +28,18 @@ pytest.importorskip("franky_sim")
 
 from robot_sim import FlangeScene, RobotSim  # noqa: E402
 
-from EMRegModule.cli import main  # noqa: E402
+from EMRegModule.cli.main import main  # noqa: E402
+from EMRegModule.core.frames import LPS_TO_RAS  # noqa: E402
+from EMRegModule.core.robot_motion import guide_error  # noqa: E402
+from EMRegModule.core.robot_target import robot_target  # noqa: E402
+from EMRegModule.core.transforms import apply_transform, axis_angle_to_rotation, invert_rigid  # noqa: E402
+from EMRegModule.devices.igtl_client import IGTLReceiver  # noqa: E402
+from EMRegModule.devices.robot.driver import MotionLimits  # noqa: E402
+from EMRegModule.devices.robot.guard import TrackerWatch, guarded_move, wait_for_tracker  # noqa: E402
+from EMRegModule.devices.robot.url import open_robot, parse_robot_url  # noqa: E402
+from EMRegModule.devices.simulator.trakstar import TrackerSimulator  # noqa: E402
+from EMRegModule.devices.sources import open_source  # noqa: E402
 from EMRegModule.errors import EMRegError, NoSafeAnswerError  # noqa: E402
-from EMRegModule.frames import LPS_TO_RAS  # noqa: E402
-from EMRegModule.live.igtl_client import IGTLReceiver  # noqa: E402
-from EMRegModule.live.robot.driver import MotionLimits  # noqa: E402
-from EMRegModule.live.robot.guard import TrackerWatch, guarded_move, wait_for_tracker  # noqa: E402
-from EMRegModule.live.robot.url import open_robot, parse_robot_url  # noqa: E402
-from EMRegModule.live.simulator.trakstar import TrackerSimulator  # noqa: E402
-from EMRegModule.live.sources import open_source  # noqa: E402
-from EMRegModule.robot_motion import guide_error  # noqa: E402
-from EMRegModule.robot_target import robot_target  # noqa: E402
-from EMRegModule.transforms import apply_transform, axis_angle_to_rotation, invert_rigid  # noqa: E402
 
 FLANGE_PORT = 3
 #: Fast but limited moves and short dwells, so that the module runs in well under a minute.
@@ -353,7 +353,7 @@ def test_refusals(world, tmp_path, capsys, monkeypatch) -> None:
     assert main(["robot-calibrate", "--robot", "ur://10.0.0.1", "--tracker", world.tracker_url, "--out",
                  str(tmp_path / "a")]) == 2
     assert "use franka://HOST" in capsys.readouterr().err
-    monkeypatch.setattr("EMRegModule.live.robot.franka.CONNECT_TIMEOUT_S", 1.0)
+    monkeypatch.setattr("EMRegModule.devices.robot.franka.CONNECT_TIMEOUT_S", 1.0)
     holder = open_robot(world.robot.url)
     try:
         assert main(["robot-calibrate", "--robot", world.robot.url, "--tracker", world.tracker_url, "--out",

@@ -1,13 +1,12 @@
-"""The robot's own motion planning and the closed-loop step (EMRegModule.robot_motion), without a robot."""
+"""The robot's own motion planning and the closed-loop step (EMRegModule.core.robot_motion), without a robot."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from EMRegModule.errors import NoSafeAnswerError
-from EMRegModule.handeye import motion_spread
-from EMRegModule.robot_motion import (
+from EMRegModule.core.handeye import motion_spread
+from EMRegModule.core.robot_motion import (
     check_step,
     correct_flange,
     guide_error,
@@ -15,7 +14,8 @@ from EMRegModule.robot_motion import (
     plan_calibration_poses,
     spread_axes,
 )
-from EMRegModule.transforms import axis_angle_to_rotation, invert_rigid
+from EMRegModule.core.transforms import axis_angle_to_rotation, invert_rigid
+from EMRegModule.errors import NoSafeAnswerError
 
 
 def _pose(rotvec, translation) -> np.ndarray:
@@ -75,8 +75,8 @@ def test_guide_error_and_the_closed_loop_step() -> None:
 def test_the_watch_stops_on_a_reference_jump_between_moves() -> None:
     """Between moves (nothing held), the slip detector's jump test on the reference's recent samples stops the
     robot; a still reference and a lone wild sample do not."""
-    from EMRegModule.live.robot.guard import TrackerWatch
-    from EMRegModule.live.samples import SensorSample
+    from EMRegModule.devices.robot.guard import TrackerWatch
+    from EMRegModule.devices.samples import SensorSample
 
     rng = np.random.default_rng(1)
     watch = TrackerWatch(flange_port=3, reference_port=1, max_tracker_distance_mm=660.0, stale_s=10.0)

@@ -15,11 +15,11 @@ from pathlib import Path
 import pytest
 from conftest import CI_CASE_OPTIONS
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.case import open_case
-from EMRegModule.outputs import OutputFolder, refuse_out_over_inputs
-from EMRegModule.provenance import check_belongs, file_sha256
+from EMRegModule.io.output_folder import OutputFolder, refuse_out_over_inputs
+from EMRegModule.io.provenance import check_belongs, file_sha256
 from EMRegModule.simulation.case import simulate_case
 
 SMALL = {**CI_CASE_OPTIONS, "spacing_mm": 1.25}
@@ -206,7 +206,7 @@ def _interrupt_in_stage(out: Path, case: Path, moment: str,
     go on: the signal lands in that stage, whatever the load (or in the last instructions of the stage that
     listed ``moment``); the process and those two stages. None when the run had gone past that stage."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    process = subprocess.Popen([sys.executable, "-m", "EMRegModule.cli", "run", str(case), "--out", str(out),
+    process = subprocess.Popen([sys.executable, "-m", "EMRegModule.cli.main", "run", str(case), "--out", str(out),
                                 "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
                                preexec_fn=_default_sigint)
     names = [name for name, _ in _RUN_STAGES]

@@ -25,8 +25,8 @@ import numpy as np
 import pytest
 from synth_registration import calibration_recording, make_frame
 
-from EMRegModule.calibration import calibrate_frame
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
+from EMRegModule.core.calibration import calibrate_frame
 from EMRegModule.errors import EMRegError
 
 LABELS = [f"M{i + 1:02d}" for i in range(28)]
@@ -488,7 +488,7 @@ def test_a_signal_lost_in_a_vtk_callback_still_ends_the_run_as_interrupted(small
                                                                           signum, code):
     """A signal landing in a pyvista filter is raised inside VTK's callback: VTK logs it and the filter fails
     with an error of its own, which ended emreg run in a traceback (exit 1, run.json "running")."""
-    from EMRegModule import controller
+    from EMRegModule.pipeline import controller
 
     def stage_whose_signal_vtk_swallows(*args):
         try:

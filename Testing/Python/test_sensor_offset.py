@@ -12,11 +12,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 from synth_registration import pairing_problem
 
-from EMRegModule.calibration import CalibrationPoint, FrameCalibration
+from EMRegModule.core.calibration import CalibrationPoint, FrameCalibration
+from EMRegModule.core.registration import register
+from EMRegModule.core.sensor_offset import fre_curve, solve_sensor_offset
+from EMRegModule.core.transforms import fit_rigid, fit_rigid_batch, make_transform, random_rotation
 from EMRegModule.marker_model import MarkerModel
-from EMRegModule.registration import register
-from EMRegModule.sensor_offset import fre_curve, solve_sensor_offset
-from EMRegModule.transforms import fit_rigid, fit_rigid_batch, make_transform, random_rotation
 
 L_RANGE = (11.0, 18.5)
 

@@ -19,11 +19,11 @@ import numpy as np
 import pytest
 from conftest import load_truth
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
+from EMRegModule.core.tracking import TrackingRecording
+from EMRegModule.core.transforms import apply_transform, invert_rigid, random_rotation
 from EMRegModule.io.sequence_metafile import format_sequence_metafile
 from EMRegModule.io.tracking_csv import read_tracking_csv, write_tracking_csv
-from EMRegModule.tracking import TrackingRecording
-from EMRegModule.transforms import apply_transform, invert_rigid, random_rotation
 
 INVALID_FRACTION = 0.03
 

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
+from EMRegModule.core.tracking import TrackingRecording
 from EMRegModule.io.tracking_csv import read_tracking_csv
 from EMRegModule.simulation.case import simulate_case
-from EMRegModule.tracking import TrackingRecording
 
 SMALL = {"frame_size_mm": (200.0, 200.0, 110.0), "n_markers": 8, "navigation_rounds": 2, "board_rounds": 3,
          "n_targets": 3}

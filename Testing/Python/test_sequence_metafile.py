@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from synth_registration import calibration_recording, make_frame
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.recording import read_recording
 from EMRegModule.io.sequence_metafile import (
@@ -111,7 +111,7 @@ def test_emreg_reads_what_slicer_writes(suffix, tmp_path):
     scene.AddNode(sequence)
     sequence.SetName("ProbeToTracker")
     rng = np.random.default_rng(2)
-    from EMRegModule.transforms import make_transform, random_rotation
+    from EMRegModule.core.transforms import make_transform, random_rotation
 
     poses = [make_transform(random_rotation(rng), rng.uniform(-200, 200, 3)) for _ in range(5)]
     for k, pose in enumerate(poses):
@@ -213,7 +213,7 @@ def test_transform_names_from_case_toml(recording, tmp_path):
 
 
 def test_record_from_a_tracker_writes_a_sequence_metafile(tmp_path):
-    from EMRegModule.live.simulator.trakstar import TrackerSimulator
+    from EMRegModule.devices.simulator.trakstar import TrackerSimulator
 
     out = tmp_path / "rec.seq.mha"
     with TrackerSimulator(keep_truth=True, seed=3) as sim:

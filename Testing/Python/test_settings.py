@@ -137,7 +137,7 @@ def test_the_tree_is_frozen_and_its_digest_tracks_values(tmp_path):
 
 def test_the_stage_tables_are_the_settings_classes():
     """One class per table: the stage modules re-export the settings' classes, with one set of defaults."""
-    from EMRegModule import calibration, detection, dwell, pairing, registration
+    from EMRegModule.core import calibration, detection, dwell, pairing, registration
 
     assert registration.RegistrationSettings is RegistrationSettings and pairing.PairingSettings is PairingSettings
     assert dwell.DwellSettings is DwellSettings and detection.DetectionSettings is DetectionSettings
@@ -175,7 +175,7 @@ def test_the_robots_tables_stay_out_of_a_runs_settings_until_given(tmp_path):
 
 def test_emreg_refuses_a_typo_with_one_line(tmp_path):
     (tmp_path / "case.toml").write_text("[registraton]\nmax_fre_mm = 0.1\n")
-    done = subprocess.run([sys.executable, "-m", "EMRegModule.cli", "calibrate", str(tmp_path / "x.csv"),
+    done = subprocess.run([sys.executable, "-m", "EMRegModule.cli.main", "calibrate", str(tmp_path / "x.csv"),
                            "--out", str(tmp_path / "out"), "--settings", str(tmp_path / "case.toml")],
                           capture_output=True, text=True, check=False)
     assert done.returncode == 2

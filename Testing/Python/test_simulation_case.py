@@ -9,14 +9,14 @@ import pytest
 import SimpleITK as sitk
 from conftest import CI_CASE_OPTIONS, load_truth
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
+from EMRegModule.core.transforms import apply_transform, invert_rigid, is_rigid, random_rotation
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.case import open_case
 from EMRegModule.io.image import read_ct
 from EMRegModule.marker_model import MarkerModel
 from EMRegModule.simulation.case import simulate_case
 from EMRegModule.simulation.frame import FACE_NORMALS
-from EMRegModule.transforms import apply_transform, invert_rigid, is_rigid, random_rotation
 
 SPEC_FILES = ("calibration.csv", "navigation.csv", "targets.mrk.json", "board.csv", "case.toml", "truth.json")
 TINY = {"frame_size_mm": (160.0, 160.0, 100.0), "n_markers": 8, "navigation_rounds": 2, "board_rounds": 2,

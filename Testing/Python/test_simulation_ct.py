@@ -7,12 +7,12 @@ import pytest
 import SimpleITK as sitk
 from conftest import load_truth
 
+from EMRegModule.core.transforms import apply_transform, random_rotation, rotation_from_y_axis
 from EMRegModule.io.case import find_ct
 from EMRegModule.io.image import read_ct
 from EMRegModule.marker_model import MarkerModel
 from EMRegModule.simulation import ct
 from EMRegModule.simulation.shapes import MarkerSolid, Posed
-from EMRegModule.transforms import apply_transform, random_rotation, rotation_from_y_axis
 
 
 class _Sampler:

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from conftest import load_truth
 
+from EMRegModule.core.tracking import probe_in_reference
+from EMRegModule.core.transforms import angle_between_deg, apply_transform
 from EMRegModule.io.case import open_case
 from EMRegModule.io.markups import read_markups
 from EMRegModule.io.tracking_csv import read_tracking_csv
 from EMRegModule.simulation.case import board_holes, simulate_case
-from EMRegModule.tracking import probe_in_reference
-from EMRegModule.transforms import angle_between_deg, apply_transform
 
 GOOD_QUALITY = 10.0
 

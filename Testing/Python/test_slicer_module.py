@@ -974,7 +974,7 @@ def test_report_batch_writes_one_bundle_per_case_and_an_unwritable_one_breaks_no
 
     import slicer.util
 
-    from EMRegModule.cli import main
+    from EMRegModule.cli.main import main
 
     _, out = run_output
     batch = tmp_path / "batch"
@@ -1006,7 +1006,7 @@ def test_report_batch_with_a_failing_case_still_records_and_prints_the_others_bu
     import json
     import shutil
 
-    from EMRegModule.cli import main
+    from EMRegModule.cli.main import main
 
     _, out = run_output
     batch = tmp_path / "batch"
@@ -1025,7 +1025,7 @@ def test_report_batch_with_a_failing_case_still_records_and_prints_the_others_bu
 def test_without_slicer_core_the_report_succeeds_and_says_why_no_bundle(run_output, tmp_path, monkeypatch, capsys):
     import shutil
 
-    from EMRegModule.cli import main
+    from EMRegModule.cli.main import main
 
     _, out = run_output
     copy = tmp_path / "out"
@@ -1050,7 +1050,7 @@ def test_report_writes_the_bundle_in_a_process_of_its_own_recorded_in_run_json(r
     _, out = run_output
     copy = tmp_path / "out"
     shutil.copytree(out, copy, ignore=shutil.ignore_patterns("report.html", "EMReg.mrb"))
-    probe = ("import sys; from EMRegModule.cli import main; code = main(['report', sys.argv[1], '--quiet']); "
+    probe = ("import sys; from EMRegModule.cli.main import main; code = main(['report', sys.argv[1], '--quiet']); "
              "print('slicer imported:', 'slicer' in sys.modules); sys.exit(code)")
     done = subprocess.run([sys.executable, "-c", probe, str(copy)], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
@@ -1072,7 +1072,7 @@ def test_a_cold_report_of_per_stage_outputs_streams_the_case_ct_and_copies_it_in
     import subprocess
     import zipfile
 
-    from EMRegModule.cli import main
+    from EMRegModule.cli.main import main
 
     out = tmp_path / "out"
     for command in (["detect", str(small_case), "--out", str(out)],
@@ -1081,7 +1081,7 @@ def test_a_cold_report_of_per_stage_outputs_streams_the_case_ct_and_copies_it_in
                      str(out / "frame_calibration.json"), "--out", str(out)]):
         assert main([*command, "--quiet"]) == 0
     assert "ct" not in json.loads((out / "run.json").read_text())
-    probe = ("import sys; from EMRegModule.cli import main; "
+    probe = ("import sys; from EMRegModule.cli.main import main; "
              "code = main(['report', sys.argv[1], '--case', sys.argv[2], '--quiet']); "
              "print('slicer imported:', 'slicer' in sys.modules); sys.exit(code)")
     done = subprocess.run([sys.executable, "-c", probe, str(out), str(small_case)], capture_output=True, text=True,

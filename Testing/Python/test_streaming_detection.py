@@ -15,15 +15,15 @@ import SimpleITK as sitk
 from fixtures import phantom as ph
 from scipy import ndimage
 
-from EMRegModule.controller import EMRegController
-from EMRegModule.detection import detect as detect_module
-from EMRegModule.detection import detect_markers
-from EMRegModule.detection.components import GrowingComponents
-from EMRegModule.detection.segmentation import CoarseScan
-from EMRegModule.detection.settings import DetectionSettings, settings_from_dict
+from EMRegModule.core.detection import detect as detect_module
+from EMRegModule.core.detection import detect_markers
+from EMRegModule.core.detection.components import GrowingComponents
+from EMRegModule.core.detection.segmentation import CoarseScan
+from EMRegModule.core.detection.settings import DetectionSettings, settings_from_dict
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.fast_read import start_fast_read, writable_bytes
 from EMRegModule.marker_model import MarkerModel
+from EMRegModule.pipeline.controller import EMRegController
 
 
 def _components(scan_steps: list[int], volume: np.ndarray) -> tuple[list, list]:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from distributed import LocalCluster
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
 
 
 @pytest.fixture(scope="module")

@@ -14,13 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from EMRegModule.calibration import read_frame_calibration
-from EMRegModule.cli import main
-from EMRegModule.errors import EMRegError, NoSafeAnswerError
-from EMRegModule.io.sequence_metafile import read_sequence_metafile, write_sequence_metafile
-from EMRegModule.simulation.stylus import simulate_pivot_recording
-from EMRegModule.simulation.tracking import NoiseModel
-from EMRegModule.tool import (
+from EMRegModule.cli.main import main
+from EMRegModule.core.calibration import read_frame_calibration
+from EMRegModule.core.tool import (
     PLACEMENT_SWING_DEG,
     pivot_calibration,
     placement_samples,
@@ -28,8 +24,12 @@ from EMRegModule.tool import (
     read_tool,
     write_tip_to_probe_itk,
 )
-from EMRegModule.tracking import probe_in_reference
-from EMRegModule.transforms import fit_rigid, make_transform, random_rotation
+from EMRegModule.core.tracking import probe_in_reference
+from EMRegModule.core.transforms import fit_rigid, make_transform, random_rotation
+from EMRegModule.errors import EMRegError, NoSafeAnswerError
+from EMRegModule.io.sequence_metafile import read_sequence_metafile, write_sequence_metafile
+from EMRegModule.simulation.stylus import simulate_pivot_recording
+from EMRegModule.simulation.tracking import NoiseModel
 
 PLUS_DATA = Path(__file__).resolve().parents[1] / "Data" / "PlusLibData"
 LANDMARK_RECORDING = PLUS_DATA / "EightLandmarkPointsTrackedForPhantomRegistration.igs.mha"
@@ -303,8 +303,8 @@ def stylus_case(tmp_path_factory):
     ``case.toml`` naming ``tool_calibration.json`` (the true tip), run without the report."""
     from conftest import SMALL_CASE_OPTIONS
 
-    from EMRegModule.controller import EMRegController
     from EMRegModule.io.case import open_case
+    from EMRegModule.pipeline.controller import EMRegController
     from EMRegModule.simulation.case import simulate_case
 
     folder = tmp_path_factory.mktemp("stylus")
@@ -354,7 +354,7 @@ def test_emreg_pivot_on_the_stylus_case_recording_finds_its_tip(stylus_case, tmp
 
 
 def test_navigation_with_a_tool_maps_the_tip():
-    from EMRegModule.navigation import navigate_recording
+    from EMRegModule.core.navigation import navigate_recording
 
     recording, truth = simulate_pivot_recording(7, swing_deg=30.0, noise=NoiseModel().scaled(0.0))
     reference_to_image = make_transform(random_rotation(np.random.default_rng(8)), [10.0, -20.0, 30.0])
@@ -377,8 +377,8 @@ def test_tool_auto_solves_the_stylus_tip_from_the_pivoting_touches(stylus_case, 
     that of the same case registered with the true tip (the oracle), plus 0.05 mm."""
     import shutil
 
-    from EMRegModule.controller import EMRegController
     from EMRegModule.io.case import open_case
+    from EMRegModule.pipeline.controller import EMRegController
 
     folder, truth, oracle = stylus_case
     shutil.copytree(folder / "case", tmp_path / "case")

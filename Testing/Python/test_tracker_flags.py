@@ -17,16 +17,16 @@ import numpy as np
 import pytest
 from polling import wait_for
 
+from EMRegModule.devices.aurora import protocol as ndi
+from EMRegModule.devices.aurora.driver import AuroraDriver
+from EMRegModule.devices.samples import FLAG_OUT_OF_VOLUME, FLAG_PARTLY_OUT_OF_VOLUME, STATUS_OUT_OF_RANGE
+from EMRegModule.devices.simulator.aurora import CLEAN_ERROR, AuroraSimulator, parse_tools
+from EMRegModule.devices.simulator.scene import BuiltinScene
+from EMRegModule.devices.simulator.trakstar import TrackerSimulator
+from EMRegModule.devices.trakstar.driver import TrakstarDriver
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.sequence_metafile import read_sequence_metafile
-from EMRegModule.live.aurora import protocol as ndi
-from EMRegModule.live.aurora.driver import AuroraDriver
 from EMRegModule.live.navigator import Watchdog
-from EMRegModule.live.samples import FLAG_OUT_OF_VOLUME, FLAG_PARTLY_OUT_OF_VOLUME, STATUS_OUT_OF_RANGE
-from EMRegModule.live.simulator.aurora import CLEAN_ERROR, AuroraSimulator, parse_tools
-from EMRegModule.live.simulator.scene import BuiltinScene
-from EMRegModule.live.simulator.trakstar import TrackerSimulator
-from EMRegModule.live.trakstar.driver import TrakstarDriver
 from EMRegModule.live.writers import SequenceRecordingWriter
 from EMRegModule.simulation.tracker_flags import (
     METAL_PER_MM,
@@ -175,7 +175,7 @@ def test_aurora_volume_flags_reach_the_watchdog_and_the_recording(tmp_path):
 
 
 def test_sim_tracker_refuses_a_volume_for_the_trakstar_and_a_bad_distortion(capsys):
-    from EMRegModule.cli import main
+    from EMRegModule.cli.main import main
 
     assert main(["sim-tracker", "--volume", "0,0,0,1,1,1"]) == 2
     assert "--volume: only the aurora" in capsys.readouterr().err

@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from EMRegModule.cli import main
+from EMRegModule.cli.main import main
 from EMRegModule.simulation.case import simulate_case
 
 RECORDINGS = ("calibration.csv", "navigation.csv", "board.csv")

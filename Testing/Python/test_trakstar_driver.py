@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 from polling import wait_for
 
+from EMRegModule.core.tracking import TrackingRecording
+from EMRegModule.core.transforms import make_transform, random_rotation, rotation_to_angles
+from EMRegModule.devices.samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE
+from EMRegModule.devices.simulator.faults import FaultPlan
+from EMRegModule.devices.simulator.scene import ReplayScene
+from EMRegModule.devices.simulator.trakstar import DISTORTED_METAL, EmittedRecord, TrackerSimulator
+from EMRegModule.devices.trakstar import protocol as tp
+from EMRegModule.devices.trakstar.driver import TrakstarDriver
 from EMRegModule.errors import EMRegError
-from EMRegModule.live.samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE
-from EMRegModule.live.simulator.faults import FaultPlan
-from EMRegModule.live.simulator.scene import ReplayScene
-from EMRegModule.live.simulator.trakstar import DISTORTED_METAL, EmittedRecord, TrackerSimulator
-from EMRegModule.live.trakstar import protocol as tp
-from EMRegModule.live.trakstar.driver import TrakstarDriver
-from EMRegModule.tracking import TrackingRecording
-from EMRegModule.transforms import make_transform, random_rotation, rotation_to_angles
 
 EPS = 1e-9
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from EMRegModule.live.trakstar import protocol as tp
-from EMRegModule.live.trakstar.protocol import Pose, RecordParser
+from EMRegModule.devices.trakstar import protocol as tp
+from EMRegModule.devices.trakstar.protocol import Pose, RecordParser
 
 HALF_POSITION_STEP_MM = 0.5 * 4 * 36 / 32768 * 25.4
 HALF_ANGLE_STEP_DEG = 0.5 * 4 * 180 / 32768

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from EMRegModule import transforms as tf
-from EMRegModule.frames import lps_to_ras
+from EMRegModule.core import transforms as tf
+from EMRegModule.core.frames import lps_to_ras
 
 
 def test_angles_follow_rz_ry_rx_like_scipy():

@@ -1,7 +1,7 @@
 """The ``{cli}`` role: an ``emreg`` command line written in the manual's prose, checked against the parser.
 
 ``{cli}`emreg run CASE --out OUT``` renders as code and links to that command in the generated command line
-reference. Every subcommand and every option it names must exist in ``EMRegModule.cli.build_parser()``;
+reference. Every subcommand and every option it names must exist in ``EMRegModule.cli.main.build_parser()``;
 otherwise the build warns, and since ``scripts/test`` builds with ``-W``, a renamed or removed option that the
 prose still mentions fails the tests. The ``emreg`` lines of the manual's shell code blocks (``bash``, ``console``,
 ``sh``, ``shell``) are checked the same way.
@@ -23,7 +23,7 @@ _PARSERS: dict[str, argparse.ArgumentParser] = {}
 def _parsers() -> dict[str, argparse.ArgumentParser]:
     """``""`` -> the top-level parser, each subcommand's name -> its parser (made once per build)."""
     if not _PARSERS:
-        from EMRegModule.cli import build_parser
+        from EMRegModule.cli.main import build_parser
 
         parser = build_parser()
         _PARSERS[""] = parser
@@ -58,7 +58,7 @@ def cli_role(name, rawtext, text, lineno, inliner, options=None, content=None):
     """Render an emreg command line as code linked to its command in the reference; warn on unknown names."""
     command, found = problems(text)
     for problem in found:
-        logger.warning("{cli}`%s`: %s (see EMRegModule.cli.build_parser)", text, problem,
+        logger.warning("{cli}`%s`: %s (see EMRegModule.cli.main.build_parser)", text, problem,
                        location=(inliner.document.settings.env.docname, lineno))
     literal = nodes.literal(rawtext, text, classes=["cli"])
     if found:
@@ -83,7 +83,7 @@ def check_code_blocks(app, doctree) -> None:
             command = line.split(" #", 1)[0].strip().removeprefix("$ ")
             if command.startswith("emreg ") or command == "emreg":
                 for problem in problems(command)[1]:
-                    logger.warning("code block line %r: %s (see EMRegModule.cli.build_parser)", command, problem,
+                    logger.warning("code block line %r: %s (see EMRegModule.cli.main.build_parser)", command, problem,
                                    location=block)
 
 

@@ -1,0 +1,73 @@
+"""``emreg run`` (every stage of a case) and ``emreg demo`` (the built-in sample case, simulated and run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from .args import (
+    AddCommand,
+    add_plan_option,
+    add_sensor_options,
+    add_series_option,
+    add_tool_option,
+    controller_of,
+    out_folder,
+    progress_of,
+    settings_of,
+)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from ..io.case import open_case
+
+    out_folder(args.out)
+    from ..settings import with_series
+
+    case = open_case(args.case, settings_of(args) if args.settings else None)
+    case.settings = with_series(case.settings, args.series)
+    case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # a sequence file's too
+    controller = controller_of(args, case.settings)
+    if args.tool:
+        controller.load_tool(args.tool)
+    if args.plan:
+        controller.planner.load(args.plan)
+    controller.exporter.keep_ct = False  # nothing uses the CT after the run: freed as soon as nothing needs it
+    for line in controller.run(case, Path(args.out)):
+        print(line)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from ..io.case import open_case
+    from ..simulation.case import simulate_case
+
+    out = out_folder(args.out)
+    case_dir = out / "case"
+    progress = progress_of(args)
+    start = time.perf_counter()
+    progress.message(f"[emreg] demo: simulating the sample case into {case_dir}")
+    simulate_case(case_dir, seed=args.seed, difficulty="standard", spacing_mm=args.spacing, progress=progress)
+    case = open_case(case_dir)
+    controller = controller_of(args, case.settings)
+    for line in controller.run(case, out / "result"):
+        print(line)
+    print(f"demo finished in {time.perf_counter() - start:.1f} s; outputs in {out / 'result'}")
+    return 0
+
+
+def add_parsers(add: AddCommand) -> None:
+    """The subcommands of this module (``add``: :data:`~EMRegModule.cli.args.AddCommand`)."""
+    p = add("run", cmd_run, "run every stage on a case folder")
+    p.add_argument("case", metavar="CASE")
+    p.add_argument("--out", required=True, metavar="OUT")
+    add_series_option(p)
+    add_sensor_options(p)
+    add_tool_option(p)
+    add_plan_option(p)
+    p = add("demo", cmd_demo, "simulate the built-in sample case and run it")
+    p.add_argument("--out", default="demo-output", metavar="DIR")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--spacing", type=float, default=None, metavar="MM")

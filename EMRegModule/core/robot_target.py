@@ -1,0 +1,136 @@
+"""Where the robot must go: the flange pose that puts a needle guide on a trajectory planned in the CT.
+
+Frames (mm): ``Image`` (CT, LPS), ``Reference`` (the reference sensor on the patient's fiducial frame),
+``Tracker``, ``Base`` (the robot's base), ``Flange``, ``Sensor`` (the EM sensor on the flange's guide),
+``NeedleGuide`` (origin at the guide's exit, +z the needle's direction). The chain:
+
+- ``ImageToBase = TrackerToBase @ ReferenceToTracker @ inv(ReferenceToImage)`` puts the plan (Entry, Target)
+  in the robot's base frame;
+- the guide's pose ``NeedleGuideToBase``: its exit at Entry (or ``standoff_mm`` before it, back along the axis),
+  its +z along Entry -> Target, the roll about the axis free;
+- ``FlangeToBase = NeedleGuideToBase @ inv(SensorToFlange @ NeedleGuideToSensor)``.
+
+The roll is chosen to keep the flange's orientation nearest a preferred one (the mean orientation of the
+hand-eye recording, which the robot has reached). Pure: arrays in, a :class:`RobotTarget` out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import NoSafeAnswerError
+from .error_model import skew
+from .transforms import apply_transform, invert_rigid
+
+
+@dataclass(frozen=True)
+class RobotTarget:
+    """The answer: ``flange_to_base`` and ``needle_guide_to_base`` (4x4, mm); Entry and Target in the base
+    frame (mm); the depth Entry -> Target (mm); the roll chosen (degrees about the guide's +z from the guide
+    frame whose x axis is nearest the base's); the predicted RMS error at the target (mm) per source and in
+    total."""
+
+    flange_to_base: np.ndarray
+    needle_guide_to_base: np.ndarray
+    entry_base_mm: np.ndarray
+    target_base_mm: np.ndarray
+    depth_mm: float
+    roll_deg: float
+    predicted_error_mm: dict[str, float]
+
+
+def _axis_frame(direction: np.ndarray) -> np.ndarray:
+    """A rotation whose third column is ``direction`` (unit), its first column as near the base's x as may be."""
+    z = direction / np.linalg.norm(direction)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = helper - z * (helper @ z)
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z])
+
+
+def _rotation_z(angle_rad: float) -> np.ndarray:
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def best_roll(guide_rotation: np.ndarray, guide_to_flange_rotation: np.ndarray,
+              preferred_flange_rotation: np.ndarray) -> float:
+    """The roll (rad) about the guide's +z that brings ``R_guide Rz(roll) R_guide_to_flange^T`` (the flange's
+    rotation in the base frame) nearest ``preferred_flange_rotation`` (Frobenius; closed form)."""
+    m = guide_to_flange_rotation.T @ preferred_flange_rotation.T @ guide_rotation
+    return float(np.arctan2(m[0, 1] - m[1, 0], m[0, 0] + m[1, 1]))
+
+
+def plan_flange_pose(entry_image: np.ndarray, target_image: np.ndarray, reference_to_image: np.ndarray,
+                     reference_to_tracker: np.ndarray, tracker_to_base: np.ndarray, sensor_to_flange: np.ndarray,
+                     needle_guide_to_sensor: np.ndarray, standoff_mm: float = 0.0,
+                     preferred_flange_rotation: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(FlangeToBase, NeedleGuideToBase, roll rad)`` (4x4, mm) that put the guide's exit on Entry (or
+    ``standoff_mm`` before it) with its +z along Entry -> Target (both LPS mm in the CT). See the module
+    docstring for the frames."""
+    image_to_base = tracker_to_base @ reference_to_tracker @ invert_rigid(reference_to_image)
+    entry, target = apply_transform(image_to_base, np.vstack([entry_image, target_image]))
+    if np.linalg.norm(target - entry) < 1e-6:
+        raise NoSafeAnswerError("robot-target: Entry and Target are the same point; the plan has no direction")
+    direction = (target - entry) / np.linalg.norm(target - entry)
+    guide_to_flange = sensor_to_flange @ needle_guide_to_sensor
+    frame = _axis_frame(direction)
+    roll = 0.0 if preferred_flange_rotation is None else best_roll(frame, guide_to_flange[:3, :3],
+                                                                   preferred_flange_rotation)
+    guide_to_base = np.eye(4)
+    guide_to_base[:3, :3] = frame @ _rotation_z(roll)
+    guide_to_base[:3, 3] = entry - standoff_mm * direction
+    return guide_to_base @ invert_rigid(guide_to_flange), guide_to_base, roll
+
+
+def hand_eye_ms_at(target_sensor_mm: np.ndarray, target_tracker_mm: np.ndarray, sensor_to_flange: np.ndarray,
+                   tracker_to_base: np.ndarray, parameter_covariance: np.ndarray) -> float:
+    """Mean-square error (mm^2) at the target from the hand-eye calibration's 12 pose parameters (X's and Y's
+    rotation vectors on the right, rad, and translations, mm): the guide's point (Sensor frame) placed through
+    X, plus the patient's target (Tracker frame) placed through Y (their small cross-covariance left out)."""
+    covariance = np.asarray(parameter_covariance, dtype=float)
+    total = 0.0
+    for k, (pose, point) in enumerate(((sensor_to_flange, target_sensor_mm), (tracker_to_base, target_tracker_mm))):
+        jac = np.hstack([-pose[:3, :3] @ skew(point), np.eye(3)])
+        total += float(np.trace(jac @ covariance[6 * k:6 * k + 6, 6 * k:6 * k + 6] @ jac.T))
+    return total
+
+
+def robot_target(entry_image: np.ndarray, target_image: np.ndarray, reference_to_image: np.ndarray,
+                 reference_to_tracker: np.ndarray, tracker_to_base: np.ndarray, sensor_to_flange: np.ndarray,
+                 needle_guide_to_sensor: np.ndarray, hand_eye_covariance: np.ndarray, registration_ms_mm2: float,
+                 tool_rms_mm: float = 0.0, standoff_mm: float = 0.0,
+                 preferred_flange_rotation: np.ndarray | None = None, max_tracker_distance_mm: float | None = None,
+                 reach_mm: float | None = None) -> RobotTarget:
+    """The flange pose for a plan and its predicted error at the target (see :func:`plan_flange_pose`).
+
+    ``hand_eye_covariance``: the calibration's parameter covariance (13x13 or 12x12); ``registration_ms_mm2``: the
+    registration's mean-square error at the target (mm^2); ``tool_rms_mm``: the guide's calibration error (mm).
+    Refused (:class:`NoSafeAnswerError`) when Entry or Target lies farther than ``max_tracker_distance_mm`` from
+    the field generator, or the flange would be farther than ``reach_mm`` from the robot's base."""
+    flange_to_base, guide_to_base, roll = plan_flange_pose(
+        entry_image, target_image, reference_to_image, reference_to_tracker, tracker_to_base, sensor_to_flange,
+        needle_guide_to_sensor, standoff_mm, preferred_flange_rotation)
+    image_to_tracker = reference_to_tracker @ invert_rigid(reference_to_image)
+    entry_tracker, target_tracker = apply_transform(image_to_tracker, np.vstack([entry_image, target_image]))
+    if max_tracker_distance_mm is not None:
+        far = max(np.linalg.norm(entry_tracker), np.linalg.norm(target_tracker))
+        if far > max_tracker_distance_mm:
+            raise NoSafeAnswerError(f"robot-target: the plan lies {far:.0f} mm from the field generator, outside the "
+                                    f"tracker's volume ({max_tracker_distance_mm:g} mm, [robot] "
+                                    "max_tracker_distance_mm): the guide could not be verified there")
+    if reach_mm is not None and np.linalg.norm(flange_to_base[:3, 3]) > reach_mm:
+        raise NoSafeAnswerError(f"robot-target: the flange would be {np.linalg.norm(flange_to_base[:3, 3]):.0f} mm "
+                                f"from the robot's base, beyond its reach ({reach_mm:g} mm, [robot] reach_mm)")
+    image_to_base = tracker_to_base @ image_to_tracker
+    entry_base, target_base = apply_transform(image_to_base, np.vstack([entry_image, target_image]))
+    depth = float(np.linalg.norm(target_base - entry_base))
+    target_sensor = apply_transform(needle_guide_to_sensor, np.array([[0.0, 0.0, depth + standoff_mm]]))[0]
+    hand_eye_ms = hand_eye_ms_at(target_sensor, target_tracker, sensor_to_flange, tracker_to_base,
+                                 hand_eye_covariance)
+    terms = {"registration": float(np.sqrt(max(registration_ms_mm2, 0.0))), "hand_eye": float(np.sqrt(hand_eye_ms)),
+             "tool": float(tool_rms_mm)}
+    terms["total"] = float(np.sqrt(sum(v ** 2 for v in terms.values())))
+    return RobotTarget(flange_to_base, guide_to_base, entry_base, target_base, depth, float(np.degrees(roll)), terms)

@@ -1,3 +1,0 @@
-"""The workflow layer: the stage table (:mod:`.stages`), the results held and what a new one makes stale
-(:mod:`.results`), the provenance of every output written (:mod:`.recorder`). The controller
-(:mod:`EMRegModule.controller`) sequences them; nothing here imports the faces (command line, Slicer)."""
