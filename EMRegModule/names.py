@@ -38,6 +38,12 @@ TRE_MAP_NRRD = "tre_map.nrrd"
 REPORT_HTML = "report.html"
 REPORT_FIGURES = "report_figures"
 BUNDLE_MRB = "EMReg.mrb"
+# the robot's outputs (issue 39): emreg handeye / robot-calibrate, robot-target, robot-go --out
+ROBOT_CALIBRATION_JSON = "robot_calibration.json"
+SENSOR_TO_FLANGE_H5 = "SensorToFlange.h5"
+TRACKER_TO_BASE_H5 = "TrackerToBase.h5"
+ROBOT_TARGET_JSON = "robot_target.json"
+ROBOT_GO_JSON = "robot_go.json"
 
 # --- 3D Slicer node names (the bundle's scene and the module's own nodes) ---------------------------
 VOLUME_NODE_NAME = "EMReg CT"
@@ -53,6 +59,14 @@ TIP_NODE_NAME = "TipToProbe"
 TRE_MAP_NODE_NAME = "EMReg predicted TRE (mm)"
 FIDUCIALS_NODE_NAME = "EMReg fiducials"
 CONNECTOR_NODE_NAME = "EMReg OpenIGTLink"
+#: The robot's calibration (tracker and robot side frames: their matrices as they are, as in the ``.h5`` files).
+SENSOR_TO_FLANGE_NODE_NAME = "SensorToFlange"
+TRACKER_TO_BASE_NODE_NAME = "TrackerToBase"
+#: The needle guide on its plan: its pose in RAS (the name ``emreg robot-go`` streams it under), its model under it
+#: and the planned line (Entry -> Target, RAS).
+GUIDE_NODE_NAME = "NeedleGuideToRAS"
+GUIDE_MODEL_NODE_NAME = "EMReg needle guide"
+ROBOT_PLAN_NODE_NAME = "EMReg robot plan"
 #: The OpenIGTLink STRING of the guidance numbers (``emreg navigate --plan``): OpenIGTLinkIF makes it a text node
 #: of this name, which the module's panel shows as it changes.
 GUIDANCE_NAME = "Guidance"

@@ -179,8 +179,8 @@ def motion_spread(flange_to_base: np.ndarray) -> tuple[float, float]:
     return float(np.max(np.linalg.norm(vectors, axis=1))), float(np.sqrt(max(eigen[1], 0.0)))
 
 
-def _distances(flange_to_base: np.ndarray, sensor_to_tracker: np.ndarray, sensor_to_flange: np.ndarray,
-               tracker_to_base: np.ndarray) -> np.ndarray:
+def residual_distances(flange_to_base: np.ndarray, sensor_to_tracker: np.ndarray, sensor_to_flange: np.ndarray,
+                       tracker_to_base: np.ndarray) -> np.ndarray:
     """Residual of each pair as one distance (mm): the sensor origin's, and the rotation's at ``LEVER_MM``."""
     turn, shift = pose_residuals(flange_to_base, sensor_to_tracker, sensor_to_flange, tracker_to_base)
     return np.hypot(np.linalg.norm(shift, axis=1), LEVER_MM * np.linalg.norm(turn, axis=1))
@@ -207,12 +207,12 @@ def robust_start(flange_to_base: np.ndarray, sensor_to_tracker: np.ndarray, tria
             x, y = solve_ax_yb(flange_to_base[pick], sensor_to_tracker[pick])
         except np.linalg.LinAlgError:
             continue
-        score = float(np.median(_distances(flange_to_base[scored], sensor_to_tracker[scored], x, y)))
+        score = float(np.median(residual_distances(flange_to_base[scored], sensor_to_tracker[scored], x, y)))
         if score < best_score:
             best, best_score = (x, y), score
     if best is None:
         raise NoSafeAnswerError("hand-eye: no frame set gives a solution; the motion cannot determine the answer")
-    distances = _distances(flange_to_base, sensor_to_tracker, *best)
+    distances = residual_distances(flange_to_base, sensor_to_tracker, *best)
     inliers = distances <= max(3.0 * 1.4826 * np.median(distances), 1e-6)
     x, y = solve_ax_yb(flange_to_base[inliers], sensor_to_tracker[inliers])
     return x, y, inliers
@@ -245,7 +245,7 @@ def _scan_offset(frames: _Frames, rows: np.ndarray, offset_s: float) -> float:
         if np.count_nonzero(valid) < 10:
             continue
         x, y = solve_ax_yb(flange[valid], frames.sensor_to_tracker[rows][valid])
-        costs[k] = np.median(_distances(flange[valid], frames.sensor_to_tracker[rows][valid], x, y))
+        costs[k] = np.median(residual_distances(flange[valid], frames.sensor_to_tracker[rows][valid], x, y))
     if not np.any(np.isfinite(costs)):
         return float(offset_s)
     k = int(np.argmin(costs))

@@ -33,6 +33,9 @@ from ..names import (
     NAVIGATION_CSV,
     NAVIGATION_JSON,
     REGISTRATION_JSON,
+    ROBOT_CALIBRATION_JSON,
+    ROBOT_GO_JSON,
+    ROBOT_TARGET_JSON,
     RUN_JSON,
     TRE_MAP_NRRD,
 )
@@ -42,6 +45,11 @@ from .navigation_csv import read_guidance_columns, read_navigation_csv
 from .provenance import check_belongs
 
 T = TypeVar("T")
+
+#: The robot's outputs a run folder may hold: field of :class:`RunFolder`, file name, what it is.
+ROBOT_OUTPUTS = (("robot_calibration", ROBOT_CALIBRATION_JSON, "robot calibration"),
+                 ("robot_target", ROBOT_TARGET_JSON, "robot target"),
+                 ("robot_go", ROBOT_GO_JSON, "robot-go result"))
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,6 +71,10 @@ class RunFolder:
       closest approach) and ``guidance_series``: the time and guidance columns of ``navigation.csv``
       (:func:`~EMRegModule.io.navigation_csv.read_guidance_columns`); None without a plan.
     - ``tre_map_path``: ``tre_map.nrrd`` (predicted TRE, mm, on an image-space grid) when it is there.
+    - the robot's (issue 39), as JSON objects: ``robot_calibration`` (``robot_calibration.json`` of ``emreg handeye``
+      or ``robot-calibrate``: ``SensorToFlange``, ``TrackerToBase``, 4x4 mm, ``time_offset_s``, the residuals and
+      frames), ``robot_target`` (``robot_target.json``: ``FlangeToBase``, the guide's pose, the plan, the predicted
+      error, mm) and ``robot_go`` (``robot_go.json``: the closed-loop measurements of ``emreg robot-go --out``).
     - ``notes``: why files were turned down (tolerant reading only), in the order read.
     """
 
@@ -78,7 +90,15 @@ class RunFolder:
     guidance: Mapping[str, Any] | None = None
     guidance_series: Mapping[str, np.ndarray] | None = None
     tre_map_path: Path | None = None
+    robot_calibration: Mapping[str, Any] | None = None
+    robot_target: Mapping[str, Any] | None = None
+    robot_go: Mapping[str, Any] | None = None
     notes: tuple[str, ...] = ()
+
+    @property
+    def has_robot(self) -> bool:
+        """True when the folder holds one of the robot's outputs."""
+        return any(document is not None for document in (self.robot_calibration, self.robot_target, self.robot_go))
 
 
 def read_manifest(out_dir: str | os.PathLike[str], notes: list[str] | None = None) -> dict[str, Any] | None:
@@ -109,11 +129,13 @@ def read_run_folder(out_dir: str | os.PathLike[str], manifest: Mapping[str, Any]
     guidance = _read(out / NAVIGATION_JSON, _read_json_object("navigation summary"), kept) \
         if navigation is not None else None
     series = _read(out / NAVIGATION_CSV, read_guidance_columns, kept) if guidance is not None else None
+    robot = {name: _read(out / file, _read_json_object(what), kept) for name, file, what in ROBOT_OUTPUTS}
     return RunFolder(out_dir=out, manifest=manifest, detection=detection, frame_calibration=frame_calibration,
                      registration=registration, evaluation=evaluation, navigation_positions=positions,
                      navigation_labels=labels, checkpoints=_read_checkpoints(out / CHECKPOINTS_JSON),
                      guidance=guidance, guidance_series=series,
-                     tre_map_path=out / TRE_MAP_NRRD if (out / TRE_MAP_NRRD).is_file() else None, notes=tuple(notes))
+                     tre_map_path=out / TRE_MAP_NRRD if (out / TRE_MAP_NRRD).is_file() else None, **robot,
+                     notes=tuple(notes))
 
 
 def _read(path: Path, read: Callable[[Path], T], notes: list[str] | None) -> T | None:

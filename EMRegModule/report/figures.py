@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import SimpleITK as sitk
@@ -28,9 +29,11 @@ from ..rendering.context import ContextSurface, bin_factor, binned_ct, context_s
 from ..rendering.error_views import distortion_views, error_budget_chart, tre_map_slices
 from ..rendering.images import encode_png
 from ..rendering.plots import bar_chart, fit_text, line_chart
+from ..rendering.robot_charts import residual_panels
 from .checks import ReportWarning
 from .derived import MarkerRow, calibration_points_in_image, finite_or_none, tre_figures
 from .inputs import ReportInputs
+from .robot_inputs import load_robot_fit
 
 #: The widest a pinhole's label is drawn in a marker's caption on the CT slices (pixels at the captions' font).
 CAPTION_LABEL_PX = 170
@@ -81,6 +84,7 @@ class ReportData:
     marker_views: object | None = None  # StreamingMarkerViews: the slices sampled as the CT is read
     binned: object | None = None  # the block-averaged CT (BinnedCT) the context surface is contoured from
     kept_whole: bool = False  # every CT product came from the file an earlier report kept (report.ct_memo)
+    robot_fit: tuple[Any, str | None] | None = None  # (CalibrationFit or None, why not): see robot_fit()
 
     @property
     def l_mm(self) -> float | None:
@@ -506,6 +510,69 @@ def render_plan_in_ct(data: ReportData) -> list[Figure]:
                    "tip positions within 3 mm of the plane; yellow: the closest approach.", _png(views))]
 
 
+# --- the robot (issue 39) -------------------------------------------------------------------------
+
+
+def robot_fit(data: ReportData) -> tuple[Any, str | None]:
+    """The hand-eye calibration's fit to its recordings (:func:`~.robot_inputs.load_robot_fit`), once per report:
+    (a :class:`~EMRegModule.core.handeye_profile.CalibrationFit` or None, why none)."""
+    if data.robot_fit is None:
+        data.robot_fit = load_robot_fit(data.inputs)
+    return data.robot_fit
+
+
+def _has_robot_fit(data: ReportData) -> bool:
+    return data.inputs.folder.robot_calibration is not None and robot_fit(data)[0] is not None
+
+
+def render_robot_calibration(data: ReportData) -> list[Figure]:
+    """The hand-eye residual of every tracker sample, and the residual against the clock offset."""
+    fit = robot_fit(data)[0]
+    left_out = int(np.count_nonzero(fit.rejected))
+    residuals = Figure(
+        "robot_residuals", "Hand-eye residual per tracker sample",
+        "For every sample of the flange sensor: where the robot says the sensor is (FlangeToBase @ SensorToFlange) "
+        "against where the tracker says it is (TrackerToBase @ SensorToTracker), as the rotation between them "
+        f"(degrees) and the distance between their origins (mm). Blue: the samples the calibration used; red: the "
+        f"{left_out} it left out (glitches, distorted moments, moments the robot's log does not cover; a triangle on "
+        "the top edge: beyond the scale). Fast motion spreads the residual (the clocks' jitter); still dwells sit "
+        "lowest.", _png(residual_panels(fit.time_s, fit.rotation_deg, fit.translation_mm, fit.rejected)))
+    shift_ms = (fit.offsets_s - fit.time_offset_s) * 1000.0
+    chart = line_chart(shift_ms, fit.offset_residual_mm, "Residual against the clock offset",
+                       "offset from the chosen time_offset_s (ms)", "median residual (mm)", marker_x=0.0,
+                       marker_label=f"time_offset_s = {fit.time_offset_s:.4f} s")
+    clock = Figure(
+        "robot_clock", "Clock-offset fit",
+        "The robot's log and the tracker run on different clocks (t_tracker = t_robot + time_offset_s). The curve is "
+        "the median residual of the samples used (the sensor origin's distance and the rotation's at 150 mm, mm) "
+        "had the clocks been offset otherwise, SensorToFlange and TrackerToBase kept; the red line is the offset "
+        "the calibration chose. A clear valley there means the offset is well determined; a flat curve, that the "
+        "motion was too slow to tell (still dwells do not depend on it).", _png(chart))
+    return [residuals, clock]
+
+
+def render_robot_go(data: ReportData) -> list[Figure]:
+    """The guide's measured error after the move and after each correction of ``emreg robot-go``."""
+    document = data.inputs.folder.robot_go
+    steps = document["measurements"]
+    labels = ["after the move" if int(m["step"]) == 0 else f"correction {int(m['step'])}" for m in steps]
+    tolerance = finite_or_none(document.get("tolerance_mm"))
+    chart = bar_chart(labels, [float(m["tip_mm"]) for m in steps], title="Needle tip at the planned depth to Target",
+                      y_label="tip error (mm)", overlay=[float(m["exit_mm"]) for m in steps],
+                      overlay_label="guide exit to Entry (mm)",
+                      reference_lines=[(tolerance, f"tolerance {tolerance:g} mm")] if tolerance is not None else [])
+    return [Figure("robot_go", "Guide to plan, closed loop",
+                   "emreg robot-go measured the guide with the flange sensor and the live reference after moving it "
+                   "onto the plan, then after each correction: bars, how far the needle tip would land from Target "
+                   "at the planned depth; red ticks, how far the guide's exit is from Entry; dashed, the tolerance "
+                   "([robot] tolerance_mm) it corrects down to.", _png(chart))]
+
+
+def _has_robot_go(data: ReportData) -> bool:
+    document = data.inputs.folder.robot_go
+    return document is not None and bool(document.get("measurements"))
+
+
 # --- the registry ---------------------------------------------------------------------------------
 
 
@@ -541,6 +608,8 @@ FIGURES: tuple[FigureSpec, ...] = (
     FigureSpec(("guidance_ct",), lambda d: _has_plan_in_ct(d) and d.inputs.ct is not None, render_plan_in_ct,
                uses_ct=True, needs_ct=True),
     FigureSpec(("distortion",), lambda d: _distortion(d) is not None, render_distortion),
+    FigureSpec(("robot_residuals", "robot_clock"), _has_robot_fit, render_robot_calibration),
+    FigureSpec(("robot_go",), _has_robot_go, render_robot_go),
 )
 
 #: Every figure name, in the order of the registry.

@@ -27,7 +27,17 @@ from ..io.case import open_case
 from ..io.markups import read_markups
 from ..io.run_folder import RunFolder, read_manifest, read_run_folder
 from ..marker_model import MarkerModel
-from ..names import EVALUATION_JSON, FRAME_CALIBRATION_JSON, MARKERS_JSON, NAVIGATION_CSV, REGISTRATION_JSON, RUN_JSON
+from ..names import (
+    EVALUATION_JSON,
+    FRAME_CALIBRATION_JSON,
+    MARKERS_JSON,
+    NAVIGATION_CSV,
+    REGISTRATION_JSON,
+    ROBOT_CALIBRATION_JSON,
+    ROBOT_GO_JSON,
+    ROBOT_TARGET_JSON,
+    RUN_JSON,
+)
 from ..settings import Settings
 
 if TYPE_CHECKING:
@@ -35,7 +45,8 @@ if TYPE_CHECKING:
 
     from ..io.ct_handle import CTHandle
 
-INPUT_NAMES = (MARKERS_JSON, FRAME_CALIBRATION_JSON, REGISTRATION_JSON, NAVIGATION_CSV, EVALUATION_JSON, RUN_JSON)
+INPUT_NAMES = (MARKERS_JSON, FRAME_CALIBRATION_JSON, REGISTRATION_JSON, NAVIGATION_CSV, EVALUATION_JSON, RUN_JSON,
+               ROBOT_CALIBRATION_JSON, ROBOT_TARGET_JSON, ROBOT_GO_JSON)
 
 
 @dataclass

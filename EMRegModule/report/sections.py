@@ -16,6 +16,7 @@ from ..io.image import image_geometry
 from .derived import finite_or_none, predicted_tre_by_target, tre_figures
 from .figures import Figure, ReportData
 from .html import CSS, DASH, esc, figure_html, note, num, table, vec
+from .robot_section import robot_section
 
 if TYPE_CHECKING:
     from ..core.evaluation import BoardEdge
@@ -334,7 +335,7 @@ def run_log_section(data: ReportData, figures: dict[str, Figure]) -> str:
 
 SECTIONS: tuple[Callable[[ReportData, dict[str, Figure]], str], ...] = (
     summary_section, warnings_section, scene_section, registration_section, markers_section, calibration_section,
-    tre_section, checkpoints_section, guidance_section, board_section, run_log_section)
+    tre_section, checkpoints_section, guidance_section, robot_section, board_section, run_log_section)
 
 
 def _image_space(registration: RegistrationResult | None) -> str:
