@@ -54,8 +54,8 @@ def write_run_bundle(out_dir: str | os.PathLike[str], case_dir: str | os.PathLik
         return no_bundle(missing)
     try:
         content = collect_run(out, case_dir, image)
-        if not content.marker_ids and not content.calibration_labels:
-            return no_bundle(f"no markers or calibration in {out}")
+        if not content.marker_ids and not content.calibration_labels and content.robot is None:
+            return no_bundle(f"no markers, calibration or robot outputs in {out}")
         with signals_held():  # the modules its logics and nodes load: never cut, the signal acts once they are
             holder = SlicerScene()
             built = build_run_scene(holder.scene, content)

@@ -156,6 +156,54 @@ def show_curve(scene: Any, name: str, positions_ras: Any, color: Sequence[float]
     return node
 
 
+def show_line(scene: Any, name: str, labels: Sequence[str], positions_ras: Any, color: Sequence[float],
+              node: Any = None) -> Any:
+    """A locked markups line between two points (RAS, mm; e.g. a plan's Entry and Target), labelled."""
+    from vtkmodules.vtkCommonDataModel import vtkVector3d
+
+    points = np.asarray(positions_ras, dtype=float).reshape(-1, 3)
+    if len(points) != 2 or len(labels) != 2:
+        raise EMRegError(f"{name}: a line needs two points and two labels, not {len(points)} and {len(labels)}")
+    node = _named_node(scene, "vtkMRMLMarkupsLineNode", name, node)
+    node.RemoveAllControlPoints()
+    for label, point in zip(labels, points):  # noqa: B905 - lengths checked (Python 3.9 in old Slicer)
+        node.AddControlPoint(vtkVector3d(*(float(v) for v in point)), str(label))
+    _lock_and_colour(node, color)
+    return node
+
+
+def show_guide_model(scene: Any, name: str, parent: Any, depth_mm: float, body_mm: float = 40.0,
+                     node: Any = None) -> Any:
+    """A needle guide in its own frame (origin at its exit, +z the needle's direction), under ``parent`` (its pose):
+    a tube ``body_mm`` long behind the exit (radius 4 mm) and the needle's axis ahead of it to ``depth_mm`` (a thin
+    tube, radius 0.5 mm), so that the axis ends where a needle pushed to the planned depth would."""
+    from vtkmodules.vtkFiltersCore import vtkAppendPolyData, vtkTubeFilter
+    from vtkmodules.vtkFiltersSources import vtkLineSource
+
+    append = vtkAppendPolyData()
+    for start, end, radius in (((0.0, 0.0, -body_mm), (0.0, 0.0, 0.0), 4.0),
+                               ((0.0, 0.0, 0.0), (0.0, 0.0, max(float(depth_mm), 1.0)), 0.5)):
+        line = vtkLineSource()
+        line.SetPoint1(*start)
+        line.SetPoint2(*end)
+        tube = vtkTubeFilter()
+        tube.SetInputConnection(line.GetOutputPort())
+        tube.SetRadius(radius)
+        tube.SetNumberOfSides(24)
+        tube.CappingOn()
+        tube.Update()
+        append.AddInputData(tube.GetOutput())
+    append.Update()
+    node = _named_node(scene, "vtkMRMLModelNode", name, node)
+    node.SetAndObservePolyData(append.GetOutput())
+    node.CreateDefaultDisplayNodes()
+    display = node.GetDisplayNode()
+    if display is not None:
+        display.SetColor(0.1, 0.8, 0.9)
+    node.SetAndObserveTransformNodeID(parent.GetID() if parent is not None else None)
+    return node
+
+
 def _lock_and_colour(node: Any, color: Sequence[float]) -> Any:
     """Lock a markups node against edits and colour its points (selected or not); its display node (or None)."""
     node.SetLocked(True)

@@ -42,6 +42,7 @@ from .nodes import (
     show_tre_map,
     show_volume,
 )
+from .robot_scene import RobotScene, build_robot_scene, robot_scene_of
 
 #: Most control points of the probe path curve (the recording is subsampled evenly).
 MAX_PATH_POINTS = 1000
@@ -65,6 +66,7 @@ class RunScene:
     tre_map_path: Path | None = None
     image: Any = None
     stored_ct: StoredVoxels | None = None  # the CT in its file, copied into a bundle without being read
+    robot: RobotScene | None = None  # the robot's calibration, guide and plan (issue 39), None without them
     notes: list[str] = field(default_factory=list)
 
 
@@ -72,10 +74,11 @@ def run_scene_of(folder: RunFolder, targets: tuple[list[str], np.ndarray] | None
                  probe_to_reference: np.ndarray | None = None) -> RunScene:
     """What a run's scene shows, from its outputs (read from OUT, or the Slicer Logic's results in memory):
     markers, calibration points (and a tool's ``TipToProbe``), the registration, the probe path, the
-    predicted-TRE map; ``targets`` (labels, (N, 3) image LPS mm) and the last probe pose ``probe_to_reference``
-    (4x4, probe -> Reference) when known. Without the CT (:func:`collect_run` adds it)."""
+    predicted-TRE map, the robot's calibration, guide and plan; ``targets`` (labels, (N, 3) image LPS mm) and the
+    last probe pose ``probe_to_reference`` (4x4, probe -> Reference) when known. Without the CT (:func:`collect_run`
+    adds it)."""
     content = RunScene(probe_to_reference=probe_to_reference, registration=folder.registration,
-                       tre_map_path=folder.tre_map_path)
+                       tre_map_path=folder.tre_map_path, robot=robot_scene_of(folder))
     if folder.detection is not None:
         content.marker_ids = [m.id for m in folder.detection.markers]
         content.marker_origins = folder.detection.origins
@@ -181,7 +184,8 @@ def build_run_scene(scene: Any, content: RunScene, nodes: dict[str, Any] | None 
     and, when known, the probe pose ``ProbeToReference`` under it too, and a tool's ``TipToProbe`` under
     that (``TipToProbe`` alone without a probe pose); the pinhole points the
     calibration points are fitted to (``origin + l * axis``, RAS); spheres at them coloured by
-    residual; targets; the probe path (curve, RAS); the predicted-TRE map when the run wrote one.
+    residual; targets; the probe path (curve, RAS); the predicted-TRE map when the run wrote one; the robot's
+    ``SensorToFlange``, ``TrackerToBase``, needle guide and plan (:mod:`.robot_scene`) when the folder has them.
 
     ``nodes`` (name -> node) are reused and updated in place; those the content no longer has
     (e.g. the registration after a new CT) are removed from the scene, except the volume.
@@ -241,6 +245,8 @@ def build_run_scene(scene: Any, content: RunScene, nodes: dict[str, Any] | None 
         step = max(1, int(np.ceil(len(content.path) / MAX_PATH_POINTS)))
         keep(PATH_NODE_NAME, show_curve(scene, PATH_NODE_NAME, lps_to_ras_points(content.path[::step]),
                                         node=nodes.get(PATH_NODE_NAME)))
+    if content.robot is not None:
+        built.update(build_robot_scene(scene, content.robot, nodes))
     for name in [n for n in nodes if n not in built and n != VOLUME_NODE_NAME]:
         stale = nodes.pop(name)
         if stale is not None and scene.GetNodeByID(stale.GetID()) is stale:
