@@ -203,6 +203,7 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.useFiducialsButton.connect("clicked(bool)", self.onUseFiducials)
         self.ui.planNodeComboBox.setMRMLScene(slicer.mrmlScene)
         self.ui.planNodeComboBox.connect("currentNodeChanged(vtkMRMLNode*)", self.onPlanChanged)
+        self.setupRobotPanel()
         # the live guidance readout: OpenIGTLinkIF makes the Guidance STRING a text node and updates it as it arrives
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.NodeAddedEvent, self.onNodeAdded)
         self.onNodeAdded()
@@ -296,6 +297,44 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         else:
             self._run("Live navigation failed.", self.logic.startLiveNavigation, self.ui.igtlHostLineEdit.text,
                       self.ui.igtlPortSpinBox.value)
+
+    # --- the robot panel: its logic is EMRegModule.pipeline.robot_panel (the robot commands' own functions) ------
+
+    def setupRobotPanel(self):
+        from EMRegModule.pipeline.robot_panel import RobotPanelLogic
+
+        self.robot = RobotPanelLogic(self.logic.controller.settings, slicer.mrmlScene)
+        self.ui.robotCalibrateButton.connect("clicked(bool)", self.onRobotCalibrate)
+        self.ui.robotTargetButton.connect("clicked(bool)", self.onRobotTarget)
+        self.ui.robotGoButton.connect("clicked(bool)", self.onRobotGo)
+
+    def _robotRun(self, errorMessage, function, *args):
+        """A robot step with the case's settings, into the output folder; the panel says what it said."""
+        self.robot.settings = self.logic.controller.settings
+        try:
+            self._run(errorMessage, function, *args)
+        finally:
+            self.ui.robotStatusLabel.text = self.robot.describe()
+
+    def _robotFolder(self):
+        return self.ui.outputDirectoryPathLineEdit.currentPath or self.logic.outputDirectory
+
+    def onRobotCalibrate(self):
+        self._robotRun("Robot calibration failed.", self.robot.calibrate, self.ui.robotPosesPathLineEdit.currentPath,
+                       self.ui.flangeRecordingPathLineEdit.currentPath, self._robotFolder(),
+                       self.ui.flangeSensorLineEdit.text.strip() or None)
+
+    def onRobotTarget(self):
+        folder = self._robotFolder()
+        self._robotRun("Targeting the plan failed.", self.robot.target_plan,
+                       Path(folder) / names.REGISTRATION_JSON if folder else None,
+                       self.ui.robotReferenceLineEdit.text.strip(), self.ui.robotPlanPathLineEdit.currentPath,
+                       self.ui.needleGuidePathLineEdit.currentPath, folder)
+
+    def onRobotGo(self):
+        self._robotRun("Moving the robot failed.", self.robot.go_to_target, self.ui.robotUrlLineEdit.text.strip(),
+                       self.ui.robotTrackerUrlLineEdit.text.strip(), self._robotFolder(),
+                       self.ui.robotExecuteCheckBox.checked is True)
 
     def updateGUIFromLogic(self):
         """Enable the buttons whose prerequisites exist and show the workflow state and figures."""

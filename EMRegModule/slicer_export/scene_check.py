@@ -77,7 +77,7 @@ def robot_disagreements(scene: Any, content: RobotScene) -> list[str]:
 
     Checked: ``SensorToFlange`` and ``TrackerToBase`` as they are (1e-9); with a target, ``NeedleGuideToRAS`` equal to
     ``LPS_TO_RAS @ NeedleGuideToImage`` (1e-9), the guide's model under it, its axis (+z, world) along the planned
-    line Entry -> Target (RAS, 1e-6 degrees) and the needle at the planned depth on Target (1e-6 mm), and the plan's
+    line Entry -> Target (RAS, 1e-5 degrees) and the needle at the planned depth on Target (1e-6 mm), and the plan's
     line at Entry and Target (RAS, 1e-6 mm)."""
     import slicer.util
 
@@ -104,8 +104,9 @@ def robot_disagreements(scene: Any, content: RobotScene) -> list[str]:
         found.append(f"{GUIDE_MODEL_NODE_NAME}: not under {GUIDE_NODE_NAME}")
     entry, target = lps_to_ras_points(np.vstack([content.entry_mm, content.target_mm]))
     direction = (target - entry) / np.linalg.norm(target - entry)
-    angle = float(np.degrees(np.arccos(np.clip(guide_to_ras[:3, 2] @ direction, -1.0, 1.0))))
-    if angle > 1e-6:
+    axis = guide_to_ras[:3, 2]
+    angle = float(np.degrees(np.arctan2(np.linalg.norm(np.cross(axis, direction)), axis @ direction)))
+    if angle > 1e-5:
         found.append(f"{GUIDE_NODE_NAME}: its axis is {angle:.6f} degrees off the planned line")
     tip = guide_to_ras[:3, 3] + content.reach_mm * guide_to_ras[:3, 2]
     if np.linalg.norm(tip - target) > 1e-6:

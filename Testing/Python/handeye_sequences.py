@@ -11,6 +11,7 @@ epoch, and wrong poses (single glitches, short distorted bursts). Used by ``test
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -183,3 +184,45 @@ def tracker_point_error_mm(tracker_to_base: np.ndarray, truth: np.ndarray, point
 def rotation_error_deg(estimate: np.ndarray, truth: np.ndarray) -> float:
     """Angle (degrees) between two rotations (the 3x3 parts of two poses)."""
     return float(np.degrees(np.linalg.norm(Rotation.from_matrix(estimate[:3, :3].T @ truth[:3, :3]).as_rotvec())))
+
+
+def pose(rotvec_deg, translation) -> np.ndarray:
+    """A 4x4 pose (mm) from a rotation vector (degrees) and a translation (mm)."""
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+    out[:3, 3] = translation
+    return out
+
+
+def write_targeting_inputs(folder: Path) -> dict:
+    """What ``emreg robot-target`` needs beside a calibration, written into ``folder``: ``reg/registration.json``,
+    the reference sensor's recording ``reference.csv`` (port 1, 300 mm before the field generator), the plan
+    ``plan.mrk.json`` (a Line Entry -> Target, LPS) and the needle guide as ``guide.json`` and ``guide.xml``; returns
+    the truth (``reference_to_image``, ``reference_to_tracker``, ``entry``, ``target``, ``guide_to_sensor``)."""
+    from EMRegModule.core.registration import RegistrationResult, write_registration
+
+    reference_to_image = pose([10.0, -20.0, 150.0], [-40.0, 120.0, -300.0])
+    write_registration(RegistrationResult(reference_to_image, 14.0, 0.2, []), folder / "reg")
+    reference_to_tracker = pose([5.0, 30.0, -10.0], [20.0, -30.0, 300.0])
+    rng = np.random.default_rng(3)
+    lines = ["time_s,sensor,x_mm,y_mm,z_mm,qw,qx,qy,qz,quality,label"]
+    q = Rotation.from_matrix(reference_to_tracker[:3, :3]).as_quat()
+    for k in range(60):
+        p = reference_to_tracker[:3, 3] + rng.normal(0.0, 0.1, 3)
+        lines.append(f"{k / 40:.4f},1,{p[0]:.4f},{p[1]:.4f},{p[2]:.4f},{q[3]:.8f},{q[0]:.8f},{q[1]:.8f},{q[2]:.8f},,")
+    (folder / "reference.csv").write_text("\n".join(lines) + "\n")
+    entry_ref, target_ref = np.array([30.0, 10.0, 60.0]), np.array([10.0, -15.0, -20.0])
+    entry = (reference_to_image @ np.append(entry_ref, 1))[:3]
+    target = (reference_to_image @ np.append(target_ref, 1))[:3]
+    plan = {"@schema": "https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/Markups/Resources/"
+                       "Schema/markups-schema-v1.0.3.json#",
+            "markups": [{"type": "Line", "coordinateSystem": "LPS", "controlPoints": [
+                {"label": "Entry", "position": entry.tolist()}, {"label": "Target", "position": target.tolist()}]}]}
+    (folder / "plan.mrk.json").write_text(json.dumps(plan))
+    guide_to_sensor = pose([0.0, 20.0, 0.0], [5.0, -3.0, 60.0])
+    (folder / "guide.json").write_text(json.dumps({"TipToProbe": guide_to_sensor.tolist(), "rms_mm": 0.1}))
+    matrix = " ".join(f"{v:.9g}" for v in guide_to_sensor.ravel())
+    (folder / "guide.xml").write_text(f'<PlusConfiguration><CoordinateDefinitions><Transform From="NeedleGuide" '
+                                      f'To="Sensor" Matrix="{matrix}"/></CoordinateDefinitions></PlusConfiguration>')
+    return {"folder": folder, "reference_to_image": reference_to_image, "reference_to_tracker": reference_to_tracker,
+            "entry": entry, "target": target, "guide_to_sensor": guide_to_sensor}

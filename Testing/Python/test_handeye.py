@@ -27,9 +27,11 @@ from EMRegModule.pipeline.robot_live import read_target
 sys.path.insert(0, str(Path(__file__).parent))
 from handeye_sequences import (  # noqa: E402
     kinhec_case,
+    pose,
     rotation_error_deg,
     tip_error_mm,
     tracker_point_error_mm,
+    write_targeting_inputs,
 )
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -179,53 +181,16 @@ def test_tum_round_trip_and_motion_spread(continuous_case, tmp_path):
 # --- emreg robot-target (issue 39, section 2) ----------------------------------------------------------------------
 
 
-def _pose(rotvec_deg, translation) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    pose = np.eye(4)
-    pose[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
-    pose[:3, 3] = translation
-    return pose
-
-
 @pytest.fixture(scope="module")
 def targeting_case(continuous_case, tmp_path_factory):
     """A hand-eye calibration made by emreg handeye from the KinHEC recording, a registration, the reference
     sensor's recording (300 mm before the field generator), a plan and a needle guide, with the truth beside."""
-    from EMRegModule.core.registration import RegistrationResult, write_registration
-
     folder = tmp_path_factory.mktemp("target")
     continuous_case.write_tum(folder / "robot.tum")
     continuous_case.write_csv(folder / "tracker.csv", port=3, with_reference=True)
     assert main(["handeye", "--robot-poses", str(folder / "robot.tum"), "--tracker", str(folder / "tracker.csv"),
                  "--sensor", "3", "--out", str(folder / "calib"), "--quiet"]) == 0
-    reference_to_image = _pose([10.0, -20.0, 150.0], [-40.0, 120.0, -300.0])
-    write_registration(RegistrationResult(reference_to_image, 14.0, 0.2, []), folder / "reg")
-    reference_to_tracker = _pose([5.0, 30.0, -10.0], [20.0, -30.0, 300.0])
-    rng = np.random.default_rng(3)
-    lines = ["time_s,sensor,x_mm,y_mm,z_mm,qw,qx,qy,qz,quality,label"]
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(reference_to_tracker[:3, :3]).as_quat()
-    for k in range(60):
-        p = reference_to_tracker[:3, 3] + rng.normal(0.0, 0.1, 3)
-        lines.append(f"{k / 40:.4f},1,{p[0]:.4f},{p[1]:.4f},{p[2]:.4f},{q[3]:.8f},{q[0]:.8f},{q[1]:.8f},{q[2]:.8f},,")
-    (folder / "reference.csv").write_text("\n".join(lines) + "\n")
-    entry_ref, target_ref = np.array([30.0, 10.0, 60.0]), np.array([10.0, -15.0, -20.0])
-    entry = (reference_to_image @ np.append(entry_ref, 1))[:3]
-    target = (reference_to_image @ np.append(target_ref, 1))[:3]
-    plan = {"@schema": "https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/Markups/Resources/"
-                       "Schema/markups-schema-v1.0.3.json#",
-            "markups": [{"type": "Line", "coordinateSystem": "LPS", "controlPoints": [
-                {"label": "Entry", "position": entry.tolist()}, {"label": "Target", "position": target.tolist()}]}]}
-    (folder / "plan.mrk.json").write_text(json.dumps(plan))
-    guide_to_sensor = _pose([0.0, 20.0, 0.0], [5.0, -3.0, 60.0])
-    (folder / "guide.json").write_text(json.dumps({"TipToProbe": guide_to_sensor.tolist(), "rms_mm": 0.1}))
-    matrix = " ".join(f"{v:.9g}" for v in guide_to_sensor.ravel())
-    (folder / "guide.xml").write_text(f'<PlusConfiguration><CoordinateDefinitions><Transform From="NeedleGuide" '
-                                      f'To="Sensor" Matrix="{matrix}"/></CoordinateDefinitions></PlusConfiguration>')
-    return {"folder": folder, "reference_to_image": reference_to_image, "reference_to_tracker": reference_to_tracker,
-            "entry": entry, "target": target, "guide_to_sensor": guide_to_sensor, "case": continuous_case}
+    return {**write_targeting_inputs(folder), "case": continuous_case}
 
 
 def _target_args(folder: Path, tool: str = "guide.json", plan: str = "plan.mrk.json", out: str = "out") -> list[str]:
@@ -316,7 +281,7 @@ def test_slicer_reads_the_calibration_transforms_as_they_are(slicer_core, tmp_pa
 
     from EMRegModule.io.itk_transform import write_slicer_frame_transform
 
-    a_to_b = _pose([20.0, -35.0, 110.0], [-41.4, 26.3, 80.1])
+    a_to_b = pose([20.0, -35.0, 110.0], [-41.4, 26.3, 80.1])
     write_slicer_frame_transform(tmp_path / "SensorToFlange.h5", a_to_b)
     scene = slicer_core.scene
     transform = scene.AddNewNodeByClass("vtkMRMLLinearTransformNode", "read")
