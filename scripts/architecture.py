@@ -41,7 +41,14 @@ FRONT_END_REACH = ("base", "io", "devices", "pipeline")
 #: The one place imports inside a function are allowed: optional extras (installed with an extra, or present only
 #: inside 3D Slicer) and the heavy libraries a command loads only when it gets to the step that needs them, each with
 #: its reason. Every other import is at the top of its module, where a reader sees what depends on what.
-DEFERRED_IMPORTS: dict[str, str] = {}
+DEFERRED_IMPORTS: dict[str, str] = {
+    "slicer": "slicer-core (the optional extra slicer) or 3D Slicer's own: only the scene bundle's process and the "
+              "Slicer module load it",
+    "vtkmodules": "VTK's data and filter modules: loaded where an MRML scene is built (the bundle's own process, 3D "
+                  "Slicer), not by a command that builds none",
+    "EMRegModule.core.handeye_profile": "the hand-eye solver's scipy.stats and scipy.signal (seconds, cold): only the "
+                                        "report of a folder with robot_calibration.json needs them",
+}
 MAX_FUNCTION_LINES = 90
 MAX_MODULE_LINES = 700
 MAX_METHODS = 30

@@ -17,22 +17,27 @@ from typing import Any
 
 import numpy as np
 import SimpleITK as sitk
+from scipy.ndimage import map_coordinates
 
 from ..core.calibration import CalibrationPoint
 from ..core.distortion import DistortionEstimate
 from ..core.transforms import apply_transform
 from ..errors import EMRegError
+from ..io.dicom_read import NarrowVoxelsError
 from ..progress import QUIET, Progress
 from ..rendering.checkpoint_chart import checkpoint_chart
 from ..rendering.colors import GREY, colorize, residual_range
 from ..rendering.context import ContextSurface, bin_factor, binned_ct, context_surface
 from ..rendering.error_views import distortion_views, error_budget_chart, tre_map_slices
+from ..rendering.guidance_chart import approach_chart, plan_ct_views, plan_view_chart
 from ..rendering.images import encode_png
 from ..rendering.plots import bar_chart, fit_text, line_chart
 from ..rendering.robot_charts import residual_panels
+from ..rendering.scene3d import FrameScene, FrameSceneRenderer, SceneMarker
+from ..rendering.slices import SliceMarker, StreamingMarkerViews, marker_slices_mosaic
 from .checks import ReportWarning
 from .derived import MarkerRow, calibration_points_in_image, finite_or_none, tre_figures
-from .inputs import ReportInputs
+from .inputs import ReportInputs, open_report_ct
 from .robot_inputs import load_robot_fit
 
 #: The widest a pinhole's label is drawn in a marker's caption on the CT slices (pixels at the captions' font).
@@ -96,8 +101,6 @@ class ReportData:
 
 
 def _frame_scene(data: ReportData):
-    from ..rendering.scene3d import FrameScene, SceneMarker
-
     inputs, registration = data.inputs, data.inputs.registration
     sensor_points = None
     sensor_points_name = "sensor points at the solved l"
@@ -157,7 +160,6 @@ def prepare_context_surface(data: ReportData) -> None:
 def prepare_ct_products(data: ReportData) -> None:
     """What the figures take from the CT's voxels: the block-averaged CT and the marker planes (made as the CT
     is read; no rendering library is needed). A CT that fails to read becomes a note (and no CT figure)."""
-    from ..io.dicom_read import NarrowVoxelsError
 
     if data.inputs.ct is None or data.binned is not None:
         return
@@ -168,7 +170,6 @@ def prepare_ct_products(data: ReportData) -> None:
             data.surface = memo.context_surface(data.inputs.settings.report.iso_value)  # None: made from binned
             data.kept_whole = data.surface is not None
             return
-        from .inputs import open_report_ct
 
         open_report_ct(data.inputs)
         if data.inputs.ct is None:
@@ -180,8 +181,6 @@ def prepare_ct_products(data: ReportData) -> None:
 
 
 def _sample_ct(data: ReportData, read_exactly: bool = False) -> None:
-    from ..rendering.slices import StreamingMarkerViews
-
     try:
         if read_exactly:
             data.inputs.read_ct_exactly()
@@ -208,7 +207,6 @@ def _sample_ct(data: ReportData, read_exactly: bool = False) -> None:
 def prepare_scenes(data: ReportData) -> None:
     """Build the 3D scene and, while the CT is still being read, draw it once without the CT surface (the
     first frame's set-up then costs nothing later); with the CT's products at hand there is nothing to wait for."""
-    from ..rendering.scene3d import FrameSceneRenderer
 
     data.scene_renderer = FrameSceneRenderer(_frame_scene(data), (960, 720))
     if not _ct_products_at_hand(data):
@@ -243,7 +241,6 @@ def render_scenes(data: ReportData) -> list[Figure]:
 
 def _slice_markers(data: ReportData) -> list:
     """Every detected marker as drawn on the slices: caption, paired or not, sensor and calibration points."""
-    from ..rendering.slices import SliceMarker
 
     registration = data.inputs.registration
     slice_markers = []
@@ -267,7 +264,6 @@ def _slice_markers(data: ReportData) -> list:
 
 def render_marker_slices(data: ReportData) -> list[Figure]:
     """Two planes along each marker's axis and one across its base, with the fitted outline."""
-    from ..rendering.slices import marker_slices_mosaic
 
     prepare_context_surface(data)  # samples the slices while following the CT's read
     if data.inputs.ct is None:
@@ -454,7 +450,6 @@ def _has_guidance(data: ReportData) -> bool:
 def render_guidance(data: ReportData) -> list[Figure]:
     """The tip's approach to the planned target (``navigation.json`` and the guidance columns of ``navigation.csv``):
     its distance to the target and to the line over time, and (with an Entry) its path beside the planned line."""
-    from ..rendering.guidance_chart import approach_chart, plan_view_chart
 
     document, series = data.inputs.folder.guidance, data.inputs.folder.guidance_series
     series = {name: values[series["ok"]] for name, values in series.items()}  # the poses shown as valid
@@ -483,9 +478,6 @@ def _has_plan_in_ct(data: ReportData) -> bool:
 
 def render_plan_in_ct(data: ReportData) -> list[Figure]:
     """Two CT planes containing the planned line (from the block-averaged CT the 3D view uses), with the tip path."""
-    from scipy.ndimage import map_coordinates
-
-    from ..rendering.guidance_chart import plan_ct_views
 
     prepare_ct_products(data)
     binned = data.binned

@@ -23,9 +23,12 @@ from ..core.detection.result import DetectionResult
 from ..core.evaluation import Evaluation
 from ..core.registration import RegistrationResult
 from ..errors import EMRegError
-from ..io.case import open_case
+from ..io.case import find_ct, open_case
+from ..io.ct_handle import CTHandle
+from ..io.ct_stream import start_streamed_read
+from ..io.image import open_ct
 from ..io.markups import read_markups
-from ..io.run_folder import RunFolder, read_manifest, read_run_folder
+from ..io.run_folder import RunFolder, read_manifest, read_run_folder, recorded_series_uid
 from ..marker_model import MarkerModel
 from ..names import (
     EVALUATION_JSON,
@@ -39,6 +42,7 @@ from ..names import (
     RUN_JSON,
 )
 from ..settings import Settings
+from .ct_memo import load_ct_memo, memo_candidates, recorded_ct_sha256
 
 if TYPE_CHECKING:
     import SimpleITK as sitk
@@ -108,7 +112,6 @@ class ReportInputs:
     def read_ct_exactly(self) -> None:
         """Read the DICOM CT again at the voxel type its headers call for (int32), after its compact read
         (int16) met a slice beyond int16 (:class:`~EMRegModule.io.dicom_read.NarrowVoxelsError`)."""
-        from ..io.image import open_ct
 
         self.ct = open_ct(self.ct_path, self.ct_series)
 
@@ -118,7 +121,6 @@ def has_report_inputs(folder: str | os.PathLike[str]) -> bool:
 
     A case folder's ``navigation.csv`` is its tracking recording, not a run's mapped probe path: in a folder
     that holds a case's CT it counts only beside another output (a run written into its case folder)."""
-    from ..io.case import find_ct
 
     folder = Path(folder)
     if not folder.is_dir():
@@ -178,8 +180,6 @@ def _read_case(inputs: ReportInputs) -> None:
 
 
 def _start_ct(inputs: ReportInputs, image: sitk.Image | CTHandle | None, read_image: bool, keep_ct: bool) -> None:
-    from ..io.ct_handle import CTHandle
-
     handle = image if isinstance(image, CTHandle) else None
     early = handle if handle is not None and not handle.is_complete else None  # a read started before the report
     if early is not None and (keep_ct or inputs.ct_path is None or early.path != inputs.ct_path.resolve()):
@@ -188,7 +188,6 @@ def _start_ct(inputs: ReportInputs, image: sitk.Image | CTHandle | None, read_im
     if image is not None:
         inputs.ct = handle if handle is not None else CTHandle.of_image(image)
     elif read_image and inputs.ct_path is not None:
-        from ..io.run_folder import recorded_series_uid
 
         # a DICOM folder: the series the run detected in
         inputs.ct_series = recorded_series_uid(inputs.run) or inputs.settings.ct.series
@@ -199,7 +198,6 @@ def _start_ct(inputs: ReportInputs, image: sitk.Image | CTHandle | None, read_im
 def _use_kept_ct_products(inputs: ReportInputs) -> bool:
     """Take the CT's products an earlier report of this run kept (:mod:`.ct_memo`) instead of reading the CT: its
     file is only hashed (and checked against ``run.json`` before the page is written)."""
-    from .ct_memo import load_ct_memo, memo_candidates, recorded_ct_sha256
 
     recorded = recorded_ct_sha256(inputs.run, inputs.ct_path)
     memo = next(filter(None, (load_ct_memo(path, recorded, inputs.settings.marker)
@@ -214,8 +212,6 @@ def open_report_ct(inputs: ReportInputs, keep_ct: bool = False) -> None:
     """Start reading the case's CT into ``inputs.ct`` (also after all, when the products an earlier report kept
     were made for other markers): streamed when nothing needs it whole and it is a plain file, else whole; a CT
     that cannot be read becomes a note (and no CT)."""
-    from ..io.ct_stream import start_streamed_read
-    from ..io.image import open_ct
 
     try:
         streamed = None if keep_ct or inputs.ct_path.is_dir() else start_streamed_read(inputs.ct_path)

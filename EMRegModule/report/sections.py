@@ -14,7 +14,7 @@ import numpy as np
 
 from ..io.image import image_geometry
 from .derived import finite_or_none, predicted_tre_by_target, tre_figures
-from .figures import Figure, ReportData
+from .figures import Figure, ReportData, read_checkpoints
 from .html import CSS, DASH, esc, figure_html, note, num, table, vec
 from .robot_section import robot_section
 
@@ -252,7 +252,6 @@ def checkpoints_section(data: ReportData, figures: dict[str, Figure]) -> str:
     """The checkpoints during navigation (``checkpoints.json``): the figure and one row per checkpoint."""
     if "checkpoints" not in figures:
         return ""
-    from .figures import read_checkpoints
 
     document = read_checkpoints(data) or {}
     rows = [(esc(c["image_marker"]), num(c["start_s"], 2), num(c["end_s"], 2), num(c["error_mm"]),

@@ -78,6 +78,7 @@ DEPENDENCIES = {
     "pyvista": ("pyvista", "the verification report"),
     "cv2": ("opencv-python-headless", "the verification report"),
     "pyigtl": ("pyigtl", "live navigation from the command line"),
+    "serial": ("pyserial", "the robot panel's tracker on a serial line (trakSTAR, Aurora)"),
 }
 #: Without these the workflow cannot run at all; the others only disable one feature.
 ESSENTIAL = ("python", "numpy", "scipy", "SimpleITK", "vtk")

@@ -6,13 +6,20 @@ standard input releases a held child; one JSON line ``{"path", "message", "sha25
 from __future__ import annotations
 
 import contextlib
+import importlib.util
+import json
 import os
+import signal
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from ..errors import EMRegError
 from ..interrupts import signals_held, vtk_imports_uninterrupted
+from ..io.atomic import read_json
+from ..io.case import run_ct_path
 from ..names import BUNDLE_MRB, RUN_JSON, VOLUME_NODE_NAME
 from .mrb import bundle_needs_ct_image
 from .mrml import SlicerScene, slicer_mrml_missing
@@ -83,9 +90,6 @@ class BundleProcess:
     """
 
     def __init__(self, out_dir: Path, case_dir: Path | None, held: bool = False) -> None:
-        import subprocess
-        import sys
-
         package_root = str(Path(__file__).resolve().parents[2])  # the EMRegModule this process runs
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (package_root, os.environ.get("PYTHONPATH"))
                                                             if p)}
@@ -105,7 +109,6 @@ class BundleProcess:
     def result(self) -> tuple[Path | None, str, str | None]:
         """``(path, message, sha256 of the bundle)`` as :func:`write_run_bundle` gives them (path None: no
         bundle, and the message says why)."""
-        import json
 
         try:
             stdout, stderr = self.process.communicate()
@@ -122,8 +125,6 @@ class BundleProcess:
 
     def cancel(self) -> None:
         """Interrupt the child (it removes its temporary files) and wait for it."""
-        import signal
-        import subprocess
 
         if self.process.stdin is not None and not self.process.stdin.closed:  # never released: it may not write
             with contextlib.suppress(OSError):
@@ -142,9 +143,6 @@ def start_bundle_process(out_dir: str | os.PathLike[str], case_dir: str | os.Pat
     """Start writing ``OUT/EMReg.mrb`` in a separate process when it needs nothing from this one: Slicer's MRML
     is there and the run's CT is a file the bundle copies (:func:`~.mrb.stored_voxels`). None otherwise (write it
     with :func:`write_run_bundle`, with the CT in memory if needed). ``held``: see :class:`BundleProcess`."""
-    import importlib.util
-
-    from ..io.atomic import read_json
 
     out = Path(out_dir)
     try:  # not imported here: slicer-core's libraries stay out of this process
@@ -153,7 +151,6 @@ def start_bundle_process(out_dir: str | os.PathLike[str], case_dir: str | os.Pat
     except (ImportError, ValueError):
         return None
     try:
-        from ..io.case import run_ct_path
 
         ct = run_ct_path(read_json(out / RUN_JSON, "run record"), case_dir)
     except (EMRegError, OSError, AttributeError):
@@ -170,8 +167,6 @@ _GO = b"go\n"
 def bundle_child() -> None:
     """The bundle process: ``write_run_bundle(OUT, CASE)``, then one JSON line: path, message, sha256.
     Held (third argument ``held``): nothing is written into OUT before ``go`` arrives on standard input."""
-    import json
-    import sys
 
     out, case = sys.argv[1], sys.argv[2] or None
     held = len(sys.argv) > 3 and sys.argv[3] == "held"

@@ -11,8 +11,10 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import SimpleITK as sitk
 
 from ..core.frames import LPS_TO_RAS
+from ..core.plan import plan_from_points
 from ..errors import EMRegError
 from ..names import CONNECTOR_NODE_NAME, RESIDUALS_NODE_NAME, TRANSFORM_NODE_NAME, TRE_MAP_NODE_NAME, VOLUME_NODE_NAME
 from .mrb import StoredVoxels, placeholder_of
@@ -57,7 +59,6 @@ def show_volume(scene: Any, image: Any, name: str = VOLUME_NODE_NAME, node: Any 
     either while both are in use. ``copy_voxels`` gives the node its own copy instead (a scene where a
     user may edit the volume in place, as in 3D Slicer's application).
     """
-    import SimpleITK as sitk
     import slicer.util
 
     if image.GetNumberOfComponentsPerPixel() != 1 or image.GetDimension() != 3:
@@ -101,7 +102,6 @@ def show_stored_volume(scene: Any, stored: StoredVoxels, name: str = VOLUME_NODE
 def _image_data_sharing_voxels(image: Any) -> Any:
     """A ``vtkImageData`` (origin 0, spacing 1: Slicer keeps the geometry in IJK-to-RAS) whose scalars
     are the SimpleITK image's own voxel buffer, not a copy."""
-    import SimpleITK as sitk
     from vtkmodules.util import numpy_support
     from vtkmodules.vtkCommonDataModel import vtkImageData
 
@@ -310,7 +310,6 @@ def plan_from_markups_node(node: Any) -> Any:
     """The :class:`~EMRegModule.core.guidance.Plan` (LPS mm) of a markups node as
     :func:`EMRegModule.core.plan.read_plan` reads a
     file: a line node's two points (Entry, Target), else points labelled Entry and Target, or a single point."""
-    from ..core.plan import plan_from_points
 
     labels, positions = markups_points_lps(node)
     is_line = node.IsA("vtkMRMLMarkupsLineNode")

@@ -15,7 +15,10 @@ import numpy as np
 from ..core.frames import lps_to_ras_points
 from ..core.registration import RegistrationResult
 from ..errors import EMRegError
-from ..io.run_folder import RunFolder, read_manifest, read_run_folder
+from ..io.case import run_ct_path
+from ..io.image import read_ct
+from ..io.markups import read_markups
+from ..io.run_folder import RunFolder, read_manifest, read_run_folder, recorded_series_uid
 from ..names import (
     CALIBRATION_NODE_NAME,
     FIDUCIALS_NODE_NAME,
@@ -106,8 +109,6 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
     into memory); otherwise ``image``, else the CT read (of a DICOM folder, the series the markers were
     detected in, as ``markers.json`` / ``run.json`` name it, not the folder's default choice: the run may
     have forced another with ``--series``)."""
-    from ..io.case import run_ct_path
-    from ..io.run_folder import recorded_series_uid
 
     out = Path(out_dir)
     run = read_manifest(out) or {}
@@ -116,7 +117,6 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
     folder = read_run_folder(out, run, tolerant=False)
     targets = None
     if case_dir is not None and (Path(case_dir) / TARGETS_FILE).is_file():
-        from ..io.markups import read_markups
 
         targets = read_markups(Path(case_dir) / TARGETS_FILE)
     content = run_scene_of(folder, targets)
@@ -136,7 +136,6 @@ def collect_run(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str
 def _read_ct(ct: str | None, series: str | None, fiducial_case: bool, notes: list[str]) -> Any:
     """The run's CT read whole (None, with a note, when there is none or it cannot be read)."""
     if ct and Path(ct).exists():
-        from ..io.image import read_ct
 
         try:
             return read_ct(ct, series)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import socket
 import threading
 import time
@@ -40,6 +41,8 @@ from EMRegModule.devices.robot.url import open_robot, parse_robot_url  # noqa: E
 from EMRegModule.devices.simulator.trakstar import TrackerSimulator  # noqa: E402
 from EMRegModule.devices.sources import open_source  # noqa: E402
 from EMRegModule.errors import EMRegError, NoSafeAnswerError  # noqa: E402
+from EMRegModule.pipeline.robot_panel import RobotPanelLogic  # noqa: E402
+from EMRegModule.settings import load_settings  # noqa: E402
 
 FLANGE_PORT = 3
 #: Fast but limited moves and short dwells, so that the module runs in well under a minute.
@@ -190,6 +193,19 @@ def test_calibrate_and_go(world, tmp_path, capsys) -> None:
         "predicted_error_mm": answer.predicted_error_mm}))
     predicted = answer.predicted_error_mm["total"]
 
+    # the Slicer module's robot panel: Go without the explicit execute choice is the same dry run
+    panel_folder = tmp_path / "panel"
+    panel_folder.mkdir()
+    shutil.copy(target_file, panel_folder / "robot_target.json")
+    panel = RobotPanelLogic(load_settings(world.settings))
+    before = world.robot.flange_to_base()
+    for not_explicit in (False, "yes", 1):
+        assert panel.go_to_target(world.robot.url, world.tracker_url, panel_folder, execute=not_explicit,
+                                  igtl_port=None) is None
+        assert "dry run, nothing moved" in panel.messages[-1]
+    assert np.linalg.norm(world.robot.flange_to_base()[:3, 3] - before[:3, 3]) < 0.2
+    assert not (panel_folder / "robot_go.json").exists()
+
     # the patient moved a little since targeting: the plan follows the live reference
     world.scene.reference_to_tracker = _pose([0.0, 0.0, 0.01], [1.5, -1.0, 0.5]) @ world.reference
     time.sleep(0.2)
@@ -252,6 +268,11 @@ def test_calibrate_and_go(world, tmp_path, capsys) -> None:
                        f"{result['corrections']} correction(s), true: {true_error.describe()}")
         assert first["tip_mm"] > 2.0 and result["corrections"] >= 1
         assert true_error.exit_mm < 0.6 and true_error.tip_mm < 0.6 and true_error.angle_deg < 0.4
+        # the report of robot-go's folder shows the closed loop it measured
+        assert main(["report", str(go), "--quiet"]) == 0, capsys.readouterr().err
+        page = (go / "report.html").read_text()
+        assert (go / "report_figures" / "robot_go.png").is_file()
+        assert f"lands {result['final']['tip_mm']:.2f} mm from the Target" in page
 
         # no corrections allowed: it says it is not there and exits 3
         stubborn = tmp_path / "stubborn.toml"

@@ -167,6 +167,14 @@ class QLabel(FakeSignalWidget):
     pass
 
 
+class QCheckBox(FakeSignalWidget):
+    signals = ("toggled(bool)",)
+
+    def __init__(self, name, properties):
+        super().__init__(name, properties)
+        self.checked = properties.get("checked", False)
+
+
 class QLineEdit(FakeSignalWidget):
     signals = ("textChanged(QString)",)
 
@@ -218,7 +226,7 @@ class qMRMLWidget(FakeSignalWidget):  # noqa: N801
         self.scene = scene
 
 
-WIDGET_CLASSES = {cls.__name__: cls for cls in (QPushButton, QSpinBox, QLabel, QLineEdit, ctkPathLineEdit,
+WIDGET_CLASSES = {cls.__name__: cls for cls in (QPushButton, QSpinBox, QLabel, QCheckBox, QLineEdit, ctkPathLineEdit,
                                                 ctkCollapsibleButton, qMRMLNodeComboBox, qMRMLWidget)}
 
 
@@ -1103,8 +1111,9 @@ REMOVED_STDLIB = {"distutils", "imp", "asynchat", "asyncore", "smtpd", "aifc", "
                   "sunau", "telnetlib", "uu", "xdrlib", "lib2to3"}
 #: Provided by 3D Slicer itself (its Python packages and modules).
 SLICER_PROVIDED = {"slicer", "qt", "ctk", "vtk", "vtkmodules", "numpy", "SimpleITK", "sitkUtils"}
-#: Imported only behind a fallback (EMRegModule/io/fast_read.py: without isal SimpleITK reads the CT).
-OPTIONAL_WITH_FALLBACK = {"isal"}
+#: Outside packages the module's code reaches but does without: isal (zlib instead), franky (the robot's driver,
+#: the optional extra robot: the panel's Go refuses with one line naming "pip install 'emreg[robot]'").
+OPTIONAL_WITH_FALLBACK = {"isal", "franky"}
 
 
 def _module_file(name: str) -> Path | None:
