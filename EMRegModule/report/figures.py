@@ -561,8 +561,11 @@ def render_robot_go(data: ReportData) -> list[Figure]:
 
 
 def _has_robot_go(data: ReportData) -> bool:
+    """``robot_go.json`` holds measurements, each with its step and errors (a file that does not is not drawn)."""
     document = data.inputs.folder.robot_go
-    return document is not None and bool(document.get("measurements"))
+    steps = document.get("measurements") if document is not None else None
+    return bool(steps) and isinstance(steps, list) and all(
+        isinstance(m, dict) and {"step", "tip_mm", "exit_mm"} <= set(m) for m in steps)
 
 
 # --- the registry ---------------------------------------------------------------------------------
