@@ -40,7 +40,7 @@ def test_a_command_puts_the_callers_signal_handlers_back(tmp_path, capsys, sigin
 
 def test_a_command_interrupted_puts_the_callers_signal_handlers_back(tmp_path, capsys, monkeypatch):
     """SIGTERM inside a command ends it as interrupted (143); the caller's own handler is back afterwards."""
-    from EMRegModule.cli.main import run as run_command
+    from EMRegModule.cli import run as run_command
 
     def terminated(args):
         signal.raise_signal(signal.SIGTERM)
