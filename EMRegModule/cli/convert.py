@@ -7,14 +7,13 @@ import argparse
 from pathlib import Path
 
 from ..errors import EMRegError
-from .args import AddCommand, add_sensor_options, recording_ports, settings_of, warn
+from ..io.recording import read_recording, write_recording
+from ..io.sequence_metafile import is_sequence_file, read_sequence_frames, recording_from_frames
+from ..io.tracking_csv import read_tracking_csv
+from .args import recording_ports, settings_of, warn
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
-    from ..io.recording import write_recording
-    from ..io.sequence_metafile import is_sequence_file, read_sequence_frames, recording_from_frames
-    from ..io.tracking_csv import read_tracking_csv
-
     settings = settings_of(args)
     sensors = settings.sensors
     reference, probe = recording_ports(args, settings)
@@ -39,8 +38,6 @@ def cmd_convert(args: argparse.Namespace) -> int:
         recording = recording_from_frames(frames, ports)
         others = {n: p for n, p in ports.items() if n not in names.values()}
     elif source.is_dir():  # 3D Slicer's recording: one sequence file per transform, matched by timestamp
-        from ..io.recording import read_recording
-
         recording, others = read_recording(source, settings, reference, probe), {}
     else:
         recording, others = read_tracking_csv(source), {}
@@ -68,13 +65,3 @@ def _check_convert_ports(recording, reference: int, probe: int, names: dict[str,
         raise EMRegError(f"{recording.source}: no samples on port {port}, the {role} sensor written as "
                          f"{name}Transform (ports present: {present}); name the ports with --reference-sensor / "
                          "--probe-sensor (or --settings case.toml)")
-
-
-def add_parsers(add: AddCommand) -> None:
-    """The subcommands of this module (``add``: :data:`~EMRegModule.cli.args.AddCommand`)."""
-    p = add("convert", cmd_convert, "convert a tracking recording between CSV and a PLUS sequence metafile "
-            "(.seq.mha, .mha, .seq.nrrd)")
-    p.add_argument("input", metavar="IN")
-    p.add_argument("output", metavar="OUT")
-    p.add_argument("--quaternion", action="store_true", help="write CSV orientations as qw,qx,qy,qz")
-    add_sensor_options(p)

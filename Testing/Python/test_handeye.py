@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 
 from EMRegModule.cli.main import main
-from EMRegModule.cli.robot_live import read_target
 from EMRegModule.core.handeye import motion_spread, solve_ax_yb
 from EMRegModule.io.itk_transform import read_slicer_frame_transform
 from EMRegModule.io.tum import read_tum, write_tum
+from EMRegModule.pipeline.robot import read_target
 
 sys.path.insert(0, str(Path(__file__).parent))
 from handeye_sequences import (  # noqa: E402
