@@ -40,13 +40,13 @@ def test_a_command_puts_the_callers_signal_handlers_back(tmp_path, capsys, sigin
 
 def test_a_command_interrupted_puts_the_callers_signal_handlers_back(tmp_path, capsys, monkeypatch):
     """SIGTERM inside a command ends it as interrupted (143); the caller's own handler is back afterwards."""
-    from EMRegModule.cli.main import run as run_command
+    from EMRegModule.cli import run as run_command
 
     def terminated(args):
         signal.raise_signal(signal.SIGTERM)
         raise AssertionError("the command's SIGTERM handler did not act")
 
-    monkeypatch.setattr(run_command, "cmd_run", terminated)  # the parser is built by main, after this
+    monkeypatch.setattr(run_command, "cmd_run", terminated)  # the handler is looked up when the command runs
     signal.signal(signal.SIGTERM, _sigterm_handler)
     before = _handlers()
     assert main(["run", str(tmp_path), "--out", str(tmp_path / "out")]) == 143
