@@ -14,6 +14,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TextIO
 
 from ..errors import EMRegError
 from .guide_setup import check_tool_on_port
@@ -40,7 +41,7 @@ class LiveOptions:
             print(text, file=sys.stderr, flush=True)
 
     @property
-    def log(self):
+    def log(self) -> TextIO | None:
         """Where the servers and the watchdog write their lines (None when quiet)."""
         return None if self.quiet else sys.stderr
 

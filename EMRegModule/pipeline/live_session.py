@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.checkpoints import TrustMonitor, markers_beside, pinholes_from_detection, write_checkpoints
+from ..core.detection.result import DetectionResult
 from ..core.guidance import GuidanceReport, predicted_at, shaft_in_tip
 from ..core.plan import check_plan_in_image, read_plan
 from ..core.registration import RegistrationResult, read_registration
@@ -67,7 +68,7 @@ class LiveNavigation:
     probe: int
     tool: ToolCalibration | None
     guide: LiveGuide | None
-    markers: object | None
+    markers: DetectionResult | None
     markers_note: str | None
 
     @property
@@ -125,8 +126,8 @@ def _live_tool(tool_file: str | None, settings: Settings) -> ToolCalibration | N
     return tool
 
 
-def _live_guide(plan_file: str | None, settings: Settings, registration: RegistrationResult, markers,
-                tool: ToolCalibration | None) -> LiveGuide | None:
+def _live_guide(plan_file: str | None, settings: Settings, registration: RegistrationResult,
+                markers: DetectionResult | None, tool: ToolCalibration | None) -> LiveGuide | None:
     name = plan_file or settings.navigation.plan
     if not name:
         return None
