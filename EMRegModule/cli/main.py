@@ -25,13 +25,15 @@ from . import options
 
 
 class Command(NamedTuple):
-    handler: str  # "module:function", imported when the command runs
+    """An ``emreg`` command: its handler (``"module:function"``, imported when the command runs), its help line and
+    the declaration of its arguments."""
+
+    handler: str
     help: str
     arguments: Callable[[argparse.ArgumentParser], None]
 
 
 _CLI = "EMRegModule.cli."
-
 
 #: Every ``emreg`` command, in the order of ``--help``: its handler as ``"module:function"``, imported only when the
 #: command runs (the one import a command makes on demand: ``emreg --help`` and the parser of every command load
