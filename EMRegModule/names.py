@@ -79,3 +79,13 @@ DEFAULT_PROBE_PORT = 2
 DEFAULT_IGTL_PORT = 18944
 #: The trakSTAR's line speed when nothing says otherwise (:data:`EMRegModule.devices.trakstar.protocol.DEFAULT_BAUD`).
 DEFAULT_TRAKSTAR_BAUD = 115200
+
+# --- live commands ---------------------------------------------------------------------------------
+#: Default time (s) live navigation keeps trying to reopen a lost tracker before it gives up (``--reconnect``).
+DEFAULT_RECONNECT_S = 30.0
+#: Share of the expected samples (the frames a replay sent; else the measurement cycles the tracker's rate gives
+#: over the recording's time) that the reference and the probe must each reach for ``emreg record`` to succeed.
+#: A clean link delivers all of them (measured: 100 %); under the link alarm nothing is recorded, and a
+#: recording missing more than half its samples is more gap than recording (dwells cut short, motion unseen):
+#: exit 3, never a success.
+MIN_RECORDED_SHARE = 0.5

@@ -528,6 +528,14 @@ class Settings:
         """Whether the settings file itself gives ``[table] key`` (a default is not a user's choice)."""
         return f"{table}.{key}" in self.given
 
+    def file_path(self, name: str) -> Path:
+        """A file the settings name (``[tool] calibration``, ``[navigation] plan``): relative to the settings file's
+        folder, unless absolute or read from no file."""
+        path = Path(name)
+        if not path.is_absolute() and self.source:
+            path = Path(self.source).parent / path
+        return path
+
     def with_sensors(self, reference: int | None = None, probe: int | None = None) -> Settings:
         """These settings with the ports overridden (command line); checked like ``[sensors]``."""
         values = {k: v for k, v in (("reference", reference), ("probe", probe)) if v is not None}

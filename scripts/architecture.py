@@ -32,8 +32,8 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("io", ("io",)),
     ("devices", ("devices",)),
     ("products", ("rendering", "report", "slicer_export", "simulation")),
-    ("pipeline", ("pipeline", "live")),
-    ("faces", ("cli", "__main__", "slicer", "studies")),
+    ("pipeline", ("pipeline", "live", "studies")),
+    ("faces", ("cli", "__main__", "slicer")),
 )
 #: The front ends (they parse, call the pipeline and print) and the only layers they may import from.
 FRONT_ENDS = ("cli", "slicer", "__main__")

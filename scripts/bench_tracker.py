@@ -110,8 +110,8 @@ def match_emits(poses: list[np.ndarray], emitted: list[tuple[int, np.ndarray]]) 
 
 def _trust():
     """The checkpoint and reference-jump watch live ``emreg navigate`` runs beside every pose (28 pinholes of a
-    full frame, 350 x 350 mm, around the scene's probe), as :func:`EMRegModule.cli.live.run_live_navigate`
-    builds it."""
+    full frame, 350 x 350 mm, around the scene's probe), as
+    :meth:`EMRegModule.pipeline.live_session.LiveNavigation.trust_monitor` builds it."""
     from EMRegModule.core.checkpoints import Pinholes, TrustMonitor
 
     rng = np.random.default_rng(0)
@@ -122,7 +122,7 @@ def _trust():
 
 def _guided() -> dict:
     """A needle (tip 118 mm along the sensor's +x) and a plan of 80 mm ending 40 mm from the scene's reference, as
-    live ``emreg navigate --tool --plan`` builds them (:mod:`EMRegModule.cli.live_guidance`)."""
+    live ``emreg navigate --tool --plan`` builds them (:mod:`EMRegModule.pipeline.live_session`)."""
     from EMRegModule.core.guidance import Plan, predicted_at_target, shaft_in_tip
     from EMRegModule.live.guide import LiveGuide
 

@@ -8,21 +8,21 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from ..errors import EMRegError
+from ..io.output_folder import OutputFolder, outputs_from, refuse_out_over_inputs
+from ..pipeline.controller import EMRegController
 from ..progress import Progress
+from ..settings import Settings, load_settings, sensor_ports_given, with_series
 
-if TYPE_CHECKING:
-    from ..core.registration import RegistrationResult
-    from ..io.output_folder import OutputFolder
-    from ..pipeline.controller import EMRegController
-    from ..settings import Settings
-
-#: ``add(name, run, help)``: a subcommand of ``emreg`` with the common options (``--quiet``, ``--settings``).
-AddCommand = Callable[[str, Callable[[argparse.Namespace], int], str], argparse.ArgumentParser]
+# the parser declarations still in cli/run.py and cli/stages.py take these from here (:mod:`.options` declares them)
+from .options import AddCommand as AddCommand
+from .options import add_plan_option as add_plan_option
+from .options import add_sensor_options as add_sensor_options
+from .options import add_series_option as add_series_option
+from .options import add_tool_option as add_tool_option
 
 
 def progress_of(args: argparse.Namespace) -> Progress:
@@ -31,8 +31,6 @@ def progress_of(args: argparse.Namespace) -> Progress:
 
 def settings_of(args: argparse.Namespace, case_dir: Path | None = None) -> Settings:
     """``--settings FILE``, else the case folder's ``case.toml``, else the defaults (typed, checked)."""
-    from ..settings import load_settings
-
     if getattr(args, "settings", None):
         return load_settings(args.settings, required=True)
     if case_dir is not None:
@@ -77,8 +75,6 @@ def out_file(out: str | Path) -> Path:
 
 def with_series_of(settings: Settings, args: argparse.Namespace) -> Settings:
     """``--series UID|NUMBER`` overrides ``[ct] series`` of case.toml."""
-    from ..settings import with_series
-
     return with_series(settings, getattr(args, "series", None))
 
 
@@ -92,8 +88,6 @@ def output_folder(args: argparse.Namespace, stage: str, inputs: Sequence[Path],
                    case_dir: Path | None = None) -> OutputFolder:
     """OUT for a per-stage command: refused when it could overwrite an input; the outputs of ``stage`` and
     of the stages made from it (stale once this stage has a new result) moved to ``OUT/previous/``."""
-    from ..io.output_folder import OutputFolder, outputs_from, refuse_out_over_inputs
-
     refuse_out_over_inputs(args.out, inputs, outputs_from(stage), case_dir)
     folder = OutputFolder(args.out, f"emreg {args.command}")
     folder.start_stage(stage)
@@ -103,16 +97,12 @@ def output_folder(args: argparse.Namespace, stage: str, inputs: Sequence[Path],
 def ports_given(args: argparse.Namespace, settings: Settings) -> tuple[int | None, int | None]:
     """The ports the user chose (reference, probe): ``--reference-sensor`` / ``--probe-sensor``, else those
     ``case.toml [sensors]`` names; None where neither gives one (a registration's own ports then apply)."""
-    from ..settings import sensor_ports_given
-
     in_file = sensor_ports_given(settings)
     flags = (getattr(args, "reference_sensor", None), getattr(args, "probe_sensor", None))
     return tuple(f if f is not None else t for f, t in zip(flags, in_file, strict=True))  # type: ignore[return-value]
 
 
 def controller_of(args: argparse.Namespace, settings: Settings) -> EMRegController:
-    from ..pipeline.controller import EMRegController
-
     controller = EMRegController(settings, progress_of(args), f"emreg {args.command}")
     controller.set_sensors(getattr(args, "reference_sensor", None), getattr(args, "probe_sensor", None))
     return controller
@@ -144,50 +134,15 @@ def use_plan(args: argparse.Namespace, controller: EMRegController) -> None:
         controller.planner.load_from_settings()
 
 
-def add_plan_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--plan", default=None, metavar="PLAN.mrk.json",
-                        help="a planned trajectory, for guidance numbers: a Slicer markups Line (Entry, Target), "
-                             "points labelled Entry and Target, or one target point; LPS or RAS as the file "
-                             "declares (default: [navigation] plan)")
-
-
-def add_sensor_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--reference-sensor", type=int, default=None, metavar="PORT",
-                        help="port of the reference sensor (default 1 or case.toml [sensors])")
-    parser.add_argument("--probe-sensor", type=int, default=None, metavar="PORT",
-                        help="port of the probe sensor (default 2 or case.toml [sensors])")
-
-
-def add_tool_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--tool", default=None, metavar="FILE",
-                        help="a tracked tool's tip: tool_calibration.json, an ITK/Slicer TipToProbe transform "
-                             "(.h5/.tfm/.txt) or a PLUS device-set .xml (default: [tool] calibration, else the "
-                             "pinhole probe)")
-
-
-def add_series_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--series", default=None, metavar="UID|NUMBER",
-                        help="the DICOM series to use (Series Instance UID or series number; default: the CT "
-                             "volume best for detection)")
-
-
 def recording_ports(args: argparse.Namespace, settings: Settings) -> tuple[int, int]:
     """The (reference, probe) ports a recording is written or read with (``emreg convert``): the flags, else
     ``[sensors]`` (any port a sequence file names, not only the tracker's 1..4)."""
     return (args.reference_sensor or settings.sensors.reference, args.probe_sensor or settings.sensors.probe)
 
 
-def sensor_ports(args: argparse.Namespace, registration: RegistrationResult | None = None) -> tuple[int, int]:
-    """The (reference, probe) ports of a live command: the flags, else the settings file's ``[sensors]``, else
-    (with a registration) the ports of its calibration, else the defaults (names.DEFAULT_*_PORT); a given port
-    that differs from the registration's is used with a warning on stderr."""
-    from ..settings import choose_ports, load_settings  # here: `emreg --help` imports this module
-
+def sensor_ports(args: argparse.Namespace) -> tuple[int, int]:
+    """The (reference, probe) ports of a live command without a registration (``emreg record``, ``serve``): the
+    flags, else the settings file's ``[sensors]``, else the defaults (names.DEFAULT_*_PORT)."""
     settings = load_settings(getattr(args, "settings", None), required=True)
-    chosen = (args.reference_sensor, args.probe_sensor)
-    if registration is not None:
-        chosen, warnings = choose_ports(ports_given(args, settings),
-                                        (registration.reference_sensor, registration.probe_sensor))
-        warn("navigate", warnings)
-    sensors = settings.with_sensors(*chosen).sensors
+    sensors = settings.with_sensors(args.reference_sensor, args.probe_sensor).sensors
     return sensors.reference, sensors.probe

@@ -1,4 +1,5 @@
-"""``emreg convert``: a tracking recording between CSV and a PLUS sequence metafile.
+"""``emreg convert``: a tracking recording between CSV and a PLUS sequence metafile
+(:mod:`EMRegModule.pipeline.convert` does the work).
 """
 
 from __future__ import annotations
@@ -6,75 +7,17 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..errors import EMRegError
-from .args import AddCommand, add_sensor_options, recording_ports, settings_of, warn
+from ..pipeline.convert import convert_recording
+from .args import recording_ports, settings_of, warn
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
-    from ..io.recording import write_recording
-    from ..io.sequence_metafile import is_sequence_file, read_sequence_frames, recording_from_frames
-    from ..io.tracking_csv import read_tracking_csv
-
     settings = settings_of(args)
-    sensors = settings.sensors
     reference, probe = recording_ports(args, settings)
-    names = {"reference_transform": sensors.reference_transform or "ReferenceToTracker",
-             "probe_transform": sensors.probe_transform or "ProbeToTracker"}
-    source, target = Path(args.input), Path(args.output)
-    if source.resolve() == target.resolve():
-        raise EMRegError(f"convert: {target} is the input file; give another output name")
-    if is_sequence_file(source):
-        frames = read_sequence_frames(source)
-        ports = {names["reference_transform"]: reference, names["probe_transform"]: probe}
-        missing = [n for n in ports if n not in frames.matrices]
-        if missing:
-            raise EMRegError(f"{source}: no {' or '.join(n + 'Transform' for n in missing)} in the file; it holds "
-                             f"{', '.join(n + 'Transform' for n in frames.names)}; name them with [sensors] "
-                             "reference_transform / probe_transform (--settings case.toml)")
-        free = (p for p in range(1, 100) if p not in ports.values())
-        for name in frames.names:  # every other transform of the file keeps its own port
-            if name not in ports:
-                port = name[len("Sensor"):-len("ToTracker")] if name.startswith("Sensor") else ""
-                ports[name] = int(port) if port.isdigit() and int(port) not in ports.values() else next(free)
-        recording = recording_from_frames(frames, ports)
-        others = {n: p for n, p in ports.items() if n not in names.values()}
-    elif source.is_dir():  # 3D Slicer's recording: one sequence file per transform, matched by timestamp
-        from ..io.recording import read_recording
-
-        recording, others = read_recording(source, settings, reference, probe), {}
-    else:
-        recording, others = read_tracking_csv(source), {}
-        if is_sequence_file(target):
-            _check_convert_ports(recording, reference, probe, names)
-    write_recording(recording, target, settings, reference, probe,
-                    orientation="quaternion" if args.quaternion else None)
-    warn("convert", recording.warnings)
-    extra = ("; other transforms as sensor ports " + ", ".join(f"{n} = {p}" for n, p in others.items())
-             if others else "")
-    print(f"{len(recording)} sensor samples converted -> {target}{extra}")
+    target = Path(args.output)
+    converted = convert_recording(Path(args.input), target, settings, reference, probe, args.quaternion)
+    warn("convert", converted.recording.warnings)
+    extra = ("; other transforms as sensor ports " + ", ".join(f"{n} = {p}" for n, p in converted.others.items())
+             if converted.others else "")
+    print(f"{len(converted.recording)} sensor samples converted -> {target}{extra}")
     return 0
-
-
-def _check_convert_ports(recording, reference: int, probe: int, names: dict[str, str]) -> None:
-    """A sequence file names each sensor by its role: refuse (exit 2) a recording in which a role's port is
-    absent while other ports are present, which would write another sensor under a role's name (a probe
-    on port 1 as ``ReferenceToTracker``) and leave the role's transform INVALID in every frame."""
-    present = recording.sensors
-    roles = {"reference": (reference, names["reference_transform"]), "probe": (probe, names["probe_transform"])}
-    missing = [(role, port, name) for role, (port, name) in roles.items() if port not in present]
-    strangers = [p for p in present if p not in (reference, probe)]
-    if missing and strangers:
-        role, port, name = missing[0]
-        raise EMRegError(f"{recording.source}: no samples on port {port}, the {role} sensor written as "
-                         f"{name}Transform (ports present: {present}); name the ports with --reference-sensor / "
-                         "--probe-sensor (or --settings case.toml)")
-
-
-def add_parsers(add: AddCommand) -> None:
-    """The subcommands of this module (``add``: :data:`~EMRegModule.cli.args.AddCommand`)."""
-    p = add("convert", cmd_convert, "convert a tracking recording between CSV and a PLUS sequence metafile "
-            "(.seq.mha, .mha, .seq.nrrd)")
-    p.add_argument("input", metavar="IN")
-    p.add_argument("output", metavar="OUT")
-    p.add_argument("--quaternion", action="store_true", help="write CSV orientations as qw,qx,qy,qz")
-    add_sensor_options(p)

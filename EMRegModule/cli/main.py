@@ -1,5 +1,6 @@
-"""The ``emreg`` command: the parser wiring, signal handling and :func:`main`; the commands live in
-:mod:`EMRegModule.cli` (one module per family).
+"""The ``emreg`` command: the table of commands, signal handling and :func:`main`; each command's arguments are
+declared in :mod:`.options` and its handler lives in :mod:`EMRegModule.cli` (one module per family), which parses,
+calls the pipeline and prints.
 
 Exit codes (spec): 0 success; 2 bad input or usage (one line naming the file and what is
 wrong); 3 the data do not allow a safe answer. Every output file is written atomically.
@@ -8,13 +9,82 @@ wrong); 3 the data do not allow a safe answer. Every output file is written atom
 from __future__ import annotations
 
 import argparse
+import gc
+import importlib
+import os
 import signal
 import sys
 import threading
 from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 from .. import __version__
 from ..errors import EXIT_BAD_INPUT, EMRegError
+from ..interrupts import interrupted_by, note_interrupt
+from . import options
+
+
+class Command(NamedTuple):
+    """An ``emreg`` command: its handler (``"module:function"``, imported when the command runs), its help line and
+    the declaration of its arguments."""
+
+    handler: str
+    help: str
+    arguments: Callable[[argparse.ArgumentParser], None]
+
+
+_CLI = "EMRegModule.cli."
+
+#: Every ``emreg`` command, in the order of ``--help``: its handler as ``"module:function"``, imported only when the
+#: command runs (the one import a command makes on demand: ``emreg --help`` and the parser of every command load
+#: no command's libraries), its help line, and the declaration of its arguments (:mod:`.options`).
+COMMANDS: dict[str, Command] = {
+    "simulate": Command(_CLI + "study:cmd_simulate",
+                        "write a simulated case folder with its ground truth (truth.json)", options.simulate_arguments),
+    "detect": Command(_CLI + "stages:cmd_detect", "find the markers in a CT: OUT/markers.json and markers.mrk.json",
+                      options.detect_arguments),
+    "calibrate": Command(_CLI + "stages:cmd_calibrate",
+                         "frame calibration from a tracking recording: OUT/frame_calibration.json",
+                         options.calibrate_arguments),
+    "pivot": Command(_CLI + "stages:cmd_pivot",
+                     "pivot calibration of a tool's tip: OUT/tool_calibration.json and TipToProbe.h5",
+                     options.pivot_arguments),
+    "register": Command(_CLI + "stages:cmd_register", "pair, solve the sensor offset, register: OUT/registration.json",
+                        options.register_arguments),
+    "navigate": Command(_CLI + "stages:cmd_navigate", "map probe samples into image space (replay or live)",
+                        options.navigate_arguments),
+    "evaluate": Command(_CLI + "stages:cmd_evaluate", "TRE at targets and the board table: OUT/evaluation.json",
+                        options.evaluate_arguments),
+    "convert": Command(_CLI + "convert:cmd_convert", "convert a tracking recording between CSV and a PLUS sequence "
+                       "metafile (.seq.mha, .mha, .seq.nrrd)", options.convert_arguments),
+    "report": Command(_CLI + "report:cmd_report", "render the verification report: OUT/report.html",
+                      options.report_arguments),
+    "run": Command(_CLI + "run:cmd_run", "run every stage on a case folder", options.run_arguments),
+    "demo": Command(_CLI + "run:cmd_demo", "simulate the built-in sample case and run it", options.demo_arguments),
+    "study": Command(_CLI + "study:cmd_study",
+                     "an accuracy study on simulated data, run on Dask: OUT/NAME.json, .csv, .png",
+                     options.study_arguments),
+    "record": Command(_CLI + "live:run_record",
+                      "record a tracking CSV from a trakSTAR, an OpenIGTLink server or a replay",
+                      options.record_arguments),
+    "sim-tracker": Command(_CLI + "live:run_sim_tracker",
+                           "run a simulated trakSTAR on a pseudo-terminal (RS-232 protocol, fault injection)",
+                           options.sim_tracker_arguments),
+    "serve": Command(_CLI + "live:run_serve",
+                     "publish every tracker sensor over OpenIGTLink (ReferenceToTracker, ProbeToTracker, STATUS)",
+                     options.serve_arguments),
+    "handeye": Command(_CLI + "robot:cmd_handeye", "hand-eye (SensorToFlange) and robot-world (TrackerToBase) "
+                       "calibration with the EM tracker, from a robot's log and a tracker recording on two clocks",
+                       options.handeye_arguments),
+    "robot-target": Command(_CLI + "robot:cmd_robot_target", "the flange pose (FlangeToBase) that puts the needle "
+                            "guide on a trajectory planned in the CT", options.robot_target_arguments),
+    "robot-calibrate": Command(_CLI + "robot_live:cmd_robot_calibrate", "move the robot through calibration poses "
+                               "it plans itself and solve SensorToFlange and TrackerToBase (dry run without "
+                               "--execute)", options.robot_calibrate_arguments),
+    "robot-go": Command(_CLI + "robot_live:cmd_robot_go", "move the needle guide onto the plan and correct it with "
+                        "the EM tracker until it is within tolerance (dry run without --execute)",
+                        options.robot_go_arguments),
+}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -25,40 +95,36 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message}\n")
 
 def build_parser() -> argparse.ArgumentParser:
-    """The ``emreg`` argument parser: each command family adds its own subcommands, in the order of ``--help``."""
-    from . import convert, live, report, robot, robot_live, run, stages, study
-
+    """The ``emreg`` argument parser: a subcommand per entry of :data:`COMMANDS`, each with the common options."""
     parser = _Parser(prog="emreg", description="Automatic patient-to-image registration for EM navigation.")
     parser.add_argument("--version", action="version", version=f"emreg {__version__}")
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--quiet", action="store_true", help="no progress output")
     common.add_argument("--settings", metavar="case.toml", help="settings file (default: the case's case.toml)")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-
-    def add(name: str, func: Callable[[argparse.Namespace], int], help_text: str) -> argparse.ArgumentParser:
-        p = sub.add_parser(name, parents=[common], help=help_text, description=help_text)
-        p.set_defaults(func=func)
-        return p
-
-    for add_parsers in (study.add_simulate_parser, stages.add_parsers, convert.add_parsers, report.add_parsers,
-                        run.add_parsers, study.add_parsers, live.add_parsers, robot.add_parsers,
-                        robot_live.add_parsers):
-        add_parsers(add)
+    for name, command in COMMANDS.items():
+        p = sub.add_parser(name, parents=[common], help=command.help, description=command.help)
+        p.set_defaults(handler=command.handler)
+        command.arguments(p)
     return parser
+
+
+def handler_of(args: argparse.Namespace) -> Callable[[argparse.Namespace], int]:
+    """The function that runs the parsed command (``args.handler``, ``"module:function"``), its module imported now:
+    the lazy command table is the one place the command line imports inside a function
+    (``scripts/architecture.py``'s ``DEFERRED_IMPORTS`` lists the other, optional, libraries)."""
+    module, function = args.handler.split(":")
+    return getattr(importlib.import_module(module), function)
 
 
 class Terminated(KeyboardInterrupt):
     """SIGTERM, raised in the main thread like Ctrl-C so that every ``finally`` and atomic write cleans up."""
 
 def _on_sigterm(signum: int, frame: object) -> None:
-    from ..interrupts import note_interrupt
-
     note_interrupt("SIGTERM")
     raise Terminated("SIGTERM")
 
 def _on_sigint(signum: int, frame: object) -> None:
-    from ..interrupts import note_interrupt
-
     note_interrupt("SIGINT")
     raise KeyboardInterrupt
 
@@ -88,12 +154,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _command(args: argparse.Namespace) -> int:
     """Run the parsed command; its errors, interrupts and file-system failures end as one line and an exit code."""
-    from ..interrupts import interrupted_by, note_interrupt
-
     note_interrupt(None)
     try:
         try:
-            return int(args.func(args) or 0)
+            return int(handler_of(args)(args) or 0)
         except (EMRegError, KeyboardInterrupt, OSError):
             raise
         except Exception:  # a signal's exception lost in a VTK callback (the filter then fails): the interrupt
@@ -125,9 +189,6 @@ def run() -> int:
     only to free memory the process is about to give back. Not in :func:`main`, which callers in a longer-lived
     process (tests, the Slicer module) run too.
     """
-    import gc
-    import os
-
     # OpenBLAS (numpy's and scipy's) starts a worker thread per core that busy-waits after each call it splits.
     # EMReg's linear algebra is on tiny matrices (3 x 3 to a few thousand x 6) beside threads of its own that
     # already use every core, so those workers only spin: 0.07 s of CPU per `emreg detect` on 2 cores, the same

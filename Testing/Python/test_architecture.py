@@ -44,6 +44,12 @@ def test_no_private_name_is_imported_from_another_module(shape):
     assert shape.private_imports == []
 
 
+def test_front_ends_reach_only_the_pipeline_io_devices_and_base(shape):
+    """The command line and the Slicer module parse, call the pipeline (``pipeline/``, ``live/``, ``studies/``) and
+    print: no algorithm (``core``) or product (report, rendering, scene bundle, simulation) is called from them."""
+    assert shape.front_end_reach == []
+
+
 def test_the_survey_sees_a_planted_circle_and_an_upward_import(tmp_path):
     """The checks can fail: a copy of two modules that import each other, one of them from above."""
     package = tmp_path / "EMRegModule"
@@ -57,4 +63,5 @@ def test_the_survey_sees_a_planted_circle_and_an_upward_import(tmp_path):
     assert found.circles == [["EMRegModule.cli", "EMRegModule.core.transforms"]]
     assert found.upward == [("EMRegModule.core.transforms", "EMRegModule.cli")]
     assert found.private_imports == [("EMRegModule.cli", "EMRegModule.core.transforms", "_helper")]
+    assert found.front_end_reach == [("EMRegModule.cli", "EMRegModule.core.transforms")]
     assert [(name, function) for _, name, function in found.long_functions] == [("EMRegModule.cli", "main")]

@@ -553,16 +553,13 @@ def test_cli_record_and_live_navigate_from_the_aurora(tmp_path, replay):
 
 
 def test_quality_limit_defaults_to_the_sources_scale():
-    import argparse
-
-    from EMRegModule.cli.live import _max_quality
     from EMRegModule.devices.aurora.source import AuroraSource
+    from EMRegModule.live.loop import max_quality_limit
 
-    aurora = argparse.Namespace(max_quality=None, source_max_quality=AuroraSource.default_max_quality)
-    assert _max_quality(aurora) == 1.0  # the Aurora's RMS error, mm
-    assert _max_quality(argparse.Namespace(max_quality=None, source_max_quality=None)) == 20.0  # trakSTAR METAL
-    assert _max_quality(argparse.Namespace(max_quality=-1, source_max_quality=1.0)) is None
-    assert _max_quality(argparse.Namespace(max_quality=0.5, source_max_quality=1.0)) == 0.5
+    assert max_quality_limit(None, AuroraSource.default_max_quality) == 1.0  # the Aurora's RMS error, mm
+    assert max_quality_limit(None, None) == 20.0  # trakSTAR METAL
+    assert max_quality_limit(-1, 1.0) is None
+    assert max_quality_limit(0.5, 1.0) == 0.5
 
 
 def test_live_navigate_from_the_aurora_refuses_swapped_ports(tmp_path, replay):

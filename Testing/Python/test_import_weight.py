@@ -40,3 +40,20 @@ def test_core_modules_load_no_stage_specific_library():
     loaded = json.loads(result.stdout.strip().splitlines()[-1])
     assert set(loaded) == set(CORE)
     assert {name: found for name, found in loaded.items() if found} == {}
+
+
+def test_the_parser_loads_no_command():
+    """``emreg --help`` and the parsing of every command build the whole parser: it loads the argument declarations
+    and the base modules only (no numpy, no pipeline, device or algorithm); a command's modules are imported when it
+    runs (``cli/main.py``'s ``COMMANDS``)."""
+    script = (
+        "import json, sys\n"
+        "from EMRegModule.cli.main import build_parser\n"
+        "build_parser().parse_args(['robot-go', '--robot', 'franka://h', '--tracker', 'igtl://h', '--target', 't'])\n"
+        "print(json.dumps(sorted(n for n in sys.modules if n.startswith('EMRegModule') or n == 'numpy')))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    loaded = json.loads(result.stdout.strip().splitlines()[-1])
+    assert loaded == ["EMRegModule", "EMRegModule.cli", "EMRegModule.cli.main", "EMRegModule.cli.options",
+                      "EMRegModule.errors", "EMRegModule.interrupts", "EMRegModule.names"]

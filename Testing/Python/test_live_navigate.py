@@ -44,8 +44,11 @@ def _sample(sensor: int, frame: int, status: str = "ok", quality: float = 0.0, p
 def _igtl_server_ports(monkeypatch) -> queue.Queue:
     """The ports of the OpenIGTLink servers made from now on, in order. A command run in this process with
     ``--igtl-port 0`` (any free port, chosen as its server binds) and ``--quiet`` says its port nowhere; a port
-    found free beforehand could be taken in between by another process (another pytest-xdist worker's test)."""
+    found free beforehand could be taken in between by another process (another pytest-xdist worker's test). The
+    server is replaced where the live loops make it (``emreg serve``, live ``emreg navigate``)."""
     from EMRegModule.devices import igtl_server
+    from EMRegModule.live import serve
+    from EMRegModule.pipeline import live_session
 
     ports: queue.Queue = queue.Queue()
 
@@ -54,7 +57,8 @@ def _igtl_server_ports(monkeypatch) -> queue.Queue:
             super().__init__(*args, **kwargs)
             ports.put(self.port)
 
-    monkeypatch.setattr(igtl_server, "IGTLServer", PortSayingServer)
+    for module in (serve, live_session):
+        monkeypatch.setattr(module, "IGTLServer", PortSayingServer)
     return ports
 
 
@@ -188,7 +192,7 @@ def test_replay_published_over_tcp_matches_offline_navigation(tmp_path, monkeypa
     reference_to_image = _reference_to_image()
     registration = _write_registration(tmp_path / "registration.json", reference_to_image)
     offline = navigate_recording(read_tracking_csv(csv), reference_to_image, 1, 2)
-    assert cli.main(["navigate", "--registration", str(registration), "--source", f"replay:{csv}",
+    assert cli(["navigate", "--registration", str(registration), "--source", f"replay:{csv}",
                      "--out", str(tmp_path / "offline")]) == 0
     ports = _igtl_server_ports(monkeypatch)
     received = []
@@ -202,7 +206,7 @@ def test_replay_published_over_tcp_matches_offline_navigation(tmp_path, monkeypa
     argv = ["navigate", "--registration", str(registration), "--source", f"replay:{csv}", "--igtl-port", "0",
             "--out", str(tmp_path / "live"), "--quiet"]
     result = {}
-    runner = threading.Thread(target=lambda: result.setdefault("code", cli.main(argv)))
+    runner = threading.Thread(target=lambda: result.setdefault("code", cli(argv)))
     client = None
     try:
         runner.start()
@@ -231,7 +235,7 @@ def test_replay_published_over_tcp_matches_offline_navigation(tmp_path, monkeypa
 def test_record_from_the_simulator(tmp_path):
     out = tmp_path / "rec.csv"
     with TrackerSimulator(keep_truth=True, seed=3) as sim:
-        assert cli.main(["record", "--device", f"trakstar://{sim.path}?rate=100", "--out", str(out),
+        assert cli(["record", "--device", f"trakstar://{sim.path}?rate=100", "--out", str(out),
                          "--max-samples", "200", "--quiet"]) == 0
         truth = list(sim.truth)
     rec = read_tracking_csv(out)
@@ -405,7 +409,7 @@ def test_cli_serve_publishes_tracker_transforms_as_measured(tmp_path, monkeypatc
     ports = _igtl_server_ports(monkeypatch)
     argv = ["serve", "--device", f"replay:{csv}", "--igtl-port", "0", "--max-samples", "110", "--quiet"]
     result = {}
-    runner = threading.Thread(target=lambda: result.setdefault("code", cli.main(argv)))
+    runner = threading.Thread(target=lambda: result.setdefault("code", cli(argv)))
     got = {}
     client = None
     try:

@@ -46,7 +46,7 @@ def test_a_command_interrupted_puts_the_callers_signal_handlers_back(tmp_path, c
         signal.raise_signal(signal.SIGTERM)
         raise AssertionError("the command's SIGTERM handler did not act")
 
-    monkeypatch.setattr(run_command, "cmd_run", terminated)  # the parser is built by main, after this
+    monkeypatch.setattr(run_command, "cmd_run", terminated)  # the handler is looked up when the command runs
     signal.signal(signal.SIGTERM, _sigterm_handler)
     before = _handlers()
     assert main(["run", str(tmp_path), "--out", str(tmp_path / "out")]) == 143
