@@ -73,8 +73,9 @@ def load_registration(path: str, settings_path: str | None = None) -> Registrati
     The file is checked as every consumer checks it (finite, rigid, FRE within ``max_fre_mm`` of
     the settings file when given, and belonging to the run recorded beside it: no stale registration).
     """
-    from ..core.registration import max_fre_from_settings, read_registration
+    from ..core.registration import max_fre_from_settings
     from ..io.provenance import check_belongs
+    from ..io.registration_files import read_registration
     from ..settings import load_settings
 
     settings = load_settings(settings_path, required=True)
@@ -268,10 +269,10 @@ def run_sim_tracker(args: argparse.Namespace) -> int:
 
 def _flags(args: argparse.Namespace) -> tuple:
     """(distortion model, measurement volume) of ``--distortion`` / ``--volume`` (None each when not given),
-    checked before the simulator opens its pty (:mod:`EMRegModule.simulation.tracker_flags`)."""
+    checked before the simulator opens its pty (:mod:`EMRegModule.devices.simulator.tracker_flags`)."""
     if args.distortion is None and args.volume is None:
         return None, None
-    from ..simulation.tracker_flags import parse_distortion, parse_volume
+    from ..devices.simulator.tracker_flags import parse_distortion, parse_volume
 
     if args.volume is not None and args.model != "aurora":
         raise EMRegError("--volume: only the aurora simulator reports a tool out of its volume")
@@ -596,7 +597,7 @@ def run_live_navigate(args: argparse.Namespace) -> int:
         if writer is not None:
             writer.close()
         if args.out:
-            from ..core.checkpoints import write_checkpoints
+            from ..io.checkpoints_json import write_checkpoints
 
             write_checkpoints(trust.report, Path(args.out) / CHECKPOINTS_JSON)
             if guide is not None:
@@ -614,7 +615,8 @@ def _trust_monitor(args: argparse.Namespace, registration: RegistrationResult, p
     pinholes
     of the markers beside ``--registration`` (``[navigation]`` of ``--settings``); without them, jumps only. A tool
     on the probe port (``pinhole_probe`` False) never rests in a pinhole: reference jumps only."""
-    from ..core.checkpoints import TrustMonitor, markers_beside, pinholes_from_detection
+    from ..core.checkpoints import TrustMonitor, pinholes_from_detection
+    from ..io.markers_json import markers_beside
     from ..settings import load_settings
 
     markers, note = markers_beside(args.registration)

@@ -41,7 +41,7 @@ def live_tool_and_guide(args: argparse.Namespace, registration: RegistrationResu
         raise EMRegError("navigate: --tool auto solves the tip from a calibration recording; give the "
                          "tool_calibration.json that emreg calibrate or emreg run wrote with it instead")
     if tool_file:
-        from ..core.tool import read_tool
+        from ..io.tool_files import read_tool
 
         tool = read_tool(tool_file if getattr(args, "tool", None) else _settings_path(settings, tool_file),
                          settings.tool.name)
@@ -50,9 +50,10 @@ def live_tool_and_guide(args: argparse.Namespace, registration: RegistrationResu
     plan_file = getattr(args, "plan", None) or settings.navigation.plan
     if not plan_file:
         return tool, None
-    from ..core.checkpoints import markers_beside
     from ..core.guidance import predicted_at, shaft_in_tip
-    from ..core.plan import check_plan_in_image, read_plan
+    from ..core.plan import check_plan_in_image
+    from ..io.markers_json import markers_beside
+    from ..io.plan_markups import read_plan
     from ..live.guide import LiveGuide
     from ..pipeline.controller import error_model
 

@@ -135,8 +135,9 @@ def _plan_points(path: str) -> tuple[np.ndarray, np.ndarray]:
 
 def _needle_guide(path: str) -> tuple[np.ndarray, float]:
     """``NeedleGuideToSensor`` (4x4, mm) and its calibration's RMS error (mm, 0 when the file gives none)."""
-    from ..core.tool import check_tip_to_probe, read_tool
+    from ..core.tool import check_tip_to_probe
     from ..io.handeye_inputs import read_device_set_transform
+    from ..io.tool_files import read_tool
 
     if Path(path).suffix.lower() == ".xml":
         matrix = read_device_set_transform(path, "NeedleGuide", "Sensor")
@@ -218,9 +219,9 @@ def _reference_now(args: argparse.Namespace, settings) -> np.ndarray:
 
 
 def cmd_robot_target(args: argparse.Namespace) -> int:
-    from ..core.registration import read_registration
     from ..core.robot_target import robot_target
     from ..io.atomic import atomic_write_json
+    from ..io.registration_files import read_registration
 
     settings = settings_of(args)
     out = out_folder(args.out)

@@ -25,16 +25,13 @@ dwell in which the probe moves (:func:`EMRegModule.core.dwell.refuse_moving_labe
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..errors import EMRegError
-from ..io.atomic import atomic_write_json, read_json
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from ..settings import CalibrationSettings
 from .dwell import Dwell, find_dwells, group_by_place, robust_mean, robust_mean_direction
@@ -399,11 +396,3 @@ def _close_point_warnings(points: list[CalibrationPoint], radius_mm: float) -> l
     return warnings
 
 
-def write_frame_calibration(result: FrameCalibration, path: str | os.PathLike[str]) -> None:
-    """Write ``frame_calibration.json`` atomically (spec layout plus extra keys)."""
-    atomic_write_json(Path(path), result.to_json())
-
-
-def read_frame_calibration(path: str | os.PathLike[str]) -> FrameCalibration:
-    """Read a ``frame_calibration.json``; a missing or malformed file is an :class:`EMRegError`."""
-    return FrameCalibration.from_json(read_json(path, "frame calibration JSON"), str(path))

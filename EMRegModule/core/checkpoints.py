@@ -38,14 +38,11 @@ the pinhole).
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..names import MARKERS_JSON
 from ..settings import NavigationSettings
 from .dwell import good_quality_mask, robust_mean, still_periods
 from .slip import SlipVerdict, SlipWatch, jump_transform
@@ -166,25 +163,6 @@ def checkpoint_threshold(offset_mm: np.ndarray, covariance: np.ndarray | None, d
     u = np.asarray(offset_mm, dtype=float) / norm if norm > 0 else np.array([1.0, 0.0, 0.0])
     along = float(u @ np.linalg.solve(covariance, u))
     return max(float(limit_mm), float(np.sqrt(q / along)) if along > 0 else float("inf")), expected
-
-
-def markers_beside(registration_path: str | os.PathLike[str]) -> tuple[Any, str | None]:
-    """The detected markers (``markers.json``) beside a ``registration.json`` (a file or its folder), checked to
-    belong with it, and None; or None and why they cannot be used (None too when there is no ``markers.json``)."""
-    from ..errors import EMRegError
-    from ..io.provenance import check_belongs
-    from .detection import read_detection
-
-    path = Path(registration_path)
-    markers = (path if path.is_dir() else path.parent) / MARKERS_JSON
-    if not markers.is_file():
-        return None, None
-    try:
-        detection = read_detection(markers)
-        check_belongs(markers)
-    except EMRegError as exc:
-        return None, f"{exc}: no checkpoints at the pinholes"
-    return detection, None
 
 
 @dataclass
@@ -548,13 +526,6 @@ def judge_slips(checkpoints: list[Checkpoint], jumps: list[ReferenceJump], pinho
             watch.add_jump(event.time_s, event.reference_before_to_after)
         else:
             judge_slip(watch, event, pinholes)
-
-
-def write_checkpoints(report: CheckpointReport, path: str | os.PathLike[str]) -> None:
-    """Write ``checkpoints.json`` atomically."""
-    from ..io.atomic import atomic_write_json
-
-    atomic_write_json(path, report.to_json())
 
 
 # --- live: one sample at a time ------------------------------------------------------------------

@@ -16,9 +16,9 @@ from typing import BinaryIO
 import numpy as np
 import SimpleITK as sitk
 
+from ..core.pixel_types import NUMPY_NAMES
 from ..errors import EMRegError
 from .itk_messages import quiet_itk
-from .pixel_types import NUMPY_NAMES
 
 try:  # a declared dependency; without it a gzip-compressed NIfTI's layout is not read here (SimpleITK reads it)
     from isal import igzip_lib

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.navigation import GUIDANCE_COLUMNS, guidance_fields
 from ..core.transforms import rotation_to_angles
 from ..devices.samples import SensorSample
+from ..io.navigation_csv import GUIDANCE_COLUMNS, guidance_fields
 from ..io.tracking_csv import HEADER_ANGLES
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 

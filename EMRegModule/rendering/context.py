@@ -34,8 +34,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..core.ct import index_to_physical_matrix
 from ..core.transforms import apply_transform
-from ..io.image import index_to_physical_matrix
 
 if TYPE_CHECKING:
     import SimpleITK as sitk

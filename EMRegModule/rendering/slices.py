@@ -57,7 +57,7 @@ class CTSampler:
         """``image``: the CT, or its geometry when ``array`` holds its voxels (k, j, i)."""
         import SimpleITK as sitk
 
-        from ..io.image import index_to_physical_matrix
+        from ..core.ct import index_to_physical_matrix
 
         self.array = sitk.GetArrayViewFromImage(image) if array is None else array  # (k, j, i)
         self.image_to_index = np.linalg.inv(index_to_physical_matrix(image))

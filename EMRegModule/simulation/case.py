@@ -493,7 +493,8 @@ def _case_toml(seed: int, difficulty: str, opts: SimulationOptions, model: Marke
 def _write_tool(out_dir: Path, seed: int, opts: SimulationOptions) -> None:
     """A stylus case's ``tool_calibration.json`` (the true tip) and pivot recording ``pivot.csv``; removed
     (stale) for the pinhole probe."""
-    from ..core.tool import ToolCalibration, write_tool_calibration
+    from ..core.tool import ToolCalibration
+    from ..io.tool_files import write_tool_calibration
     from .stylus import simulate_pivot_recording
 
     if opts.tool_tip_mm is None:

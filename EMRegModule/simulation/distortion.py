@@ -91,7 +91,7 @@ class FieldDistortion(TimedField):
 
     def distortion_mm(self, position_mm: np.ndarray) -> float:
         """The size (mm) of the position error at full strength at a sensor at ``position_mm`` (3,, Tracker frame):
-        the :class:`~EMRegModule.simulation.tracker_flags.DistortionModel` the live simulators' flags (trakSTAR
+        the :class:`~EMRegModule.devices.simulator.tracker_flags.DistortionModel` the live simulators' flags (trakSTAR
         METAL byte, Aurora RMS error) are made from, so the flags follow the same object that moves the poses."""
         error = position_error(np.asarray(position_mm, dtype=float).reshape(1, 3), self.object_mm, self.polarisability)
         return float(np.linalg.norm(error[0]))

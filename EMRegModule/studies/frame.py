@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.calibration import calibrate_frame
-from ..core.detection.result import DetectionResult, read_detection, write_detection
+from ..core.detection.result import DetectionResult
 from ..core.registration import RegistrationResult, register
 from ..core.tracking import TrackingRecording
 from ..core.transforms import (
@@ -34,6 +34,7 @@ from ..core.transforms import (
 )
 from ..errors import EMRegError
 from ..io.case import open_case
+from ..io.markers_json import read_detection, write_detection
 from ..marker_model import MarkerModel
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT, MARKERS_JSON
 from ..pipeline.controller import EMRegController

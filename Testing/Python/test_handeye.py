@@ -192,7 +192,8 @@ def _pose(rotvec_deg, translation) -> np.ndarray:
 def targeting_case(continuous_case, tmp_path_factory):
     """A hand-eye calibration made by emreg handeye from the KinHEC recording, a registration, the reference
     sensor's recording (300 mm before the field generator), a plan and a needle guide, with the truth beside."""
-    from EMRegModule.core.registration import RegistrationResult, write_registration
+    from EMRegModule.core.registration import RegistrationResult
+    from EMRegModule.io.registration_files import write_registration
 
     folder = tmp_path_factory.mktemp("target")
     continuous_case.write_tum(folder / "robot.tum")
