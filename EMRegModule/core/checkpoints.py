@@ -45,8 +45,9 @@ import numpy as np
 
 from ..settings import NavigationSettings
 from .dwell import good_quality_mask, robust_mean, still_periods
+from .error_model import ErrorModel, pose_error_covariance
 from .slip import SlipVerdict, SlipWatch, jump_transform
-from .transforms import rotation_angle_deg
+from .transforms import apply_transform, invert_rigid, rotation_angle_deg
 
 if TYPE_CHECKING:
     from .registration import RegistrationResult
@@ -127,9 +128,6 @@ def checkpoint_covariance(reference_to_image: np.ndarray, error: Any, points_ima
     per-dwell error (isotropic), the reference sensor's pose error at calibration and now (the priors of
     :meth:`EMRegModule.core.error_model.ErrorModel.with_priors`, rotated into image space) and, when a field
     distortion was found, its term (isotropic). Infinite when the registration is undetermined."""
-    from .error_model import ErrorModel, pose_error_covariance
-    from .transforms import apply_transform, invert_rigid
-
     model = ErrorModel.with_priors(reference_to_image, error)
     points = np.asarray(points_image, dtype=float).reshape(-1, 3)
     covariance = np.array(error.covariance.at(points), dtype=float)

@@ -18,7 +18,9 @@ The length of the voxel data against the header's ``sizes`` is checked by the re
 
 from __future__ import annotations
 
+import errno
 import os
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -27,6 +29,7 @@ import numpy as np
 from ..core import pixel_types
 from ..core.ct import check_ct_geometry, check_origin, check_spacing
 from ..errors import EMRegError
+from .nifti_header import check_nifti_magic, check_nifti_placement, is_nifti
 
 if TYPE_CHECKING:
     import SimpleITK as sitk
@@ -39,8 +42,6 @@ def check_ct_path(path: str | os.PathLike[str]) -> None:
         path.stat()
     except OSError as exc:
         if path.is_symlink():
-            import errno
-
             what = "a symbolic-link loop" if exc.errno == errno.ELOOP else "a broken symbolic link"
             raise EMRegError(f"{path}: CT path is {what}; give the CT file or DICOM folder itself") from None
         raise EMRegError(f"{path}: CT not found") from None
@@ -50,8 +51,6 @@ def check_ct_file(path: str | os.PathLike[str]) -> None:
     """Refuse, before reading it, a CT file that SimpleITK would read wrongly: a ``.nii`` / ``.nii.gz`` without
     NIfTI's magic (read as Analyze 7.5, its orientation and origin lost), a NRRD whose header's spacing or origin
     is damaged (:func:`_check_nrrd_geometry`)."""
-    from .nifti_header import check_nifti_magic
-
     check_nifti_magic(path)
     _check_nrrd_geometry(path)
 
@@ -60,8 +59,6 @@ def _check_nrrd_geometry(path: str | os.PathLike[str]) -> None:
     """Refuse a NRRD whose header gives a spacing (the lengths of its ``space directions``, or its ``spacings``) or
     a ``space origin`` no CT has: ITK reads a ``space directions`` vector of length 1e300 as spacing 1 along the
     identity direction, silently (a plausible, wrong geometry)."""
-    import re
-
     from .ct_header import nrrd_header_fields
 
     fields = nrrd_header_fields(Path(path)) or {}
@@ -90,8 +87,6 @@ def check_file_placement(geometry: sitk.Image, path: str | os.PathLike[str]) -> 
     """Refuse a CT file whose header places its voxels where SimpleITK (EMReg's reader) and other tools disagree:
     a NIfTI whose sform and qform differ (:mod:`.nifti_header`), an NRRD not in millimetres. ``geometry``: the
     image, or its header reading."""
-    from .nifti_header import check_nifti_placement, is_nifti
-
     if is_nifti(path):
         check_nifti_placement(geometry, path)
     _check_space_units(path)
@@ -103,8 +98,6 @@ def _check_space_units(path: str | os.PathLike[str]) -> None:
     found, or found at the wrong size) instead of being said wrong."""
     if not Path(path).name.lower().endswith((".nrrd", ".nhdr")):
         return  # no NRRD header (nrrd_header_fields reads none): a DICOM folder, another format
-    import re
-
     from .ct_header import nrrd_header_fields
 
     units = (nrrd_header_fields(Path(path)) or {}).get("space units")

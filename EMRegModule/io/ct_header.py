@@ -9,6 +9,7 @@ own reading of the header. Provenance (:func:`~EMRegModule.io.provenance.file_sh
 from __future__ import annotations
 
 import os
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -307,8 +308,6 @@ def _one_data_file(header: Path, detached: str) -> Path | None:
 
 def _data_bytes(path: Path, offset: int, compression: str) -> int | None:
     """The voxel bytes stored from ``offset`` (inflated when compressed), or ``None`` when undecidable."""
-    import zlib
-
     if compression == "raw":
         return path.stat().st_size - offset
     total = 0

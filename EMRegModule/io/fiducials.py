@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import csv
 import os
+import xml.etree.ElementTree as ElementTree
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +34,7 @@ from ..core.fiducials import Fiducials, check_fiducials
 from ..core.frames import lps_to_ras_points
 from ..errors import EMRegError
 from ..names import MARKERS_JSON
+from .atomic import read_json
 from .markups import read_markups_with_frame
 
 FORMAT_MARKUPS = "Slicer markups JSON"
@@ -56,8 +58,6 @@ def is_markers_file(path: str | os.PathLike[str]) -> bool:
         return (path / MARKERS_JSON).is_file()
     if path.suffix.lower() != ".json" or path.name.lower().endswith(".mrk.json"):
         return False
-    from .atomic import read_json
-
     try:
         document = read_json(path, "fiducials file")
     except EMRegError:
@@ -151,8 +151,6 @@ def _field(fields: list[str], k: int | None) -> str:
 def _read_plus_landmarks(path: Path) -> Fiducials:
     """The ``<Landmarks>`` of a PLUS device-set XML's ``<PhantomDefinition><Geometry>`` (names kept, mm, the
     phantom's frame: ``vtkPlusPhantomLandmarkRegistrationAlgo``'s ``PhantomCoordinateFrame``, default Phantom)."""
-    import xml.etree.ElementTree as ElementTree
-
     try:
         root = ElementTree.parse(path).getroot()
     except ElementTree.ParseError as exc:

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 from ..core.ct import check_ct_geometry
 from ..errors import EMRegError
+from .atomic import atomic_path, itk_write_errors
 from .ct_checks import check_ct_file, check_ct_path, check_ct_voxels, check_file_placement
 from .ct_handle import CTHandle
 from .itk_messages import quiet_itk, read_failure
@@ -103,7 +104,6 @@ def write_image(image: sitk.Image, path: str | os.PathLike[str], compress: bool 
     """Write an image atomically (format by extension)."""
     import SimpleITK as sitk
 
-    from .atomic import atomic_path, itk_write_errors
 
     with atomic_path(path) as tmp, itk_write_errors():
         sitk.WriteImage(image, str(tmp), compress)

@@ -95,7 +95,7 @@ def read_run_folder(out_dir: str | os.PathLike[str], manifest: Mapping[str, Any]
                     max_fre_mm: float = math.inf, tolerant: bool = True) -> RunFolder:
     """Read the stage outputs of OUT (``manifest``: its ``run.json``, from :func:`read_manifest`).
 
-    ``registration.json`` is always checked (:func:`~EMRegModule.io.registration_files.read_registration`: finite, rigid,
+    ``registration.json`` is always checked (:func:`~.registration_files.read_registration`: finite, rigid,
     FRE at most ``max_fre_mm``, mm) and one that fails raises: it is never shown as if it could be trusted. The
     other files: ``tolerant``, one that its reader turns down is None with a note; else it raises
     :class:`EMRegError`. ``checkpoints.json`` that cannot be read is None (it only adds a chart).

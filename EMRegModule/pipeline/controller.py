@@ -160,8 +160,8 @@ class EMRegController:
 
     def load_tool(self, path: str | os.PathLike[str]) -> ToolCalibration | None:
         """Use the tool of a tool file (``tool_calibration.json``, ITK transform, PLUS device set;
-        :func:`EMRegModule.io.tool_files.read_tool`), or ``auto`` (None: the tip is solved when the frame is calibrated);
-        drops the frame calibration and what follows."""
+        :func:`EMRegModule.io.tool_files.read_tool`), or ``auto`` (None: the tip is solved when the frame is
+        calibrated); drops the frame calibration and what follows."""
         from ..io.tool_files import read_tool
 
         if str(path) == "auto":

@@ -41,6 +41,7 @@ from ..pipeline.controller import EMRegController
 from ..settings import Settings
 from ..simulation.case import load_truth, simulate_case
 from ..simulation.distortion import FieldDistortion
+from ..simulation.stylus import shaft_rotation
 from ..simulation.tracking import (
     DwellTruth,
     FieldOnset,
@@ -132,8 +133,6 @@ def _touch(rotation: np.ndarray, point: np.ndarray, tip_mm: np.ndarray | None) -
     ``rotation``'s +X), at ``point``."""
     if tip_mm is None:
         return make_transform(rotation, point)
-    from ..simulation.stylus import shaft_rotation
-
     rotation = rotation @ shaft_rotation(tip_mm)
     return make_transform(rotation, np.asarray(point) - rotation @ tip_mm)
 
