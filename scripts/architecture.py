@@ -6,6 +6,7 @@ Reads the package's source (no import of it) and reports:
   higher one;
 - import circles (strongly connected modules, a package's ``__init__`` counted as a module);
 - private names (``_x``) imported from another module;
+- imports inside a function whose module is not in ``DEFERRED_IMPORTS`` (each deferred one has its reason there);
 - for a reviewer, not a rule: functions over ``MAX_FUNCTION_LINES``, modules over ``MAX_MODULE_LINES``, classes
   over ``MAX_METHODS``. Code is split by concern; a size is a place to look, never a number to serve.
 

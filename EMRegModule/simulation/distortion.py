@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..core.em_field import coil_field, induced_coupling, position_error
 from ..core.transforms import apply_transform, fit_rigid, invert_rigid
@@ -117,8 +118,6 @@ class FieldDistortion(TimedField):
 
 def scaled_rotation(rotations: np.ndarray, fraction: np.ndarray) -> np.ndarray:
     """Rotations (K, 3, 3) turned by ``fraction`` (K,) of their angle about their own axis."""
-    from scipy.spatial.transform import Rotation
-
     rotvec = Rotation.from_matrix(rotations).as_rotvec() * np.asarray(fraction, dtype=float)[:, None]
     return Rotation.from_rotvec(rotvec).as_matrix()
 
