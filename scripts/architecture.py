@@ -56,6 +56,8 @@ DEFERRED_IMPORTS: dict[str, str] = {
                      "the controller and emreg --help load no scipy",
     "scipy.optimize": "~0.28 s: the sensor-offset and distortion fits, at registration (test_import_weight)",
     "scipy.spatial": "~0.23 s: the pairing's k-d tree, at registration",
+    "vtkmodules": "~0.1 s (its filters; the package itself is only looked for): the marker mesh and the rendering "
+                  "load it, emreg --help and the readers do not",
     "scipy.ndimage": "~0.2 s: detection's segmentation and the report's context surface and slices",
     "EMRegModule.core.detection.detect": "scipy.ndimage and VTK, ~0.36 s: imported in the background while the CT "
                                          "is read; readers of markers.json do not need it",
