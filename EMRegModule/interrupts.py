@@ -7,6 +7,8 @@ Lowest layer: every writer (the output folder, the report, the Slicer export) us
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import os
 import signal
 import threading
 from collections.abc import Iterator
@@ -89,11 +91,7 @@ def die_with_parent(parent: int) -> None:
     """In a forked helper process: have the kernel kill it when its parent (pid ``parent``) dies (Linux
     ``prctl(PR_SET_PDEATHSIG, SIGKILL)``), so that a helper does not go on alone, or wait for work for ever, after
     ``kill -9`` of the command; ends it at once if the parent died before."""
-    import os
-
     with contextlib.suppress(Exception):
-        import ctypes
-
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     if os.getppid() != parent:
         os._exit(1)

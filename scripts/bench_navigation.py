@@ -19,9 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from EMRegModule.core.navigation import navigate_recording, probe_to_image, write_navigation_csv
+from EMRegModule.core.navigation import navigate_recording, probe_to_image
 from EMRegModule.core.tracking import TrackingRecording
 from EMRegModule.core.transforms import make_transform, quaternion_to_rotation, random_rotation
+from EMRegModule.io.navigation_csv import write_navigation_csv
 
 
 def synthetic_recording(n: int, seed: int = 0) -> TrackingRecording:

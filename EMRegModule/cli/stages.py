@@ -73,14 +73,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def cmd_pivot(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..core.tool import (
-        TIP_TO_PROBE_ITK,
-        TOOL_CALIBRATION_JSON,
-        pivot_calibration,
-        pivot_poses,
-        write_tool_calibration,
-    )
+    from ..core.tool import pivot_calibration
     from ..io.output_folder import refuse_out_over_inputs
+    from ..io.tool_files import TIP_TO_PROBE_ITK, TOOL_CALIBRATION_JSON, pivot_poses, write_tool_calibration
 
     out_folder(args.out)
     recording_path = Path(args.recording)
@@ -143,7 +138,7 @@ def cmd_navigate(args: argparse.Namespace) -> int:
 
     recording_path = Path(args.source[len("replay:"):])
     controller = controller_of(args, settings_of(args))
-    from ..core.checkpoints import markers_beside
+    from ..io.markers_json import markers_beside
 
     markers, note = markers_beside(args.registration)
     if markers is not None:  # the checkpoints need the markers' pinholes (before the registration: it is dropped)
@@ -184,7 +179,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     controller = controller_of(args, case.settings)
     inputs = [p for p in (case.navigation, case.targets, case.board) if p is not None]
     folder = output_folder(args, "evaluate", [*inputs, Path(args.registration)], case.folder)
-    from ..core.checkpoints import markers_beside
+    from ..io.markers_json import markers_beside
 
     markers, note = markers_beside(args.registration)
     if markers is not None:  # the pose status (checkpoints at the pinholes) as navigate gives it: INVALID left out

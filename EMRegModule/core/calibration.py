@@ -25,24 +25,20 @@ dwell in which the probe moves (:func:`EMRegModule.core.dwell.refuse_moving_labe
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from ..errors import EMRegError
-from ..io.atomic import atomic_write_json, read_json
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from ..settings import CalibrationSettings
-from .dwell import Dwell, find_dwells, group_by_place, robust_mean, robust_mean_direction
+from .dwell import Dwell, describe_still_periods, find_dwells, group_by_place, robust_mean, robust_mean_direction
+from .probe_axis import ASSUMED_CONVENTION, check_probe_axis, marker_directions
+from .tool import ToolCalibration, placement_samples, shaft_swing_deg, solve_tip_from_touches, tip_poses
 from .tracking import ProbeInReference, TrackingRecording, invert_rigid_batch, probe_in_reference
 from .transforms import mean_rigid
-
-if TYPE_CHECKING:
-    from .tool import ToolCalibration
 
 #: A touch of a tool whose shaft swung at least this much (degrees, :func:`EMRegModule.core.tool.shaft_swing_deg`)
 #: about the still tip is a pivot; less is a rest (hand tremor of a held tool swings it by a degree or two).
@@ -187,8 +183,6 @@ class FrameCalibration:
             if len(set(labels)) != len(labels):
                 raise EMRegError(f"{source}: point labels must be unique")
             axis = document.get("probe_axis") or {}
-            from .probe_axis import check_probe_axis
-
             setting = check_probe_axis(axis.get("setting", "auto"), source)
             convention = str(axis.get("direction_convention", "+x_in"))
             if convention not in ("+x_in", "+x_out", "none"):
@@ -243,8 +237,6 @@ def calibrate_frame(
     (:func:`EMRegModule.core.tool.solve_tip_from_touches`); the result's ``solved_tool`` holds it.
     """
     dwell_settings = settings or CalibrationSettings()
-    from .probe_axis import ASSUMED_CONVENTION, check_probe_axis, marker_directions
-
     probe_axis = check_probe_axis(probe_axis)
     convention = ASSUMED_CONVENTION if probe_axis == "auto" else probe_axis
     samples = probe_in_reference(recording, reference_sensor, probe_sensor)
@@ -253,8 +245,6 @@ def calibrate_frame(
     if tool == "auto":
         tool = _solve_tool(samples, dwell_settings, tool_still_radius_mm, recording.source)
     if tool is not None:
-        from .tool import tip_poses
-
         position = tip_poses(samples.probe_to_reference, tool.tip_to_probe)[:, :3, 3]
         out_of_hole = np.full_like(position, np.nan)
         probe_axis, convention = "none", "none"
@@ -279,8 +269,6 @@ def calibrate_frame(
 def _solve_tool(samples: ProbeInReference, dwell_settings: CalibrationSettings, still_radius_mm: float,
                 source: str) -> ToolCalibration:
     """``--tool auto``: the tip solved from the recording's pivoting touches (tip still within ``still_radius_mm``)."""
-    from .tool import solve_tip_from_touches
-
     touch_settings = replace(dwell_settings, still_radius_mm=still_radius_mm)
 
     def find_touches(tip_mm: np.ndarray) -> list[np.ndarray]:
@@ -295,8 +283,6 @@ def _find_calibration_dwells(samples: ProbeInReference, position: np.ndarray, dw
     """The dwells of the probe (or tool tip) positions (Reference frame, mm); refuses a recording with none."""
     dwells = find_dwells(samples.time_s, position, samples.label, samples.quality, dwell_settings, source=source)
     if not dwells:
-        from .dwell import describe_still_periods
-
         raise EMRegError(
             f"{source}: no dwell found (the probe never stayed still in a pinhole for "
             f"{dwell_settings.min_duration_s:g} s; check the sensor ports): "
@@ -314,8 +300,6 @@ def _dwell_centres(dwells: list[Dwell], samples: ProbeInReference, position: np.
     for dwell in dwells:
         indices = dwell.indices
         if tool is not None:  # a pivoting touch's point is the tip as placed (module docstring)
-            from .tool import placement_samples
-
             indices = indices[placement_samples(samples.probe_to_reference[indices, :3, :3], tool.tip_mm)]
         average = robust_mean(position[indices])
         inlier_index.append(indices[average.inliers])
@@ -362,8 +346,6 @@ def _pinhole_point(label: str, members: np.ndarray, dwells: list[Dwell], inlier_
                        "inserted")
     motion = ""
     if tool is not None:
-        from .tool import shaft_swing_deg
-
         touched = np.concatenate([dwells[m].indices for m in members])
         swing = shaft_swing_deg(samples.probe_to_reference[touched, :3, :3], tool.tip_mm)
         motion = "pivot" if swing >= PIVOT_TOUCH_SWING_DEG else "rest"
@@ -399,11 +381,3 @@ def _close_point_warnings(points: list[CalibrationPoint], radius_mm: float) -> l
     return warnings
 
 
-def write_frame_calibration(result: FrameCalibration, path: str | os.PathLike[str]) -> None:
-    """Write ``frame_calibration.json`` atomically (spec layout plus extra keys)."""
-    atomic_write_json(Path(path), result.to_json())
-
-
-def read_frame_calibration(path: str | os.PathLike[str]) -> FrameCalibration:
-    """Read a ``frame_calibration.json``; a missing or malformed file is an :class:`EMRegError`."""
-    return FrameCalibration.from_json(read_json(path, "frame calibration JSON"), str(path))

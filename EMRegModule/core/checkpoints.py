@@ -38,18 +38,16 @@ the pinhole).
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..names import MARKERS_JSON
 from ..settings import NavigationSettings
 from .dwell import good_quality_mask, robust_mean, still_periods
+from .error_model import ErrorModel, pose_error_covariance
 from .slip import SlipVerdict, SlipWatch, jump_transform
-from .transforms import rotation_angle_deg
+from .transforms import apply_transform, invert_rigid, rotation_angle_deg
 
 if TYPE_CHECKING:
     from .registration import RegistrationResult
@@ -130,9 +128,6 @@ def checkpoint_covariance(reference_to_image: np.ndarray, error: Any, points_ima
     per-dwell error (isotropic), the reference sensor's pose error at calibration and now (the priors of
     :meth:`EMRegModule.core.error_model.ErrorModel.with_priors`, rotated into image space) and, when a field
     distortion was found, its term (isotropic). Infinite when the registration is undetermined."""
-    from .error_model import ErrorModel, pose_error_covariance
-    from .transforms import apply_transform, invert_rigid
-
     model = ErrorModel.with_priors(reference_to_image, error)
     points = np.asarray(points_image, dtype=float).reshape(-1, 3)
     covariance = np.array(error.covariance.at(points), dtype=float)
@@ -166,25 +161,6 @@ def checkpoint_threshold(offset_mm: np.ndarray, covariance: np.ndarray | None, d
     u = np.asarray(offset_mm, dtype=float) / norm if norm > 0 else np.array([1.0, 0.0, 0.0])
     along = float(u @ np.linalg.solve(covariance, u))
     return max(float(limit_mm), float(np.sqrt(q / along)) if along > 0 else float("inf")), expected
-
-
-def markers_beside(registration_path: str | os.PathLike[str]) -> tuple[Any, str | None]:
-    """The detected markers (``markers.json``) beside a ``registration.json`` (a file or its folder), checked to
-    belong with it, and None; or None and why they cannot be used (None too when there is no ``markers.json``)."""
-    from ..errors import EMRegError
-    from ..io.provenance import check_belongs
-    from .detection import read_detection
-
-    path = Path(registration_path)
-    markers = (path if path.is_dir() else path.parent) / MARKERS_JSON
-    if not markers.is_file():
-        return None, None
-    try:
-        detection = read_detection(markers)
-        check_belongs(markers)
-    except EMRegError as exc:
-        return None, f"{exc}: no checkpoints at the pinholes"
-    return detection, None
 
 
 @dataclass
@@ -548,13 +524,6 @@ def judge_slips(checkpoints: list[Checkpoint], jumps: list[ReferenceJump], pinho
             watch.add_jump(event.time_s, event.reference_before_to_after)
         else:
             judge_slip(watch, event, pinholes)
-
-
-def write_checkpoints(report: CheckpointReport, path: str | os.PathLike[str]) -> None:
-    """Write ``checkpoints.json`` atomically."""
-    from ..io.atomic import atomic_write_json
-
-    atomic_write_json(path, report.to_json())
 
 
 # --- live: one sample at a time ------------------------------------------------------------------

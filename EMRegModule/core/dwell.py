@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..errors import EMRegError
 from ..settings import DwellSettings
 
 #: A still period's ends are trimmed to the samples within this many ``still_radius_mm`` of its median.
@@ -170,8 +171,6 @@ def refuse_moving_labels(dwells: list[Dwell], position_mm: np.ndarray, settings:
     its samples spread, or drift, farther than :data:`LABEL_SPREAD_FACTOR` x ``still_radius_mm`` (a probe moving
     10 mm, or every row of a recording given one label): its average would be a plausible, wrong point.
     ``position_mm`` (N, 3) in the frame the dwells were found in."""
-    from ..errors import EMRegError
-
     limit = LABEL_SPREAD_FACTOR * settings.still_radius_mm
     for dwell in dwells:
         spread, drift = label_motion_mm(position_mm[dwell.indices])

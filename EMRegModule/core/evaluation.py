@@ -23,7 +23,6 @@ values; ``to_json`` rounds (4 decimals) only when ``evaluation.json`` is written
 
 from __future__ import annotations
 
-import os
 import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -32,7 +31,6 @@ from typing import Any
 import numpy as np
 
 from ..errors import EMRegError, NoSafeAnswerError
-from ..io.atomic import atomic_write_json, read_json
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT, EVALUATION_JSON
 from ..settings import DwellSettings, EvaluationSettings
 from .checkpoints import POSE_INVALID
@@ -649,14 +647,3 @@ def _maybe_int(value: Any) -> int | None:
     return None if value is None else int(value)
 
 
-def write_evaluation(result: Evaluation, path: str | os.PathLike[str]) -> None:
-    """Write ``evaluation.json`` atomically."""
-    atomic_write_json(path, result.to_json())
-
-
-def read_evaluation(path: str | os.PathLike[str]) -> Evaluation:
-    """Read an ``evaluation.json``; a missing or malformed file is an :class:`EMRegError`."""
-    document = read_json(path, "evaluation JSON")
-    if not isinstance(document, dict):
-        raise EMRegError(f"{path}: not an evaluation file (not a JSON object)")
-    return Evaluation.from_json(document, str(path))

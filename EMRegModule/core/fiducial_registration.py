@@ -25,10 +25,10 @@ from typing import Any
 
 import numpy as np
 
-from ..io.fiducials import Fiducials
 from ..settings import RegistrationSettings
 from .calibration import FrameCalibration
 from .error_model import registration_error
+from .fiducials import Fiducials
 from .pairing import pair_markers
 from .registration import (
     RegistrationResult,

@@ -10,20 +10,13 @@ With a tool (``TipToProbe``, :mod:`EMRegModule.core.tool`) the navigated point i
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..io.atomic import atomic_path
-from ..io.navigation_csv import GUIDANCE_COLUMNS
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from .guidance import Guidance
 from .tracking import SAME_MOMENT_S, TrackingRecording, invert_rigid_batch, sensor_pair
-
-#: ``status`` (added): the pose's status, ``OK`` or ``INVALID`` (PLUS's TransformStatus names; see
-#: :mod:`EMRegModule.core.checkpoints`); the spec's five columns come first, unchanged.
-NAVIGATION_HEADER = "time_s,x_mm,y_mm,z_mm,label,status"
 
 
 def probe_to_image(reference_to_image: np.ndarray, reference_to_tracker: np.ndarray,
@@ -105,35 +98,3 @@ def unpaired_probe_note(recording: TrackingRecording, result: NavigationResult,
             f"{len(result)} rows)")
 
 
-def format_navigation_csv(result: NavigationResult) -> str:
-    """``time_s,x_mm,y_mm,z_mm,label,status`` text, one row per probe sample (positions in LPS mm), followed by
-    :data:`GUIDANCE_COLUMNS` (mm, degrees; empty where undefined) when the result has guidance numbers."""
-    position = result.position_mm
-    status = ["OK"] * len(result) if result.status is None else result.status.tolist()
-    rows = zip(result.time_s.tolist(), position[:, 0].tolist(), position[:, 1].tolist(), position[:, 2].tolist(),
-               result.label.tolist(), status, strict=True)
-    lines = [NAVIGATION_HEADER if result.guidance is None else ",".join((NAVIGATION_HEADER, *GUIDANCE_COLUMNS))]
-    lines.extend(f"{t:.4f},{x:.4f},{y:.4f},{z:.4f},{_csv_label(label)},{s}" for t, x, y, z, label, s in rows)
-    if result.guidance is not None:
-        numbers = result.guidance
-        extra = zip(*(getattr(numbers, name).tolist() for name in GUIDANCE_COLUMNS), strict=True)
-        lines[1:] = [f"{line},{guidance_fields(values)}" for line, values in zip(lines[1:], extra, strict=True)]
-    return "\n".join(lines) + "\n"
-
-
-def guidance_fields(values: tuple[float, ...] | list[float]) -> str:
-    """The guidance columns of one row: each number with 4 decimals, empty where it is undefined (NaN)."""
-    return ",".join("" if v != v else f"{v:.4f}" for v in values)
-
-
-def _csv_label(label: object) -> str:
-    text = "" if label is None else str(label)
-    if any(c in text for c in ',"\n'):
-        return '"' + text.replace('"', '""') + '"'
-    return text
-
-
-def write_navigation_csv(result: NavigationResult, path: str | os.PathLike[str]) -> None:
-    """Write ``navigation.csv`` atomically."""
-    with atomic_path(path) as tmp:
-        tmp.write_text(format_navigation_csv(result), encoding="utf-8")

@@ -1,7 +1,8 @@
-"""A plan file: a 3D Slicer markups JSON holding the target (and the entry) of a trajectory, read into a
-:class:`~EMRegModule.core.guidance.Plan` (image space, LPS mm).
+"""A plan: the target (and the entry) of a trajectory, a :class:`~EMRegModule.core.guidance.Plan` (image space,
+LPS mm), made of labelled points (:func:`plan_from_points`: those of a plan file, read by
+:mod:`EMRegModule.io.plan_markups`, or of a 3D Slicer markups node).
 
-What :func:`read_plan` takes, in this order:
+What makes the plan, in this order:
 
 1. a markup of ``type`` ``Line`` with two defined control points: Entry -> Target (Slicer's line runs from its
    first point to its second; points labelled ``Entry`` / ``Target`` are taken by their labels whatever the order);
@@ -9,36 +10,24 @@ What :func:`read_plan` takes, in this order:
    is needed, an ``Entry`` is optional (without it, a target alone);
 3. a single defined point (whatever its label): a target alone.
 
-Coordinates are as the file declares them (``coordinateSystem`` LPS or RAS, ``coordinateUnits``), converted to LPS
-mm as for fiducials (:func:`~EMRegModule.io.markups.read_markups_with_frame`). Refused with one line naming the file
-(:class:`~EMRegModule.errors.EMRegError`, exit 2): no usable points, two points labelled ``Target`` (or ``Entry``),
-several unlabelled points, a line without two points, Entry and Target closer than
-:data:`~EMRegModule.core.guidance.MIN_PLAN_LENGTH_MM`. :func:`check_plan_in_image` refuses a plan outside the CT.
+Refused with one line naming the source (:class:`~EMRegModule.errors.EMRegError`, exit 2): no usable points, two
+points labelled ``Target`` (or ``Entry``), several unlabelled points, a line without two points, Entry and Target
+closer than :data:`~EMRegModule.core.guidance.MIN_PLAN_LENGTH_MM`. :func:`check_plan_in_image` refuses a plan outside
+the CT.
 """
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 
 from ..errors import EMRegError
-from ..io.atomic import read_json
-from ..io.markups import read_markups_with_frame
 from .guidance import MIN_PLAN_LENGTH_MM, Plan
 
 ENTRY_LABEL = "entry"
 TARGET_LABEL = "target"
-
-
-def read_plan(path: str | os.PathLike[str]) -> Plan:
-    """The plan of a Slicer markups JSON file (module docstring), in image space (LPS mm)."""
-    labels, positions, declared = read_markups_with_frame(path)
-    document = read_json(path, "markups JSON")
-    lines = _line_points(document, labels, positions, path)
-    return plan_from_points(labels, positions, lines, str(path), declared["coordinate_system"])
 
 
 def plan_from_points(labels: list[str], positions: np.ndarray, line: list[tuple[str, np.ndarray]] | None,
@@ -75,28 +64,6 @@ def plan_from_points(labels: list[str], positions: np.ndarray, line: list[tuple[
                          "and Target, or a single target point")
     raise EMRegError(f"{where}: {len(labels)} points and none labelled Target; label the points Entry and Target, "
                      "or give a Line markup")
-
-
-def _line_points(document: Any, labels: list[str], positions: np.ndarray,
-                 path: str | os.PathLike[str]) -> list[tuple[str, np.ndarray]] | None:
-    """The (label, LPS position) of the defined points of the file's Line markup, in order; None without one.
-
-    ``labels`` / ``positions``: every defined point of the file, markup after markup (as
-    :func:`~EMRegModule.io.markups.read_markups_with_frame` returns them), which this splits by markup."""
-    found = None
-    start = 0
-    try:
-        for markup in document["markups"]:
-            count = sum(1 for point in markup.get("controlPoints", [])
-                        if point.get("positionStatus", "defined") == "defined")
-            if str(markup.get("type", "")).lower() == "line":
-                if found is not None:
-                    raise EMRegError(f"{path}: plan: several Line markups; give one planned line")
-                found = [(labels[k], positions[k]) for k in range(start, start + count)]
-            start += count
-    except (KeyError, TypeError, AttributeError):
-        return None
-    return found
 
 
 def _checked(plan: Plan, where: str) -> Plan:

@@ -15,6 +15,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..errors import EMRegError
+
 Array = NDArray[np.float64]
 
 # LPS <-> RAS: negate x and y. The matrix is its own inverse.
@@ -79,8 +81,6 @@ def is_rigid(transform: ArrayLike, tolerance: float = RIGID_TOLERANCE) -> bool:
 def check_rigid(transform: ArrayLike, where: str) -> None:
     """Raise :class:`~EMRegModule.errors.EMRegError` naming ``where`` (the file and the transform) unless the 4x4
     ``transform`` is rigid within :data:`RIGID_TOLERANCE`."""
-    from ..errors import EMRegError
-
     error = rigidity_error(transform)
     if not error <= RIGID_TOLERANCE:
         matrix = np.asarray(transform, dtype=float)

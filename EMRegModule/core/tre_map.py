@@ -1,27 +1,37 @@
-"""The predicted end-to-end TRE over the CT: ``OUT/tre_map.nrrd``, a colour overlay for 3D Slicer.
+"""The predicted end-to-end TRE over the CT (written as ``OUT/tre_map.nrrd``, a colour overlay for 3D Slicer, by
+:mod:`EMRegModule.io.tre_map`).
 
 The map holds the RMS TRE (mm, float32) that :mod:`EMRegModule.core.error_model` predicts at each node
 of a grid covering the CT's physical extent, in the CT's own LPS space: the same origin and
 direction cosines as the CT, a coarser spacing (the prediction is a smooth quadratic function of
 position, so trilinear interpolation between nodes a few millimetres apart is exact to a few
-per cent). 3D Slicer loads it as a scalar volume aligned with the CT.
+per cent), so that 3D Slicer shows it as a scalar volume aligned with the CT.
 """
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import SimpleITK as sitk
 
 from ..errors import EMRegError
-from ..io.image import write_image
 from .error_model import ErrorModel
 
 #: Nodes along the CT's longest side (the grid is isotropic).
 MAP_NODES = 64
+
+
+@dataclass(frozen=True)
+class TreMap:
+    """The predicted RMS TRE (mm) at the nodes of a grid in the CT's LPS space: ``values_mm`` (k, j, i) float32,
+    the grid's ``spacing`` (3,) mm, ``origin`` (3,) LPS mm and ``direction`` (3, 3), its columns the i, j, k axes."""
+
+    values_mm: np.ndarray
+    spacing: np.ndarray
+    origin: np.ndarray
+    direction: np.ndarray
 
 
 def map_grid(geometry: Mapping[str, Any], nodes: int = MAP_NODES) -> tuple[np.ndarray, np.ndarray, np.ndarray,
@@ -46,8 +56,8 @@ def map_grid(geometry: Mapping[str, Any], nodes: int = MAP_NODES) -> tuple[np.nd
 
 
 def predicted_tre_map(model: ErrorModel, geometry: Mapping[str, Any], tracking_ms: float | None = None,
-                      nodes: int = MAP_NODES) -> sitk.Image:
-    """The map as a SimpleITK float32 image (mm) in the CT's LPS space; see the module docstring.
+                      nodes: int = MAP_NODES) -> TreMap:
+    """The map (mm) in the CT's LPS space; see the module docstring.
 
     ``tracking_ms``: the probe's per-dwell mean-square error measured at navigation time, when an
     evaluation measured it (the same value the evaluation's predictions used).
@@ -60,14 +70,4 @@ def predicted_tre_map(model: ErrorModel, geometry: Mapping[str, Any], tracking_m
     for start in range(0, len(points_image), 65536):  # bounded memory for the per-point matrices
         chunk = points_image[start:start + 65536]
         values[start:start + len(chunk)] = model.budget(chunk, tracking_ms).rms_mm
-    image = sitk.GetImageFromArray(values.reshape(tuple(size[::-1])))
-    image.SetOrigin(tuple(float(v) for v in origin))
-    image.SetSpacing(tuple(float(v) for v in spacing))
-    image.SetDirection(tuple(float(v) for v in direction.ravel()))
-    return image
-
-
-def write_tre_map(path: str | os.PathLike[str], model: ErrorModel, geometry: Mapping[str, Any],
-                  tracking_ms: float | None = None) -> None:
-    """Write the map atomically as NRRD (gzip), float32 mm, LPS."""
-    write_image(predicted_tre_map(model, geometry, tracking_ms), path)
+    return TreMap(values.reshape(tuple(size[::-1])), spacing, origin, direction)

@@ -15,9 +15,13 @@ from ..core.tracking import SAME_MOMENT_LIMIT_S, sensor_pair
 from ..errors import EMRegError
 from ..io.recording import read_recording
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
+from .aurora.source import AuroraSource
 from .device_url import DeviceURL, parse_device_url
+from .igtl_client import IGTLReceiver
+from .igtl_server import TRANSFORM_OK, transform_status
 from .samples import STATUS_OK, SensorSample
 from .source_base import SampleCallback, SampleSource
+from .trakstar.source import TrakstarSource
 
 
 class ReplaySource(SampleSource):
@@ -117,9 +121,6 @@ class IGTLSource(SampleSource):
         self._t0: float | None = None
 
     def start(self, callback: SampleCallback) -> None:
-        from .igtl_client import IGTLReceiver
-        from .igtl_server import TRANSFORM_OK, transform_status
-
         def on_message(message) -> None:
             sensor = self.names.get(message.device_name)
             if sensor is None:
@@ -157,12 +158,8 @@ def open_source(url: str | DeviceURL, reference_sensor: int = DEFAULT_REFERENCE_
     """The source behind a device URL (the trakSTAR is opened and configured here)."""
     parsed = parse_device_url(url) if isinstance(url, str) else url
     if parsed.kind == "trakstar":
-        from .trakstar.source import TrakstarSource
-
         return TrakstarSource(parsed)
     if parsed.kind == "aurora":
-        from .aurora.source import AuroraSource
-
         return AuroraSource(parsed)
     if parsed.kind == "replay":
         return ReplaySource(parsed.path, fast=fast, loop=loop)

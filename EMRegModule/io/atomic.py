@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import EMRegError
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
@@ -52,8 +54,6 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 
 def cannot_write(path: Path, exc: OSError) -> Exception:
     """The one-line error for a file-system failure writing ``path`` (the OS names no file, or the temporary)."""
-    from ..errors import EMRegError
-
     return EMRegError(f"{path}: cannot write ({exc.strerror or exc})")
 
 
@@ -126,8 +126,6 @@ def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> None:
 def read_json(path: str | os.PathLike[str], what: str = "JSON file") -> Any:
     """Read a JSON file; a missing, unreadable or malformed file (or a folder, a FIFO under its name) raises
     :class:`EMRegError` naming it."""
-    from ..errors import EMRegError
-
     path = Path(path)
     try:
         if path.exists() and not path.is_file():  # a FIFO would block the read for ever

@@ -8,16 +8,17 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from ..core.tracking import TrackingRecording
 from ..errors import EMRegError
 from ..names import CASE_FIDUCIALS_FILE, CT_FILE_NAMES, CT_FOLDER_NAME, RECORDING_SUFFIXES, SETTINGS_FILE, TARGETS_FILE
 from ..settings import Settings, load_settings
-
-if TYPE_CHECKING:  # the recording readers are imported where a recording is read (not by emreg detect)
-    from ..core.tracking import TrackingRecording
+from .ct_checks import check_ct_path
+from .markups import read_markups
+from .recording import find_recording, read_recording
 
 
 @dataclass
@@ -48,8 +49,6 @@ class Case:
 
     def read_recording(self, role: str) -> TrackingRecording | None:
         """The tracking recording ``calibration``, ``navigation`` or ``board``, or None when absent."""
-        from .recording import read_recording
-
         path = getattr(self, role)
         if path is None:
             return None
@@ -61,8 +60,6 @@ class Case:
 def read_targets(path: str | os.PathLike[str]) -> tuple[list[str], np.ndarray]:
     """The targets (labels, (K, 3) LPS mm) of a markups file; one without any defined point is an
     :class:`EMRegError` naming it (a TRE over no target is no evaluation)."""
-    from .markups import read_markups
-
     labels, positions = read_markups(path)
     if len(positions) == 0:
         raise EMRegError(f"{path}: the targets file holds no target points (no defined control point)")
@@ -72,8 +69,6 @@ def read_targets(path: str | os.PathLike[str]) -> tuple[list[str], np.ndarray]:
 def find_ct(case_dir: str | os.PathLike[str]) -> Path | None:
     """The CT of a case folder by the spec's names (a file, or a ``ct/`` DICOM folder), or None; one of those
     names that is a broken symbolic link or a link loop is an :class:`EMRegError` naming it (never skipped)."""
-    from .ct_checks import check_ct_path
-
     case_dir = Path(case_dir)
     for name in (*CT_FILE_NAMES, CT_FOLDER_NAME):
         if (case_dir / name).is_symlink():
@@ -100,8 +95,6 @@ def run_ct_path(run: Any, case_dir: str | os.PathLike[str] | None = None) -> str
 def open_case(folder: str | os.PathLike[str], settings: Settings | None = None) -> Case:
     """Discover a case folder's files by the spec's names and read its ``case.toml`` (typed, checked);
     ``settings`` (``--settings FILE``) are used instead, and the case's own ``case.toml`` is then not read."""
-    from .recording import find_recording
-
     folder = Path(folder)
     if not folder.is_dir():
         raise EMRegError(f"{folder}: case folder not found")

@@ -9,6 +9,7 @@ own reading of the header. Provenance (:func:`~EMRegModule.io.provenance.file_sh
 from __future__ import annotations
 
 import os
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -16,9 +17,9 @@ from typing import BinaryIO
 import numpy as np
 import SimpleITK as sitk
 
+from ..core.pixel_types import NUMPY_NAMES
 from ..errors import EMRegError
 from .itk_messages import quiet_itk
-from .pixel_types import NUMPY_NAMES
 
 try:  # a declared dependency; without it a gzip-compressed NIfTI's layout is not read here (SimpleITK reads it)
     from isal import igzip_lib
@@ -307,8 +308,6 @@ def _one_data_file(header: Path, detached: str) -> Path | None:
 
 def _data_bytes(path: Path, offset: int, compression: str) -> int | None:
     """The voxel bytes stored from ``offset`` (inflated when compressed), or ``None`` when undecidable."""
-    import zlib
-
     if compression == "raw":
         return path.stat().st_size - offset
     total = 0

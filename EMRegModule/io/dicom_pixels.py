@@ -5,6 +5,7 @@ SimpleITK. Shared by the whole read of a series (:mod:`.dicom_read`) and its sli
 
 from __future__ import annotations
 
+import io
 import math
 import warnings
 from pathlib import Path
@@ -60,8 +61,6 @@ def check_pixel_data_length(header: SliceHeader, file_size: int, data: bytes | m
 def _pixel_bytes_by_pydicom(path: Path, data: bytes | memoryview | None) -> int | None:
     """The bytes of ``path``'s Pixel Data value as pydicom reads them (``data``: the file's bytes, if read), or
     None when pydicom finds none (or cannot read the file: GDCM's decoding then says why)."""
-    import io
-
     import pydicom
 
     try:

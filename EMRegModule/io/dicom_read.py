@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..core.pixel_types import FLOAT32, FLOATS, INT16, INT32, NAMES, NUMPY_NAMES, UINT16
 from ..errors import EMRegError
 from .ct_handle import CTGeometry, CTHandle, writable_bytes
 from .dicom_pixels import (
@@ -41,7 +42,6 @@ from .dicom_pixels import (
 from .dicom_series import DicomSeries, SliceHeader, choose_series, scan_series, series_record
 from .dicom_slices import DicomSliceStack
 from .itk_messages import quiet_itk
-from .pixel_types import FLOAT32, FLOATS, INT16, INT32, NAMES, NUMPY_NAMES, UINT16
 from .provenance import BackgroundHash, Digest, file_sha256, folder_members, folder_sha256
 from .read_process import can_fork_reader, fork_reader
 

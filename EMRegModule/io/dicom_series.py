@@ -20,6 +20,7 @@ tilt) are refused with the tilt angle: EMReg never resamples a CT silently.
 
 from __future__ import annotations
 
+import io
 import math
 import os
 import warnings
@@ -269,8 +270,6 @@ def _refuse_preamble_without_marker(path: Path) -> None:
     such a file (its series reader leaves it out); ignoring it as "not DICOM" would silently drop
     a slice (at the end of the stack: a shorter volume, no error), so it is named instead.
     """
-    import io
-
     import pydicom
 
     try:

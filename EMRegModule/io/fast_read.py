@@ -30,12 +30,12 @@ from typing import BinaryIO
 import numpy as np
 import SimpleITK as sitk
 
+from ..core.pixel_types import BY_NUMPY_NAME
 from ..errors import EMRegError
 from .ct_checks import NonFiniteCounter
 from .ct_handle import CancelledReadError, CTGeometry, CTHandle, writable_bytes
 from .ct_header import FILE_KINDS, VoxelStorage, read_storage
 from .itk_messages import quiet_itk
-from .pixel_types import BY_NUMPY_NAME
 from .provenance import Digest
 
 try:  # a declared dependency; without it SimpleITK reads the file (slower, same result)

@@ -16,30 +16,26 @@
 ``markers.json`` from ``emreg detect`` is recognised (:func:`is_markers_file`) and goes the CT markers'
 way (the pinhole axis and the sensor offset l), as ``--markers`` does.
 
-Every fiducial set is checked: at least :data:`MIN_FIDUCIALS` points, finite, unique labels, not
-all on one line (within :data:`COLLINEAR_TOLERANCE_MM`). A bad file raises :class:`EMRegError` (exit 2)
-with one line naming it.
+Every fiducial set is checked (:func:`~EMRegModule.core.fiducials.check_fiducials`: at least three points, finite,
+unique labels, not all on one line). A bad file raises :class:`EMRegError` (exit 2) with one line naming it.
 """
 
 from __future__ import annotations
 
 import csv
 import os
-from dataclasses import dataclass, field
+import xml.etree.ElementTree as ElementTree
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..core.fiducials import Fiducials, check_fiducials
 from ..core.frames import lps_to_ras_points
 from ..errors import EMRegError
 from ..names import MARKERS_JSON
+from .atomic import read_json
 from .markups import read_markups_with_frame
-
-#: A rigid fit needs three points not on one line.
-MIN_FIDUCIALS = 3
-#: Fiducials all within this distance (mm) of one line are collinear: the rotation about it is unknown.
-COLLINEAR_TOLERANCE_MM = 1.0
 
 FORMAT_MARKUPS = "Slicer markups JSON"
 FORMAT_FCSV = "Slicer markups CSV (fcsv)"
@@ -55,28 +51,6 @@ FCSV_SLICER3_COLUMNS = ("label", "x", "y", "z", "sel", "vis")
 FCSV_SYSTEMS = {"RAS": "RAS", "0": "RAS", "LPS": "LPS", "1": "LPS"}
 
 
-@dataclass
-class Fiducials:
-    """Named fiducial points (N, 3, mm) in the fiducials' frame: image space (LPS) for Slicer markups, the
-    phantom's frame for a PLUS phantom definition. ``declared``: what the file said of its frame and units."""
-
-    labels: list[str]
-    positions: np.ndarray
-    source: str
-    format: str
-    frame: str = "LPS"
-    declared: dict[str, str] = field(default_factory=dict)
-
-    def __len__(self) -> int:
-        return len(self.labels)
-
-    def to_json(self) -> dict[str, Any]:
-        """The ``fiducials`` block of ``registration.json``: where the points came from and the points (mm)."""
-        return {"file": self.source, "format": self.format, "frame": self.frame, "declared": dict(self.declared),
-                "points": [{"label": label, "position": [float(v) for v in position]}
-                           for label, position in zip(self.labels, self.positions, strict=True)]}
-
-
 def is_markers_file(path: str | os.PathLike[str]) -> bool:
     """True for a ``markers.json`` of ``emreg detect`` (a JSON object with a ``markers`` list and no ``markups``)."""
     path = Path(path)
@@ -84,8 +58,6 @@ def is_markers_file(path: str | os.PathLike[str]) -> bool:
         return (path / MARKERS_JSON).is_file()
     if path.suffix.lower() != ".json" or path.name.lower().endswith(".mrk.json"):
         return False
-    from .atomic import read_json
-
     try:
         document = read_json(path, "fiducials file")
     except EMRegError:
@@ -114,34 +86,6 @@ def read_fiducials(path: str | os.PathLike[str]) -> Fiducials:
                          "markers.json")
     check_fiducials(fiducials)
     return fiducials
-
-
-def check_fiducials(fiducials: Fiducials) -> None:
-    """Refuse (:class:`EMRegError`, one line naming the file) fewer than :data:`MIN_FIDUCIALS` points, repeated
-    labels, non-finite positions, or points all on one line."""
-    where = fiducials.source
-    n = len(fiducials.labels)
-    if n < MIN_FIDUCIALS:
-        raise EMRegError(f"{where}: {n} fiducial(s); a registration needs at least {MIN_FIDUCIALS} (not on one line)")
-    repeated = sorted({label for label in fiducials.labels if fiducials.labels.count(label) > 1})
-    if repeated:
-        raise EMRegError(f"{where}: fiducial label(s) {', '.join(map(repr, repeated))} used more than once; each "
-                         "fiducial needs its own name (registration.json pairs by name)")
-    positions = np.asarray(fiducials.positions, dtype=float)
-    if positions.shape != (n, 3) or not np.all(np.isfinite(positions)):
-        raise EMRegError(f"{where}: every fiducial needs a finite 3D position")
-    off_line = _line_distances_mm(positions)
-    if float(np.max(off_line)) <= COLLINEAR_TOLERANCE_MM:
-        raise EMRegError(f"{where}: the {n} fiducials lie on one line (all within {float(np.max(off_line)):.2f} mm "
-                         f"of it; {COLLINEAR_TOLERANCE_MM:g} mm allowed): the rotation about that line is unknown; "
-                         "add a fiducial off the line")
-
-
-def _line_distances_mm(points: np.ndarray) -> np.ndarray:
-    """Distance (mm) of each point (N, 3) from the least-squares line through them."""
-    centred = np.asarray(points, dtype=float) - np.mean(points, axis=0)
-    direction = np.linalg.svd(centred, full_matrices=False)[2][0]
-    return np.linalg.norm(centred - np.outer(centred @ direction, direction), axis=1)
 
 
 # --- .fcsv ------------------------------------------------------------------------------------
@@ -207,8 +151,6 @@ def _field(fields: list[str], k: int | None) -> str:
 def _read_plus_landmarks(path: Path) -> Fiducials:
     """The ``<Landmarks>`` of a PLUS device-set XML's ``<PhantomDefinition><Geometry>`` (names kept, mm, the
     phantom's frame: ``vtkPlusPhantomLandmarkRegistrationAlgo``'s ``PhantomCoordinateFrame``, default Phantom)."""
-    import xml.etree.ElementTree as ElementTree
-
     try:
         root = ElementTree.parse(path).getroot()
     except ElementTree.ParseError as exc:

@@ -14,9 +14,11 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from xml.etree import ElementTree
 
 import numpy as np
 
+from ..core.transforms import mean_rigid
 from ..errors import EMRegError
 from .recording import read_recording
 from .sequence_metafile import is_sequence_file, read_sequence_frames
@@ -102,8 +104,6 @@ def read_sensor_poses(path: str | os.PathLike[str], sensor: str | int | None = N
 def read_device_set_transform(path: str | os.PathLike[str], source: str, target: str) -> np.ndarray:
     """The 4x4 (mm) of ``<Transform From="source" To="target" Matrix="...">`` in a PLUS device set's
     ``CoordinateDefinitions`` (e.g. ``NeedleGuide`` -> ``Sensor``); one line (exit 2) when absent or malformed."""
-    from xml.etree import ElementTree
-
     path = Path(path)
     try:
         root = ElementTree.parse(path).getroot()
@@ -124,8 +124,6 @@ def read_device_set_transform(path: str | os.PathLike[str], source: str, target:
 def robust_mean_pose(poses: np.ndarray) -> np.ndarray:
     """The mean (4x4, mm) of a still sensor's poses (N, 4, 4), samples farther than 3 robust standard deviations
     from the median position left out (a glitch)."""
-    from ..core.transforms import mean_rigid
-
     distance = np.linalg.norm(poses[:, :3, 3] - np.median(poses[:, :3, 3], axis=0), axis=1)
     keep = distance <= max(3.0 * 1.4826 * float(np.median(distance)), 1e-6)
     return mean_rigid(poses[keep])

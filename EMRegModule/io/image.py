@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
-import numpy as np
-
+from ..core.ct import check_ct_geometry
 from ..errors import EMRegError
-from .ct_checks import check_ct_file, check_ct_geometry, check_ct_path, check_ct_voxels, check_file_placement
+from .atomic import atomic_path, itk_write_errors
+from .ct_checks import check_ct_file, check_ct_path, check_ct_voxels, check_file_placement
 from .ct_handle import CTHandle
 from .itk_messages import quiet_itk, read_failure
 from .provenance import BackgroundHash, note_read_digest
@@ -40,7 +40,7 @@ def open_ct(path: str | os.PathLike[str], series: str | int | None = None, compa
     background thread; a DICOM folder is decoded slice by slice on a thread pool
     (:mod:`.dicom_series`, which also chooses the series: ``fill.series`` names it); anything
     else is read by SimpleITK before this returns: a :class:`~EMRegModule.io.ct_handle.CTHandle` in every case.
-    The geometry is checked (:func:`~EMRegModule.io.ct_checks.check_ct_geometry`) before returning; ``result()``
+    The geometry is checked (:func:`~EMRegModule.core.ct.check_ct_geometry`) before returning; ``result()``
     raises the read's own errors. ``fill.sha256`` is the source's sha256 (provenance), computed from the bytes
     this read takes.
     ``compact``: a DICOM series whose headers call for int32 voxels is read as int16 (half the memory to fill)
@@ -100,31 +100,10 @@ def _read_with_simpleitk(path: Path) -> sitk.Image:
     raise EMRegError(f"{path}: cannot read CT ({read_failure(failure, printed, path)})") from None
 
 
-def image_geometry(image: sitk.Image) -> dict[str, Any]:
-    """The geometry block of ``markers.json``: size, spacing, origin, direction (9 numbers)."""
-    return {
-        "size": list(image.GetSize()),
-        "spacing": list(image.GetSpacing()),
-        "origin": list(image.GetOrigin()),
-        "direction": list(image.GetDirection()),
-    }
-
-
-def index_to_physical_matrix(image: sitk.Image) -> np.ndarray:
-    """4x4 ``IndexToImage``: continuous (i, j, k) index -> LPS physical point (mm)."""
-    direction = np.asarray(image.GetDirection(), dtype=float).reshape(3, 3)
-    spacing = np.asarray(image.GetSpacing(), dtype=float)
-    index_to_image = np.eye(4)
-    index_to_image[:3, :3] = direction * spacing[None, :]
-    index_to_image[:3, 3] = image.GetOrigin()
-    return index_to_image
-
-
 def write_image(image: sitk.Image, path: str | os.PathLike[str], compress: bool = True) -> None:
     """Write an image atomically (format by extension)."""
     import SimpleITK as sitk
 
-    from .atomic import atomic_path, itk_write_errors
 
     with atomic_path(path) as tmp, itk_write_errors():
         sitk.WriteImage(image, str(tmp), compress)

@@ -1,6 +1,6 @@
-"""Reading ``OUT/navigation.csv`` (``time_s,x_mm,y_mm,z_mm,label``; positions in image space, LPS mm).
-
-Written by :func:`EMRegModule.core.navigation.write_navigation_csv`; read by the report and the 3D Slicer bundle.
+"""``OUT/navigation.csv`` (``time_s,x_mm,y_mm,z_mm,label,status``, then the guidance columns with a plan; positions
+in image space, LPS mm): written by :func:`write_navigation_csv` from a
+:class:`~EMRegModule.core.navigation.NavigationResult`; read by the report and the 3D Slicer bundle.
 The numbers are parsed by ``numpy.loadtxt`` (a full recording: ~20 ms instead of ~0.1 s row by row); a file
 it cannot take (quoted labels, ragged rows) is read row by row with :mod:`csv`, with the same result.
 """
@@ -9,13 +9,19 @@ from __future__ import annotations
 
 import csv
 import io
+import os
 from pathlib import Path
 
 import numpy as np
 
+from ..core.navigation import NavigationResult
 from ..errors import EMRegError
+from .atomic import atomic_path
 
 POSITION_COLUMNS = ("x_mm", "y_mm", "z_mm")
+#: ``status`` (added): the pose's status, ``OK`` or ``INVALID`` (PLUS's TransformStatus names; see
+#: :mod:`EMRegModule.core.checkpoints`); the spec's five columns come first, unchanged.
+NAVIGATION_HEADER = "time_s,x_mm,y_mm,z_mm,label,status"
 
 
 def read_navigation_csv(path: Path) -> tuple[np.ndarray, list[str]]:
@@ -73,3 +79,37 @@ def read_guidance_columns(path: Path) -> dict[str, np.ndarray] | None:
         raise EMRegError(f"{path}: navigation CSV holds a non-numeric guidance value") from None
     series["ok"] = np.array([(r.get("status") or "OK") == "OK" for r in rows])
     return series
+
+
+def format_navigation_csv(result: NavigationResult) -> str:
+    """``time_s,x_mm,y_mm,z_mm,label,status`` text, one row per probe sample (positions in LPS mm), followed by
+    :data:`GUIDANCE_COLUMNS` (mm, degrees; empty where undefined) when the result has guidance numbers."""
+    position = result.position_mm
+    status = ["OK"] * len(result) if result.status is None else result.status.tolist()
+    rows = zip(result.time_s.tolist(), position[:, 0].tolist(), position[:, 1].tolist(), position[:, 2].tolist(),
+               result.label.tolist(), status, strict=True)
+    lines = [NAVIGATION_HEADER if result.guidance is None else ",".join((NAVIGATION_HEADER, *GUIDANCE_COLUMNS))]
+    lines.extend(f"{t:.4f},{x:.4f},{y:.4f},{z:.4f},{_csv_label(label)},{s}" for t, x, y, z, label, s in rows)
+    if result.guidance is not None:
+        numbers = result.guidance
+        extra = zip(*(getattr(numbers, name).tolist() for name in GUIDANCE_COLUMNS), strict=True)
+        lines[1:] = [f"{line},{guidance_fields(values)}" for line, values in zip(lines[1:], extra, strict=True)]
+    return "\n".join(lines) + "\n"
+
+
+def guidance_fields(values: tuple[float, ...] | list[float]) -> str:
+    """The guidance columns of one row: each number with 4 decimals, empty where it is undefined (NaN)."""
+    return ",".join("" if v != v else f"{v:.4f}" for v in values)
+
+
+def _csv_label(label: object) -> str:
+    text = "" if label is None else str(label)
+    if any(c in text for c in ',"\n'):
+        return '"' + text.replace('"', '""') + '"'
+    return text
+
+
+def write_navigation_csv(result: NavigationResult, path: str | os.PathLike[str]) -> None:
+    """Write ``navigation.csv`` atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(format_navigation_csv(result), encoding="utf-8")

@@ -27,6 +27,7 @@ from typing import Any
 from .. import __version__
 from ..errors import EMRegError
 from ..names import RUN_JSON
+from .atomic import read_json
 
 #: The manifest of an output folder (and the record of the last ``emreg run`` into it).
 _CHUNK = 1 << 22
@@ -197,8 +198,6 @@ def read_manifest(folder: str | os.PathLike[str]) -> dict[str, Any] | None:
     objects) is an :class:`EMRegError`: it is what tells a run's own files from stale, copied or edited ones,
     so it is never treated as absent (that would turn the check off).
     """
-    from .atomic import read_json
-
     path = Path(folder) / RUN_JSON
     if not os.path.lexists(path):
         return None
@@ -286,8 +285,6 @@ def _check_uses(path: Path, provenance: Provenance) -> None:
 def _embedded(path: Path) -> Provenance | None:
     if path.suffix != ".json":
         return None
-    from .atomic import read_json
-
     try:
         document = read_json(path, "output")
     except EMRegError:

@@ -19,6 +19,7 @@ from ..core.tracking import TrackingRecording
 from ..errors import EMRegError
 from ..names import RECORDING_SUFFIXES  # in order of preference (the spec's CSV first)
 from ..settings import Settings
+from .sequence_folder import is_sequence_folder, read_sequence_folder
 from .sequence_metafile import (
     DEFAULT_PROBE_TRANSFORM,
     DEFAULT_REFERENCE_TRANSFORM,
@@ -64,8 +65,6 @@ def read_recording(path: str | os.PathLike[str], settings: Settings | Mapping[st
             names["probe_transform"] = None  # ProbeToTracker, or the tool of a file with two transforms
         return read_sequence_metafile(path, **names)
     if Path(path).is_dir():  # 3D Slicer's recording: one sequence file per transform
-        from .sequence_folder import read_sequence_folder
-
         return read_sequence_folder(path, **_names(settings, reference_port, probe_port))
     return read_tracking_csv(path)
 
@@ -104,6 +103,4 @@ def find_recording(folder: str | os.PathLike[str], stem: str) -> Path | None:
         candidate = folder / f"{stem}{suffix}"
         if candidate.is_file():
             return candidate
-    from .sequence_folder import is_sequence_folder
-
     return folder / stem if is_sequence_folder(folder / stem) else None

@@ -20,10 +20,10 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from ..core.calibration import FrameCalibration, read_frame_calibration
-from ..core.detection.result import DetectionResult, read_detection
-from ..core.evaluation import Evaluation, read_evaluation
-from ..core.registration import RegistrationResult, read_registration
+from ..core.calibration import FrameCalibration
+from ..core.detection.result import DetectionResult
+from ..core.evaluation import Evaluation
+from ..core.registration import RegistrationResult
 from ..errors import EMRegError
 from ..names import (
     CHECKPOINTS_JSON,
@@ -41,8 +41,12 @@ from ..names import (
 )
 from ..stages import made_before_export
 from .atomic import read_json
+from .calibration_json import read_frame_calibration
+from .evaluation_json import read_evaluation
+from .markers_json import read_detection
 from .navigation_csv import read_guidance_columns, read_navigation_csv
 from .provenance import check_belongs
+from .registration_files import read_registration
 
 T = TypeVar("T")
 
@@ -111,7 +115,7 @@ def read_run_folder(out_dir: str | os.PathLike[str], manifest: Mapping[str, Any]
                     max_fre_mm: float = math.inf, tolerant: bool = True) -> RunFolder:
     """Read the stage outputs of OUT (``manifest``: its ``run.json``, from :func:`read_manifest`).
 
-    ``registration.json`` is always checked (:func:`~EMRegModule.core.registration.read_registration`: finite, rigid,
+    ``registration.json`` is always checked (:func:`~.registration_files.read_registration`: finite, rigid,
     FRE at most ``max_fre_mm``, mm) and one that fails raises: it is never shown as if it could be trusted. The
     other files: ``tolerant``, one that its reader turns down is None with a note; else it raises
     :class:`EMRegError`. ``checkpoints.json`` that cannot be read is None (it only adds a chart).

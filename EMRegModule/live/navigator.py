@@ -32,6 +32,7 @@ from typing import TextIO
 
 import numpy as np
 
+from ..core.checkpoints import Checkpoint
 from ..core.frames import LPS_TO_RAS
 from ..core.navigation import probe_to_image as probe_to_image_pose
 from ..devices import igtl_status as st
@@ -394,8 +395,6 @@ class LiveNavigator(_WatchedPublisher):
 
     def _announce_trust(self, events: list) -> None:
         """A STATUS ``Checkpoint`` and a terminal line per checkpoint result or reference jump."""
-        from ..core.checkpoints import Checkpoint
-
         for event in events:
             if isinstance(event, Checkpoint):
                 text = event.describe(self.trust.settings.max_checkpoint_error_mm)

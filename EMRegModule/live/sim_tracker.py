@@ -13,13 +13,13 @@ from ..devices.aurora import protocol as ndi
 from ..devices.simulator.aurora import AuroraSimulator, parse_tools
 from ..devices.simulator.faults import AuroraFaults, FaultPlan
 from ..devices.simulator.scene import BuiltinScene, ReplayScene
+from ..devices.simulator.tracker_flags import parse_distortion, parse_volume
 from ..devices.simulator.trakstar import TrackerSimulator
 from ..devices.trakstar.driver import sensors_from_list
 from ..errors import EMRegError
 from ..io.atomic import atomic_write_text
 from ..io.recording import read_recording
 from ..names import DEFAULT_TRAKSTAR_BAUD
-from ..simulation.tracker_flags import parse_distortion, parse_volume
 from .loop import run_until_stopped
 
 
@@ -77,7 +77,7 @@ def _scene(options: SimulatorOptions):
 
 def _flags(options: SimulatorOptions) -> tuple:
     """(distortion model, measurement volume) of ``--distortion`` / ``--volume`` (None each when not given),
-    checked before the simulator opens its pty (:mod:`EMRegModule.simulation.tracker_flags`)."""
+    checked before the simulator opens its pty (:mod:`EMRegModule.devices.simulator.tracker_flags`)."""
     if options.distortion is None and options.volume is None:
         return None, None
     if options.volume is not None and options.model != "aurora":

@@ -17,9 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.navigation import GUIDANCE_COLUMNS, guidance_fields
+from ..core.tracking import TrackingRecording
 from ..core.transforms import rotation_to_angles
 from ..devices.samples import SensorSample
+from ..io.atomic import atomic_write_text
+from ..io.navigation_csv import GUIDANCE_COLUMNS, guidance_fields
+from ..io.sequence_metafile import format_sequence_metafile
 from ..io.tracking_csv import HEADER_ANGLES
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 
@@ -114,10 +117,6 @@ class SequenceRecordingWriter(RecordingWriter):
         if not was_open:
             return
         if self._samples:
-            from ..core.tracking import TrackingRecording
-            from ..io.atomic import atomic_write_text
-            from ..io.sequence_metafile import format_sequence_metafile
-
             time_s, sensor, position, rotation, quality, status = zip(*self._samples, strict=True)
             recording = TrackingRecording(np.array(time_s), np.array(sensor), np.array(position).reshape(-1, 3),
                                           np.array(rotation).reshape(-1, 3, 3), np.array(quality, dtype=float),

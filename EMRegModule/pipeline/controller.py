@@ -45,11 +45,11 @@ if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only wh
     from ..core.detection import DetectionResult
     from ..core.error_model import ErrorModel
     from ..core.evaluation import Evaluation
+    from ..core.fiducials import Fiducials
     from ..core.navigation import NavigationResult
     from ..core.registration import RegistrationResult
     from ..core.tool import ToolCalibration
     from ..core.tracking import TrackingRecording
-    from ..io.fiducials import Fiducials
 
 
 class EMRegController:
@@ -160,9 +160,9 @@ class EMRegController:
 
     def load_tool(self, path: str | os.PathLike[str]) -> ToolCalibration | None:
         """Use the tool of a tool file (``tool_calibration.json``, ITK transform, PLUS device set;
-        :func:`EMRegModule.core.tool.read_tool`), or ``auto`` (None: the tip is solved when the frame is calibrated);
-        drops the frame calibration and what follows."""
-        from ..core.tool import read_tool
+        :func:`EMRegModule.io.tool_files.read_tool`), or ``auto`` (None: the tip is solved when the frame is
+        calibrated); drops the frame calibration and what follows."""
+        from ..io.tool_files import read_tool
 
         if str(path) == "auto":
             self.set_tool(None)
@@ -361,7 +361,7 @@ class EMRegController:
 
     def load_detection(self, path: str | os.PathLike[str]) -> DetectionResult:
         """Use the markers of a ``markers.json`` (file or folder), checked to belong with its folder."""
-        from ..core.detection import read_detection
+        from ..io.markers_json import read_detection
 
         path = Path(path)
         path = path / MARKERS_JSON if path.is_dir() else path
@@ -372,7 +372,7 @@ class EMRegController:
 
     def load_frame_calibration(self, path: str | os.PathLike[str]) -> FrameCalibration:
         """Use the points of a ``frame_calibration.json``, checked to belong with its folder."""
-        from ..core.calibration import read_frame_calibration
+        from ..io.calibration_json import read_frame_calibration
 
         calibration = read_frame_calibration(path)
         self.recorder.read_output(FRAME_CALIBRATION_JSON, Path(path), calibration.provenance)
@@ -383,7 +383,7 @@ class EMRegController:
         """Use the transform of a ``registration.json``, checked as every consumer checks it (finite, rigid,
         FRE within ``[registration] max_fre_mm``) and to belong with its folder (a stale registration left
         in a reused output folder is refused)."""
-        from ..core.registration import read_registration
+        from ..io.registration_files import read_registration
 
         path = Path(path)
         path = path / REGISTRATION_JSON if path.is_dir() else path
@@ -588,12 +588,13 @@ def _run_tre_map(controller: EMRegController, case: Case, folder: OutputFolder, 
     model = error_model(results.registration, controller.settings)
     if model is None or results.detection is None:  # the map covers the CT's space: none without a CT
         return
-    from ..core.tre_map import write_tre_map
+    from ..core.tre_map import predicted_tre_map
+    from ..io.tre_map import write_tre_map
 
     evaluation = results.evaluation
     tracking_rms = evaluation.tre.tracking_rms_mm if evaluation is not None and evaluation.tre else None
-    write_tre_map(folder.path / TRE_MAP_NRRD, model, results.detection.image,
-                  None if tracking_rms is None else tracking_rms**2)
+    write_tre_map(folder.path / TRE_MAP_NRRD, predicted_tre_map(model, results.detection.image,
+                                                                None if tracking_rms is None else tracking_rms**2))
     controller.recorder.record(folder, "tre_map", controller.recorder.provenance("tre_map"))
 
 

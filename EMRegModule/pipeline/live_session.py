@@ -21,12 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.checkpoints import TrustMonitor, markers_beside, pinholes_from_detection, write_checkpoints
+from ..core.checkpoints import TrustMonitor, pinholes_from_detection
 from ..core.detection.result import DetectionResult
 from ..core.guidance import GuidanceReport, predicted_at, shaft_in_tip
-from ..core.plan import check_plan_in_image, read_plan
-from ..core.registration import RegistrationResult, read_registration
-from ..core.tool import ToolCalibration, read_tool
+from ..core.plan import check_plan_in_image
+from ..core.registration import RegistrationResult
+from ..core.tool import ToolCalibration
 from ..devices.device_url import parse_device_url
 from ..devices.igtl_server import IGTLServer
 from ..devices.link_quality import guard_for
@@ -34,7 +34,12 @@ from ..devices.port_check import SensorPortsError
 from ..devices.sources import open_source
 from ..errors import EMRegError
 from ..io.atomic import atomic_write_json
+from ..io.checkpoints_json import write_checkpoints
+from ..io.markers_json import markers_beside
+from ..io.plan_markups import read_plan
 from ..io.provenance import check_belongs
+from ..io.registration_files import read_registration
+from ..io.tool_files import read_tool
 from ..live.guide import LiveGuide, closest_numbers
 from ..live.loop import (
     LiveOptions,

@@ -41,9 +41,9 @@ class Planner:
         self.plan: Plan | None = None
 
     def load(self, path: str | os.PathLike[str]) -> Plan:
-        """Use the plan of a Slicer markups file (:func:`EMRegModule.core.plan.read_plan`: a Line Entry -> Target,
+        """Use the plan of a Slicer markups file (:func:`EMRegModule.io.plan_markups.read_plan`: a Line Entry -> Target,
         points labelled Entry and Target, or one target point; LPS or RAS as the file declares)."""
-        from ..core.plan import read_plan
+        from ..io.plan_markups import read_plan
 
         plan = read_plan(path)
         self.set(plan)

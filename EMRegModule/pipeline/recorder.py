@@ -117,7 +117,7 @@ class RunRecorder:
 
 
 def _write_detection(results: WorkflowResults, out: Path, provenance: Provenance) -> None:
-    from ..core.detection import write_detection
+    from ..io.markers_json import write_detection
 
     results.require(detection=results.detection)
     results.detection.provenance = provenance.to_json()
@@ -125,19 +125,19 @@ def _write_detection(results: WorkflowResults, out: Path, provenance: Provenance
 
 
 def _write_frame_calibration(results: WorkflowResults, out: Path, provenance: Provenance) -> None:
-    from ..core.calibration import write_frame_calibration
+    from ..io.calibration_json import write_frame_calibration
 
     results.require(frame_calibration=results.frame_calibration)
     results.frame_calibration.provenance = provenance.to_json()
     write_frame_calibration(results.frame_calibration, out / names.FRAME_CALIBRATION_JSON)
     if results.frame_calibration.solved_tool is not None:  # --tool auto: the tip solved, for later commands
-        from ..core.tool import write_tool_calibration
+        from ..io.tool_files import write_tool_calibration
 
         write_tool_calibration(results.frame_calibration.solved_tool, out)
 
 
 def _write_registration(results: WorkflowResults, out: Path, provenance: Provenance) -> None:
-    from ..core.registration import write_registration
+    from ..io.registration_files import write_registration
 
     results.require(registration=results.registration)
     results.registration.provenance = provenance.to_json()
@@ -146,12 +146,12 @@ def _write_registration(results: WorkflowResults, out: Path, provenance: Provena
 
 def _write_navigation(results: WorkflowResults, out: Path, provenance: Provenance) -> None:
     """``navigation.csv`` (its provenance lives in the folder's ``run.json``) and ``checkpoints.json``."""
-    from ..core.navigation import write_navigation_csv
+    from ..io.navigation_csv import write_navigation_csv
 
     results.require(navigation=results.navigation)
     write_navigation_csv(results.navigation, out / names.NAVIGATION_CSV)
     if results.checkpoints is not None:
-        from ..core.checkpoints import write_checkpoints
+        from ..io.checkpoints_json import write_checkpoints
 
         results.checkpoints.provenance = provenance.to_json()
         write_checkpoints(results.checkpoints, out / names.CHECKPOINTS_JSON)
@@ -163,7 +163,7 @@ def _write_navigation(results: WorkflowResults, out: Path, provenance: Provenanc
 
 
 def _write_evaluation(results: WorkflowResults, out: Path, provenance: Provenance) -> None:
-    from ..core.evaluation import write_evaluation
+    from ..io.evaluation_json import write_evaluation
 
     results.require(evaluation=results.evaluation)
     results.evaluation.provenance = provenance.to_json()

@@ -20,10 +20,10 @@ if TYPE_CHECKING:
     from ..core.checkpoints import CheckpointReport
     from ..core.detection import DetectionResult
     from ..core.evaluation import Evaluation
+    from ..core.fiducials import Fiducials
     from ..core.guidance import GuidanceReport
     from ..core.navigation import NavigationResult
     from ..core.registration import RegistrationResult
-    from ..io.fiducials import Fiducials
 
 
 class WorkflowState(enum.Enum):

@@ -26,9 +26,8 @@ import numpy as np
 
 from .. import __version__
 from ..core.handeye import HandEyeResult, calibrate_hand_eye
-from ..core.registration import read_registration
 from ..core.robot_target import RobotTarget, robot_target
-from ..core.tool import check_tip_to_probe, read_tool
+from ..core.tool import check_tip_to_probe
 from ..core.transforms import check_rigid
 from ..devices.device_url import SCHEMES
 from ..devices.sources import open_source
@@ -39,6 +38,8 @@ from ..io.itk_transform import write_slicer_frame_transform
 from ..io.markups import read_markups
 from ..io.provenance import file_sha256
 from ..io.recording import read_recording
+from ..io.registration_files import read_registration
+from ..io.tool_files import read_tool
 from ..names import ROBOT_CALIBRATION_JSON, ROBOT_TARGET_JSON, SENSOR_TO_FLANGE_H5, TRACKER_TO_BASE_H5
 from ..settings import Settings
 

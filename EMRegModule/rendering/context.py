@@ -29,18 +29,18 @@ it to image space (CT LPS, mm), honouring the CT's origin, spacing and direction
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..core.ct import index_to_physical_matrix
 from ..core.transforms import apply_transform
-from ..io.image import index_to_physical_matrix
+from ..io.ct_handle import CTHandle
 
 if TYPE_CHECKING:
     import SimpleITK as sitk
-
-    from ..io.ct_handle import CTHandle
 
 #: CT values below this (HU) are counted as air by :func:`otsu_threshold` (padding outside the field of view).
 AIR_HU = -1024.0
@@ -109,8 +109,6 @@ def binned_ct(source: sitk.Image | CTHandle, max_voxels: int = MAX_CONTEXT_VOXEL
     made. ``on_slices(n)`` is called whenever slices ``0 .. n-1`` are known to be read (other work on them can
     follow the read too).
     """
-    from ..io.ct_handle import CTHandle
-
     handle = source if isinstance(source, CTHandle) else CTHandle.of_image(source)
     fill = None if handle.is_complete else handle
     image = handle.geometry
@@ -132,8 +130,6 @@ def binned_ct(source: sitk.Image | CTHandle, max_voxels: int = MAX_CONTEXT_VOXEL
                        columns, values[k])
 
     if fill is None and nk > 1:  # all voxels there: two threads (numpy lets go of the GIL)
-        from concurrent.futures import ThreadPoolExecutor
-
         with ThreadPoolExecutor(2) as pool:
             list(pool.map(bin_blocks, (range(0, nk // 2), range(nk // 2, nk))))
     else:
@@ -189,7 +185,7 @@ def context_surface(binned: BinnedCT, iso_value: float | None = None, clean: boo
                     min_piece_fraction: float = MIN_PIECE_FRACTION) -> ContextSurface:
     """The iso-surface of a binned CT in image space, without thin and small artefact pieces (module docstring)."""
     import pyvista as pv
-    from scipy import ndimage  # here: a report whose surface was kept (report.ct_memo) needs none of scipy
+    from scipy.ndimage import binary_dilation, binary_opening, label  # not for a surface kept (report.ct_memo)
 
     values = binned.values
     otsu = iso_value is None
@@ -199,8 +195,8 @@ def context_surface(binned: BinnedCT, iso_value: float | None = None, clean: boo
         binned.index_to_image[:3, :3], axis=0))), otsu=otsu)
     if clean and values.size:
         inside = values > iso_value
-        opened = ndimage.binary_opening(inside, structure=np.ones((3, 3, 3), dtype=bool))
-        labels, count = ndimage.label(opened)
+        opened = binary_opening(inside, structure=np.ones((3, 3, 3), dtype=bool))
+        labels, count = label(opened)
         sizes = np.bincount(labels.ravel(), minlength=count + 1)[1:]
         keep = sizes >= min_piece_fraction * sizes.max() if count else np.zeros(0, dtype=bool)
         kept = np.concatenate([[False], keep])[labels]
@@ -208,11 +204,11 @@ def context_surface(binned: BinnedCT, iso_value: float | None = None, clean: boo
         result.dropped_thin_voxels = int(np.count_nonzero(inside) - np.count_nonzero(opened))
         result.inside_voxels = int(np.count_nonzero(inside))
         # original values on the kept pieces and the air around them; everything else is air
-        shown = kept | (ndimage.binary_dilation(kept, structure=np.ones((3, 3, 3), dtype=bool)) & ~inside)
+        shown = kept | (binary_dilation(kept, structure=np.ones((3, 3, 3), dtype=bool)) & ~inside)
         floor = np.float32(min(float(values.min()), iso_value - 1.0))
         values = np.where(shown, values, floor)
     elif values.size:
-        result.pieces = int(ndimage.label(values > iso_value)[1])
+        result.pieces = int(label(values > iso_value)[1])
     grid = pv.ImageData(dimensions=values.shape[::-1])
     grid.point_data["ct"] = np.ascontiguousarray(values, dtype=np.float32).ravel()
     surface = grid.contour([iso_value], scalars="ct", method="flying_edges")

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..core.transforms import apply_transform
+from ..interrupts import vtk_imports_uninterrupted
 from ..marker_model import MarkerModel
 from .colors import CALIBRATION, DEFAULT_COLORMAP, GREY, NAVIGATION, SENSOR, TARGET, colormap_table, residual_range
 from .context import MAX_CONTEXT_VOXELS, binned_ct, context_surface
@@ -173,8 +174,6 @@ class FrameSceneRenderer:
     """
 
     def __init__(self, scene: FrameScene, window_size: tuple[int, int] = (960, 720), focus: str = "markers") -> None:
-        from ..interrupts import vtk_imports_uninterrupted
-
         vtk_imports_uninterrupted()  # the Plotter loads VTK's rendering modules
         import pyvista as pv
 

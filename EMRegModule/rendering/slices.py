@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from ..core.ct import index_to_physical_matrix
 from ..core.transforms import apply_transform, invert_rigid
 from ..marker_model import MarkerModel
 from .colors import CALIBRATION, PAIRED, SENSOR, UNPAIRED
@@ -57,7 +58,6 @@ class CTSampler:
         """``image``: the CT, or its geometry when ``array`` holds its voxels (k, j, i)."""
         import SimpleITK as sitk
 
-        from ..io.image import index_to_physical_matrix
 
         self.array = sitk.GetArrayViewFromImage(image) if array is None else array  # (k, j, i)
         self.image_to_index = np.linalg.inv(index_to_physical_matrix(image))

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..core.ct import image_geometry
 from ..core.registration import RegistrationResult, RegistrationSettings, flag_outliers
-from ..io.image import image_geometry
 from .derived import MarkerRow
 from .inputs import ReportInputs
 

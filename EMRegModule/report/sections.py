@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..io.image import image_geometry
+from ..core.ct import image_geometry
 from .derived import finite_or_none, predicted_tre_by_target, tre_figures
 from .figures import Figure, ReportData, read_checkpoints
 from .html import CSS, DASH, esc, figure_html, note, num, table, vec

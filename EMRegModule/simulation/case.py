@@ -14,10 +14,12 @@ from typing import Any
 
 import numpy as np
 
+from ..core.tool import ToolCalibration
 from ..core.transforms import apply_transform, axis_angle_to_rotation, invert_rigid, random_rotation
 from ..errors import EMRegError
 from ..io.atomic import atomic_write_json, atomic_write_text, read_json
 from ..io.markups import write_markups
+from ..io.tool_files import write_tool_calibration
 from ..io.tracking_csv import write_tracking_csv
 from ..marker_model import MarkerModel
 from ..names import CT_FILE_NAMES, CT_FOLDER_NAME, TARGETS_FILE
@@ -27,6 +29,7 @@ from .distortion import FieldDistortion, nonrigid_errors, place_object, truth_at
 from .frame import REFERENCE_SENSOR_DIAMETER_MM, REFERENCE_SENSOR_LENGTH_MM, Phantom, build_phantom
 from .options import SimulationOptions, resolve_options
 from .shapes import pose
+from .stylus import shaft_rotation, simulate_pivot_recording
 from .tracking import NoiseModel, ReferenceSlip, Visit, apply_probe_convention, probe_rotation_into, simulate_session
 
 # independent random streams, so that e.g. a new spacing does not change the recordings
@@ -303,8 +306,6 @@ def _tool_visit(probe_rotation: np.ndarray, tip_position: np.ndarray, opts: Simu
                 label: str, name: str, swing_deg: float) -> Visit:
     """A stylus touch: the sensor turned so that its shaft (sensor to tip) runs along ``probe_rotation``'s +X (the
     pinhole probe's way in), placed so that the tip (``opts.tool_tip_mm``) is at ``tip_position``."""
-    from .stylus import shaft_rotation
-
     tip_mm = np.asarray(opts.tool_tip_mm, dtype=float)
     rotation = probe_rotation @ shaft_rotation(tip_mm)
     return Visit(pose(rotation, np.asarray(tip_position) - rotation @ tip_mm), duration_s, label, name,
@@ -493,9 +494,6 @@ def _case_toml(seed: int, difficulty: str, opts: SimulationOptions, model: Marke
 def _write_tool(out_dir: Path, seed: int, opts: SimulationOptions) -> None:
     """A stylus case's ``tool_calibration.json`` (the true tip) and pivot recording ``pivot.csv``; removed
     (stale) for the pinhole probe."""
-    from ..core.tool import ToolCalibration, write_tool_calibration
-    from .stylus import simulate_pivot_recording
-
     if opts.tool_tip_mm is None:
         for name in ("tool_calibration.json", "TipToProbe.h5", "pivot.csv"):
             (out_dir / name).unlink(missing_ok=True)

@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..core.em_field import coil_field, induced_coupling, position_error
 from ..core.transforms import apply_transform, fit_rigid, invert_rigid
@@ -91,7 +92,7 @@ class FieldDistortion(TimedField):
 
     def distortion_mm(self, position_mm: np.ndarray) -> float:
         """The size (mm) of the position error at full strength at a sensor at ``position_mm`` (3,, Tracker frame):
-        the :class:`~EMRegModule.simulation.tracker_flags.DistortionModel` the live simulators' flags (trakSTAR
+        the :class:`~EMRegModule.devices.simulator.tracker_flags.DistortionModel` the live simulators' flags (trakSTAR
         METAL byte, Aurora RMS error) are made from, so the flags follow the same object that moves the poses."""
         error = position_error(np.asarray(position_mm, dtype=float).reshape(1, 3), self.object_mm, self.polarisability)
         return float(np.linalg.norm(error[0]))
@@ -117,8 +118,6 @@ class FieldDistortion(TimedField):
 
 def scaled_rotation(rotations: np.ndarray, fraction: np.ndarray) -> np.ndarray:
     """Rotations (K, 3, 3) turned by ``fraction`` (K,) of their angle about their own axis."""
-    from scipy.spatial.transform import Rotation
-
     rotvec = Rotation.from_matrix(rotations).as_rotvec() * np.asarray(fraction, dtype=float)[:, None]
     return Rotation.from_rotvec(rotvec).as_matrix()
 

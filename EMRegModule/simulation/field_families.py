@@ -31,6 +31,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..core.em_field import coil_field, induced_coupling
 from ..core.transforms import apply_transform
@@ -93,7 +94,6 @@ class SoftIronCuboid:
     def coupling(self, points_mm: np.ndarray) -> np.ndarray:
         """The body's field per coil (K, 3, 3, columns per coil) at points (K, 3)."""
         import magpylib
-        from scipy.spatial.transform import Rotation
 
         applied = coil_field(self.centre_mm[None])[0]  # (3, 3): the coils' fields at the body
         chi = self.axes @ np.diag(self.susceptibility) @ self.axes.T
@@ -138,7 +138,6 @@ class EddyRing:
     def coupling(self, points_mm: np.ndarray) -> np.ndarray:
         """The ring's field per coil (K, 3, 3) at points (K, 3)."""
         import magpylib
-        from scipy.spatial.transform import Rotation
 
         flux = self.flux()
         ring = magpylib.current.Circle(current=1.0, diameter=2 * self.radius_mm / 1000.0,

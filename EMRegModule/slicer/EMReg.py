@@ -440,7 +440,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         """Register onto the defined control points of a markups node (world RAS, as Slicer shows them; kept
         in LPS) instead of CT markers: a rigid point fit of the calibration points, no sensor offset. Checked as a
         fiducials file is (at least 3, unique labels, not on one line); drops the registration."""
-        from EMRegModule.io.fiducials import Fiducials, check_fiducials
+        from EMRegModule.core.fiducials import Fiducials, check_fiducials
         from EMRegModule.slicer_export.nodes import markups_points_lps
 
         labels, positions = markups_points_lps(markupsNode)
@@ -481,7 +481,8 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         """``emreg pivot``: the tool's tip from a pivot recording, written as ``tool_calibration.json`` and
         ``TipToProbe.h5`` into ``outputDirectory`` (default: the output folder, else ``pivot/`` beside the
         recording), then used. Returns the :class:`~EMRegModule.core.tool.ToolCalibration`."""
-        from EMRegModule.core.tool import pivot_calibration, pivot_poses, write_tool_calibration
+        from EMRegModule.core.tool import pivot_calibration
+        from EMRegModule.io.tool_files import pivot_poses, write_tool_calibration
 
         poses, frame, name, _ = pivot_poses(recordingPath, self.controller.settings, self.controller.reference_sensor,
                                             self.controller.probe_sensor)

@@ -308,7 +308,7 @@ def markups_points_lps(node: Any) -> tuple[list[str], np.ndarray]:
 
 def plan_from_markups_node(node: Any) -> Any:
     """The :class:`~EMRegModule.core.guidance.Plan` (LPS mm) of a markups node as
-    :func:`EMRegModule.core.plan.read_plan` reads a
+    :func:`EMRegModule.io.plan_markups.read_plan` reads a
     file: a line node's two points (Entry, Target), else points labelled Entry and Target, or a single point."""
 
     labels, positions = markups_points_lps(node)

@@ -15,11 +15,14 @@ import numpy as np
 
 from ..core.error_model import ErrorModel
 from ..core.evaluation import evaluate_board, evaluate_targets
+from ..core.tool import pivot_calibration
+from ..core.tracking import probe_in_reference
 from ..io.case import open_case
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 from ..rendering.plots import bar_chart, line_chart
 from ..simulation.distortion import nonrigid_errors
 from ..simulation.field_families import DEVELOPMENT, FAMILIES, HELD_OUT, place_field
+from ..simulation.stylus import simulate_pivot_recording
 from .checkpoints import CHECKPOINT_COLUMNS, checkpoint_rows, checkpoint_table
 from .frame import Frame, calibrate_and_register, noise_model, reference_placement, simulate_navigation, with_noise
 
@@ -171,10 +174,6 @@ def _tool_rows(frame: Frame, params: dict, rng: np.random.Generator) -> list[dic
     """One session of a route on the same frame and noise: ``pinhole`` (the paper's probe, depth l solved by FRE)
     or ``pivot`` (a pointer calibrated by a simulated pivot, then touching the pinholes and the targets with its
     tip). Rows: the tip's error, FRE, the registration's RMS error at the targets, the measured end-to-end TRE."""
-    from ..core.tool import pivot_calibration
-    from ..core.tracking import probe_in_reference
-    from ..simulation.stylus import simulate_pivot_recording
-
     noise = noise_model(params.get("noise", 1.0))
     tool, tip_error, true_tip = None, None, None
     if params["route"] == "pivot":

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.calibration import calibrate_frame
-from ..core.detection.result import DetectionResult, read_detection, write_detection
+from ..core.detection.result import DetectionResult
 from ..core.registration import RegistrationResult, register
 from ..core.tracking import TrackingRecording
 from ..core.transforms import (
@@ -34,12 +34,14 @@ from ..core.transforms import (
 )
 from ..errors import EMRegError
 from ..io.case import open_case
+from ..io.markers_json import read_detection, write_detection
 from ..marker_model import MarkerModel
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT, MARKERS_JSON
 from ..pipeline.controller import EMRegController
 from ..settings import Settings
 from ..simulation.case import load_truth, simulate_case
 from ..simulation.distortion import FieldDistortion
+from ..simulation.stylus import shaft_rotation
 from ..simulation.tracking import (
     DwellTruth,
     FieldOnset,
@@ -131,8 +133,6 @@ def _touch(rotation: np.ndarray, point: np.ndarray, tip_mm: np.ndarray | None) -
     ``rotation``'s +X), at ``point``."""
     if tip_mm is None:
         return make_transform(rotation, point)
-    from ..simulation.stylus import shaft_rotation
-
     rotation = rotation @ shaft_rotation(tip_mm)
     return make_transform(rotation, np.asarray(point) - rotation @ tip_mm)
 

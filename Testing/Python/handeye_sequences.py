@@ -199,7 +199,8 @@ def write_targeting_inputs(folder: Path) -> dict:
     the reference sensor's recording ``reference.csv`` (port 1, 300 mm before the field generator), the plan
     ``plan.mrk.json`` (a Line Entry -> Target, LPS) and the needle guide as ``guide.json`` and ``guide.xml``; returns
     the truth (``reference_to_image``, ``reference_to_tracker``, ``entry``, ``target``, ``guide_to_sensor``)."""
-    from EMRegModule.core.registration import RegistrationResult, write_registration
+    from EMRegModule.core.registration import RegistrationResult
+    from EMRegModule.io.registration_files import write_registration
 
     reference_to_image = pose([10.0, -20.0, 150.0], [-40.0, 120.0, -300.0])
     write_registration(RegistrationResult(reference_to_image, 14.0, 0.2, []), folder / "reg")

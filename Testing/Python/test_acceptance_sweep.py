@@ -189,7 +189,7 @@ def test_a_disc_resting_on_the_frame_is_not_taken_for_a_marker(tmp_path):
     into the frame's plastic (or air), where no edge contradicts it. The top must hold marker material."""
     from test_detection_cases import errors_against_truth
 
-    from EMRegModule.core.detection import read_detection
+    from EMRegModule.io.markers_json import read_detection
 
     case = tmp_path / "case"
     simulate_case(case, seed=5, difficulty="hard", spacing_mm=1.25, ct_format="nrrd", n_decoys=8,

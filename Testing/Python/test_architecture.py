@@ -40,6 +40,26 @@ def test_no_import_circle(shape):
     assert shape.circles == []
 
 
+def test_core_imports_only_the_base_and_itself(shape):
+    """Issue 36: the algorithms are pure; no file format, device, workflow or front end reaches into them."""
+    architecture = _architecture()
+    allowed = {i for i, (layer, _) in enumerate(architecture.LAYERS) if layer in ("base", "core")}
+    reached = {(name, target) for name, targets in shape.imports.items() if name.startswith("EMRegModule.core")
+               for target in targets if architecture.layer_of(target) not in allowed}
+    assert reached == set()
+
+
+#: The folders whose imports are all at module top, but for those ``DEFERRED_IMPORTS`` lists with a reason (and
+#: the base modules).
+IMPORTS_AT_TOP = ("core", "io", "devices", "live", "simulation", "studies", "rendering")
+
+
+def test_imports_are_at_module_top_but_for_the_deferred_ones(shape):
+    architecture = _architecture()
+    assert [(name, target) for name, target in shape.inner_imports
+            if name.split(".")[1] in IMPORTS_AT_TOP or architecture.layer_of(name) == 0] == []
+
+
 def test_no_private_name_is_imported_from_another_module(shape):
     assert shape.private_imports == []
 
@@ -65,3 +85,15 @@ def test_the_survey_sees_a_planted_circle_and_an_upward_import(tmp_path):
     assert found.private_imports == [("EMRegModule.cli", "EMRegModule.core.transforms", "_helper")]
     assert found.front_end_reach == [("EMRegModule.cli", "EMRegModule.core.transforms")]
     assert [(name, function) for _, name, function in found.long_functions] == [("EMRegModule.cli", "main")]
+
+
+def test_the_survey_sees_an_import_inside_a_function_unless_deferred(tmp_path):
+    package = tmp_path / "EMRegModule"
+    (package / "core").mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    (package / "core" / "__init__.py").write_text("")
+    (package / "core" / "pivot.py").write_text("def fit():\n    import json\n    import scipy.optimize\n"
+                                                "    from ..errors import EMRegError\n")
+    (package / "errors.py").write_text("")
+    found = _architecture().survey(tmp_path)
+    assert found.inner_imports == [("EMRegModule.core.pivot", "json"), ("EMRegModule.core.pivot", "EMRegModule.errors")]

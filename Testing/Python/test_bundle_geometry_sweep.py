@@ -185,7 +185,7 @@ def _check_volume_at_cts_physical_points(volume_node, ct: sitk.Image) -> None:
     left-handed grid; what must agree is the content at each physical point.)"""
     import slicer.util
 
-    from EMRegModule.io.image import index_to_physical_matrix
+    from EMRegModule.core.ct import index_to_physical_matrix
 
     voxels = slicer.util.arrayFromVolume(volume_node)  # (k, j, i)
     ijk_to_ras = _ijk_to_ras(volume_node)

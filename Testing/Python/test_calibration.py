@@ -9,16 +9,12 @@ import pytest
 from synth_registration import calibration_recording, make_frame
 
 from EMRegModule.cli.main import main
-from EMRegModule.core.calibration import (
-    FrameCalibration,
-    calibrate_frame,
-    read_frame_calibration,
-    write_frame_calibration,
-)
+from EMRegModule.core.calibration import FrameCalibration, calibrate_frame
 from EMRegModule.core.dwell import DwellSettings, find_dwells, good_quality_mask, robust_mean
 from EMRegModule.core.tracking import TrackingRecording
 from EMRegModule.core.transforms import angle_between_deg, make_transform, random_rotation
 from EMRegModule.errors import EMRegError
+from EMRegModule.io.calibration_json import read_frame_calibration, write_frame_calibration
 from EMRegModule.io.tracking_csv import write_tracking_csv
 from EMRegModule.settings import CalibrationSettings, Settings
 

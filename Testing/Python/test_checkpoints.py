@@ -23,15 +23,15 @@ from EMRegModule.core.checkpoints import (
     Pinholes,
     TrustMonitor,
     find_checkpoints,
-    markers_beside,
     pinholes_from_detection,
     pose_status,
     reference_jumps,
 )
 from EMRegModule.core.navigation import navigate_recording
-from EMRegModule.core.registration import read_registration
 from EMRegModule.core.transforms import apply_transform, axis_angle_to_rotation, make_transform
+from EMRegModule.io.markers_json import markers_beside
 from EMRegModule.io.recording import read_recording
+from EMRegModule.io.registration_files import read_registration
 from EMRegModule.settings import NavigationSettings, Settings
 from EMRegModule.simulation.case import simulate_recordings
 

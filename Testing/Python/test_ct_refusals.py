@@ -138,7 +138,7 @@ def test_an_absurd_spacing_or_origin_in_a_nrrd_header_is_refused_before_itk_read
 
 
 def test_a_scanner_sized_spacing_and_origin_pass_the_geometry_check():
-    from EMRegModule.io.ct_checks import check_ct_geometry
+    from EMRegModule.core.ct import check_ct_geometry
 
     image = make_volume()
     image.SetSpacing((0.0005, 0.0005, 0.0008))  # a CT in metres: passed on, and named as such by detection

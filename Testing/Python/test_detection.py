@@ -16,16 +16,11 @@ import pytest
 import SimpleITK as sitk
 from fixtures import phantom as ph
 
-from EMRegModule.core.detection import (
-    DetectionResult,
-    detect_markers,
-    read_detection,
-    settings_from_dict,
-    write_detection,
-)
+from EMRegModule.core.detection import DetectionResult, detect_markers, settings_from_dict
 from EMRegModule.core.detection.pose import edge_samples, fit_pose, surface_distances
 from EMRegModule.core.transforms import angle_between_deg, apply_transform
 from EMRegModule.errors import EMRegError, NoSafeAnswerError
+from EMRegModule.io.markers_json import read_detection, write_detection
 from EMRegModule.io.markups import read_markups
 from EMRegModule.marker_model import MarkerModel
 
@@ -303,10 +298,10 @@ def test_bad_markers_json_is_refused(tmp_path, document, message):
 
 def test_a_marker_cut_by_its_coarse_region_is_regrown():
     """When the coarse pass splits a marker (its region cuts the blob), the whole marker is recovered."""
+    from EMRegModule.core.ct import index_to_physical_matrix
     from EMRegModule.core.detection.detect import _regrown
     from EMRegModule.core.detection.segmentation import Region, blobs_in_region
     from EMRegModule.core.detection.settings import default_settings
-    from EMRegModule.io.image import index_to_physical_matrix
 
     model = MarkerModel()
     geometry = ph.make_image_geometry((60, 60, 60), (0.6, 0.6, 0.6))

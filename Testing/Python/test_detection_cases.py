@@ -18,8 +18,9 @@ from conftest import CI_CASE_OPTIONS, load_truth
 from fixtures import phantom as ph
 
 from EMRegModule.cli.main import main
-from EMRegModule.core.detection import DetectionResult, read_detection
+from EMRegModule.core.detection import DetectionResult
 from EMRegModule.core.transforms import angle_between_deg
+from EMRegModule.io.markers_json import read_detection
 from EMRegModule.io.markups import read_markups
 from EMRegModule.simulation.case import simulate_case
 

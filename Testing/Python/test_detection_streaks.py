@@ -15,7 +15,7 @@ from test_detection_cases import errors_against_truth
 
 from EMRegModule.cli.main import main
 from EMRegModule.core.detection import detect as detect_module
-from EMRegModule.core.detection import read_detection
+from EMRegModule.io.markers_json import read_detection
 from EMRegModule.simulation.case import simulate_case
 
 

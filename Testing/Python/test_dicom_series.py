@@ -20,11 +20,11 @@ from conftest import load_truth
 from dicom_files import TRANSFER_SYNTAXES, convert, make_volume, tools_available, transfer_syntax_uid, uid, write_series
 
 from EMRegModule.cli.main import main
-from EMRegModule.core.detection import read_detection
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.dicom_read import open_dicom_series
 from EMRegModule.io.dicom_series import choose_series, scan_series
 from EMRegModule.io.image import read_ct
+from EMRegModule.io.markers_json import read_detection
 
 
 def _voxels(image: sitk.Image) -> np.ndarray:
@@ -282,8 +282,8 @@ def test_emreg_detect_reads_the_series_without_an_image_with_the_same_markers(ha
     (``voxels_only``: no SimpleITK image of the volume, which SimpleITK fills with zeros before the first slice, nor
     any copy of it), with the same voxels and geometry as the image, and the same markers as a detection that keeps
     the image."""
-    from EMRegModule.core.detection import write_detection
     from EMRegModule.io import dicom_read
+    from EMRegModule.io.markers_json import write_detection
     from EMRegModule.pipeline.controller import EMRegController
 
     kept = EMRegController()

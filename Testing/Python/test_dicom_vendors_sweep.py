@@ -42,9 +42,9 @@ from pydicom.dataelem import DataElement
 from test_detection_cases import errors_against_truth
 
 from EMRegModule.cli.main import main
-from EMRegModule.core.detection import read_detection
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.image import open_ct, read_ct
+from EMRegModule.io.markers_json import read_detection
 
 _TOOLS = tools_available()
 

@@ -19,8 +19,8 @@ from scipy.optimize import least_squares
 from EMRegModule.cli.main import main
 from EMRegModule.core.distortion import DistortionEstimate, estimate_distortion
 from EMRegModule.core.em_field import coil_field, induced_coupling, position_error
-from EMRegModule.core.registration import read_registration
 from EMRegModule.core.transforms import apply_transform, fit_rigid, invert_rigid, make_transform, random_rotation
+from EMRegModule.io.registration_files import read_registration
 from EMRegModule.simulation.case import load_truth, simulate_case
 from EMRegModule.simulation.distortion import FieldDistortion, nonrigid_errors, place_object
 

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 from synth_registration import calibration_recording, make_frame
 
-from EMRegModule.core.evaluation import Evaluation, evaluate, evaluate_board, read_evaluation, write_evaluation
+from EMRegModule.core.evaluation import Evaluation, evaluate, evaluate_board
 from EMRegModule.core.transforms import apply_transform, invert_rigid, make_transform, random_rotation
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.case import open_case
+from EMRegModule.io.evaluation_json import read_evaluation, write_evaluation
 from EMRegModule.io.markups import write_markups
 from EMRegModule.io.tracking_csv import write_tracking_csv
 
@@ -157,7 +158,8 @@ def test_write_evaluation_spec_layout(case_folder, tmp_path):
 
 def test_emreg_evaluate_command(case_folder, tmp_path):
     from EMRegModule.cli.main import main
-    from EMRegModule.core.registration import RegistrationResult, write_registration
+    from EMRegModule.core.registration import RegistrationResult
+    from EMRegModule.io.registration_files import write_registration
 
     folder, frame, *_ = case_folder
     write_registration(RegistrationResult(frame.reference_to_image, 14.0, 0.5, []), tmp_path / "reg")

@@ -25,9 +25,10 @@ import pytest
 from conftest import load_truth
 
 from EMRegModule.cli.main import main
-from EMRegModule.core.calibration import CalibrationPoint, FrameCalibration, write_frame_calibration
+from EMRegModule.core.calibration import CalibrationPoint, FrameCalibration
 from EMRegModule.core.transforms import apply_transform, invert_rigid
 from EMRegModule.errors import EMRegError
+from EMRegModule.io.calibration_json import write_frame_calibration
 from EMRegModule.io.fiducials import FORMAT_FCSV, FORMAT_MARKUPS, FORMAT_PLUS, read_fiducials
 from EMRegModule.io.markups import markups_document
 
@@ -476,7 +477,7 @@ def test_tool_tip_calibration_points_are_fitted_as_they_are():
     """A calibration whose points are a tool's tips (``tool`` set, as the tool calibration leaves it) is fitted as
     it is and says so; a pinhole-probe calibration is taken as a pointer whose tip is its sensor, with a warning."""
     from EMRegModule.core.fiducial_registration import register_fiducials
-    from EMRegModule.io.fiducials import Fiducials
+    from EMRegModule.core.fiducials import Fiducials
 
     reference_to_image = np.eye(4)
     reference_to_image[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])

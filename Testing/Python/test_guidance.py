@@ -21,12 +21,14 @@ from test_navigate_tool import (
 
 from EMRegModule.cli.main import main
 from EMRegModule.core.guidance import RADIUS_95_PER_RMS, TOOL_ROTATION_SIGMA_DEG, Plan, guidance, shaft_in_tip
-from EMRegModule.core.navigation import GUIDANCE_COLUMNS, NAVIGATION_HEADER, navigate_recording
-from EMRegModule.core.plan import check_plan_in_image, read_plan
-from EMRegModule.core.registration import read_registration
+from EMRegModule.core.navigation import navigate_recording
+from EMRegModule.core.plan import check_plan_in_image
 from EMRegModule.core.transforms import make_transform, random_rotation
 from EMRegModule.errors import EMRegError
+from EMRegModule.io.navigation_csv import GUIDANCE_COLUMNS, NAVIGATION_HEADER
+from EMRegModule.io.plan_markups import read_plan
 from EMRegModule.io.recording import read_recording
+from EMRegModule.io.registration_files import read_registration
 from EMRegModule.pipeline.controller import error_model
 from EMRegModule.settings import Settings, load_settings
 

@@ -7,12 +7,13 @@ import pytest
 import SimpleITK as sitk
 
 from EMRegModule.core import transforms as tf
+from EMRegModule.core.ct import image_geometry, index_to_physical_matrix
 from EMRegModule.core.frames import LPS_TO_RAS
 from EMRegModule.core.tracking import TrackingRecording, probe_in_reference
 from EMRegModule.errors import EMRegError
 from EMRegModule.io.atomic import atomic_path, atomic_write_json
 from EMRegModule.io.case import open_case
-from EMRegModule.io.image import image_geometry, index_to_physical_matrix, read_ct
+from EMRegModule.io.image import read_ct
 from EMRegModule.io.itk_transform import read_slicer_linear_transform, write_slicer_linear_transform
 from EMRegModule.io.markups import read_markups, write_markups
 from EMRegModule.io.tracking_csv import format_tracking_csv, parse_tracking_csv, read_tracking_csv, write_tracking_csv
@@ -252,9 +253,9 @@ def test_atomic_files_get_the_usual_permissions(tmp_path):
 
 
 def test_pixel_types_are_simpleitks_own():
-    """EMReg names SimpleITK's voxel types without loading SimpleITK where it needs no image (io.pixel_types):
+    """EMReg names SimpleITK's voxel types without loading SimpleITK where it needs no image (core.pixel_types):
     the same values and names as SimpleITK's."""
-    from EMRegModule.io import pixel_types
+    from EMRegModule.core import pixel_types
 
     for name in ("Int8", "UInt8", "Int16", "UInt16", "Int32", "UInt32", "Int64", "UInt64", "Float32", "Float64"):
         value = getattr(pixel_types, name.upper())

@@ -31,11 +31,11 @@ from test_navigate_tool import (
 
 from EMRegModule.cli.main import main
 from EMRegModule.core.frames import LPS_TO_RAS
-from EMRegModule.core.navigation import GUIDANCE_COLUMNS, NAVIGATION_HEADER
-from EMRegModule.core.plan import read_plan
 from EMRegModule.core.tracking import TrackingRecording
 from EMRegModule.devices.aurora.driver import FIVE_DOF_X_TO_NDI
 from EMRegModule.devices.igtl_client import IGTLReceiver
+from EMRegModule.io.navigation_csv import GUIDANCE_COLUMNS, NAVIGATION_HEADER
+from EMRegModule.io.plan_markups import read_plan
 from EMRegModule.io.recording import read_recording
 from EMRegModule.io.tracking_csv import write_tracking_csv
 from EMRegModule.live.guide import LiveGuide, trajectory_to_image

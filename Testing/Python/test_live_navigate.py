@@ -17,7 +17,7 @@ import pyigtl
 import pytest
 from polling import announced_igtl_port, wait_for
 
-from EMRegModule.cli import main as cli
+from EMRegModule.cli.main import main as cli
 from EMRegModule.core.frames import LPS_TO_RAS
 from EMRegModule.core.navigation import navigate_recording
 from EMRegModule.core.tracking import TrackingRecording

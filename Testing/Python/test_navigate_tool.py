@@ -20,9 +20,10 @@ from conftest import SMALL_CASE_OPTIONS
 
 from EMRegModule.cli.main import main
 from EMRegModule.core.frames import LPS_TO_RAS
-from EMRegModule.core.navigation import NAVIGATION_HEADER, navigate_recording
-from EMRegModule.core.registration import read_registration
+from EMRegModule.core.navigation import navigate_recording
+from EMRegModule.io.navigation_csv import NAVIGATION_HEADER
 from EMRegModule.io.recording import read_recording
+from EMRegModule.io.registration_files import read_registration
 from EMRegModule.io.tracking_csv import write_tracking_csv
 from EMRegModule.pipeline.controller import error_model
 from EMRegModule.settings import Settings

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 from synth_registration import calibration_recording, make_frame
 
-from EMRegModule.core.navigation import navigate_recording, probe_to_image, write_navigation_csv
+from EMRegModule.core.navigation import navigate_recording, probe_to_image
 from EMRegModule.core.tracking import TrackingRecording
 from EMRegModule.core.transforms import apply_transform, invert_rigid, make_transform, random_rotation
 from EMRegModule.errors import EMRegError
+from EMRegModule.io.navigation_csv import write_navigation_csv
 from EMRegModule.io.tracking_csv import write_tracking_csv
 
 
@@ -86,7 +87,8 @@ def test_navigation_csv(tmp_path, case):
 
 def test_emreg_navigate_replay(tmp_path, case):
     from EMRegModule.cli.main import main
-    from EMRegModule.core.registration import RegistrationResult, write_registration
+    from EMRegModule.core.registration import RegistrationResult
+    from EMRegModule.io.registration_files import write_registration
 
     frame, recording, _ = case
     write_registration(RegistrationResult(frame.reference_to_image, 14.0, 0.5, []), tmp_path / "reg")

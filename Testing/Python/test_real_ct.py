@@ -24,8 +24,8 @@ import SimpleITK as sitk
 from scipy import ndimage
 
 from EMRegModule.cli.main import main
-from EMRegModule.core.detection import read_detection
 from EMRegModule.core.transforms import angle_between_deg, make_transform, random_rotation
+from EMRegModule.io.markers_json import read_detection
 from EMRegModule.marker_model import MarkerModel
 from EMRegModule.simulation.ct import Grid, Layer, paint_layers
 from EMRegModule.simulation.shapes import MarkerSolid, Posed

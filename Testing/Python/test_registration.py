@@ -9,11 +9,12 @@ import pytest
 from synth_registration import calibration_recording, make_frame, pairing_problem
 
 from EMRegModule.core.calibration import CalibrationPoint, FrameCalibration, calibrate_frame
-from EMRegModule.core.registration import RegistrationSettings, read_registration, register, write_registration
+from EMRegModule.core.registration import RegistrationSettings, register
 from EMRegModule.core.sensor_offset import solve_sensor_offset
 from EMRegModule.core.transforms import apply_transform, invert_rigid
 from EMRegModule.errors import EMRegError, NoSafeAnswerError
 from EMRegModule.io.itk_transform import read_slicer_linear_transform
+from EMRegModule.io.registration_files import read_registration, write_registration
 from EMRegModule.marker_model import MarkerModel
 
 MODEL = MarkerModel()
@@ -175,8 +176,8 @@ def test_register_from_a_recording_with_bumps():
 
 
 def _write_inputs(problem, folder):
-    from EMRegModule.core.calibration import write_frame_calibration
     from EMRegModule.io.atomic import atomic_write_json
+    from EMRegModule.io.calibration_json import write_frame_calibration
 
     markers, calibration = _inputs(problem)
     atomic_write_json(folder / "markers.json", {

@@ -406,7 +406,8 @@ def _check_volume_matches_ct(volume_node, ct_path: Path) -> None:
     import slicer.util
     import vtk
 
-    from EMRegModule.io.image import index_to_physical_matrix, read_ct
+    from EMRegModule.core.ct import index_to_physical_matrix
+    from EMRegModule.io.image import read_ct
 
     image = read_ct(ct_path)
     matrix = vtk.vtkMatrix4x4()
@@ -1256,7 +1257,7 @@ def test_bundle_shows_the_predicted_tre_map_as_slicer_reads_it(run_output, tmp_p
     import slicer.util
     import vtk
 
-    from EMRegModule.io.image import index_to_physical_matrix
+    from EMRegModule.core.ct import index_to_physical_matrix
     from EMRegModule.slicer_export.bundle import write_run_bundle
 
     _, out = run_output

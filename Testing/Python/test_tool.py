@@ -15,19 +15,13 @@ import numpy as np
 import pytest
 
 from EMRegModule.cli.main import main
-from EMRegModule.core.calibration import read_frame_calibration
-from EMRegModule.core.tool import (
-    PLACEMENT_SWING_DEG,
-    pivot_calibration,
-    placement_samples,
-    read_tip_to_probe_itk,
-    read_tool,
-    write_tip_to_probe_itk,
-)
+from EMRegModule.core.tool import PLACEMENT_SWING_DEG, pivot_calibration, placement_samples
 from EMRegModule.core.tracking import probe_in_reference
 from EMRegModule.core.transforms import fit_rigid, make_transform, random_rotation
 from EMRegModule.errors import EMRegError, NoSafeAnswerError
+from EMRegModule.io.calibration_json import read_frame_calibration
 from EMRegModule.io.sequence_metafile import read_sequence_metafile, write_sequence_metafile
+from EMRegModule.io.tool_files import read_tip_to_probe_itk, read_tool, write_tip_to_probe_itk
 from EMRegModule.simulation.stylus import simulate_pivot_recording
 from EMRegModule.simulation.tracking import NoiseModel
 

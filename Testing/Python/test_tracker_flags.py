@@ -5,7 +5,7 @@ trakSTAR: the METAL byte (0..127) appended to each record follows the distortion
 withholds a pose whose METAL byte is above its limit. Aurora: each tool's RMS error follows the distortion, and a
 tool near the faces of the characterised volume is partly out of it (port status 0x80), outside it out of volume
 (0x40): the samples say which, the watchdog names it, and a PLUS sequence recording keeps it as the frame's
-TransformStatus. Both simulators take the same inputs (:mod:`EMRegModule.simulation.tracker_flags`), over real
+TransformStatus. Both simulators take the same inputs (:mod:`EMRegModule.devices.simulator.tracker_flags`), over real
 pseudo-terminals and, for the Aurora, NDI's own ndicapi.
 """
 
@@ -22,13 +22,7 @@ from EMRegModule.devices.aurora.driver import AuroraDriver
 from EMRegModule.devices.samples import FLAG_OUT_OF_VOLUME, FLAG_PARTLY_OUT_OF_VOLUME, STATUS_OUT_OF_RANGE
 from EMRegModule.devices.simulator.aurora import CLEAN_ERROR, AuroraSimulator, parse_tools
 from EMRegModule.devices.simulator.scene import BuiltinScene
-from EMRegModule.devices.simulator.trakstar import TrackerSimulator
-from EMRegModule.devices.trakstar.driver import TrakstarDriver
-from EMRegModule.errors import EMRegError
-from EMRegModule.io.sequence_metafile import read_sequence_metafile
-from EMRegModule.live.navigator import Watchdog
-from EMRegModule.live.writers import SequenceRecordingWriter
-from EMRegModule.simulation.tracker_flags import (
+from EMRegModule.devices.simulator.tracker_flags import (
     METAL_PER_MM,
     MeasurementVolume,
     PointDistortion,
@@ -37,6 +31,12 @@ from EMRegModule.simulation.tracker_flags import (
     parse_volume,
     trakstar_metal,
 )
+from EMRegModule.devices.simulator.trakstar import TrackerSimulator
+from EMRegModule.devices.trakstar.driver import TrakstarDriver
+from EMRegModule.errors import EMRegError
+from EMRegModule.io.sequence_metafile import read_sequence_metafile
+from EMRegModule.live.navigator import Watchdog
+from EMRegModule.live.writers import SequenceRecordingWriter
 
 
 def test_flag_inputs_parse_and_scale():

@@ -1,14 +1,13 @@
 """Marker detection and pose estimation in CT (paper section 2.4): ``emreg detect``.
 
 ``detect_markers(image, model, settings, progress)`` finds the PVC markers in a CT and returns
-each one's origin (bottom-face centre) and +Y axis in image space (LPS, mm);
-``write_detection`` writes ``markers.json`` and ``markers.mrk.json``; ``read_detection`` reads
-``markers.json`` back.
+each one's origin (bottom-face centre) and +Y axis in image space (LPS, mm). Its files, ``markers.json`` and
+``markers.mrk.json``, are written and read by :mod:`EMRegModule.io.markers_json`.
 """
 
 from typing import TYPE_CHECKING, Any
 
-from .result import DetectedMarker, DetectionResult, RejectedCandidate, read_detection, write_detection
+from .result import DetectedMarker, DetectionResult, RejectedCandidate
 from .settings import DetectionSettings, settings_from_dict
 
 if TYPE_CHECKING:
@@ -27,5 +26,5 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "DetectedMarker", "DetectionResult", "DetectionSettings", "RejectedCandidate", "detect_markers",
-    "read_detection", "settings_from_dict", "write_detection",
+    "settings_from_dict",
 ]

@@ -33,11 +33,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ...errors import NoSafeAnswerError
-from ...io.ct_checks import check_ct_geometry
-from ...io.ct_handle import CTGeometry, CTHandle
-from ...io.image import image_geometry, index_to_physical_matrix
 from ...marker_model import MarkerModel
 from ...progress import QUIET, Progress
+from ..ct import ImageGeometry, StreamedCT, check_ct_geometry, image_geometry, index_to_physical_matrix
 from ..transforms import apply_transform
 from .examiners import Examiners
 from .measure import measure_blob, metal_distance_mm
@@ -53,25 +51,27 @@ _Outcome = tuple[np.ndarray, DetectedMarker | RejectedCandidate]
 """A blob's centroid (LPS mm) and what became of it."""
 
 
-def detect_markers(ct: CTHandle | sitk.Image, model: MarkerModel | None = None,
+def detect_markers(ct: StreamedCT | sitk.Image, model: MarkerModel | None = None,
                    settings: DetectionSettings | None = None, progress: Progress | None = None,
                    wait_for_slices: Callable[[int], None] | None = None) -> DetectionResult:
     """Markers in a scalar 3D CT in HU: origins (bottom-face centres) and +Y axes, LPS mm.
 
-    ``ct``: a :class:`~EMRegModule.io.ct_handle.CTHandle`, possibly still being read: detection follows its slices
-    as they arrive, working on those already read while the rest arrives, with the same result (voxels a forked
-    process sees as they are written, ``CTHandle.shared``, let one of the examiners of the candidate regions be such
-    a process: :mod:`.examiners`); or a ``SimpleITK.Image``, read in full or, given ``wait_for_slices``, whose
-    slices are still arriving. ``settings`` is the ``[detection]`` table (None: the defaults for ``model``).
-    Raises :class:`NoSafeAnswerError` (exit 3) when fewer than ``min_markers`` markers are found.
+    ``ct``: a :class:`~EMRegModule.core.ct.StreamedCT` (an :class:`~EMRegModule.io.ct_handle.CTHandle`), possibly
+    still being read: detection follows its slices as they arrive, working on those already read while the rest
+    arrives, with the same result (voxels a forked process sees as they are written, ``shared``, let one of the
+    examiners of the candidate regions be such a process: :mod:`.examiners`); or a ``SimpleITK.Image``, read in
+    full or, given ``wait_for_slices``, whose slices are still arriving. ``settings`` is the ``[detection]`` table
+    (None: the defaults for ``model``). Raises :class:`NoSafeAnswerError` (exit 3) when fewer than ``min_markers``
+    markers are found.
     """
     model = model or MarkerModel()
     options = settings or default_settings(model)
     progress = progress or QUIET
-    image = ct.image if isinstance(ct, CTHandle) else ct
+    streamed = isinstance(ct, StreamedCT)
+    image = ct.image if streamed else ct
     check_ct_geometry(image)
     shared = False
-    if isinstance(ct, CTHandle):
+    if streamed:
         volume, wait_for_slices, shared = ct.array, ct.wait_for_slices, ct.shared
     else:
         import SimpleITK as sitk
@@ -277,7 +277,7 @@ def _region_key(region: Region) -> tuple[int, ...]:
 
 
 def _result(outcomes: list[tuple[np.ndarray, DetectedMarker | RejectedCandidate]], too_large: list[TooLarge],
-            index_to_image: np.ndarray, options: DetectionSettings, image: sitk.Image | CTGeometry, volume: np.ndarray,
+            index_to_image: np.ndarray, options: DetectionSettings, image: ImageGeometry, volume: np.ndarray,
             model: MarkerModel) -> DetectionResult:
     """Markers and rejected candidates, each blob once (overlapping regions can reach the same blob)."""
     markers: list[DetectedMarker] = []
@@ -388,7 +388,7 @@ def _size_and_shape_problem(volume: float, spreads: np.ndarray, model: MarkerMod
     return None, ""
 
 
-def _size_hint(image: sitk.Image | CTGeometry, model: MarkerModel) -> str:
+def _size_hint(image: ImageGeometry, model: MarkerModel) -> str:
     """A note for the too-few-markers message when the whole CT is smaller than two markers side by side:
     its spacing and origin are then not millimetres (metres or centimetres, e.g.). Empty otherwise."""
     extent_mm = np.asarray(image.GetSize(), dtype=float) * np.asarray(image.GetSpacing(), dtype=float)

@@ -12,13 +12,14 @@ reading process's follower) it never needs; it ignores SIGINT / SIGTERM (the com
 from __future__ import annotations
 
 import contextlib
+import multiprocessing
 import os
 import signal
 import threading
 import warnings
 from collections import deque
 from collections.abc import Callable
-from concurrent.futures import CancelledError, Future, ThreadPoolExecutor, wait
+from concurrent.futures import BrokenExecutor, CancelledError, Future, ProcessPoolExecutor, ThreadPoolExecutor, wait
 from functools import partial
 from typing import Any
 
@@ -44,9 +45,6 @@ def _start_examiner(parent: int) -> None:
 def _forked_examiner(volume: np.ndarray) -> Any:
     """A pool of one forked process examining ``volume`` (a ``ProcessPoolExecutor``), forked now; None when the
     system refuses a process (too many, too little memory): the threads then examine every region."""
-    import multiprocessing
-    from concurrent.futures import BrokenExecutor, ProcessPoolExecutor
-
     _VOLUME[:] = [volume]
     pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork"), initializer=_start_examiner,
                                initargs=(os.getpid(),))

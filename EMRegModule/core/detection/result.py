@@ -1,21 +1,17 @@
-"""Detection results and their files: ``markers.json`` (spec) and ``markers.mrk.json`` (Slicer markups).
+"""Detection results, and their JSON form (``markers.json``, written by :mod:`EMRegModule.io.markers_json`).
 
 All positions and directions are in image space (CT physical LPS, mm).
 """
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ...errors import EMRegError
-from ...io.atomic import atomic_write_json, read_json
-from ...io.markups import write_markups
-from ...names import MARKERS_JSON, MARKERS_MRK_JSON
+from ...names import MARKERS_JSON
 from ..transforms import make_transform, rotation_from_y_axis
 
 
@@ -149,20 +145,3 @@ class DetectionResult:
                    band if isinstance(band, dict) else None, provenance if isinstance(provenance, dict) else None)
 
 
-def write_detection(result: DetectionResult, out_dir: str | os.PathLike[str]) -> None:
-    """Write ``OUT/markers.json`` and ``OUT/markers.mrk.json`` (marker origins, LPS) atomically."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out / MARKERS_JSON, result.to_json())
-    write_markups(out / MARKERS_MRK_JSON, [m.id for m in result.markers], result.origins, name="I")
-
-
-def read_detection(path: str | os.PathLike[str]) -> DetectionResult:
-    """Read ``markers.json`` (a file, or a folder holding one)."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / MARKERS_JSON
-    document = read_json(path, MARKERS_JSON)
-    if not isinstance(document, dict):
-        raise EMRegError(f"{path}: not a valid markers.json (not a JSON object)")
-    return DetectionResult.from_json(document, str(path))

@@ -12,6 +12,7 @@ from urllib.parse import parse_qs, urlsplit
 
 from ...errors import EMRegError
 from .driver import RobotDriver
+from .franka import FrankaRobot
 
 ROBOT_SCHEMES = ("franka",)
 
@@ -48,6 +49,4 @@ def parse_robot_url(text: str) -> RobotURL:
 def open_robot(url: str | RobotURL) -> RobotDriver:
     """Connect to the robot behind a URL (:class:`EMRegError` with one line when it cannot)."""
     parsed = parse_robot_url(url) if isinstance(url, str) else url
-    from .franka import FrankaRobot
-
     return FrankaRobot(parsed.host, parsed.options)

@@ -68,6 +68,7 @@ from ..aurora import protocol as ndi
 from .faults import AuroraFaults
 from .pty import PtyDevice
 from .scene import BuiltinScene, ReplayScene, Scene, pose_at
+from .tracker_flags import aurora_error_mm
 
 #: Measuring rate of the simulated Aurora (choice: 40 Hz, the Aurora's nominal update rate).
 DEFAULT_RATE_HZ = 40.0
@@ -155,7 +156,7 @@ class AuroraSimulator(PtyDevice):
     """An Aurora System Control Unit on a pty. ``start()`` (thread) or ``run()`` (foreground), ``stop()``."""
 
     thread_name = "aurora-simulator"
-    #: A distortion model (``distortion_mm(position_mm) -> mm``, :mod:`EMRegModule.simulation.tracker_flags`) or
+    #: A distortion model (``distortion_mm(position_mm) -> mm``, :mod:`.tracker_flags`) or
     #: None: a tool's RMS error grows by the distortion at it (``aurora_error_mm``).
     distortion = None
     #: The characterised volume (``state(position_mm) -> "in" | "partly" | "out"``, ``MeasurementVolume``) or
@@ -554,7 +555,6 @@ class AuroraSimulator(PtyDevice):
                 report.quaternion, report.position_mm = truth
                 report.error = DISTORTED_ERROR if self._active("distort", sensor, t_s) else self._quality(sensor, frame)
                 if self.distortion is not None:
-                    from ...simulation.tracker_flags import aurora_error_mm  # only with a model (a heavy package)
 
                     report.error = aurora_error_mm(self.distortion.distortion_mm(truth[1]), report.error)
             reports.append(report)

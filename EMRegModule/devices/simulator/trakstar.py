@@ -40,6 +40,7 @@ from ..trakstar.protocol import Pose, RecordFormat
 from .faults import FaultPlan
 from .pty import PtyDevice
 from .scene import BuiltinScene, ReplayScene, Scene
+from .tracker_flags import trakstar_metal
 
 #: Longest delay (s) of a descheduled simulator whose STREAM cycles are still sent late; older ones are skipped.
 MAX_CATCH_UP_S = 1.0
@@ -78,7 +79,7 @@ class TrackerSimulator(PtyDevice):
 
     thread_name = "trakstar-simulator"
     #: A distortion model (``distortion_mm(position_mm) -> mm`` at a sensor in the Tracker frame; see
-    #: :mod:`EMRegModule.simulation.tracker_flags`) or None: with METAL on, each record's METAL byte is the worse of
+    #: :mod:`.tracker_flags`) or None: with METAL on, each record's METAL byte is the worse of
     #: the scene's quality and the distortion there (``trakstar_metal``).
     distortion = None
 
@@ -239,7 +240,6 @@ class TrackerSimulator(PtyDevice):
             sent_pose = pose
             clean = int(min(max(pose.quality, 0.0), tp.METAL_MAX))  # a replay carries its recording's quality
             if self.distortion is not None and metal:
-                from ...simulation.tracker_flags import trakstar_metal  # only with a model (a heavy package)
 
                 clean = trakstar_metal(self.distortion.distortion_mm(pose.position_mm), clean)
             quality = (DISTORTED_METAL if state == "distorted" else clean) if metal else None

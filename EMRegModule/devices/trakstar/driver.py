@@ -33,6 +33,7 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
+import serial
 
 from ...errors import EMRegError
 from ..samples import STATUS_NOT_ATTACHED, STATUS_OK, STATUS_OUT_OF_RANGE, SensorSample
@@ -83,8 +84,6 @@ class TrakstarDriver:
     # -- connection ----------------------------------------------------------------------
     def open(self) -> TrakstarDriver:
         """Open the port (8N1, no flow control), stop any stream left running, read the scale."""
-        import serial
-
         try:
             self.serial = serial.Serial(self.port, self.baud, bytesize=serial.EIGHTBITS, parity=serial.PARITY_NONE,
                                         stopbits=serial.STOPBITS_ONE, timeout=self.timeout_s, xonxoff=False,

@@ -23,7 +23,7 @@ from typing import Protocol
 
 import numpy as np
 
-from ..errors import EMRegError
+from ...errors import EMRegError
 
 
 class DistortionModel(Protocol):

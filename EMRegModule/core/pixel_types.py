@@ -1,7 +1,8 @@
 """SimpleITK's voxel types by value and name, for the code that decides on them without a SimpleITK image.
 
-``emreg detect`` reads an uncompressed DICOM series into numpy memory (:mod:`.dicom_read`): nothing in it needs
-SimpleITK itself, whose 270 MB library takes some 50 ms of CPU to load, on the path before any slice is decoded.
+``emreg detect`` reads an uncompressed DICOM series into numpy memory (:mod:`EMRegModule.io.dicom_read`): nothing in
+it needs SimpleITK itself, whose 270 MB library takes some 50 ms of CPU to load, on the path before any slice is
+decoded. Core's CT geometry check (:mod:`.ct`) and the readers share them.
 The values are SimpleITK's ``PixelIDValueEnum`` (``sitk.sitkInt16`` is :data:`INT16`, the same int) and the names
 ``sitk.GetPixelIDValueAsString`` gives; the tests check both against SimpleITK.
 """
@@ -20,8 +21,8 @@ NAMES = {INT8: "8-bit signed integer", UINT8: "8-bit unsigned integer", INT16: "
 SCALAR = frozenset(NAMES)
 FLOATS = frozenset({FLOAT32, FLOAT64})
 
-#: The numpy voxel type (its name) of each type EMReg's own readers fill (the file layouts of :mod:`.ct_header`, the
-#: DICOM slices numpy decodes), and each of those names' SimpleITK type.
+#: The numpy voxel type (its name) of each type EMReg's own readers fill (the file layouts of
+#: :mod:`EMRegModule.io.ct_header`, the DICOM slices numpy decodes), and each of those names' SimpleITK type.
 NUMPY_NAMES = {INT8: "int8", UINT8: "uint8", INT16: "int16", UINT16: "uint16", INT32: "int32", UINT32: "uint32",
                FLOAT32: "float32", FLOAT64: "float64"}
 BY_NUMPY_NAME = {name: value for value, name in NUMPY_NAMES.items()}
