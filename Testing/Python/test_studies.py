@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 
+import cv2  # noqa: F401  (its loader adds LD_LIBRARY_PATH to os.environ at the first import, the report's)
 import numpy as np
 import pytest
 from distributed import LocalCluster
