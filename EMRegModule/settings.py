@@ -374,13 +374,16 @@ class HandEyeSettings:
       ``--sensor`` overrides it; None: the recording's only sensor).
     - ``max_time_offset_s`` (None): the largest clock offset searched, s (None: any offset that keeps the two
       recordings overlapping, for clocks with different epochs).
-    - ``timing_jitter_s`` (0.002): the uncertainty of a tracker time stamp, s; a moving frame's residual
-      allows ``speed x jitter`` more, so the still frames of dwells count most.
+    - ``timing_jitter_s`` (0): the least uncertainty of a tracker time stamp, s; a moving frame's residual
+      allows ``speed x jitter`` more, so the still frames of dwells count most. The jitter is estimated from how
+      the residuals grow with the flange's speed, never below this.
     - ``min_frames`` (20), ``min_rotation_deg`` (10), ``min_second_axis_deg`` (3): below these (frames used;
       the largest rotation of the flange from its mean orientation; the RMS rotation about the second axis)
       the motion cannot determine the answer (exit 3).
     - ``min_correlation`` (0.5): a weaker peak of the angular-speed cross-correlation finds no clock offset.
-    - ``outlier_limit`` (5.0): a frame whose noise-normalised residual exceeds this is rejected.
+    - ``outlier_limit`` (9.0): a frame whose noise-normalised residual (over its 6 components) exceeds this is
+      rejected; 9 is as unlikely under the refinement's heavy-tailed noise model (a Student-t of 4 degrees of
+      freedom) as 4 standard deviations of Gaussian noise.
     - ``max_noise_mm`` (5.0), ``max_noise_deg`` (3.0): a still frame's typical residual above these means the
       two recordings disagree (not the same motion, the wrong sensor, a moved field generator): exit 3.
     - ``tool_tip_mm`` (0, 0, 150): the tool point (Sensor frame, mm) whose predicted error is reported;
@@ -390,12 +393,12 @@ class HandEyeSettings:
     flange_transform: str = "FlangeToBase"
     sensor: str | int | None = None
     max_time_offset_s: float | None = positive(None)
-    timing_jitter_s: float = non_negative(0.002)
+    timing_jitter_s: float = non_negative(0.0)
     min_frames: int = positive(20)
     min_rotation_deg: float = positive(10.0)
     min_second_axis_deg: float = positive(3.0)
     min_correlation: float = fraction(0.5)
-    outlier_limit: float = positive(5.0)
+    outlier_limit: float = positive(9.0)
     max_noise_mm: float = positive(5.0)
     max_noise_deg: float = positive(3.0)
     tool_tip_mm: tuple[float, ...] = (0.0, 0.0, 150.0)

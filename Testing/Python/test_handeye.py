@@ -344,3 +344,45 @@ def test_a_robot_log_shorter_than_the_tracker_recording_and_with_a_gap():
     no_pose = [r for r in result.rejected if r.reason.startswith("no robot pose")]
     assert len(no_pose) >= 0.4 * len(case.tracker_time_s)
     assert not set(result.used) & {r.index for r in result.rejected}
+
+
+def test_the_robot_log_is_smoothed_where_noise_dominates_and_kept_where_it_curves():
+    """A 200 Hz log of a smooth motion with white noise in its translation comes out nearer the truth; a
+    noise-free log of a fast curving motion comes out as it was (the cross-validation picks a narrow window)."""
+    from EMRegModule.core.handeye_sync import smooth_poses
+    from EMRegModule.core.transforms import rotation_matrices
+
+    time_s = np.arange(0.0, 5.0, 0.005)
+    truth = np.tile(np.eye(4), (len(time_s), 1, 1))
+    truth[:, :3, 3] = 100.0 * np.column_stack([np.sin(time_s), np.cos(0.7 * time_s), 0.3 * time_s])
+    truth[:, :3, :3] = rotation_matrices(0.5 * np.column_stack([np.sin(time_s), np.cos(time_s), time_s / 5]))
+    rng = np.random.default_rng(3)
+    noisy = truth.copy()
+    noisy[:, :3, 3] += rng.normal(0.0, 0.2, (len(time_s), 3))
+    smoothed, width = smooth_poses(time_s, noisy)
+    before = np.sqrt(np.mean(np.sum((noisy - truth)[:, :3, 3] ** 2, axis=1)))
+    after = np.sqrt(np.mean(np.sum((smoothed - truth)[:, :3, 3] ** 2, axis=1)))
+    assert width[1] >= 8 and after < 0.4 * before
+    fast = truth.copy()
+    fast[:, :3, 3] = 100.0 * np.column_stack([np.sin(8 * time_s), np.cos(8 * time_s), time_s])
+    kept, width = smooth_poses(time_s, fast)
+    assert width[1] == 2 and np.max(np.abs(kept - fast)[:, :3, 3]) < 0.01
+
+
+@pytest.mark.parametrize("robot, family", [("ur", "joint_sinusoid"), ("iiwa", "joint_waypoints")])
+def test_the_predicted_uncertainty_matches_the_error_over_seeds(robot, family):
+    """Over several recordings the tool-tip and tracker-point errors are as large as predicted (their RMS ratio to
+    the predicted RMS near 1: neither optimistic nor pessimistic)."""
+    from EMRegModule.core.handeye import calibrate_hand_eye
+
+    tip_ratio, point_ratio = [], []
+    for seed in range(31, 37):
+        case = kinhec_case(robot, family, seed=seed, outlier_fraction=0.02)
+        result = calibrate_hand_eye(case.robot_time_s, case.flange_to_base, case.tracker_time_s,
+                                    case.sensor_to_tracker)
+        tip_ratio.append(tip_error_mm(result.sensor_to_flange, case.sensor_to_flange) / result.tool_tip_rms_mm)
+        point_ratio.append(tracker_point_error_mm(result.tracker_to_base, case.tracker_to_base)
+                           / result.tracker_point_rms_mm)
+    tip, point = np.sqrt(np.mean(np.square(tip_ratio))), np.sqrt(np.mean(np.square(point_ratio)))
+    print(f"\n{robot} {family}: measured / predicted RMS, tool tip {tip:.2f}, tracker point {point:.2f}")
+    assert 0.6 < tip < 1.6 and 0.6 < point < 1.6
