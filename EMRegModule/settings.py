@@ -423,6 +423,11 @@ class RobotSettings:
     - ``max_tracker_distance_mm`` (660): Entry and Target must lie within this distance of the field generator
       (the tracker's characterised volume; 660 mm is a trakSTAR mid-range transmitter's), else exit 3.
     - ``reach_mm`` (None): the flange must stay within this distance of the robot's base (None: not checked).
+    - ``model`` (None): the robot's kinematic model, ``fr3`` or ``panda``: the roll about the needle's axis is then
+      the one that keeps the robot furthest from its joint limits, and a plan it cannot reach is refused (exit 3);
+      ``end_effector_mm`` (0, 0, 0) and ``end_effector_rpy_deg`` (0, 0, 0): the end effector set on the robot
+      (Franka's ``F_T_EE``: translation, then roll-pitch-yaw about the flange's fixed x, y, z), for a flange
+      pose reported and commanded at it.
 
     Driving the robot (``emreg robot-calibrate``, ``emreg robot-go``; :mod:`EMRegModule.core.robot_motion`):
 
@@ -446,6 +451,9 @@ class RobotSettings:
     standoff_mm: float = non_negative(0.0)
     max_tracker_distance_mm: float = positive(660.0)
     reach_mm: float | None = positive(None)
+    model: str | None = one_of(None, "fr3", "panda")
+    end_effector_mm: tuple[float, ...] = (0.0, 0.0, 0.0)
+    end_effector_rpy_deg: tuple[float, ...] = (0.0, 0.0, 0.0)
     flange_sensor: int = port(3)
     max_velocity_mm_s: float = positive(50.0)
     max_acceleration_mm_s2: float = positive(250.0)
@@ -465,6 +473,11 @@ class RobotSettings:
     measure_s: float = positive(0.5)
     max_correction_mm: float = positive(20.0)
     max_correction_deg: float = positive(5.0)
+
+    def validate(self) -> None:
+        for name in ("end_effector_mm", "end_effector_rpy_deg"):
+            if len(getattr(self, name)) != 3:
+                raise SettingError("must be three numbers", name)
 
 
 # --- the tree ----------------------------------------------------------------------------------

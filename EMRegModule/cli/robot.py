@@ -219,6 +219,7 @@ def _reference_now(args: argparse.Namespace, settings) -> np.ndarray:
 
 def cmd_robot_target(args: argparse.Namespace) -> int:
     from ..core.registration import read_registration
+    from ..core.robot_kinematics import robot_model
     from ..core.robot_target import robot_target
     from ..io.atomic import atomic_write_json
 
@@ -235,12 +236,17 @@ def cmd_robot_target(args: argparse.Namespace) -> int:
     answer = robot_target(entry, target, registration.reference_to_image, reference_to_tracker,
                           calibration["TrackerToBase"], calibration["SensorToFlange"], guide_to_sensor,
                           calibration["covariance"], registration_ms, tool_rms, robot.standoff_mm,
-                          calibration["preferred"], robot.max_tracker_distance_mm, robot.reach_mm)
+                          calibration["preferred"], robot.max_tracker_distance_mm, robot.reach_mm,
+                          robot_model(robot.model, robot.end_effector_mm, robot.end_effector_rpy_deg)
+                          if robot.model else None)
     document = {"FlangeToBase": answer.flange_to_base.tolist(),
                 "NeedleGuideToBase": answer.needle_guide_to_base.tolist(),
                 "entry_base_mm": answer.entry_base_mm.tolist(), "target_base_mm": answer.target_base_mm.tolist(),
                 "depth_mm": answer.depth_mm, "standoff_mm": robot.standoff_mm, "roll_deg": answer.roll_deg,
                 "predicted_error_mm": answer.predicted_error_mm,
+                "robot_model": robot.model,
+                "joints_rad": None if answer.joints_rad is None else answer.joints_rad.tolist(),
+                "joint_limit_margin": answer.joint_limit_margin,
                 "ReferenceToTracker": reference_to_tracker.tolist(),
                 # what emreg robot-go needs to verify the guide with the tracker and follow the reference
                 "SensorToFlange": calibration["SensorToFlange"].tolist(),

@@ -10,8 +10,11 @@ Frames (mm): ``Image`` (CT, LPS), ``Reference`` (the reference sensor on the pat
   its +z along Entry -> Target, the roll about the axis free;
 - ``FlangeToBase = NeedleGuideToBase @ inv(SensorToFlange @ NeedleGuideToSensor)``.
 
-The roll is chosen to keep the flange's orientation nearest a preferred one (the mean orientation of the
-hand-eye recording, which the robot has reached). Pure: arrays in, a :class:`RobotTarget` out.
+The roll is chosen, with the robot's model known (:mod:`EMRegModule.core.robot_kinematics`), to keep the robot
+furthest from its joint limits: the flange pose at every roll (``ROLL_STEP_DEG`` apart) solved for the joints
+from a few seeds, the roll whose best solution has the largest margin to the limits wins; a plan no roll makes
+reachable is refused. Without a model, the roll keeps the flange's orientation nearest a preferred one (the mean
+orientation of the hand-eye recording, which the robot has reached). Pure: arrays in, a :class:`RobotTarget` out.
 """
 
 from __future__ import annotations
@@ -22,7 +25,11 @@ import numpy as np
 
 from ..errors import NoSafeAnswerError
 from .error_model import skew
+from .robot_kinematics import RobotModel, seeds_around
 from .transforms import apply_transform, invert_rigid
+
+#: Rolls about the guide's axis tried with a robot model (degrees apart).
+ROLL_STEP_DEG = 5.0
 
 
 @dataclass(frozen=True)
@@ -30,7 +37,8 @@ class RobotTarget:
     """The answer: ``flange_to_base`` and ``needle_guide_to_base`` (4x4, mm); Entry and Target in the base
     frame (mm); the depth Entry -> Target (mm); the roll chosen (degrees about the guide's +z from the guide
     frame whose x axis is nearest the base's); the predicted RMS error at the target (mm) per source and in
-    total."""
+    total; with a robot model, the joint angles (rad) that reach ``flange_to_base`` and their margin to the
+    joint limits (:meth:`~EMRegModule.core.robot_kinematics.RobotModel.limit_margin`; None without a model)."""
 
     flange_to_base: np.ndarray
     needle_guide_to_base: np.ndarray
@@ -39,6 +47,8 @@ class RobotTarget:
     depth_mm: float
     roll_deg: float
     predicted_error_mm: dict[str, float]
+    joints_rad: np.ndarray | None = None
+    joint_limit_margin: float | None = None
 
 
 def _axis_frame(direction: np.ndarray) -> np.ndarray:
@@ -63,13 +73,38 @@ def best_roll(guide_rotation: np.ndarray, guide_to_flange_rotation: np.ndarray,
     return float(np.arctan2(m[0, 1] - m[1, 0], m[0, 0] + m[1, 1]))
 
 
+def roll_for_joint_limits(guide_frame: np.ndarray, exit_base_mm: np.ndarray, guide_to_flange: np.ndarray,
+                          model: RobotModel) -> tuple[float, np.ndarray, float]:
+    """The roll (rad) about the guide's +z that keeps the robot furthest from its joint limits, with the joint
+    angles (rad) that reach the flange pose there and their margin; :class:`NoSafeAnswerError` when no roll is
+    reachable. ``guide_frame``: the guide's rotation at roll 0 (Base frame); ``exit_base_mm``: where its exit goes."""
+    rolls = np.radians(np.arange(0.0, 360.0, ROLL_STEP_DEG))
+    flange_to_guide = invert_rigid(guide_to_flange)
+    targets = np.empty((len(rolls), 4, 4))
+    for k, roll in enumerate(rolls):
+        guide_to_base = np.eye(4)
+        guide_to_base[:3, :3], guide_to_base[:3, 3] = guide_frame @ _rotation_z(roll), exit_base_mm
+        targets[k] = guide_to_base @ flange_to_guide
+    seeds = seeds_around(model)
+    joints, reached = model.inverse(np.repeat(targets, len(seeds), axis=0), np.tile(seeds, (len(rolls), 1)))
+    margin = np.where(reached, model.limit_margin(joints), -np.inf)
+    best = int(np.argmax(margin))
+    if not np.isfinite(margin[best]):
+        raise NoSafeAnswerError(f"robot-target: the {model.name.upper()} cannot reach the plan at any roll about the "
+                                "needle's axis (the flange pose is out of its reach or beyond its joint limits); "
+                                "plan another entry, or move the robot's base")
+    return float(rolls[best // len(seeds)]), joints[best], float(margin[best])
+
+
 def plan_flange_pose(entry_image: np.ndarray, target_image: np.ndarray, reference_to_image: np.ndarray,
                      reference_to_tracker: np.ndarray, tracker_to_base: np.ndarray, sensor_to_flange: np.ndarray,
                      needle_guide_to_sensor: np.ndarray, standoff_mm: float = 0.0,
-                     preferred_flange_rotation: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
-    """``(FlangeToBase, NeedleGuideToBase, roll rad)`` (4x4, mm) that put the guide's exit on Entry (or
-    ``standoff_mm`` before it) with its +z along Entry -> Target (both LPS mm in the CT). See the module
-    docstring for the frames."""
+                     preferred_flange_rotation: np.ndarray | None = None, robot_model: RobotModel | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None, float | None]:
+    """``(FlangeToBase, NeedleGuideToBase, roll rad, joints rad, joint-limit margin)`` (4x4, mm) that put the
+    guide's exit on Entry (or ``standoff_mm`` before it) with its +z along Entry -> Target (both LPS mm in the
+    CT); the joints and margin None without ``robot_model``. See the module docstring for the frames and the
+    roll."""
     image_to_base = tracker_to_base @ reference_to_tracker @ invert_rigid(reference_to_image)
     entry, target = apply_transform(image_to_base, np.vstack([entry_image, target_image]))
     if np.linalg.norm(target - entry) < 1e-6:
@@ -77,12 +112,18 @@ def plan_flange_pose(entry_image: np.ndarray, target_image: np.ndarray, referenc
     direction = (target - entry) / np.linalg.norm(target - entry)
     guide_to_flange = sensor_to_flange @ needle_guide_to_sensor
     frame = _axis_frame(direction)
-    roll = 0.0 if preferred_flange_rotation is None else best_roll(frame, guide_to_flange[:3, :3],
-                                                                   preferred_flange_rotation)
+    exit_point = entry - standoff_mm * direction
+    joints, margin = None, None
+    if robot_model is not None:
+        roll, joints, margin = roll_for_joint_limits(frame, exit_point, guide_to_flange, robot_model)
+    elif preferred_flange_rotation is not None:
+        roll = best_roll(frame, guide_to_flange[:3, :3], preferred_flange_rotation)
+    else:
+        roll = 0.0
     guide_to_base = np.eye(4)
     guide_to_base[:3, :3] = frame @ _rotation_z(roll)
-    guide_to_base[:3, 3] = entry - standoff_mm * direction
-    return guide_to_base @ invert_rigid(guide_to_flange), guide_to_base, roll
+    guide_to_base[:3, 3] = exit_point
+    return guide_to_base @ invert_rigid(guide_to_flange), guide_to_base, roll, joints, margin
 
 
 def hand_eye_ms_at(target_sensor_mm: np.ndarray, target_tracker_mm: np.ndarray, sensor_to_flange: np.ndarray,
@@ -103,16 +144,16 @@ def robot_target(entry_image: np.ndarray, target_image: np.ndarray, reference_to
                  needle_guide_to_sensor: np.ndarray, hand_eye_covariance: np.ndarray, registration_ms_mm2: float,
                  tool_rms_mm: float = 0.0, standoff_mm: float = 0.0,
                  preferred_flange_rotation: np.ndarray | None = None, max_tracker_distance_mm: float | None = None,
-                 reach_mm: float | None = None) -> RobotTarget:
+                 reach_mm: float | None = None, robot_model: RobotModel | None = None) -> RobotTarget:
     """The flange pose for a plan and its predicted error at the target (see :func:`plan_flange_pose`).
 
     ``hand_eye_covariance``: the calibration's parameter covariance (13x13 or 12x12); ``registration_ms_mm2``: the
     registration's mean-square error at the target (mm^2); ``tool_rms_mm``: the guide's calibration error (mm).
     Refused (:class:`NoSafeAnswerError`) when Entry or Target lies farther than ``max_tracker_distance_mm`` from
     the field generator, or the flange would be farther than ``reach_mm`` from the robot's base."""
-    flange_to_base, guide_to_base, roll = plan_flange_pose(
+    flange_to_base, guide_to_base, roll, joints, margin = plan_flange_pose(
         entry_image, target_image, reference_to_image, reference_to_tracker, tracker_to_base, sensor_to_flange,
-        needle_guide_to_sensor, standoff_mm, preferred_flange_rotation)
+        needle_guide_to_sensor, standoff_mm, preferred_flange_rotation, robot_model)
     image_to_tracker = reference_to_tracker @ invert_rigid(reference_to_image)
     entry_tracker, target_tracker = apply_transform(image_to_tracker, np.vstack([entry_image, target_image]))
     if max_tracker_distance_mm is not None:
@@ -133,4 +174,5 @@ def robot_target(entry_image: np.ndarray, target_image: np.ndarray, reference_to
     terms = {"registration": float(np.sqrt(max(registration_ms_mm2, 0.0))), "hand_eye": float(np.sqrt(hand_eye_ms)),
              "tool": float(tool_rms_mm)}
     terms["total"] = float(np.sqrt(sum(v ** 2 for v in terms.values())))
-    return RobotTarget(flange_to_base, guide_to_base, entry_base, target_base, depth, float(np.degrees(roll)), terms)
+    return RobotTarget(flange_to_base, guide_to_base, entry_base, target_base, depth, float(np.degrees(roll)), terms,
+                       joints, margin)

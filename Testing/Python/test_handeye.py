@@ -293,6 +293,38 @@ def test_robot_target_refusals(targeting_case, capsys):
     assert not (folder / "far" / "robot_target.json").exists()
 
 
+def test_robot_target_with_the_robots_model(targeting_case, capsys):
+    """``[robot] model = "panda"`` (the KinHEC recording's robot), a plan where the recorded flange once held the
+    guide: the flange pose comes with the joint angles that reach it (forward kinematics of them is the flange
+    pose) and their margin to the limits; a plan beyond the arm's reach is refused with one line, exit 3, before
+    the tracker's volume is looked at."""
+    from EMRegModule.core.robot_kinematics import robot_model
+
+    folder, case = targeting_case["folder"], targeting_case["case"]
+    guide = case.true_flange_to_base[len(case.true_flange_to_base) // 2] @ case.sensor_to_flange @ \
+        targeting_case["guide_to_sensor"]
+    base_to_image = targeting_case["reference_to_image"] @ np.linalg.inv(
+        case.tracker_to_base @ targeting_case["reference_to_tracker"])
+    plan = json.loads((folder / "plan.mrk.json").read_text())
+    for point, depth in zip(plan["markups"][0]["controlPoints"], (0.0, 60.0), strict=True):
+        point["position"] = (base_to_image @ np.append(guide[:3, 3] + depth * guide[:3, 2], 1.0))[:3].tolist()
+    (folder / "reachable.mrk.json").write_text(json.dumps(plan))
+    settings = folder / "panda.toml"
+    settings.write_text('[robot]\nmodel = "panda"\nmax_tracker_distance_mm = 5000.0\n', encoding="utf-8")
+    assert main(_target_args(folder, plan="reachable.mrk.json", out="panda") + ["--settings", str(settings)]) == 0, \
+        capsys.readouterr().err
+    document = json.loads((folder / "panda" / "robot_target.json").read_text())
+    joints = np.array(document["joints_rad"])
+    np.testing.assert_allclose(robot_model("panda").forward(joints), document["FlangeToBase"], atol=1e-2)
+    assert document["robot_model"] == "panda" and 0.0 < document["joint_limit_margin"] <= 1.0
+    for point in plan["markups"][0]["controlPoints"]:
+        point["position"] = (np.array(point["position"]) + [0.0, 0.0, 2000.0]).tolist()
+    (folder / "unreachable.mrk.json").write_text(json.dumps(plan))
+    assert main(_target_args(folder, plan="unreachable.mrk.json", out="far-panda") + ["--settings", str(settings)]) == 3
+    error = capsys.readouterr().err
+    assert "PANDA cannot reach the plan" in error and len(error.strip().splitlines()) == 1
+
+
 def test_the_roll_keeps_the_flange_nearest_its_preferred_orientation():
     """best_roll's closed form is the best of every roll about the guide's axis."""
     from scipy.spatial.transform import Rotation
