@@ -423,6 +423,9 @@ class RobotSettings:
     - ``max_tracker_distance_mm`` (660): Entry and Target must lie within this distance of the field generator
       (the tracker's characterised volume; 660 mm is a trakSTAR mid-range transmitter's), else exit 3.
     - ``reach_mm`` (None): the flange must stay within this distance of the robot's base (None: not checked).
+    - ``positioning_mm`` (0), ``positioning_deg`` (0): the robot's own RMS positioning error (commanded against
+      reached flange pose), part of the predicted error at the target when the calibration did not measure it
+      (``robot-calibrate`` does, at its poses).
     - ``model`` (None): the robot's kinematic model, ``fr3`` or ``panda``: the roll about the needle's axis is then
       the one that keeps the robot furthest from its joint limits, and a plan it cannot reach is refused (exit 3);
       ``end_effector_mm`` (0, 0, 0) and ``end_effector_rpy_deg`` (0, 0, 0): the end effector set on the robot
@@ -438,9 +441,11 @@ class RobotSettings:
     - ``calibration_poses`` (12), ``calibration_angle_deg`` (25), ``calibration_translation_mm`` (20): the poses
       ``robot-calibrate`` plans; ``sensor_radius_mm`` (150): the farthest the sensor may sit from the flange's
       origin, for keeping it in the tracker's volume before the calibration knows; ``dwell_s`` (0.8): the still
-      time recorded at each pose; ``motion_jitter_s`` (0.05): while the robot moves, its reported flange pose
-      runs ahead of the real flange (the controller's tracking error) by up to this time: ``robot-calibrate``
-      solves with ``[handeye] timing_jitter_s`` at least this, so that the still frames of the dwells count most.
+      time recorded at each pose (``robot-calibrate`` stays ``measure_s`` longer and then reads where the robot
+      put its flange: the robot's positioning error as settled as ``robot-go`` measures it);
+      ``motion_jitter_s`` (0.05): while the robot moves, its reported flange pose runs ahead of the real flange
+      (the controller's tracking error) by up to this time: ``robot-calibrate`` solves with ``[handeye]
+      timing_jitter_s`` at least this, so that the still frames of the dwells count most.
     - ``approach_mm`` (30): ``robot-go`` first goes this far back along the planned axis, then along it;
       ``tolerance_mm`` (0.5), ``tolerance_deg`` (0.5): the guide is on the plan when its exit and its needle tip
       at the planned depth are within ``tolerance_mm`` and its axis within ``tolerance_deg``; ``max_corrections``
@@ -451,6 +456,8 @@ class RobotSettings:
     standoff_mm: float = non_negative(0.0)
     max_tracker_distance_mm: float = positive(660.0)
     reach_mm: float | None = positive(None)
+    positioning_mm: float = non_negative(0.0)
+    positioning_deg: float = non_negative(0.0)
     model: str | None = one_of(None, "fr3", "panda")
     end_effector_mm: tuple[float, ...] = (0.0, 0.0, 0.0)
     end_effector_rpy_deg: tuple[float, ...] = (0.0, 0.0, 0.0)

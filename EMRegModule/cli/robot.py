@@ -39,8 +39,10 @@ def _stats(values: np.ndarray) -> dict[str, float]:
             "p95": float(np.percentile(values, 95)), "max": float(np.max(values))}
 
 
-def calibration_document(result: HandEyeResult, inputs: dict[str, Any], warnings: list[str]) -> dict[str, Any]:
-    """``robot_calibration.json``'s content for a result (mm, degrees, seconds)."""
+def calibration_document(result: HandEyeResult, inputs: dict[str, Any], warnings: list[str],
+                         robot_positioning: dict[str, Any] | None = None) -> dict[str, Any]:
+    """``robot_calibration.json``'s content for a result (mm, degrees, seconds), with the robot's positioning
+    error where the robot was driven (``robot-calibrate``)."""
     reasons: dict[str, int] = {}
     for frame in result.rejected:
         key = frame.reason.split(":")[-1].strip() if "times the expected noise" in frame.reason else frame.reason
@@ -70,18 +72,20 @@ def calibration_document(result: HandEyeResult, inputs: dict[str, Any], warnings
                     "frame, the tracker point's in the Base frame",
             "parameter_covariance": result.covariance.tolist(),
             "parameters": PARAMETERS},
+        "robot_positioning": robot_positioning,
         "inputs": inputs,
         "warnings": warnings,
     }
 
 
-def write_calibration(out: Path, result: HandEyeResult, inputs: dict[str, Any], warnings: list[str]) -> dict:
+def write_calibration(out: Path, result: HandEyeResult, inputs: dict[str, Any], warnings: list[str],
+                      robot_positioning: dict[str, Any] | None = None) -> dict:
     """Write ``OUT/robot_calibration.json``, ``SensorToFlange.h5`` and ``TrackerToBase.h5`` together or not at all
     (each to a temporary beside it, all renamed at the end); returns the document."""
     from ..io.atomic import atomic_path, to_jsonable
     from ..io.itk_transform import write_slicer_frame_transform
 
-    document = calibration_document(result, inputs, warnings)
+    document = calibration_document(result, inputs, warnings, robot_positioning)
     with atomic_path(out / "SensorToFlange.h5") as x_tmp, atomic_path(out / "TrackerToBase.h5") as y_tmp, \
             atomic_path(out / ROBOT_CALIBRATION_JSON) as json_tmp:
         write_slicer_frame_transform(x_tmp, result.sensor_to_flange)
@@ -158,6 +162,9 @@ def _robot_calibration(path: str) -> dict[str, Any]:
             check_rigid(matrix, f"{path}: {key}")
         covariance = document.get("uncertainty", {}).get("parameter_covariance")
         out["covariance"] = np.asarray(covariance, dtype=float) if covariance is not None else np.zeros((13, 13))
+        positioning = document.get("robot_positioning") or {}
+        out["positioning"] = np.asarray(positioning["errors_flange"], dtype=float).reshape(-1, 6) \
+            if positioning else None
         rotation = document.get("motion", {}).get("mean_flange_rotation")
         out["preferred"] = np.asarray(rotation, dtype=float) if rotation is not None else None
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
@@ -238,7 +245,8 @@ def cmd_robot_target(args: argparse.Namespace) -> int:
                           calibration["covariance"], registration_ms, tool_rms, robot.standoff_mm,
                           calibration["preferred"], robot.max_tracker_distance_mm, robot.reach_mm,
                           robot_model(robot.model, robot.end_effector_mm, robot.end_effector_rpy_deg)
-                          if robot.model else None)
+                          if robot.model else None,
+                          calibration["positioning"], (robot.positioning_mm, robot.positioning_deg))
     document = {"FlangeToBase": answer.flange_to_base.tolist(),
                 "NeedleGuideToBase": answer.needle_guide_to_base.tolist(),
                 "entry_base_mm": answer.entry_base_mm.tolist(), "target_base_mm": answer.target_base_mm.tolist(),

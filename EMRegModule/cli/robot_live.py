@@ -140,6 +140,7 @@ def plan_calibration(start: np.ndarray, sensor_tracker_mm: np.ndarray, settings)
 def cmd_robot_calibrate(args: argparse.Namespace) -> int:
     from .. import __version__
     from ..core.handeye import calibrate_hand_eye
+    from ..core.robot_motion import positioning_errors
     from ..devices.robot.guard import FlangeRecording, guarded_move
     from ..io.tum import write_tum
     from .robot import ROBOT_CALIBRATION_JSON, write_calibration
@@ -163,11 +164,13 @@ def cmd_robot_calibrate(args: argparse.Namespace) -> int:
             return 0
         watch.recording = FlangeRecording()
         log = _RobotLog(robot)
+        reached = []
         try:
             _dwell(watch, robot_settings.dwell_s)
             for pose in [*poses, start]:
                 guarded_move(robot, pose, limits, watch)
-                _dwell(watch, robot_settings.dwell_s)
+                _dwell(watch, robot_settings.dwell_s + robot_settings.measure_s)
+                reached.append(robot.flange_to_base())
         finally:
             log.stop()
         recording, watch.recording = watch.recording, None
@@ -186,7 +189,12 @@ def cmd_robot_calibrate(args: argparse.Namespace) -> int:
               "robot_poses": {"path": "robot_poses.tum", "samples": len(robot_time)},
               "tracker_recording": {"path": "flange_sensor.tum", "samples": len(tracker_time)},
               "planned_poses": len(poses), "settings": settings.source or None, "emreg_version": __version__}
-    document = write_calibration(out, result, inputs, [])
+    misses = positioning_errors(np.concatenate([poses, start[None]]), np.asarray(reached))
+    document = write_calibration(out, result, inputs, [], {
+        "errors_flange": misses.tolist(), "position_rms_mm": float(np.sqrt(np.mean(np.sum(misses[:, 3:] ** 2, 1)))),
+        "rotation_rms_deg": float(np.degrees(np.sqrt(np.mean(np.sum(misses[:, :3] ** 2, 1))))),
+        "note": "per pose, the flange pose the robot reported after the dwell in the commanded pose's frame: "
+                "rotation vector (rad), translation (mm)"})
     print(f"robot-calibrate: SensorToFlange and TrackerToBase from {len(result.used)} frames over {len(poses)} poses; "
           f"residual RMS {document['residuals']['rotation_deg']['rms']:.3f} deg, "
           f"{document['residuals']['translation_mm']['rms']:.3f} mm; predicted tool-point error "

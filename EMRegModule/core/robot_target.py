@@ -24,9 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import NoSafeAnswerError
-from .error_model import skew
 from .robot_kinematics import RobotModel, seeds_around
-from .transforms import apply_transform, invert_rigid
+from .robot_motion import positioning_ms_at
+from .transforms import apply_transform, invert_rigid, rotation_matrices
 
 #: Rolls about the guide's axis tried with a robot model (degrees apart).
 ROLL_STEP_DEG = 5.0
@@ -126,17 +126,50 @@ def plan_flange_pose(entry_image: np.ndarray, target_image: np.ndarray, referenc
     return guide_to_base @ invert_rigid(guide_to_flange), guide_to_base, roll, joints, margin
 
 
-def hand_eye_ms_at(target_sensor_mm: np.ndarray, target_tracker_mm: np.ndarray, sensor_to_flange: np.ndarray,
-                   tracker_to_base: np.ndarray, parameter_covariance: np.ndarray) -> float:
-    """Mean-square error (mm^2) at the target from the hand-eye calibration's 12 pose parameters (X's and Y's
-    rotation vectors on the right, rad, and translations, mm): the guide's point (Sensor frame) placed through
-    X, plus the patient's target (Tracker frame) placed through Y (their small cross-covariance left out)."""
-    covariance = np.asarray(parameter_covariance, dtype=float)
-    total = 0.0
-    for k, (pose, point) in enumerate(((sensor_to_flange, target_sensor_mm), (tracker_to_base, target_tracker_mm))):
-        jac = np.hstack([-pose[:3, :3] @ skew(point), np.eye(3)])
-        total += float(np.trace(jac @ covariance[6 * k:6 * k + 6, 6 * k:6 * k + 6] @ jac.T))
-    return total
+def _params_to_pose(pose: np.ndarray, params: np.ndarray) -> np.ndarray:
+    """A pose moved by 6 parameters: a rotation vector applied on the right (rad), a translation added (mm)."""
+    moved = pose.copy()
+    moved[:3, :3] = pose[:3, :3] @ rotation_matrices(params[:3])
+    moved[:3, 3] = pose[:3, 3] + params[3:]
+    return moved
+
+
+def hand_eye_ms_at(guide_tracker: np.ndarray, tip_guide_mm: np.ndarray, sensor_to_flange: np.ndarray,
+                   tracker_to_base: np.ndarray, needle_guide_to_sensor: np.ndarray,
+                   parameter_covariance: np.ndarray) -> float:
+    """Mean-square error (mm^2) of the needle tip (``tip_guide_mm``, NeedleGuide frame) from the hand-eye
+    calibration's 12 pose parameters (X's and Y's rotation vectors on the right, rad, and translations, mm; their
+    full covariance, cross terms included: near the calibration's poses X's and Y's errors largely cancel).
+
+    The guide is wanted at ``guide_tracker`` (4x4, Tracker frame). The robot is sent to ``Y W inv(X G)`` with the
+    calibration's X and Y; the guide then truly stands at ``Y_true W inv(X G) X_true G``: the tip's error is
+    linearised in the calibration's errors by central differences."""
+    covariance = np.asarray(parameter_covariance, dtype=float)[:12, :12]
+    tip = np.append(np.asarray(tip_guide_mm, dtype=float), 1.0)
+    commanded = tracker_to_base @ guide_tracker @ invert_rigid(sensor_to_flange @ needle_guide_to_sensor)
+
+    def tip_base(params: np.ndarray) -> np.ndarray:
+        # the truth as the calibration's answer moved by the parameters' error
+        true_x, true_y = _params_to_pose(sensor_to_flange, params[:6]), _params_to_pose(tracker_to_base, params[6:])
+        return (invert_rigid(true_y) @ commanded @ true_x @ needle_guide_to_sensor @ tip)[:3]
+
+    step = np.array([1e-6] * 3 + [1e-3] * 3 + [1e-6] * 3 + [1e-3] * 3)
+    jac = np.empty((3, 12))
+    for k in range(12):
+        delta = np.zeros(12)
+        delta[k] = step[k]
+        jac[:, k] = (tip_base(delta) - tip_base(-delta)) / (2 * step[k])
+    return float(np.trace(jac @ covariance @ jac.T))
+
+
+def robot_ms_at(tip_flange_mm: np.ndarray, errors: np.ndarray | None, rms: tuple[float, float] = (0.0, 0.0)
+                ) -> float:
+    """Mean-square error (mm^2) of a point on the flange (``tip_flange_mm``, Flange frame) from the robot's own
+    positioning: over its measured misses ``errors`` (:func:`~EMRegModule.core.robot_motion.positioning_errors`),
+    else from an RMS distance (mm) and angle (degrees, about any axis) ``rms``."""
+    if errors is not None and len(errors):
+        return positioning_ms_at(tip_flange_mm, errors)
+    return rms[0] ** 2 + (2.0 / 3.0) * (np.radians(rms[1]) * float(np.linalg.norm(tip_flange_mm))) ** 2
 
 
 def robot_target(entry_image: np.ndarray, target_image: np.ndarray, reference_to_image: np.ndarray,
@@ -144,13 +177,20 @@ def robot_target(entry_image: np.ndarray, target_image: np.ndarray, reference_to
                  needle_guide_to_sensor: np.ndarray, hand_eye_covariance: np.ndarray, registration_ms_mm2: float,
                  tool_rms_mm: float = 0.0, standoff_mm: float = 0.0,
                  preferred_flange_rotation: np.ndarray | None = None, max_tracker_distance_mm: float | None = None,
-                 reach_mm: float | None = None, robot_model: RobotModel | None = None) -> RobotTarget:
+                 reach_mm: float | None = None, robot_model: RobotModel | None = None,
+                 positioning_errors: np.ndarray | None = None,
+                 positioning_rms: tuple[float, float] = (0.0, 0.0)) -> RobotTarget:
     """The flange pose for a plan and its predicted error at the target (see :func:`plan_flange_pose`).
 
     ``hand_eye_covariance``: the calibration's parameter covariance (13x13 or 12x12); ``registration_ms_mm2``: the
-    registration's mean-square error at the target (mm^2); ``tool_rms_mm``: the guide's calibration error (mm).
+    registration's mean-square error at the target (mm^2); ``tool_rms_mm``: the guide's calibration error (mm);
+    ``positioning_errors``: the robot's own misses (commanded against reached flange poses,
+    :func:`~EMRegModule.core.robot_motion.positioning_errors`), else ``positioning_rms`` (mm, degrees). The
+    predicted error is that of the needle
+    tip at the target, per source (``registration``, ``hand_eye``, ``tool``, ``robot``) and in ``total``.
     Refused (:class:`NoSafeAnswerError`) when Entry or Target lies farther than ``max_tracker_distance_mm`` from
-    the field generator, or the flange would be farther than ``reach_mm`` from the robot's base."""
+    the field generator, the flange would be farther than ``reach_mm`` from the robot's base, or (with
+    ``robot_model``) no roll about the axis is reachable."""
     flange_to_base, guide_to_base, roll, joints, margin = plan_flange_pose(
         entry_image, target_image, reference_to_image, reference_to_tracker, tracker_to_base, sensor_to_flange,
         needle_guide_to_sensor, standoff_mm, preferred_flange_rotation, robot_model)
@@ -168,11 +208,14 @@ def robot_target(entry_image: np.ndarray, target_image: np.ndarray, reference_to
     image_to_base = tracker_to_base @ image_to_tracker
     entry_base, target_base = apply_transform(image_to_base, np.vstack([entry_image, target_image]))
     depth = float(np.linalg.norm(target_base - entry_base))
-    target_sensor = apply_transform(needle_guide_to_sensor, np.array([[0.0, 0.0, depth + standoff_mm]]))[0]
-    hand_eye_ms = hand_eye_ms_at(target_sensor, target_tracker, sensor_to_flange, tracker_to_base,
+    tip_guide = np.array([0.0, 0.0, depth + standoff_mm])  # the needle tip at the target, NeedleGuide frame
+    guide_tracker = invert_rigid(tracker_to_base) @ guide_to_base
+    hand_eye_ms = hand_eye_ms_at(guide_tracker, tip_guide, sensor_to_flange, tracker_to_base, needle_guide_to_sensor,
                                  hand_eye_covariance)
+    tip_flange = apply_transform(sensor_to_flange @ needle_guide_to_sensor, tip_guide[None])[0]
+    robot_ms = robot_ms_at(tip_flange, positioning_errors, positioning_rms)
     terms = {"registration": float(np.sqrt(max(registration_ms_mm2, 0.0))), "hand_eye": float(np.sqrt(hand_eye_ms)),
-             "tool": float(tool_rms_mm)}
+             "tool": float(tool_rms_mm), "robot": float(np.sqrt(robot_ms))}
     terms["total"] = float(np.sqrt(sum(v ** 2 for v in terms.values())))
     return RobotTarget(flange_to_base, guide_to_base, entry_base, target_base, depth, float(np.degrees(roll)), terms,
                        joints, margin)

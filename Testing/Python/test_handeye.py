@@ -418,3 +418,51 @@ def test_the_predicted_uncertainty_matches_the_error_over_seeds(robot, family):
     tip, point = np.sqrt(np.mean(np.square(tip_ratio))), np.sqrt(np.mean(np.square(point_ratio)))
     print(f"\n{robot} {family}: measured / predicted RMS, tool tip {tip:.2f}, tracker point {point:.2f}")
     assert 0.6 < tip < 1.6 and 0.6 < point < 1.6
+
+
+def test_the_predicted_error_at_the_target_matches_the_needle_tips_error_over_seeds():
+    """robot-target's prediction is honest: over KinHEC recordings of several seeds, the needle tip where the flange
+    pose truly puts it (the true X and Y, the robot's positioning off by its RMS error in a random direction)
+    is as far from the target as predicted (the RMS ratio near 1), the hand-eye term through X's and Y's full
+    covariance, the robot's own term from its positioning error."""
+    from scipy.spatial.transform import Rotation
+
+    from EMRegModule.core.handeye import calibrate_hand_eye
+    from EMRegModule.core.robot_target import robot_target
+
+    rng = np.random.default_rng(5)
+    guide_to_sensor = _pose([0.0, 20.0, 0.0], [5.0, -3.0, 60.0])
+    reference_to_tracker = _pose([5.0, 30.0, -10.0], [20.0, -30.0, 300.0])
+    positioning = (0.1, 0.09)  # mm, degrees RMS: what franky-sim's controller leaves
+    ratios, hand_eye_ratios = [], []
+
+    def tip_guide(depth_mm: float) -> np.ndarray:
+        return np.array([0.0, 0.0, depth_mm, 1.0])
+
+    for seed in range(41, 49):
+        case = kinhec_case("panda", "joint_sinusoid", seed=seed, outlier_fraction=0.02)
+        result = calibrate_hand_eye(case.robot_time_s, case.flange_to_base, case.tracker_time_s,
+                                    case.sensor_to_tracker)
+        # a plan where the flange once held the guide, 70 mm deep, the registration exact (reference = image)
+        guide = case.true_flange_to_base[rng.integers(len(case.true_flange_to_base))] @ case.sensor_to_flange @ \
+            guide_to_sensor
+        base_to_image = np.linalg.inv(case.tracker_to_base @ reference_to_tracker)
+        entry, target = (base_to_image @ np.array([[*guide[:3, 3], 1.0],
+                                                   [*(guide[:3, 3] + 70.0 * guide[:3, 2]), 1.0]]).T).T[:, :3]
+        answer = robot_target(entry, target, np.eye(4), reference_to_tracker, result.tracker_to_base,
+                              result.sensor_to_flange, guide_to_sensor, result.covariance, 0.0,
+                              positioning_rms=positioning)
+        reached = answer.flange_to_base.copy()
+        axis = rng.normal(size=3)
+        reached[:3, :3] = reached[:3, :3] @ Rotation.from_rotvec(
+            axis / np.linalg.norm(axis) * np.radians(positioning[1]) * rng.normal(0.0, 1.0)).as_matrix()
+        reached[:3, 3] += rng.normal(0.0, positioning[0] / np.sqrt(3.0), 3)
+        tip = reached @ case.sensor_to_flange @ guide_to_sensor @ tip_guide(answer.depth_mm)
+        target_base = case.tracker_to_base @ reference_to_tracker @ np.append(target, 1.0)
+        ratios.append(np.linalg.norm((tip - target_base)[:3]) / answer.predicted_error_mm["total"])
+        tip_hand_eye = answer.flange_to_base @ case.sensor_to_flange @ guide_to_sensor @ tip_guide(answer.depth_mm)
+        hand_eye_ratios.append(np.linalg.norm((tip_hand_eye - target_base)[:3]) / answer.predicted_error_mm["hand_eye"])
+    ratio, hand_eye = (float(np.sqrt(np.mean(np.square(r)))) for r in (ratios, hand_eye_ratios))
+    print(f"\nneedle tip error / predicted over {len(ratios)} seeds, RMS: {ratio:.2f}; the hand-eye's part alone (the "
+          f"robot exactly where sent) / its term: {hand_eye:.2f}")
+    assert 0.6 < ratio < 1.5 and 0.5 < hand_eye < 1.6
