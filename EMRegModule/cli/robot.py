@@ -226,7 +226,6 @@ def _reference_now(args: argparse.Namespace, settings) -> np.ndarray:
 
 def cmd_robot_target(args: argparse.Namespace) -> int:
     from ..core.registration import read_registration
-    from ..core.robot_kinematics import robot_model
     from ..core.robot_target import robot_target
     from ..io.atomic import atomic_write_json
 
@@ -244,9 +243,8 @@ def cmd_robot_target(args: argparse.Namespace) -> int:
                           calibration["TrackerToBase"], calibration["SensorToFlange"], guide_to_sensor,
                           calibration["covariance"], registration_ms, tool_rms, robot.standoff_mm,
                           calibration["preferred"], robot.max_tracker_distance_mm, robot.reach_mm,
-                          robot_model(robot.model, robot.end_effector_mm, robot.end_effector_rpy_deg)
-                          if robot.model else None,
-                          calibration["positioning"], (robot.positioning_mm, robot.positioning_deg))
+                          robot.model, (robot.end_effector_mm, robot.end_effector_rpy_deg), calibration["positioning"],
+                          (robot.positioning_mm, robot.positioning_deg))
     document = {"FlangeToBase": answer.flange_to_base.tolist(),
                 "NeedleGuideToBase": answer.needle_guide_to_base.tolist(),
                 "entry_base_mm": answer.entry_base_mm.tolist(), "target_base_mm": answer.target_base_mm.tolist(),

@@ -25,6 +25,7 @@ import numpy as np
 
 from ..errors import NoSafeAnswerError
 from .robot_kinematics import RobotModel, seeds_around
+from .robot_kinematics import robot_model as make_robot_model
 from .robot_motion import positioning_ms_at
 from .transforms import apply_transform, invert_rigid, rotation_matrices
 
@@ -177,13 +178,15 @@ def robot_target(entry_image: np.ndarray, target_image: np.ndarray, reference_to
                  needle_guide_to_sensor: np.ndarray, hand_eye_covariance: np.ndarray, registration_ms_mm2: float,
                  tool_rms_mm: float = 0.0, standoff_mm: float = 0.0,
                  preferred_flange_rotation: np.ndarray | None = None, max_tracker_distance_mm: float | None = None,
-                 reach_mm: float | None = None, robot_model: RobotModel | None = None,
-                 positioning_errors: np.ndarray | None = None,
+                 reach_mm: float | None = None, robot_model: RobotModel | str | None = None,
+                 end_effector: tuple = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)), positioning_errors: np.ndarray | None = None,
                  positioning_rms: tuple[float, float] = (0.0, 0.0)) -> RobotTarget:
     """The flange pose for a plan and its predicted error at the target (see :func:`plan_flange_pose`).
 
     ``hand_eye_covariance``: the calibration's parameter covariance (13x13 or 12x12); ``registration_ms_mm2``: the
     registration's mean-square error at the target (mm^2); ``tool_rms_mm``: the guide's calibration error (mm);
+    ``robot_model``: the robot's kinematic model, or its name (``[robot] model``) with ``end_effector`` (the
+    translation mm and roll-pitch-yaw degrees set on the robot, :func:`~EMRegModule.core.robot_kinematics.robot_model`);
     ``positioning_errors``: the robot's own misses (commanded against reached flange poses,
     :func:`~EMRegModule.core.robot_motion.positioning_errors`), else ``positioning_rms`` (mm, degrees). The
     predicted error is that of the needle
@@ -191,6 +194,8 @@ def robot_target(entry_image: np.ndarray, target_image: np.ndarray, reference_to
     Refused (:class:`NoSafeAnswerError`) when Entry or Target lies farther than ``max_tracker_distance_mm`` from
     the field generator, the flange would be farther than ``reach_mm`` from the robot's base, or (with
     ``robot_model``) no roll about the axis is reachable."""
+    if isinstance(robot_model, str):
+        robot_model = make_robot_model(robot_model, *end_effector)
     flange_to_base, guide_to_base, roll, joints, margin = plan_flange_pose(
         entry_image, target_image, reference_to_image, reference_to_tracker, tracker_to_base, sensor_to_flange,
         needle_guide_to_sensor, standoff_mm, preferred_flange_rotation, robot_model)
