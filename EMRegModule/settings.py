@@ -374,13 +374,16 @@ class HandEyeSettings:
       ``--sensor`` overrides it; None: the recording's only sensor).
     - ``max_time_offset_s`` (None): the largest clock offset searched, s (None: any offset that keeps the two
       recordings overlapping, for clocks with different epochs).
-    - ``timing_jitter_s`` (0.002): the uncertainty of a tracker time stamp, s; a moving frame's residual
-      allows ``speed x jitter`` more, so the still frames of dwells count most.
+    - ``timing_jitter_s`` (0): the least uncertainty of a tracker time stamp, s; a moving frame's residual
+      allows ``speed x jitter`` more, so the still frames of dwells count most. The jitter is estimated from how
+      the residuals grow with the flange's speed, never below this.
     - ``min_frames`` (20), ``min_rotation_deg`` (10), ``min_second_axis_deg`` (3): below these (frames used;
       the largest rotation of the flange from its mean orientation; the RMS rotation about the second axis)
       the motion cannot determine the answer (exit 3).
     - ``min_correlation`` (0.5): a weaker peak of the angular-speed cross-correlation finds no clock offset.
-    - ``outlier_limit`` (5.0): a frame whose noise-normalised residual exceeds this is rejected.
+    - ``outlier_limit`` (9.0): a frame whose noise-normalised residual (over its 6 components) exceeds this is
+      rejected; 9 is as unlikely under the refinement's heavy-tailed noise model (a Student-t of 4 degrees of
+      freedom) as 4 standard deviations of Gaussian noise.
     - ``max_noise_mm`` (5.0), ``max_noise_deg`` (3.0): a still frame's typical residual above these means the
       two recordings disagree (not the same motion, the wrong sensor, a moved field generator): exit 3.
     - ``tool_tip_mm`` (0, 0, 150): the tool point (Sensor frame, mm) whose predicted error is reported;
@@ -390,12 +393,12 @@ class HandEyeSettings:
     flange_transform: str = "FlangeToBase"
     sensor: str | int | None = None
     max_time_offset_s: float | None = positive(None)
-    timing_jitter_s: float = non_negative(0.002)
+    timing_jitter_s: float = non_negative(0.0)
     min_frames: int = positive(20)
     min_rotation_deg: float = positive(10.0)
     min_second_axis_deg: float = positive(3.0)
     min_correlation: float = fraction(0.5)
-    outlier_limit: float = positive(5.0)
+    outlier_limit: float = positive(9.0)
     max_noise_mm: float = positive(5.0)
     max_noise_deg: float = positive(3.0)
     tool_tip_mm: tuple[float, ...] = (0.0, 0.0, 150.0)
@@ -420,6 +423,14 @@ class RobotSettings:
     - ``max_tracker_distance_mm`` (660): Entry and Target must lie within this distance of the field generator
       (the tracker's characterised volume; 660 mm is a trakSTAR mid-range transmitter's), else exit 3.
     - ``reach_mm`` (None): the flange must stay within this distance of the robot's base (None: not checked).
+    - ``positioning_mm`` (0), ``positioning_deg`` (0): the robot's own RMS positioning error (commanded against
+      reached flange pose), part of the predicted error at the target when the calibration did not measure it
+      (``robot-calibrate`` does, at its poses).
+    - ``model`` (None): the robot's kinematic model, ``fr3`` or ``panda``: the roll about the needle's axis is then
+      the one that keeps the robot furthest from its joint limits, and a plan it cannot reach is refused (exit 3);
+      ``end_effector_mm`` (0, 0, 0) and ``end_effector_rpy_deg`` (0, 0, 0): the end effector set on the robot
+      (Franka's ``F_T_EE``: translation, then roll-pitch-yaw about the flange's fixed x, y, z), for a flange
+      pose reported and commanded at it.
 
     Driving the robot (``emreg robot-calibrate``, ``emreg robot-go``; :mod:`EMRegModule.core.robot_motion`):
 
@@ -430,9 +441,11 @@ class RobotSettings:
     - ``calibration_poses`` (12), ``calibration_angle_deg`` (25), ``calibration_translation_mm`` (20): the poses
       ``robot-calibrate`` plans; ``sensor_radius_mm`` (150): the farthest the sensor may sit from the flange's
       origin, for keeping it in the tracker's volume before the calibration knows; ``dwell_s`` (0.8): the still
-      time recorded at each pose; ``motion_jitter_s`` (0.05): while the robot moves, its reported flange pose
-      runs ahead of the real flange (the controller's tracking error) by up to this time: ``robot-calibrate``
-      solves with ``[handeye] timing_jitter_s`` at least this, so that the still frames of the dwells count most.
+      time recorded at each pose (``robot-calibrate`` stays ``measure_s`` longer and then reads where the robot
+      put its flange: the robot's positioning error as settled as ``robot-go`` measures it);
+      ``motion_jitter_s`` (0.05): while the robot moves, its reported flange pose runs ahead of the real flange
+      (the controller's tracking error) by up to this time: ``robot-calibrate`` solves with ``[handeye]
+      timing_jitter_s`` at least this, so that the still frames of the dwells count most.
     - ``approach_mm`` (30): ``robot-go`` first goes this far back along the planned axis, then along it;
       ``tolerance_mm`` (0.5), ``tolerance_deg`` (0.5): the guide is on the plan when its exit and its needle tip
       at the planned depth are within ``tolerance_mm`` and its axis within ``tolerance_deg``; ``max_corrections``
@@ -443,6 +456,11 @@ class RobotSettings:
     standoff_mm: float = non_negative(0.0)
     max_tracker_distance_mm: float = positive(660.0)
     reach_mm: float | None = positive(None)
+    positioning_mm: float = non_negative(0.0)
+    positioning_deg: float = non_negative(0.0)
+    model: str | None = one_of(None, "fr3", "panda")
+    end_effector_mm: tuple[float, ...] = (0.0, 0.0, 0.0)
+    end_effector_rpy_deg: tuple[float, ...] = (0.0, 0.0, 0.0)
     flange_sensor: int = port(3)
     max_velocity_mm_s: float = positive(50.0)
     max_acceleration_mm_s2: float = positive(250.0)
@@ -462,6 +480,11 @@ class RobotSettings:
     measure_s: float = positive(0.5)
     max_correction_mm: float = positive(20.0)
     max_correction_deg: float = positive(5.0)
+
+    def validate(self) -> None:
+        for name in ("end_effector_mm", "end_effector_rpy_deg"):
+            if len(getattr(self, name)) != 3:
+                raise SettingError("must be three numbers", name)
 
 
 # --- the tree ----------------------------------------------------------------------------------

@@ -5,8 +5,8 @@ the sensor offset (:mod:`.sensor_offset`), registration (:mod:`.registration`, :
 error model (:mod:`.error_model`), distortion evidence (:mod:`.distortion`), pivot and tool tips (:mod:`.tool`),
 navigation and its checkpoints (:mod:`.navigation`, :mod:`.checkpoints`, :mod:`.slip`), guidance to a plan
 (:mod:`.guidance`, :mod:`.plan`), hand-eye and robot targeting (:mod:`.handeye`, :mod:`.handeye_sync`,
-:mod:`.robot_target`, :mod:`.robot_motion`), and the shared frames and data model (:mod:`.transforms`,
-:mod:`.frames`, :mod:`.tracking`, :mod:`.marker_model`).
+:mod:`.robot_target`, :mod:`.robot_motion`, :mod:`.robot_kinematics`), and the shared frames and data model
+(:mod:`.transforms`, :mod:`.frames`, :mod:`.tracking`, :mod:`.marker_model`).
 
 Nothing here reads or writes a file, prints, or knows a device or a front end: ``scripts/architecture.py``
 checks that ``core`` imports nothing from ``io``, ``devices``, ``live``, ``pipeline`` or the front ends. Progress

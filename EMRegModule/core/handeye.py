@@ -8,18 +8,22 @@ offset ``time_offset_s`` with ``t_tracker = t_robot + time_offset_s``. Pure: arr
 
 The steps (:func:`calibrate_hand_eye`):
 
+0. the robot's log smoothed (:func:`EMRegModule.core.handeye_sync.smooth_poses`: local quadratics in time, their
+   width by cross-validation on the log): a robot logs faster than the tracker, with noise of its own;
 1. the clock offset from the angular speeds (:func:`EMRegModule.core.handeye_sync.estimate_clock_offset`); the
    robot's flange pose interpolated at every tracker instant;
 2. whether the motion can determine the answer: enough frames, a large enough rotation, rotations about at
    least two non-parallel axes (:func:`motion_spread`);
 3. a robust closed-form start: least median of residuals over closed-form solutions (:func:`solve_ax_yb`, a
-   Kronecker-product rotation solve and linear translations) of small frame sets spread over the recording;
+   Kronecker-product rotation solve and linear translations) of small frame sets spread over the recording, as
+   many as make missing an all-good set unlikely (adaptive RANSAC);
 4. the offset refined on the calibration residual (a scan around the cross-correlation's answer);
 5. a robust nonlinear refinement of X, Y and the offset together, each frame's residual normalised by the
-   noise it should have (EM and robot noise, plus the flange's speed times the tracker's timing jitter, so the
-   still frames of dwells count most), frames far beyond it rejected with the reason;
-6. the covariance of the answer, propagated to a tool point (150 mm out by default) and to a point in front
-   of the tracker.
+   noise it should have (per axis ``sigma^2 + (speed x jitter)^2``, both sigmas and the tracker's timing jitter
+   fitted to how the residuals grow with the flange's speed, so the still frames of dwells count most), the
+   frames weighed as under a Student-t (EM noise is heavy-tailed), frames far beyond it rejected with the reason;
+6. the covariance of the answer (a sandwich estimate: what the residuals show, not the noise model alone),
+   propagated to a tool point (150 mm out by default) and to a point in front of the tracker.
 """
 
 from __future__ import annotations
@@ -27,12 +31,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from scipy.optimize import nnls
 
 from ..errors import EMRegError, NoSafeAnswerError
 from ..settings import HandEyeSettings
 from .error_model import skew
-from .handeye_sync import estimate_clock_offset, interpolate_poses, pose_speeds
+from .handeye_sync import estimate_clock_offset, interpolate_poses, pose_speeds, prepared_log
+from .transforms import rotation_matrices, rotation_vectors
 
 #: A point this far in front of the tracker (its +z, mm) measures the error of ``TrackerToBase``.
 TRACKER_POINT_MM = (0.0, 0.0, 300.0)
@@ -49,8 +54,12 @@ SCAN_STEP_S = 0.01
 #: recording.
 MOST_SCORED = 400
 
-#: Median |v| of a 3D Gaussian vector with per-axis standard deviation 1.
-_MEDIAN_NORM_3D = 1.5382
+#: Degrees of freedom of the Student-t the refinement assumes of each frame's residual (4: the robust default of
+#: Lange, Little and Taylor 1989; Gaussian noise loses little, heavy-tailed EM noise gains much).
+TAIL_DOF = 4.0
+
+#: Frames within this time (s) are taken as sharing errors when the covariance is estimated.
+COVARIANCE_BLOCK_S = 0.5
 
 #: Frames with the flange slower than these count as still (mm/s, rad/s), its speed taken over this window (s).
 STILL_SPEED_MM_S = 3.0
@@ -162,7 +171,7 @@ def pose_residuals(flange_to_base: np.ndarray, sensor_to_tracker: np.ndarray, se
     the difference of the sensor's origin (N, 3, mm, Base frame)."""
     by_robot = flange_to_base @ sensor_to_flange
     by_tracker = tracker_to_base @ sensor_to_tracker
-    turn = Rotation.from_matrix(np.swapaxes(by_tracker[:, :3, :3], 1, 2) @ by_robot[:, :3, :3]).as_rotvec()
+    turn = rotation_vectors(np.swapaxes(by_tracker[:, :3, :3], 1, 2) @ by_robot[:, :3, :3])
     return turn, by_robot[:, :3, 3] - by_tracker[:, :3, 3]
 
 
@@ -172,7 +181,7 @@ def motion_spread(flange_to_base: np.ndarray) -> tuple[float, float]:
     determine ``SensorToFlange``)."""
     rotations = flange_to_base[:, :3, :3]
     mean = _project_rotation(rotations.sum(axis=0))
-    vectors = np.degrees(Rotation.from_matrix(mean.T @ rotations).as_rotvec())
+    vectors = np.degrees(rotation_vectors(mean.T @ rotations))
     if len(vectors) < 2:
         return 0.0, 0.0
     eigen = np.sort(np.linalg.eigvalsh(vectors.T @ vectors / len(vectors)))[::-1]
@@ -192,24 +201,34 @@ def _spread_rows(n: int, most: int = MOST_SCORED) -> np.ndarray:
 
 
 def robust_start(flange_to_base: np.ndarray, sensor_to_tracker: np.ndarray, trials: int = 120, size: int = 6,
-                 seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 seed: int = 0, confidence: float = 0.9999) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closed-form ``(SensorToFlange, TrackerToBase, inliers)`` robust to wrong poses: least median of the
     residual distances over solutions from ``size`` pairs drawn one from each part of the recording, then one
-    weighted solve on the pairs within three robust standard deviations."""
+    weighted solve on the pairs within three robust standard deviations.
+
+    At most ``trials`` draws; fewer when, with the inlier fraction ``w`` the best solution so far shows, the
+    chance that no draw was all inliers, ``(1 - w^size)^draws``, is below ``1 - confidence`` (adaptive RANSAC)."""
     n = len(flange_to_base)
     rng = np.random.default_rng(seed)
     bins = np.array_split(np.arange(n), size)
     scored = _spread_rows(n)  # the median of a few hundred frames ranks the candidates as well as all
-    best, best_score = None, np.inf
-    for _ in range(trials):
+    best, best_score, needed = None, np.inf, trials
+    for draw in range(trials):
+        if draw >= needed:
+            break
         pick = np.array([rng.choice(b) for b in bins if len(b)])
         try:
             x, y = solve_ax_yb(flange_to_base[pick], sensor_to_tracker[pick])
         except np.linalg.LinAlgError:
             continue
-        score = float(np.median(residual_distances(flange_to_base[scored], sensor_to_tracker[scored], x, y)))
+        distances = residual_distances(flange_to_base[scored], sensor_to_tracker[scored], x, y)
+        score = float(np.median(distances))
         if score < best_score:
             best, best_score = (x, y), score
+            inlier_fraction = float(np.mean(distances <= 3.0 * 1.4826 * score))
+            all_inliers = inlier_fraction ** size
+            needed = (trials if all_inliers <= 0.0 else
+                      int(np.ceil(np.log(1.0 - confidence) / np.log(max(1.0 - all_inliers, 1e-12)))))
     if best is None:
         raise NoSafeAnswerError("hand-eye: no frame set gives a solution; the motion cannot determine the answer")
     distances = residual_distances(flange_to_base, sensor_to_tracker, *best)
@@ -257,14 +276,56 @@ def _scan_offset(frames: _Frames, rows: np.ndarray, offset_s: float) -> float:
     return float(best)
 
 
-def _noise_scale(turn: np.ndarray, shift: np.ndarray, speeds: tuple[np.ndarray, np.ndarray]) -> tuple[float, float]:
-    """The still noise of a frame's residual, rotation (rad) and position (mm) per axis, robustly from the
-    slower half of the frames."""
+#: Median of a chi-square variable with 3 degrees of freedom: ``|v|^2`` of a 3D vector with per-axis variance 1.
+_MEDIAN_CHI2_3 = 2.366
+
+#: The noise model is fitted on frames grouped in this many speed classes (quantiles), each of at least
+#: ``NOISE_BIN_FRAMES`` frames.
+NOISE_BINS = 10
+NOISE_BIN_FRAMES = 15
+
+
+@dataclass(frozen=True)
+class _Noise:
+    """A frame's residual noise (internal): per axis, variance ``sigma^2 + (speed x jitter_s)^2`` for rotation
+    (``sigma_rotation`` rad, angular speed rad/s) and position (``sigma_position`` mm, linear speed mm/s)."""
+
+    sigma_rotation: float
+    sigma_position: float
+    jitter_s: float
+
+    def scales(self, linear: np.ndarray, angular: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per frame, the standard deviation per axis of the rotation (rad) and position (mm) residuals."""
+        return np.hypot(self.sigma_rotation, angular * self.jitter_s), np.hypot(self.sigma_position,
+                                                                                 linear * self.jitter_s)
+
+
+def _fit_noise(turn: np.ndarray, shift: np.ndarray, speeds: tuple[np.ndarray, np.ndarray],
+               least_jitter_s: float) -> _Noise:
+    """The noise model (:class:`_Noise`) of the residuals, robustly: the frames grouped by speed, each group's
+    median squared residual (per axis) is ``sigma^2 + speed^2 jitter^2`` for rotation and position with one
+    jitter (the tracker's time stamps' scatter, the same for both), fitted by non-negative least squares
+    relative to each group's value; the jitter never below ``least_jitter_s``."""
     linear, angular = speeds
-    slow = (linear + LEVER_MM * angular) <= np.median(linear + LEVER_MM * angular)
-    sigma_rot = max(float(np.median(np.linalg.norm(turn[slow], axis=1))) / _MEDIAN_NORM_3D, 1e-6)
-    sigma_pos = max(float(np.median(np.linalg.norm(shift[slow], axis=1))) / _MEDIAN_NORM_3D, 1e-4)
-    return sigma_rot, sigma_pos
+    rotation_var = np.sum(turn ** 2, axis=1) / _MEDIAN_CHI2_3  # its median: the per-axis variance
+    position_var = np.sum(shift ** 2, axis=1) / _MEDIAN_CHI2_3
+    rows = []
+    groups = np.array_split(np.argsort(linear / max(float(np.median(linear)), 1e-9)
+                                       + angular / max(float(np.median(angular)), 1e-12)),
+                            max(1, min(NOISE_BINS, len(linear) // NOISE_BIN_FRAMES)))
+    for group in groups:
+        rot, pos = float(np.median(rotation_var[group])), float(np.median(position_var[group]))
+        w_sq, v_sq = float(np.median(angular[group] ** 2)), float(np.median(linear[group] ** 2))
+        rows += [([1.0 / max(rot, 1e-14), 0.0, w_sq / max(rot, 1e-14)], 1.0),
+                 ([0.0, 1.0 / max(pos, 1e-10), v_sq / max(pos, 1e-10)], 1.0)]
+    lhs, rhs = np.array([r[0] for r in rows]), np.array([r[1] for r in rows])
+    var_rot, var_pos, jitter_sq = nnls(lhs, rhs)[0]
+    jitter = max(float(np.sqrt(jitter_sq)), least_jitter_s)
+    if jitter > float(np.sqrt(jitter_sq)):  # the floor raised the jitter: the still variances from the slow frames
+        slow = groups[0]
+        var_rot = max(float(np.median(rotation_var[slow])) - jitter ** 2 * float(np.median(angular[slow] ** 2)), 0.0)
+        var_pos = max(float(np.median(position_var[slow])) - jitter ** 2 * float(np.median(linear[slow] ** 2)), 0.0)
+    return _Noise(max(float(np.sqrt(var_rot)), 1e-6), max(float(np.sqrt(var_pos)), 1e-4), jitter)
 
 
 def _params_to_poses(x: np.ndarray, start: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -272,7 +333,7 @@ def _params_to_poses(x: np.ndarray, start: tuple[np.ndarray, np.ndarray]) -> tup
     poses = []
     for k, pose in enumerate(start):
         moved = pose.copy()
-        moved[:3, :3] = pose[:3, :3] @ Rotation.from_rotvec(x[6 * k:6 * k + 3]).as_matrix()
+        moved[:3, :3] = pose[:3, :3] @ rotation_matrices(x[6 * k:6 * k + 3])
         moved[:3, 3] = pose[:3, 3] + x[6 * k + 3:6 * k + 6]
         poses.append(moved)
     return poses[0], poses[1]
@@ -284,15 +345,12 @@ def _linearise(frames: _Frames, rows: np.ndarray, pose: tuple[np.ndarray, np.nda
     with respect to X's rotation vector (right, rad) and translation (mm), Y's, and the offset (s)."""
     sensor_to_flange, tracker_to_base = pose
     tracker = frames.sensor_to_tracker[rows]
-    flange, _ = frames.flange_at(offset_s, rows)
+    flange, _, linear, angular = interpolate_poses(frames.robot_time_s, frames.flange_to_base,
+                                                   frames.time_s[rows] - offset_s, frames.max_gap_s, velocities=True)
     turn, shift = pose_residuals(flange, tracker, sensor_to_flange, tracker_to_base)
-    h = 1e-3  # s: the offset's column by a central difference of the robot's interpolated motion
-    later, _ = frames.flange_at(offset_s + h, rows)
-    sooner, _ = frames.flange_at(offset_s - h, rows)
-    turn_later, shift_later = pose_residuals(later, tracker, *pose)
-    turn_sooner, shift_sooner = pose_residuals(sooner, tracker, *pose)
-    turn_dt = (turn_later - turn_sooner) / (2 * h)
-    shift_dt = (shift_later - shift_sooner) / (2 * h)
+    # the offset's column: the robot's pose is taken at t_tracker - offset, a larger offset takes it earlier
+    turn_dt = -angular @ sensor_to_flange[:3, :3]  # rows: R_X^T w
+    shift_dt = -(linear + (flange[:, :3, :3] @ np.cross(angular, sensor_to_flange[:3, 3])[:, :, None])[:, :, 0])
     jac = np.zeros((len(rows), 6, 13))
     jac[:, :3, 0:3] = np.eye(3)
     jac[:, :3, 6:9] = -np.swapaxes(tracker[:, :3, :3], 1, 2)
@@ -306,26 +364,46 @@ def _linearise(frames: _Frames, rows: np.ndarray, pose: tuple[np.ndarray, np.nda
 
 
 def _gauss_newton(frames: _Frames, rows: np.ndarray, pose: tuple[np.ndarray, np.ndarray], offset_s: float,
-                  scales: tuple[np.ndarray, np.ndarray], huber: float = 3.0, iterations: int = 15
+                  scales: tuple[np.ndarray, np.ndarray], iterations: int = 15
                   ) -> tuple[tuple[np.ndarray, np.ndarray], float, np.ndarray]:
-    """Iteratively reweighted Gauss-Newton (Huber weights on each frame's normalised residual) of X, Y and the
-    offset on the frames ``rows``. Returns the pose pair, the offset and the covariance of the 13 parameters
-    (Gauss-Newton, scaled by the residuals' variance factor)."""
+    """Iteratively reweighted Gauss-Newton of X, Y and the offset on the frames ``rows``: the maximum likelihood
+    under a multivariate Student-t of ``TAIL_DOF`` degrees of freedom on each frame's noise-normalised 6-vector
+    residual (EM noise is heavy-tailed: a frame far off counts less, smoothly). Returns the pose pair, the offset
+    and the covariance of the 13 parameters (:func:`_sandwich_covariance`)."""
     for _ in range(iterations):
         residual, jac = _linearise(frames, rows, pose, offset_s, scales)
-        norm = np.linalg.norm(residual, axis=1)
-        weight = np.where(norm <= huber, 1.0, huber / np.maximum(norm, 1e-12))
-        normal = np.einsum("n,nki,nkj->ij", weight, jac, jac)
-        gradient = np.einsum("n,nki,nk->i", weight, jac, residual)
-        step = -np.linalg.lstsq(normal, gradient, rcond=None)[0]
+        root = np.sqrt(_tail_weights(residual))[:, None]
+        weighted_jac = (jac * root[:, :, None]).reshape(-1, 13)
+        step = -np.linalg.lstsq(weighted_jac.T @ weighted_jac, weighted_jac.T @ (residual * root).reshape(-1),
+                                rcond=None)[0]
         pose = _params_to_poses(step[:12], pose)
         offset_s += float(step[12])
         if np.max(np.abs(step[[0, 1, 2, 6, 7, 8]])) < 1e-9 and np.max(np.abs(step[[3, 4, 5, 9, 10, 11]])) < 1e-6:
             break
     residual, jac = _linearise(frames, rows, pose, offset_s, scales)
-    normal = np.einsum("nki,nkj->ij", jac, jac)
-    factor = float(np.sum(residual ** 2)) / max(residual.size - 13, 1)
-    return pose, offset_s, np.linalg.pinv(normal) * factor
+    return pose, offset_s, _sandwich_covariance(frames.time_s[rows], residual, jac)
+
+
+def _tail_weights(residual: np.ndarray) -> np.ndarray:
+    """Each frame's weight under the multivariate Student-t (``TAIL_DOF``) of its normalised residual (N, 6)."""
+    return (TAIL_DOF + residual.shape[1]) / (TAIL_DOF + np.sum(residual ** 2, axis=1))
+
+
+def _sandwich_covariance(time_s: np.ndarray, residual: np.ndarray, jac: np.ndarray) -> np.ndarray:
+    """The covariance (13x13) of the weighted estimate from what the residuals show, not from the noise model
+    alone: ``inv(H) M inv(H)`` with ``H`` the weighted normal matrix and ``M`` the scatter of the weighted
+    gradient summed over blocks of ``COVARIANCE_BLOCK_S`` (frames within a block may share errors: the smoothed
+    robot log, a slow EM drift)."""
+    weight = _tail_weights(residual)
+    weighted_jac = jac * weight[:, None, None]
+    normal_inverse = np.linalg.pinv(weighted_jac.reshape(-1, 13).T @ jac.reshape(-1, 13))
+    scores = (np.swapaxes(weighted_jac, 1, 2) @ residual[:, :, None])[:, :, 0]
+    block = np.floor((time_s - time_s[0]) / COVARIANCE_BLOCK_S).astype(int)
+    summed = np.zeros((block.max() + 1, scores.shape[1]))
+    np.add.at(summed, block, scores)
+    count = len(np.unique(block))
+    scatter = summed.T @ summed * count / max(count - 1, 1)
+    return normal_inverse @ scatter @ normal_inverse
 
 
 def _point_covariance(pose: np.ndarray, block: np.ndarray, point: np.ndarray) -> np.ndarray:
@@ -344,7 +422,7 @@ class _Fit:
     offset_s: float
     keep: np.ndarray
     distance: np.ndarray
-    sigmas: tuple[float, float]
+    noise: _Noise
     covariance: np.ndarray
 
 
@@ -362,14 +440,13 @@ def _refine(frames: _Frames, rows: np.ndarray, keep: np.ndarray, start: tuple[np
     kept frames settle."""
     tracker = frames.sensor_to_tracker[rows]
     linear, angular = pose_speeds(frames.robot_time_s, frames.flange_to_base, frames.time_s[rows] - offset_s)
-    jitter = settings.timing_jitter_s
     pose = start
     covariance = np.zeros((13, 13))
     for _ in range(4):
         flange, _ = frames.flange_at(offset_s, rows)
         turn, shift = pose_residuals(flange, tracker, *pose)
-        sigmas = _noise_scale(turn[keep], shift[keep], (linear[keep], angular[keep]))
-        scales = (np.hypot(sigmas[0], angular * jitter), np.hypot(sigmas[1], linear * jitter))
+        noise = _fit_noise(turn[keep], shift[keep], (linear[keep], angular[keep]), settings.timing_jitter_s)
+        scales = noise.scales(linear, angular)
         new_keep = _distances_normalised(frames, rows, pose, offset_s, scales) <= settings.outlier_limit
         if np.count_nonzero(new_keep) < 3:
             break
@@ -380,7 +457,7 @@ def _refine(frames: _Frames, rows: np.ndarray, keep: np.ndarray, start: tuple[np
         if settled:
             break
     distance = _distances_normalised(frames, rows, pose, offset_s, scales)
-    return _Fit(pose[0], pose[1], offset_s, distance <= settings.outlier_limit, distance, sigmas, covariance)
+    return _Fit(pose[0], pose[1], offset_s, distance <= settings.outlier_limit, distance, noise, covariance)
 
 
 def _prepare(robot_time_s: np.ndarray, flange_to_base: np.ndarray, tracker_time_s: np.ndarray,
@@ -397,10 +474,7 @@ def _prepare(robot_time_s: np.ndarray, flange_to_base: np.ndarray, tracker_time_
         if len(times) < max(settings.min_frames, 2):
             raise NoSafeAnswerError(f"hand-eye: too few frames: {len(times)} {name} (at least "
                                     f"{max(settings.min_frames, 2)}, [handeye] min_frames); record longer")
-    order = np.argsort(robot_time_s, kind="stable")
-    robot_time_s, flange_to_base = robot_time_s[order], flange_to_base[order]
-    distinct = np.concatenate([[True], np.diff(robot_time_s) > 0])
-    robot_time_s, flange_to_base = robot_time_s[distinct], flange_to_base[distinct]
+    robot_time_s, flange_to_base = prepared_log(robot_time_s, flange_to_base)
     steps = np.diff(robot_time_s)
     max_gap = max(5.0 * float(np.median(steps)), 0.05) if len(steps) else 0.05
     return _Frames(robot_time_s, flange_to_base, tracker_time_s, sensor_to_tracker, max_gap)
@@ -474,8 +548,8 @@ def calibrate_hand_eye(robot_time_s: np.ndarray, flange_to_base: np.ndarray, tra
     _, _, inliers = robust_start(flange, tracker)
     offset = _scan_offset(frames, rows[inliers], clock.offset_s)
     flange, _ = frames.flange_at(offset, rows)
-    start_x, start_y, inliers = robust_start(flange, tracker)
-    fit = _refine(frames, rows, inliers, (start_x, start_y), offset, settings)
+    start = solve_ax_yb(flange[inliers], tracker[inliers])  # the refinement sorts the frames out again
+    fit = _refine(frames, rows, inliers, start, offset, settings)
     used = rows[fit.keep]
     flange, _ = frames.flange_at(fit.offset_s, used)
     spread, second = _check_motion(flange, settings, "frames agree with the calibration")
@@ -508,8 +582,8 @@ def _result(frames: _Frames, fit: _Fit, clock, used: np.ndarray, rejected: list[
     result = HandEyeResult(
         fit.sensor_to_flange, fit.tracker_to_base, fit.offset_s, clock.offset_s, clock.correlation, used,
         np.degrees(np.linalg.norm(turn, axis=1)), np.linalg.norm(shift, axis=1), tuple(rejected),
-        int(np.count_nonzero(still)), _dwells(frames.time_s[used], still), float(np.degrees(fit.sigmas[0])),
-        fit.sigmas[1], motion[0], motion[1], fit.covariance, tip, tip_cov, point, point_cov,
+        int(np.count_nonzero(still)), _dwells(frames.time_s[used], still), float(np.degrees(fit.noise.sigma_rotation)),
+        fit.noise.sigma_position, motion[0], motion[1], fit.covariance, tip, tip_cov, point, point_cov,
         _project_rotation(flange[:, :3, :3].sum(axis=0)))
     if result.noise_position_mm > settings.max_noise_mm or result.noise_rotation_deg > settings.max_noise_deg:
         raise NoSafeAnswerError(

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .handeye import SCAN_HALF_WIDTH_S, pose_residuals, residual_distances
-from .handeye_sync import interpolate_poses
+from .handeye_sync import interpolate_poses, prepared_log
 
 #: A tracker sample farther than this from the robot's log on either side (s) has no robot pose to compare with.
 MAX_ROBOT_GAP_S = 0.25
@@ -49,10 +49,7 @@ def calibration_fit(robot_time_s: np.ndarray, flange_to_base: np.ndarray, tracke
     log (``FlangeToBase`` at ``robot_time_s``, robot clock) and the tracker's samples (``SensorToTracker`` at
     ``tracker_time_s``), with ``rejected_rows`` (indices of the tracker samples it left out); the offset profile
     over ``time_offset_s`` +/- ``half_width_s`` in ``steps`` steps."""
-    order = np.argsort(robot_time_s, kind="stable")
-    robot_time_s, flange_to_base = np.asarray(robot_time_s)[order], np.asarray(flange_to_base)[order]
-    distinct = np.concatenate([[True], np.diff(robot_time_s) > 0])
-    robot_time_s, flange_to_base = robot_time_s[distinct], flange_to_base[distinct]
+    robot_time_s, flange_to_base = prepared_log(robot_time_s, flange_to_base)  # as the solver saw it
     rejected = np.zeros(len(tracker_time_s), dtype=bool)
     rejected[np.asarray(rejected_rows, dtype=int)] = True
     flange, paired = interpolate_poses(robot_time_s, flange_to_base, tracker_time_s - time_offset_s, MAX_ROBOT_GAP_S)

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import NoSafeAnswerError
-from .transforms import axis_angle_to_rotation, invert_rigid, rotation_angle_deg
+from .transforms import axis_angle_to_rotation, invert_rigid, rotation_angle_deg, rotation_matrices, rotation_vectors
 
 
 def spread_axes(count: int) -> np.ndarray:
@@ -79,6 +79,26 @@ def keep_in_volume(start_flange_to_base: np.ndarray, poses: np.ndarray, sensor_t
     now = float(np.linalg.norm(sensor_tracker_mm))
     return np.array([now + sensor_reach_mm(start_flange_to_base, pose, pivot, sensor_radius_mm)
                      <= max_tracker_distance_mm for pose in poses], dtype=bool)
+
+
+def positioning_errors(commanded: np.ndarray, reached: np.ndarray) -> np.ndarray:
+    """How the robot missed the flange poses it was told (N, 4, 4 each, mm, Base frame), from moves that ended:
+    per move, the reached pose in the commanded one's frame as a rotation vector (rad) and a translation (mm),
+    (N, 6) in the Flange frame: a point ``r`` on the flange lands ``R r + t - r`` from where it was sent."""
+    commanded, reached = np.asarray(commanded, dtype=float), np.asarray(reached, dtype=float)
+    miss = np.linalg.inv(commanded) @ reached
+    return np.concatenate([rotation_vectors(miss[:, :3, :3]), miss[:, :3, 3]], axis=1)
+
+
+def positioning_ms_at(point_flange_mm: np.ndarray, errors: np.ndarray) -> float:
+    """Mean-square distance (mm^2) by which a point on the flange (Flange frame, mm) misses, over the robot's
+    positioning errors (:func:`positioning_errors`)."""
+    errors = np.asarray(errors, dtype=float).reshape(-1, 6)
+    if not len(errors):
+        return 0.0
+    point = np.asarray(point_flange_mm, dtype=float)
+    moved = (rotation_matrices(errors[:, :3]) @ point) + errors[:, 3:]
+    return float(np.mean(np.sum((moved - point) ** 2, axis=1)))
 
 
 @dataclass(frozen=True)

@@ -273,6 +273,45 @@ def rotation_angle_deg(a: ArrayLike, b: ArrayLike) -> Array:
     return np.degrees(np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0)))
 
 
+def rotation_vectors(rotations: ArrayLike) -> Array:
+    """Rotation vectors (..., 3; axis times angle in radians, angle in [0, pi]) of rotation matrices (..., 3, 3),
+    vectorised: the axis from the skew part, the angle from it and the trace; near a half turn, where the skew
+    part vanishes, the axis from the symmetric part ``a a^T = (R + R^T - 2 cos(angle) I) / (2 (1 - cos(angle)))``."""
+    m = np.asarray(rotations, dtype=float)
+    skew_part = 0.5 * np.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0],
+                                m[..., 1, 0] - m[..., 0, 1]], axis=-1)
+    sine = np.linalg.norm(skew_part, axis=-1)
+    cosine = np.clip(0.5 * (np.trace(m, axis1=-2, axis2=-1) - 1.0), -1.0, 1.0)
+    angle = np.arctan2(sine, cosine)
+    out = skew_part * np.where(sine > 1e-12, angle / np.maximum(sine, 1e-300), 1.0)[..., None]
+    near = cosine < -0.9
+    if np.any(near):
+        r, c = m[near], cosine[near]
+        outer = (r + np.swapaxes(r, -1, -2) - 2.0 * c[:, None, None] * np.eye(3)) / (2.0 * (1.0 - c))[:, None, None]
+        column = np.argmax(np.diagonal(outer, axis1=-2, axis2=-1), axis=-1)
+        axis = outer[np.arange(len(r)), :, column]
+        axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+        sign = np.where(np.sum(axis * skew_part[near], axis=-1) < 0.0, -1.0, 1.0)
+        out[near] = axis * (sign * angle[near])[:, None]
+    return out
+
+
+def rotation_matrices(rotation_vectors_rad: ArrayLike) -> Array:
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3; axis times angle in radians), vectorised
+    (Rodrigues; the inverse of :func:`rotation_vectors`)."""
+    v = np.asarray(rotation_vectors_rad, dtype=float)
+    angle = np.linalg.norm(v, axis=-1)[..., None, None]
+    small = angle < 1e-6
+    # sin(a)/a and (1 - cos(a))/a^2, by their series where a is tiny
+    a = np.where(small, 1.0, angle)
+    first = np.where(small, 1.0 - angle ** 2 / 6.0, np.sin(a) / a)
+    second = np.where(small, 0.5 - angle ** 2 / 24.0, (1.0 - np.cos(a)) / a ** 2)
+    k = np.zeros(v.shape[:-1] + (3, 3))
+    k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    k[..., 1, 0], k[..., 2, 0], k[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return np.eye(3) + first * k + second * (k @ k)
+
+
 def angle_between_deg(u: ArrayLike, v: ArrayLike) -> Array:
     """Angle(s) in degrees between vectors (..., 3)."""
     u = np.asarray(u, dtype=float)

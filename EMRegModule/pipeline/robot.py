@@ -54,8 +54,10 @@ def _stats(values: np.ndarray) -> dict[str, float]:
             "p95": float(np.percentile(values, 95)), "max": float(np.max(values))}
 
 
-def calibration_document(result: HandEyeResult, inputs: dict[str, Any], warnings: list[str]) -> dict[str, Any]:
-    """``robot_calibration.json``'s content for a result (mm, degrees, seconds)."""
+def calibration_document(result: HandEyeResult, inputs: dict[str, Any], warnings: list[str],
+                         robot_positioning: dict[str, Any] | None = None) -> dict[str, Any]:
+    """``robot_calibration.json``'s content for a result (mm, degrees, seconds), with the robot's positioning
+    error where the robot was driven (``robot-calibrate``)."""
     reasons: dict[str, int] = {}
     for frame in result.rejected:
         key = frame.reason.split(":")[-1].strip() if "times the expected noise" in frame.reason else frame.reason
@@ -85,15 +87,17 @@ def calibration_document(result: HandEyeResult, inputs: dict[str, Any], warnings
                     "frame, the tracker point's in the Base frame",
             "parameter_covariance": result.covariance.tolist(),
             "parameters": PARAMETERS},
+        "robot_positioning": robot_positioning,
         "inputs": inputs,
         "warnings": warnings,
     }
 
 
-def write_calibration(out: Path, result: HandEyeResult, inputs: dict[str, Any], warnings: list[str]) -> dict:
+def write_calibration(out: Path, result: HandEyeResult, inputs: dict[str, Any], warnings: list[str],
+                      robot_positioning: dict[str, Any] | None = None) -> dict:
     """Write ``OUT/robot_calibration.json``, ``SensorToFlange.h5`` and ``TrackerToBase.h5`` together or not at all
     (each to a temporary beside it, all renamed at the end); returns the document."""
-    document = calibration_document(result, inputs, warnings)
+    document = calibration_document(result, inputs, warnings, robot_positioning)
     with atomic_path(out / SENSOR_TO_FLANGE_H5) as x_tmp, atomic_path(out / TRACKER_TO_BASE_H5) as y_tmp, \
             atomic_path(out / ROBOT_CALIBRATION_JSON) as json_tmp:
         write_slicer_frame_transform(x_tmp, result.sensor_to_flange)
@@ -159,6 +163,9 @@ def read_robot_calibration(path: str | os.PathLike[str]) -> dict[str, Any]:
             check_rigid(matrix, f"{path}: {key}")
         covariance = document.get("uncertainty", {}).get("parameter_covariance")
         out["covariance"] = np.asarray(covariance, dtype=float) if covariance is not None else np.zeros((13, 13))
+        positioning = document.get("robot_positioning") or {}
+        out["positioning"] = np.asarray(positioning["errors_flange"], dtype=float).reshape(-1, 6) \
+            if positioning else None
         rotation = document.get("motion", {}).get("mean_flange_rotation")
         out["preferred"] = np.asarray(rotation, dtype=float) if rotation is not None else None
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
@@ -226,12 +233,17 @@ def target_from_files(registration: str | os.PathLike[str], robot_calibration: s
     answer = robot_target(entry, target, recorded.reference_to_image, reference_to_tracker,
                           calibration["TrackerToBase"], calibration["SensorToFlange"], guide_to_sensor,
                           calibration["covariance"], registration_ms, tool_rms, robot.standoff_mm,
-                          calibration["preferred"], robot.max_tracker_distance_mm, robot.reach_mm)
+                          calibration["preferred"], robot.max_tracker_distance_mm, robot.reach_mm,
+                          robot.model, (robot.end_effector_mm, robot.end_effector_rpy_deg), calibration["positioning"],
+                          (robot.positioning_mm, robot.positioning_deg))
     document = {"FlangeToBase": answer.flange_to_base.tolist(),
                 "NeedleGuideToBase": answer.needle_guide_to_base.tolist(),
                 "entry_base_mm": answer.entry_base_mm.tolist(), "target_base_mm": answer.target_base_mm.tolist(),
                 "depth_mm": answer.depth_mm, "standoff_mm": robot.standoff_mm, "roll_deg": answer.roll_deg,
                 "predicted_error_mm": answer.predicted_error_mm,
+                "robot_model": robot.model,
+                "joints_rad": None if answer.joints_rad is None else answer.joints_rad.tolist(),
+                "joint_limit_margin": answer.joint_limit_margin,
                 "ReferenceToTracker": reference_to_tracker.tolist(),
                 # what emreg robot-go needs to verify the guide with the tracker and follow the reference
                 "SensorToFlange": calibration["SensorToFlange"].tolist(),

@@ -42,6 +42,7 @@ from ..core.robot_motion import (
     guide_error,
     keep_in_volume,
     plan_calibration_poses,
+    positioning_errors,
 )
 from ..core.transforms import apply_transform, check_rigid, invert_rigid, rotation_angle_deg
 from ..devices.igtl_server import IGTLServer
@@ -172,11 +173,13 @@ def robot_calibrate(robot_url: str, tracker_url: str, out: Path, settings: Setti
             return None
         watch.recording = FlangeRecording()
         log = _RobotLog(robot)
+        reached = []  # where the robot put the flange at each pose, measured as robot-go measures (after measure_s)
         try:
             _dwell(watch, robot_settings.dwell_s)
             for pose in [*poses, start]:
                 guarded_move(robot, pose, limits, watch)
-                _dwell(watch, robot_settings.dwell_s)
+                _dwell(watch, robot_settings.dwell_s + robot_settings.measure_s)
+                reached.append(robot.flange_to_base())
         finally:
             log.stop()
         recording, watch.recording = watch.recording, None
@@ -194,7 +197,12 @@ def robot_calibrate(robot_url: str, tracker_url: str, out: Path, settings: Setti
               "robot_poses": {"path": "robot_poses.tum", "samples": len(robot_time)},
               "tracker_recording": {"path": "flange_sensor.tum", "samples": len(tracker_time)},
               "planned_poses": len(poses), "settings": settings.source or None, "emreg_version": __version__}
-    document = write_calibration(out, result, inputs, [])
+    misses = positioning_errors(np.concatenate([poses, start[None]]), np.asarray(reached))
+    document = write_calibration(out, result, inputs, [], {
+        "errors_flange": misses.tolist(), "position_rms_mm": float(np.sqrt(np.mean(np.sum(misses[:, 3:] ** 2, 1)))),
+        "rotation_rms_deg": float(np.degrees(np.sqrt(np.mean(np.sum(misses[:, :3] ** 2, 1))))),
+        "note": "per pose, the flange pose the robot reported after the dwell in the commanded pose's frame: "
+                "rotation vector (rad), translation (mm)"})
     say(f"robot-calibrate: SensorToFlange and TrackerToBase from {len(result.used)} frames over {len(poses)} poses; "
           f"residual RMS {document['residuals']['rotation_deg']['rms']:.3f} deg, "
           f"{document['residuals']['translation_mm']['rms']:.3f} mm; predicted tool-point error "

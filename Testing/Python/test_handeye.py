@@ -258,6 +258,38 @@ def test_robot_target_refusals(targeting_case, capsys):
     assert not (folder / "far" / "robot_target.json").exists()
 
 
+def test_robot_target_with_the_robots_model(targeting_case, capsys):
+    """``[robot] model = "panda"`` (the KinHEC recording's robot), a plan where the recorded flange once held the
+    guide: the flange pose comes with the joint angles that reach it (forward kinematics of them is the flange
+    pose) and their margin to the limits; a plan beyond the arm's reach is refused with one line, exit 3, before
+    the tracker's volume is looked at."""
+    from EMRegModule.core.robot_kinematics import robot_model
+
+    folder, case = targeting_case["folder"], targeting_case["case"]
+    guide = case.true_flange_to_base[len(case.true_flange_to_base) // 2] @ case.sensor_to_flange @ \
+        targeting_case["guide_to_sensor"]
+    base_to_image = targeting_case["reference_to_image"] @ np.linalg.inv(
+        case.tracker_to_base @ targeting_case["reference_to_tracker"])
+    plan = json.loads((folder / "plan.mrk.json").read_text())
+    for point, depth in zip(plan["markups"][0]["controlPoints"], (0.0, 60.0), strict=True):
+        point["position"] = (base_to_image @ np.append(guide[:3, 3] + depth * guide[:3, 2], 1.0))[:3].tolist()
+    (folder / "reachable.mrk.json").write_text(json.dumps(plan))
+    settings = folder / "panda.toml"
+    settings.write_text('[robot]\nmodel = "panda"\nmax_tracker_distance_mm = 5000.0\n', encoding="utf-8")
+    assert main(_target_args(folder, plan="reachable.mrk.json", out="panda") + ["--settings", str(settings)]) == 0, \
+        capsys.readouterr().err
+    document = json.loads((folder / "panda" / "robot_target.json").read_text())
+    joints = np.array(document["joints_rad"])
+    np.testing.assert_allclose(robot_model("panda").forward(joints), document["FlangeToBase"], atol=1e-2)
+    assert document["robot_model"] == "panda" and 0.0 < document["joint_limit_margin"] <= 1.0
+    for point in plan["markups"][0]["controlPoints"]:
+        point["position"] = (np.array(point["position"]) + [0.0, 0.0, 2000.0]).tolist()
+    (folder / "unreachable.mrk.json").write_text(json.dumps(plan))
+    assert main(_target_args(folder, plan="unreachable.mrk.json", out="far-panda") + ["--settings", str(settings)]) == 3
+    error = capsys.readouterr().err
+    assert "PANDA cannot reach the plan" in error and len(error.strip().splitlines()) == 1
+
+
 def test_the_roll_keeps_the_flange_nearest_its_preferred_orientation():
     """best_roll's closed form is the best of every roll about the guide's axis."""
     from scipy.spatial.transform import Rotation
@@ -309,3 +341,93 @@ def test_a_robot_log_shorter_than_the_tracker_recording_and_with_a_gap():
     no_pose = [r for r in result.rejected if r.reason.startswith("no robot pose")]
     assert len(no_pose) >= 0.4 * len(case.tracker_time_s)
     assert not set(result.used) & {r.index for r in result.rejected}
+
+
+def test_the_robot_log_is_smoothed_where_noise_dominates_and_kept_where_it_curves():
+    """A 200 Hz log of a smooth motion with white noise in its translation comes out nearer the truth; a
+    noise-free log of a fast curving motion comes out as it was (the cross-validation picks a narrow window)."""
+    from EMRegModule.core.handeye_sync import smooth_poses
+    from EMRegModule.core.transforms import rotation_matrices
+
+    time_s = np.arange(0.0, 5.0, 0.005)
+    truth = np.tile(np.eye(4), (len(time_s), 1, 1))
+    truth[:, :3, 3] = 100.0 * np.column_stack([np.sin(time_s), np.cos(0.7 * time_s), 0.3 * time_s])
+    truth[:, :3, :3] = rotation_matrices(0.5 * np.column_stack([np.sin(time_s), np.cos(time_s), time_s / 5]))
+    rng = np.random.default_rng(3)
+    noisy = truth.copy()
+    noisy[:, :3, 3] += rng.normal(0.0, 0.2, (len(time_s), 3))
+    smoothed, width = smooth_poses(time_s, noisy)
+    before = np.sqrt(np.mean(np.sum((noisy - truth)[:, :3, 3] ** 2, axis=1)))
+    after = np.sqrt(np.mean(np.sum((smoothed - truth)[:, :3, 3] ** 2, axis=1)))
+    assert width[1] >= 8 and after < 0.4 * before
+    fast = truth.copy()
+    fast[:, :3, 3] = 100.0 * np.column_stack([np.sin(8 * time_s), np.cos(8 * time_s), time_s])
+    kept, width = smooth_poses(time_s, fast)
+    assert width[1] == 2 and np.max(np.abs(kept - fast)[:, :3, 3]) < 0.01
+
+
+@pytest.mark.parametrize("robot, family", [("ur", "joint_sinusoid"), ("iiwa", "joint_waypoints")])
+def test_the_predicted_uncertainty_matches_the_error_over_seeds(robot, family):
+    """Over several recordings the tool-tip and tracker-point errors are as large as predicted (their RMS ratio to
+    the predicted RMS near 1: neither optimistic nor pessimistic)."""
+    from EMRegModule.core.handeye import calibrate_hand_eye
+
+    tip_ratio, point_ratio = [], []
+    for seed in range(31, 37):
+        case = kinhec_case(robot, family, seed=seed, outlier_fraction=0.02)
+        result = calibrate_hand_eye(case.robot_time_s, case.flange_to_base, case.tracker_time_s,
+                                    case.sensor_to_tracker)
+        tip_ratio.append(tip_error_mm(result.sensor_to_flange, case.sensor_to_flange) / result.tool_tip_rms_mm)
+        point_ratio.append(tracker_point_error_mm(result.tracker_to_base, case.tracker_to_base)
+                           / result.tracker_point_rms_mm)
+    tip, point = np.sqrt(np.mean(np.square(tip_ratio))), np.sqrt(np.mean(np.square(point_ratio)))
+    print(f"\n{robot} {family}: measured / predicted RMS, tool tip {tip:.2f}, tracker point {point:.2f}")
+    assert 0.6 < tip < 1.6 and 0.6 < point < 1.6
+
+
+def test_the_predicted_error_at_the_target_matches_the_needle_tips_error_over_seeds():
+    """robot-target's prediction is honest: over KinHEC recordings of several seeds, the needle tip where the flange
+    pose truly puts it (the true X and Y, the robot's positioning off by its RMS error in a random direction)
+    is as far from the target as predicted (the RMS ratio near 1), the hand-eye term through X's and Y's full
+    covariance, the robot's own term from its positioning error."""
+    from scipy.spatial.transform import Rotation
+
+    from EMRegModule.core.handeye import calibrate_hand_eye
+    from EMRegModule.core.robot_target import robot_target
+
+    rng = np.random.default_rng(5)
+    guide_to_sensor = pose([0.0, 20.0, 0.0], [5.0, -3.0, 60.0])
+    reference_to_tracker = pose([5.0, 30.0, -10.0], [20.0, -30.0, 300.0])
+    positioning = (0.1, 0.09)  # mm, degrees RMS: what franky-sim's controller leaves
+    ratios, hand_eye_ratios = [], []
+
+    def tip_guide(depth_mm: float) -> np.ndarray:
+        return np.array([0.0, 0.0, depth_mm, 1.0])
+
+    for seed in range(41, 49):
+        case = kinhec_case("panda", "joint_sinusoid", seed=seed, outlier_fraction=0.02)
+        result = calibrate_hand_eye(case.robot_time_s, case.flange_to_base, case.tracker_time_s,
+                                    case.sensor_to_tracker)
+        # a plan where the flange once held the guide, 70 mm deep, the registration exact (reference = image)
+        guide = case.true_flange_to_base[rng.integers(len(case.true_flange_to_base))] @ case.sensor_to_flange @ \
+            guide_to_sensor
+        base_to_image = np.linalg.inv(case.tracker_to_base @ reference_to_tracker)
+        entry, target = (base_to_image @ np.array([[*guide[:3, 3], 1.0],
+                                                   [*(guide[:3, 3] + 70.0 * guide[:3, 2]), 1.0]]).T).T[:, :3]
+        answer = robot_target(entry, target, np.eye(4), reference_to_tracker, result.tracker_to_base,
+                              result.sensor_to_flange, guide_to_sensor, result.covariance, 0.0,
+                              positioning_rms=positioning)
+        reached = answer.flange_to_base.copy()
+        axis = rng.normal(size=3)
+        reached[:3, :3] = reached[:3, :3] @ Rotation.from_rotvec(
+            axis / np.linalg.norm(axis) * np.radians(positioning[1]) * rng.normal(0.0, 1.0)).as_matrix()
+        reached[:3, 3] += rng.normal(0.0, positioning[0] / np.sqrt(3.0), 3)
+        tip = reached @ case.sensor_to_flange @ guide_to_sensor @ tip_guide(answer.depth_mm)
+        target_base = case.tracker_to_base @ reference_to_tracker @ np.append(target, 1.0)
+        ratios.append(np.linalg.norm((tip - target_base)[:3]) / answer.predicted_error_mm["total"])
+        tip_hand_eye = answer.flange_to_base @ case.sensor_to_flange @ guide_to_sensor @ tip_guide(answer.depth_mm)
+        hand_eye_ratios.append(np.linalg.norm((tip_hand_eye - target_base)[:3]) / answer.predicted_error_mm["hand_eye"])
+    ratio, hand_eye = (float(np.sqrt(np.mean(np.square(r)))) for r in (ratios, hand_eye_ratios))
+    print(f"\nneedle tip error / predicted over {len(ratios)} seeds, RMS: {ratio:.2f}; the hand-eye's part alone (the "
+          f"robot exactly where sent) / its term: {hand_eye:.2f}")
+    assert 0.6 < ratio < 1.5 and 0.5 < hand_eye < 1.6

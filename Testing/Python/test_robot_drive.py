@@ -145,6 +145,40 @@ def test_robot_url() -> None:
             parse_robot_url(bad)
 
 
+def _write_target(path: Path, world, document: dict, reference_to_image: np.ndarray, entry_offset_mm, tilt_axis):
+    """``robot_target.json`` for a plan near where the guide starts (Entry ``entry_offset_mm`` from the guide's exit,
+    the axis tilted 12 degrees about ``tilt_axis``, 80 mm deep), planned with the calibration ``document``; the
+    answer, Entry and Target (CT, mm)."""
+    x, y = np.asarray(document["SensorToFlange"]), np.asarray(document["TrackerToBase"])
+    positioning = document["robot_positioning"]
+    guide_start = world.start @ world.x @ world.guide
+    entry_base = guide_start[:3, 3] + np.asarray(entry_offset_mm)
+    tilt = np.asarray(tilt_axis, dtype=float)
+    target_base = entry_base + 80.0 * axis_angle_to_rotation(tilt / np.linalg.norm(tilt), np.radians(12.0)) @ \
+        guide_start[:3, 2]
+    base_to_image = reference_to_image @ invert_rigid(world.reference) @ invert_rigid(world.y)
+    entry_image, target_image = apply_transform(base_to_image, np.vstack([entry_base, target_base]))
+    answer = robot_target(entry_image, target_image, reference_to_image, world.reference, y, x, world.guide,
+                          np.asarray(document["uncertainty"]["parameter_covariance"]), 0.0,
+                          preferred_flange_rotation=np.asarray(document["motion"]["mean_flange_rotation"]),
+                          positioning_errors=np.asarray(positioning["errors_flange"]))
+    path.write_text(json.dumps({
+        "FlangeToBase": answer.flange_to_base.tolist(), "NeedleGuideToBase": answer.needle_guide_to_base.tolist(),
+        "ReferenceToTracker": world.reference.tolist(), "SensorToFlange": x.tolist(), "TrackerToBase": y.tolist(),
+        "NeedleGuideToSensor": world.guide.tolist(), "ReferenceToImage": reference_to_image.tolist(),
+        "entry_image_mm": entry_image.tolist(), "target_image_mm": target_image.tolist(), "standoff_mm": 0.0,
+        "predicted_error_mm": answer.predicted_error_mm}))
+    return answer, entry_image, target_image
+
+
+def _true_error(world, reference_to_image: np.ndarray, entry_image: np.ndarray, target_image: np.ndarray,
+                sensor_to_flange: np.ndarray):
+    """The guide's error where the simulated flange truly is, against the plan where the patient truly is."""
+    image_to_base = world.y @ world.scene.reference_to_tracker @ invert_rigid(reference_to_image)
+    entry_true, target_true = apply_transform(image_to_base, np.vstack([entry_image, target_image]))
+    return guide_error(world.robot.flange_to_base() @ sensor_to_flange @ world.guide, entry_true, target_true)
+
+
 def test_calibrate_and_go(world, tmp_path, capsys) -> None:
     """Calibration by the robot itself, targeting with it, and the closed loop onto the plan (in one test: each
     step needs the one before)."""
@@ -176,23 +210,12 @@ def test_calibrate_and_go(world, tmp_path, capsys) -> None:
 
     # the target, planned with the calibration (a registration known exactly: its own error is zero here)
     reference_to_image = _pose([0.4, 0.1, -0.3], [-40.0, 25.0, 110.0])
-    guide_start = world.start @ world.x @ world.guide
-    entry_base = guide_start[:3, 3] + np.array([15.0, -20.0, -25.0])
-    axis = axis_angle_to_rotation(np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0), np.radians(12.0)) @ guide_start[:3, 2]
-    target_base = entry_base + 80.0 * axis
-    base_to_image = reference_to_image @ invert_rigid(world.reference) @ invert_rigid(world.y)
-    entry_image, target_image = apply_transform(base_to_image, np.vstack([entry_base, target_base]))
-    answer = robot_target(entry_image, target_image, reference_to_image, world.reference, y, x, world.guide,
-                          np.asarray(document["uncertainty"]["parameter_covariance"]), 0.0,
-                          preferred_flange_rotation=np.asarray(document["motion"]["mean_flange_rotation"]))
     target_file = tmp_path / "robot_target.json"
-    target_file.write_text(json.dumps({
-        "FlangeToBase": answer.flange_to_base.tolist(), "NeedleGuideToBase": answer.needle_guide_to_base.tolist(),
-        "ReferenceToTracker": world.reference.tolist(), "SensorToFlange": x.tolist(), "TrackerToBase": y.tolist(),
-        "NeedleGuideToSensor": world.guide.tolist(), "ReferenceToImage": reference_to_image.tolist(),
-        "entry_image_mm": entry_image.tolist(), "target_image_mm": target_image.tolist(), "standoff_mm": 0.0,
-        "predicted_error_mm": answer.predicted_error_mm}))
+    answer, entry_image, target_image = _write_target(target_file, world, document, reference_to_image,
+                                                      [15.0, -20.0, -25.0], [1.0, 1.0, 0.0])
     predicted = answer.predicted_error_mm["total"]
+    figures.append("predicted at the target (mm RMS): " + ", ".join(f"{k} {v:.3f}" for k, v in
+                                                                      answer.predicted_error_mm.items()))
 
     # the Slicer module's robot panel: Go without the explicit execute choice is the same dry run
     panel_folder = tmp_path / "panel"
@@ -238,9 +261,7 @@ def test_calibrate_and_go(world, tmp_path, capsys) -> None:
     streamed_mm = float(np.linalg.norm(np.asarray(guides[-1].matrix)[:3, 3] - guide_true_ras[:3, 3]))
     assert len(guides) > 20 and streamed_mm < 0.5
     # the truth: the guide where the simulated flange truly is, the plan where the moved patient truly is
-    image_to_base = world.y @ world.scene.reference_to_tracker @ invert_rigid(reference_to_image)
-    entry_true, target_true = apply_transform(image_to_base, np.vstack([entry_image, target_image]))
-    true_error = guide_error(world.robot.flange_to_base() @ world.x @ world.guide, entry_true, target_true)
+    true_error = _true_error(world, reference_to_image, entry_image, target_image, world.x)
     first = result["measurements"][0]
     figures.append(f"OpenIGTLink: {len(guides)} NeedleGuideToRAS, the last {streamed_mm:.2f} mm from the truth")
     figures.append(f"robot-go {go_s:.1f} s: open loop (measured) exit {first['exit_mm']:.2f} mm, tip "
@@ -249,7 +270,31 @@ def test_calibrate_and_go(world, tmp_path, capsys) -> None:
                    f"{result['corrections']} correction(s), true: {true_error.describe()}")
     assert result["on_plan"] and result["final"]["tip_mm"] <= 0.4
     assert true_error.exit_mm < 0.6 and true_error.tip_mm < 0.6 and true_error.angle_deg < 0.4
-    assert first["tip_mm"] < max(3.0 * predicted, 0.5)  # the open loop, within its predicted error
+    assert first["tip_mm"] < 3.0 * predicted  # the open loop, within its predicted error
+
+    # the open loop to more plans (a tolerance every move meets: no correction): the needle tip's true error and
+    # the one the tracker measures, against the predicted error at the target (the robot's own positioning error,
+    # measured by robot-calibrate, dominates it here)
+    loose = tmp_path / "open_loop.toml"
+    loose.write_text(SETTINGS.replace("tolerance_mm = 0.4", "tolerance_mm = 10.0").replace(
+        "tolerance_deg = 0.3", "tolerance_deg = 10.0"), encoding="utf-8")
+    true_ratio, measured_ratio = [true_error.tip_mm / predicted], [first["tip_mm"] / predicted]
+    for k, (offset, tilt) in enumerate((([-10.0, 15.0, -20.0], [0.0, 1.0, 0.0]), ([20.0, 10.0, -30.0], [1.0, 0.0, 0.0]),
+                                        ([0.0, -25.0, -15.0], [1.0, -1.0, 0.0]))):
+        plan_file = tmp_path / f"open_loop_{k}.json"
+        plan_answer, plan_entry, plan_target = _write_target(plan_file, world, document, reference_to_image, offset,
+                                                             tilt)
+        assert main(["robot-go", "--robot", world.robot.url, "--tracker", world.tracker_url, "--target",
+                     str(plan_file), "--settings", str(loose), "--igtl-port", "0", "--out", str(go),
+                     "--execute"]) == 0, capsys.readouterr().err
+        measured = json.loads((go / "robot_go.json").read_text())["measurements"][0]["tip_mm"]
+        truth = _true_error(world, reference_to_image, plan_entry, plan_target, world.x).tip_mm
+        true_ratio.append(truth / plan_answer.predicted_error_mm["total"])
+        measured_ratio.append(measured / plan_answer.predicted_error_mm["total"])
+    true_rms, measured_rms = (float(np.sqrt(np.mean(np.square(r)))) for r in (true_ratio, measured_ratio))
+    figures.append(f"open loop to {len(true_ratio)} plans: needle tip error / predicted, RMS: true "
+                   f"{true_rms:.2f}, measured by the tracker {measured_rms:.2f}")
+    assert 0.4 < true_rms < 2.0 and max(true_ratio) < 3.0
 
     # the guide was bumped on the flange since the calibration (2 mm, 1.5 deg): the open loop misses, the closed
     # loop corrects with what the tracker sees
@@ -261,8 +306,7 @@ def test_calibrate_and_go(world, tmp_path, capsys) -> None:
                      "--execute"]) == 0, capsys.readouterr().err
         go_s = time.monotonic() - started
         result = json.loads((go / "robot_go.json").read_text())
-        true_error = guide_error(world.robot.flange_to_base() @ world.scene.sensor_to_flange @ world.guide,
-                                 entry_true, target_true)
+        true_error = _true_error(world, reference_to_image, entry_image, target_image, world.scene.sensor_to_flange)
         first = result["measurements"][0]
         figures.append(f"robot-go, guide bumped, {go_s:.1f} s: open loop (measured) exit {first['exit_mm']:.2f} "
                        f"mm, tip {first['tip_mm']:.2f} mm, axis {first['angle_deg']:.2f} deg; after "

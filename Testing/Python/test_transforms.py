@@ -99,3 +99,17 @@ def test_rotation_from_y_axis():
     np.testing.assert_allclose(rotation[:, 1], np.array([1, 2, 3]) / np.sqrt(14))
     np.testing.assert_allclose(rotation.T @ rotation, np.eye(3), atol=1e-12)
     assert np.linalg.det(rotation) == pytest.approx(1.0)
+
+
+def test_rotation_vectors_and_matrices_match_scipy_at_every_angle():
+    """Vectorised log and exp of rotations, including tiny angles and angles a hair below a half turn."""
+    rng = np.random.default_rng(7)
+    axes = rng.normal(size=(600, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    angles = np.concatenate([rng.uniform(0.0, np.pi, 400), np.full(100, 1e-9), np.pi - rng.uniform(0, 1e-6, 100)])
+    vectors = axes * angles[:, None]
+    matrices = Rotation.from_rotvec(vectors).as_matrix()
+    np.testing.assert_allclose(tf.rotation_matrices(vectors), matrices, atol=1e-12)
+    found = tf.rotation_vectors(matrices)
+    np.testing.assert_allclose(np.linalg.norm(found, axis=1), angles, atol=1e-9)
+    np.testing.assert_allclose(Rotation.from_rotvec(found).as_matrix(), matrices, atol=1e-9)
