@@ -43,15 +43,16 @@ class Stage:
 
 #: The stages in workflow order (a later stage never feeds an earlier one).
 STAGES: tuple[Stage, ...] = (
-    Stage("detect", (), (names.MARKERS_JSON, names.MARKERS_MRK_JSON), ("ct",), ("detection",)),
+    Stage("detect", (), (names.MARKERS_JSON, names.MARKERS_MRK_JSON), ("ct",),
+          ("detection", "fiducials")),
     Stage("calibrate", (), (names.FRAME_CALIBRATION_JSON, names.TOOL_CALIBRATION_JSON, names.TIP_TO_PROBE_H5),
-          ("calibration", "tool"), ("frame_calibration",)),  # the tool's files: --tool auto
+          ("calibration", "tool"), ("frame_calibration", "calibrated_here")),  # the tool's files: --tool auto
     Stage("register", ("detect", "calibrate"), (names.REGISTRATION_JSON, names.REFERENCE_TO_IMAGE_H5),
           ("targets", "fiducials"), ("registration",)),
     Stage("navigate", ("register",), (names.NAVIGATION_CSV, names.CHECKPOINTS_JSON, names.NAVIGATION_JSON),
           ("navigation", "tool", "plan"), ("navigation", "checkpoints", "guidance")),
     Stage("evaluate", ("register",), (names.EVALUATION_JSON,), ("navigation", "targets", "board"), ("evaluation",)),
-    Stage("tre_map", ("register", "evaluate"), (names.TRE_MAP_NRRD,)),
+    Stage("tre_map", ("register", "evaluate"), (names.TRE_MAP_NRRD,), results=("tre_map",)),
     Stage("report", ("detect", "calibrate", "register", "navigate", "evaluate", "tre_map"),
           (names.REPORT_HTML, names.REPORT_FIGURES), uses_present=True, export=True),
     Stage("bundle", ("report",), (names.BUNDLE_MRB,), uses_present=True, export=True),

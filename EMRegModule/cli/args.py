@@ -114,18 +114,19 @@ def controller_of(args: argparse.Namespace, settings: Settings) -> EMRegControll
     from ..pipeline.controller import EMRegController
 
     controller = EMRegController(settings, progress_of(args), f"emreg {args.command}")
-    controller.set_sensors(getattr(args, "reference_sensor", None), getattr(args, "probe_sensor", None))
+    controller.give(sensors=(getattr(args, "reference_sensor", None), getattr(args, "probe_sensor", None)))
     return controller
 
 
 def use_tool(args: argparse.Namespace, controller: EMRegController, solves: bool = True) -> None:
     """``--tool FILE`` (else ``[tool] calibration`` of the settings): the tool whose tip is tracked. ``solves``:
     the command has a calibration recording to solve ``--tool auto`` from (else it is refused)."""
-    if getattr(args, "tool", None):
-        controller.load_tool(args.tool)
-    else:
-        controller.load_tool_from_settings()
-    if controller.tool_auto and not solves:
+    from ..pipeline.inputs import settings_file
+
+    tool = getattr(args, "tool", None) or settings_file(controller.settings, controller.settings.tool.calibration)
+    if tool:
+        controller.give(tool=tool)
+    if controller.inputs.tool_auto and not solves:
         raise EMRegError(f"emreg {args.command}: --tool auto solves the tip from a calibration recording; give the "
                          "tool_calibration.json that emreg calibrate or emreg run wrote with it instead")
 
@@ -138,10 +139,10 @@ def use_plan(args: argparse.Namespace, controller: EMRegController) -> None:
     if controller.results.registration is None:
         raise EMRegError(f"emreg {args.command}: a plan (--plan or [navigation] plan) needs a registration; give "
                          "--registration registration.json")
-    if getattr(args, "plan", None):
-        controller.planner.load(args.plan)
-    else:
-        controller.planner.load_from_settings()
+    from ..pipeline.inputs import settings_file
+
+    controller.give(plan=getattr(args, "plan", None) or settings_file(controller.settings,
+                                                                       controller.settings.navigation.plan))
 
 
 def add_plan_option(parser: argparse.ArgumentParser) -> None:

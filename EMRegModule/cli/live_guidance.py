@@ -54,7 +54,7 @@ def live_tool_and_guide(args: argparse.Namespace, registration: RegistrationResu
     from ..core.guidance import predicted_at, shaft_in_tip
     from ..core.plan import check_plan_in_image, read_plan
     from ..live.guide import LiveGuide
-    from ..pipeline.controller import error_model
+    from ..pipeline.navigating import error_model
 
     plan = read_plan(plan_file if getattr(args, "plan", None) else _settings_path(settings, plan_file))
     markers, _ = markers_beside(args.registration)

@@ -45,7 +45,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         elif early_bundle is not None:
             early_bundle.cancel()
             bundle = None
-        path = controller.exporter.save_report(folder, case, controller, early)
+        path = controller.exporter.save_report(folder, case, ct_read=early)
     except BaseException:
         if bundle is not None:
             bundle.cancel()
@@ -57,7 +57,7 @@ def cmd_report(args: argparse.Namespace) -> int:
             folder.drop_unrecorded()
         raise
     print(f"report -> {path}")
-    print(controller.exporter.save_bundle(folder, case, controller, bundle, kept))
+    print(controller.exporter.save_bundle(folder, case, job=bundle, kept=kept))
     return 0
 
 

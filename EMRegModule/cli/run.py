@@ -30,12 +30,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     case.settings = with_series(case.settings, args.series)
     case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # a sequence file's too
     controller = controller_of(args, case.settings)
-    if args.tool:
-        controller.load_tool(args.tool)
-    if args.plan:
-        controller.planner.load(args.plan)
-    controller.exporter.keep_ct = False  # nothing uses the CT after the run: freed as soon as nothing needs it
-    for line in controller.run(case, Path(args.out)):
+    controller.give(**{name: value for name, value in (("tool", args.tool), ("plan", args.plan)) if value})
+    # nothing uses the CT after the run: freed as soon as nothing needs it
+    for line in controller.run(case, Path(args.out), keep_ct=False):
         print(line)
     return 0
 

@@ -6,7 +6,7 @@ memory is let go (before the rendering libraries load, when nothing needs it any
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any
 
 from ..errors import EMRegError
 from ..io.output_folder import OutputFolder
@@ -22,27 +22,22 @@ if TYPE_CHECKING:
     from ..settings import Settings
     from ..slicer_export.bundle import BundleProcess
     from .bundle_state import KeptBundle
-
-
-class HoldsCT(Protocol):
-    """What holds the CT in memory (the controller): the exporter lets it go when nothing needs it."""
-
-    image: sitk.Image | None
+    from .job import CTHold
 
 
 class Exporter:
-    """The report and the bundle of one controller. ``keep_ct``: keep the CT in memory to the end (the Slicer
-    Logic shows it afterwards); False (``emreg run``): it is let go before the bundle when the bundle copies it
-    from its file."""
+    """The report and the bundle of one controller. The CT in memory is handed to them in a
+    :class:`~.job.CTHold`: unless the hold keeps it (the Slicer Logic shows it afterwards), it is let go before the
+    rendering libraries load when nothing needs it after the report, and before the bundle when the bundle copies
+    it from its file."""
 
     def __init__(self, recorder: RunRecorder, settings: Settings, progress: Progress) -> None:
         self.recorder = recorder
         self.settings = settings
         self.progress = progress
-        self.keep_ct = True
         self._report_image: sitk.Image | None = None  # the CT the report read, for the Slicer bundle
 
-    def save_report(self, folder: OutputFolder, case_dir: Path | None, holder: HoldsCT,
+    def save_report(self, folder: OutputFolder, case_dir: Path | None, hold: CTHold | None = None,
                     ct_read: CTHandle | None = None) -> Path:
         """The verification report of ``folder`` (its outputs checked to belong together first); the CT
         the report read is kept for the Slicer bundle (:meth:`save_bundle`). ``ct_read``: a streamed read of the
@@ -54,10 +49,11 @@ class Exporter:
 
         used = self.recorder.adopt_outputs(folder)
         keep = bundle_needs_ct_image(run_ct_path(folder.manifest, case_dir))  # else the report streams a CT itself
-        image: sitk.Image | CTHandle | None = holder.image if holder.image is not None else ct_read
-        if holder.image is not None and not keep and not self.keep_ct:  # nothing needs the CT after the report: it
-            holder.image, image = None, CTHandle.of_image(image)  # handed over: freed once used, before the
-            # rendering libraries load
+        held = None if hold is None else hold.image
+        image: sitk.Image | CTHandle | None = held if held is not None else ct_read
+        if held is not None and not keep and not hold.keep:  # nothing needs the CT after the report: it is
+            image = CTHandle.of_image(hold.take())  # handed over: freed once used, before the rendering libraries
+            # load
         page, self._report_image = write_report_keeping_ct(folder.path, case_dir=case_dir, progress=self.progress,
                                                            image=image, keep_ct=keep, settings=self.settings)
         self.recorder.record(folder, "report", self.recorder.provenance("report", tuple(used)))
@@ -98,7 +94,7 @@ class Exporter:
         kept = current_bundle(folder.path, folder.manifest, case_dir, self.settings.digest())
         return kept.start_check() if kept is not None else None
 
-    def save_bundle(self, folder: OutputFolder, case_dir: Path | None, holder: HoldsCT,
+    def save_bundle(self, folder: OutputFolder, case_dir: Path | None, hold: CTHold | None = None,
                     job: BundleProcess | None = None, kept: KeptBundle | None = None) -> str:
         """``EMReg.mrb``, the 3D Slicer scene of ``folder``'s outputs; a summary line. Optional: without
         slicer-core, or when it cannot be written, the other outputs stand and a warning says why."""
@@ -114,12 +110,13 @@ class Exporter:
             used = job.used
         else:
             used = self.recorder.adopt_outputs(folder)
-            image = holder.image if holder.image is not None else self._report_image  # the CT is not read again
+            held = None if hold is None else hold.image
+            image = held if held is not None else self._report_image  # the CT is not read again
             self._report_image = None
             if not bundle_needs_ct_image(run_ct_path(folder.manifest, case_dir)):
                 image = None  # the bundle copies the CT from its file: its memory is freed before slicer-core loads
-                if not self.keep_ct:
-                    holder.image = None
+                if hold is not None and not hold.keep:
+                    hold.take()
             with self.progress.step("writing the 3D Slicer scene bundle"):
                 path, message, sha = write_run_bundle(folder.path, case_dir, image)
         if path is None:
