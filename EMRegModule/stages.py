@@ -11,7 +11,10 @@ result makes stale (:data:`DEPENDENTS`, :func:`outputs_from`, used by
 :class:`~EMRegModule.io.output_folder.OutputFolder`
 and by :class:`~EMRegModule.pipeline.results.WorkflowResults`), the provenance of each output (``inputs``: the input
 roles it is made from; :func:`uses`: the upstream outputs), and the order ``emreg run`` executes them in. File
-names come from :mod:`EMRegModule.names`. This module imports nothing heavy: ``emreg --help`` loads it.
+names come from :mod:`EMRegModule.names`. How each stage runs, is read and is written is the pipeline's table
+(:data:`EMRegModule.pipeline.stages.PIPELINE`, one entry per stage here), which the controller walks; this graph
+stays apart so that the output folder (:mod:`EMRegModule.io.output_folder`) reads it without the pipeline. This
+module imports nothing heavy: ``emreg --help`` loads it.
 """
 
 from __future__ import annotations

@@ -41,7 +41,13 @@ FRONT_END_REACH = ("base", "io", "devices", "pipeline")
 #: The one place imports inside a function are allowed: optional extras (installed with an extra, or present only
 #: inside 3D Slicer) and the heavy libraries a command loads only when it gets to the step that needs them, each with
 #: its reason. Every other import is at the top of its module, where a reader sees what depends on what.
-DEFERRED_IMPORTS: dict[str, str] = {}
+DEFERRED_IMPORTS: dict[str, str] = {
+    "EMRegModule.core.detection.detect": "the detection stage (scipy, VTK: ~0.4 s holding the GIL): imported on a "
+                                         "thread while the CT is read (pipeline.background), waited for when the "
+                                         "detection starts",
+    "EMRegModule.report.writer": "the report's page and figures (0.13 s of modules): loaded when a report is "
+                                "written, not by every command that makes a controller (emreg detect, register...)",
+}
 MAX_FUNCTION_LINES = 90
 MAX_MODULE_LINES = 700
 MAX_METHODS = 30

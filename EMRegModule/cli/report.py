@@ -8,7 +8,6 @@ import argparse
 from pathlib import Path
 
 from ..errors import EMRegError
-from ..names import RUN_JSON
 from .args import AddCommand, controller_of, out_folder, progress_of, settings_of, warn
 
 
@@ -16,10 +15,11 @@ def cmd_report(args: argparse.Namespace) -> int:
     if args.batch and (args.out or args.case):  # one of them would be ignored: never guessed
         raise EMRegError(f"give an output folder (emreg report OUT [--case CASE]) or --batch DIR, not "
                          f"both ({args.out or '--case ' + args.case} and --batch {args.batch})")
-    from ..pipeline.exporters import read_run_record, recorded_case, start_report_bundle, start_report_ct
+    from ..io.run_folder import recorded_run
+    from ..pipeline.exporters import recorded_case, start_report_bundle, start_report_ct
 
     out, case = (Path(args.out) if args.out else None), (Path(args.case) if args.case else None)
-    run = read_run_record(out) if out is not None and not args.batch else None
+    run = recorded_run(out) if not args.batch else None
     early = start_report_ct(out, case, run) if out is not None else None  # read while the report's libraries load
     bundle = early_bundle = start_report_bundle(out, case, run)  # held: writes nothing into OUT until released below
     folder = kept = None
@@ -87,14 +87,11 @@ def _report_batch(args: argparse.Namespace) -> int:
 def _record_batch_report(args: argparse.Namespace, folder: Path, bundle_sha256: str | None) -> None:
     """The report (and bundle, whose sha256 its job computed as it wrote it) a batch job wrote into ``folder``,
     listed in its ``run.json``."""
-    from ..io.atomic import read_json
     from ..io.output_folder import OutputFolder
+    from ..io.run_folder import recorded_run
+    from ..pipeline.exporters import recorded_case
 
-    try:
-        case = read_json(folder / RUN_JSON, "run record").get("case")
-    except (EMRegError, AttributeError):
-        case = None
-    case_dir = Path(case) if isinstance(case, str) and Path(case).is_dir() else None
+    case_dir = recorded_case(recorded_run(folder))
     try:
         controller = controller_of(args, settings_of(args, case_dir))
         controller.recorder.command = "emreg report --batch"

@@ -28,7 +28,7 @@ from ..io.output_folder import OutputFolder, all_output_names, refuse_out_over_i
 from ..names import REGISTRATION_JSON
 from ..progress import QUIET, Progress
 from ..settings import Settings, choose_ports
-from .exporters import Exporter
+from .exporters import CTHold, Exporter
 from .inputs import (
     Inputs,
     case_files,
@@ -43,7 +43,7 @@ from .inputs import (
     with_ports,
     with_tool,
 )
-from .job import CTHold, Job, Made, Read
+from .job import Job, Made, Read
 from .recorder import RunRecorder
 from .results import WorkflowResults
 from .stages import PIPELINE, PIPELINE_STAGE, PipelineStage

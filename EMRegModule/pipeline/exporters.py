@@ -9,25 +9,44 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..errors import EMRegError
+from ..io.case import run_ct_path
+from ..io.ct_handle import CTHandle
+from ..io.ct_stream import start_streamed_read
 from ..io.output_folder import OutputFolder
-from ..names import RUN_JSON
+from ..progress import Progress
+from ..report.ct_memo import kept_for, memo_candidates, recorded_ct_sha256
+from ..settings import Settings
+from ..slicer_export.bundle import BundleProcess, start_bundle_process, write_run_bundle
+from ..slicer_export.mrb import bundle_needs_ct_image
 from ..stages import STAGE_OUTPUTS
+from .bundle_state import KeptBundle, current_bundle
 from .recorder import RunRecorder
 
 if TYPE_CHECKING:
     import SimpleITK as sitk
 
-    from ..io.ct_handle import CTHandle
-    from ..progress import Progress
-    from ..settings import Settings
-    from ..slicer_export.bundle import BundleProcess
-    from .bundle_state import KeptBundle
-    from .job import CTHold
+
+class CTHold:
+    """The CT in memory, handed by the controller to the stages that export it (the report, the bundle): ``take``
+    lets the hold's reference go, so that a CT nothing needs any more is freed once used (before the rendering
+    libraries load). ``keep``: the caller keeps the CT afterwards (the 3D Slicer Logic shows it): never let go."""
+
+    def __init__(self, image: sitk.Image | None, keep: bool = True) -> None:
+        self._image = image
+        self.keep = keep
+
+    @property
+    def image(self) -> sitk.Image | None:
+        return self._image
+
+    def take(self) -> sitk.Image | None:
+        image, self._image = self._image, None
+        return image
 
 
 class Exporter:
     """The report and the bundle of one controller. The CT in memory is handed to them in a
-    :class:`~.job.CTHold`: unless the hold keeps it (the Slicer Logic shows it afterwards), it is let go before the
+    :class:`CTHold`: unless the hold keeps it (the Slicer Logic shows it afterwards), it is let go before the
     rendering libraries load when nothing needs it after the report, and before the bundle when the bundle copies
     it from its file."""
 
@@ -42,10 +61,7 @@ class Exporter:
         """The verification report of ``folder`` (its outputs checked to belong together first); the CT
         the report read is kept for the Slicer bundle (:meth:`save_bundle`). ``ct_read``: a streamed read of the
         CT started earlier (:func:`start_report_ct`), used when it is the report's CT."""
-        from ..io.case import run_ct_path
-        from ..io.ct_handle import CTHandle
-        from ..report.writer import write_report_keeping_ct
-        from ..slicer_export.mrb import bundle_needs_ct_image
+        from ..report.writer import write_report_keeping_ct  # the page and figures: see DEFERRED_IMPORTS
 
         used = self.recorder.adopt_outputs(folder)
         keep = bundle_needs_ct_image(run_ct_path(folder.manifest, case_dir))  # else the report streams a CT itself
@@ -77,7 +93,6 @@ class Exporter:
         """Start writing ``EMReg.mrb`` in a separate process, to go on while the report renders (pass the
         result to :meth:`save_bundle`); None when it must be written here. ``started``: a bundle process started
         earlier and held (:func:`start_report_bundle`), released here once the outputs are checked."""
-        from ..slicer_export.bundle import start_bundle_process
 
         used = self.recorder.adopt_outputs(folder)
         job = started if started is not None else start_bundle_process(folder.path, case_dir)
@@ -89,7 +104,6 @@ class Exporter:
     def kept_bundle(self, folder: OutputFolder, case_dir: Path | None) -> KeptBundle | None:
         """``folder``'s ``EMReg.mrb`` when it is still the bundle :meth:`save_bundle` would write
         (:mod:`EMRegModule.pipeline.bundle_state`), else None."""
-        from .bundle_state import current_bundle
 
         kept = current_bundle(folder.path, folder.manifest, case_dir, self.settings.digest())
         return kept.start_check() if kept is not None else None
@@ -98,9 +112,6 @@ class Exporter:
                     job: BundleProcess | None = None, kept: KeptBundle | None = None) -> str:
         """``EMReg.mrb``, the 3D Slicer scene of ``folder``'s outputs; a summary line. Optional: without
         slicer-core, or when it cannot be written, the other outputs stand and a warning says why."""
-        from ..io.case import run_ct_path
-        from ..slicer_export.bundle import write_run_bundle
-        from ..slicer_export.mrb import bundle_needs_ct_image
 
         if kept is not None and kept.confirmed():
             return f"bundle: {kept.path} (up to date: kept)"
@@ -130,20 +141,6 @@ class Exporter:
 # --- ``emreg report OUT``: what starts before the report's libraries load ---------------------------------------
 
 
-def read_run_record(out: Path) -> dict[str, Any] | None:
-    """``OUT/run.json``, read once for what is decided before the report starts (None when there is none to read:
-    the report then says what is wrong)."""
-    if not out.is_dir():
-        return None
-    from ..io.atomic import read_json
-
-    try:
-        run = read_json(out / RUN_JSON, "run record")
-    except (EMRegError, OSError):
-        return None
-    return run if isinstance(run, dict) else None
-
-
 def recorded_case(run: dict[str, Any] | None) -> Path | None:
     """The case folder ``OUT/run.json`` names, when it is there."""
     case = (run or {}).get("case")
@@ -154,9 +151,6 @@ def start_report_ct(out: Path, case_dir: Path | None, run: dict[str, Any] | None
     """Start streaming the CT that ``OUT/run.json`` names, when the report may stream it (a plain file whose bundle
     copies it from the file) and no earlier report kept its products; None otherwise. The report checks it is its
     CT."""
-    from ..io.case import run_ct_path
-    from ..io.ct_stream import start_streamed_read
-    from ..slicer_export.mrb import bundle_needs_ct_image
 
     ct = run_ct_path(run, case_dir)
     if ct is None or bundle_needs_ct_image(ct) or _ct_products_kept(out, run, ct):
@@ -169,7 +163,6 @@ def start_report_ct(out: Path, case_dir: Path | None, run: dict[str, Any] | None
 
 def _ct_products_kept(out: Path, run: dict[str, Any] | None, ct: str) -> bool:
     """Whether an earlier report of this run kept the CT's products for this CT (then the report only hashes it)."""
-    from ..report.ct_memo import kept_for, memo_candidates, recorded_ct_sha256
 
     recorded = recorded_ct_sha256(run, Path(ct))
     return any(kept_for(path, recorded) for path in memo_candidates(out))
@@ -181,8 +174,6 @@ def start_report_bundle(out: Path, case_dir: Path | None, run: dict[str, Any] | 
     process of its own, or when the bundle there is most likely kept (the settings are compared once read)."""
     if run is None:
         return None
-    from ..slicer_export.bundle import start_bundle_process
-    from .bundle_state import current_bundle
 
     if current_bundle(out, run, case_dir, None):
         return None

@@ -14,29 +14,9 @@ from .inputs import Inputs
 from .results import WorkflowResults
 
 if TYPE_CHECKING:
-    import SimpleITK as sitk
-
     from ..io.case import Case
     from ..io.output_folder import OutputFolder
-    from .exporters import Exporter
-
-class CTHold:
-    """The CT in memory, handed by the controller to the stages that export it (the report, the bundle): ``take``
-    lets the hold's reference go, so that a CT nothing needs any more is freed once used (before the rendering
-    libraries load). ``keep``: the caller keeps the CT afterwards (the 3D Slicer Logic shows it): never let go."""
-
-    def __init__(self, image: sitk.Image | None, keep: bool = True) -> None:
-        self._image = image
-        self.keep = keep
-
-    @property
-    def image(self) -> sitk.Image | None:
-        return self._image
-
-    def take(self) -> sitk.Image | None:
-        image, self._image = self._image, None
-        return image
-
+    from .exporters import CTHold, Exporter
 
 def _no_warning(warnings: list[str]) -> None:
     """Warnings said nowhere (a :class:`Job` made without a recorder)."""

@@ -83,7 +83,7 @@ def _detect_in_memory(job: Job) -> DetectionResult:
     """Detection on the CT held in memory (``inputs.image``)."""
     inputs = job.inputs
     WorkflowResults.require(image=inputs.image)
-    from ..core.detection import detect_markers  # scipy and VTK: see DEFERRED_IMPORTS
+    from ..core.detection.detect import detect_markers  # scipy and VTK: see DEFERRED_IMPORTS
 
     result = detect_markers(inputs.image, inputs.marker_model, inputs.settings.detection, job.progress)
     result.ct_series = inputs.ct_series
@@ -104,7 +104,7 @@ def _open_and_detect(job: Job, path: str | os.PathLike[str], compact: bool,
     # medians of 11). A CT refused while it is opened is refused before the import starts.
     # all of it: detection may fork (.detection.examiners)
     import_in_background("EMRegModule.core.detection.detect").wait()
-    from ..core.detection import detect_markers  # scipy and VTK: see DEFERRED_IMPORTS
+    from ..core.detection.detect import detect_markers  # scipy and VTK: see DEFERRED_IMPORTS
 
     try:
         result = detect_markers(fill, inputs.marker_model, inputs.settings.detection, job.progress)

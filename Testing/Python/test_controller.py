@@ -1,7 +1,6 @@
 """The workflow controller: order of steps, what a new input invalidates, results as values."""
 
 import dataclasses
-
 from types import SimpleNamespace
 
 import numpy as np
