@@ -160,7 +160,9 @@ class EMRegController:
         skipped or "not evaluated"); with ``folder``, its result is saved there with its provenance. Returns the
         result (None: the case did not allow it); a missing prerequisite is refused
         (:class:`~.results.WorkflowError`, saying what is missing)."""
-        made = self._step(PIPELINE_STAGE[stage], case, folder, options)
+        entry = PIPELINE_STAGE[stage]
+        hold = CTHold(self.inputs.image) if entry.stage.export else None  # the CT in memory, kept
+        made = self._step(entry, case, folder, options, hold)
         return next(iter(made.results.values()), None)
 
     def save(self, stage: str, folder: OutputFolder) -> None:
@@ -174,8 +176,8 @@ class EMRegController:
               hold: CTHold | None = None) -> Made:
         """Run one stage of the table and take what it made (its result, inputs changed, a file read); with
         ``folder``, save it there and note what ``run.json`` records of it."""
-        job = Job(self.inputs, self.results, self.progress, MappingProxyType(options), case, folder,
-                  self.recorder.warn, self.exporter, hold)
+        job = Job(self.inputs, self.results, self.recorder.warn, self.progress, MappingProxyType(options), case,
+                  folder, self.exporter, hold)
         made = entry.run(job)
         if made.read is not None:
             self._note_read(made.read)
@@ -283,6 +285,6 @@ class EMRegController:
 
     def _prepare(self, entry: PipelineStage, case: Case) -> None:
         """What ``entry`` reads and checks of the case before the long stages: its inputs, its result now stale."""
-        inputs = entry.prepare(Job(self.inputs, self.results, self.progress, case=case, warn=self.recorder.warn))
+        inputs = entry.prepare(Job(self.inputs, self.results, self.recorder.warn, self.progress, case=case))
         if inputs is not self.inputs:
             self.inputs, self.results = inputs, self.results.without(entry.name)

@@ -85,15 +85,6 @@ def with_ports(inputs: Inputs, reference_sensor: int | None, probe_sensor: int |
     return inputs.replace(reference_sensor=sensors.reference, probe_sensor=sensors.probe)
 
 
-def read_tool_input(path: str | os.PathLike[str], settings: Settings) -> ToolCalibration | None:
-    """The tool of a tool file (``tool_calibration.json``, ITK transform, PLUS device set;
-    :func:`EMRegModule.core.tool.read_tool`), named as ``[tool] name`` says when it does."""
-    tool = read_tool(path, settings.tool.name)
-    if settings.tool.name:
-        tool.name = settings.tool.name
-    return tool
-
-
 def settings_file(settings: Settings, name: str | None) -> Path | None:
     """A file ``case.toml`` names (``[tool] calibration``, ``[navigation] plan``), relative to its folder; None when
     it names none."""
@@ -106,13 +97,18 @@ def settings_file(settings: Settings, name: str | None) -> Path | None:
 
 
 def with_tool(inputs: Inputs, tool: str | os.PathLike[str] | ToolCalibration | None) -> Inputs:
-    """``inputs`` with a tool: a tool file (:func:`read_tool_input`), ``auto`` (the tip solved when the frame is
-    calibrated), a :class:`~EMRegModule.core.tool.ToolCalibration`, or None (the pinhole probe)."""
+    """``inputs`` with a tool: a tool file (``tool_calibration.json``, ITK transform, PLUS device set;
+    :func:`EMRegModule.core.tool.read_tool`, named as ``[tool] name`` says when it does), ``auto`` (the tip solved
+    when the frame is calibrated), a :class:`~EMRegModule.core.tool.ToolCalibration`, or None (the pinhole probe)."""
     if tool is None or isinstance(tool, ToolCalibration):
         return inputs.replace(tool=tool, tool_auto=False)
     if str(tool) == "auto":
         return inputs.replace(tool=None, tool_auto=True)
-    return inputs.replace(tool=read_tool_input(tool, inputs.settings), tool_auto=False)
+    name = inputs.settings.tool.name
+    read = read_tool(tool, name)
+    if name:
+        read.name = name
+    return inputs.replace(tool=read, tool_auto=False)
 
 
 def with_plan(inputs: Inputs, plan: str | os.PathLike[str] | Plan | None,

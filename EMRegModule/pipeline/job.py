@@ -18,10 +18,6 @@ if TYPE_CHECKING:
     from ..io.output_folder import OutputFolder
     from .exporters import CTHold, Exporter
 
-def _no_warning(warnings: list[str]) -> None:
-    """Warnings said nowhere (a :class:`Job` made without a recorder)."""
-
-
 @dataclass(frozen=True)
 class Job:
     """One stage's work.
@@ -30,17 +26,17 @@ class Job:
     per-stage command's: the recording to navigate, the targets...); ``case``: within ``emreg run`` (or the 3D
     Slicer module), the case folder the stage takes its optional inputs from, a part that cannot be made then
     being skipped with its reason rather than refused; ``folder``: the output folder (the report and the bundle
-    write into it); ``warn``: says a stage's warnings on stderr; ``exporter`` and ``ct``: the report's and the
-    bundle's machinery and the CT handed to them.
+    write into it); ``warn``: says a stage's warnings on stderr (the recorder's); ``exporter`` and ``ct``: the
+    report's and the bundle's machinery and the CT handed to them.
     """
 
     inputs: Inputs
     results: WorkflowResults
+    warn: Callable[[list[str]], None]
     progress: Progress = QUIET
     options: Mapping[str, Any] = field(default_factory=dict)
     case: Case | None = None
     folder: OutputFolder | None = None
-    warn: Callable[[list[str]], None] = _no_warning
     exporter: Exporter | None = None
     ct: CTHold | None = None
 
