@@ -45,6 +45,9 @@ DEFERRED_IMPORTS: dict[str, str] = {
     "EMRegModule.core.detection.detect": "the detection stage (scipy, VTK: ~0.4 s holding the GIL): imported on a "
                                          "thread while the CT is read (pipeline.background), waited for when the "
                                          "detection starts",
+    "EMRegModule.core.tre_map": "SimpleITK (a 270 MB library, 50 ms of CPU to load): only where an ITK image is "
+                                "written or read; emreg detect on an uncompressed DICOM series never loads it",
+    "EMRegModule.io.ct_stream": "SimpleITK, as for core.tre_map: the report's streamed read of a CT file",
     "EMRegModule.report.writer": "the report's page and figures (0.13 s of modules): loaded when a report is "
                                 "written, not by every command that makes a controller (emreg detect, register...)",
 }

@@ -11,7 +11,6 @@ from typing import TYPE_CHECKING, Any
 from ..errors import EMRegError
 from ..io.case import run_ct_path
 from ..io.ct_handle import CTHandle
-from ..io.ct_stream import start_streamed_read
 from ..io.output_folder import OutputFolder
 from ..progress import Progress
 from ..report.ct_memo import kept_for, memo_candidates, recorded_ct_sha256
@@ -155,6 +154,8 @@ def start_report_ct(out: Path, case_dir: Path | None, run: dict[str, Any] | None
     ct = run_ct_path(run, case_dir)
     if ct is None or bundle_needs_ct_image(ct) or _ct_products_kept(out, run, ct):
         return None
+    from ..io.ct_stream import start_streamed_read  # SimpleITK: see DEFERRED_IMPORTS
+
     try:
         return start_streamed_read(ct)
     except EMRegError:

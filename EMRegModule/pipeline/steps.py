@@ -26,7 +26,6 @@ from ..core.navigation import NavigationResult, navigate_recording, unpaired_pro
 from ..core.registration import read_registration, register, write_registration
 from ..core.tool import write_tool_calibration
 from ..core.tracking import TrackingRecording, sensor_pair
-from ..core.tre_map import write_tre_map
 from ..errors import EMRegError, NoSafeAnswerError
 from ..io.atomic import atomic_write_json
 from ..io.dicom_read import NarrowVoxelsError
@@ -387,6 +386,8 @@ def run_tre_map(job: Job) -> Made:
 
 def write_tre_map_file(results: WorkflowResults, out: Path, provenance: Provenance) -> None:
     """``tre_map.nrrd`` (its provenance lives in the folder's ``run.json``)."""
+    from ..core.tre_map import write_tre_map  # SimpleITK: see DEFERRED_IMPORTS
+
     tre_map = results.tre_map
     write_tre_map(out / names.TRE_MAP_NRRD, tre_map.model, tre_map.geometry, tre_map.tracking_ms)
 
