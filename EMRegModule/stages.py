@@ -11,7 +11,10 @@ result makes stale (:data:`DEPENDENTS`, :func:`outputs_from`, used by
 :class:`~EMRegModule.io.output_folder.OutputFolder`
 and by :class:`~EMRegModule.pipeline.results.WorkflowResults`), the provenance of each output (``inputs``: the input
 roles it is made from; :func:`uses`: the upstream outputs), and the order ``emreg run`` executes them in. File
-names come from :mod:`EMRegModule.names`. This module imports nothing heavy: ``emreg --help`` loads it.
+names come from :mod:`EMRegModule.names`. How each stage runs, is read and is written is the pipeline's table
+(:data:`EMRegModule.pipeline.stages.PIPELINE`, one entry per stage here), which the controller walks; this graph
+stays apart so that the output folder (:mod:`EMRegModule.io.output_folder`) reads it without the pipeline. This
+module imports nothing heavy: ``emreg --help`` loads it.
 """
 
 from __future__ import annotations
@@ -43,15 +46,16 @@ class Stage:
 
 #: The stages in workflow order (a later stage never feeds an earlier one).
 STAGES: tuple[Stage, ...] = (
-    Stage("detect", (), (names.MARKERS_JSON, names.MARKERS_MRK_JSON), ("ct",), ("detection",)),
+    Stage("detect", (), (names.MARKERS_JSON, names.MARKERS_MRK_JSON), ("ct",),
+          ("detection", "fiducials")),
     Stage("calibrate", (), (names.FRAME_CALIBRATION_JSON, names.TOOL_CALIBRATION_JSON, names.TIP_TO_PROBE_H5),
-          ("calibration", "tool"), ("frame_calibration",)),  # the tool's files: --tool auto
+          ("calibration", "tool"), ("frame_calibration", "calibrated_here")),  # the tool's files: --tool auto
     Stage("register", ("detect", "calibrate"), (names.REGISTRATION_JSON, names.REFERENCE_TO_IMAGE_H5),
           ("targets", "fiducials"), ("registration",)),
     Stage("navigate", ("register",), (names.NAVIGATION_CSV, names.CHECKPOINTS_JSON, names.NAVIGATION_JSON),
           ("navigation", "tool", "plan"), ("navigation", "checkpoints", "guidance")),
     Stage("evaluate", ("register",), (names.EVALUATION_JSON,), ("navigation", "targets", "board"), ("evaluation",)),
-    Stage("tre_map", ("register", "evaluate"), (names.TRE_MAP_NRRD,)),
+    Stage("tre_map", ("register", "evaluate"), (names.TRE_MAP_NRRD,), results=("tre_map",)),
     Stage("report", ("detect", "calibrate", "register", "navigate", "evaluate", "tre_map"),
           (names.REPORT_HTML, names.REPORT_FIGURES), uses_present=True, export=True),
     Stage("bundle", ("report",), (names.BUNDLE_MRB,), uses_present=True, export=True),

@@ -69,6 +69,11 @@ DEFERRED_IMPORTS: dict[str, str] = {
     "EMRegModule.io.dicom_read": "the DICOM series reader (~45 ms, its thread pool): only for a folder",
     "EMRegModule.core.handeye_profile": "the hand-eye solver's scipy.stats and scipy.signal (seconds, cold): only the "
                                         "report of a folder with robot_calibration.json needs them",
+    "EMRegModule.io.tre_map": "SimpleITK (a 270 MB library, 50 ms of CPU to load): only where tre_map.nrrd is written; "
+                              "emreg detect on an uncompressed DICOM series never loads it",
+    "EMRegModule.io.ct_stream": "SimpleITK, as for io.tre_map: the report's streamed read of a CT file",
+    "EMRegModule.report.writer": "the report's page and figures (0.13 s of modules): loaded when a report is "
+                                "written, not by every command that makes a controller (emreg detect, register...)",
 }
 MAX_FUNCTION_LINES = 90
 MAX_MODULE_LINES = 700

@@ -17,13 +17,6 @@ from ..pipeline.controller import EMRegController
 from ..progress import Progress
 from ..settings import Settings, load_settings, sensor_ports_given, with_series
 
-# the parser declarations still in cli/run.py and cli/stages.py take these from here (:mod:`.options` declares them)
-from .options import AddCommand as AddCommand
-from .options import add_plan_option as add_plan_option
-from .options import add_sensor_options as add_sensor_options
-from .options import add_series_option as add_series_option
-from .options import add_tool_option as add_tool_option
-
 
 def progress_of(args: argparse.Namespace) -> Progress:
     return Progress(enabled=not getattr(args, "quiet", False))
@@ -104,18 +97,19 @@ def ports_given(args: argparse.Namespace, settings: Settings) -> tuple[int | Non
 
 def controller_of(args: argparse.Namespace, settings: Settings) -> EMRegController:
     controller = EMRegController(settings, progress_of(args), f"emreg {args.command}")
-    controller.set_sensors(getattr(args, "reference_sensor", None), getattr(args, "probe_sensor", None))
+    controller.give(sensors=(getattr(args, "reference_sensor", None), getattr(args, "probe_sensor", None)))
     return controller
 
 
 def use_tool(args: argparse.Namespace, controller: EMRegController, solves: bool = True) -> None:
     """``--tool FILE`` (else ``[tool] calibration`` of the settings): the tool whose tip is tracked. ``solves``:
     the command has a calibration recording to solve ``--tool auto`` from (else it is refused)."""
-    if getattr(args, "tool", None):
-        controller.load_tool(args.tool)
-    else:
-        controller.load_tool_from_settings()
-    if controller.tool_auto and not solves:
+    from ..pipeline.inputs import settings_file
+
+    tool = getattr(args, "tool", None) or settings_file(controller.settings, controller.settings.tool.calibration)
+    if tool:
+        controller.give(tool=tool)
+    if controller.inputs.tool_auto and not solves:
         raise EMRegError(f"emreg {args.command}: --tool auto solves the tip from a calibration recording; give the "
                          "tool_calibration.json that emreg calibrate or emreg run wrote with it instead")
 
@@ -128,10 +122,10 @@ def use_plan(args: argparse.Namespace, controller: EMRegController) -> None:
     if controller.results.registration is None:
         raise EMRegError(f"emreg {args.command}: a plan (--plan or [navigation] plan) needs a registration; give "
                          "--registration registration.json")
-    if getattr(args, "plan", None):
-        controller.planner.load(args.plan)
-    else:
-        controller.planner.load_from_settings()
+    from ..pipeline.inputs import settings_file
+
+    controller.give(plan=getattr(args, "plan", None) or settings_file(controller.settings,
+                                                                       controller.settings.navigation.plan))
 
 
 def recording_ports(args: argparse.Namespace, settings: Settings) -> tuple[int, int]:

@@ -19,9 +19,6 @@ from ..live.sim_tracker import SimulatorOptions, run_simulator
 from ..pipeline.live_session import navigate_live, prepare_live_navigation
 from .args import out_file, ports_given, sensor_ports, settings_of, warn
 
-# cli/stages.py takes its live option declarations from here (:mod:`.options` declares them)
-from .options import add_live_navigate_arguments as add_live_navigate_arguments
-
 #: ``(option, attribute, what it must be)`` of the live commands' numeric options: zero or a negative value is
 #: a usage error (exit 2, one line), never a loop that ends at once or never (``--reconnect 0`` keeps its
 #: documented meaning, end at once; ``--max-quality`` -1 means "do not check").
@@ -100,5 +97,5 @@ def run_live_navigate(args: argparse.Namespace) -> int:
                                          args.reconnect))
 
 
-__all__ = ["add_live_navigate_arguments", "check_live_options", "run_live_navigate", "run_record", "run_serve",
+__all__ = ["check_live_options", "run_live_navigate", "run_record", "run_serve",
            "run_sim_tracker"]

@@ -9,7 +9,6 @@ and the options several commands share.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
 
 from ..names import (
     DEFAULT_IGTL_PORT,
@@ -17,10 +16,6 @@ from ..names import (
     DEFAULT_TRAKSTAR_BAUD,
     MIN_RECORDED_SHARE,
 )
-
-#: ``add(name, run, help)``: a subcommand of ``emreg`` with the common options (``--quiet``, ``--settings``);
-#: the parser declarations of ``cli/run.py`` and ``cli/stages.py`` take it.
-AddCommand = Callable[[str, Callable[[argparse.Namespace], int], str], argparse.ArgumentParser]
 
 # --- options several commands share -------------------------------------------------------------------------
 

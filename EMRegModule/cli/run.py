@@ -8,11 +8,6 @@ import time
 from pathlib import Path
 
 from .args import (
-    AddCommand,
-    add_plan_option,
-    add_sensor_options,
-    add_series_option,
-    add_tool_option,
     controller_of,
     out_folder,
     progress_of,
@@ -30,12 +25,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     case.settings = with_series(case.settings, args.series)
     case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # a sequence file's too
     controller = controller_of(args, case.settings)
-    if args.tool:
-        controller.load_tool(args.tool)
-    if args.plan:
-        controller.planner.load(args.plan)
-    controller.exporter.keep_ct = False  # nothing uses the CT after the run: freed as soon as nothing needs it
-    for line in controller.run(case, Path(args.out)):
+    controller.give(**{name: value for name, value in (("tool", args.tool), ("plan", args.plan)) if value})
+    # nothing uses the CT after the run: freed as soon as nothing needs it
+    for line in controller.run(case, Path(args.out), keep_ct=False):
         print(line)
     return 0
 
@@ -56,18 +48,3 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(line)
     print(f"demo finished in {time.perf_counter() - start:.1f} s; outputs in {out / 'result'}")
     return 0
-
-
-def add_parsers(add: AddCommand) -> None:
-    """The subcommands of this module (``add``: :data:`~EMRegModule.cli.args.AddCommand`)."""
-    p = add("run", cmd_run, "run every stage on a case folder")
-    p.add_argument("case", metavar="CASE")
-    p.add_argument("--out", required=True, metavar="OUT")
-    add_series_option(p)
-    add_sensor_options(p)
-    add_tool_option(p)
-    add_plan_option(p)
-    p = add("demo", cmd_demo, "simulate the built-in sample case and run it")
-    p.add_argument("--out", default="demo-output", metavar="DIR")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--spacing", type=float, default=None, metavar="MM")

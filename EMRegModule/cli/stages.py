@@ -11,11 +11,6 @@ from pathlib import Path
 from ..errors import EMRegError, NoSafeAnswerError
 from ..names import REGISTRATION_JSON
 from .args import (
-    AddCommand,
-    add_plan_option,
-    add_sensor_options,
-    add_series_option,
-    add_tool_option,
     controller_of,
     out_folder,
     output_folder,
@@ -26,7 +21,7 @@ from .args import (
     warn,
     with_series_of,
 )
-from .live import add_live_navigate_arguments, check_live_options
+from .live import check_live_options
 
 
 def cmd_detect(args: argparse.Namespace) -> int:
@@ -39,8 +34,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
     controller = controller_of(args, with_series_of(settings_of(args, case_dir), args))
     folder = output_folder(args, "detect", [ct_path], case_dir)
     controller.recorder.note_inputs(ct=ct_path if ct_path.exists() else None)
-    result = controller.load_ct_and_detect(ct_path, keep_image=False)  # detects on the slices read as the rest arrives
-    controller.save("detect", folder)
+    # detected on the slices read as the rest arrives; the CT is not kept (only the markers are written)
+    result = controller.make("detect", folder=folder, ct=ct_path, keep_image=False)
     print(f"{len(result.markers)} markers detected, {len(result.rejected)} candidates rejected -> {args.out}")
     return 0
 
@@ -50,18 +45,17 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     recording = Path(args.recording)
     controller = controller_of(args, settings_of(args))
     use_tool(args, controller)
-    controller.load_calibration_recording(recording)
+    controller.give(calibration=recording)
     tool_file = [Path(args.tool)] if args.tool and args.tool != "auto" else []
     folder = output_folder(args, "calibrate", [recording] + tool_file)
     controller.recorder.note_inputs(calibration=recording)
-    result = controller.calibrate_frame()
-    controller.save("calibrate", folder)
+    result = controller.make("calibrate", folder=folder)
     controller.recorder.warn(result.warnings)
-    if controller.tool is None:
+    tool = controller.inputs.tool
+    if tool is None:
         print(f"{len(result.points)} pinholes calibrated -> {args.out}")
     else:
         motions = [p.motion for p in result.points]
-        tool = controller.tool
         solved = "" if result.solved_tool is None else (
             f"; tip solved from {tool.touches} pivoting touches: [{', '.join(f'{v:.2f}' for v in tool.tip_mm)}] mm "
             f"+/- [{', '.join(f'{v:.2f}' for v in tool.tip_std_mm)}], RMS {tool.rms_mm:.2f} mm")
@@ -80,8 +74,8 @@ def cmd_pivot(args: argparse.Namespace) -> int:
     out_folder(args.out)
     recording_path = Path(args.recording)
     controller = controller_of(args, settings_of(args))
-    poses, frame, name, warnings = pivot_poses(recording_path, controller.settings, controller.reference_sensor,
-                                               controller.probe_sensor)
+    poses, frame, name, warnings = pivot_poses(recording_path, controller.settings, controller.inputs.reference_sensor,
+                                               controller.inputs.probe_sensor)
     tool = pivot_calibration(poses, str(recording_path), frame, name)
     refuse_out_over_inputs(args.out, [recording_path], (TOOL_CALIBRATION_JSON, TIP_TO_PROBE_ITK))
     write_tool_calibration(tool, args.out)
@@ -101,11 +95,8 @@ def cmd_register(args: argparse.Namespace) -> int:
         raise EMRegError("register: give the image side once: --markers markers.json (CT markers) or --fiducials FILE "
                          "(.mrk.json, .fcsv, a PLUS device-set XML with landmarks, or markers.json)")
     folder = output_folder(args, "register", inputs)
-    if args.fiducials is not None:
-        controller.load_fiducials(args.fiducials)
-    else:
-        controller.load_detection(args.markers)
-    controller.load_frame_calibration(args.calibration)
+    controller.adopt("detect", args.fiducials if args.fiducials is not None else args.markers)
+    controller.adopt("calibrate", args.calibration)
     targets = None
     if args.targets:
         from ..io.case import read_targets
@@ -113,11 +104,10 @@ def cmd_register(args: argparse.Namespace) -> int:
         controller.recorder.note_inputs(targets=args.targets)
         targets = read_targets(args.targets)[1]
     try:
-        result = controller.register(targets)
+        result = controller.make("register", folder=folder, targets=targets)
     except NoSafeAnswerError:
         folder.remove_from("register")
         raise
-    controller.save("register", folder)
     controller.recorder.warn(result.warnings)
     from ..pipeline.results import offset_summary
 
@@ -134,7 +124,7 @@ def cmd_navigate(args: argparse.Namespace) -> int:
         return run_live_navigate(args)
     if not args.out:
         raise EMRegError("navigate: --out DIR is needed to write navigation.csv from a replay")
-    from ..io.recording import read_recording
+    from ..pipeline.inputs import read_recording
 
     recording_path = Path(args.source[len("replay:"):])
     controller = controller_of(args, settings_of(args))
@@ -142,19 +132,18 @@ def cmd_navigate(args: argparse.Namespace) -> int:
 
     markers, note = markers_beside(args.registration)
     if markers is not None:  # the checkpoints need the markers' pinholes (before the registration: it is dropped)
-        controller.set_detection(markers)
-    controller.load_registration(args.registration)
+        controller.adopt("detect", detection=markers)
+    controller.adopt("register", args.registration)
     warn("navigate", [note] if note else [])
     warn("navigate", controller.use_ports(*ports_given(args, controller.settings), args.registration))
     use_tool(args, controller, solves=False)
     use_plan(args, controller)
-    recording = (read_recording(recording_path, controller.settings, controller.reference_sensor,
-                                controller.probe_sensor) if controller.tool is None
-                 else controller.read_recording(recording_path))
+    recording = read_recording(recording_path, controller.inputs)
+    plan = controller.inputs.plan
     folder = output_folder(args, "navigate", [recording_path, Path(args.registration)]
-                           + ([Path(controller.planner.plan.source)] if controller.planner.plan is not None else []))
+                           + ([Path(plan.source)] if plan is not None else []))
     controller.recorder.note_inputs(navigation=recording_path)
-    result = controller.navigate_recording(recording)
+    result = controller.make("navigate", recording=recording)
     controller.recorder.warn(recording.warnings)
     controller.save("navigate", folder)
     checkpoints = controller.results.checkpoints
@@ -183,60 +172,19 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     markers, note = markers_beside(args.registration)
     if markers is not None:  # the pose status (checkpoints at the pinholes) as navigate gives it: INVALID left out
-        controller.set_detection(markers)
-    controller.load_registration(args.registration)
+        controller.adopt("detect", detection=markers)
+    controller.adopt("register", args.registration)
     warn("evaluate", ([note] if note else []) + controller.use_ports(*given, args.registration))
-    case.settings = case.settings.with_sensors(controller.reference_sensor, controller.probe_sensor)
+    inputs = controller.inputs
+    case.settings = case.settings.with_sensors(inputs.reference_sensor, inputs.probe_sensor)
     controller.recorder.check_case_inputs(REGISTRATION_JSON, args.registration, case)
     controller.recorder.note_inputs(navigation=case.navigation, targets=case.targets, board=case.board)
     use_tool(args, controller, solves=False)
-    result = controller.evaluate(controller.case_recording(case, "navigation"), case.read_targets(),
-                                 controller.case_recording(case, "board"))
-    controller.save("evaluate", folder)
+    from ..pipeline.inputs import case_recording
+
+    inputs = controller.inputs
+    result = controller.make("evaluate", folder=folder, navigation=case_recording(case, "navigation", inputs),
+                             targets=case.read_targets(), board=case_recording(case, "board", inputs))
     controller.recorder.warn(result.warnings)
     print(f"evaluation -> {folder.path / 'evaluation.json'}")
     return 0
-
-
-def add_parsers(add: AddCommand) -> None:
-    """The subcommands of this module (``add``: :data:`~EMRegModule.cli.args.AddCommand`)."""
-    p = add("detect", cmd_detect, "find the markers in a CT: OUT/markers.json and markers.mrk.json")
-    p.add_argument("ct", metavar="CT_OR_CASE", help="a CT file, a DICOM folder, or a case folder")
-    p.add_argument("--out", required=True, metavar="OUT")
-    add_series_option(p)
-    p = add("calibrate", cmd_calibrate, "frame calibration from a tracking recording: OUT/frame_calibration.json")
-    p.add_argument("recording", metavar="RECORDING")
-    p.add_argument("--out", required=True, metavar="OUT")
-    add_sensor_options(p)
-    add_tool_option(p)
-    p = add("pivot", cmd_pivot, "pivot calibration of a tool's tip: OUT/tool_calibration.json and TipToProbe.h5")
-    p.add_argument("recording", metavar="RECORDING", help="the tip resting in a divot while the tool swings")
-    p.add_argument("--out", required=True, metavar="OUT")
-    add_sensor_options(p)
-    p = add("register", cmd_register, "pair, solve the sensor offset, register: OUT/registration.json")
-    p.add_argument("--markers", metavar="markers.json", help="the CT markers of emreg detect")
-    p.add_argument("--fiducials", metavar="FILE",
-                   help="fiducial points instead of CT markers: a Slicer markups file (.mrk.json in LPS or RAS, "
-                        ".fcsv), a PLUS device-set XML with <PhantomDefinition> landmarks, or markers.json; "
-                        "a rigid point fit of the calibration points (tool tips) onto them, no sensor offset")
-    p.add_argument("--calibration", required=True, metavar="frame_calibration.json")
-    p.add_argument("--targets", metavar="targets.mrk.json", help="targets for the predicted TRE")
-    p.add_argument("--out", required=True, metavar="OUT")
-    p = add("navigate", cmd_navigate, "map probe samples into image space (replay or live)")
-    p.add_argument("--registration", required=True, metavar="registration.json")
-    p.add_argument("--source", required=True, metavar="URL",
-                   help="replay:FILE.csv, trakstar:///dev/ttyUSB0?baud=115200 or igtl://HOST:PORT")
-    p.add_argument("--out", metavar="OUT")
-    p.add_argument("--igtl-port", type=int, default=None, metavar="PORT",
-                   help="publish ProbeToImage over OpenIGTLink (with --tool: <Name>TipToImage; with --plan also "
-                        "TrajectoryToImage, the POINT Plan and the STRING Guidance)")
-    add_sensor_options(p)
-    add_tool_option(p)
-    add_plan_option(p)
-    add_live_navigate_arguments(p)
-    p = add("evaluate", cmd_evaluate, "TRE at targets and the board table: OUT/evaluation.json")
-    p.add_argument("case", metavar="CASE")
-    p.add_argument("--registration", required=True, metavar="registration.json")
-    p.add_argument("--out", required=True, metavar="OUT")
-    add_sensor_options(p)
-    add_tool_option(p)

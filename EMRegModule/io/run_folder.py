@@ -1,4 +1,6 @@
-"""One typed view of a run folder (OUT): what the stages wrote, read once by the stages' own readers.
+"""One typed view of a run folder (OUT): what the stages wrote, read once by the stages' own readers, and its
+record ``run.json``: every consumer reads it here (:func:`read_manifest`, :func:`recorded_run`; the one parser,
+:func:`~EMRegModule.io.provenance.read_manifest`, sits below this module with the belonging check that needs it).
 
 The report (:func:`EMRegModule.report.inputs.load_report_inputs`), the scene bundle
 (:func:`EMRegModule.slicer_export.run_scene.collect_run`) and the 3D Slicer Logic (from the results it holds in
@@ -36,7 +38,6 @@ from ..names import (
     ROBOT_CALIBRATION_JSON,
     ROBOT_GO_JSON,
     ROBOT_TARGET_JSON,
-    RUN_JSON,
     TRE_MAP_NRRD,
 )
 from ..stages import made_before_export
@@ -46,6 +47,7 @@ from .evaluation_json import read_evaluation
 from .markers_json import read_detection
 from .navigation_csv import read_guidance_columns, read_navigation_csv
 from .provenance import check_belongs
+from .provenance import read_manifest as parse_manifest
 from .registration_files import read_registration
 
 T = TypeVar("T")
@@ -106,9 +108,26 @@ class RunFolder:
 
 
 def read_manifest(out_dir: str | os.PathLike[str], notes: list[str] | None = None) -> dict[str, Any] | None:
-    """``OUT/run.json`` as a JSON object (None when absent). ``notes`` given: an unreadable one is None and a note
-    there; otherwise it raises :class:`EMRegError`."""
-    return _read(Path(out_dir) / RUN_JSON, _read_json_object("run record"), notes)
+    """``OUT/run.json`` as a JSON object (None when absent). ``notes`` given: an unreadable or damaged one is None
+    and a note there; otherwise it raises :class:`EMRegError`."""
+    try:
+        return parse_manifest(out_dir)
+    except EMRegError as exc:
+        if notes is None:
+            raise
+        notes.append(str(exc))
+        return None
+
+
+def recorded_run(out_dir: str | os.PathLike[str] | None) -> dict[str, Any] | None:
+    """``OUT/run.json`` when there is one to read, for what is decided before a report or bundle starts (None
+    otherwise: what is wrong is said by the command that reads OUT)."""
+    if out_dir is None or not Path(out_dir).is_dir():
+        return None
+    try:
+        return parse_manifest(out_dir)
+    except EMRegError:
+        return None
 
 
 def read_run_folder(out_dir: str | os.PathLike[str], manifest: Mapping[str, Any] | None,

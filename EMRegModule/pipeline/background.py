@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import importlib
+import sys
 import threading
 
 _gc_lock = threading.Lock()
@@ -30,9 +32,6 @@ def import_in_background(module: str) -> threading.Event:
     once the import and its pause are over (not the thread: a thread object let go in the caller's thread runs a
     weak reference's callback there, where an interrupt's exception is lost).
     """
-    import importlib
-    import sys
-
     done = threading.Event()
     if module in sys.modules:
         done.set()

@@ -12,6 +12,7 @@ nothing is kept: a bundle that could not be renewed is removed, as before, and t
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 from typing import Any
 
@@ -96,8 +97,6 @@ def current_bundle(out: Path, run: dict[str, Any], case_dir: Path | None,
 
 def _slicer_core_installed() -> bool:
     """Whether the slicer-core wheel is importable (found, not imported: its libraries stay out of this process)."""
-    import importlib.util
-
     try:
         return importlib.util.find_spec("slicer") is not None
     except (ImportError, ValueError):

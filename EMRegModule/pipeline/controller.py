@@ -1,11 +1,13 @@
-"""The workflow controller: sequences the stages of :mod:`EMRegModule.stages` for the ``emreg`` command
-and the 3D Slicer module's Logic.
+"""The workflow controller: walks the stage table (:data:`~EMRegModule.pipeline.stages.PIPELINE`) for the ``emreg``
+command and the 3D Slicer module's Logic.
 
-It holds the inputs (CT, calibration recording, tool, sensor ports), refuses a step whose prerequisites are
-missing (saying what is missing), and leaves the rest to its parts: the results and what a new input makes
-stale (:class:`~EMRegModule.pipeline.results.WorkflowResults`, ``results``), the provenance of every output
-saved (:class:`~EMRegModule.pipeline.recorder.RunRecorder`, ``recorder``), and the report and the scene bundle
-(:class:`~EMRegModule.pipeline.exporters.Exporter`, ``exporter``).
+It holds two values, replaced and never changed in place: ``inputs`` (:class:`~.inputs.Inputs`: the CT, the
+calibration recording, the tool, the sensor ports and the plan, given once with :meth:`EMRegController.give`) and
+``results`` (:class:`~.results.WorkflowResults`: made by the table's stages with :meth:`~EMRegController.make`, or
+read from their files with :meth:`~EMRegController.adopt`); a new input or result drops what it makes stale (the
+stage table's graph, :mod:`EMRegModule.stages`). It holds no stage's logic: each stage's run, read and write are
+the table's (:mod:`.steps`). Its parts: the provenance of every output saved (:class:`~.recorder.RunRecorder`,
+``recorder``) and the report and the scene bundle (:class:`~.exporters.Exporter`, ``exporter``).
 
 All poses are in millimetres; ``ReferenceToImage`` maps Reference-sensor coordinates into the CT's LPS image
 space.
@@ -14,42 +16,47 @@ space.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import os
-from collections.abc import Callable
 from pathlib import Path
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from .. import __version__
 from ..errors import EMRegError, NoSafeAnswerError
 from ..interrupts import interrupted_by, signals_held
 from ..io.case import Case
 from ..io.output_folder import OutputFolder, all_output_names, refuse_out_over_inputs
-from ..marker_model import MarkerModel
-from ..names import FRAME_CALIBRATION_JSON, MARKERS_JSON, REGISTRATION_JSON, TRE_MAP_NRRD
+from ..names import REGISTRATION_JSON
 from ..progress import QUIET, Progress
 from ..settings import Settings, choose_ports
-from ..stages import STAGE, STAGES
-from .background import import_in_background
-from .exporters import Exporter
-from .navigating import Planner, check_navigation
+from .exporters import CTHold, Exporter
+from .inputs import (
+    Inputs,
+    case_files,
+    check_case_image_side,
+    check_plan_for_case,
+    read_recording,
+    run_record,
+    series_unused,
+    settings_file,
+    with_ct,
+    with_plan,
+    with_ports,
+    with_tool,
+)
+from .job import Job, Made, Read
 from .recorder import RunRecorder
-from .results import WorkflowResults, offset_summary
+from .results import WorkflowResults
+from .stages import PIPELINE, PIPELINE_STAGE, PipelineStage
 
-if TYPE_CHECKING:  # the stage modules import heavy libraries; load them only when used
+if TYPE_CHECKING:
     import SimpleITK as sitk
 
-    from ..core.calibration import FrameCalibration
-    from ..core.detection import DetectionResult
-    from ..core.error_model import ErrorModel
-    from ..core.evaluation import Evaluation
-    from ..core.fiducials import Fiducials
-    from ..core.navigation import NavigationResult
-    from ..core.registration import RegistrationResult
+    from ..core.plan import Plan
     from ..core.tool import ToolCalibration
     from ..core.tracking import TrackingRecording
+
+#: ``tool`` and ``plan`` of :meth:`EMRegController.give` left as they are (None gives "none").
+NOT_GIVEN: Any = object()
 
 
 class EMRegController:
@@ -65,19 +72,9 @@ class EMRegController:
             raise TypeError("EMRegController takes a Settings object (EMRegModule.settings.load_settings)")
         self.settings: Settings = settings or Settings()
         self.progress = progress or QUIET
-        self.marker_model: MarkerModel = self.settings.marker
-        self.reference_sensor: int = self.settings.sensors.reference
-        self.probe_sensor: int = self.settings.sensors.probe
-        self.image: sitk.Image | None = None
-        self.image_source: str | None = None
-        self.ct_series: dict[str, Any] | None = None  # a DICOM CT: the series used and the others
-        self.calibration_recording: TrackingRecording | None = None
-        self.tool: ToolCalibration | None = None  # a tracked tool's tip (None: the paper's pinhole probe)
-        self.tool_auto = False  # --tool auto: the tip is solved from the calibration recording's pivoting touches
-        self._calibrated: FrameCalibration | None = None  # the one calibrate_frame made (its touches: tool tips)
+        self.inputs = Inputs.of(self.settings)
         self.results = WorkflowResults()
         self.recorder = RunRecorder(self.settings, command)
-        self.planner = Planner(self.results, self.recorder, self.settings)  # the plan guided to (``planner.plan``)
         self.exporter = Exporter(self.recorder, self.settings, self.progress)
 
     @classmethod
@@ -85,126 +82,60 @@ class EMRegController:
         """A controller configured with a case folder's ``case.toml``."""
         return cls(case.settings, progress, command)
 
-    # --- inputs -----------------------------------------------------------------------------
-    def load_ct(self, path: str | os.PathLike[str]) -> sitk.Image:
-        """Read the CT (file or DICOM folder); drops detection and everything after it."""
-        from ..io.image import open_ct
+    # --- inputs and results made elsewhere ------------------------------------------------------------------------
 
-        _warn_series_unused(self, path)
-        with self.progress.step("reading CT"):
-            fill = open_ct(path, _series_choice(self.settings))
-            # during the read, after the scan (_open_and_detect)
-            import_in_background("EMRegModule.core.detection.detect")
-            image = fill.result()
-        self.set_image(image, str(path))
-        self.ct_series = fill.series
-        return image
+    def give(self, *, sensors: tuple[int | None, int | None] | None = None,
+             tool: str | os.PathLike[str] | ToolCalibration | None = NOT_GIVEN,
+             calibration: str | os.PathLike[str] | TrackingRecording | None = None,
+             ct: str | os.PathLike[str] | sitk.Image | None = None,
+             plan: str | os.PathLike[str] | Plan | None = NOT_GIVEN) -> Inputs:
+        """Give the workflow inputs, in this order (the tool names the calibration recording's transform); each
+        replaces the one before and drops the results it makes stale. Returns the inputs.
 
-    def load_ct_and_detect(self, path: str | os.PathLike[str], keep_image: bool = True) -> DetectionResult:
-        """``load_ct`` then ``detect_markers``, detecting on the slices already read while the rest arrives.
-
-        The same result as the two calls, sooner. Nothing changes when reading or detection fails.
-        A DICOM series is read compact (int16 where its headers would take int32: half the memory to
-        fill, the same values), and read again exactly in the rare CT whose values do not fit.
-        ``keep_image=False`` (``emreg detect``, which writes only the markers): the CT is not kept (``image`` is
-        None afterwards), so a DICOM series is read without a SimpleITK image (``open_ct``'s ``voxels_only``).
+        - ``sensors``: the (reference, probe) ports, None where unchanged (checked as ``[sensors]``); a change drops
+          the frame calibration and what follows.
+        - ``tool``: a tool file, ``auto`` or a :class:`~EMRegModule.core.tool.ToolCalibration`; None: the pinhole
+          probe (:func:`~.inputs.with_tool`). Drops the navigation and the evaluation (they map its tip), and the
+          frame calibration when it was made here from its touches (one read from a file stays).
+        - ``calibration``: the frame-calibration recording (a file, read with the ports and the tool's transform
+          name, or a recording); drops the frame calibration and what follows.
+        - ``ct``: a CT file or DICOM folder, read now, or a SimpleITK image; drops the detection and what follows.
+        - ``plan``: a markups file or a :class:`~EMRegModule.core.plan.Plan`; None: no plan. Refused outside the CT
+          of the detected markers; drops the navigation (its guidance numbers).
         """
-        from ..io.dicom_read import NarrowVoxelsError
+        inputs, stale = self.inputs, []
+        if sensors is not None:
+            ported = with_ports(inputs, *sensors)
+            if (ported.reference_sensor, ported.probe_sensor) != (inputs.reference_sensor, inputs.probe_sensor):
+                inputs, stale = ported, ["calibrate"]
+        if tool is not NOT_GIVEN:
+            inputs = with_tool(inputs, tool)
+            stale += ["calibrate"] if self.results.calibrated_here else ["navigate", "evaluate"]
+        if calibration is not None:
+            recording = read_recording(calibration, inputs) if isinstance(calibration, str | os.PathLike) \
+                else calibration
+            inputs, stale = inputs.replace(calibration_recording=recording), [*stale, "calibrate"]
+        if ct is not None:
+            if isinstance(ct, str | os.PathLike):
+                self.recorder.warn(series_unused(self.settings, ct))
+            inputs, stale = with_ct(inputs, ct, self.progress), [*stale, "detect"]
+        if plan is not NOT_GIVEN:
+            inputs, stale = with_plan(inputs, plan, self.results.detection), [*stale, "navigate"]
+        self.recorder.note_inputs(**{role: path for role, path in (("tool", tool), ("plan", plan))
+                                     if isinstance(path, str | os.PathLike) and str(path) != "auto"})
+        self.inputs, self.results = inputs, self.results.without(*stale)
+        return inputs
 
-        _warn_series_unused(self, path)
-        try:
-            return _open_and_detect(self, path, compact=True, keep_image=keep_image)
-        except NarrowVoxelsError as exc:
-            self.progress.message(f"[emreg] {exc}: reading the CT again with int32 voxels")
-            return _open_and_detect(self, path, compact=False, keep_image=keep_image)
-
-    def set_image(self, image: sitk.Image, source: str = "CT") -> None:
-        """Use an image already in memory (e.g. a Slicer volume node converted to SimpleITK)."""
-        from ..io.ct_checks import check_ct_image
-
-        check_ct_image(image, source)  # geometry and voxel values (NaN / inf refused)
-        self.image = image
-        self.image_source = source
-        self.ct_series = None
-        self.results.drop("detect")
-
-    def load_calibration_recording(self, path: str | os.PathLike[str]) -> TrackingRecording:
-        """Read the frame-calibration recording; drops the frame calibration and what follows."""
-        recording = self.read_recording(path)
-        self.set_calibration_recording(recording)
-        return recording
-
-    def read_recording(self, path: str | os.PathLike[str]) -> TrackingRecording:
-        """A tracking recording with this controller's ports and transform names (a tool's name is its
-        transform's: ``Stylus`` reads ``StylusToTracker`` unless ``[sensors] probe_transform`` says otherwise)."""
-        from ..io.recording import read_recording
-
-        settings = self.settings
-        named_by_tool = self.tool is not None and self.tool.name and settings.sensors.probe_transform is None
-        if named_by_tool:
-            settings = dataclasses.replace(settings, sensors=dataclasses.replace(
-                settings.sensors, probe_transform=f"{self.tool.name}ToTracker"))
-        try:
-            return read_recording(path, settings, self.reference_sensor, self.probe_sensor)
-        except EMRegError as exc:
-            if named_by_tool and f"{self.tool.name}ToTrackerTransform" in str(exc):
-                raise EMRegError(f"{exc} (the tool file {self.tool.source} names the tool {self.tool.name})") from None
-            raise
-
-    def case_recording(self, case: Case, role: str) -> TrackingRecording | None:
-        """A case's recording ``role`` (``navigation``, ``board``); with a tool, read with its transform name."""
-        if self.tool is None:
-            return case.read_recording(role)
-        path = getattr(case, role)
-        return None if path is None else self.read_recording(path)
-
-    def load_tool(self, path: str | os.PathLike[str]) -> ToolCalibration | None:
-        """Use the tool of a tool file (``tool_calibration.json``, ITK transform, PLUS device set;
-        :func:`EMRegModule.io.tool_files.read_tool`), or ``auto`` (None: the tip is solved when the frame is
-        calibrated); drops the frame calibration and what follows."""
-        from ..io.tool_files import read_tool
-
-        if str(path) == "auto":
-            self.set_tool(None)
-            self.tool_auto = True
-            return None
-        tool = read_tool(path, self.settings.tool.name)
-        if self.settings.tool.name:
-            tool.name = self.settings.tool.name
-        self.recorder.note_inputs(tool=path)
-        self.set_tool(tool)
-        return tool
-
-    def load_tool_from_settings(self) -> ToolCalibration | None:
-        """The tool of ``[tool] calibration`` (relative to ``case.toml``'s folder), if the settings name one."""
-        name = self.settings.tool.calibration
-        if not name:
-            return None
-        path = Path(name)
-        if name != "auto" and not path.is_absolute() and self.settings.source:
-            path = Path(self.settings.source).parent / path
-        return self.load_tool(path)
-
-    def set_tool(self, tool: ToolCalibration | None) -> None:
-        """Use a tool (None: the pinhole probe); drops the navigation and evaluation (they map its tip), and the frame
-        calibration on when calibrate_frame made it from its touches (one read from a file stays)."""
-        self.tool, self.tool_auto = tool, False
-        made_here = self.results.frame_calibration is not None and self.results.frame_calibration is self._calibrated
-        for stage in ("calibrate",) if made_here else ("navigate", "evaluate"):
-            self.results.drop(stage)
-
-    def set_calibration_recording(self, recording: TrackingRecording) -> None:
-        self.calibration_recording = recording
-        self.results.drop("calibrate")
-
-    def set_sensors(self, reference_sensor: int | None = None, probe_sensor: int | None = None) -> None:
-        """Change the sensor ports (checked as ``[sensors]``: 1..4, two different ports); a change drops
-        the frame calibration and what follows."""
-        current = self.settings.with_sensors(self.reference_sensor, self.probe_sensor)
-        sensors = current.with_sensors(reference_sensor, probe_sensor).sensors
-        if (sensors.reference, sensors.probe) != (self.reference_sensor, self.probe_sensor):
-            self.reference_sensor, self.probe_sensor = sensors.reference, sensors.probe
-            self.results.drop("calibrate")
+    def adopt(self, stage: str, source: str | os.PathLike[str] | None = None, **result: Any) -> Any:
+        """Use a result of ``stage`` made elsewhere: read from its file (``source``, by the table's ``read``: an
+        output is checked to belong with its folder and its provenance kept for what is made from it), or given
+        in memory (``result``: its fields, e.g. ``detection=...``). Drops what it makes stale; returns the result."""
+        if source is not None:
+            read = PIPELINE_STAGE[stage].read(Path(source), self.settings)
+            self._note_read(read)
+            result = dict(read.results)
+        self.results = self.results.made(stage, **result)
+        return next(iter(result.values()))
 
     def use_ports(self, reference_given: int | None, probe_given: int | None,
                   source: str = REGISTRATION_JSON) -> list[str]:
@@ -212,194 +143,69 @@ class EMRegController:
         user gave (command line, else ``case.toml [sensors]``; None: not given), else the port the
         registration's calibration used, else the spec's default (reference 1, probe 2). A given port that
         differs from the registration's is used (a re-cabled tracker) with a one-line warning, returned."""
-        self.results.require(registration=self.results.registration)
-        recorded = (self.results.registration.reference_sensor, self.results.registration.probe_sensor)
+        registration = self.results.registration
+        self.results.require(registration=registration)
+        recorded = (registration.reference_sensor, registration.probe_sensor)
         chosen, warnings = choose_ports((reference_given, probe_given), recorded, source)
         sensors = self.settings.with_sensors(*chosen).sensors  # checked as [sensors]; the registration stays
-        self.reference_sensor, self.probe_sensor = sensors.reference, sensors.probe
-        self.results.made("register")  # the navigation and the evaluation use the ports
+        self.inputs = self.inputs.replace(reference_sensor=sensors.reference, probe_sensor=sensors.probe)
+        self.results = self.results.made("register", registration=registration)  # navigation, evaluation: stale
         return warnings
 
-    def detect_markers(self) -> DetectionResult:
-        """Find the markers in the CT and estimate each one's pose (image space, LPS)."""
-        self.results.require(image=self.image)
-        from ..core.detection import detect_markers
+    # --- the stages -------------------------------------------------------------------------------------------
 
-        result = detect_markers(self.image, self.marker_model, self.settings.detection, self.progress)
-        result.ct_series = self.ct_series
-        self.set_detection(result)
-        return result
-
-    def set_detection(self, detection: DetectionResult) -> None:
-        """Use detected markers (e.g. read from ``markers.json``); drops the registration (and fiducials)."""
-        self.results.made("detect")
-        self.results.detection = detection
-        self.results.fiducials = None
-
-    def load_fiducials(self, path: str | os.PathLike[str]) -> DetectionResult | Fiducials:
-        """Use the fiducials of a Slicer markups file, a PLUS device-set XML's landmarks
-        (:func:`~EMRegModule.io.fiducials.read_fiducials`), or a ``markers.json`` (read as :meth:`load_detection`
-        does: the CT markers' pinhole route); drops the registration."""
-        from ..io.fiducials import is_markers_file, read_fiducials
-
-        if is_markers_file(path):
-            return self.load_detection(path)
-        fiducials = read_fiducials(path)
-        self.recorder.note_inputs(fiducials=path)
-        self.set_fiducials(fiducials)
-        return fiducials
-
-    def set_fiducials(self, fiducials: Fiducials) -> None:
-        """Register onto fiducial points (a rigid point fit, no sensor offset) instead of CT markers; drops the
-        registration and the detected markers."""
-        self.results.drop("detect")
-        self.results.fiducials = fiducials
-
-    def calibrate_frame(self) -> FrameCalibration:
-        """One point per marker pinhole in the Reference frame from the calibration recording."""
-        self.results.require(calibration_recording=self.calibration_recording)
-        from ..core.calibration import calibrate_frame
-
-        with self.progress.step("calibrating frame"):
-            result = calibrate_frame(
-                self.calibration_recording, self.reference_sensor, self.probe_sensor,
-                self.settings.calibration, probe_axis=self.settings.sensors.probe_axis or "auto",
-                tool="auto" if self.tool_auto else self.tool, tool_still_radius_mm=self.settings.tool.still_radius_mm,
-            )
-        if result.solved_tool is not None:  # --tool auto: navigation and evaluation use the tip solved here
-            self.tool = result.solved_tool
-        self.set_frame_calibration(result)
-        self._calibrated = result
-        return result
-
-    def set_frame_calibration(self, frame_calibration: FrameCalibration) -> None:
-        """Use a frame calibration (e.g. read from ``frame_calibration.json``); drops the registration."""
-        self.results.made("calibrate")
-        self.results.frame_calibration = frame_calibration
-
-    def register(self, targets_image: np.ndarray | None = None) -> RegistrationResult:
-        """Pair markers with calibration points, solve the sensor offset l, fit ``ReferenceToImage``.
-
-        ``targets_image`` (N, 3, LPS mm), when given, gets a predicted TRE in the result. With fiducials
-        (:meth:`load_fiducials`) the fit is a plain rigid point fit without l
-        (:func:`~EMRegModule.core.fiducial_registration.register_fiducials`).
-        """
-        self.results.require(detection=self.results.image_points, frame_calibration=self.results.frame_calibration)
-        if self.results.detection is None:
-            from ..core.fiducial_registration import register_fiducials
-
-            with self.progress.step("pairing and registering onto the fiducials"):
-                result = register_fiducials(self.results.fiducials, self.results.frame_calibration,
-                                            self.settings.registration,
-                                            targets_image)
-            self.set_registration(result)
-            return result
-        from ..core.registration import register
-
-        with self.progress.step("pairing and registering"):
-            result = register(
-                self.results.detection, self.results.frame_calibration, self.marker_model,
-                self.settings.registration, targets_image=targets_image, probe_axis=self.settings.sensors.probe_axis,
-            )
-        self.set_registration(result)
-        return result
-
-    def set_registration(self, registration: RegistrationResult) -> None:
-        """Use a registration (e.g. read from ``registration.json``)."""
-        self.results.made("register")
-        self.results.registration = registration
-
-    def navigate_recording(self, recording: TrackingRecording) -> NavigationResult:
-        """Map every probe sample of a recording into image space (paper Eq. 11-12)."""
-        self.results.require(registration=self.results.registration)
-        from ..core.navigation import navigate_recording, unpaired_probe_note
-
-        result = navigate_recording(
-            recording, self.results.registration.reference_to_image, self.reference_sensor, self.probe_sensor,
-            None if self.tool is None else self.tool.tip_to_probe,
-        )
-        note = unpaired_probe_note(recording, result, self.probe_sensor)
-        if note and note not in recording.warnings:  # said with the recording's own warnings
-            recording.warnings.append(note)
-        results = self.results
-        results.checkpoints = check_navigation(results, self.settings, self.reference_sensor, result, recording)
-        results.guidance = self.planner.guide(result, self.tool, error_model(results.registration, self.settings))
-        self.results.navigation = result
-        return result
-
-    def pose_status(self, navigation: NavigationResult, recording: TrackingRecording) -> np.ndarray:
-        """``OK`` / ``INVALID`` per pose of ``navigation`` (made from ``recording``), as ``navigation.csv`` has it (the
-        checkpoints' warnings are navigate's: not repeated)."""
-        check_navigation(self.results, self.settings, self.reference_sensor, navigation, recording, warn=False)
-        return navigation.status
-
-    def evaluate(self, navigation: TrackingRecording | None = None,
-                 targets: tuple[list[str], np.ndarray] | None = None,
-                 board: TrackingRecording | None = None, tolerant: bool = False,
-                 not_evaluated: dict[str, str] | None = None) -> Evaluation:
-        """TRE at ``targets`` (labels, (K, 3) LPS mm) from a navigation recording, and the board table
-        from a board recording, with the current registration (``[evaluation]``, ``[board]`` settings).
-
-        ``tolerant`` (a run): a part that cannot be evaluated is "not evaluated" with its reason in the
-        result instead of an error; ``not_evaluated``: parts whose recording could not be read, and why. The poses
-        that ``navigation.csv`` marks INVALID (the checkpoints and tracker flags of :meth:`navigate_recording`) are
-        left out of the TRE and counted."""
-        self.results.require(registration=self.results.registration)
-        from ..core.evaluation import evaluate
-
-        with self.progress.step("evaluating"):
-            self.results.evaluation = evaluate(self.results.registration.reference_to_image, self.reference_sensor,
-                                       self.probe_sensor, self.settings.evaluation, navigation=navigation,
-                                       targets=targets, board=board, nominal_edges_mm=self.settings.board.edges_mm,
-                                       error_model=error_model(self.results.registration, self.settings),
-                                       tolerant=tolerant, not_evaluated=not_evaluated,
-                                       tip_to_probe=None if self.tool is None else self.tool.tip_to_probe,
-                                       settings_file=self.settings.source, pose_status=self.pose_status)
-        return self.results.evaluation
-
-    # --- outputs ------------------------------------------------------------------------------
-
-    def load_detection(self, path: str | os.PathLike[str]) -> DetectionResult:
-        """Use the markers of a ``markers.json`` (file or folder), checked to belong with its folder."""
-        from ..io.markers_json import read_detection
-
-        path = Path(path)
-        path = path / MARKERS_JSON if path.is_dir() else path
-        detection = read_detection(path)
-        self.recorder.read_output(MARKERS_JSON, path, detection.provenance)
-        self.set_detection(detection)
-        return detection
-
-    def load_frame_calibration(self, path: str | os.PathLike[str]) -> FrameCalibration:
-        """Use the points of a ``frame_calibration.json``, checked to belong with its folder."""
-        from ..io.calibration_json import read_frame_calibration
-
-        calibration = read_frame_calibration(path)
-        self.recorder.read_output(FRAME_CALIBRATION_JSON, Path(path), calibration.provenance)
-        self.set_frame_calibration(calibration)
-        return calibration
-
-    def load_registration(self, path: str | os.PathLike[str]) -> RegistrationResult:
-        """Use the transform of a ``registration.json``, checked as every consumer checks it (finite, rigid,
-        FRE within ``[registration] max_fre_mm``) and to belong with its folder (a stale registration left
-        in a reused output folder is refused)."""
-        from ..io.registration_files import read_registration
-
-        path = Path(path)
-        path = path / REGISTRATION_JSON if path.is_dir() else path
-        registration = read_registration(path, self.settings.registration.max_fre_mm)
-        self.recorder.read_output(REGISTRATION_JSON, path, registration.provenance)
-        self.set_registration(registration)
-        return registration
+    def make(self, stage: str, case: Case | None = None, folder: OutputFolder | None = None, **options: Any) -> Any:
+        """Run ``stage`` of the table on the inputs and results held (``options``: the stage's own, see
+        :mod:`.steps`; ``case``: its optional inputs taken from a case folder, a part the case does not allow being
+        skipped or "not evaluated"); with ``folder``, its result is saved there with its provenance. Returns the
+        result (None: the case did not allow it); a missing prerequisite is refused
+        (:class:`~.results.WorkflowError`, saying what is missing)."""
+        entry = PIPELINE_STAGE[stage]
+        hold = CTHold(self.inputs.image) if entry.stage.export else None  # the CT in memory, kept
+        made = self._step(entry, case, folder, options, hold)
+        return next(iter(made.results.values()), None)
 
     def save(self, stage: str, folder: OutputFolder) -> None:
-        """Write ``stage``'s current result (``detect`` ... ``evaluate``) into ``folder``, recorded with provenance."""
-        self.recorder.save(stage, folder, self.results)
+        """Write ``stage``'s result held into ``folder`` (the table's ``write``, atomically), recorded with its
+        provenance."""
+        provenance = self.recorder.provenance(stage)
+        PIPELINE_STAGE[stage].write(self.results, folder.path, provenance)
+        self.recorder.record(folder, stage, provenance)
 
-    # --- a whole run ---------------------------------------------------------------------------
+    def _step(self, entry: PipelineStage, case: Case | None, folder: OutputFolder | None, options: dict[str, Any],
+              hold: CTHold | None = None) -> Made:
+        """Run one stage of the table and take what it made (its result, inputs changed, a file read); with
+        ``folder``, save it there and note what ``run.json`` records of it."""
+        job = Job(self.inputs, self.results, self.recorder.warn, self.progress, MappingProxyType(options), case,
+                  folder, self.exporter, hold)
+        made = entry.run(job)
+        if made.read is not None:
+            self._note_read(made.read)
+        if made.inputs is not None:
+            self.inputs = made.inputs
+        if made.results:
+            self.results = self.results.made(entry.name, **made.results)
+        if folder is not None:
+            if made.results and made.read is None and entry.write is not None:
+                self.save(entry.name, folder)
+            folder.manifest.update(made.manifest)
+            if made.not_evaluated:
+                folder.manifest.setdefault("not_evaluated", {}).update(made.not_evaluated)
+        return made
 
-    def run(self, case: Case, out: str | os.PathLike[str], report: bool = True) -> list[str]:
-        """Every stage the case allows, in order, into the output folder ``out``; returns summary lines.
+    def _note_read(self, read: Read) -> None:
+        """A result read from a file: an output's provenance kept (checked to belong where it lies), an input
+        noted by its role."""
+        if read.output is not None:
+            self.recorder.read_output(read.output, read.path, read.provenance)
+        else:
+            self.recorder.note_inputs(**{read.input_role: read.path})
+
+    # --- a whole run ------------------------------------------------------------------------------------------
+
+    def run(self, case: Case, out: str | os.PathLike[str], report: bool = True, keep_ct: bool = True) -> list[str]:
+        """Every stage of the table the case allows, in order, into the output folder ``out``; returns summary
+        lines.
 
         OUT is refused when it would overwrite an input of the case; the outputs of an earlier run are
         moved to ``OUT/previous/`` before anything is written; every output is written atomically and
@@ -407,30 +213,35 @@ class EMRegController:
         the summary and how the run ended (``status``: finished, refused, failed, interrupted). A stage
         that refuses (no safe answer) leaves none of its own or later outputs. An evaluation that cannot
         be made does not stop the run: the reason goes to ``run.json``, ``evaluation.json`` and stderr.
-        ``report=False`` leaves out the report and the Slicer bundle (3D Slicer without pyvista).
+        What the stages read and check of the case (the calibration recording and its ports) is read before
+        the long stages run. ``report=False`` leaves out the report and the Slicer bundle (3D Slicer without
+        pyvista); ``keep_ct=False`` (``emreg run``): the CT is let go as soon as nothing needs it.
         """
         check_case_image_side(case)
-        inputs = {"ct": case.ct, "calibration": case.calibration, "navigation": case.navigation,
-                  "targets": case.targets, "board": case.board, "fiducials": case.fiducials}
-        settings_file = Path(self.settings.source) if self.settings.source else None
-        refuse_out_over_inputs(out, [p for p in (*inputs.values(), settings_file) if p],
-                               all_output_names(), case.folder)
+        files = case_files(case)
+        given_settings = Path(self.settings.source) if self.settings.source else None
+        refuse_out_over_inputs(out, [p for p in (*files.values(), given_settings) if p], all_output_names(),
+                               case.folder)
         recorder = self.recorder
         recorder.command = recorder.command if recorder.command != "emreg" else "emreg run"
-        self.recorder.note_inputs(**inputs)
-        if self.tool is None and not self.tool_auto:
-            self.load_tool_from_settings()  # [tool] calibration = "FILE" (a --tool given first wins)
-        self.planner.for_run(case)  # [navigation] plan = "FILE" (a --plan given first wins)
+        recorder.note_inputs(**files)
+        self._give_case_defaults(case)
         folder = OutputFolder(out, recorder.command)
         summary: list[str] = []
         stage = "start"
-        stages = [s.name for s in STAGES if report or not s.export]
-        steps = [(name, PREPARE[name]) for name in stages if name in PREPARE] + [(name, STEPS[name]) for name in stages]
+        table = [entry for entry in PIPELINE if report or not entry.stage.export]
+        hold: CTHold | None = None
         try:
-            folder.start_run(_run_record(self, case, summary))
-            for name, step in steps:
-                stage = name  # named in run.json if this stage fails
-                step(self, case, folder, summary)
+            folder.start_run(run_record(self.inputs, case, summary))
+            for entry in (entry for entry in table if entry.prepare is not None):
+                stage = entry.name  # named in run.json if this stage's inputs are refused
+                self._prepare(entry, case)
+            for entry in table:
+                stage = entry.name  # named in run.json if this stage fails
+                if entry.stage.export and hold is None:  # the CT handed to the exports: let go once used
+                    hold = CTHold(self.inputs.image, keep_ct)
+                    self.inputs = self.inputs if keep_ct else self.inputs.replace(image=None)
+                summary.extend(self._step(entry, case, folder, {}, hold).summary)
         except NoSafeAnswerError as exc:
             folder.remove_from(stage)
             summary.append(f"{stage}: refused: {exc}")
@@ -461,234 +272,19 @@ class EMRegController:
                                              "listed is complete)")
         return summary
 
+    def _give_case_defaults(self, case: Case) -> None:
+        """Before a run: the tool of ``[tool] calibration`` and the plan of ``[navigation] plan`` unless given; a
+        plan is refused (one line) when the case has no calibration recording to register with."""
+        settings, defaults = self.settings, {}
+        if self.inputs.tool is None and not self.inputs.tool_auto and settings.tool.calibration:
+            defaults["tool"] = settings_file(settings, settings.tool.calibration)
+        if self.inputs.plan is None and settings.navigation.plan:
+            defaults["plan"] = settings_file(settings, settings.navigation.plan)
+        self.give(**defaults)
+        check_plan_for_case(self.inputs.plan, case)
 
-def _run_record(controller: EMRegController, case: Case, summary: list[str]) -> dict[str, Any]:
-    return {"case": str(case.folder.resolve()), "ct": str(case.ct.resolve()) if case.ct is not None else None,
-            **({"fiducials": str(case.fiducials.resolve())} if case.ct is None else {}),
-            "emreg_version": __version__,
-            "reference_sensor": controller.reference_sensor, "probe_sensor": controller.probe_sensor,
-            "summary": summary, "not_evaluated": {}, "settings_file": controller.settings.source,
-            "settings_sha256": controller.settings.digest(), "settings": controller.settings.to_json()}
-
-
-def _run_detect(controller: EMRegController, case: Case, folder: OutputFolder, summary: list[str]) -> None:
-    if case.ct is None:  # a fiducial case: the image side is read, nothing to detect
-        fiducials = controller.load_fiducials(case.fiducials)
-        summary.append(f"detect: skipped (no CT): {len(fiducials)} fiducials from {case.fiducials.name}")
-        return
-    detection = controller.load_ct_and_detect(case.ct)
-    controller.planner.check_in_ct(str(case.ct))  # a plan outside this CT: refused before any output is written
-    controller.save("detect", folder)
-    if detection.ct_series is not None:
-        folder.manifest["ct_series"] = detection.ct_series
-    summary.append(f"detect: {len(detection.markers)} markers, {len(detection.rejected)} rejected")
-
-
-def _run_read_calibration(controller: EMRegController, case: Case, folder: OutputFolder, summary: list[str]) -> None:
-    """Read the calibration recording and check its ports before the CT is: a malformed file or a wrong
-    port is refused at once rather than after a detection (seconds to minutes on a large scan)."""
-    if case.calibration is None:
-        return
-    from ..core.tracking import sensor_pair
-
-    recording = controller.load_calibration_recording(case.calibration)
-    sensor_pair(recording, controller.reference_sensor, controller.probe_sensor)
-
-
-def _run_calibrate(controller: EMRegController, case: Case, folder: OutputFolder, summary: list[str]) -> None:
-    if case.calibration is None:  # a detection-only run: say so, a forgotten file is the likelier story
-        note = (f"no calibration recording in {case.folder} (calibration.csv or calibration.seq.mha): the "
-                "markers are detected, nothing is registered")
-        controller.recorder.warn([note])
-        summary.append(f"calibrate: {note}")
-        return
-    calibration = controller.calibrate_frame()  # from the recording read before the CT
-    controller.save("calibrate", folder)
-    if controller.results.detection is None:  # otherwise the registration repeats them
-        controller.recorder.warn(calibration.warnings)
-    summary.append(f"calibrate: {len(calibration.points)} {'pinholes' if controller.tool is None else 'touches'}")
-
-
-def _run_register(controller: EMRegController, case: Case, folder: OutputFolder, summary: list[str]) -> None:
-    if controller.results.image_points is None or controller.results.frame_calibration is None:
-        return
-    try:
-        targets = case.read_targets()
-    except NoSafeAnswerError:
-        raise
-    except EMRegError:  # optional: only the TRE and its prediction use them; the evaluation says why
-        targets = None
-    registration = controller.register(None if targets is None else targets[1])
-    controller.save("register", folder)
-    controller.recorder.warn(registration.warnings)
-    summary.append(f"register: FRE {registration.fre_mm:.2f} mm, {offset_summary(registration)}, "
-                   f"{len(registration.pairs)} pairs")
-
-
-def _run_navigate(controller: EMRegController, case: Case, folder: OutputFolder, summary: list[str]) -> None:
-    if controller.results.registration is None or case.navigation is None:
-        return
-    try:
-        recording = controller.case_recording(case, "navigation")
-        navigation = controller.navigate_recording(recording)
-    except NoSafeAnswerError:
-        raise
-    except EMRegError as exc:  # the registration stands; an unusable navigation recording is reported
-        folder.manifest["not_evaluated"]["navigation"] = str(exc)
-        controller.recorder.warn([f"navigation not made: {exc}"])
-        summary.append(f"navigate: not made: {exc}")
-        return
-    controller.recorder.warn(recording.warnings)
-    controller.save("navigate", folder)
-    checkpoints = controller.results.checkpoints
-    guided = controller.results.guidance
-    summary.append(f"navigate: {len(navigation)} probe samples" + ("" if checkpoints is None else
-                                                                   f"; {checkpoints.summary()}")
-                   + ("" if guided is None else f"; {guided.summary()}"))
-
-
-def _run_evaluate(controller: EMRegController, case: Case, folder: OutputFolder, summary: list[str]) -> None:
-    """The optional evaluation: a part that cannot be made is "not evaluated" with its reason in
-    ``run.json``, ``evaluation.json``, the report and on stderr; the run goes on."""
-    if controller.results.registration is None or (
-            case.navigation is None and case.board is None and case.targets is None):
-        return
-    unreadable: dict[str, str] = {}
-    inputs: dict[str, Any] = {}
-    if (case.navigation is None) != (case.targets is None):  # the TRE needs both: say which one is missing
-        unreadable["tre"] = (f"{case.folder}: a navigation recording but no targets.mrk.json"
-                             if case.targets is None else
-                             f"{case.folder}: targets.mrk.json but no navigation recording (navigation.csv or "
-                             "navigation.seq.mha)")
-    for part, read in (("tre", lambda: (controller.case_recording(case, "navigation"), case.read_targets())),
-                       ("board", lambda: controller.case_recording(case, "board"))):
-        if part in unreadable or (part == "board" and case.board is None):
-            continue
-        try:
-            inputs[part] = read()
-        except NoSafeAnswerError:
-            raise
-        except EMRegError as exc:  # an unreadable optional recording: that part is not evaluated
-            unreadable[part] = str(exc)
-    navigation, targets = inputs.get("tre") or (None, None)
-    evaluation = controller.evaluate(navigation, targets, inputs.get("board"), tolerant=True, not_evaluated=unreadable)
-    for part, reason in evaluation.not_evaluated.items():
-        folder.manifest["not_evaluated"][part] = reason
-        controller.recorder.warn([f"{'TRE' if part == 'tre' else part} not evaluated: {reason}"])
-    if evaluation.tre is not None:
-        controller.recorder.warn(evaluation.tre.warnings)  # what the measured TRE says of the prediction
-    if inputs.get("board") is not None:  # the navigation recording's were said when it was read
-        controller.recorder.warn(inputs["board"].warnings)  # rows left out, time segments: kept in evaluation.json too
-    controller.save("evaluate", folder)
-    summary.extend(evaluation.summary())
-
-def _run_tre_map(controller: EMRegController, case: Case, folder: OutputFolder, summary: list[str]) -> None:
-    """``tre_map.nrrd``: the predicted RMS TRE over the CT's space (with the measured tracking error)."""
-    results = controller.results
-    model = error_model(results.registration, controller.settings)
-    if model is None or results.detection is None:  # the map covers the CT's space: none without a CT
-        return
-    from ..core.tre_map import predicted_tre_map
-    from ..io.tre_map import write_tre_map
-
-    evaluation = results.evaluation
-    tracking_rms = evaluation.tre.tracking_rms_mm if evaluation is not None and evaluation.tre else None
-    write_tre_map(folder.path / TRE_MAP_NRRD, predicted_tre_map(model, results.detection.image,
-                                                                None if tracking_rms is None else tracking_rms**2))
-    controller.recorder.record(folder, "tre_map", controller.recorder.provenance("tre_map"))
-
-
-def _run_report(controller: EMRegController, case: Case, folder: OutputFolder, summary: list[str]) -> None:
-    page = controller.exporter.save_report(folder, case.folder, controller)
-    summary.append(f"report: {page}")
-
-
-def _run_bundle(controller: EMRegController, case: Case, folder: OutputFolder, summary: list[str]) -> None:
-    summary.append(controller.exporter.save_bundle(folder, case.folder, controller))
-
-
-#: How ``emreg run`` executes each stage of :data:`~EMRegModule.stages.STAGES` (in the table's order), and
-#: what it checks first, before the long stages: the calibration recording is read and its ports checked before
-#: the CT is (a malformed file or a wrong port is refused at once rather than after a detection).
-Step = Callable[[EMRegController, Case, OutputFolder, list[str]], None]
-STEPS: dict[str, Step] = {"detect": _run_detect, "calibrate": _run_calibrate, "register": _run_register,
-                          "navigate": _run_navigate, "evaluate": _run_evaluate, "tre_map": _run_tre_map,
-                          "report": _run_report, "bundle": _run_bundle}
-PREPARE: dict[str, Step] = {"calibrate": _run_read_calibration}
-assert set(STEPS) == set(STAGE), "every stage of the table runs"
-
-
-def error_model(registration: RegistrationResult | None, settings: Settings) -> ErrorModel | None:
-    """The end-to-end error model of ``registration`` (``[evaluation]`` priors), or None."""
-    if registration is None or registration.error is None:
-        return None
-    from ..core.error_model import ErrorModel
-
-    priors = settings.evaluation
-    return ErrorModel.with_priors(registration.reference_to_image, registration.error, priors.reference_error_mm,
-                                  priors.reference_error_deg, priors.placement_error_mm)
-
-
-def _series_choice(settings: Settings) -> str | None:
-    """``[ct] series`` (a Series Instance UID or a series number) forcing the DICOM series, or None."""
-    value = settings.ct.series
-    return None if value is None else str(value)
-
-
-def check_case_image_side(case: Case) -> None:
-    """A case registers onto its CT's markers or onto ``fiducials.mrk.json``: refused (one line) with neither
-    or both."""
-    if case.ct is None and case.fiducials is None:
-        raise EMRegError(f"{case.folder}: no CT found (ct.nrrd, ct.nii.gz, ct.mha or a ct/ DICOM folder) and no "
-                         "fiducials.mrk.json")
-    if case.ct is not None and case.fiducials is not None:
-        raise EMRegError(f"{case.folder}: holds both a CT ({case.ct.name}) and fiducials.mrk.json: register onto one "
-                         "of them; move the other out of the case folder")
-
-
-
-
-def _open_and_detect(controller: EMRegController, path: str | os.PathLike[str], compact: bool,
-                     keep_image: bool) -> DetectionResult:
-    """:meth:`EMRegController.load_ct_and_detect` with one voxel type (``compact``: int16 where it fits)."""
-    from ..io.image import open_ct
-
-    with controller.progress.step("opening CT"):
-        fill = open_ct(path, _series_choice(controller.settings), compact=compact, voxels_only=not keep_image)
-    # The detection stage (scipy, VTK: ~0.4 s holding the GIL) is imported while the slices are read (or, for a
-    # DICOM series indexed in its files, the folder hashed), not while open_ct scans a DICOM folder's headers: every
-    # file the scan opens gives the GIL away and waits up to a switch interval to take it back from the import (a
-    # 653-file series: emreg detect 2.41 -> 2.34 s alternated directly, 2.31 -> 2.29 s in bench_read_ct's rounds;
-    # medians of 11). A CT refused while it is opened is refused before the import starts.
-    # all of it: detection may fork (.detection.examiners)
-    import_in_background("EMRegModule.core.detection.detect").wait()
-    from ..core.detection import detect_markers
-
-    try:
-        result = detect_markers(fill, controller.marker_model, controller.settings.detection, controller.progress)
-        image = fill.result()  # the checksum is verified only at the end
-    except BaseException as exc:
-        fill.cancel()
-        if isinstance(exc, EMRegError):
-            read_error = fill.read_error()  # a bad file explains a failed detection: report the file
-            if isinstance(read_error, EMRegError) and read_error is not exc:
-                raise read_error from None
-        raise
-    if fill.voxels is None:
-        controller.set_image(image, str(path))
-    else:  # read for the detection only (``keep_image=False``): ``image`` is only the geometry, nothing kept
-        controller.image, controller.image_source = None, str(path)
-        controller.results.drop("detect")
-    controller.ct_series = result.ct_series = fill.series
-    controller.set_detection(result)
-    return result
-
-
-def _warn_series_unused(controller: EMRegController, path: str | os.PathLike[str]) -> None:
-    """A series forced (``--series``, ``[ct] series``) for a CT that is one image, not a DICOM folder, is said
-    to be ignored rather than silently ignored."""
-    if _series_choice(controller.settings) is not None and not Path(path).is_dir():
-        controller.recorder.warn([f"the series {_series_choice(controller.settings)!r} was asked for, but {path} is "
-                                  "one image, not a DICOM "
-                   "folder: it is read as it is"])
-
+    def _prepare(self, entry: PipelineStage, case: Case) -> None:
+        """What ``entry`` reads and checks of the case before the long stages: its inputs, its result now stale."""
+        inputs = entry.prepare(Job(self.inputs, self.results, self.recorder.warn, self.progress, case=case))
+        if inputs is not self.inputs:
+            self.inputs, self.results = inputs, self.results.without(entry.name)

@@ -54,8 +54,7 @@ from ..live.navigator import LiveNavigator
 from ..live.writers import NavigationWriter
 from ..names import CHECKPOINTS_JSON, NAVIGATION_CSV, NAVIGATION_JSON, REGISTRATION_JSON
 from ..settings import Settings, choose_ports
-from .controller import error_model
-from .navigating import tool_summary
+from .navigating import error_model, tool_summary
 
 #: Seconds between two attempts to reopen a lost tracker.
 RECONNECT_INTERVAL_S = 1.0

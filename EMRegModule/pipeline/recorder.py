@@ -10,19 +10,16 @@ from __future__ import annotations
 import dataclasses
 import os
 import sys
-from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from .. import names
+from ..io.case import Case
 from ..io.output_folder import OutputFolder
 from ..io.provenance import InputDigest, Provenance, check_belongs, check_inputs_match, file_sha256
+from ..io.run_folder import check_outputs
+from ..settings import Settings
 from ..stages import STAGE, STAGE_OUTPUTS, uses
-from .results import WorkflowResults
-
-if TYPE_CHECKING:
-    from ..io.case import Case
-    from ..settings import Settings
+from .bundle_state import bundle_inputs
 
 
 class RunRecorder:
@@ -86,15 +83,13 @@ class RunRecorder:
         self._output_sha[name] = file_sha256(path)
 
     def check_case_inputs(self, name: str, path: str | os.PathLike[str], case: Case) -> None:
-        """Refuse an upstream output (read with ``load_*``) made from another calibration recording, CT or
+        """Refuse an upstream output (read from its file) made from another calibration recording, CT or
         fiducials file than ``case``'s own."""
         check_inputs_match(path, self._made_from.get(name), {"calibration": case.calibration, "ct": case.ct,
                                                              "fiducials": case.fiducials})
 
     def adopt_outputs(self, folder: OutputFolder) -> list[str]:
         """The outputs present in ``folder``, checked to belong together; their sha256 kept for provenance."""
-        from ..io.run_folder import check_outputs  # reads every output format: loaded when a report or bundle needs it
-
         used = check_outputs(folder.path)
         for name in used:
             self._output_sha.setdefault(name, folder.sha256(name))
@@ -103,75 +98,5 @@ class RunRecorder:
     def bundle_provenance(self, used: list[str], folder: OutputFolder, case_dir: Path | None) -> Provenance:
         """A bundle is made from the CT and the targets too: named, a later report keeps it while none of what
         it was made from changed (:mod:`EMRegModule.pipeline.bundle_state`)."""
-        from .bundle_state import bundle_inputs
-
         provenance = self.provenance("bundle", tuple(used))
         return dataclasses.replace(provenance, inputs={**provenance.inputs, **bundle_inputs(folder.manifest, case_dir)})
-
-    def save(self, stage: str, folder: OutputFolder, results: WorkflowResults) -> None:
-        """Write ``stage``'s result (``detect`` ... ``evaluate``) into ``folder``, atomically, recorded with its
-        provenance."""
-        provenance = self.provenance(stage)
-        _WRITERS[stage](results, folder.path, provenance)
-        self.record(folder, stage, provenance)
-
-
-def _write_detection(results: WorkflowResults, out: Path, provenance: Provenance) -> None:
-    from ..io.markers_json import write_detection
-
-    results.require(detection=results.detection)
-    results.detection.provenance = provenance.to_json()
-    write_detection(results.detection, out)
-
-
-def _write_frame_calibration(results: WorkflowResults, out: Path, provenance: Provenance) -> None:
-    from ..io.calibration_json import write_frame_calibration
-
-    results.require(frame_calibration=results.frame_calibration)
-    results.frame_calibration.provenance = provenance.to_json()
-    write_frame_calibration(results.frame_calibration, out / names.FRAME_CALIBRATION_JSON)
-    if results.frame_calibration.solved_tool is not None:  # --tool auto: the tip solved, for later commands
-        from ..io.tool_files import write_tool_calibration
-
-        write_tool_calibration(results.frame_calibration.solved_tool, out)
-
-
-def _write_registration(results: WorkflowResults, out: Path, provenance: Provenance) -> None:
-    from ..io.registration_files import write_registration
-
-    results.require(registration=results.registration)
-    results.registration.provenance = provenance.to_json()
-    write_registration(results.registration, out)
-
-
-def _write_navigation(results: WorkflowResults, out: Path, provenance: Provenance) -> None:
-    """``navigation.csv`` (its provenance lives in the folder's ``run.json``) and ``checkpoints.json``."""
-    from ..io.navigation_csv import write_navigation_csv
-
-    results.require(navigation=results.navigation)
-    write_navigation_csv(results.navigation, out / names.NAVIGATION_CSV)
-    if results.checkpoints is not None:
-        from ..io.checkpoints_json import write_checkpoints
-
-        results.checkpoints.provenance = provenance.to_json()
-        write_checkpoints(results.checkpoints, out / names.CHECKPOINTS_JSON)
-    if results.guidance is not None:
-        from ..io.atomic import atomic_write_json
-
-        atomic_write_json(out / names.NAVIGATION_JSON, {**results.guidance.to_json(),
-                                                        "provenance": provenance.to_json()})
-
-
-def _write_evaluation(results: WorkflowResults, out: Path, provenance: Provenance) -> None:
-    from ..io.evaluation_json import write_evaluation
-
-    results.require(evaluation=results.evaluation)
-    results.evaluation.provenance = provenance.to_json()
-    write_evaluation(results.evaluation, out / names.EVALUATION_JSON)
-
-
-#: How each stage with a result in memory is saved.
-_WRITERS: dict[str, Callable[[WorkflowResults, Path, Provenance], None]] = {
-    "detect": _write_detection, "calibrate": _write_frame_calibration, "register": _write_registration,
-    "navigate": _write_navigation, "evaluate": _write_evaluation,
-}

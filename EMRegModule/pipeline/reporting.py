@@ -13,14 +13,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import EMRegError
-from ..io.atomic import read_json
 from ..io.output_folder import OutputFolder
-from ..names import RUN_JSON
+from ..io.run_folder import recorded_run
 from ..progress import Progress
 from ..report.batch import write_reports_batch
 from ..report.inputs import require_report_inputs
 from .controller import EMRegController
-from .exporters import read_run_record, recorded_case, start_report_bundle, start_report_ct
+from .exporters import recorded_case, start_report_bundle, start_report_ct
 
 #: The controller a report is made with, for the case folder given (None: none known), with the settings the
 #: command line names.
@@ -40,14 +39,14 @@ class Report:
 
     def save_bundle(self) -> str:
         """Wait for the scene bundle (or keep the one there); the line that says what became of it."""
-        return self.controller.exporter.save_bundle(self.folder, self.case, self.controller, self.bundle, self.kept)
+        return self.controller.exporter.save_bundle(self.folder, self.case, job=self.bundle, kept=self.kept)
 
 
 def write_report(out: str, case: Path | None, controller_for: ControllerFor,
                  check_out: Callable[[str], object]) -> Report:
     """The report of the run folder ``out`` (``case``: the case folder, for the CT, when ``OUT/run.json`` does not
     name it), ``out`` checked by ``check_out`` once the early reads have started; the bundle goes on meanwhile."""
-    run = read_run_record(Path(out))
+    run = recorded_run(Path(out))
     early = start_report_ct(Path(out), case, run)  # read while the report's libraries load
     # held: writes nothing into OUT until released below
     bundle = early_bundle = start_report_bundle(Path(out), case, run)
@@ -65,7 +64,7 @@ def write_report(out: str, case: Path | None, controller_for: ControllerFor,
         elif early_bundle is not None:
             early_bundle.cancel()
             bundle = None
-        path = controller.exporter.save_report(folder, case, controller, early)
+        path = controller.exporter.save_report(folder, case, ct_read=early)
     except BaseException:
         if bundle is not None:
             bundle.cancel()
@@ -103,11 +102,7 @@ def _record_batch_report(folder: Path, bundle_sha256: str | None, controller_for
                          warn: Callable[[str, Sequence[str]], None]) -> None:
     """The report (and bundle, whose sha256 its job computed as it wrote it) a batch job wrote into ``folder``,
     listed in its ``run.json``."""
-    try:
-        case = read_json(folder / RUN_JSON, "run record").get("case")
-    except (EMRegError, AttributeError):
-        case = None
-    case_dir = Path(case) if isinstance(case, str) and Path(case).is_dir() else None
+    case_dir = recorded_case(recorded_run(folder))
     try:
         controller = controller_for(case_dir)
         controller.recorder.command = "emreg report --batch"

@@ -1,4 +1,5 @@
-"""The results the workflow holds, and what a new input or result makes stale (from the stage table).
+"""The results of the workflow, an immutable value: a new result or a new input gives a new
+:class:`WorkflowResults` (what it makes stale dropped, from the stage table), never one changed in place.
 
 All poses are in millimetres; ``ReferenceToImage`` maps Reference-sensor coordinates into the CT's LPS image
 space.
@@ -6,9 +7,10 @@ space.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 from dataclasses import dataclass, fields
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from ..errors import EMRegError
 from ..stages import DEPENDENTS, STAGE, STAGES
@@ -24,6 +26,7 @@ if TYPE_CHECKING:
     from ..core.guidance import GuidanceReport
     from ..core.navigation import NavigationResult
     from ..core.registration import RegistrationResult
+    from ..core.tre_map import TreMap
 
 
 class WorkflowState(enum.Enum):
@@ -43,24 +46,26 @@ class WorkflowError(EMRegError):
 
 #: What to do first when a result is missing (in :meth:`WorkflowResults.require`'s message).
 _HOW_TO_MAKE = {
-    "image": "a CT (load_ct)",
-    "calibration_recording": "a calibration recording (load_calibration_recording)",
-    "detection": "detected markers (detect_markers or set_detection) or fiducials (load_fiducials)",
-    "frame_calibration": "a frame calibration (calibrate_frame or set_frame_calibration)",
-    "registration": "a registration (register or set_registration)",
-    "navigation": "a navigation (navigate_recording)",
+    "image": "a CT",
+    "calibration_recording": "a calibration recording",
+    "detection": "detected markers (detect, or markers.json) or fiducials",
+    "frame_calibration": "a frame calibration (calibrate, or frame_calibration.json)",
+    "registration": "a registration (register, or registration.json)",
+    "navigation": "a navigation (navigate)",
     "evaluation": "an evaluation (evaluate)",
 }
 
 
-@dataclass
+@dataclass(frozen=True)
 class WorkflowResults:
     """The result of each stage (None: not made, or stale). ``fiducials`` are the image-side points of a case
-    without a CT (a rigid point fit onto them replaces the markers' pinhole route)."""
+    without a CT (a rigid point fit onto them replaces the markers' pinhole route). ``calibrated_here``: the frame
+    calibration was made from this workflow's recording (with its tool's touches), not read from a file."""
 
     detection: DetectionResult | None = None
     fiducials: Fiducials | None = None
     frame_calibration: FrameCalibration | None = None
+    calibrated_here: bool = False
     registration: RegistrationResult | None = None
     navigation: NavigationResult | None = None
     #: The checkpoints, reference jumps and pose status of ``navigation`` (:mod:`EMRegModule.core.checkpoints`).
@@ -68,18 +73,21 @@ class WorkflowResults:
     #: With a plan: the predicted error at its target and the closest approach (:mod:`EMRegModule.core.guidance`).
     guidance: GuidanceReport | None = None
     evaluation: Evaluation | None = None
+    #: The predicted-TRE map over the CT's space (:mod:`EMRegModule.core.tre_map`), to be written.
+    tre_map: TreMap | None = None
 
-    def drop(self, stage: str) -> None:
-        """A new input of ``stage``: its result, and every result made from it, are stale."""
-        for field in STAGE[stage].results:
-            setattr(self, field, None)
-        self.made(stage)
+    def without(self, *stages: str) -> WorkflowResults:
+        """The results once ``stages`` have a new input: their results, and every result made from them, dropped."""
+        return dataclasses.replace(self, **{f: _DEFAULTS[f] for stage in stages
+                                            for later in (stage, *DEPENDENTS[stage]) for f in STAGE[later].results})
 
-    def made(self, stage: str) -> None:
-        """``stage`` has a new result: every result made from it (:data:`~.stages.DEPENDENTS`) is stale."""
-        for later in DEPENDENTS[stage]:
-            for field in STAGE[later].results:
-                setattr(self, field, None)
+    def made(self, stage: str, **result: Any) -> WorkflowResults:
+        """The results once ``stage`` has made ``result`` (its fields, :attr:`~.stages.Stage.results`; those not
+        given are reset): every result made from it (:data:`~.stages.DEPENDENTS`) dropped."""
+        unknown = set(result) - set(STAGE[stage].results)
+        if unknown:
+            raise ValueError(f"{stage} makes {', '.join(STAGE[stage].results)}, not {', '.join(sorted(unknown))}")
+        return dataclasses.replace(self.without(stage), **result)
 
     @property
     def image_points(self) -> DetectionResult | Fiducials | None:
@@ -169,4 +177,6 @@ def offset_summary(registration: RegistrationResult) -> str:
     return f"l = {registration.sensor_offset_l_mm:.2f} mm"
 
 
-assert {f for stage in STAGES for f in stage.results} <= {f.name for f in fields(WorkflowResults)}
+#: Each field's value when not made.
+_DEFAULTS: dict[str, Any] = {f.name: f.default for f in fields(WorkflowResults)}
+assert {f for stage in STAGES for f in stage.results} == set(_DEFAULTS), "every result belongs to one stage"

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from ..errors import EMRegError
-from ..names import RUN_JSON
+from ..io.run_folder import recorded_run
 from ..progress import QUIET, Progress
 from .inputs import has_report_inputs
 
@@ -49,12 +49,11 @@ def ct_bytes_of_run(folder: Path) -> float:
     """Voxel bytes of the CT a run's report will read (from the CT's header), 0 when unknown."""
     import SimpleITK as sitk
 
-    from ..io.atomic import read_json
     from ..io.case import find_ct
     from ..io.itk_messages import quiet_itk
 
     try:
-        run = read_json(folder / RUN_JSON, "run record")
+        run = recorded_run(folder) or {}
         ct = Path(run["ct"]) if run.get("ct") else find_ct(run["case"])
         if ct is None or ct.is_dir():  # a DICOM series: no single header to ask
             return 0.0
@@ -95,13 +94,9 @@ def memory_limited_jobs(folders: Sequence[str], jobs: int, progress: Progress = 
 
 def _bundle_needs_ct(folder: Path) -> bool:
     """Whether the run's scene bundle needs its CT in memory (not when it copies the CT from its file)."""
-    from ..io.atomic import read_json
     from ..slicer_export.mrb import bundle_needs_ct_image
 
-    try:
-        ct = read_json(folder / RUN_JSON, "run record").get("ct")
-    except (EMRegError, OSError, AttributeError):
-        return True
+    ct = (recorded_run(folder) or {}).get("ct")
     return bundle_needs_ct_image(ct if isinstance(ct, str) else None)
 
 

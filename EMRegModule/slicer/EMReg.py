@@ -236,8 +236,8 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._run("Loading the case failed.", self.logic.loadCase, self.ui.caseDirectoryPathLineEdit.currentPath,
                   output)
         # the case's ports (case.toml [sensors]) show in the panel; changing them afterwards re-runs calibration
-        self.ui.referenceSensorSpinBox.value = self.logic.controller.reference_sensor
-        self.ui.probeSensorSpinBox.value = self.logic.controller.probe_sensor
+        self.ui.referenceSensorSpinBox.value = self.logic.controller.inputs.reference_sensor
+        self.ui.probeSensorSpinBox.value = self.logic.controller.inputs.probe_sensor
 
     def onSensorsChanged(self, value=None):
         self.logic.setSensors(self.ui.referenceSensorSpinBox.value, self.ui.probeSensorSpinBox.value)
@@ -343,8 +343,8 @@ class EMRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             return
         controller = self.logic.controller
         hasCase = self.logic.case is not None
-        stages = controller.results.available(controller.image is not None,
-                                              controller.calibration_recording is not None)  # the stage table's
+        stages = controller.results.available(controller.inputs.image is not None,
+                                              controller.inputs.calibration_recording is not None)  # the table's
         self.ui.calibrateButton.enabled = "calibrate" in stages
         self.ui.detectButton.enabled = "detect" in stages
         self.ui.registerButton.enabled = "register" in stages
@@ -360,7 +360,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     """The EMReg workflow for Slicer: the command line's controller plus MRML nodes showing its results.
 
     ``self.controller`` is an :class:`EMRegModule.pipeline.controller.EMRegController`; every step is one
-    of its methods, then the result is written to the output folder (the same files as
+    stage of its table (``make``), then the result is written to the output folder (the same files as
     ``emreg run``) and shown in the scene. Usable without the panel (Python console, tests) and
     without Qt: it needs only MRML nodes and ``slicer.util`` (3D Slicer's, or the slicer-core
     wheel's). The nodes are made by :mod:`EMRegModule.slicer_export`, the same code that writes
@@ -409,7 +409,8 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         """
         from EMRegModule.errors import EMRegError
         from EMRegModule.io.case import open_case
-        from EMRegModule.pipeline.controller import EMRegController, check_case_image_side
+        from EMRegModule.pipeline.controller import EMRegController
+        from EMRegModule.pipeline.inputs import check_case_image_side
 
         if not caseDirectory:
             raise EMRegError("choose a case folder first")
@@ -423,13 +424,13 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         self.evaluation = None
         self.probeToReference = None
         if case.ct is not None:
-            self.controller.load_ct(case.ct)
+            self.controller.give(ct=case.ct)
         else:  # a fiducial case: registered onto its fiducials, nothing to detect
-            self.controller.load_fiducials(case.fiducials)
+            self.controller.adopt("detect", case.fiducials)
         self.controller.recorder.note_inputs(ct=case.ct, calibration=case.calibration, navigation=case.navigation,
                                     targets=case.targets, board=case.board)  # provenance of the outputs
         if case.calibration is not None:
-            self.controller.load_calibration_recording(case.calibration)
+            self.controller.give(calibration=case.calibration)
         if case.ct is not None:
             self.showVolume()
         self.showResults()
@@ -448,7 +449,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
                               f"markups node {markupsNode.GetName()}", "3D Slicer markups node", "LPS",
                               {"coordinate_system": "RAS (world)", "units": "mm"})
         check_fiducials(fiducials)
-        self.controller.set_fiducials(fiducials)
+        self.controller.adopt("detect", fiducials=fiducials)
         self.showResults()
         return fiducials
 
@@ -459,12 +460,12 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         numbers (``navigation.csv``, ``navigation.json``) and the panel the closest approach and the predicted error."""
         from EMRegModule.slicer_export.nodes import plan_from_markups_node
 
-        self.controller.planner.set(None if markupsNode is None else plan_from_markups_node(markupsNode))
-        return self.controller.planner.plan
+        self.controller.give(plan=None if markupsNode is None else plan_from_markups_node(markupsNode))
+        return self.controller.inputs.plan
 
     def setSensors(self, referenceSensor, probeSensor):
         """Sensor ports (1..4); a change drops the frame calibration and what follows."""
-        self.controller.set_sensors(int(referenceSensor), int(probeSensor))
+        self.controller.give(sensors=(int(referenceSensor), int(probeSensor)))
         self.showResults()
 
     # --- stages -------------------------------------------------------------------------------------
@@ -472,10 +473,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     def loadTool(self, path):
         """Use a tracked tool's tip (a tool file, or ``auto``; :mod:`EMRegModule.core.tool`); empty: the pinhole probe.
         The frame calibration is made again with it."""
-        if not path:
-            self.controller.set_tool(None)
-            return None
-        return self.controller.load_tool(path)
+        return self.controller.give(tool=path or None).tool
 
     def pivotCalibrate(self, recordingPath, outputDirectory=None):
         """``emreg pivot``: the tool's tip from a pivot recording, written as ``tool_calibration.json`` and
@@ -484,25 +482,26 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         from EMRegModule.core.tool import pivot_calibration
         from EMRegModule.io.tool_files import pivot_poses, write_tool_calibration
 
-        poses, frame, name, _ = pivot_poses(recordingPath, self.controller.settings, self.controller.reference_sensor,
-                                            self.controller.probe_sensor)
+        inputs = self.controller.inputs
+        poses, frame, name, _ = pivot_poses(recordingPath, inputs.settings, inputs.reference_sensor,
+                                            inputs.probe_sensor)
         tool = pivot_calibration(poses, str(recordingPath), frame, name)
         out = Path(outputDirectory or self.outputDirectory or Path(recordingPath).parent / "pivot")
         out.mkdir(parents=True, exist_ok=True)
         write_tool_calibration(tool, out)
-        self.controller.set_tool(tool)
+        self.controller.give(tool=tool)
         return tool
 
     def calibrateFrame(self):
         """Frame calibration (one point per pinhole, Reference frame); writes ``frame_calibration.json``."""
-        result = self.controller.calibrate_frame()
+        result = self.controller.make("calibrate")
         self.controller.save("calibrate", self._outputs("calibrate"))
         self.showResults()
         return result
 
     def detectMarkers(self):
         """Marker detection in the CT; writes ``markers.json`` and shows the markers (RAS)."""
-        result = self.controller.detect_markers()
+        result = self.controller.make("detect")
         self.controller.save("detect", self._outputs("detect"))
         self.showResults()
         return result
@@ -514,7 +513,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
             from EMRegModule.io.markups import read_markups
 
             targets = read_markups(self.case.targets)[1]
-        result = self.controller.register(targets)
+        result = self.controller.make("register", targets=targets)
         self.controller.save("register", self._outputs("register"))
         self.showResults()
         return result
@@ -528,9 +527,10 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
         if self.case is None or self.case.navigation is None:
             raise EMRegError("the case has no navigation.csv to replay")
-        recording = read_recording(self.case.navigation, self.case.settings, self.controller.reference_sensor,
-                                   self.controller.probe_sensor)
-        result = self.controller.navigate_recording(recording)
+        inputs = self.controller.inputs
+        recording = read_recording(self.case.navigation, self.case.settings, inputs.reference_sensor,
+                                   inputs.probe_sensor)
+        result = self.controller.make("navigate", recording=recording)
         self.controller.save("navigate", self._outputs("navigate"))
         self._lastProbePose(recording)
         self.evaluate()
@@ -540,18 +540,17 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     def evaluate(self):
         """TRE at the targets and the board table when the case has the recordings; writes ``evaluation.json``.
         The same step as ``emreg run``'s: a part that cannot be made is "not evaluated" with its reason."""
-        from EMRegModule.pipeline.controller import STEPS
-
         if self.case is None or (self.case.navigation is None and self.case.board is None):
             return None
-        STEPS["evaluate"](self.controller, self.case, self._outputs("evaluate"), [])
+        self.controller.make("evaluate", case=self.case, folder=self._outputs("evaluate"))
         self.evaluation = self.controller.results.evaluation
         return self.evaluation
 
     def writeReport(self):
         """The verification report ``report.html`` of the output folder (offscreen rendering)."""
-        self.reportPath = self.controller.exporter.save_report(self._outputs("report"),
-                                                               self.case.folder if self.case else None, self.controller)
+        folder = self._outputs("report")
+        self.controller.make("report", folder=folder, case_dir=self.case.folder if self.case else None)
+        self.reportPath = folder.path / names.REPORT_HTML
         return self.reportPath
 
     def runAll(self):
@@ -578,7 +577,8 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         ReferenceToRAS."""
         from EMRegModule.core.tracking import probe_in_reference
 
-        inReference = probe_in_reference(recording, self.controller.reference_sensor, self.controller.probe_sensor)
+        inputs = self.controller.inputs
+        inReference = probe_in_reference(recording, inputs.reference_sensor, inputs.probe_sensor)
         self.probeToReference = inReference.probe_to_reference[-1]
 
     # --- live navigation ----------------------------------------------------------------------------
@@ -636,7 +636,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         from EMRegModule.slicer_export.nodes import show_volume
 
         # A copy: in 3D Slicer a user may edit the volume in place; the controller's CT must not change.
-        node = show_volume(self.scene, self.controller.image, self.VOLUME_NODE_NAME,
+        node = show_volume(self.scene, self.controller.inputs.image, self.VOLUME_NODE_NAME,
                                         node=self.nodes.get(self.VOLUME_NODE_NAME), copy_voxels=True)
         self.nodes[self.VOLUME_NODE_NAME] = node
         if hasattr(slicer, "app"):  # slice views exist only in the application

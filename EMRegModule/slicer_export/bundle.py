@@ -18,9 +18,9 @@ from typing import Any
 
 from ..errors import EMRegError
 from ..interrupts import signals_held, vtk_imports_uninterrupted
-from ..io.atomic import read_json
 from ..io.case import run_ct_path
-from ..names import BUNDLE_MRB, RUN_JSON, VOLUME_NODE_NAME
+from ..io.run_folder import recorded_run
+from ..names import BUNDLE_MRB, VOLUME_NODE_NAME
 from .mrb import bundle_needs_ct_image
 from .mrml import SlicerScene, slicer_mrml_missing
 from .run_scene import build_run_scene, collect_run
@@ -150,11 +150,9 @@ def start_bundle_process(out_dir: str | os.PathLike[str], case_dir: str | os.Pat
             return None
     except (ImportError, ValueError):
         return None
-    try:
 
-        ct = run_ct_path(read_json(out / RUN_JSON, "run record"), case_dir)
-    except (EMRegError, OSError, AttributeError):
-        return None
+    run = recorded_run(out)
+    ct = None if run is None else run_ct_path(run, case_dir)
     if not isinstance(ct, str) or bundle_needs_ct_image(ct):
         return None
     return BundleProcess(out, Path(case_dir) if case_dir is not None else None, held)

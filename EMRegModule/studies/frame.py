@@ -98,8 +98,8 @@ def prepare_frame(work: Path, case_dir: Path | None = None, seed: int = 1, quick
     else:
         log("detecting the markers in the study's CT (once)")
         controller = EMRegController.for_case(case)
-        controller.load_ct(case.ct)
-        detection = controller.detect_markers()
+        controller.give(ct=case.ct)
+        detection = controller.make("detect")
         write_detection(detection, markers_json.parent)
     reference_to_image = np.asarray(truth["ReferenceToImage"], dtype=float)
     calibrated = [m for m in truth["markers"] if m.get("calibrated", True)]

@@ -88,7 +88,7 @@ def test_non_finite_voxels_of_an_image_in_memory_are_refused():
     values = np.zeros((12, 14, 16), np.float64)
     values[0, 0, :3] = np.nan
     with pytest.raises(EMRegError, match="3 non-finite"):
-        EMRegController().set_image(_ct(values))
+        EMRegController().give(ct=_ct(values))
 
 
 def _write_with_sizes(path, compress, change):

@@ -270,7 +270,7 @@ def test_detection_while_decoding_gives_the_markers_of_the_whole_image(hard_case
     from EMRegModule.core.detection import detect_markers
     from EMRegModule.pipeline.controller import EMRegController
 
-    streamed = EMRegController().load_ct_and_detect(hard_export)
+    streamed = EMRegController().make("detect", ct=hard_export)
     whole = detect_markers(read_ct(hard_case / "ct"))
     assert len(streamed.markers) == len(whole.markers) > 0
     np.testing.assert_array_equal(streamed.origins, whole.origins)
@@ -287,8 +287,8 @@ def test_emreg_detect_reads_the_series_without_an_image_with_the_same_markers(ha
     from EMRegModule.pipeline.controller import EMRegController
 
     kept = EMRegController()
-    whole = kept.load_ct_and_detect(hard_case / "ct")
-    image = kept.image
+    whole = kept.make("detect", ct=hard_case / "ct")
+    image = kept.inputs.image
     fill, _ = open_dicom_series(hard_case / "ct", compact=True, voxels_only=True)
     assert fill.result() is None  # no SimpleITK image holds the voxels
     geometry = fill.geometry
@@ -515,7 +515,7 @@ def test_a_compact_read_holds_int16_and_a_slice_beyond_it_is_read_again_exactly(
     log = io.StringIO()
     controller = EMRegController(progress=Progress(log))
     with pytest.raises(NoSafeAnswerError):  # no marker in this volume: the answer of the whole, exact image
-        controller.load_ct_and_detect(tmp_path / "beyond")
+        controller.make("detect", ct=tmp_path / "beyond")
     assert "reading the CT again with int32 voxels" in log.getvalue()
     image = read_ct(tmp_path / "beyond")
     assert image.GetPixelID() == sitk.sitkInt32 and int(_voxels(image).max()) == 38976

@@ -513,7 +513,7 @@ def test_slicer_logic_registers_onto_a_markups_node(small_case, landmarks, tmp_p
     write_mrk_json(case / "fiducials.mrk.json", ["A", "B", "C"], [[0, 0, 0], [90, 0, 0], [0, 70, 5]])
     logic = module.EMRegLogic()
     logic.loadCase(str(case), str(tmp_path / "out"))
-    assert logic.controller.image is None and len(logic.controller.results.fiducials) == 3
+    assert logic.controller.inputs.image is None and len(logic.controller.results.fiducials) == 3
     node = harness.scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "planned landmarks")
     from vtkmodules.vtkCommonDataModel import vtkVector3d
 

@@ -29,7 +29,7 @@ from EMRegModule.io.navigation_csv import GUIDANCE_COLUMNS, NAVIGATION_HEADER
 from EMRegModule.io.plan_markups import read_plan
 from EMRegModule.io.recording import read_recording
 from EMRegModule.io.registration_files import read_registration
-from EMRegModule.pipeline.controller import error_model
+from EMRegModule.pipeline.navigating import error_model
 from EMRegModule.settings import Settings, load_settings
 
 # --- the geometry -------------------------------------------------------------------------------------
@@ -392,7 +392,7 @@ def test_slicer_panel_plan_selector_gives_the_guidance_of_a_markups_line(slicer_
     for label, lps in (("L-1", entry), ("L-2", target)):
         line.AddControlPoint(vtkVector3d(-lps[0], -lps[1], lps[2]), label)  # RAS, as Slicer places it
     ui.planNodeComboBox.setCurrentNode(line)
-    np.testing.assert_allclose(widget.logic.controller.planner.plan.target_mm, target, atol=1e-6)
+    np.testing.assert_allclose(widget.logic.controller.inputs.plan.target_mm, target, atol=1e-6)
     ui.navigateButton.click()
     header, _ = read_navigation(tmp_path / "out" / "navigation.csv")
     assert header[-4:] == list(GUIDANCE_COLUMNS)
@@ -406,7 +406,7 @@ def test_slicer_panel_plan_selector_gives_the_guidance_of_a_markups_line(slicer_
     with pytest.raises(Exception, match="labelled 'Target'"):
         ui.planNodeComboBox.setCurrentNode(points)
     assert slicer_app.errors and "Using the plan failed." in slicer_app.errors[-1]
-    np.testing.assert_allclose(widget.logic.controller.planner.plan.entry_mm, entry, atol=1e-6)
+    np.testing.assert_allclose(widget.logic.controller.inputs.plan.entry_mm, entry, atol=1e-6)
     widget.cleanup()
 
 

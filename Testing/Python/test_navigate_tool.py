@@ -25,7 +25,7 @@ from EMRegModule.io.navigation_csv import NAVIGATION_HEADER
 from EMRegModule.io.recording import read_recording
 from EMRegModule.io.registration_files import read_registration
 from EMRegModule.io.tracking_csv import write_tracking_csv
-from EMRegModule.pipeline.controller import error_model
+from EMRegModule.pipeline.navigating import error_model
 from EMRegModule.settings import Settings
 from EMRegModule.simulation.case import load_truth, simulate_recordings
 from EMRegModule.simulation.stylus import simulate_pivot_recording

@@ -488,6 +488,8 @@ def test_a_signal_lost_in_a_vtk_callback_still_ends_the_run_as_interrupted(small
                                                                           signum, code):
     """A signal landing in a pyvista filter is raised inside VTK's callback: VTK logs it and the filter fails
     with an error of its own, which ended emreg run in a traceback (exit 1, run.json "running")."""
+    import dataclasses
+
     from EMRegModule.pipeline import controller
 
     def stage_whose_signal_vtk_swallows(*args):
@@ -497,7 +499,9 @@ def test_a_signal_lost_in_a_vtk_callback_still_ends_the_run_as_interrupted(small
             pass  # what VTK does with an exception raised in a Python callback: logs it, the algorithm fails
         raise RuntimeError("Algorithm vtkPythonAlgorithm returned failure for request")
 
-    monkeypatch.setitem(controller.PREPARE, "calibrate", stage_whose_signal_vtk_swallows)
+    monkeypatch.setattr(controller, "PIPELINE", tuple(
+        dataclasses.replace(entry, prepare=stage_whose_signal_vtk_swallows) if entry.name == "calibrate" else entry
+        for entry in controller.PIPELINE))
     out = tmp_path / "out"
     capsys.readouterr()
     assert main(["run", str(small_case), "--out", str(out), "--quiet"]) == code

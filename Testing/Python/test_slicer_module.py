@@ -567,7 +567,7 @@ def test_widget_wires_the_buttons_to_the_logic_on_real_mrml(slicer_app, standard
     ui.caseDirectoryPathLineEdit.currentPath = str(standard_case)
     ui.outputDirectoryPathLineEdit.currentPath = str(tmp_path / "out")
     ui.loadCaseButton.click()
-    assert widget.logic.controller.image is not None
+    assert widget.logic.controller.inputs.image is not None
     assert slicer_app.scene.GetFirstNodeByName("EMReg CT").IsA("vtkMRMLScalarVolumeNode")
     assert ui.calibrateButton.enabled and ui.detectButton.enabled and not ui.registerButton.enabled
     assert (ui.referenceSensorSpinBox.value, ui.probeSensorSpinBox.value) == (1, 2)  # from case.toml
@@ -580,7 +580,7 @@ def test_widget_wires_the_buttons_to_the_logic_on_real_mrml(slicer_app, standard
     assert slicer_app.scene.GetFirstNodeByName("ReferenceToImage") is not None
 
     ui.probeSensorSpinBox.setValue(3)  # a port change drops the calibration and the registration, and their nodes
-    assert widget.logic.controller.probe_sensor == 3
+    assert widget.logic.controller.inputs.probe_sensor == 3
     assert slicer_app.scene.GetFirstNodeByName("ReferenceToImage") is None
     assert slicer_app.scene.GetFirstNodeByName("EMReg calibration points") is None
     assert slicer_app.scene.GetFirstNodeByName("EMReg markers") is not None  # detection stands
@@ -1298,9 +1298,9 @@ def test_logic_pivot_calibrates_and_loads_a_tool(slicer_core, tmp_path):
     tool = logic.pivotCalibrate(str(tmp_path / "pivot.seq.mha"), str(tmp_path / "tool"))
     assert np.linalg.norm(tool.tip_mm - truth["tip_mm"]) < 0.5
     assert (tmp_path / "tool" / "tool_calibration.json").is_file() and (tmp_path / "tool" / "TipToProbe.h5").is_file()
-    assert logic.controller.tool is tool
+    assert logic.controller.inputs.tool is tool
     device_set = Path(__file__).resolve().parents[1] / "Data" / "PlusLibData" / \
         "PlusDeviceSet_fCal_Sim_RecordPhantomLandmarks.xml"
-    assert logic.loadTool(str(device_set)).name == "Stylus" and logic.controller.tool.name == "Stylus"
+    assert logic.loadTool(str(device_set)).name == "Stylus" and logic.controller.inputs.tool.name == "Stylus"
     logic.loadTool("")
-    assert logic.controller.tool is None
+    assert logic.controller.inputs.tool is None

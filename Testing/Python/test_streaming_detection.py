@@ -185,10 +185,10 @@ def test_controller_is_unchanged_when_the_read_fails_late(tmp_path):
     path = tmp_path / "ct.nrrd"
     data = _gzip_nrrd(path, sitk.GetArrayViewFromImage(scene.image))
     intact = EMRegController()
-    intact.load_ct_and_detect(path)
+    intact.make("detect", ct=path)
     assert len(intact.results.detection.markers) == len(scene.markers)  # the intact file: detection runs to the end
     path.write_bytes(data[:-8] + bytes(b ^ 0xFF for b in data[-8:-4]) + data[-4:])
     controller = EMRegController()
     with pytest.raises(EMRegError, match="corrupt"):
-        controller.load_ct_and_detect(path)
-    assert controller.image is None and controller.results.detection is None
+        controller.make("detect", ct=path)
+    assert controller.inputs.image is None and controller.results.detection is None

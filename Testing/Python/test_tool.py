@@ -335,7 +335,7 @@ def test_a_stylus_case_navigates_and_evaluates_the_tip(stylus_case):
     folder, _, controller = stylus_case
     evaluation = json.loads((folder / "out" / "evaluation.json").read_text())
     assert evaluation["tre"]["mean_mm"] < 2.0
-    assert controller.tool is not None and controller.tool.source.endswith("tool_calibration.json")
+    assert controller.inputs.tool is not None and controller.inputs.tool.source.endswith("tool_calibration.json")
 
 
 def test_emreg_pivot_on_the_stylus_case_recording_finds_its_tip(stylus_case, tmp_path):
