@@ -69,6 +69,9 @@ DEFERRED_IMPORTS: dict[str, str] = {
     "EMRegModule.io.dicom_read": "the DICOM series reader (~45 ms, its thread pool): only for a folder",
     "EMRegModule.core.handeye_profile": "the hand-eye solver's scipy.stats and scipy.signal (seconds, cold): only the "
                                         "report of a folder with robot_calibration.json needs them",
+    "EMRegModule.report.writer": "the report's figures (rendering, OpenCV, SciPy's ndimage: ~0.26 s): emreg report "
+                                 "(pipeline.reporting, report.batch) loads them once its CT's read has started in the "
+                                 "background",
 }
 MAX_FUNCTION_LINES = 90
 MAX_MODULE_LINES = 700
