@@ -6,7 +6,8 @@ Reads the package's source (no import of it) and reports:
   higher one;
 - import circles (strongly connected modules, a package's ``__init__`` counted as a module);
 - private names (``_x``) imported from another module;
-- imports inside a function whose module is not in ``DEFERRED_IMPORTS`` (each deferred one has its reason there);
+- imports inside a function whose module is not in ``DEFERRED_IMPORTS`` (each deferred one has its reason there)
+  nor, in a module of ``DEFERRED_IN_MODULES``, one of the modules it defers;
 - for a reviewer, not a rule: functions over ``MAX_FUNCTION_LINES``, modules over ``MAX_MODULE_LINES``, classes
   over ``MAX_METHODS``. Code is split by concern; a size is a place to look, never a number to serve.
 
@@ -72,8 +73,17 @@ DEFERRED_IMPORTS: dict[str, str] = {
     "EMRegModule.io.tre_map": "SimpleITK (a 270 MB library, 50 ms of CPU to load): only where tre_map.nrrd is written; "
                               "emreg detect on an uncompressed DICOM series never loads it",
     "EMRegModule.io.ct_stream": "SimpleITK, as for io.tre_map: the report's streamed read of a CT file",
-    "EMRegModule.report.writer": "the report's page and figures (0.13 s of modules): loaded when a report is "
-                                "written, not by every command that makes a controller (emreg detect, register...)",
+    "EMRegModule.report.writer": "the report's figures (rendering, OpenCV, SciPy's ndimage: ~0.26 s): emreg report "
+                                 "(pipeline.reporting, report.batch) loads them once its CT's read has started in the "
+                                 "background",
+}
+#: Modules that import some modules only inside their functions, whatever those modules cost: module -> (the
+#: prefix of the names it defers, why).
+DEFERRED_IN_MODULES: dict[str, tuple[str, str]] = {
+    "EMRegModule.slicer.EMReg": (
+        "EMRegModule", "3D Slicer loads the module file before its panel or Logic has installed the packages EMReg "
+                       "needs (ensureEMRegImportable), and on Pythons too old for the package, which it then names: "
+                       "only the plain base modules names and errors are at its top"),
 }
 MAX_FUNCTION_LINES = 90
 MAX_MODULE_LINES = 700
@@ -113,8 +123,10 @@ def _top(module: str) -> str:
     return parts[1] if len(parts) > 1 else "__init__"
 
 
-def _deferred(target: str) -> bool:
-    return any(target == name or target.startswith(name + ".") for name in DEFERRED_IMPORTS)
+def _deferred(target: str, importer: str = "") -> bool:
+    """Whether ``target`` may be imported inside a function (of ``importer``)."""
+    names = [*DEFERRED_IMPORTS, *(DEFERRED_IN_MODULES[importer][:1] if importer in DEFERRED_IN_MODULES else ())]
+    return any(target == name or target.startswith(name + ".") for name in names)
 
 
 def _inner_imports(module: str, tree: ast.Module, is_package: bool) -> Iterator[str]:
@@ -214,7 +226,7 @@ def survey(root: Path) -> Shape:
         tree = ast.parse(text)
         shape.imports[name] = set(_imports(name, tree, path.name == "__init__.py", modules, shape)) - {name}
         shape.inner_imports += [(name, target) for target in _inner_imports(name, tree, path.name == "__init__.py")
-                                if not _deferred(target)]
+                                if not _deferred(target, name)]
         for node in ast.walk(tree):
             if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
                 length = node.end_lineno - node.lineno + 1

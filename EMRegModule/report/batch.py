@@ -9,13 +9,20 @@ progress bar shows the throughput in cases per minute.
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 from ..errors import EMRegError
-from ..io.run_folder import recorded_run
+from ..io.case import find_ct
+from ..io.itk_messages import quiet_itk
+from ..io.run_folder import check_outputs, recorded_run
 from ..progress import QUIET, Progress
+from ..settings import load_settings
+from ..slicer_export.bundle import write_run_bundle
+from ..slicer_export.mrb import bundle_needs_ct_image
 from .inputs import has_report_inputs
 
 #: A scene bundle written by a batch job: its path (None when none could be written) and its message.
@@ -48,9 +55,6 @@ def available_memory_bytes() -> float | None:
 def ct_bytes_of_run(folder: Path) -> float:
     """Voxel bytes of the CT a run's report will read (from the CT's header), 0 when unknown."""
     import SimpleITK as sitk
-
-    from ..io.case import find_ct
-    from ..io.itk_messages import quiet_itk
 
     try:
         run = recorded_run(folder) or {}
@@ -94,16 +98,12 @@ def memory_limited_jobs(folders: Sequence[str], jobs: int, progress: Progress = 
 
 def _bundle_needs_ct(folder: Path) -> bool:
     """Whether the run's scene bundle needs its CT in memory (not when it copies the CT from its file)."""
-    from ..slicer_export.mrb import bundle_needs_ct_image
-
     ct = (recorded_run(folder) or {}).get("ct")
     return bundle_needs_ct_image(ct if isinstance(ct, str) else None)
 
 
 def _batch_worker(folder: str, bundle: bool = False,
                   settings_file: str | None = None) -> tuple[str, str | None, str | None, BundleResult | None]:
-    from ..io.run_folder import check_outputs
-    from ..settings import load_settings
     from .writer import write_report_keeping_ct
 
     try:
@@ -117,8 +117,6 @@ def _batch_worker(folder: str, bundle: bool = False,
         return folder, None, f"{type(exc).__name__}: {exc}", None
     written = None
     if bundle:  # with the CT the report holds: not read a second time
-        from ..slicer_export.bundle import write_run_bundle
-
         path, message, sha = write_run_bundle(folder, image=ct)
         written = (None if path is None else str(path), message, sha)
     return folder, str(page), None, written
@@ -165,9 +163,6 @@ def write_reports_batch(folders: Sequence[str | os.PathLike[str]], jobs: int = 1
                     written[folder] = bundle
                 step.advance()
         else:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor, as_completed
-
             context = multiprocessing.get_context("spawn")  # VTK/EGL state must not be forked
             with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
                 futures = [pool.submit(_batch_worker, folder, bundles is not None, settings) for folder in selected]

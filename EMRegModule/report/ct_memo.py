@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import io
 import json
 import os
 import shutil
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -34,9 +35,8 @@ from ..io.ct_handle import CTGeometry, CTHandle
 from ..io.provenance import BackgroundHash
 from ..marker_model import MarkerModel
 from ..names import PREVIOUS_FOLDER, REPORT_FIGURES
-
-if TYPE_CHECKING:
-    from ..rendering.context import BinnedCT, ContextSurface
+from ..rendering.context import MAX_CONTEXT_VOXELS, BinnedCT, ContextSurface
+from ..rendering.slices import MM_PER_PX, VIEW_PX
 
 MEMO_NAME = "ct_context.npz"
 #: Bumped whenever what is kept, or how the figures make it (binning, view size, sampling), changes.
@@ -48,9 +48,6 @@ def _model_key(model: MarkerModel) -> str:
 
 
 def _key(ct_sha256: str, model: MarkerModel) -> str:
-    from ..rendering.context import MAX_CONTEXT_VOXELS
-    from ..rendering.slices import MM_PER_PX, VIEW_PX
-
     return json.dumps({"format": MEMO_FORMAT, "ct_sha256": ct_sha256, "model": _model_key(model),
                        "max_context_voxels": MAX_CONTEXT_VOXELS, "view_px": VIEW_PX, "mm_per_px": MM_PER_PX},
                       sort_keys=True)
@@ -72,8 +69,6 @@ class CTMemo:
     def context_surface(self, iso_setting: float | None) -> ContextSurface | None:
         """The kept context surface when it was made with this ``[report] iso_value`` setting, else None."""
         import pyvista as pv
-
-        from ..rendering.context import ContextSurface
 
         if self.surface is None:
             return None
@@ -139,8 +134,6 @@ def kept_for(path: Path, ct_sha256: str | None) -> bool:
 def load_ct_memo(path: Path, ct_sha256: str | None, model: MarkerModel) -> CTMemo | None:
     """The products kept in ``path`` for the CT whose sha256 is ``ct_sha256`` and this marker model; None when
     absent, unreadable or made for something else."""
-    from ..rendering.context import BinnedCT
-
     if ct_sha256 is None or not path.is_file():
         return None
     try:
@@ -167,8 +160,6 @@ def save_ct_memo(path: Path, ct_sha256: str, model: MarkerModel, geometry: CTGeo
     """Keep the CT products of a report (atomically); nothing when a marker's planes are missing. ``surface``:
     the context surface made from ``binned`` with the ``[report] iso_value`` setting ``iso_setting``; ``geometry``:
     the CT's (:attr:`~EMRegModule.io.ct_handle.CTHandle.geometry`)."""
-    import io
-
     if views is None and marker_to_image:
         return
     planes = views or []

@@ -7,16 +7,20 @@ rendered meanwhile; the 3D view's context surface is binned from the CT as its s
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..errors import EMRegError
+from ..interrupts import vtk_imports_uninterrupted
 from ..io.atomic import atomic_write_bytes, atomic_write_text
+from ..io.ct_handle import CTHandle
 from ..names import REPORT_FIGURES, REPORT_HTML
 from ..progress import QUIET, Progress
 from .checks import collect_warnings
+from .ct_memo import carry_forward, memo_path, recorded_ct_sha256, save_ct_memo
 from .derived import calibration_points, marker_rows, report_fre_curve
 from .figures import FIGURE_NAMES, ReportData, prepare_ct_products, render_figures
 from .inputs import ReportInputs, load_report_inputs
@@ -25,7 +29,6 @@ from .sections import build_html
 if TYPE_CHECKING:
     import SimpleITK as sitk
 
-    from ..io.ct_handle import CTHandle
     from ..settings import Settings
 
 
@@ -87,10 +90,6 @@ def _one_blas_thread() -> Iterator[None]:
 
 def _openblas_thread_calls() -> tuple | None:
     """(get, set) of the number of threads of the OpenBLAS numpy loaded, or None."""
-    import ctypes
-
-    import numpy  # noqa: F401 - loads its BLAS
-
     try:
         with open("/proc/self/maps", encoding="utf-8", errors="replace") as maps:
             paths = sorted({line.split()[-1] for line in maps if "scipy_openblas" in line and "numpy" in line})
@@ -131,8 +130,6 @@ def _keep_ct_products(data: ReportData, checked_sha256: str | None, handed: bool
     were made from the bytes ``run.json`` records for this CT file: a CT whose sha256 :func:`_check_run_ct` checked
     (``checked_sha256``; read, or hashed with its products kept but for the surface), or the CT this very run read
     and handed over in memory."""
-    from .ct_memo import carry_forward, memo_path, recorded_ct_sha256, save_ct_memo
-
     inputs = data.inputs
     if data.binned is None or inputs.ct is None:
         return
@@ -150,9 +147,6 @@ def _keep_ct_products(data: ReportData, checked_sha256: str | None, handed: bool
 def _write_report(out_dir: str | os.PathLike[str], case_dir: str | os.PathLike[str] | None, progress: Progress,
                   image: sitk.Image | CTHandle | None, keep_ct: bool,
                   settings: Settings | None = None) -> tuple[Path, sitk.Image | None]:
-    from ..interrupts import vtk_imports_uninterrupted
-    from ..io.ct_handle import CTHandle
-
     vtk_imports_uninterrupted()  # the figures load VTK's modules (pyvista) as they go
     handed = isinstance(image, CTHandle) and image.is_complete
     inputs = load_report_inputs(out_dir, case_dir, image=image, keep_ct=keep_ct, settings=settings)

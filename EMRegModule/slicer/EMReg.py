@@ -31,7 +31,9 @@ image side in RAS).
 import importlib.util
 import logging
 import os
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 import slicer
@@ -45,7 +47,11 @@ ICON_FILE = REPOSITORY_ROOT / "Resources" / "Icons" / "EMReg.png"
 
 if str(REPOSITORY_ROOT) not in sys.path:  # the names module is the repository's, read before anything else
     sys.path.insert(0, str(REPOSITORY_ROOT))
-from EMRegModule import names  # noqa: E402 - plain constants (Python 3.9 too, so that old Slicers load this file)
+# Two base modules of plain Python (3.9 too, so that old Slicers load this file and say they are too old). The rest
+# of the package is imported inside the functions that use it, once ensureEMRegImportable has checked the Python and
+# installed the missing packages (scripts/architecture.py, DEFERRED_IN_MODULES).
+from EMRegModule import names  # noqa: E402
+from EMRegModule.errors import EMRegError  # noqa: E402
 
 try:  # the 3D Slicer application (Qt)
     import qt
@@ -60,7 +66,7 @@ try:
         ScriptedLoadableModuleWidget,
     )
 except ImportError:  # outside the Slicer application: the parts of Slicer's bases the Logic and the test use
-    from EMRegModule.slicer_export.scripted_bases import (
+    from EMRegModule.pipeline.slicer_bases import (
         ScriptedLoadableModule,
         ScriptedLoadableModuleLogic,
         ScriptedLoadableModuleTest,
@@ -407,7 +413,6 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
         ``outputDirectory`` receives the result files (default: ``<case>/emreg-output``).
         """
-        from EMRegModule.errors import EMRegError
         from EMRegModule.io.case import open_case
         from EMRegModule.pipeline.controller import EMRegController
         from EMRegModule.pipeline.inputs import check_case_image_side
@@ -441,8 +446,8 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         """Register onto the defined control points of a markups node (world RAS, as Slicer shows them; kept
         in LPS) instead of CT markers: a rigid point fit of the calibration points, no sensor offset. Checked as a
         fiducials file is (at least 3, unique labels, not on one line); drops the registration."""
-        from EMRegModule.core.fiducials import Fiducials, check_fiducials
-        from EMRegModule.slicer_export.nodes import markups_points_lps
+        from EMRegModule.io.fiducials import Fiducials, check_fiducials
+        from EMRegModule.pipeline.slicer_scene import markups_points_lps
 
         labels, positions = markups_points_lps(markupsNode)
         fiducials = Fiducials(labels, positions,
@@ -458,7 +463,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         Target, or one target point (:mod:`EMRegModule.core.plan`); None: no plan. Each navigation then gets the
         guidance
         numbers (``navigation.csv``, ``navigation.json``) and the panel the closest approach and the predicted error."""
-        from EMRegModule.slicer_export.nodes import plan_from_markups_node
+        from EMRegModule.pipeline.slicer_scene import plan_from_markups_node
 
         self.controller.give(plan=None if markupsNode is None else plan_from_markups_node(markupsNode))
         return self.controller.inputs.plan
@@ -479,13 +484,11 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         """``emreg pivot``: the tool's tip from a pivot recording, written as ``tool_calibration.json`` and
         ``TipToProbe.h5`` into ``outputDirectory`` (default: the output folder, else ``pivot/`` beside the
         recording), then used. Returns the :class:`~EMRegModule.core.tool.ToolCalibration`."""
-        from EMRegModule.core.tool import pivot_calibration
-        from EMRegModule.io.tool_files import pivot_poses, write_tool_calibration
+        from EMRegModule.io.tool_files import write_tool_calibration
+        from EMRegModule.pipeline.pivot import pivot_tool
 
         inputs = self.controller.inputs
-        poses, frame, name, _ = pivot_poses(recordingPath, inputs.settings, inputs.reference_sensor,
-                                            inputs.probe_sensor)
-        tool = pivot_calibration(poses, str(recordingPath), frame, name)
+        tool, _ = pivot_tool(recordingPath, inputs.settings, inputs.reference_sensor, inputs.probe_sensor)
         out = Path(outputDirectory or self.outputDirectory or Path(recordingPath).parent / "pivot")
         out.mkdir(parents=True, exist_ok=True)
         write_tool_calibration(tool, out)
@@ -522,7 +525,6 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         """Replay the case's navigation recording (paper Eq. 12); writes ``navigation.csv`` and
         ``evaluation.json``; shows the probe path and the last probe pose (``ProbeToReference``,
         under ``ReferenceToImage``)."""
-        from EMRegModule.errors import EMRegError
         from EMRegModule.io.recording import read_recording
 
         if self.case is None or self.case.navigation is None:
@@ -556,8 +558,6 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     def runAll(self):
         """Every step in order: the controller's run, the same as ``emreg run`` (output folder, ``run.json``,
         provenance); then the results are shown in the scene."""
-        from EMRegModule.errors import EMRegError
-
         if self.case is None:
             raise EMRegError("load a case first")
         report = importlib.util.find_spec("pyvista") is not None and importlib.util.find_spec("cv2") is not None
@@ -575,18 +575,17 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     def _lastProbePose(self, recording):
         """The last probe pose straight from the recording (Reference frame); Slicer composes it with
         ReferenceToRAS."""
-        from EMRegModule.core.tracking import probe_in_reference
+        from EMRegModule.pipeline.slicer_scene import last_probe_to_reference
 
         inputs = self.controller.inputs
-        inReference = probe_in_reference(recording, inputs.reference_sensor, inputs.probe_sensor)
-        self.probeToReference = inReference.probe_to_reference[-1]
+        self.probeToReference = last_probe_to_reference(recording, inputs.reference_sensor, inputs.probe_sensor)
 
     # --- live navigation ----------------------------------------------------------------------------
 
     def startLiveNavigation(self, host="localhost", port=names.DEFAULT_IGTL_PORT):
         """Connect OpenIGTLinkIF to an ``emreg navigate --igtl-port PORT`` server: ``ProbeToImage`` (RAS)
         arrives as a linear transform node. Needs the SlicerOpenIGTLink extension."""
-        from EMRegModule.slicer_export.nodes import connect_igtl_client
+        from EMRegModule.pipeline.slicer_scene import connect_igtl_client
 
         connector = connect_igtl_client(self.scene, host, port, self.CONNECTOR_NODE_NAME)
         self.connectorNode = connector
@@ -622,7 +621,6 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     def _outputs(self, stage):
         """The output folder for one step: that step's earlier outputs and those of later steps move to
         ``previous/`` (stale once this step has a new result)."""
-        from EMRegModule.errors import EMRegError
         from EMRegModule.io.output_folder import OutputFolder
 
         if self.outputDirectory is None:
@@ -633,7 +631,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
 
     def showVolume(self):
         """The controller's CT as a scalar volume node (IJK-to-RAS from the image's LPS geometry)."""
-        from EMRegModule.slicer_export.nodes import show_volume
+        from EMRegModule.pipeline.slicer_scene import show_volume
 
         # A copy: in 3D Slicer a user may edit the volume in place; the controller's CT must not change.
         node = show_volume(self.scene, self.controller.inputs.image, self.VOLUME_NODE_NAME,
@@ -648,7 +646,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
         (:class:`~EMRegModule.io.run_folder.RunFolder`, in memory) turned into a scene as the bundle's is."""
         from EMRegModule.io.markups import read_markups
         from EMRegModule.io.run_folder import RunFolder
-        from EMRegModule.slicer_export.run_scene import run_scene_of
+        from EMRegModule.pipeline.slicer_scene import run_scene_of
 
         results = self.controller.results
         navigated = results.registration is not None and results.navigation is not None
@@ -661,7 +659,7 @@ class EMRegLogic(ScriptedLoadableModuleLogic):
     def showResults(self):
         """Show (or update) every result node: markers, calibration points under ``ReferenceToImage``,
         pinhole points, residual spheres, targets, probe path and pose; nodes of dropped results go."""
-        from EMRegModule.slicer_export.run_scene import build_run_scene
+        from EMRegModule.pipeline.slicer_scene import build_run_scene
 
         return build_run_scene(self.scene, self.resultsContent(), self.nodes)
 
@@ -690,23 +688,19 @@ class EMRegTest(ScriptedLoadableModuleTest):
         self.test_EMReg_simulated_case()
 
     def _case(self):
-        import tempfile
-
         folder = self.caseDirectory or os.environ.get("EMREG_TEST_CASE")
         if folder:
             return Path(folder)
-        from EMRegModule.simulation.case import simulate_case
+        from EMRegModule.pipeline.sample_case import simulate_sample_case
 
         folder = Path(tempfile.mkdtemp(prefix="EMRegTest-")) / "case"
         self._temporary.append(folder.parent)
         self.delayDisplay("Simulating a small case")
-        simulate_case(folder, seed=11, difficulty="standard", frame_size_mm=(220.0, 220.0, 140.0), n_markers=16)
+        simulate_sample_case(folder, seed=11)
         return folder
 
     def test_EMReg_simulated_case(self):
         """Runs in folders of its own under the temporary directory, removed afterwards (passed or not)."""
-        import shutil
-
         self._temporary = []
         try:
             self._simulated_case()
@@ -715,13 +709,8 @@ class EMRegTest(ScriptedLoadableModuleTest):
                 shutil.rmtree(folder, ignore_errors=True)
 
     def _simulated_case(self):
-        import tempfile
-
-        import numpy as np
-
-        from EMRegModule.core.transforms import apply_transform
-        from EMRegModule.simulation.case import load_truth
-        from EMRegModule.slicer_export.scene_check import scene_disagreements
+        from EMRegModule.pipeline.sample_case import load_truth, reference_to_image_error_mm
+        from EMRegModule.pipeline.slicer_scene import scene_disagreements
 
         self.delayDisplay("Starting the EMReg test")
         case = self._case()
@@ -740,11 +729,8 @@ class EMRegTest(ScriptedLoadableModuleTest):
         self.assertLess(registration.fre_mm, 1.0)
 
         # ReferenceToImage against the truth, at the markers (mm)
-        true_reference_to_image = np.asarray(truth["ReferenceToImage"], dtype=float)
-        markers = np.array([m.origin for m in detection.markers])
-        error = apply_transform(registration.reference_to_image, apply_transform(
-            np.linalg.inv(true_reference_to_image), markers)) - markers
-        self.assertLess(float(np.max(np.linalg.norm(error, axis=1))), 1.0)
+        self.assertLess(reference_to_image_error_mm(registration.reference_to_image, truth,
+                                                    [m.origin for m in detection.markers]), 1.0)
 
         # MRML (world coordinates): markers, ReferenceToRAS, calibration points on their pinhole points
         self.assertEqual(scene_disagreements(slicer.mrmlScene, detection, registration), [])

@@ -10,16 +10,24 @@ ISA-L on the way).
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from urllib.parse import unquote
 
 import numpy as np
 
 from ..errors import EMRegError
 from ..io.atomic import cannot_write
+from ..io.zip_store import FileRegion, StoredZipWriter
+
+try:  # a declared dependency, absent from 3D Slicer's own Python: then Slicer's own compressed writer
+    from isal import igzip_threaded
+except ImportError:  # pragma: no cover - depends on the installation
+    igzip_threaded = None
 
 
 def write_mrb(scene: Any, path: Path, stored: dict[str, StoredVoxels]) -> str:
@@ -39,7 +47,7 @@ def write_mrb(scene: Any, path: Path, stored: dict[str, StoredVoxels]) -> str:
     # and the node's voxels in memory, gzip-compressed by ISA-L on their way into the zip.
     volumes: dict[str, tuple[Any, Any]] = {}  # storage node id -> (volume node, its image data)
     sources: dict[str, Any] = {}  # storage node id -> where the entry's voxels come from
-    fast_gzip = _isal_available()  # without it (3D Slicer's Python), Slicer's own compressed writer
+    fast_gzip = igzip_threaded is not None  # without it (3D Slicer's Python), Slicer's own compressed writer
     storables = scene.GetNodesByClass("vtkMRMLStorableNode")
     for node in (storables.GetItemAsObject(i) for i in range(storables.GetNumberOfItems())):
         if node.GetStorageNode() is None:
@@ -173,8 +181,6 @@ class StoredVoxels:
     def zip_parts(self, scratch: Path) -> list[Any]:
         """The voxels as the file stores them, as the parts of a zip entry (:mod:`EMRegModule.io.zip_store`): its
         gzip stream, or its raw bytes (``scratch`` is not used)."""
-        from ..io.zip_store import FileRegion
-
         length = self.path.stat().st_size - self.offset
         if self.encoding == "gzip":
             return [FileRegion(self.path, self.offset, length)]
@@ -190,15 +196,11 @@ def _parallel_gzip(sink: Any) -> Any:
 
     One thread compressed a 0.5 mm full-frame CT (955 MB) at about 250 MB/s: 4-5 s of ``emreg report`` on a
     DICOM case, whose bundle compresses the CT from memory."""
-    from isal import igzip_threaded
-
     return igzip_threaded.open(sink, "wb", compresslevel=BUNDLE_GZIP_LEVEL, threads=max(1, os.cpu_count() or 1))
 
 
 def _spooled(voxels: _MemoryVoxels, scratch: Path) -> list[Any]:
     """``voxels.write_gzip`` into the file ``scratch``, as the one part of a zip entry."""
-    from ..io.zip_store import FileRegion
-
     with scratch.open("wb") as sink:
         voxels.write_gzip(sink)
     return [FileRegion(scratch, 0, scratch.stat().st_size)]
@@ -216,7 +218,7 @@ def stored_voxels(path: str | os.PathLike[str] | None) -> StoredVoxels | None:
     if found is None:
         return None
     geometry, dtype, offset, encoding = found
-    if encoding == "raw" and not _isal_available():
+    if encoding == "raw" and igzip_threaded is None:
         return None
     return StoredVoxels(Path(path).resolve(), offset, encoding, geometry, dtype)
 
@@ -238,11 +240,6 @@ def _zip_bundle(folder: Path, target: Path, sources: dict[str, Any]) -> str:
     compressed. The archive is written by :class:`~EMRegModule.io.zip_store.StoredZipWriter` (one forward
     pass, large files copied by the kernel, hashed on the way).
     """
-    import re
-    from urllib.parse import unquote
-
-    from ..io.zip_store import StoredZipWriter
-
     files_of: dict[Path, Any] = {}
     for scene_file in folder.glob("*.mrml"):
         scene = scene_file.read_text(encoding="utf-8")
@@ -292,14 +289,6 @@ def _zip_bundle(folder: Path, target: Path, sources: dict[str, Any]) -> str:
     if written != {id(source) for source in sources.values()}:  # a placeholder left as a volume: a wrong scene
         raise EMRegError("3D Slicer did not write every volume where its scene says")
     return digest
-
-
-def _isal_available() -> bool:
-    try:
-        from isal import isal_zlib  # noqa: F401
-    except ImportError:
-        return False
-    return True
 
 
 def _read_nrrd_header(entry: Any) -> bytes:

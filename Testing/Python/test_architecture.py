@@ -97,3 +97,14 @@ def test_the_survey_sees_an_import_inside_a_function_unless_deferred(tmp_path):
     (package / "errors.py").write_text("")
     found = _architecture().survey(tmp_path)
     assert found.inner_imports == [("EMRegModule.core.pivot", "json"), ("EMRegModule.core.pivot", "EMRegModule.errors")]
+
+
+def test_the_slicer_module_defers_only_the_package(tmp_path):
+    """The 3D Slicer module imports the package inside its functions (``DEFERRED_IN_MODULES``), nothing else."""
+    package = tmp_path / "EMRegModule"
+    (package / "slicer").mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    (package / "errors.py").write_text("")
+    (package / "slicer" / "EMReg.py").write_text("def load():\n    import json\n    from EMRegModule import errors\n")
+    found = _architecture().survey(tmp_path)
+    assert found.inner_imports == [("EMRegModule.slicer.EMReg", "json")]
