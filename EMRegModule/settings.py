@@ -551,11 +551,14 @@ class Settings:
         """Whether the settings file itself gives ``[table] key`` (a default is not a user's choice)."""
         return f"{table}.{key}" in self.given
 
-    def file_path(self, name: str) -> Path:
+    def file_path(self, name: str | None) -> Path | None:
         """A file the settings name (``[tool] calibration``, ``[navigation] plan``): relative to the settings file's
-        folder, unless absolute or read from no file."""
+        folder, unless absolute, read from no file, or ``auto`` (``[tool] calibration = "auto"``: no file); None when
+        they name none."""
+        if not name:
+            return None
         path = Path(name)
-        if not path.is_absolute() and self.source:
+        if name != "auto" and not path.is_absolute() and self.source:
             path = Path(self.source).parent / path
         return path
 

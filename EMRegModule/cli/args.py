@@ -104,9 +104,7 @@ def controller_of(args: argparse.Namespace, settings: Settings) -> EMRegControll
 def use_tool(args: argparse.Namespace, controller: EMRegController, solves: bool = True) -> None:
     """``--tool FILE`` (else ``[tool] calibration`` of the settings): the tool whose tip is tracked. ``solves``:
     the command has a calibration recording to solve ``--tool auto`` from (else it is refused)."""
-    from ..pipeline.inputs import settings_file
-
-    tool = getattr(args, "tool", None) or settings_file(controller.settings, controller.settings.tool.calibration)
+    tool = getattr(args, "tool", None) or controller.settings.file_path(controller.settings.tool.calibration)
     if tool:
         controller.give(tool=tool)
     if controller.inputs.tool_auto and not solves:
@@ -122,10 +120,8 @@ def use_plan(args: argparse.Namespace, controller: EMRegController) -> None:
     if controller.results.registration is None:
         raise EMRegError(f"emreg {args.command}: a plan (--plan or [navigation] plan) needs a registration; give "
                          "--registration registration.json")
-    from ..pipeline.inputs import settings_file
-
-    controller.give(plan=getattr(args, "plan", None) or settings_file(controller.settings,
-                                                                       controller.settings.navigation.plan))
+    settings = controller.settings
+    controller.give(plan=getattr(args, "plan", None) or settings.file_path(settings.navigation.plan))
 
 
 def recording_ports(args: argparse.Namespace, settings: Settings) -> tuple[int, int]:

@@ -7,6 +7,9 @@ import argparse
 import time
 from pathlib import Path
 
+from ..io.case import open_case
+from ..pipeline.simulate import simulate
+from ..settings import with_series
 from .args import (
     controller_of,
     out_folder,
@@ -16,11 +19,7 @@ from .args import (
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from ..io.case import open_case
-
     out_folder(args.out)
-    from ..settings import with_series
-
     case = open_case(args.case, settings_of(args) if args.settings else None)
     case.settings = with_series(case.settings, args.series)
     case.settings = case.settings.with_sensors(args.reference_sensor, args.probe_sensor)  # a sequence file's too
@@ -33,15 +32,12 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from ..io.case import open_case
-    from ..simulation.case import simulate_case
-
     out = out_folder(args.out)
     case_dir = out / "case"
     progress = progress_of(args)
     start = time.perf_counter()
     progress.message(f"[emreg] demo: simulating the sample case into {case_dir}")
-    simulate_case(case_dir, seed=args.seed, difficulty="standard", spacing_mm=args.spacing, progress=progress)
+    simulate(case_dir, seed=args.seed, spacing_mm=args.spacing, progress=progress)
     case = open_case(case_dir)
     controller = controller_of(args, case.settings)
     for line in controller.run(case, out / "result"):

@@ -8,8 +8,17 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import EMRegError, NoSafeAnswerError
+from ..io.case import find_ct, open_case, read_targets
+from ..io.markers_json import markers_beside
+from ..io.output_folder import refuse_out_over_inputs
+from ..io.tool_files import TIP_TO_PROBE_ITK, TOOL_CALIBRATION_JSON, write_tool_calibration
 from ..names import REGISTRATION_JSON
+from ..pipeline.inputs import case_recording, read_recording
+from ..pipeline.pivot import pivot_tool
+from ..pipeline.results import offset_summary
 from .args import (
     controller_of,
     out_folder,
@@ -21,12 +30,10 @@ from .args import (
     warn,
     with_series_of,
 )
-from .live import check_live_options
+from .live import check_live_options, run_live_navigate
 
 
 def cmd_detect(args: argparse.Namespace) -> int:
-    from ..io.case import find_ct
-
     out_folder(args.out)
     source = Path(args.ct)
     case_dir = source if source.is_dir() and find_ct(source) is not None else None
@@ -65,18 +72,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_pivot(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from ..core.tool import pivot_calibration
-    from ..io.output_folder import refuse_out_over_inputs
-    from ..io.tool_files import TIP_TO_PROBE_ITK, TOOL_CALIBRATION_JSON, pivot_poses, write_tool_calibration
-
     out_folder(args.out)
     recording_path = Path(args.recording)
-    controller = controller_of(args, settings_of(args))
-    poses, frame, name, warnings = pivot_poses(recording_path, controller.settings, controller.inputs.reference_sensor,
-                                               controller.inputs.probe_sensor)
-    tool = pivot_calibration(poses, str(recording_path), frame, name)
+    inputs = controller_of(args, settings_of(args)).inputs
+    tool, warnings = pivot_tool(recording_path, inputs.settings, inputs.reference_sensor, inputs.probe_sensor)
     refuse_out_over_inputs(args.out, [recording_path], (TOOL_CALIBRATION_JSON, TIP_TO_PROBE_ITK))
     write_tool_calibration(tool, args.out)
     warn("pivot", warnings + tool.warnings)
@@ -99,8 +98,6 @@ def cmd_register(args: argparse.Namespace) -> int:
     controller.adopt("calibrate", args.calibration)
     targets = None
     if args.targets:
-        from ..io.case import read_targets
-
         controller.recorder.note_inputs(targets=args.targets)
         targets = read_targets(args.targets)[1]
     try:
@@ -109,7 +106,6 @@ def cmd_register(args: argparse.Namespace) -> int:
         folder.remove_from("register")
         raise
     controller.recorder.warn(result.warnings)
-    from ..pipeline.results import offset_summary
 
     print(f"registered: FRE {result.fre_mm:.2f} mm, {offset_summary(result)}, {len(result.pairs)} pairs -> {args.out}")
     return 0
@@ -119,16 +115,12 @@ def cmd_navigate(args: argparse.Namespace) -> int:
     check_live_options(args)  # replay or live: a value out of range is refused before anything is made
     out_folder(args.out)
     if args.igtl_port is not None or not args.source.startswith("replay:"):
-        from .live import run_live_navigate
-
         return run_live_navigate(args)
     if not args.out:
         raise EMRegError("navigate: --out DIR is needed to write navigation.csv from a replay")
-    from ..pipeline.inputs import read_recording
 
     recording_path = Path(args.source[len("replay:"):])
     controller = controller_of(args, settings_of(args))
-    from ..io.markers_json import markers_beside
 
     markers, note = markers_beside(args.registration)
     if markers is not None:  # the checkpoints need the markers' pinholes (before the registration: it is dropped)
@@ -153,8 +145,6 @@ def cmd_navigate(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from ..io.case import open_case
-
     case = open_case(args.case, settings_of(args) if args.settings else None)
     out_folder(args.out)
     if case.navigation is None and case.board is None:
@@ -168,7 +158,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     controller = controller_of(args, case.settings)
     inputs = [p for p in (case.navigation, case.targets, case.board) if p is not None]
     folder = output_folder(args, "evaluate", [*inputs, Path(args.registration)], case.folder)
-    from ..io.markers_json import markers_beside
 
     markers, note = markers_beside(args.registration)
     if markers is not None:  # the pose status (checkpoints at the pinholes) as navigate gives it: INVALID left out
@@ -180,7 +169,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     controller.recorder.check_case_inputs(REGISTRATION_JSON, args.registration, case)
     controller.recorder.note_inputs(navigation=case.navigation, targets=case.targets, board=case.board)
     use_tool(args, controller, solves=False)
-    from ..pipeline.inputs import case_recording
 
     inputs = controller.inputs
     result = controller.make("evaluate", folder=folder, navigation=case_recording(case, "navigation", inputs),

@@ -37,7 +37,6 @@ from .inputs import (
     read_recording,
     run_record,
     series_unused,
-    settings_file,
     with_ct,
     with_plan,
     with_ports,
@@ -277,9 +276,9 @@ class EMRegController:
         plan is refused (one line) when the case has no calibration recording to register with."""
         settings, defaults = self.settings, {}
         if self.inputs.tool is None and not self.inputs.tool_auto and settings.tool.calibration:
-            defaults["tool"] = settings_file(settings, settings.tool.calibration)
+            defaults["tool"] = settings.file_path(settings.tool.calibration)
         if self.inputs.plan is None and settings.navigation.plan:
-            defaults["plan"] = settings_file(settings, settings.navigation.plan)
+            defaults["plan"] = settings.file_path(settings.navigation.plan)
         self.give(**defaults)
         check_plan_for_case(self.inputs.plan, case)
 

@@ -87,17 +87,6 @@ def with_ports(inputs: Inputs, reference_sensor: int | None, probe_sensor: int |
     return inputs.replace(reference_sensor=sensors.reference, probe_sensor=sensors.probe)
 
 
-def settings_file(settings: Settings, name: str | None) -> Path | None:
-    """A file ``case.toml`` names (``[tool] calibration``, ``[navigation] plan``), relative to its folder; None when
-    it names none."""
-    if not name:
-        return None
-    path = Path(name)
-    if name != "auto" and not path.is_absolute() and settings.source:
-        path = Path(settings.source).parent / path
-    return path
-
-
 def with_tool(inputs: Inputs, tool: str | os.PathLike[str] | ToolCalibration | None) -> Inputs:
     """``inputs`` with a tool: a tool file (``tool_calibration.json``, ITK transform, PLUS device set;
     :func:`EMRegModule.core.tool.read_tool`, named as ``[tool] name`` says when it does), ``auto`` (the tip solved
