@@ -37,6 +37,15 @@ class SampleSource(ABC):
     def stop(self) -> None:
         """Stop delivering and release the device (idempotent)."""
 
+    def attached_ports(self) -> tuple[int, ...] | None:
+        """The ports with a sensor plugged in, when the device can tell (None: it cannot, as over OpenIGTLink or a
+        replay)."""
+        return None
+
+    def port_dof(self, port: int) -> int | None:
+        """The degrees of freedom (5 or 6) of the sensor on ``port``, when the device can tell (None otherwise)."""
+        return None
+
     def __enter__(self) -> SampleSource:
         return self
 

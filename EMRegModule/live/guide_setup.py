@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import math
 
+from ..core.tool import ToolCalibration
+from ..devices.source_base import SampleSource
 from ..errors import EMRegError
 
 #: A tip farther than this (mm) from a 5-DOF sensor's axis is refused: as the unmeasured roll turns, such a tip
@@ -17,33 +19,10 @@ from ..errors import EMRegError
 MAX_5DOF_OFF_AXIS_MM = 0.2
 
 
-def port_dof(source, port: int) -> int | None:
-    """The degrees of freedom of the sensor on ``port`` (5 or 6) when the source knows it (an Aurora's tools), else
-    None (a trakSTAR's sensors are all 6-DOF; an OpenIGTLink or replay source does not say)."""
-    driver = getattr(source, "driver", None)
-    for tool in getattr(driver, "tools", None) or ():
-        if getattr(tool, "sensor", None) == port:
-            return int(getattr(tool, "dof", 6))
-    return None
-
-
-def connected_ports(source) -> list[int] | None:
-    """The ports with a sensor, when the source can tell (an Aurora's enabled tools), else None."""
-    tools = getattr(getattr(source, "driver", None), "tools", None)
-    if not tools:
-        return None
-    return sorted(int(t.sensor) for t in tools if getattr(t, "sensor", None) is not None)
-
-
-def check_tool_on_port(source, port: int, tool) -> None:
-    """Refuse (:class:`EMRegError`, one line naming the port) a tool on a port the source knows has no sensor, and
-    one whose tip is off the axis of the 5-DOF sensor on ``port`` (naming the offset); a 6-DOF sensor, or one the
-    source cannot tell, takes any tool."""
-    ports = connected_ports(source)
-    if ports is not None and port not in ports:
-        raise EMRegError(f"{source.description}: no sensor on the probe port {port} for the tool of {tool.source} "
-                         f"(sensors on ports {', '.join(map(str, ports))}); plug it in or set --probe-sensor")
-    if port_dof(source, port) != 5:
+def check_tool_on_port(source: SampleSource, port: int, tool: ToolCalibration) -> None:
+    """Refuse (:class:`EMRegError`, one line naming the offset) a tool whose tip is off the axis of the 5-DOF sensor
+    on ``port``; a 6-DOF sensor, or one the source cannot tell, takes any tool."""
+    if source.port_dof(port) != 5:
         return
     tip = tool.tip_mm
     off_axis = math.hypot(float(tip[1]), float(tip[2]))

@@ -16,6 +16,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TextIO
 
+from ..core.tool import ToolCalibration
+from ..devices.source_base import SampleSource
 from ..errors import EMRegError
 from .guide_setup import check_tool_on_port
 from .navigator import DEFAULT_MAX_QUALITY
@@ -103,34 +105,24 @@ def run_until_stopped(sim) -> None:
             sim.close()
 
 
-def check_ports_attached(source, reference: int, probe: int, tool=None) -> None:
+def check_ports_attached(source: SampleSource, reference: int, probe: int,
+                         tool: ToolCalibration | None = None) -> None:
     """Refuse (exit 2) a reference or probe port without a sensor, when the source can tell; a replay's
     recording is judged whole, as the offline commands judge it (absent, still or swapped ports). ``tool``: the
     tool on the probe port, refused on a 5-DOF sensor unless its tip lies on the sensor's axis
     (:func:`~EMRegModule.live.guide_setup.check_tool_on_port`). The source is stopped when refused."""
-    check = getattr(source, "check_ports", None)
-    if callable(check):
-        try:
-            check(reference, probe)
-        except EMRegError:
-            source.stop()
-            raise
-    if tool is not None:
-        try:
+    attached = source.attached_ports()
+    try:
+        for role, port in (("reference", reference), ("probe", probe)) if attached is not None else ():
+            if port not in attached:
+                what = "" if tool is None or role == "reference" else f" for the tool of {tool.source}"
+                raise EMRegError(f"{source.description}: no sensor on the {role} port {port}{what} (sensors on "
+                                 f"ports {', '.join(map(str, attached)) or 'none'}); plug it in or set --{role}-sensor")
+        if tool is not None:
             check_tool_on_port(source, probe, tool)
-        except EMRegError:
-            source.stop()
-            raise
-    ports = getattr(source, "attached_ports", None)
-    if not callable(ports):
-        return
-    attached = ports()
-    for role, port in (("reference", reference), ("probe", probe)):
-        if port not in attached:
-            source.stop()
-            what = "" if tool is None or role == "reference" else f" for the tool of {tool.source}"
-            raise EMRegError(f"{source.description}: no sensor on the {role} port {port}{what} (sensors on ports "
-                             f"{', '.join(map(str, attached)) or 'none'}); set --{role}-sensor")
+    except EMRegError:
+        source.stop()
+        raise
 
 
 def framing_text(source) -> str | None:

@@ -11,7 +11,6 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-import SimpleITK as sitk
 
 from ..core.frames import LPS_TO_RAS
 from ..core.plan import plan_from_points
@@ -59,6 +58,7 @@ def show_volume(scene: Any, image: Any, name: str = VOLUME_NODE_NAME, node: Any 
     either while both are in use. ``copy_voxels`` gives the node its own copy instead (a scene where a
     user may edit the volume in place, as in 3D Slicer's application).
     """
+    import SimpleITK as sitk
     import slicer.util
 
     if image.GetNumberOfComponentsPerPixel() != 1 or image.GetDimension() != 3:
@@ -102,6 +102,7 @@ def show_stored_volume(scene: Any, stored: StoredVoxels, name: str = VOLUME_NODE
 def _image_data_sharing_voxels(image: Any) -> Any:
     """A ``vtkImageData`` (origin 0, spacing 1: Slicer keeps the geometry in IJK-to-RAS) whose scalars
     are the SimpleITK image's own voxel buffer, not a copy."""
+    import SimpleITK as sitk
     from vtkmodules.util import numpy_support
     from vtkmodules.vtkCommonDataModel import vtkImageData
 

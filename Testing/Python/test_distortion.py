@@ -176,7 +176,7 @@ def test_simulate_command_passes_the_distortion_options(tmp_path: Path, monkeypa
     def fake_simulate_case(out, **kwargs):
         seen.update(kwargs)
 
-    monkeypatch.setattr("EMRegModule.simulation.case.simulate_case", fake_simulate_case)
+    monkeypatch.setattr("EMRegModule.pipeline.simulate.simulate_case", fake_simulate_case)
     assert main(["simulate", str(tmp_path / "c"), "--distortion", "1.0", "--distortion-during", "navigation",
                  "--distortion-onset", "12", "--quiet"]) == 0
     assert (seen["distortion_mm"], seen["distortion_during"], seen["distortion_onset_s"]) == (1.0, "navigation", 12.0)

@@ -39,6 +39,14 @@ class AuroraSource(DriverSource):
         self.description = (f"Aurora on {url.path} at {url.baud} baud ({self.driver.freeze_tag or 'firmware ?'}, "
                             f"{'BX' if self.driver.use_bx else 'TX'}; {tools})")
 
+    def attached_ports(self) -> tuple[int, ...]:
+        """The sensor numbers of the enabled tools (each coil of a dual-5-DOF tool its own)."""
+        return tuple(sorted(int(tool.sensor) for tool in self.driver.tools))
+
+    def port_dof(self, port: int) -> int | None:
+        """5 for a 5-DOF coil (``five_dof`` of the URL), 6 for a 6-DOF tool; None for a port with no tool."""
+        return next((int(tool.dof) for tool in self.driver.tools if tool.sensor == port), None)
+
     def link_counts(self) -> tuple[int, int]:
         """Cumulative (accepted, rejected) samples of the serial link, for the tracker-agnostic link-quality
         monitor: every tool's sample of an accepted new frame, and one lost sample per tool for every reply
