@@ -14,8 +14,8 @@ from ..errors import EMRegError, NoSafeAnswerError
 from ..io.case import find_ct, open_case, read_targets
 from ..io.markers_json import markers_beside
 from ..io.output_folder import refuse_out_over_inputs
-from ..io.tool_files import TIP_TO_PROBE_ITK, TOOL_CALIBRATION_JSON, write_tool_calibration
-from ..names import REGISTRATION_JSON
+from ..io.tool_files import write_tool_calibration
+from ..names import REGISTRATION_JSON, TIP_TO_PROBE_H5, TOOL_CALIBRATION_JSON
 from ..pipeline.inputs import case_recording, read_recording
 from ..pipeline.pivot import pivot_tool
 from ..pipeline.results import offset_summary
@@ -76,7 +76,7 @@ def cmd_pivot(args: argparse.Namespace) -> int:
     recording_path = Path(args.recording)
     inputs = controller_of(args, settings_of(args)).inputs
     tool, warnings = pivot_tool(recording_path, inputs.settings, inputs.reference_sensor, inputs.probe_sensor)
-    refuse_out_over_inputs(args.out, [recording_path], (TOOL_CALIBRATION_JSON, TIP_TO_PROBE_ITK))
+    refuse_out_over_inputs(args.out, [recording_path], (TOOL_CALIBRATION_JSON, TIP_TO_PROBE_H5))
     write_tool_calibration(tool, args.out)
     warn("pivot", warnings + tool.warnings)
     tip = ", ".join(f"{v:.2f}" for v in tool.tip_mm)

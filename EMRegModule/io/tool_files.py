@@ -33,6 +33,7 @@ from ..core.tool import ToolCalibration, check_tip_to_probe
 from ..core.tracking import probe_in_reference
 from ..core.transforms import invert_rigid
 from ..errors import EMRegError
+from ..names import TIP_TO_PROBE_H5, TOOL_CALIBRATION_JSON
 from .atomic import atomic_write_json, read_json
 from .itk_transform import read_itk_linear_matrix, write_itk_linear_matrix
 from .recording import read_recording
@@ -43,10 +44,6 @@ from .sequence_metafile import (
     read_sequence_frames,
     recording_from_frames,
 )
-
-#: Names of ``emreg pivot``'s outputs.
-TOOL_CALIBRATION_JSON = "tool_calibration.json"
-TIP_TO_PROBE_ITK = "TipToProbe.h5"
 
 
 def read_tool(path: str | os.PathLike[str], name: str | None = None) -> ToolCalibration:
@@ -141,7 +138,7 @@ def _read_plus_device_set(path: Path, name: str | None) -> ToolCalibration:
 def write_tool_calibration(tool: ToolCalibration, out: str | os.PathLike[str]) -> tuple[Path, Path]:
     """Write ``OUT/tool_calibration.json`` and ``OUT/TipToProbe.h5`` (for 3D Slicer), each atomically."""
     out = Path(out)
-    json_path, itk_path = out / TOOL_CALIBRATION_JSON, out / TIP_TO_PROBE_ITK
+    json_path, itk_path = out / TOOL_CALIBRATION_JSON, out / TIP_TO_PROBE_H5
     atomic_write_json(json_path, tool.to_json())
     write_tip_to_probe_itk(itk_path, tool.tip_to_probe)
     return json_path, itk_path

@@ -21,12 +21,10 @@ from ..core.tracking import TrackingRecording
 from ..core.transforms import rotation_to_angles
 from ..devices.samples import SensorSample
 from ..io.atomic import atomic_write_text
-from ..io.navigation_csv import GUIDANCE_COLUMNS, guidance_fields
+from ..io.navigation_csv import GUIDANCE_COLUMNS, NAVIGATION_HEADER, guidance_fields
 from ..io.sequence_metafile import format_sequence_metafile
 from ..io.tracking_csv import HEADER_ANGLES
 from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
-
-NAVIGATION_HEADER = ("time_s", "x_mm", "y_mm", "z_mm", "label", "status")
 
 
 class StreamingCSV:
@@ -135,7 +133,8 @@ class NavigationWriter(StreamingCSV):
     navigate``; ``guidance``: with a plan, the guidance columns follow (mm, degrees; empty where undefined)."""
 
     def __init__(self, path: str | os.PathLike[str], flush_interval_s: float = 1.0, guidance: bool = False) -> None:
-        super().__init__(path, NAVIGATION_HEADER + (GUIDANCE_COLUMNS if guidance else ()), flush_interval_s)
+        super().__init__(path, (*NAVIGATION_HEADER.split(","), *(GUIDANCE_COLUMNS if guidance else ())),
+                         flush_interval_s)
 
     def write_position(self, time_s: float, position_image_mm: np.ndarray, label: str = "", status: str = "OK",
                        numbers: tuple[float, ...] | None = None) -> None:
