@@ -47,7 +47,7 @@ from ..marker_model import MarkerModel
 from ..names import REFERENCE_TO_IMAGE_H5, REGISTRATION_JSON
 from ..settings import RegistrationSettings, Settings
 from .calibration import CalibrationPoint, FrameCalibration
-from .distortion import SUSPECT_LEVEL, DistortionEstimate, estimate_distortion, fit_field
+from .distortion import SUSPECT_LEVEL, DistortionEstimate, NoisePrior, estimate_distortion, fit_field
 from .error_model import RegistrationError, registration_error
 from .probe_axis import pair_with_probe_axis
 from .sensor_offset import OffsetSolution, solve_sensor_offset
@@ -476,12 +476,26 @@ def distortion_of_fit(solution: OffsetSolution, points_reference: np.ndarray, or
     poses = [p.tracker_to_reference for p in calibration_points]
     return estimate_distortion(points_reference, points_reference - pinholes_reference, axes_reference,
                                config.distortion_false_alarm, [p.label for p in calibration_points], image_markers,
-                               None if any(p is None for p in poses) else np.asarray(poses))
+                               None if any(p is None for p in poses) else np.asarray(poses),
+                               dwell_noise(calibration_points, config.dwell_error_ratio))
+
+
+def dwell_noise(calibration_points: list[CalibrationPoint], ratio: float) -> NoisePrior | None:
+    """The probe's per-dwell error (per axis, mm) from evidence apart from the fit's residuals: ``ratio``
+    (``[registration] dwell_error_ratio``) times the within-dwell spread of the calibration samples (RMS of the
+    points' ``std_mm`` over the three axes). None when a point's spread is unknown (an older calibration file)."""
+    spreads = np.array([p.std_mm for p in calibration_points], dtype=float)
+    if not len(spreads) or not np.all(np.isfinite(spreads)) or not np.any(spreads > 0):
+        return None
+    spread = float(np.sqrt(np.mean(spreads**2) / 3.0))
+    return NoisePrior(ratio * spread, f"{ratio:g} x the calibration dwells' spread of {spread:.3f} mm per axis")
 
 
 def check_distortion(distortion: DistortionEstimate, config: RegistrationSettings) -> list[str]:
     """Refuse (:class:`NoSafeAnswerError`) a detected distortion above ``max_distortion_mm`` (RMS at the
-    pinholes); below it, a warning saying where and how much."""
+    pinholes), and residuals beyond ``max_fle_ratio`` times the tracker's own noise (:func:`check_fle`); below, a
+    warning saying where and how much."""
+    check_fle(distortion, config)
     if not distortion.detected:
         return []
     largest, _ = distortion.largest()
@@ -494,6 +508,20 @@ def check_distortion(distortion: DistortionEstimate, config: RegistrationSetting
             "frame and the transmitter and calibrate again")
     return [f"field distortion detected: {size}; metal near the frame or the transmitter? The predicted TRE and "
             "tre_map.nrrd include it for navigation in this same field"]
+
+
+def check_fle(distortion: DistortionEstimate, config: RegistrationSettings) -> None:
+    """Refuse (:class:`NoSafeAnswerError`) residuals whose per-dwell error, beside any fitted field, is above
+    ``[registration] max_fle_ratio`` times the one known apart from them
+    (:attr:`EMRegModule.core.distortion.DistortionEstimate.fle_ratio`): no predicted TRE explains them."""
+    ratio = distortion.fle_ratio
+    if np.isfinite(ratio) and ratio > config.max_fle_ratio:
+        beside = " beside the field distortion detected" if distortion.detected else ""
+        raise NoSafeAnswerError(
+            f"the calibration residuals{beside} show a per-dwell error {ratio:.1f} times what the tracker's own "
+            f"noise explains ({distortion.noise_prior_source}), above the limit of {config.max_fle_ratio:g} "
+            "([registration] max_fle_ratio): no predicted error can be trusted; check that the probe sits in each "
+            "pinhole, that nothing metal is near, and calibrate again")
 
 
 def calibration_port(frame_calibration: FrameCalibration, key: str) -> int | None:
