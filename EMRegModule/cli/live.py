@@ -556,7 +556,8 @@ def run_live_navigate(args: argparse.Namespace) -> int:
     navigator = LiveNavigator(reference_to_image, reference, probe, server, writer, source.period_s,
                               args.stale_periods, _max_quality(args), out=None if args.quiet else sys.stderr,
                               device_name=device, link=link, check_ports=link is not None,  # ports judged live
-                              trust=trust, tip_to_probe=None if tool is None else tool.tip_to_probe, guide=guide)
+                              trust=trust, tip_to_probe=None if tool is None else tool.tip_to_probe, guide=guide,
+                              prediction_trust=_prediction_trust(registration))
     navigator.max_frames = args.max_samples
     if guide is not None and server is not None:
         guide.keep_plan_published(server)
@@ -607,6 +608,12 @@ def run_live_navigate(args: argparse.Namespace) -> int:
           f"withheld by the watchdog ({why}{again}); {trust.report.summary()}{guided}")
     _report_framing(args, source)
     return 0
+
+
+def _prediction_trust(registration: RegistrationResult) -> dict | None:
+    """The registration's ``prediction_trust`` block (None: an older registration that has none)."""
+    distortion = None if registration.error is None else registration.error.distortion
+    return None if distortion is None else distortion.prediction_trust()
 
 
 def _trust_monitor(args: argparse.Namespace, registration: RegistrationResult, pinhole_probe: bool = True):
