@@ -33,7 +33,10 @@ included, and loses power as the noise grows. When the probe's per-dwell error i
 the residuals (:class:`NoisePrior`: the within-dwell spread of the calibration samples times the tracker's ratio,
 ``[registration] dwell_error_ratio``), a second statistic compares each candidate's explained sum of squares with
 that noise (its chi-square tail), the smallest over the candidates, with its own Monte Carlo null; the reported
-p-value is twice the smaller of the two (Bonferroni: the false-alarm rate stays ``alpha``). The noise level grows
+p-value is twice the smaller of the two (Bonferroni: the false-alarm rate stays ``alpha``), the known-noise one
+counted only when the share test leans the same way (:data:`SHARE_SUPPORT`): a noise level set
+too small (a tracker of another ratio, a tool whose tip error the dwells do not show) would make any residual look
+coherent, and the largest candidate fit it. The noise level grows
 with the tracker's real noise, while a field's coherent residual stays. The same prior checks the FRE
 (:attr:`DistortionEstimate.fle_ratio`): in the Fitzpatrick model the residual sum of squares is ``(3N - P) FLE^2``,
 so an FRE above what the prior explains (beside any fitted field) means an error the model does not know of; the
@@ -104,6 +107,10 @@ WITHOUT_LARGEST_LEVEL = 0.05
 AXIAL_SHARE = 0.7
 #: Below this p-value a distortion not detected is still named as a reason not to trust the prediction.
 SUSPECT_LEVEL = 0.05
+#: The known-noise test counts only when the share test's p-value is at most this (chosen on the development
+#: fields: it keeps most of the known-noise test's gain, and a pivoting stylus's calibration, whose dwells do not show
+#: its tip error, no longer looks distorted).
+SHARE_SUPPORT = 0.2
 #: The largest residual is a bad pair's candidate only when its share of the sum of squares has a p-value below this.
 OUTLIER_LEVEL = 0.01
 #: Generic smooth candidates: polynomial degrees, Gaussian-process lengths (fractions of the pinholes' RMS distance
@@ -745,9 +752,11 @@ def _arrays(points_reference: np.ndarray, residuals_reference: np.ndarray, axes_
 
 
 def _test(points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None, residuals: np.ndarray,
-          noise: NoisePrior | None = None) -> tuple[_Scan, np.ndarray, float, float, int] | None:
+          noise: NoisePrior | None = None, support: float = SHARE_SUPPORT
+          ) -> tuple[_Scan, np.ndarray, float, float, int] | None:
     """The scan, z, statistic's share, p-value and best candidate of residuals (None: too few to test). With a
-    ``noise`` prior: the share test and the known-noise test both, twice the smaller p-value and its candidate."""
+    ``noise`` prior: the share test and the known-noise test both, twice the smaller p-value and its candidate (the
+    known-noise one only when the share test's p-value is at most ``support``)."""
     projected = _projected(points, axes, poses, residuals)
     if projected is None:
         return None
@@ -758,7 +767,7 @@ def _test(points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None,
     null = null_statistics(scan, known_noise=True)
     (smallest, share, best), (known, known_share, known_best) = scan.best_both(z, noise.sigma_mm)
     p_value, p_known = _p_value(scan, float(smallest), null=null[:, 0]), _p_value(scan, float(known), null=null[:, 1])
-    if p_known < p_value:
+    if p_known < p_value and p_value <= support:  # a noise level too small makes any residual look coherent
         share, best, p_value = known_share, known_best, p_known
     return scan, z, float(share), min(1.0, 2.0 * p_value), int(best)
 
@@ -811,7 +820,7 @@ def _estimate(points_reference: np.ndarray, residuals_reference: np.ndarray, axe
     keep = np.arange(len(points)) != largest
     p_without, share = float("nan"), float("nan")
     rest = _test(points[keep], None if axes is None else axes[keep], None if poses is None else poses[keep],
-                 residuals[keep], noise) if len(points) > 4 else None
+                 residuals[keep], noise, support=1.0) if len(points) > 4 else None
     if rest is not None:
         p_without = rest[3]
         share = _predicted_share(rest[0].candidates[rest[4]], points, poses, axes, residuals, largest)

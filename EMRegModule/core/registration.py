@@ -483,8 +483,12 @@ def distortion_of_fit(solution: OffsetSolution, points_reference: np.ndarray, or
 def dwell_noise(calibration_points: list[CalibrationPoint], ratio: float) -> NoisePrior | None:
     """The probe's per-dwell error (per axis, mm) from evidence apart from the fit's residuals: ``ratio``
     (``[registration] dwell_error_ratio``) times the within-dwell spread of the calibration samples (RMS of the
-    points' ``std_mm`` over the three axes). None when a point's spread is unknown (an older calibration file)."""
+    points' ``std_mm`` over the three axes). None when a point's spread is unknown (an older calibration file) or
+    was taken with a tool (a pivoting or resting stylus: the tip calibration's error is common to a dwell's samples
+    and does not show in their spread)."""
     spreads = np.array([p.std_mm for p in calibration_points], dtype=float)
+    if any(p.motion for p in calibration_points):
+        return None
     if not len(spreads) or not np.all(np.isfinite(spreads)) or not np.any(spreads > 0):
         return None
     spread = float(np.sqrt(np.mean(spreads**2) / 3.0))
