@@ -346,7 +346,7 @@ def test_a_smooth_field_fitted_to_the_paired_points_explains_an_unpaired_one():
 def test_a_noise_level_known_apart_from_the_residuals_finds_a_field_in_larger_noise():
     """A 0.5 mm smooth field in 0.3 mm (per axis) noise, 8 geometries: the share test alone (which divides by the
     residuals' own sum of squares, the field's included) finds few; with the noise known from the dwells (the
-    known-noise test beside it, Bonferroni) most."""
+    known-noise test beside it) most."""
     alone = with_prior = 0
     for seed in range(8):
         points, residuals, axes = _smooth_residuals(np.random.default_rng([77, seed]), 0.5, 0.3)
@@ -359,8 +359,8 @@ def test_a_noise_level_known_apart_from_the_residuals_finds_a_field_in_larger_no
 
 def test_the_false_alarm_rate_holds_with_a_known_noise_level():
     """Noise of three sizes, 8 geometries each, with that noise known: no more false alarms than the rate allows
-    (twice the smaller of two p-values: the chance of 2 or more in 24 at 0.002 is 0.1 %), and the FRE agrees with
-    the noise (its ratio near 1, no reason not to trust the prediction from it)."""
+    (the smaller of two p-values, against its own null: the chance of 2 or more in 24 at 0.002 is 0.1 %), and the FRE
+    agrees with the noise (its ratio near 1, no reason not to trust the prediction from it)."""
     p_values, ratios = [], []
     for seed in range(8):
         for k, noise in enumerate((0.1, 0.4, 1.6)):
