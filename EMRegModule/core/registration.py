@@ -316,7 +316,8 @@ def register(
                             paired_images, config.pairing.point_tolerance_mm)
     warnings += _unpaired_warnings([m for k, m in enumerate(image_ids) if k not in paired_images],
                                    [p for k, p in enumerate(labels) if k not in paired_cal and p not in moved],
-                                   distortion)
+                                   distortion, noise_beyond_tolerance(distortion, len(labels),
+                                                                      config.pairing.point_tolerance_mm))
     warnings += list(moved.values())
     warnings += _distortion_evidence(distortion, solution, points, labels, paired_cal, origins, axes, image_ids,
                                      paired_images)
@@ -361,10 +362,18 @@ def pairing_record(pairing: PairingResult, settings: PairingSettings) -> dict[st
             "distance_tolerance_mm": round(settings.distance_tolerance_mm, 3)}
 
 
+#: The expected number of calibration points the tracker's noise alone puts beyond the pairing tolerance from which
+#: an unpaired point is put down to that noise rather than to the user.
+NOISE_EXPLAINS_UNPAIRED = 0.5
+
+
 def _unpaired_warnings(image_markers: list[str], calibration_points: list[str],
-                       distortion: DistortionEstimate | None = None) -> list[str]:
+                       distortion: DistortionEstimate | None = None,
+                       noise_beyond: tuple[float, float, float] | None = None) -> list[str]:
     """One line per kind of point left out of the registration, naming them and the likely reason (a detected
-    field distortion first: it moves points off their pinholes, and the user is not blamed for it)."""
+    field distortion first: it moves points off their pinholes, and the user is not blamed for it; then the
+    tracker's own noise when it alone puts points beyond the pairing tolerance, ``noise_beyond``:
+    :func:`noise_beyond_tolerance`)."""
     lines = []
     if calibration_points and distortion is not None and distortion.detected:
         largest, _ = distortion.largest()
@@ -380,6 +389,13 @@ def _unpaired_warnings(image_markers: list[str], calibration_points: list[str],
                      f"{SUSPECT_LEVEL:g}): a field distortion may have moved them beyond the pairing tolerance; remove "
                      "metal from near the frame and transmitter and calibrate again (or the probe was not in the "
                      "pinhole, or that marker was not found in the CT: see 'rejected' in markers.json)")
+    elif calibration_points and noise_beyond is not None:
+        lines.append(f"calibration point(s) {', '.join(calibration_points)} paired with no marker of the CT, left "
+                     f"out of the registration: the tracker's noise at this calibration ({noise_beyond[0]:.2f} mm per "
+                     f"axis per dwell, from the dwells' spread) puts about {noise_beyond[1]:.1f} of the points beyond "
+                     f"the pairing tolerance ({noise_beyond[2]:.2f} mm) by itself: it may have moved them there "
+                     "(or the probe was not in the pinhole, or that marker was not found in the CT: see 'rejected' "
+                     "in markers.json)")
     elif calibration_points:
         lines.append(f"calibration point(s) {', '.join(calibration_points)} paired with no marker of the CT, left "
                      "out of the registration: the probe was likely not in a pinhole while recorded there, or that "
@@ -392,11 +408,30 @@ def _unpaired_warnings(image_markers: list[str], calibration_points: list[str],
         lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
                      "registration: a field distortion, suspected from the paired pinholes' residuals, may have moved "
                      "their calibration points out of pairing (or their pinholes were not recorded)")
+    elif image_markers and calibration_points and noise_beyond is not None:
+        lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
+                     "registration: the tracker's noise may have moved their calibration points out of pairing (or "
+                     "their pinholes were not recorded)")
     elif image_markers:
         lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
                      "registration: their pinholes were likely not recorded in the calibration (or their dwells "
                      "not found)")
     return lines
+
+
+def noise_beyond_tolerance(distortion: DistortionEstimate, points: int, tolerance_mm: float
+                           ) -> tuple[float, float, float] | None:
+    """When the tracker's noise known from the dwells (per axis, mm) is enough by itself to put at least
+    :data:`NOISE_EXPLAINS_UNPAIRED` of ``points`` calibration points beyond the pairing tolerance (a 3D Gaussian's
+    chance of a distance above it): (that noise, the expected number beyond, the tolerance); None otherwise or
+    without a noise prior."""
+    from scipy.special import gammaincc
+
+    sigma = distortion.noise_prior_sigma_mm
+    if not sigma > 0:
+        return None
+    expected = points * float(gammaincc(1.5, (tolerance_mm / sigma) ** 2 / 2.0))
+    return (sigma, expected, tolerance_mm) if expected >= NOISE_EXPLAINS_UNPAIRED else None
 
 
 def _suspected(distortion: DistortionEstimate | None) -> bool:

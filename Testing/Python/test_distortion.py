@@ -391,3 +391,20 @@ def test_residuals_beyond_the_known_noise_are_said_and_refused_above_the_limit()
     same = estimate_distortion(points, residuals, axes, 0.002, noise=NoisePrior(0.6, "known"))
     assert same.fle_consistent and same.prediction_trust()["trusted"] == (not same.p_value <= 0.05)
     assert DistortionEstimate.from_json(estimate.to_json()).fle_ratio == pytest.approx(estimate.fle_ratio, rel=1e-3)
+
+
+def test_points_the_trackers_noise_puts_beyond_the_tolerance_are_not_blamed_on_the_user():
+    """A noise (from the dwells) that alone puts points beyond the pairing tolerance names itself for the points
+    left out, not the user; a small one leaves the wording as it was."""
+    from EMRegModule.core.registration import _unpaired_warnings, noise_beyond_tolerance
+
+    points, residuals, axes = _smooth_residuals(np.random.default_rng(43), 0.0, 1.0)
+    noisy = estimate_distortion(points, residuals, axes, 0.002, noise=NoisePrior(1.0, "the dwells"))
+    quiet = estimate_distortion(points, residuals, axes, 0.002, noise=NoisePrior(0.25, "the dwells"))
+    beyond = noise_beyond_tolerance(noisy, 28, 2.33)
+    assert beyond is not None and 2.0 < beyond[1] < 5.0  # 28 x P(chi2(3) > 2.33^2): 3.4
+    assert noise_beyond_tolerance(quiet, 28, 2.33) is None
+    lines = _unpaired_warnings(["I07"], ["P03"], noisy, beyond)
+    assert len(lines) == 2 and all("tracker's noise" in line for line in lines)
+    assert not any(blame in line for line in lines for blame in ("likely not in a pinhole", "likely not recorded"))
+    assert "likely not in a pinhole" in _unpaired_warnings([], ["P03"], quiet, None)[0]
