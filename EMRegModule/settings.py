@@ -288,7 +288,15 @@ class RegistrationSettings:
     Field distortion (:mod:`EMRegModule.core.distortion`): a detected one (false-alarm rate
     ``distortion_false_alarm``, 0.002) whose RMS at the pinholes beyond the rigid fit is above
     ``max_distortion_mm`` (1.5 mm) is refused: alone it would take most of a 2 mm accuracy budget (the
-    FRE limit), so the field is no place to navigate in; below, it is warned about and predicted."""
+    FRE limit), so the field is no place to navigate in; below, it is warned about and predicted.
+
+    The probe's per-dwell error known apart from the residuals (the test's noise, issue 37): ``dwell_error_ratio``
+    (1.8) times the within-dwell spread of the calibration samples (per axis). The tracker's per-dwell error and its
+    sample-to-sample jitter are both its own; their ratio is a property of the tracker, measured on clean simulated
+    trakSTAR sessions as 1.63 +/- 0.08 (28 pinholes, noise x1-x2) and set above it so that an error larger than the
+    spread predicts is not read as a distortion. Calibration residuals whose per-dwell error (beside any fitted
+    field) is more than ``max_fle_ratio`` (2.5) times that are refused: the predicted TRE explains them by nothing
+    it models."""
 
     max_fre_mm: float = positive(2.0)
     outlier_factor: float = positive(2.5)
@@ -299,6 +307,8 @@ class RegistrationSettings:
     exclude_outliers: bool = False
     max_distortion_mm: float = positive(1.5)
     distortion_false_alarm: float = positive(0.002)
+    dwell_error_ratio: float = positive(1.8)
+    max_fle_ratio: float = positive(2.5)
     pairing: PairingSettings = field(default_factory=PairingSettings)
 
     def validate(self) -> None:
@@ -590,7 +600,9 @@ class Settings:
 #: ``(table, key)`` added to the settings later, left out of :meth:`Settings.to_json` (and so of the digest, the
 #: provenance of every output) while at its default; key None: the whole table (the robot's, which no registration
 #: stage reads).
-ADDED_LATER: tuple[tuple[str, str | None], ...] = (("navigation", "plan"), ("handeye", None), ("robot", None))
+ADDED_LATER: tuple[tuple[str, str | None], ...] = (("navigation", "plan"), ("handeye", None), ("robot", None),
+                                                   ("registration", "dwell_error_ratio"),
+                                                   ("registration", "max_fle_ratio"))
 
 
 def sensor_ports_given(settings: Settings) -> tuple[int | None, int | None]:

@@ -28,6 +28,22 @@ compared with ``[registration] distortion_false_alarm``. No noise level is used 
 inside a noise estimate made from its own residuals. (A permutation null, the residual vectors shuffled among the
 pinholes, is available as :data:`NULL`; the Gaussian one is the default, exact for isotropic noise.)
 
+**Noise from independent evidence.** The share test divides by the residuals' own sum of squares, the signal
+included, and loses power as the noise grows. When the probe's per-dwell error is known from evidence other than
+the residuals (:class:`NoisePrior`: the within-dwell spread of the calibration samples times the tracker's ratio,
+``[registration] dwell_error_ratio``), a second statistic compares each candidate's explained sum of squares with
+that noise (its chi-square tail), the smallest over the candidates; the reported p-value is that of the smaller of
+the two tests' p-values against the same over the Monte Carlo null draws of both (the false-alarm rate stays
+``alpha``, where twice the smaller, Bonferroni, would cost power), the known-noise one
+counted only when the share test leans the same way (:data:`SHARE_SUPPORT`): a noise level set
+too small (a tracker of another ratio, a tool whose tip error the dwells do not show) would make any residual look
+coherent, and the largest candidate fit it. The noise level grows
+with the tracker's real noise, while a field's coherent residual stays. The same prior checks the FRE
+(:attr:`DistortionEstimate.fle_ratio`): in the Fitzpatrick model the residual sum of squares is ``(3N - P) FLE^2``,
+so an FRE above what the prior explains (beside any fitted field) means an error the model does not know of; the
+prediction then takes the larger FLE the residuals show, says it is not to be trusted, and above
+``[registration] max_fle_ratio`` the registration is refused.
+
 **One bad pair or a field.** A probe not fully inserted moves one point; a field moves several neighbours. The
 evidence is put down to one bad pair only when all three hold: the largest residual is an outlier by itself (its
 share of the sum of squares beyond what noise gives in this geometry, :data:`OUTLIER_LEVEL`), the other pinholes
@@ -79,6 +95,8 @@ OBJECT_GAPS_MM = (15.0, 50.0, 100.0, 180.0, 300.0)
 MIN_TRANSMITTER_DISTANCE_MM = 80.0
 #: Monte Carlo draws of the null distribution (p-values resolved to 1 / 2001, ample for a false-alarm rate of 0.002).
 NULL_DRAWS = 2000
+#: Relative size below which a candidate's column direction counts as absent (its rank, its fit).
+RANK_TOLERANCE = 1e-9
 #: Fewest residual degrees of freedom a test needs (below: not tested).
 MIN_DOF = 6
 #: Share of the largest residual's square the field fitted to the other pinholes must predict, when those alone are
@@ -90,6 +108,10 @@ WITHOUT_LARGEST_LEVEL = 0.05
 AXIAL_SHARE = 0.7
 #: Below this p-value a distortion not detected is still named as a reason not to trust the prediction.
 SUSPECT_LEVEL = 0.05
+#: The known-noise test counts only when the share test's p-value is at most this (chosen on the development
+#: fields: it keeps most of the known-noise test's gain, and a pivoting stylus's calibration, whose dwells do not show
+#: its tip error, no longer looks distorted).
+SHARE_SUPPORT = 0.2
 #: The largest residual is a bad pair's candidate only when its share of the sum of squares has a p-value below this.
 OUTLIER_LEVEL = 0.01
 #: Generic smooth candidates: polynomial degrees, Gaussian-process lengths (fractions of the pinholes' RMS distance
@@ -99,6 +121,15 @@ GP_LENGTH_FRACTIONS = (0.5, 1.0, 2.0)
 GP_MODES = (4, 8)
 #: The null distribution: "gaussian" (isotropic noise drawn) or "permutation" (the residual vectors shuffled).
 NULL = "gaussian"
+
+
+@dataclass(frozen=True)
+class NoisePrior:
+    """The probe's per-dwell localisation error known apart from the residuals tested: ``sigma_mm`` per axis (mm),
+    and ``source``, where it comes from (words for ``registration.json`` and the report)."""
+
+    sigma_mm: float
+    source: str
 
 
 def _kernel(points_a: np.ndarray, points_b: np.ndarray, length_mm: np.ndarray | float) -> np.ndarray:
@@ -274,7 +305,7 @@ class _Scan:
             design = np.stack([basis.T @ _stack(c.columns(points, poses, seen)) for c in candidates])
             q, r = np.linalg.qr(design)  # (C, m, P)
             diagonal = np.abs(np.diagonal(r, axis1=-2, axis2=-1))
-            keep = diagonal > 1e-9 * diagonal.max(axis=-1, keepdims=True)  # drop dependent columns
+            keep = diagonal > RANK_TOLERANCE * diagonal.max(axis=-1, keepdims=True)  # drop dependent columns
             ranks = keep.sum(axis=-1)
             if ranks.max() > basis.shape[1] - MIN_DOF:
                 continue
@@ -292,22 +323,47 @@ class _Scan:
     def candidates(self) -> list:
         return [c for g in self.groups for c in g.candidates]
 
+    def rank_of(self, index: int) -> int:
+        """The rank candidate ``index`` (of :attr:`candidates`) was tested with."""
+        for group in self.groups:
+            if index < len(group.candidates):
+                return int(group.ranks[index])
+            index -= len(group.candidates)
+        raise IndexError(index)
+
     def best(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """For z (..., m): the smallest candidate p-value (:func:`_share_p_values`), the share of |z|^2 that candidate
-        explains, and its index in :attr:`candidates` (each (...,))."""
+        """For z (..., m): the smallest candidate p-value of the share test (:func:`_share_p_values`, no noise
+        level), the share of |z|^2 that candidate explains, and its index in :attr:`candidates` (each (...,))."""
+        return self.best_both(z)[0]
+
+    def best_both(self, z: np.ndarray, sigma_mm: float | None = None) -> list[tuple[np.ndarray, np.ndarray,
+                                                                                     np.ndarray]]:
+        """:meth:`best` of the share test, and with ``sigma_mm`` (the noise per axis known) also of the known-noise
+        test: the sum of squares each candidate explains against that noise, a chi-square of its rank's degrees of
+        freedom (the candidates' fractions computed once for both)."""
+        from scipy.special import gammaincc
+
         z = np.asarray(z, dtype=float)
-        p_values, fractions, indices, offset = [], [], [], 0
+        total = np.sum(z**2, axis=-1)
+        fractions, indices, offset = [], [], 0
+        p_values: list[list[np.ndarray]] = [[], []]
         for group in self.groups:
             f = group.fractions(z)
             best = np.argmax(f, axis=-1)
             fractions.append(np.take_along_axis(f, best[..., None], -1)[..., 0])
             indices.append(best + offset)
-            p_values.append(_share_p_values(fractions[-1], group.ranks[0], self.dof))
+            p_values[0].append(_share_p_values(fractions[-1], group.ranks[0], self.dof))
+            if sigma_mm is not None:
+                p_values[1].append(gammaincc(group.ranks[0] / 2.0, fractions[-1] * total / (2.0 * sigma_mm**2)))
             offset += len(group.candidates)
-        p_all, f_all, i_all = np.stack(p_values, -1), np.stack(fractions, -1), np.stack(indices, -1)
-        index = np.argmin(p_all, axis=-1)[..., None]
-        return (np.take_along_axis(p_all, index, -1)[..., 0], np.take_along_axis(f_all, index, -1)[..., 0],
-                np.take_along_axis(i_all, index, -1)[..., 0])
+        f_all, i_all = np.stack(fractions, -1), np.stack(indices, -1)
+        out = []
+        for p in p_values[:1 if sigma_mm is None else 2]:
+            p_all = np.stack(p, -1)
+            index = np.argmin(p_all, axis=-1)[..., None]
+            out.append((np.take_along_axis(p_all, index, -1)[..., 0], np.take_along_axis(f_all, index, -1)[..., 0],
+                        np.take_along_axis(i_all, index, -1)[..., 0]))
+        return out
 
 
 def _generic_candidates(points: np.ndarray) -> list:
@@ -380,6 +436,33 @@ class DistortionEstimate:
     p_value_without_largest: float = float("nan")
     largest_predicted_share: float = float("nan")
     left_out: str = ""
+    #: The probe's per-dwell error known apart from the residuals (:class:`NoisePrior`; NaN: none) and its source.
+    noise_prior_sigma_mm: float = float("nan")
+    noise_prior_source: str = ""
+
+    @property
+    def fle_ratio(self) -> float:
+        """The per-dwell error the residuals show (beside the fitted field when one was detected) over the one known
+        apart from them (NaN without a prior): near 1 when the FRE is what the tracker's noise explains."""
+        if not (self.noise_prior_sigma_mm > 0):
+            return float("nan")
+        return float(self.noise_sigma_mm / self.noise_prior_sigma_mm)
+
+    def fle_p_value(self) -> float:
+        """The chance of residuals at least this much larger than the prior explains (chi-square on the noise's
+        degrees of freedom; NaN without a prior)."""
+        from scipy.special import gammaincc
+
+        ratio = self.fle_ratio
+        if not np.isfinite(ratio) or not np.isfinite(self.noise_dof):
+            return float("nan")
+        return float(gammaincc(self.noise_dof / 2.0, self.noise_dof * ratio**2 / 2.0))
+
+    @property
+    def fle_consistent(self) -> bool:
+        """False when the residuals are larger than the prior explains at :data:`SUSPECT_LEVEL` (True without one)."""
+        p = self.fle_p_value()
+        return not (np.isfinite(p) and p <= SUSPECT_LEVEL)
 
     @property
     def detected(self) -> bool:
@@ -452,6 +535,11 @@ class DistortionEstimate:
             reasons.append(f"the residuals are more coherent than noise (p = {self.p_value:.2g}) without reaching the "
                            f"false-alarm rate of the distortion test ({self.alpha:g}){why}: a field distortion may be "
                            "hiding in the tracking error the prediction assumes")
+        if self.tested and not self.fle_consistent:
+            reasons.append(f"the calibration residuals show a per-dwell error {self.fle_ratio:.1f} times what the "
+                           f"tracker's own noise explains ({self.noise_prior_source}): the predicted TRE takes the "
+                           "larger error the residuals show, but its cause (a probe not seated, a bent probe, an "
+                           "unmodelled distortion) is not known")
         return {"trusted": not reasons, "reasons": reasons,
                 "distortion_ms_mm2": round(self.measured_ms(), 6)}
 
@@ -516,7 +604,9 @@ class DistortionEstimate:
             "test": "share of the rigid fit's residual sum of squares the best candidate field explains (an induced "
                     "dipole near the frame, smooth bumps, polynomial fields, a Gaussian process's smoothest modes; "
                     "chosen by its tail probability), against the Monte Carlo distribution of the smallest tail "
-                    "probability under independent noise",
+                    "probability under independent noise" + ("; and the sum of squares it explains against the "
+                                                              "noise_prior (chi-square), the smaller p-value's own"
+                                                              if self.noise_prior_sigma_mm > 0 else ""),
             "statistic": round(float(self.statistic), 6), "p_value": round(float(self.p_value), 6),
             "alpha": float(self.alpha), **({"note": self.note} if self.note else {}),
             "p_value_without_largest": None if not np.isfinite(self.p_value_without_largest)
@@ -526,6 +616,11 @@ class DistortionEstimate:
             "left_out": self.left_out or None,
             "noise_sigma_mm": round(float(self.noise_sigma_mm), 5),
             "noise_dof": round(float(self.noise_dof), 3) if np.isfinite(self.noise_dof) else None,
+            **({"noise_prior": {"sigma_mm": round(float(self.noise_prior_sigma_mm), 5),
+                                "source": self.noise_prior_source, "fle_ratio": round(self.fle_ratio, 4),
+                                "fle_p_value": round(self.fle_p_value(), 6)
+                                if np.isfinite(self.fle_p_value()) else None}}
+               if self.noise_prior_sigma_mm > 0 else {}),
             "field": {
                 "frame": "Reference", "units": "mm",
                 "description": "the EM measurement's displacement at x beyond the rigid motion the registration "
@@ -576,6 +671,8 @@ class DistortionEstimate:
                    tested=bool(document.get("tested", True)),
                    image_markers=[str(v) for v in document.get("image_markers", [])],
                    note=str(document.get("note", "")),
+                   noise_prior_sigma_mm=float((document.get("noise_prior") or {}).get("sigma_mm", float("nan"))),
+                   noise_prior_source=str((document.get("noise_prior") or {}).get("source", "")),
                    p_value_without_largest=float("nan") if document.get("p_value_without_largest") is None
                    else float(document["p_value_without_largest"]),
                    largest_predicted_share=float("nan") if document.get("largest_predicted_share") is None
@@ -584,25 +681,31 @@ class DistortionEstimate:
 
 
 def null_statistics(scan: _Scan, draws: int = NULL_DRAWS, seed: int = 0,
-                    residuals: np.ndarray | None = None) -> np.ndarray:
+                    residuals: np.ndarray | None = None, known_noise: bool = False) -> np.ndarray:
     """The test statistic (the smallest candidate p-value) under noise alone (draws,) for this geometry
     (deterministic: seeded). Without ``residuals``: isotropic Gaussian noise (exact for it, whatever its size);
-    with ``residuals`` (N, 3): those vectors shuffled among the pinholes (a permutation null)."""
+    with ``residuals`` (N, 3): those vectors shuffled among the pinholes (a permutation null). ``known_noise``: the
+    statistics of the share and of the known-noise tests of the same draws (draws, 2) (:meth:`_Scan.best_both`, the
+    noise drawn of unit size)."""
     rng = np.random.default_rng(seed)
     if residuals is None:
         z = rng.standard_normal((draws, scan.dof))
     else:
         order = np.argsort(rng.random((draws, len(residuals))), axis=1)
         z = np.asarray(residuals, dtype=float)[order].reshape(draws, -1) @ scan.basis
-    out = np.empty(draws)
+    out = np.empty((draws, 2 if known_noise else 1))
     for start in range(0, draws, 250):
-        out[start:start + 250] = scan.best(z[start:start + 250])[0]
-    return out
+        for k, (smallest, _, _) in enumerate(scan.best_both(z[start:start + 250], 1.0 if known_noise else None)):
+            out[start:start + 250, k] = smallest
+    return out if known_noise else out[:, 0]
 
 
-def _p_value(scan: _Scan, statistic: float, residuals: np.ndarray | None = None) -> float:
-    """The Monte Carlo p-value of a statistic (a smallest candidate p-value: small is significant)."""
-    null = null_statistics(scan, residuals=None if NULL == "gaussian" else residuals)
+def _p_value(scan: _Scan, statistic: float, residuals: np.ndarray | None = None,
+             null: np.ndarray | None = None) -> float:
+    """The Monte Carlo p-value of a statistic (a smallest candidate p-value: small is significant) against
+    ``null`` (draws,) or the share test's :func:`null_statistics`."""
+    if null is None:
+        null = null_statistics(scan, residuals=None if NULL == "gaussian" else residuals)
     return float((1 + np.count_nonzero(null <= statistic * (1 + 1e-9))) / (len(null) + 1))
 
 
@@ -649,21 +752,44 @@ def _arrays(points_reference: np.ndarray, residuals_reference: np.ndarray, axes_
     return points, residuals, axes, poses
 
 
-def _test(points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None,
-          residuals: np.ndarray) -> tuple[_Scan, np.ndarray, float, float, int] | None:
-    """The scan, z, statistic's share, p-value and best candidate of residuals (None: too few to test)."""
+def _test(points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None, residuals: np.ndarray,
+          noise: NoisePrior | None = None, support: float = SHARE_SUPPORT
+          ) -> tuple[_Scan, np.ndarray, float, float, int] | None:
+    """The scan, z, statistic's share, p-value and best candidate of residuals (None: too few to test). With a
+    ``noise`` prior: the share test and the known-noise test both, the smaller p-value's own and its candidate (the
+    known-noise one only when the share test's p-value is at most ``support``)."""
     projected = _projected(points, axes, poses, residuals)
     if projected is None:
         return None
     scan, z = projected
-    smallest, share, best = scan.best(z)
-    return scan, z, float(share), _p_value(scan, float(smallest), residuals), int(best)
+    if noise is None or not noise.sigma_mm > 0 or NULL != "gaussian":
+        smallest, share, best = scan.best(z)
+        return scan, z, float(share), _p_value(scan, float(smallest), residuals), int(best)
+    null = null_statistics(scan, known_noise=True)
+    (smallest, share, best), (known, known_share, known_best) = scan.best_both(z, noise.sigma_mm)
+    p_value, p_known = _p_value(scan, float(smallest), null=null[:, 0]), _p_value(scan, float(known), null=null[:, 1])
+    if p_known < p_value and p_value <= support:  # a noise level too small makes any residual look coherent
+        share, best = known_share, known_best
+    return scan, z, float(share), _combined_p_value(null, p_value, p_known, support), int(best)
+
+
+def _combined_p_value(null: np.ndarray, p_share: float, p_known: float, support: float) -> float:
+    """The p-value of the two tests together: the smaller of the share test's and the known-noise test's
+    (the latter only where the former is at most ``support``), against the same statistic over the null draws
+    (draws, 2) of both (exact for the pair, where twice the smaller, Bonferroni, would halve the power)."""
+    def p_values(column: np.ndarray) -> np.ndarray:
+        return (1 + np.searchsorted(np.sort(column), column * (1 + 1e-9), side="right")) / (len(column) + 1)
+
+    share, known = p_values(null[:, 0]), p_values(null[:, 1])
+    draws = np.where(share <= support, np.minimum(share, known), share)
+    observed = min(p_share, p_known) if p_share <= support else p_share
+    return float((1 + np.count_nonzero(draws <= observed * (1 + 1e-9))) / (len(draws) + 1))
 
 
 def estimate_distortion(points_reference: np.ndarray, residuals_reference: np.ndarray,
                         axes_reference: np.ndarray | None, alpha: float, labels: Sequence[str] = (),
-                        image_markers: Sequence[str] = (),
-                        tracker_to_reference: np.ndarray | None = None) -> DistortionEstimate:
+                        image_markers: Sequence[str] = (), tracker_to_reference: np.ndarray | None = None,
+                        noise: NoisePrior | None = None) -> DistortionEstimate:
     """Test the rigid fit's residuals for field distortion and fit it (see the module docstring).
 
     ``points_reference`` (N, 3): the paired calibration points (Reference, mm); ``residuals_reference``
@@ -671,8 +797,20 @@ def estimate_distortion(points_reference: np.ndarray, residuals_reference: np.nd
     ``axes_reference`` (N, 3): the markers' axes in the Reference frame when l was solved (None: fixed);
     ``alpha``: the false-alarm rate (``[registration] distortion_false_alarm``);
     ``tracker_to_reference`` (N, 4, 4): the transmitter's pose at each point's dwells (None: unknown, no
-    dipole candidates; the generic smooth fields and bumps still are).
+    dipole candidates; the generic smooth fields and bumps still are); ``noise``: the probe's per-dwell error known
+    apart from these residuals (None: the share test alone, and no FRE check).
     """
+    estimate = _estimate(points_reference, residuals_reference, axes_reference, alpha, labels, image_markers,
+                         tracker_to_reference, noise)
+    if noise is None or not estimate.tested or not noise.sigma_mm > 0:
+        return estimate
+    return replace(estimate, noise_prior_sigma_mm=float(noise.sigma_mm), noise_prior_source=noise.source)
+
+
+def _estimate(points_reference: np.ndarray, residuals_reference: np.ndarray, axes_reference: np.ndarray | None,
+              alpha: float, labels: Sequence[str], image_markers: Sequence[str],
+              tracker_to_reference: np.ndarray | None, noise: NoisePrior | None) -> DistortionEstimate:
+    """:func:`estimate_distortion` before the noise prior is recorded."""
     points, residuals, axes, poses = _arrays(points_reference, residuals_reference, axes_reference,
                                              tracker_to_reference)
     labels = list(labels) or [f"P{k + 1:02d}" for k in range(len(points))]
@@ -684,7 +822,7 @@ def estimate_distortion(points_reference: np.ndarray, residuals_reference: np.nd
                                   image_markers=list(image_markers), note="too few pinholes to test")
     if len(points) < 4:
         return untested
-    tested = _test(points, axes, poses, residuals)
+    tested = _test(points, axes, poses, residuals, noise)
     if tested is None:
         return untested if not len(residuals) or np.any(residuals) else replace(untested, note="")
     scan, z, statistic, p_value, best = tested
@@ -696,7 +834,7 @@ def estimate_distortion(points_reference: np.ndarray, residuals_reference: np.nd
     keep = np.arange(len(points)) != largest
     p_without, share = float("nan"), float("nan")
     rest = _test(points[keep], None if axes is None else axes[keep], None if poses is None else poses[keep],
-                 residuals[keep]) if len(points) > 4 else None
+                 residuals[keep], noise, support=1.0) if len(points) > 4 else None
     if rest is not None:
         p_without = rest[3]
         share = _predicted_share(rest[0].candidates[rest[4]], points, poses, axes, residuals, largest)
@@ -719,11 +857,16 @@ def _fitted(scan: _Scan, z: np.ndarray, best: int, points: np.ndarray, residuals
     model = _refine(scan, scan.candidates[best], points, poses, z)
     at_pinholes = model.columns(points, poses, scan.seen)  # (N, 3, P)
     design = scan.basis.T @ _stack(at_pinholes)
-    amplitudes, *_ = np.linalg.lstsq(design, z, rcond=None)
+    # no more directions than the scan tested the candidate with (its rank there): a candidate of more columns than
+    # residual dimensions must not fit the noise away (a 60-column cubic polynomial spans all 41 of 28 pinholes)
+    u, singular, vt = np.linalg.svd(design, full_matrices=False)
+    rank = min(scan.rank_of(best), int(np.count_nonzero(singular > RANK_TOLERANCE * singular[0])))
+    inverse = vt[:rank].T @ (u[:, :rank] / singular[:rank]).T
+    amplitudes = inverse @ z
     remaining = z - design @ amplitudes
-    dof = scan.dof - np.linalg.matrix_rank(design) - (3 if isinstance(model, _Dipole) else 0)
+    dof = scan.dof - rank - (3 if isinstance(model, _Dipole) else 0)
     variance = float(remaining @ remaining) / max(dof, 1)
-    covariance = variance * np.linalg.pinv(design.T @ design)
+    covariance = variance * inverse @ inverse.T
     rigid = np.linalg.pinv(_rigid_jacobian(points, axes))[:6] @ _stack(at_pinholes)
     centroid = points.mean(axis=0)
     nonrigid = at_pinholes @ amplitudes - fiducial_jacobian(points, centroid) @ (rigid @ amplitudes)

@@ -43,7 +43,7 @@ from ..marker_model import MarkerModel
 from ..names import REFERENCE_TO_IMAGE_H5
 from ..settings import RegistrationSettings, Settings
 from .calibration import CalibrationPoint, FrameCalibration
-from .distortion import SUSPECT_LEVEL, DistortionEstimate, estimate_distortion, fit_field
+from .distortion import SUSPECT_LEVEL, DistortionEstimate, NoisePrior, estimate_distortion, fit_field
 from .error_model import RegistrationError, registration_error
 from .probe_axis import pair_with_probe_axis
 from .sensor_offset import OffsetSolution, solve_sensor_offset
@@ -312,7 +312,8 @@ def register(
                             paired_images, config.pairing.point_tolerance_mm)
     warnings += _unpaired_warnings([m for k, m in enumerate(image_ids) if k not in paired_images],
                                    [p for k, p in enumerate(labels) if k not in paired_cal and p not in moved],
-                                   distortion)
+                                   distortion, noise_beyond_tolerance(distortion, len(labels),
+                                                                      config.pairing.point_tolerance_mm))
     warnings += list(moved.values())
     warnings += _distortion_evidence(distortion, solution, points, labels, paired_cal, origins, axes, image_ids,
                                      paired_images)
@@ -357,10 +358,18 @@ def pairing_record(pairing: PairingResult, settings: PairingSettings) -> dict[st
             "distance_tolerance_mm": round(settings.distance_tolerance_mm, 3)}
 
 
+#: The expected number of calibration points the tracker's noise alone puts beyond the pairing tolerance from which
+#: an unpaired point is put down to that noise rather than to the user.
+NOISE_EXPLAINS_UNPAIRED = 0.5
+
+
 def _unpaired_warnings(image_markers: list[str], calibration_points: list[str],
-                       distortion: DistortionEstimate | None = None) -> list[str]:
+                       distortion: DistortionEstimate | None = None,
+                       noise_beyond: tuple[float, float, float] | None = None) -> list[str]:
     """One line per kind of point left out of the registration, naming them and the likely reason (a detected
-    field distortion first: it moves points off their pinholes, and the user is not blamed for it)."""
+    field distortion first: it moves points off their pinholes, and the user is not blamed for it; then the
+    tracker's own noise when it alone puts points beyond the pairing tolerance, ``noise_beyond``:
+    :func:`noise_beyond_tolerance`)."""
     lines = []
     if calibration_points and distortion is not None and distortion.detected:
         largest, _ = distortion.largest()
@@ -376,6 +385,13 @@ def _unpaired_warnings(image_markers: list[str], calibration_points: list[str],
                      f"{SUSPECT_LEVEL:g}): a field distortion may have moved them beyond the pairing tolerance; remove "
                      "metal from near the frame and transmitter and calibrate again (or the probe was not in the "
                      "pinhole, or that marker was not found in the CT: see 'rejected' in markers.json)")
+    elif calibration_points and noise_beyond is not None:
+        lines.append(f"calibration point(s) {', '.join(calibration_points)} paired with no marker of the CT, left "
+                     f"out of the registration: the tracker's noise at this calibration ({noise_beyond[0]:.2f} mm per "
+                     f"axis per dwell, from the dwells' spread) puts about {noise_beyond[1]:.1f} of the points beyond "
+                     f"the pairing tolerance ({noise_beyond[2]:.2f} mm) by itself: it may have moved them there "
+                     "(or the probe was not in the pinhole, or that marker was not found in the CT: see 'rejected' "
+                     "in markers.json)")
     elif calibration_points:
         lines.append(f"calibration point(s) {', '.join(calibration_points)} paired with no marker of the CT, left "
                      "out of the registration: the probe was likely not in a pinhole while recorded there, or that "
@@ -388,11 +404,30 @@ def _unpaired_warnings(image_markers: list[str], calibration_points: list[str],
         lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
                      "registration: a field distortion, suspected from the paired pinholes' residuals, may have moved "
                      "their calibration points out of pairing (or their pinholes were not recorded)")
+    elif image_markers and calibration_points and noise_beyond is not None:
+        lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
+                     "registration: the tracker's noise may have moved their calibration points out of pairing (or "
+                     "their pinholes were not recorded)")
     elif image_markers:
         lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
                      "registration: their pinholes were likely not recorded in the calibration (or their dwells "
                      "not found)")
     return lines
+
+
+def noise_beyond_tolerance(distortion: DistortionEstimate, points: int, tolerance_mm: float
+                           ) -> tuple[float, float, float] | None:
+    """When the tracker's noise known from the dwells (per axis, mm) is enough by itself to put at least
+    :data:`NOISE_EXPLAINS_UNPAIRED` of ``points`` calibration points beyond the pairing tolerance (a 3D Gaussian's
+    chance of a distance above it): (that noise, the expected number beyond, the tolerance); None otherwise or
+    without a noise prior."""
+    from scipy.special import gammaincc
+
+    sigma = distortion.noise_prior_sigma_mm
+    if not sigma > 0:
+        return None
+    expected = points * float(gammaincc(1.5, (tolerance_mm / sigma) ** 2 / 2.0))
+    return (sigma, expected, tolerance_mm) if expected >= NOISE_EXPLAINS_UNPAIRED else None
 
 
 def _suspected(distortion: DistortionEstimate | None) -> bool:
@@ -472,12 +507,30 @@ def distortion_of_fit(solution: OffsetSolution, points_reference: np.ndarray, or
     poses = [p.tracker_to_reference for p in calibration_points]
     return estimate_distortion(points_reference, points_reference - pinholes_reference, axes_reference,
                                config.distortion_false_alarm, [p.label for p in calibration_points], image_markers,
-                               None if any(p is None for p in poses) else np.asarray(poses))
+                               None if any(p is None for p in poses) else np.asarray(poses),
+                               dwell_noise(calibration_points, config.dwell_error_ratio))
+
+
+def dwell_noise(calibration_points: list[CalibrationPoint], ratio: float) -> NoisePrior | None:
+    """The probe's per-dwell error (per axis, mm) from evidence apart from the fit's residuals: ``ratio``
+    (``[registration] dwell_error_ratio``) times the within-dwell spread of the calibration samples (RMS of the
+    points' ``std_mm`` over the three axes). None when a point's spread is unknown (an older calibration file) or
+    was taken with a tool (a pivoting or resting stylus: the tip calibration's error is common to a dwell's samples
+    and does not show in their spread)."""
+    spreads = np.array([p.std_mm for p in calibration_points], dtype=float)
+    if any(p.motion for p in calibration_points):
+        return None
+    if not len(spreads) or not np.all(np.isfinite(spreads)) or not np.any(spreads > 0):
+        return None
+    spread = float(np.sqrt(np.mean(spreads**2) / 3.0))
+    return NoisePrior(ratio * spread, f"{ratio:g} x the calibration dwells' spread of {spread:.3f} mm per axis")
 
 
 def check_distortion(distortion: DistortionEstimate, config: RegistrationSettings) -> list[str]:
     """Refuse (:class:`NoSafeAnswerError`) a detected distortion above ``max_distortion_mm`` (RMS at the
-    pinholes); below it, a warning saying where and how much."""
+    pinholes), and residuals beyond ``max_fle_ratio`` times the tracker's own noise (:func:`check_fle`); below, a
+    warning saying where and how much."""
+    check_fle(distortion, config)
     if not distortion.detected:
         return []
     largest, _ = distortion.largest()
@@ -490,6 +543,20 @@ def check_distortion(distortion: DistortionEstimate, config: RegistrationSetting
             "frame and the transmitter and calibrate again")
     return [f"field distortion detected: {size}; metal near the frame or the transmitter? The predicted TRE and "
             "tre_map.nrrd include it for navigation in this same field"]
+
+
+def check_fle(distortion: DistortionEstimate, config: RegistrationSettings) -> None:
+    """Refuse (:class:`NoSafeAnswerError`) residuals whose per-dwell error, beside any fitted field, is above
+    ``[registration] max_fle_ratio`` times the one known apart from them
+    (:attr:`EMRegModule.core.distortion.DistortionEstimate.fle_ratio`): no predicted TRE explains them."""
+    ratio = distortion.fle_ratio
+    if np.isfinite(ratio) and ratio > config.max_fle_ratio:
+        beside = " beside the field distortion detected" if distortion.detected else ""
+        raise NoSafeAnswerError(
+            f"the calibration residuals{beside} show a per-dwell error {ratio:.1f} times what the tracker's own "
+            f"noise explains ({distortion.noise_prior_source}), above the limit of {config.max_fle_ratio:g} "
+            "([registration] max_fle_ratio): no predicted error can be trusted; check that the probe sits in each "
+            "pinhole, that nothing metal is near, and calibrate again")
 
 
 def calibration_port(frame_calibration: FrameCalibration, key: str) -> int | None:

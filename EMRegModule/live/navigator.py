@@ -51,6 +51,9 @@ from ..names import DEFAULT_PROBE_PORT, DEFAULT_REFERENCE_PORT
 
 #: Device name of the STATUS messages that carry checkpoint results and reference jumps (live navigation).
 CHECKPOINT_STATUS_NAME = "Checkpoint"
+#: Device name of the STATUS that says the registration's predicted error is not to be trusted, and why (its
+#: ``prediction_trust`` reasons), sent at the start and once a second (a client that connects later learns it).
+TRUST_STATUS_NAME = "PredictionTrust"
 
 #: Status of a sample whose pose the link guard's jump test refused (moved faster than a hand can).
 STATUS_REJECTED = "rejected"
@@ -226,10 +229,12 @@ class _WatchedPublisher:
     watchdog: Watchdog
     announcer: _Announcer
     _lock: threading.Lock
+    #: the clock samples are judged by (monotonic seconds); a replay on the recording's own clock sets another
+    clock: Callable[[], float] = staticmethod(time.monotonic)
 
     def tick(self) -> Verdict:
         """Re-evaluate without a new sample (staleness); returns the verdict."""
-        now = time.monotonic()
+        now = self.clock()
         with self._lock:
             verdict = self.watchdog.evaluate(now)
             self.announcer.update(verdict, now)
@@ -237,7 +242,7 @@ class _WatchedPublisher:
 
     def device_lost(self, message: str) -> Verdict:
         """The device is gone: publish a not-OK STATUS now (clients must not keep the last OK)."""
-        now = time.monotonic()
+        now = self.clock()
         with self._lock:
             self.watchdog.lost = message
             verdict = self.watchdog.evaluate(now)
@@ -271,7 +276,10 @@ class LiveNavigator(_WatchedPublisher):
     a tool on the probe port, whose tip is then published (``TipToImage = ProbeToImage @ TipToProbe``, under
     ``device_name``) and written; the checkpoints (``trust``) still watch the sensor's own pose. ``guide``: a
     :class:`~.guide.LiveGuide` (a plan): each pose's guidance numbers go into ``navigation.csv`` and, at most 20 times
-    a second, into a STRING ``Guidance``, and the plan is published once a second.
+    a second, into a STRING ``Guidance``, and the plan is published once a second. ``prediction_trust``: the
+    registration's ``prediction_trust`` block; when it is not trusted, its reasons go out in a STATUS
+    ``PredictionTrust`` (at the start and once a second) and on the terminal. ``clock``: what samples are judged by
+    (monotonic seconds; a replay on a recording's own clock gives another).
     """
 
     def __init__(self, reference_to_image: np.ndarray, reference_sensor: int = DEFAULT_REFERENCE_PORT,
@@ -279,7 +287,9 @@ class LiveNavigator(_WatchedPublisher):
                  stale_periods: float = 3.0, max_quality: float | None = DEFAULT_MAX_QUALITY,
                  out: TextIO | None = sys.stderr, device_name: str = "ProbeToImage", status_name: str = "Navigation",
                  link=None, check_ports: bool = False, trust=None, tip_to_probe: np.ndarray | None = None,
-                 guide=None) -> None:
+                 guide=None, prediction_trust: dict | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.clock = clock
         self.reference_to_image = np.asarray(reference_to_image, dtype=float)
         self.tip_to_probe = None if tip_to_probe is None else np.asarray(tip_to_probe, dtype=float)
         self.guide = guide
@@ -313,6 +323,15 @@ class LiveNavigator(_WatchedPublisher):
         #: ``Checkpoint`` (sticky: a client that connects later learns it) and one terminal line
         self.trust = trust
         self.out = out
+        reasons = [] if prediction_trust is None or prediction_trust.get("trusted", True) else \
+            [str(r) for r in prediction_trust.get("reasons", [])]
+        #: why the registration's predicted error is not to be trusted (empty: it is, or nothing says otherwise)
+        self.untrusted = "; ".join(reasons or ([] if prediction_trust is None or prediction_trust.get("trusted", True)
+                                               else ["the registration says its predicted error is not trusted"]))
+        self._trust_sent: float | None = None
+        if self.untrusted and out is not None:
+            print(f"[emreg] warning: the predicted error is not to be trusted: {self.untrusted}", file=out, flush=True)
+        self._send_prediction_trust(self.clock())
 
     @property
     def verdict(self) -> Verdict | None:
@@ -321,10 +340,20 @@ class LiveNavigator(_WatchedPublisher):
     def tick(self) -> Verdict:
         """The watchdog's re-evaluation, and the plan published again when it is due (clients that connect later)."""
         verdict = super().tick()
-        if self.guide is not None and self.server is not None:
-            with self._lock:
+        with self._lock:
+            if self.guide is not None and self.server is not None:
                 self.guide.keep_plan_published(self.server)
+            self._send_prediction_trust(self.clock())
         return verdict
+
+    def _send_prediction_trust(self, now_s: float) -> None:
+        """The STATUS ``PredictionTrust`` with the reasons, when not trusted: now, and again each second."""
+        if not self.untrusted or self.server is None:
+            return
+        if self._trust_sent is None or now_s - self._trust_sent >= 1.0:
+            self._trust_sent = now_s
+            self.server.send(StatusMessage(st.STATUS_UNKNOWN_ERROR, 0, "PredictionNotTrusted", self.untrusted,
+                                           device_name=TRUST_STATUS_NAME))
 
     def device_back(self, link=None) -> None:
         super().device_back(link)
@@ -335,7 +364,7 @@ class LiveNavigator(_WatchedPublisher):
                 self.watchdog.port_check = PortRoleCheck(self.reference_sensor, self.probe_sensor)
 
     def on_sample(self, sample: SensorSample) -> None:
-        now = time.monotonic()
+        now = self.clock()
         with self._lock:
             if sample.sensor not in (self.reference_sensor, self.probe_sensor):
                 self.watchdog.observe(sample, now)

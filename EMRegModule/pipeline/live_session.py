@@ -168,7 +168,8 @@ def navigate_live(session: LiveNavigation, source_url: str, options: LiveOptions
     navigator = LiveNavigator(np.asarray(session.registration.reference_to_image, dtype=float), reference, probe,
                               server, writer, source.period_s, options.stale_periods, max_quality, out=options.log,
                               device_name=device, link=link, check_ports=link is not None,  # ports judged live
-                              trust=trust, tip_to_probe=None if tool is None else tool.tip_to_probe, guide=guide)
+                              trust=trust, tip_to_probe=None if tool is None else tool.tip_to_probe, guide=guide,
+                              prediction_trust=_prediction_trust(session.registration))
     navigator.max_frames = options.max_samples
     if guide is not None and server is not None:
         guide.keep_plan_published(server)
@@ -266,3 +267,9 @@ def _write_live_guidance(out: Path, guide: LiveGuide, tool: ToolCalibration | No
     report = GuidanceReport(guide.plan, guide.prediction, None, None if guide.closest is None else guide.closest[0],
                             None if guide.closest is None else guide.closest[2], closest, frames, tool_summary(tool))
     atomic_write_json(out / NAVIGATION_JSON, report.to_json())
+
+
+def _prediction_trust(registration: RegistrationResult) -> dict | None:
+    """The registration's ``prediction_trust`` block (None: an older registration that has none)."""
+    distortion = None if registration.error is None else registration.error.distortion
+    return None if distortion is None else distortion.prediction_trust()

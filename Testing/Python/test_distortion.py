@@ -17,7 +17,7 @@ from conftest import SMALL_CASE_OPTIONS
 from scipy.optimize import least_squares
 
 from EMRegModule.cli.main import main
-from EMRegModule.core.distortion import DistortionEstimate, estimate_distortion
+from EMRegModule.core.distortion import DistortionEstimate, NoisePrior, estimate_distortion
 from EMRegModule.core.em_field import coil_field, induced_coupling, position_error
 from EMRegModule.core.transforms import apply_transform, fit_rigid, invert_rigid, make_transform, random_rotation
 from EMRegModule.io.registration_files import read_registration
@@ -341,3 +341,70 @@ def test_a_smooth_field_fitted_to_the_paired_points_explains_an_unpaired_one():
         after = np.linalg.norm(in_truth[worst] - fitted.field_at(in_truth[worst][None])[0] - points[worst])
         improved += after < 0.7 * before
     assert improved >= 6
+
+
+def test_a_noise_level_known_apart_from_the_residuals_finds_a_field_in_larger_noise():
+    """A 0.5 mm smooth field in 0.3 mm (per axis) noise, 8 geometries: the share test alone (which divides by the
+    residuals' own sum of squares, the field's included) finds few; with the noise known from the dwells (the
+    known-noise test beside it) most."""
+    alone = with_prior = 0
+    for seed in range(8):
+        points, residuals, axes = _smooth_residuals(np.random.default_rng([77, seed]), 0.5, 0.3)
+        alone += estimate_distortion(points, residuals, axes, 0.002).detected
+        estimate = estimate_distortion(points, residuals, axes, 0.002, noise=NoisePrior(0.3, "the dwells"))
+        with_prior += estimate.detected
+        assert estimate.noise_prior_sigma_mm == 0.3 and estimate.to_json()["noise_prior"]["source"] == "the dwells"
+    assert with_prior >= 6 and with_prior >= alone + 4
+
+
+def test_the_false_alarm_rate_holds_with_a_known_noise_level():
+    """Noise of three sizes, 8 geometries each, with that noise known: no more false alarms than the rate allows
+    (the smaller of two p-values, against its own null: the chance of 2 or more in 24 at 0.002 is 0.1 %), and the FRE
+    agrees with the noise (its ratio near 1, no reason not to trust the prediction from it)."""
+    p_values, ratios = [], []
+    for seed in range(8):
+        for k, noise in enumerate((0.1, 0.4, 1.6)):
+            points, residuals, axes = _smooth_residuals(np.random.default_rng([2000 + seed, k]), 0.0, noise)
+            estimate = estimate_distortion(points, residuals, axes, 0.002, noise=NoisePrior(noise, "known"))
+            p_values.append(estimate.p_value)
+            ratios.append(estimate.fle_ratio)
+    assert np.count_nonzero(np.array(p_values) <= 0.002) <= 1
+    assert np.mean(np.array(p_values) <= 0.1) < 0.3
+    assert 0.85 < np.median(ratios) < 1.15 and max(ratios) < 1.5
+
+
+def test_residuals_beyond_the_known_noise_are_said_and_refused_above_the_limit():
+    """Residuals three times what the tracker's noise explains (a probe not seated, an error the model has no term
+    for): the FRE check says so in prediction_trust, and the registration is refused above max_fle_ratio."""
+    from EMRegModule.core.registration import check_fle
+    from EMRegModule.errors import NoSafeAnswerError
+    from EMRegModule.settings import RegistrationSettings
+
+    points, residuals, axes = _smooth_residuals(np.random.default_rng(41), 0.0, 0.6)
+    estimate = estimate_distortion(points, residuals, axes, 0.002, noise=NoisePrior(0.2, "1.8 x the dwells' spread"))
+    assert estimate.fle_ratio > 2.5 and not estimate.fle_consistent
+    trust = estimate.prediction_trust()
+    assert not trust["trusted"] and any("times what the tracker's own noise explains" in r for r in trust["reasons"])
+    with pytest.raises(NoSafeAnswerError, match="max_fle_ratio"):
+        check_fle(estimate, RegistrationSettings())
+    check_fle(estimate, RegistrationSettings(max_fle_ratio=4.0))  # below the limit: said, not refused
+    same = estimate_distortion(points, residuals, axes, 0.002, noise=NoisePrior(0.6, "known"))
+    assert same.fle_consistent and same.prediction_trust()["trusted"] == (not same.p_value <= 0.05)
+    assert DistortionEstimate.from_json(estimate.to_json()).fle_ratio == pytest.approx(estimate.fle_ratio, rel=1e-3)
+
+
+def test_points_the_trackers_noise_puts_beyond_the_tolerance_are_not_blamed_on_the_user():
+    """A noise (from the dwells) that alone puts points beyond the pairing tolerance names itself for the points
+    left out, not the user; a small one leaves the wording as it was."""
+    from EMRegModule.core.registration import _unpaired_warnings, noise_beyond_tolerance
+
+    points, residuals, axes = _smooth_residuals(np.random.default_rng(43), 0.0, 1.0)
+    noisy = estimate_distortion(points, residuals, axes, 0.002, noise=NoisePrior(1.0, "the dwells"))
+    quiet = estimate_distortion(points, residuals, axes, 0.002, noise=NoisePrior(0.25, "the dwells"))
+    beyond = noise_beyond_tolerance(noisy, 28, 2.33)
+    assert beyond is not None and 2.0 < beyond[1] < 5.0  # 28 x P(chi2(3) > 2.33^2): 3.4
+    assert noise_beyond_tolerance(quiet, 28, 2.33) is None
+    lines = _unpaired_warnings(["I07"], ["P03"], noisy, beyond)
+    assert len(lines) == 2 and all("tracker's noise" in line for line in lines)
+    assert not any(blame in line for line in lines for blame in ("likely not in a pinhole", "likely not recorded"))
+    assert "likely not in a pinhole" in _unpaired_warnings([], ["P03"], quiet, None)[0]
