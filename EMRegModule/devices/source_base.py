@@ -37,6 +37,11 @@ class SampleSource(ABC):
     def stop(self) -> None:
         """Stop delivering and release the device (idempotent)."""
 
+    def check_ports(self, reference_port: int, probe_port: int) -> None:
+        """Refuse (:class:`~EMRegModule.errors.EMRegError`, one line) ports the source can judge before it starts (a
+        replay's whole recording: absent, still or swapped); a device judges its ports live instead."""
+        return None
+
     def attached_ports(self) -> tuple[int, ...] | None:
         """The ports with a sensor plugged in, when the device can tell (None: it cannot, as over OpenIGTLink or a
         replay)."""

@@ -113,6 +113,7 @@ def check_ports_attached(source: SampleSource, reference: int, probe: int,
     (:func:`~EMRegModule.live.guide_setup.check_tool_on_port`). The source is stopped when refused."""
     attached = source.attached_ports()
     try:
+        source.check_ports(reference, probe)
         for role, port in (("reference", reference), ("probe", probe)) if attached is not None else ():
             if port not in attached:
                 what = "" if tool is None or role == "reference" else f" for the tool of {tool.source}"
