@@ -110,6 +110,10 @@ def study_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--case", metavar="CASE", help="a simulated case folder with truth.json (default: simulate one)")
     p.add_argument("--work", metavar="DIR", help="where the simulated case and its detection are kept (OUT/work)")
     p.add_argument("--seed", type=int, default=1, help="seed of the simulated case")
+    p.add_argument("--only", action="append", default=[], metavar="KEY=VALUE[,VALUE]",
+                   help="run only the tasks whose parameter KEY takes one of these values, each with the seed it has "
+                        "in the whole study (e.g. --only family=clean,magpylib,multi for trust's held-out families); "
+                        "repeat for several keys")
 
 
 # --- the per-stage commands ---------------------------------------------------------------------------------

@@ -18,7 +18,7 @@ import io
 import json
 import os
 import zlib
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -74,15 +74,17 @@ def _environment_kept() -> Iterator[None]:
 
 def run_study(name: str, out: Path, quick: bool = False, scheduler: str | None = None, workers: int | None = None,
               case_dir: Path | None = None, work: Path | None = None, seed: int = 1,
-              progress: Progress = QUIET) -> Summary:
-    """Run study ``name`` and write its outputs under ``out``; returns the summary."""
+              progress: Progress = QUIET, only: Mapping[str, Sequence[str]] | None = None) -> Summary:
+    """Run study ``name`` and write its outputs under ``out``; returns the summary. ``only``: run just the tasks
+    whose parameters take one of the values given for each key (``{"family": ["clean", "magpylib"]}``); each keeps
+    its index in the whole study, so its seed and rows are the ones the whole study gives it."""
     study = STUDIES.get(name)
     if study is None:
         raise EMRegError(f"unknown study {name!r}; studies: {', '.join(STUDIES)}")
     if workers is not None and workers < 1:
         raise EMRegError(f"--workers must be at least 1, got {workers}")
     out = Path(out)
-    tasks = study.tasks(quick)
+    tasks = selected_tasks(study, quick, only or {})
     rows_by_task: dict[int, list[dict]] = {}
     with dask_client(scheduler, workers) as client:  # first: an unreachable scheduler fails before any work
         from distributed import as_completed
@@ -90,8 +92,7 @@ def run_study(name: str, out: Path, quick: bool = False, scheduler: str | None =
         frame = prepare_frame(Path(work or out / "work"), case_dir, seed, quick, log=progress.message)
         with progress.step(f"study {name}", total=len(tasks)) as step:
             frame_future = client.scatter(frame, broadcast=True)
-            futures = [client.submit(_run_task, frame_future, name, i, params, pure=False)
-                       for i, params in enumerate(tasks)]
+            futures = [client.submit(_run_task, frame_future, name, i, params, pure=False) for i, params in tasks]
             for future in as_completed(futures):
                 rows = future.result()
                 if rows:
@@ -99,13 +100,29 @@ def run_study(name: str, out: Path, quick: bool = False, scheduler: str | None =
                 step.advance()
     rows = [row for i in sorted(rows_by_task) for row in rows_by_task[i]]
     summary = study.summarize(rows)
-    _write_outputs(out, study, quick, seed, rows, summary)
+    _write_outputs(out, study, quick, seed, rows, summary, dict(only or {}))
     return summary
 
 
-def _write_outputs(out: Path, study: Study, quick: bool, seed: int, rows: list[dict], summary: Summary) -> None:
+def selected_tasks(study: Study, quick: bool, only: Mapping[str, Sequence[str]]) -> list[tuple[int, dict]]:
+    """The tasks of ``study`` (with their index in the whole study) whose parameters take one of the values
+    ``only`` gives for each key; all of them when ``only`` is empty. A selection that keeps none is refused."""
+    tasks = list(enumerate(study.tasks(quick)))
+    kept = [(i, params) for i, params in tasks
+            if all(str(params.get(key)) in {str(v) for v in values} for key, values in only.items())]
+    if not kept:
+        wanted = "; ".join(f"{key}={','.join(map(str, values))}" for key, values in only.items())
+        seen = sorted({f"{key}={params[key]}" for _, params in tasks for key in only if key in params})
+        raise EMRegError(f"study {study.name}: no task has {wanted} (tasks have "
+                         f"{', '.join(seen) or 'none of these keys'})")
+    return kept
+
+
+def _write_outputs(out: Path, study: Study, quick: bool, seed: int, rows: list[dict], summary: Summary,
+                   only: dict[str, Sequence[str]]) -> None:
     atomic_write_json(out / f"{study.name}.json", {
         "study": study.name, "title": study.title, "quick": quick, "case_seed": seed,
+        **({"only": {key: list(values) for key, values in only.items()}} if only else {}),
         "summary": {"header": summary.header, "rows": summary.rows, "notes": summary.notes}, "rows": rows})
     columns = sorted({key for row in rows for key in row})
     text = io.StringIO()

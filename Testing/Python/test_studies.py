@@ -12,6 +12,7 @@ import pytest
 from distributed import LocalCluster
 
 from EMRegModule.cli.main import main
+from EMRegModule.studies import STUDIES
 
 
 @pytest.fixture(scope="module")
@@ -94,3 +95,22 @@ def test_trust_study_measures_checkpoints_latency_and_reference_jumps(standard_c
     assert bump["flagged at the first checkpoint after"] == "0.0 % (0/1)"
     session = next(r for r in result["rows"] if r.get("checkpoints") == "bump")
     assert session["first_slip_verdict"] in ("ruled_out", "neither") and session["first_true_error_mm"] == 0.0
+
+
+def test_a_study_runs_only_the_tasks_selected_with_the_seeds_they_have_in_the_whole_study(standard_case, study_work,
+                                                                                          tmp_path, capsys):
+    """``--only family=...``: the trust study's held-out rows alone, each task keeping its index (its seed) in the
+    whole study; a selection that keeps no task is one line, exit 2, before any work."""
+    result = _study("trust", tmp_path / "held_out", standard_case, study_work, "--workers", "1",
+                    "--only", "family=magpylib", "--only", "family=clean")
+    everything = list(enumerate(STUDIES["trust"].tasks(True)))
+    expected = [i for i, params in everything if params.get("family") in ("magpylib", "clean")]
+    assert sorted({row["task"] for row in result["rows"]}) == expected
+    assert {row["family"] for row in result["rows"]} == {"magpylib", "clean"}
+    assert result["only"] == {"family": ["magpylib", "clean"]}
+    assert main(["study", "trust", "--quick", "--out", str(tmp_path / "none"), "--only", "family=steel"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no task has family=steel" in err[0] and "family=magpylib" in err[0]
+    assert not (tmp_path / "none").exists()
+    assert main(["study", "trust", "--quick", "--out", str(tmp_path / "none"), "--only", "family"]) == 2
+    assert "give KEY=VALUE" in capsys.readouterr().err
