@@ -20,7 +20,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import SplitResult, parse_qs, urlsplit
 
 from ..errors import EMRegError
 from .aurora import protocol as ndi
@@ -61,35 +61,12 @@ def parse_device_url(text: str) -> DeviceURL:
     parts = urlsplit(text)
     options = {k: v[-1] for k, v in parse_qs(parts.query).items()}
     if scheme == "aurora":
-        path = parts.path or parts.netloc
-        if parts.netloc and parts.path:
-            path = "/" + parts.netloc + parts.path
-        if not path:
-            raise EMRegError(f"device {text!r}: aurora: needs a serial device, e.g. aurora:///dev/ttyUSB0")
-        url = DeviceURL("aurora", path=path, options=options, text=text)
-        try:
-            baud = url.baud
-        except ValueError:
-            raise EMRegError(f"device {text!r}: baud must be a number") from None
-        if baud not in ndi.BAUD_RATES:
-            raise EMRegError(f"device {text!r}: baud={baud}; use {', '.join(map(str, ndi.BAUD_RATES))}")
+        url = _serial_url("aurora", text, parts, options, ndi.BAUD_RATES, "use")
         if options.get("reply", "auto") not in ("auto", "bx", "tx"):
             raise EMRegError(f"device {text!r}: reply must be auto, bx or tx")
         return url
     if scheme == "trakstar":
-        path = parts.path or parts.netloc
-        if parts.netloc and parts.path:  # trakstar://dev/ttyUSB0 (two slashes): netloc holds the first part
-            path = "/" + parts.netloc + parts.path
-        if not path:
-            raise EMRegError(f"device {text!r}: trakstar: needs a serial device, e.g. trakstar:///dev/ttyUSB0")
-        url = DeviceURL("trakstar", path=path, options=options, text=text)
-        try:
-            baud = url.baud
-        except ValueError:
-            raise EMRegError(f"device {text!r}: baud must be a number") from None
-        if baud not in tp.BAUD_RATES:
-            raise EMRegError(f"device {text!r}: baud={baud}; the trakSTAR supports "
-                             f"{', '.join(map(str, tp.BAUD_RATES))}")
+        url = _serial_url("trakstar", text, parts, options, tp.BAUD_RATES, "the trakSTAR supports")
         if "format" in options:
             try:
                 tp.get_format(options["format"])
@@ -103,3 +80,22 @@ def parse_device_url(text: str) -> DeviceURL:
     if not parts.hostname or port is None:
         raise EMRegError(f"device {text!r}: igtl: needs a host and port, e.g. igtl://127.0.0.1:18944")
     return DeviceURL("igtl", host=parts.hostname, port=port, options=options, text=text)
+
+
+def _serial_url(kind: str, text: str, parts: SplitResult, options: dict[str, str], baud_rates: tuple[int, ...],
+                rates_said: str) -> DeviceURL:
+    """A serial tracker's URL (``kind:///dev/ttyUSB0?baud=N``), its device path and baud rate checked against the
+    device's ``baud_rates`` (refused naming them after ``rates_said``)."""
+    path = parts.path or parts.netloc
+    if parts.netloc and parts.path:  # kind://dev/ttyUSB0 (two slashes): netloc holds the first part
+        path = "/" + parts.netloc + parts.path
+    if not path:
+        raise EMRegError(f"device {text!r}: {kind}: needs a serial device, e.g. {kind}:///dev/ttyUSB0")
+    url = DeviceURL(kind, path=path, options=options, text=text)
+    try:
+        baud = url.baud
+    except ValueError:
+        raise EMRegError(f"device {text!r}: baud must be a number") from None
+    if baud not in baud_rates:
+        raise EMRegError(f"device {text!r}: baud={baud}; {rates_said} {', '.join(map(str, baud_rates))}")
+    return url
