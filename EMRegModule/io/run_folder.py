@@ -110,13 +110,7 @@ class RunFolder:
 def read_manifest(out_dir: str | os.PathLike[str], notes: list[str] | None = None) -> dict[str, Any] | None:
     """``OUT/run.json`` as a JSON object (None when absent). ``notes`` given: an unreadable or damaged one is None
     and a note there; otherwise it raises :class:`EMRegError`."""
-    try:
-        return parse_manifest(out_dir)
-    except EMRegError as exc:
-        if notes is None:
-            raise
-        notes.append(str(exc))
-        return None
+    return _noted(lambda: parse_manifest(out_dir), notes)
 
 
 def recorded_run(out_dir: str | os.PathLike[str] | None) -> dict[str, Any] | None:
@@ -163,10 +157,13 @@ def read_run_folder(out_dir: str | os.PathLike[str], manifest: Mapping[str, Any]
 
 def _read(path: Path, read: Callable[[Path], T], notes: list[str] | None) -> T | None:
     """``read(path)`` when the file exists; with ``notes``, its :class:`EMRegError` becomes one (and None)."""
-    if not path.is_file():
-        return None
+    return _noted(lambda: read(path), notes) if path.is_file() else None
+
+
+def _noted(read: Callable[[], T], notes: list[str] | None) -> T | None:
+    """``read()``; with ``notes``, its :class:`EMRegError` becomes one there (and None), else it is raised."""
     try:
-        return read(path)
+        return read()
     except EMRegError as exc:
         if notes is None:
             raise
