@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from EMRegModule.core.transforms import make_transform, rotation_matrices
+
 #: The robot's clock: ROS time (s since 1970) at the start of the recording.
 ROBOT_EPOCH_S = 1_765_000_000.0
 
@@ -188,10 +190,7 @@ def rotation_error_deg(estimate: np.ndarray, truth: np.ndarray) -> float:
 
 def pose(rotvec_deg, translation) -> np.ndarray:
     """A 4x4 pose (mm) from a rotation vector (degrees) and a translation (mm)."""
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
-    out[:3, 3] = translation
-    return out
+    return make_transform(rotation_matrices(np.radians(rotvec_deg)), translation)
 
 
 def write_targeting_inputs(folder: Path) -> dict:

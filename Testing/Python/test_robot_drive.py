@@ -34,7 +34,13 @@ from EMRegModule.cli.main import main  # noqa: E402
 from EMRegModule.core.frames import LPS_TO_RAS  # noqa: E402
 from EMRegModule.core.robot_motion import guide_error  # noqa: E402
 from EMRegModule.core.robot_target import robot_target  # noqa: E402
-from EMRegModule.core.transforms import apply_transform, axis_angle_to_rotation, invert_rigid  # noqa: E402
+from EMRegModule.core.transforms import (  # noqa: E402
+    apply_transform,
+    axis_angle_to_rotation,
+    invert_rigid,
+    make_transform,
+    rotation_matrices,
+)
 from EMRegModule.devices.igtl_client import IGTLReceiver  # noqa: E402
 from EMRegModule.devices.robot.driver import MotionLimits  # noqa: E402
 from EMRegModule.devices.robot.guard import TrackerWatch, guarded_move, wait_for_tracker  # noqa: E402
@@ -67,11 +73,8 @@ stale_s = 1.0
 
 
 def _pose(rotvec, translation) -> np.ndarray:
-    pose = np.eye(4)
-    angle = float(np.linalg.norm(rotvec))
-    pose[:3, :3] = axis_angle_to_rotation(np.asarray(rotvec) / angle, angle) if angle else np.eye(3)
-    pose[:3, 3] = translation
-    return pose
+    """A 4x4 pose (mm) from a rotation vector (radians) and a translation (mm)."""
+    return make_transform(rotation_matrices(rotvec), translation)
 
 
 class World:

@@ -14,16 +14,13 @@ from EMRegModule.core.robot_motion import (
     plan_calibration_poses,
     spread_axes,
 )
-from EMRegModule.core.transforms import axis_angle_to_rotation, invert_rigid
+from EMRegModule.core.transforms import axis_angle_to_rotation, invert_rigid, make_transform, rotation_matrices
 from EMRegModule.errors import NoSafeAnswerError
 
 
 def _pose(rotvec, translation) -> np.ndarray:
-    pose = np.eye(4)
-    angle = float(np.linalg.norm(rotvec))
-    pose[:3, :3] = axis_angle_to_rotation(np.asarray(rotvec) / angle, angle) if angle else np.eye(3)
-    pose[:3, 3] = translation
-    return pose
+    """A 4x4 pose (mm) from a rotation vector (radians) and a translation (mm)."""
+    return make_transform(rotation_matrices(rotvec), translation)
 
 
 START = _pose([np.pi, 0.0, 0.0], [550.0, 0.0, 520.0])
