@@ -86,7 +86,7 @@ def positioning_errors(commanded: np.ndarray, reached: np.ndarray) -> np.ndarray
     per move, the reached pose in the commanded one's frame as a rotation vector (rad) and a translation (mm),
     (N, 6) in the Flange frame: a point ``r`` on the flange lands ``R r + t - r`` from where it was sent."""
     commanded, reached = np.asarray(commanded, dtype=float), np.asarray(reached, dtype=float)
-    miss = np.linalg.inv(commanded) @ reached
+    miss = np.array([invert_rigid(pose) for pose in commanded]) @ reached
     return np.concatenate([rotation_vectors(miss[:, :3, :3]), miss[:, :3, 3]], axis=1)
 
 

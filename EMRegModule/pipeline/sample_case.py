@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from ..core.transforms import apply_transform
+from ..core.transforms import apply_transform, invert_rigid
 from ..simulation.case import load_truth, simulate_case
 
 __all__ = ["load_truth", "reference_to_image_error_mm", "simulate_sample_case"]
@@ -30,5 +30,5 @@ def reference_to_image_error_mm(reference_to_image: np.ndarray, truth: dict[str,
     Reference frame by the case's true ``ReferenceToImage`` (``truth``, as :func:`load_truth` reads it)."""
     points = np.asarray(points_image, dtype=float).reshape(-1, 3)
     true_reference_to_image = np.asarray(truth["ReferenceToImage"], dtype=float)
-    moved = apply_transform(reference_to_image, apply_transform(np.linalg.inv(true_reference_to_image), points))
+    moved = apply_transform(reference_to_image, apply_transform(invert_rigid(true_reference_to_image), points))
     return float(np.max(np.linalg.norm(moved - points, axis=1)))
