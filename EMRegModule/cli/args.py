@@ -14,6 +14,7 @@ from pathlib import Path
 from ..errors import EMRegError
 from ..io.output_folder import OutputFolder, outputs_from, refuse_out_over_inputs
 from ..pipeline.controller import EMRegController
+from ..pipeline.inputs import refuse_tool_auto
 from ..progress import Progress
 from ..settings import Settings, load_settings, sensor_ports_given, with_series
 
@@ -108,8 +109,7 @@ def use_tool(args: argparse.Namespace, controller: EMRegController, solves: bool
     if tool:
         controller.give(tool=tool)
     if controller.inputs.tool_auto and not solves:
-        raise EMRegError(f"emreg {args.command}: --tool auto solves the tip from a calibration recording; give the "
-                         "tool_calibration.json that emreg calibrate or emreg run wrote with it instead")
+        refuse_tool_auto(f"emreg {args.command}")
 
 
 def use_plan(args: argparse.Namespace, controller: EMRegController) -> None:

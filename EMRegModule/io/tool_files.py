@@ -50,20 +50,24 @@ def read_tool(path: str | os.PathLike[str], name: str | None = None) -> ToolCali
     """A tool from a file (module docstring), by its name: ``.json``, ``.h5`` / ``.tfm`` / ``.txt``, ``.xml``.
 
     ``name``: the tool's transform name (``[tool] name``), which picks the ``<Name>Tip`` transform of a PLUS
-    device set. Raises :class:`EMRegError` (one line) for a missing or unreadable file, a non-rigid matrix,
-    and a PLUS file without the tip transform."""
+    device set and names the tool read, whatever its file calls it. Raises :class:`EMRegError` (one line) for a
+    missing or unreadable file, a non-rigid matrix, and a PLUS file without the tip transform."""
     path = Path(path)
     if not path.is_file():
         raise EMRegError(f"{path}: tool file not found")
     suffix = path.suffix.lower()
     if suffix == ".json":
-        return _read_tool_json(path)
-    if suffix in (".h5", ".hdf5", ".tfm", ".txt", ".mat"):
-        return ToolCalibration(read_tip_to_probe_itk(path), str(path), None, "itk transform file")
-    if suffix == ".xml":
-        return _read_plus_device_set(path, name)
-    raise EMRegError(f"{path}: not a tool file EMReg reads (tool_calibration.json, an ITK transform .h5/.tfm/.txt, "
-                     "or a PLUS device-set .xml)")
+        tool = _read_tool_json(path)
+    elif suffix in (".h5", ".hdf5", ".tfm", ".txt", ".mat"):
+        tool = ToolCalibration(read_tip_to_probe_itk(path), str(path), None, "itk transform file")
+    elif suffix == ".xml":
+        tool = _read_plus_device_set(path, name)
+    else:
+        raise EMRegError(f"{path}: not a tool file EMReg reads (tool_calibration.json, an ITK transform "
+                         ".h5/.tfm/.txt, or a PLUS device-set .xml)")
+    if name:
+        tool.name = name
+    return tool
 
 
 def _read_tool_json(path: Path) -> ToolCalibration:

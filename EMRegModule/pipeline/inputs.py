@@ -11,7 +11,7 @@ import dataclasses
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import numpy as np
 
@@ -95,11 +95,13 @@ def with_tool(inputs: Inputs, tool: str | os.PathLike[str] | ToolCalibration | N
         return inputs.replace(tool=tool, tool_auto=False)
     if str(tool) == "auto":
         return inputs.replace(tool=None, tool_auto=True)
-    name = inputs.settings.tool.name
-    read = read_tool(tool, name)
-    if name:
-        read.name = name
-    return inputs.replace(tool=read, tool_auto=False)
+    return inputs.replace(tool=read_tool(tool, inputs.settings.tool.name), tool_auto=False)
+
+
+def refuse_tool_auto(command: str) -> NoReturn:
+    """``--tool auto`` where there is no calibration recording to solve the tip from: refused, one line."""
+    raise EMRegError(f"{command}: --tool auto solves the tip from a calibration recording; give the "
+                     "tool_calibration.json that emreg calibrate or emreg run wrote with it instead")
 
 
 def with_plan(inputs: Inputs, plan: str | os.PathLike[str] | Plan | None,

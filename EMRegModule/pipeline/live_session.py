@@ -24,7 +24,6 @@ import numpy as np
 from ..core.checkpoints import TrustMonitor, pinholes_from_detection
 from ..core.detection.result import DetectionResult
 from ..core.guidance import GuidanceReport, predicted_at, shaft_in_tip
-from ..core.plan import check_plan_in_image
 from ..core.registration import RegistrationResult
 from ..core.tool import ToolCalibration
 from ..devices.device_url import parse_device_url
@@ -54,6 +53,7 @@ from ..live.navigator import LiveNavigator
 from ..live.writers import NavigationWriter
 from ..names import CHECKPOINTS_JSON, NAVIGATION_CSV, NAVIGATION_JSON, REGISTRATION_JSON
 from ..settings import Settings, choose_ports
+from .inputs import check_plan_in_ct, refuse_tool_auto
 from .navigating import error_model, tool_summary
 
 #: Seconds between two attempts to reopen a lost tracker.
@@ -120,14 +120,10 @@ def prepare_live_navigation(registration_path: str, settings: Settings, ports_gi
 def _live_tool(tool_file: str | None, settings: Settings) -> ToolCalibration | None:
     name = tool_file or settings.tool.calibration
     if name == "auto":
-        raise EMRegError("navigate: --tool auto solves the tip from a calibration recording; give the "
-                         "tool_calibration.json that emreg calibrate or emreg run wrote with it instead")
+        refuse_tool_auto("navigate")
     if not name:
         return None
-    tool = read_tool(tool_file or settings.file_path(name), settings.tool.name)
-    if settings.tool.name:
-        tool.name = settings.tool.name
-    return tool
+    return read_tool(tool_file or settings.file_path(name), settings.tool.name)
 
 
 def _live_guide(plan_file: str | None, settings: Settings, registration: RegistrationResult,
@@ -136,8 +132,7 @@ def _live_guide(plan_file: str | None, settings: Settings, registration: Registr
     if not name:
         return None
     plan = read_plan(plan_file or settings.file_path(name))
-    if markers is not None and getattr(markers, "image", None):
-        check_plan_in_image(plan, markers.image)
+    check_plan_in_ct(plan, markers)
     model = error_model(registration, settings)
     prediction = None if model is None else predicted_at(model, plan.target_mm, tool)
     return LiveGuide(plan, None if tool is None else shaft_in_tip(tool.tip_to_probe), prediction)
