@@ -296,7 +296,15 @@ class RegistrationSettings:
     trakSTAR sessions as 1.63 +/- 0.08 (28 pinholes, noise x1-x2) and set above it so that an error larger than the
     spread predicts is not read as a distortion. Calibration residuals whose per-dwell error (beside any fitted
     field) is more than ``max_fle_ratio`` (2.5) times that are refused: the predicted TRE explains them by nothing
-    it models."""
+    it models.
+
+    A registration that detected no distortion vouches only for fields its test could have seen: when the smallest
+    field it finds in 90 % of random smooth fields at this session's noise and pinholes
+    (:func:`EMRegModule.core.distortion.detectable_rms`) is above ``max_undetectable_distortion_mm`` (1.0 mm RMS at
+    the pinholes), the registration warns and its predicted TRE is marked not to be trusted; with
+    ``refuse_undetectable_distortion`` (false) it is refused instead. Not refused by default: a frame of few markers
+    (8 at the simulator's standard noise: 1.6 mm) cannot see a 1 mm field at any noise a tracker has, and a clean
+    registration there is still a registration."""
 
     max_fre_mm: float = positive(2.0)
     outlier_factor: float = positive(2.5)
@@ -309,6 +317,8 @@ class RegistrationSettings:
     distortion_false_alarm: float = positive(0.002)
     dwell_error_ratio: float = positive(1.8)
     max_fle_ratio: float = positive(2.5)
+    max_undetectable_distortion_mm: float = positive(1.0)
+    refuse_undetectable_distortion: bool = False
     pairing: PairingSettings = field(default_factory=PairingSettings)
 
     def validate(self) -> None:
@@ -602,7 +612,9 @@ class Settings:
 #: stage reads).
 ADDED_LATER: tuple[tuple[str, str | None], ...] = (("navigation", "plan"), ("handeye", None), ("robot", None),
                                                    ("registration", "dwell_error_ratio"),
-                                                   ("registration", "max_fle_ratio"))
+                                                   ("registration", "max_fle_ratio"),
+                                                   ("registration", "max_undetectable_distortion_mm"),
+                                                   ("registration", "refuse_undetectable_distortion"))
 
 
 def sensor_ports_given(settings: Settings) -> tuple[int | None, int | None]:

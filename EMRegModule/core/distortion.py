@@ -59,12 +59,18 @@ the test only as good as that guess.
 **Estimate.** When detected, the best candidate (a dipole's position refined by Nelder-Mead) is fitted by
 least squares: its non-rigid field at the pinholes gives ``rms_mm`` / ``max_mm``; its field and the
 covariance of its amplitudes give the distortion's mean square at any point probed in the same field
-(:meth:`DistortionEstimate.mean_square_at`, the error model's distortion term), never less than the mean square
-measured at the pinholes with its uncertainty (a field of unknown family is not known to fade beyond them, and a
-prediction that let it fade would be optimistic), and the noise that remains beside it replaces the probe's
-per-dwell error of the error model. :meth:`DistortionEstimate.prediction_trust` says, for ``registration.json``,
-why the prediction may not be trusted: a distortion measured, one suspected (p below :data:`SUSPECT_LEVEL`), or
-no test possible.
+(:meth:`DistortionEstimate.mean_square_at`, the error model's distortion term), plus what the fitted family
+misses where it was not fitted, measured by its own leave-one-out errors at the pinholes beyond their noise (a
+field of another family than the fitted one is predicted with that miss, not as if its family were known), and
+the noise that remains beside it replaces the probe's per-dwell error of the error model.
+:meth:`DistortionEstimate.prediction_trust` says, for ``registration.json``, why the prediction may not be
+trusted: a distortion measured, one suspected (p below :data:`SUSPECT_LEVEL`), or no test possible.
+
+**What a clean result means.** "Nothing detected" speaks only for fields the test could have seen.
+:func:`detectable_rms` measures, per session, the smallest field (RMS of its non-rigid part at the pinholes) the
+test finds in :data:`POWER_LEVEL` of random smooth fields at this session's noise and pinholes; it is written to
+``registration.json`` (``detectable_rms_mm``), and above ``[registration] max_undetectable_distortion_mm`` the
+registration is refused: with that much tracking noise, no distortion found does not mean no distortion.
 
 **Validation.** ``emreg study trust`` measures detection, false alarms and predicted / measured TRE on field
 families the detector was not designed around (:mod:`EMRegModule.simulation.field_families`: magpylib bodies
@@ -104,6 +110,9 @@ MIN_DOF = 6
 PREDICTED_SHARE = 0.5
 #: The other pinholes alone carry the evidence when their own test's p-value is at most this.
 WITHOUT_LARGEST_LEVEL = 0.05
+#: A calibration point left unpaired within this fraction of the pinholes' RMS distance from their centroid of the
+#: largest residual's pinhole (the widest bump the test tries) is a neighbour moved too: not one bad pair.
+NEIGHBOUR_FRACTION = LENGTH_FRACTIONS[-1]
 #: A bad pair's residual lies along its pinhole's axis (a probe not fully inserted): at least this share of its square.
 AXIAL_SHARE = 0.7
 #: Below this p-value a distortion not detected is still named as a reason not to trust the prediction.
@@ -121,6 +130,16 @@ GP_LENGTH_FRACTIONS = (0.5, 1.0, 2.0)
 GP_MODES = (4, 8)
 #: The null distribution: "gaussian" (isotropic noise drawn) or "permutation" (the residual vectors shuffled).
 NULL = "gaussian"
+#: The detectable size: the non-rigid RMS at the pinholes the test finds in this share of random smooth fields
+#: (:func:`detectable_rms`), drawn (:data:`POWER_DRAWS` of them, Gaussian processes of :data:`POWER_LENGTH_FRACTIONS`
+#: of the pinholes' RMS distance from their centroid) with this session's noise and geometry.
+POWER_LEVEL = 0.9
+POWER_DRAWS = 300
+POWER_LENGTH_FRACTIONS = (0.5, 1.0, 2.0)
+#: Bisection steps of each draw's smallest detected size (the size resolved to 2^-steps of its bracket).
+POWER_STEPS = 10
+#: Doublings of a draw's size, from 4 x the noise, before it counts as never found (2^10: a field 4000 x the noise).
+POWER_WIDENINGS = 10
 
 
 @dataclass(frozen=True)
@@ -130,6 +149,11 @@ class NoisePrior:
 
     sigma_mm: float
     source: str
+
+
+def size_words(size_mm: float) -> str:
+    """A detectable size in words: "up to 1.20 mm", or "any size" when infinite."""
+    return f"up to {size_mm:.2f} mm" if np.isfinite(size_mm) else "any size"
 
 
 def _kernel(points_a: np.ndarray, points_b: np.ndarray, length_mm: np.ndarray | float) -> np.ndarray:
@@ -436,9 +460,35 @@ class DistortionEstimate:
     p_value_without_largest: float = float("nan")
     largest_predicted_share: float = float("nan")
     left_out: str = ""
+    #: The evidence was put down to one bad pair at ``left_out`` (:func:`_several_points`): not a distortion.
+    one_bad_pair: bool = False
+    #: Calibration points the pairing left out that joined the test (near a CT pinhole no pair took): they add
+    #: evidence; the field and the noise are measured on the pairs (``labels``) alone.
+    tested_unpaired: list[str] = field(default_factory=list)
     #: The probe's per-dwell error known apart from the residuals (:class:`NoisePrior`; NaN: none) and its source.
     noise_prior_sigma_mm: float = float("nan")
     noise_prior_source: str = ""
+    #: The smallest field (RMS of its non-rigid part at the pinholes, mm) this test finds in :data:`POWER_LEVEL` of
+    #: random smooth fields at this session's noise and geometry (:func:`detectable_rms`; NaN: not tested).
+    detectable_rms_mm: float = float("nan")
+    #: The largest field the test may be unable to see before the prediction is not to be trusted (mm,
+    #: ``[registration] max_undetectable_distortion_mm``; NaN: not checked).
+    undetectable_limit_mm: float = float("nan")
+    #: The fitted field's leave-one-out errors at the pinholes (:func:`_leave_one_out`): their mean square (mm^2, 3D)
+    #: and the mean of ``tr((I - H_ii)^-1)``, what noise of unit variance per axis gives them (:attr:`extension_ms`).
+    loo_ms: float = 0.0
+    loo_noise_factor: float = 0.0
+
+    @property
+    def extension_ms(self) -> float:
+        """What the fitted family misses where it was not fitted (mm^2, 3D, per point): the leave-one-out errors'
+        mean square beyond what the noise gives them, the noise being the tracker's own known apart from the residuals
+        when smaller than the noise beside the fit (which a misfit inflates, and would hide), else the latter. Added
+        to the distortion predicted anywhere: a field of another family than the fitted one."""
+        sigma = self.noise_sigma_mm
+        if self.noise_prior_sigma_mm > 0:
+            sigma = min(sigma, self.noise_prior_sigma_mm)
+        return float(max(self.loo_ms - sigma**2 * self.loo_noise_factor, 0.0))
 
     @property
     def fle_ratio(self) -> float:
@@ -466,9 +516,7 @@ class DistortionEstimate:
 
     @property
     def detected(self) -> bool:
-        if not (self.tested and self.p_value <= self.alpha):
-            return False
-        return not (self.p_value_without_largest > self.alpha and self.largest_predicted_share < PREDICTED_SHARE)
+        return self.tested and self.p_value <= self.alpha and not self.one_bad_pair
 
     # --- the fitted field -------------------------------------------------------------------
 
@@ -489,24 +537,25 @@ class DistortionEstimate:
 
     def mean_square_at(self, points_reference: np.ndarray) -> np.ndarray:
         """Expected squared distortion error (K,) (mm^2) at points (K, 3) of the Reference frame probed in the same
-        field: the fitted field squared plus its variance, and never less than its mean over the pinholes (what was
-        measured: how a field of unknown family extends beyond them is not known, so the prediction does not let it
-        fade); 0 everywhere when no distortion was detected."""
+        field: the fitted field squared less its variance (navigation is not corrected by the fitted field, so the
+        error holds the true field, whose square the fitted one's overstates by that variance on average; never
+        below 0), plus what the fitted family itself misses where it was not fitted (:attr:`extension_ms`, from its
+        leave-one-out errors at the pinholes: a field of another family than the fitted one); 0 everywhere when no
+        distortion was detected. (Until issue 37's second round it was the fitted square plus the variance, and never
+        less than the mean square measured at the pinholes: that overshot by 1.2-1.4x at targets inside the frame,
+        where the rigid fit leaves the least of a field.)"""
         points = np.asarray(points_reference, dtype=float).reshape(-1, 3)
         if not self.detected or self.model is None:
             return np.zeros(len(points))
         values, vectors = np.linalg.eigh(np.asarray(self.amplitude_covariance, dtype=float))
         columns = np.concatenate([np.asarray(self.amplitudes, dtype=float).reshape(-1, 1),
                                   vectors * np.sqrt(np.clip(values, 0.0, None))], axis=1)
-
-        def at(chosen: np.ndarray) -> np.ndarray:
-            out = np.empty(len(chosen))
-            for start in range(0, len(chosen), 16384):
-                chunk = self._operator(chosen[start:start + 16384], columns)
-                out[start:start + len(chunk)] = np.sum(chunk**2, axis=(1, 2))
-            return out
-
-        return np.maximum(at(points), self.measured_ms())
+        fitted, variance = np.empty(len(points)), np.empty(len(points))
+        for start in range(0, len(points), 16384):
+            chunk = np.sum(self._operator(points[start:start + 16384], columns) ** 2, axis=1)  # (k, columns)
+            fitted[start:start + len(chunk)] = chunk[:, 0]
+            variance[start:start + len(chunk)] = np.sum(chunk[:, 1:], axis=1)
+        return np.clip(fitted - variance, 0.0, None) + self.extension_ms
 
     def measured_ms(self) -> float:
         """The non-rigid field's mean square over the pinholes (mm^2) with its uncertainty (the fitted field's
@@ -528,13 +577,19 @@ class DistortionEstimate:
             reasons.append(f"the residuals could not be tested for field distortion ({why})")
         elif self.detected:
             reasons.append(f"field distortion measured at the pinholes ({self.rms_mm:.2f} mm RMS, up to "
-                           f"{self.largest()[0]:.2f} mm near {self.where()}): the prediction adds at least that "
-                           "everywhere, but how the field extends beyond the pinholes is not known")
+                           f"{self.largest()[0]:.2f} mm near {self.where()}): the prediction adds the fitted field "
+                           "and its uncertainty, but how the field extends beyond the pinholes is not known")
         elif self.p_value <= SUSPECT_LEVEL:
-            why = (f"; the evidence was put down to one bad pair at {self.left_out}" if self.left_out else "")
+            why = (f"; the evidence was put down to one bad pair at {self.left_out}" if self.one_bad_pair else "")
             reasons.append(f"the residuals are more coherent than noise (p = {self.p_value:.2g}) without reaching the "
                            f"false-alarm rate of the distortion test ({self.alpha:g}){why}: a field distortion may be "
                            "hiding in the tracking error the prediction assumes")
+        if self.tested and not self.detected and self.detectable_rms_mm > self.undetectable_limit_mm:
+            reasons.append(f"with this tracking noise and these {len(self.labels) + len(self.tested_unpaired)} "
+                           "pinholes, the distortion test could "
+                           f"miss a field of {size_words(self.detectable_rms_mm)} RMS at the pinholes (above "
+                           f"{self.undetectable_limit_mm:g} mm): no distortion found does not mean none is there, "
+                           "and the prediction does not include one")
         if self.tested and not self.fle_consistent:
             reasons.append(f"the calibration residuals show a per-dwell error {self.fle_ratio:.1f} times what the "
                            f"tracker's own noise explains ({self.noise_prior_source}): the predicted TRE takes the "
@@ -613,8 +668,19 @@ class DistortionEstimate:
             else round(float(self.p_value_without_largest), 6),
             "largest_predicted_share": None if not np.isfinite(self.largest_predicted_share)
             else round(float(self.largest_predicted_share), 4),
-            "left_out": self.left_out or None,
+            "left_out": self.left_out or None, "one_bad_pair": self.one_bad_pair,
+            "tested_unpaired": list(self.tested_unpaired),
             "noise_sigma_mm": round(float(self.noise_sigma_mm), 5),
+            **({"extension_ms_mm2": round(float(self.extension_ms), 6), "loo_ms_mm2": round(float(self.loo_ms), 6),
+                "loo_noise_factor": round(float(self.loo_noise_factor), 6)} if self.detected else {}),
+            **({"detectable_rms_mm": round(float(self.detectable_rms_mm), 4)
+                if np.isfinite(self.detectable_rms_mm) else None,
+                "detectable": f"the non-rigid RMS at the pinholes this test finds in {POWER_LEVEL:.0%} of random "
+                              "smooth fields at this session's noise and pinholes (smaller fields may go unseen; "
+                              "null: no size, the test misses too many smooth fields at any size)",
+                **({"undetectable_limit_mm": float(self.undetectable_limit_mm)}
+                   if np.isfinite(self.undetectable_limit_mm) else {})}
+               if not np.isnan(self.detectable_rms_mm) else {}),
             "noise_dof": round(float(self.noise_dof), 3) if np.isfinite(self.noise_dof) else None,
             **({"noise_prior": {"sigma_mm": round(float(self.noise_prior_sigma_mm), 5),
                                 "source": self.noise_prior_source, "fle_ratio": round(self.fle_ratio, 4),
@@ -677,7 +743,24 @@ class DistortionEstimate:
                    else float(document["p_value_without_largest"]),
                    largest_predicted_share=float("nan") if document.get("largest_predicted_share") is None
                    else float(document["largest_predicted_share"]),
-                   left_out=str(document.get("left_out") or ""))
+                   left_out=str(document.get("left_out") or ""),
+                   one_bad_pair=bool(document["one_bad_pair"]) if "one_bad_pair" in document
+                   else _older_bad_pair(document),
+                   detectable_rms_mm=float("nan") if "detectable_rms_mm" not in document
+                   else float("inf") if document["detectable_rms_mm"] is None else float(document["detectable_rms_mm"]),
+                   undetectable_limit_mm=float(document.get("undetectable_limit_mm", float("nan"))),
+                   tested_unpaired=[str(v) for v in document.get("tested_unpaired", [])],
+                   loo_ms=float(document.get("loo_ms_mm2", 0.0)),
+                   loo_noise_factor=float(document.get("loo_noise_factor", 0.0)))
+
+
+def _older_bad_pair(document: Mapping[str, Any]) -> bool:
+    """Whether a ``distortion`` block written before ``one_bad_pair`` was (issue 37, second round) put its evidence
+    down to one bad pair: then the others' p-value above ``alpha`` and a predicted share below
+    :data:`PREDICTED_SHARE` said so."""
+    p_without, share = document.get("p_value_without_largest"), document.get("largest_predicted_share")
+    return p_without is not None and share is not None and float(p_without) > float(document["alpha"]) \
+        and float(share) < PREDICTED_SHARE
 
 
 def null_statistics(scan: _Scan, draws: int = NULL_DRAWS, seed: int = 0,
@@ -754,34 +837,104 @@ def _arrays(points_reference: np.ndarray, residuals_reference: np.ndarray, axes_
 
 def _test(points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None, residuals: np.ndarray,
           noise: NoisePrior | None = None, support: float = SHARE_SUPPORT
-          ) -> tuple[_Scan, np.ndarray, float, float, int] | None:
-    """The scan, z, statistic's share, p-value and best candidate of residuals (None: too few to test). With a
-    ``noise`` prior: the share test and the known-noise test both, the smaller p-value's own and its candidate (the
-    known-noise one only when the share test's p-value is at most ``support``)."""
+          ) -> tuple[_Scan, np.ndarray, float, float, int, np.ndarray] | None:
+    """The scan, z, statistic's share, p-value, best candidate and the null draws of residuals (None: too few to
+    test). With a ``noise`` prior: the share test and the known-noise test both, the smaller p-value's own and its
+    candidate (the known-noise one only when the share test's p-value is at most ``support``); the null draws are
+    then (draws, 2), else (draws,)."""
     projected = _projected(points, axes, poses, residuals)
     if projected is None:
         return None
     scan, z = projected
     if noise is None or not noise.sigma_mm > 0 or NULL != "gaussian":
         smallest, share, best = scan.best(z)
-        return scan, z, float(share), _p_value(scan, float(smallest), residuals), int(best)
+        null = null_statistics(scan, residuals=None if NULL == "gaussian" else residuals)
+        return scan, z, float(share), _p_value(scan, float(smallest), null=null), int(best), null
     null = null_statistics(scan, known_noise=True)
     (smallest, share, best), (known, known_share, known_best) = scan.best_both(z, noise.sigma_mm)
     p_value, p_known = _p_value(scan, float(smallest), null=null[:, 0]), _p_value(scan, float(known), null=null[:, 1])
     if p_known < p_value and p_value <= support:  # a noise level too small makes any residual look coherent
         share, best = known_share, known_best
-    return scan, z, float(share), _combined_p_value(null, p_value, p_known, support), int(best)
+    return scan, z, float(share), _combined_p_value(null, p_value, p_known, support), int(best), null
+
+
+def detectable_rms(scan: _Scan, points: np.ndarray, null: np.ndarray, alpha: float, noise_sigma_mm: float,
+                   prior_sigma_mm: float | None = None, support: float = SHARE_SUPPORT,
+                   max_fre_mm: float = float("inf")) -> float:
+    """The smallest non-rigid field (RMS at the pinholes, mm) the test finds in :data:`POWER_LEVEL` of random smooth
+    fields with this session's pinholes ``points`` (N, 3, Reference) and noise (``noise_sigma_mm`` per axis; the
+    test's own known noise ``prior_sigma_mm``, None: the share test alone, ``null`` then (draws,) else (draws, 2)). A
+    field whose residuals' RMS exceeds ``max_fre_mm`` counts as caught: the registration refuses such an FRE.
+
+    No family is assumed: the fields are Gaussian processes of several lengths (:data:`POWER_LENGTH_FRACTIONS`),
+    their non-rigid part scaled to each size, drawn with noise of the session's size (deterministic seed). Each
+    draw's smallest detected size is found by bisection on the same draw (the test's verdict grows with the size),
+    and the :data:`POWER_LEVEL` quantile of those is the answer. The one-bad-pair check is left out: it overrules
+    single points, not smooth fields. The answer is the size of field this session could miss: a registration
+    that found nothing says nothing about fields smaller than it. Infinite when more than 1 - :data:`POWER_LEVEL` of
+    the fields are missed at every size (the share test alone judges a field's shape, not its size: one that no
+    candidate follows is never found, however large)."""
+    rng = np.random.default_rng(7)
+    n = len(points)
+    centroid = points.mean(axis=0)
+    radius = max(float(np.sqrt(np.mean(np.sum((points - centroid) ** 2, axis=1)))), 1.0)
+    directions = np.empty((POWER_DRAWS, scan.dof))
+    for k in range(POWER_DRAWS):
+        length = radius * POWER_LENGTH_FRACTIONS[k % len(POWER_LENGTH_FRACTIONS)]
+        kernel = _kernel(points, points, length) + 1e-9 * np.eye(n)
+        field_z = scan.basis.T @ (np.linalg.cholesky(kernel) @ rng.standard_normal((n, 3))).reshape(-1)
+        directions[k] = field_z / max(float(np.linalg.norm(field_z)), 1e-300)
+    noise_z = noise_sigma_mm * rng.standard_normal((POWER_DRAWS, scan.dof))
+    known = prior_sigma_mm is not None and prior_sigma_mm > 0 and np.ndim(null) == 2
+    share_null = np.sort(null[:, 0] if known else null)
+    if known:
+        known_null = np.sort(null[:, 1])
+        combined_null = _combined_null(null, support)
+
+    def found(size_mm: np.ndarray) -> np.ndarray:
+        z = directions * (np.sqrt(n) * size_mm)[:, None] + noise_z
+        refused = np.sum(z**2, axis=1) > n * max_fre_mm**2
+        if not known:
+            p = (1 + np.searchsorted(share_null, scan.best(z)[0] * (1 + 1e-9), side="right")) / (len(share_null) + 1)
+            return (p <= alpha) | refused
+        (share, _, _), (coherent, _, _) = scan.best_both(z, prior_sigma_mm)
+        p_share = (1 + np.searchsorted(share_null, share * (1 + 1e-9), side="right")) / (len(share_null) + 1)
+        p_known = (1 + np.searchsorted(known_null, coherent * (1 + 1e-9), side="right")) / (len(known_null) + 1)
+        observed = np.where(p_share <= support, np.minimum(p_share, p_known), p_share)
+        p = (1 + np.searchsorted(combined_null, observed * (1 + 1e-9), side="right")) / (len(combined_null) + 1)
+        return (p <= alpha) | refused
+
+    low = np.zeros(POWER_DRAWS)
+    high = np.full(POWER_DRAWS, 4.0 * max(noise_sigma_mm, 0.01))
+    missed = ~found(high)
+    for _ in range(POWER_WIDENINGS):  # widen until each draw is found, or the field dwarfs the noise
+        if not missed.any():
+            break
+        high[missed] *= 2.0
+        missed[missed] = ~found(high)[missed]
+    for _ in range(POWER_STEPS):
+        middle = 0.5 * (low + high)
+        hit = found(middle)
+        high, low = np.where(hit, middle, high), np.where(hit, low, middle)
+    # a draw the test misses at every size (without a noise level the share test sees shape, not size) is never found
+    return float(np.quantile(np.where(missed, np.inf, high), POWER_LEVEL, method="higher"))
+
+
+def _combined_null(null: np.ndarray, support: float) -> np.ndarray:
+    """The two tests' combined statistic over the null draws (draws, 2), sorted: per draw, the smaller of its share
+    and known-noise p-values within the draws (the latter only where the former is at most ``support``)."""
+    def p_values(column: np.ndarray) -> np.ndarray:
+        return (1 + np.searchsorted(np.sort(column), column * (1 + 1e-9), side="right")) / (len(column) + 1)
+
+    share, known = p_values(null[:, 0]), p_values(null[:, 1])
+    return np.sort(np.where(share <= support, np.minimum(share, known), share))
 
 
 def _combined_p_value(null: np.ndarray, p_share: float, p_known: float, support: float) -> float:
     """The p-value of the two tests together: the smaller of the share test's and the known-noise test's
     (the latter only where the former is at most ``support``), against the same statistic over the null draws
     (draws, 2) of both (exact for the pair, where twice the smaller, Bonferroni, would halve the power)."""
-    def p_values(column: np.ndarray) -> np.ndarray:
-        return (1 + np.searchsorted(np.sort(column), column * (1 + 1e-9), side="right")) / (len(column) + 1)
-
-    share, known = p_values(null[:, 0]), p_values(null[:, 1])
-    draws = np.where(share <= support, np.minimum(share, known), share)
+    draws = _combined_null(null, support)
     observed = min(p_share, p_known) if p_share <= support else p_share
     return float((1 + np.count_nonzero(draws <= observed * (1 + 1e-9))) / (len(draws) + 1))
 
@@ -789,7 +942,9 @@ def _combined_p_value(null: np.ndarray, p_share: float, p_known: float, support:
 def estimate_distortion(points_reference: np.ndarray, residuals_reference: np.ndarray,
                         axes_reference: np.ndarray | None, alpha: float, labels: Sequence[str] = (),
                         image_markers: Sequence[str] = (), tracker_to_reference: np.ndarray | None = None,
-                        noise: NoisePrior | None = None) -> DistortionEstimate:
+                        noise: NoisePrior | None = None, max_fre_mm: float = float("inf"),
+                        unpaired_reference: np.ndarray | None = None,
+                        fitted_count: int | None = None) -> DistortionEstimate:
     """Test the rigid fit's residuals for field distortion and fit it (see the module docstring).
 
     ``points_reference`` (N, 3): the paired calibration points (Reference, mm); ``residuals_reference``
@@ -798,10 +953,15 @@ def estimate_distortion(points_reference: np.ndarray, residuals_reference: np.nd
     ``alpha``: the false-alarm rate (``[registration] distortion_false_alarm``);
     ``tracker_to_reference`` (N, 4, 4): the transmitter's pose at each point's dwells (None: unknown, no
     dipole candidates; the generic smooth fields and bumps still are); ``noise``: the probe's per-dwell error known
-    apart from these residuals (None: the share test alone, and no FRE check).
+    apart from these residuals (None: the share test alone, and no FRE check); ``max_fre_mm``: the FRE above which
+    the registration is refused (``[registration] max_fre_mm``: a field that large is caught, not missed, in
+    :func:`detectable_rms`); ``unpaired_reference`` (K, 3): the calibration points the pairing left out (a
+    neighbour of the largest residual among them means a field moved several pinholes, not one bad pair);
+    ``fitted_count``: how many of the points (the first) are pairs the registration used (None: all); the others
+    are unpaired points near a free CT pinhole, which join the test but not the field's fit or the noise.
     """
     estimate = _estimate(points_reference, residuals_reference, axes_reference, alpha, labels, image_markers,
-                         tracker_to_reference, noise)
+                         tracker_to_reference, noise, max_fre_mm, unpaired_reference, fitted_count)
     if noise is None or not estimate.tested or not noise.sigma_mm > 0:
         return estimate
     return replace(estimate, noise_prior_sigma_mm=float(noise.sigma_mm), noise_prior_source=noise.source)
@@ -809,27 +969,43 @@ def estimate_distortion(points_reference: np.ndarray, residuals_reference: np.nd
 
 def _estimate(points_reference: np.ndarray, residuals_reference: np.ndarray, axes_reference: np.ndarray | None,
               alpha: float, labels: Sequence[str], image_markers: Sequence[str],
-              tracker_to_reference: np.ndarray | None, noise: NoisePrior | None) -> DistortionEstimate:
+              tracker_to_reference: np.ndarray | None, noise: NoisePrior | None,
+              max_fre_mm: float = float("inf"), unpaired_reference: np.ndarray | None = None,
+              fitted_count: int | None = None) -> DistortionEstimate:
     """:func:`estimate_distortion` before the noise prior is recorded."""
     points, residuals, axes, poses = _arrays(points_reference, residuals_reference, axes_reference,
                                              tracker_to_reference)
     labels = list(labels) or [f"P{k + 1:02d}" for k in range(len(points))]
-    rms = float(np.sqrt(np.mean(residuals**2))) if len(residuals) else 0.0
+    image_markers = list(image_markers)
+    n = len(points) if fitted_count is None else min(int(fitted_count), len(points))
+    own = (points[:n], residuals[:n], None if axes is None else axes[:n], None if poses is None else poses[:n])
+    joined = labels[n:]
+    rms = float(np.sqrt(np.mean(own[1] ** 2))) if n else 0.0
     note = "" if poses is not None else ("the calibration does not say where the transmitter was (an older "
                                          "frame_calibration.json): no induced-dipole candidates, generic smooth "
                                          "fields only")
-    untested = DistortionEstimate(labels, points, residuals, 0.0, 1.0, alpha, rms, tested=False,
-                                  image_markers=list(image_markers), note="too few pinholes to test")
-    if len(points) < 4:
+    untested = DistortionEstimate(labels[:n], own[0], own[1], 0.0, 1.0, alpha, rms, tested=False,
+                                  image_markers=image_markers[:n], note="too few pinholes to test")
+    if n < 4:
         return untested
     tested = _test(points, axes, poses, residuals, noise)
     if tested is None:
         return untested if not len(residuals) or np.any(residuals) else replace(untested, note="")
-    scan, z, statistic, p_value, best = tested
+    scan, z, statistic, p_value, best, null = tested
+    # the field and the noise are measured on the pairs alone; the points that only joined the test add evidence
+    mine = tested if n == len(points) else _test(own[0], own[2], own[3], own[1], noise)
+    prior = None if noise is None else noise.sigma_mm
+
+    def finished(estimate: DistortionEstimate) -> DistortionEstimate:
+        return replace(estimate, tested_unpaired=joined,
+                       detectable_rms_mm=detectable_rms(scan, points, null, alpha, estimate.noise_sigma_mm, prior,
+                                                        max_fre_mm=max_fre_mm))
+
+    noise_alone = (float(np.sqrt(mine[1] @ mine[1] / mine[0].dof)), float(mine[0].dof)) if mine is not None \
+        else (float(np.sqrt(z @ z / scan.dof)), float(scan.dof))
     if p_value > alpha:
-        return DistortionEstimate(labels, points, residuals, statistic, p_value, alpha,
-                                  float(np.sqrt(z @ z / scan.dof)), float(scan.dof), image_markers=list(image_markers),
-                                  note=note)
+        return finished(DistortionEstimate(labels[:n], own[0], own[1], statistic, p_value, alpha, *noise_alone,
+                                           image_markers=image_markers[:n], note=note))
     largest = int(np.argmax(np.sum(residuals**2, axis=1)))
     keep = np.arange(len(points)) != largest
     p_without, share = float("nan"), float("nan")
@@ -840,13 +1016,17 @@ def _estimate(points_reference: np.ndarray, residuals_reference: np.ndarray, axe
         share = _predicted_share(rest[0].candidates[rest[4]], points, poses, axes, residuals, largest)
     axial = 1.0 if axes is None else float((residuals[largest] @ axes[largest]) ** 2
                                            / max(residuals[largest] @ residuals[largest], 1e-300))
-    if not _several_points(p_without, share, _outlier_p_value(scan, residuals), axial):
-        return DistortionEstimate(labels, points, residuals, statistic, p_value, alpha,
-                                  float(np.sqrt(z @ z / scan.dof)), float(scan.dof), image_markers=list(image_markers),
-                                  note=note, p_value_without_largest=p_without, largest_predicted_share=share,
-                                  left_out=labels[largest])
-    return _fitted(scan, z, best, points, residuals, axes, poses, labels, image_markers, statistic, p_value, alpha,
-                   note, p_without, share, labels[largest])
+    if not _several_points(p_without, share, _outlier_p_value(scan, residuals), axial,
+                           _unpaired_near(points, largest, unpaired_reference)):
+        return finished(DistortionEstimate(labels[:n], own[0], own[1], statistic, p_value, alpha, *noise_alone,
+                                           image_markers=image_markers[:n], note=note,
+                                           p_value_without_largest=p_without, largest_predicted_share=share,
+                                           left_out=labels[largest], one_bad_pair=True))
+    if mine is None:  # too few pairs to fit a field on them alone: on every point tested
+        return finished(_fitted(scan, z, best, points, residuals, axes, poses, labels, image_markers, statistic,
+                                p_value, alpha, note, p_without, share, labels[largest]))
+    return finished(_fitted(mine[0], mine[1], mine[4], *own[:2], own[2], own[3], labels[:n], image_markers[:n],
+                            statistic, p_value, alpha, note, p_without, share, labels[largest]))
 
 
 def _fitted(scan: _Scan, z: np.ndarray, best: int, points: np.ndarray, residuals: np.ndarray,
@@ -873,7 +1053,27 @@ def _fitted(scan: _Scan, z: np.ndarray, best: int, points: np.ndarray, residuals
     return DistortionEstimate(labels, points, residuals, statistic, p_value, alpha, float(np.sqrt(variance)),
                               float(max(dof, 1)), model, amplitudes, covariance, rigid, nonrigid,
                               image_markers=list(image_markers), note=note, p_value_without_largest=p_without,
-                              largest_predicted_share=share, left_out=left_out)
+                              largest_predicted_share=share, left_out=left_out,
+                              **_leave_one_out(scan.basis, scan.basis @ u[:, :rank], remaining))
+
+
+def _leave_one_out(basis: np.ndarray, field_basis: np.ndarray, remaining: np.ndarray) -> dict[str, float]:
+    """The fitted field's leave-one-out errors at the pinholes, for :attr:`DistortionEstimate.extension_ms`: each
+    pinhole's ``(I - H_ii)^-1`` times its residual beside the fit (``H``: the hat matrix of the rigid motion and the
+    field together; ``basis`` (3N, m) the residual space, ``field_basis`` (3N, P) the field's columns there,
+    orthonormal; ``remaining`` (m,) the residual beside the field in ``basis``). Returns their mean square
+    (``loo_ms``, mm^2) and the mean of ``tr((I - H_ii)^-1)`` (``loo_noise_factor``): noise of variance s^2 per
+    axis gives them ``s^2`` times that on average, exactly, for a field of the fitted family."""
+    n = len(basis) // 3
+    hat = np.eye(3 * n) - basis @ basis.T + field_basis @ field_basis.T
+    blocks = np.stack([np.eye(3) - hat[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(n)])
+    left = (basis @ remaining).reshape(n, 3, 1)
+    try:
+        loo = np.linalg.solve(blocks, left)[..., 0]
+        factor = np.trace(np.linalg.inv(blocks), axis1=-2, axis2=-1)
+    except np.linalg.LinAlgError:
+        return {"loo_ms": 0.0, "loo_noise_factor": 0.0}
+    return {"loo_ms": float(np.mean(np.sum(loo**2, axis=1))), "loo_noise_factor": float(np.mean(factor))}
 
 
 def fit_field(points_reference: np.ndarray, residuals_reference: np.ndarray, axes_reference: np.ndarray | None,
@@ -915,18 +1115,30 @@ def _cross_validated(scan: _Scan, points: np.ndarray, poses: np.ndarray | None, 
     return int(np.argmin(scores))
 
 
-def _several_points(p_without: float, share: float, p_outlier: float, axial: float = 1.0) -> bool:
+def _several_points(p_without: float, share: float, p_outlier: float, axial: float = 1.0,
+                    unpaired_near: bool = False) -> bool:
     """Whether the evidence is carried by more pinholes than the one of the largest residual (a bad pair is one
     point; a field moves several neighbours): not when that residual is an outlier by itself (its share of the sum
     of squares is beyond noise at :data:`OUTLIER_LEVEL`), the others alone are not significant at
-    :data:`WITHOUT_LARGEST_LEVEL`, and the field they pick predicts less than :data:`PREDICTED_SHARE` of its
-    squared residual; and, when the marker axes are known, that residual lies along its pinhole's axis (``axial``:
-    its share along it, at least :data:`AXIAL_SHARE`: a probe not fully inserted; a field moves a point any way).
-    Untestable without it: counted as several."""
+    :data:`WITHOUT_LARGEST_LEVEL`, the field they pick predicts less than :data:`PREDICTED_SHARE` of its
+    squared residual, no calibration point near it was left unpaired (``unpaired_near``: a neighbour moved out of
+    pairing is a second point moved), and, when the marker axes are known, that residual lies along its pinhole's
+    axis (``axial``: its share along it, at least :data:`AXIAL_SHARE`: a probe not fully inserted; a field moves a
+    point any way). Untestable without it: counted as several."""
     if not np.isfinite(p_without):
         return True
     return (p_outlier > OUTLIER_LEVEL or p_without <= WITHOUT_LARGEST_LEVEL or share >= PREDICTED_SHARE
-            or axial < AXIAL_SHARE)
+            or axial < AXIAL_SHARE or unpaired_near)
+
+
+def _unpaired_near(points: np.ndarray, index: int, unpaired: np.ndarray | None) -> bool:
+    """Whether a calibration point left unpaired (K, 3) lies within :data:`NEIGHBOUR_FRACTION` of the pinholes' RMS
+    distance from their centroid of pinhole ``index`` (all Reference, mm)."""
+    if unpaired is None or not len(unpaired):
+        return False
+    radius = float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
+    gaps = np.linalg.norm(np.asarray(unpaired, dtype=float).reshape(-1, 3) - points[index], axis=1)
+    return bool(np.any(gaps < NEIGHBOUR_FRACTION * radius))
 
 
 def _outlier_p_value(scan: _Scan, residuals: np.ndarray, draws: int = NULL_DRAWS, seed: int = 1) -> float:

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -43,7 +43,7 @@ from ..marker_model import MarkerModel
 from ..names import REFERENCE_TO_IMAGE_H5
 from ..settings import RegistrationSettings, Settings
 from .calibration import CalibrationPoint, FrameCalibration
-from .distortion import SUSPECT_LEVEL, DistortionEstimate, NoisePrior, estimate_distortion, fit_field
+from .distortion import SUSPECT_LEVEL, DistortionEstimate, NoisePrior, estimate_distortion, fit_field, size_words
 from .error_model import RegistrationError, registration_error
 from .probe_axis import pair_with_probe_axis
 from .sensor_offset import OffsetSolution, solve_sensor_offset
@@ -293,10 +293,16 @@ def register(
                                         solution.l_mm, model)
     n_used = int(np.count_nonzero(used))
     fle = fre_value * np.sqrt(n_used / (n_used - 2)) if n_used > 2 else float("nan")
-    distortion = distortion_of_fit(solution, points[cal_index[used]], origins[image_index[used]],
-                                   axes[image_index[used]], fixed, config,
-                                   [frame_calibration.points[i] for i in cal_index[used]],
-                                   [image_ids[j] for j in image_index[used]])
+    near_cal, near_images = near_pinholes(solution, points, origins, axes, set(cal_index.tolist()),
+                                          set(image_index.tolist()),
+                                          UNPAIRED_TESTED_FACTOR * config.pairing.point_tolerance_mm)
+    tested_cal = np.concatenate([cal_index[used], near_cal]).astype(int)
+    tested_images = np.concatenate([image_index[used], near_images]).astype(int)
+    unpaired = np.array([k for k in range(len(labels)) if k not in set(tested_cal.tolist())
+                         and k not in set(cal_index.tolist())], dtype=int)
+    distortion = distortion_of_fit(solution, points[tested_cal], origins[tested_images], axes[tested_images], fixed,
+                                   config, [frame_calibration.points[i] for i in tested_cal],
+                                   [image_ids[j] for j in tested_images], points[unpaired], n_used)
     warnings += check_distortion(distortion, config)
     error = registration_error(points[cal_index[used]], origins[image_index[used]], axes[image_index[used]],
                                solution.l_mm, not fixed, pair_residuals[used], distortion=distortion)
@@ -309,7 +315,7 @@ def register(
     paired_images = set(image_index.tolist())
     paired_cal = set(cal_index.tolist())
     moved = _moved_by_field(distortion, solution, points, labels, paired_cal, origins, axes, image_ids,
-                            paired_images, config.pairing.point_tolerance_mm)
+                            paired_images, config.pairing.point_tolerance_mm, n_used)
     warnings += _unpaired_warnings([m for k, m in enumerate(image_ids) if k not in paired_images],
                                    [p for k, p in enumerate(labels) if k not in paired_cal and p not in moved],
                                    distortion, noise_beyond_tolerance(distortion, len(labels),
@@ -461,19 +467,19 @@ def _distortion_evidence(distortion: DistortionEstimate, solution: OffsetSolutio
 
 def _moved_by_field(distortion: DistortionEstimate, solution: OffsetSolution, points_reference: np.ndarray,
                     labels: list[str], paired_cal: set[int], origins_image: np.ndarray, axes_image: np.ndarray,
-                    image_ids: list[str], paired_images: set[int], tolerance_mm: float) -> dict[str, str]:
+                    image_ids: list[str], paired_images: set[int], tolerance_mm: float,
+                    paired_tested: int) -> dict[str, str]:
     """Before an unpaired calibration point is put down to the user: when no distortion was detected, whether the
     smooth field fitted to the paired pinholes anyway (:func:`EMRegModule.core.distortion.fit_field`) explains where it
-    lies, i.e. takes it to within ``tolerance_mm`` of an unpaired CT pinhole it was farther from. Returns, per such
-    point's label, a line naming the distortion, how much and where (Reference frame, mm)."""
+    lies, i.e. takes it to within ``tolerance_mm`` of an unpaired CT pinhole it was farther from (the field fitted to
+    the test's first ``paired_tested`` points, the pairs the fit used). Returns, per such point's label, a line naming
+    the distortion, how much and where (Reference frame, mm)."""
     unpaired_cal = [k for k in range(len(labels)) if k not in paired_cal]
     unpaired_images = [k for k in range(len(image_ids)) if k not in paired_images]
     if distortion.detected or not unpaired_cal or not unpaired_images or distortion.model is not None:
         return {}
-    paired = sorted(paired_cal)
-    if len(paired) != len(distortion.points_mm):
-        return {}
-    field = fit_field(distortion.points_mm, distortion.residuals_mm, None, None)
+    # the test's first ``paired_tested`` points are the pairs the fit used; unpaired ones near a pinhole follow
+    field = fit_field(distortion.points_mm[:paired_tested], distortion.residuals_mm[:paired_tested], None, None)
     if field is None:
         return {}
     pinholes = apply_transform(invert_rigid(solution.reference_to_image),
@@ -495,20 +501,58 @@ def _moved_by_field(distortion: DistortionEstimate, solution: OffsetSolution, po
     return lines
 
 
+#: Calibration points left unpaired within this many pairing tolerances of an unpaired CT pinhole (at the fit) join
+#: the distortion test, not the fit: a field concentrated near a few pinholes moves them beyond the pairing
+#: tolerance, and the paired ones alone show little of it (issue 37).
+UNPAIRED_TESTED_FACTOR = 2.0
+
+
+def near_pinholes(solution: OffsetSolution, points_reference: np.ndarray, origins_image: np.ndarray,
+                  axes_image: np.ndarray, paired_cal: set[int], paired_images: set[int], limit_mm: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Unpaired calibration points (indices into ``points_reference``) each matched to the nearest unpaired CT
+    pinhole at the fit (indices into ``origins_image``), nearest pairs first, each point and pinhole once, where that
+    gap is below ``limit_mm`` (Reference frame, mm): points the pairing left out but that lie near a pinhole no
+    other point took, for the distortion test (never for the fit)."""
+    cal = [k for k in range(len(points_reference)) if k not in paired_cal]
+    images = [j for j in range(len(origins_image)) if j not in paired_images]
+    if not cal or not images:
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    pinholes = apply_transform(invert_rigid(solution.reference_to_image),
+                               origins_image[images] + solution.l_mm * axes_image[images])
+    gaps = np.linalg.norm(points_reference[cal][:, None, :] - pinholes[None], axis=2)
+    chosen_cal, chosen_images = [], []
+    for flat in np.argsort(gaps, axis=None):
+        a, b = np.unravel_index(flat, gaps.shape)
+        if gaps[a, b] >= limit_mm:
+            break
+        if cal[a] not in chosen_cal and images[b] not in chosen_images:
+            chosen_cal.append(cal[a])
+            chosen_images.append(images[b])
+    return np.array(chosen_cal, dtype=int), np.array(chosen_images, dtype=int)
+
+
 def distortion_of_fit(solution: OffsetSolution, points_reference: np.ndarray, origins_image: np.ndarray,
                       axes_image: np.ndarray, fixed: bool, config: RegistrationSettings,
-                      calibration_points: list[CalibrationPoint], image_markers: list[str]) -> DistortionEstimate:
+                      calibration_points: list[CalibrationPoint], image_markers: list[str],
+                      unpaired_reference: np.ndarray | None = None, fitted_count: int | None = None
+                      ) -> DistortionEstimate:
     """The distortion test on the fit's residual vectors, taken into the Reference frame (measured point minus
     the registered CT pinhole; :func:`EMRegModule.core.distortion.estimate_distortion`), with the transmitter's pose
-    at each point when the calibration kept it."""
+    at each point when the calibration kept it, and the calibration points the pairing left out
+    (``unpaired_reference``, (K, 3) Reference mm); the first ``fitted_count`` points are the pairs the fit used, the
+    others unpaired points near a free pinhole that only join the test (None: all pairs). It carries
+    ``[registration] max_undetectable_distortion_mm``."""
     image_to_reference = invert_rigid(solution.reference_to_image)
     pinholes_reference = apply_transform(image_to_reference, origins_image + solution.l_mm * axes_image)
     axes_reference = None if fixed else apply_rotation(image_to_reference, axes_image)
     poses = [p.tracker_to_reference for p in calibration_points]
-    return estimate_distortion(points_reference, points_reference - pinholes_reference, axes_reference,
-                               config.distortion_false_alarm, [p.label for p in calibration_points], image_markers,
-                               None if any(p is None for p in poses) else np.asarray(poses),
-                               dwell_noise(calibration_points, config.dwell_error_ratio))
+    estimate = estimate_distortion(points_reference, points_reference - pinholes_reference, axes_reference,
+                                   config.distortion_false_alarm, [p.label for p in calibration_points],
+                                   image_markers, None if any(p is None for p in poses) else np.asarray(poses),
+                                   dwell_noise(calibration_points, config.dwell_error_ratio), config.max_fre_mm,
+                                   unpaired_reference, fitted_count)
+    return replace(estimate, undetectable_limit_mm=config.max_undetectable_distortion_mm)
 
 
 def dwell_noise(calibration_points: list[CalibrationPoint], ratio: float) -> NoisePrior | None:
@@ -532,7 +576,7 @@ def check_distortion(distortion: DistortionEstimate, config: RegistrationSetting
     warning saying where and how much."""
     check_fle(distortion, config)
     if not distortion.detected:
-        return []
+        return check_detectable(distortion, config)
     largest, _ = distortion.largest()
     size = (f"{distortion.rms_mm:.2f} mm RMS at the pinholes beyond the rigid fit, up to {largest:.2f} mm near "
             f"{distortion.where()} (p = {distortion.p_value:.2g})")
@@ -557,6 +601,27 @@ def check_fle(distortion: DistortionEstimate, config: RegistrationSettings) -> N
             f"noise explains ({distortion.noise_prior_source}), above the limit of {config.max_fle_ratio:g} "
             "([registration] max_fle_ratio): no predicted error can be trusted; check that the probe sits in each "
             "pinhole, that nothing metal is near, and calibrate again")
+
+
+def check_detectable(distortion: DistortionEstimate, config: RegistrationSettings) -> list[str]:
+    """A warning (or, with ``[registration] refuse_undetectable_distortion``, a refusal: :class:`NoSafeAnswerError`)
+    for a registration whose distortion test found nothing but could have missed a field of
+    ``[registration] max_undetectable_distortion_mm`` (its
+    :attr:`EMRegModule.core.distortion.DistortionEstimate.detectable_rms_mm` above it): with this much tracking
+    noise, or this few pinholes, "no distortion found" does not mean "no distortion"."""
+    size = distortion.detectable_rms_mm
+    if not (distortion.tested and size > config.max_undetectable_distortion_mm):
+        return []
+    words = (f"with this tracking noise (about {distortion.noise_sigma_mm:.2f} mm per axis per dwell) and "
+             f"{len(distortion.labels) + len(distortion.tested_unpaired)} pinholes, the distortion test could miss a "
+             f"field of {size_words(size)} RMS at the pinholes, above the limit of "
+             f"{config.max_undetectable_distortion_mm:g} mm ([registration] max_undetectable_distortion_mm)")
+    if config.refuse_undetectable_distortion:
+        raise NoSafeAnswerError(f"{words}; more pinholes, the probe held stiller in each, or the transmitter nearer "
+                                "the frame let it see smaller fields: calibrate again")
+    return [f"{words}: the predicted TRE does not include such a field; check the registration at a known point "
+            "before relying on it (more pinholes, the probe held stiller, or the transmitter nearer the frame let the "
+            "test see smaller fields)"]
 
 
 def calibration_port(frame_calibration: FrameCalibration, key: str) -> int | None:

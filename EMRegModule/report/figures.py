@@ -20,7 +20,7 @@ import SimpleITK as sitk
 from scipy.ndimage import map_coordinates
 
 from ..core.calibration import CalibrationPoint
-from ..core.distortion import DistortionEstimate
+from ..core.distortion import POWER_LEVEL, DistortionEstimate
 from ..core.transforms import apply_transform
 from ..errors import EMRegError
 from ..io.dicom_read import NarrowVoxelsError
@@ -401,9 +401,15 @@ def render_distortion(data: ReportData) -> list[Figure]:
 def _trust_words(estimate: DistortionEstimate) -> str:
     """Whether the predicted error can be relied on, in words for the surgeon (``prediction_trust``)."""
     trust = estimate.prediction_trust()
+    size = estimate.detectable_rms_mm
+    reach = ("" if estimate.detected or np.isnan(size) else
+             f" With this calibration's noise and pinholes the check finds a field of {size:.2f} mm RMS or more at the "
+             f"pinholes in {POWER_LEVEL:.0%} of smooth fields; a smaller one may go unseen." if np.isfinite(size) else
+             " With this calibration's noise and pinholes the check cannot rule out a field of any size.")
     if trust["trusted"]:
-        return "The residuals show no sign of a distorted field: the predicted error rests on a model they agree with."
-    return "Do not rely on the predicted error alone: " + "; ".join(trust["reasons"]) + "."
+        return ("The residuals show no sign of a distorted field: the predicted error rests on a model they agree "
+                "with." + reach)
+    return "Do not rely on the predicted error alone: " + "; ".join(trust["reasons"]) + "." + reach
 
 
 def render_tre_map(data: ReportData) -> list[Figure]:

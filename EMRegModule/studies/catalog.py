@@ -337,6 +337,8 @@ def _trust_rows(frame: Frame, params: dict, rng: np.random.Generator) -> list[di
             nonrigid_errors(distortion, frame.pinholes[paired], placement, np.eye(4))[1] ** 2, axis=1))))
     blamed = any(BLAME in w for w in registration.warnings for BLAME in USER_BLAMED)
     row.update(detected=bool(estimate.detected), p_value=estimate.p_value, estimated_rms_mm=estimate.rms_mm,
+               detectable_rms_mm=estimate.detectable_rms_mm,
+               flagged=bool(not estimate.detected and estimate.detectable_rms_mm > estimate.undetectable_limit_mm),
                truth_paired_rms_mm=truth_rms, paired=len(registration.pairs), fre_mm=registration.fre_mm,
                unpaired=len(registration.unpaired_calibration_points),
                user_blamed=blamed and not estimate.detected)
@@ -361,12 +363,15 @@ USER_BLAMED = ("likely not in a pinhole", "likely not recorded")
 
 
 def _trust_group_row(label: str, group: list[dict]) -> list[str]:
-    """One line of the trust table: sessions, refused, detected, caught (detected or refused), the user blamed
-    with no distortion named, the estimate against the truth, and the predicted / measured TRE of the sessions
-    not refused."""
+    """One line of the trust table: sessions, refused, detected, caught (detected or refused), and with those the
+    sessions whose test could have missed a field of ``max_undetectable_distortion_mm`` (flagged: a warning, the
+    prediction not to be trusted), the median detectable size, the user blamed with no distortion named, the
+    estimate against the truth, and the predicted / measured TRE of the sessions not refused."""
     done = [r for r in group if not r["refused"]]
     detected = [r for r in done if r["detected"]]
     caught = len(detected) + len(group) - len(done)
+    flagged = sum(1 for r in done if r.get("flagged"))
+    detectable = [r["detectable_rms_mm"] for r in done if "detectable_rms_mm" in r]
     navigated = [r for r in done if "measured_ms" in r]
     measured = np.mean([r["measured_ms"] for r in navigated]) if navigated else np.nan
     predicted = np.mean([r["predicted_ms"] for r in navigated]) if navigated else np.nan
@@ -375,7 +380,8 @@ def _trust_group_row(label: str, group: list[dict]) -> list[str]:
     rate = len(detected) / len(done) if done else np.nan
     size = float(group[0].get("distortion_mm", 0.0))
     return [label, str(len(group)), f"{len(group) - len(done)}", f"{rate * 100:.1f} %",
-            f"{caught / len(group) * 100:.1f} %", str(sum(1 for r in done if r.get("user_blamed"))),
+            f"{caught / len(group) * 100:.1f} %", f"{(caught + flagged) / len(group) * 100:.1f} %",
+            f"{np.median(detectable):.2f}" if detectable else "-", str(sum(1 for r in done if r.get("user_blamed"))),
             _mean_std([r["estimated_rms_mm"] for r in detected]),
             _mean_std([r["truth_paired_rms_mm"] for r in done]) if size else "-",
             f"{np.sqrt(measured):.3f}", f"{np.sqrt(predicted / measured):.2f}", f"{np.sqrt(without / measured):.2f}",
@@ -407,7 +413,8 @@ def _trust_summary(rows: list[dict]) -> Summary:
     notes.append(f"field families: development {', '.join(DEVELOPMENT)}; held out (never tuned on) "
                  f"{', '.join(HELD_OUT)} (EMRegModule.simulation.field_families)")
     header = ["distortion (family, RMS at the pinholes) / checkpoint sessions", "sessions", "refused", "detected",
-              "detected or refused", "user blamed, no distortion named", "estimated RMS (mm, detected)",
+              "detected or refused", "detected, refused or flagged (could miss 1 mm)",
+              "detectable RMS (mm, median)", "user blamed, no distortion named", "estimated RMS (mm, detected)",
               "true RMS at the paired pinholes (mm)", "measured RMS TRE (mm)", "predicted / measured",
               "without the distortion term", "per session 5-95 %", *CHECKPOINT_COLUMNS]
     more, lines = checkpoint_table(checkpoint_sessions, len(header))

@@ -37,6 +37,12 @@ from EMRegModule.cli.main import main
 from EMRegModule.simulation.case import simulate_case
 
 
+def _said(err: str) -> list[str]:
+    """stderr's lines but the small case's own warning (8 markers cannot rule out a 1 mm field distortion): the
+    failure under test is to be one line."""
+    return [line for line in err.strip().splitlines() if "max_undetectable_distortion_mm" not in line]
+
+
 @pytest.fixture(scope="module")
 def small_case(tmp_path_factory) -> Path:
     """A small, coarse simulated case (1 mm voxels, 8 markers): a run takes a few seconds."""
@@ -243,7 +249,7 @@ def test_a_full_disk_names_the_file_and_leaves_run_json_saying_failed(small_case
     out = tmp_path / "out"
     capsys.readouterr()
     assert main(["run", str(small_case), "--out", str(out), "--quiet"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    err = _said(capsys.readouterr().err)
     assert len(err) == 1 and str(out / "report.html") in err[0] and "No space left on device" in err[0], err
     monkeypatch.undo()
     run = _json(out / "run.json")
@@ -271,7 +277,7 @@ def test_an_image_writer_failure_is_one_line_naming_the_file(small_case, tmp_pat
     out = tmp_path / "out"
     capsys.readouterr()
     assert main(["run", str(small_case), "--out", str(out), "--quiet"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    err = _said(capsys.readouterr().err)
     assert len(err) == 1 and str(out / "tre_map.nrrd") in err[0] and "cannot write" in err[0], err
     monkeypatch.undo()
     run = _json(out / "run.json")

@@ -238,3 +238,22 @@ def test_a_fixed_l_the_markers_contradict_is_said(seed):
                                missing_calibration=0, extra_calibration=0)
     markers, calibration = _inputs(one_face)
     assert fixed_l_warnings(one_face.frame.l_mm + 1.0) == []
+
+
+def test_unpaired_points_near_a_free_pinhole_join_the_distortion_test_nearest_first():
+    """A calibration point the pairing left out, within the limit of a CT pinhole no pair took, is matched to the
+    nearest one (each point and pinhole once, nearest pairs first) for the distortion test; farther ones are not."""
+    from EMRegModule.core.registration import near_pinholes
+    from EMRegModule.core.sensor_offset import OffsetSolution
+
+    origins = np.array([[0.0, 0.0, 0.0], [50.0, 0.0, 0.0], [0.0, 50.0, 0.0], [50.0, 50.0, 0.0], [0.0, 0.0, 50.0]])
+    axes = np.tile([0.0, 0.0, 1.0], (5, 1))
+    solution = OffsetSolution(2.0, 0.1, 0.3, np.eye(4), np.zeros(1), np.zeros(1))
+    pinholes = origins + 2.0 * axes  # Reference = image here
+    points = pinholes + np.array([[0.1, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 4.5, 0.0], [0.0, 0.0, 20.0],
+                                  [2.5, 0.0, 0.0]])
+    points[4] = pinholes[1] + [0.0, 2.0, 0.0]  # competes with point 1 for pinhole 1, and is nearer
+    cal, images = near_pinholes(solution, points, origins, axes, {0}, {0}, 5.0)
+    assert cal.tolist() == [4, 2] and images.tolist() == [1, 2]  # point 1 lost pinhole 1; point 3 is 20 mm off
+    none = near_pinholes(solution, points, origins, axes, {0, 1, 2, 3, 4}, {0}, 5.0)
+    assert none[0].size == 0 and none[1].size == 0
