@@ -375,7 +375,9 @@ def _unpaired_warnings(image_markers: list[str], calibration_points: list[str],
     """One line per kind of point left out of the registration, naming them and the likely reason (a detected
     field distortion first: it moves points off their pinholes, and the user is not blamed for it; then the
     tracker's own noise when it alone puts points beyond the pairing tolerance, ``noise_beyond``:
-    :func:`noise_beyond_tolerance`)."""
+    :func:`noise_beyond_tolerance`; then, for points that joined the distortion test because they lie near a CT
+    pinhole no pair took, a field too local for the test or a probe not fully in: the user is blamed only for points
+    near no free pinhole)."""
     lines = []
     if calibration_points and distortion is not None and distortion.detected:
         largest, _ = distortion.largest()
@@ -399,9 +401,18 @@ def _unpaired_warnings(image_markers: list[str], calibration_points: list[str],
                      "(or the probe was not in the pinhole, or that marker was not found in the CT: see 'rejected' "
                      "in markers.json)")
     elif calibration_points:
-        lines.append(f"calibration point(s) {', '.join(calibration_points)} paired with no marker of the CT, left "
-                     "out of the registration: the probe was likely not in a pinhole while recorded there, or that "
-                     "marker was not found in the CT (see 'rejected' in markers.json)")
+        near = [p for p in calibration_points if distortion is not None and p in distortion.tested_unpaired]
+        far = [p for p in calibration_points if p not in near]
+        if near:
+            lines.append(f"calibration point(s) {', '.join(near)} paired with no marker of the CT, left out of the "
+                         "registration, though each lies within twice the pairing tolerance of a CT pinhole no other "
+                         "point took: a field distortion too local for the test to find, or the probe not fully in "
+                         "its pinhole, moved it there; check with the probe in that pinhole, or calibrate again with "
+                         "metal kept away")
+        if far:
+            lines.append(f"calibration point(s) {', '.join(far)} paired with no marker of the CT, left out of the "
+                         "registration: the probe was likely not in a pinhole while recorded there, or that marker "
+                         "was not found in the CT (see 'rejected' in markers.json)")
     if image_markers and calibration_points and distortion is not None and distortion.detected:
         lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
                      "registration: the field distortion may have moved their calibration points out of pairing "
@@ -414,6 +425,11 @@ def _unpaired_warnings(image_markers: list[str], calibration_points: list[str],
         lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
                      "registration: the tracker's noise may have moved their calibration points out of pairing (or "
                      "their pinholes were not recorded)")
+    elif image_markers and distortion is not None and set(calibration_points) & set(distortion.tested_unpaired):
+        lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
+                     "registration: calibration points lie near some of them beyond the pairing tolerance (above), "
+                     "moved there by a local field distortion or a probe not fully in its pinhole (or a pinhole was "
+                     "not recorded)")
     elif image_markers:
         lines.append(f"CT marker(s) {', '.join(image_markers)} paired with no calibration point, left out of the "
                      "registration: their pinholes were likely not recorded in the calibration (or their dwells "

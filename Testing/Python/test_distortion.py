@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -214,6 +215,14 @@ def test_unpaired_point_is_not_blamed_on_the_user_when_distortion_is_detected():
     assert "distortion" in line and "likely not in a pinhole" not in line
     (line,) = _unpaired_warnings([], ["M07"], None)
     assert "likely not in a pinhole" in line
+    clean = estimate_distortion(*_residuals(np.random.default_rng(21), 0.0)[:3], 0.002)
+    near = replace(clean, tested_unpaired=["M07"])
+    point, marker = _unpaired_warnings(["I09"], ["M07", "M11"], near)[:2]
+    assert "M07" in point and "field distortion" in point and "likely" not in point
+    assert "M11" in _unpaired_warnings(["I09"], ["M07", "M11"], near)[1]
+    assert "likely not in a pinhole" in _unpaired_warnings(["I09"], ["M07", "M11"], near)[1]
+    lines = _unpaired_warnings(["I09"], ["M07"], near)
+    assert len(lines) == 2 and "local field distortion" in lines[1] and "likely" not in " ".join(lines)
 
 
 def test_points_left_unpaired_near_a_pinhole_add_evidence_but_not_the_field_or_the_noise():
