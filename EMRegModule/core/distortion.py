@@ -70,7 +70,9 @@ trusted: a distortion measured, one suspected (p below :data:`SUSPECT_LEVEL`), o
 :func:`detectable_rms` measures, per session, the smallest field (RMS of its non-rigid part at the pinholes) the
 test finds in :data:`POWER_LEVEL` of random smooth fields at this session's noise and pinholes; it is written to
 ``registration.json`` (``detectable_rms_mm``), and above ``[registration] max_undetectable_distortion_mm`` the
-registration is refused: with that much tracking noise, no distortion found does not mean no distortion.
+registration warns and :meth:`DistortionEstimate.prediction_trust` says the prediction cannot be trusted (refused
+with ``refuse_undetectable_distortion``): with that much tracking noise, or that few pinholes, no distortion found
+does not mean no distortion.
 
 **Validation.** ``emreg study trust`` measures detection, false alarms and predicted / measured TRE on field
 families the detector was not designed around (:mod:`EMRegModule.simulation.field_families`: magpylib bodies
@@ -578,7 +580,8 @@ class DistortionEstimate:
         elif self.detected:
             reasons.append(f"field distortion measured at the pinholes ({self.rms_mm:.2f} mm RMS, up to "
                            f"{self.largest()[0]:.2f} mm near {self.where()}): the prediction adds the fitted field "
-                           "and its uncertainty, but how the field extends beyond the pinholes is not known")
+                           "and what its family misses between the pinholes, but how the field extends beyond them is "
+                           "not known")
         elif self.p_value <= SUSPECT_LEVEL:
             why = (f"; the evidence was put down to one bad pair at {self.left_out}" if self.one_bad_pair else "")
             reasons.append(f"the residuals are more coherent than noise (p = {self.p_value:.2g}) without reaching the "
