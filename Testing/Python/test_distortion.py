@@ -183,6 +183,8 @@ def test_a_field_the_calibration_could_miss_is_said_and_refused_when_asked(small
     assert not document["prediction_trust"]["trusted"]
     assert any("could miss a field" in r for r in document["prediction_trust"]["reasons"])
     assert any("max_undetectable_distortion_mm" in w for w in document["warnings"])
+    report = (small_case.parent / "out" / "report.html").read_text(encoding="utf-8")
+    assert "could miss a field" in report and f"check finds a field of {size:.2f} mm RMS or more" in report
     text = (small_case / "case.toml").read_text()
     strict, loose = tmp_path / "strict.toml", tmp_path / "loose.toml"
     strict.write_text(text + "\n[registration]\nrefuse_undetectable_distortion = true\n")
