@@ -25,6 +25,15 @@ def _named_node(scene: Any, class_name: str, name: str, existing: Any = None) ->
     return scene.AddNewNodeByClass(class_name, name)
 
 
+def _model_node(scene: Any, name: str, polydata: Any, existing: Any = None) -> tuple[Any, Any]:
+    """The model node ``name`` (``existing`` when still in the scene) showing ``polydata``, with its default display
+    node; returns the node and that display node (None when Slicer made none)."""
+    node = _named_node(scene, "vtkMRMLModelNode", name, existing)
+    node.SetAndObservePolyData(polydata)
+    node.CreateDefaultDisplayNodes()
+    return node, node.GetDisplayNode()
+
+
 def vtk_matrix(matrix: Any) -> Any:
     """A ``vtkMatrix4x4`` holding a 4x4 array (what ``slicer.util.vtkMatrixFromArray`` makes; made here from
     ``vtkmodules`` so that writing a scene does not import the whole ``vtk`` package, 0.25 s)."""
@@ -195,10 +204,7 @@ def show_guide_model(scene: Any, name: str, parent: Any, depth_mm: float, body_m
         tube.Update()
         append.AddInputData(tube.GetOutput())
     append.Update()
-    node = _named_node(scene, "vtkMRMLModelNode", name, node)
-    node.SetAndObservePolyData(append.GetOutput())
-    node.CreateDefaultDisplayNodes()
-    display = node.GetDisplayNode()
+    node, display = _model_node(scene, name, append.GetOutput(), node)
     if display is not None:
         display.SetColor(0.1, 0.8, 0.9)
     node.SetAndObserveTransformNodeID(parent.GetID() if parent is not None else None)
@@ -253,10 +259,7 @@ def show_residual_spheres(scene: Any, centres_ras: Any, residuals_mm: Sequence[f
         polydata.GetPointData().AddArray(values)
         append.AddInputData(polydata)
     append.Update()
-    node = _named_node(scene, "vtkMRMLModelNode", name, node)
-    node.SetAndObservePolyData(append.GetOutput())
-    node.CreateDefaultDisplayNodes()
-    display = node.GetDisplayNode()
+    node, display = _model_node(scene, name, append.GetOutput(), node)
     if display is not None:
         display.SetActiveScalar("residual_mm", vtkAssignAttribute.POINT_DATA)
         colors = scene.GetFirstNodeByName("ReverseRainbow")
