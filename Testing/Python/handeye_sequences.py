@@ -64,6 +64,14 @@ class HandEyeCase:
                          f"{q[3]:.7f},,")
         path.write_text("\n".join(lines) + "\n")
 
+    def write_recordings(self, folder: Path) -> tuple[Path, Path]:
+        """The robot's log ``folder/robot.tum`` and the tracker's ``folder/tracker.csv`` (the flange sensor on port 3
+        beside a still reference on port 1), as a robot session leaves them; their paths."""
+        robot, tracker = Path(folder) / "robot.tum", Path(folder) / "tracker.csv"
+        self.write_tum(robot)
+        self.write_csv(tracker, port=3, with_reference=True)
+        return robot, tracker
+
     def write_sequence(self, path: Path, name: str = "SensorToTracker", robot: bool = False) -> None:
         """The tracker's recording (or, with ``robot``, the robot's log) as a PLUS sequence metafile with one
         transform ``name``."""

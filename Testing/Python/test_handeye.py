@@ -64,10 +64,9 @@ def test_continuous_motion_with_clock_offset_and_wrong_poses(continuous_case, tm
     """Panda, continuous motion, 4% wrong poses, the flange sensor on port 3 of a CSV that also holds a reference
     sensor: --sensor picks it; every injected glitch is rejected with a reason."""
     case = continuous_case
-    case.write_tum(tmp_path / "robot.tum")
-    case.write_csv(tmp_path / "tracker.csv", port=3, with_reference=True)
-    code = main(["handeye", "--robot-poses", str(tmp_path / "robot.tum"), "--tracker", str(tmp_path / "tracker.csv"),
-                 "--sensor", "3", "--out", str(tmp_path / "out")])
+    robot, tracker = case.write_recordings(tmp_path)
+    code = main(["handeye", "--robot-poses", str(robot), "--tracker", str(tracker), "--sensor", "3", "--out",
+                 str(tmp_path / "out")])
     assert code == 0, capsys.readouterr().err
     document = _check_calibration(tmp_path / "out", case)
     rejected = {frame["index"] for frame in document["frames"]["rejected_frames"]}
@@ -186,10 +185,9 @@ def targeting_case(continuous_case, tmp_path_factory):
     """A hand-eye calibration made by emreg handeye from the KinHEC recording, a registration, the reference
     sensor's recording (300 mm before the field generator), a plan and a needle guide, with the truth beside."""
     folder = tmp_path_factory.mktemp("target")
-    continuous_case.write_tum(folder / "robot.tum")
-    continuous_case.write_csv(folder / "tracker.csv", port=3, with_reference=True)
-    assert main(["handeye", "--robot-poses", str(folder / "robot.tum"), "--tracker", str(folder / "tracker.csv"),
-                 "--sensor", "3", "--out", str(folder / "calib"), "--quiet"]) == 0
+    robot, tracker = continuous_case.write_recordings(folder)
+    assert main(["handeye", "--robot-poses", str(robot), "--tracker", str(tracker), "--sensor", "3", "--out",
+                 str(folder / "calib"), "--quiet"]) == 0
     return {**write_targeting_inputs(folder), "case": continuous_case}
 
 

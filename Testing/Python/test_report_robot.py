@@ -42,11 +42,10 @@ def robot_run(tmp_path_factory):
     """One output folder with the calibration, the target and a robot-go result; the recordings beside it."""
     folder = tmp_path_factory.mktemp("robot-run")
     case = kinhec_case("panda", "joint_sinusoid", seed=11, outlier_fraction=0.04)
-    case.write_tum(folder / "robot.tum")
-    case.write_csv(folder / "tracker.csv", port=3, with_reference=True)
+    robot, tracker = case.write_recordings(folder)
     out = folder / "out"
-    assert main(["handeye", "--robot-poses", str(folder / "robot.tum"), "--tracker", str(folder / "tracker.csv"),
-                 "--sensor", "3", "--out", str(out), "--quiet"]) == 0
+    assert main(["handeye", "--robot-poses", str(robot), "--tracker", str(tracker), "--sensor", "3", "--out",
+                 str(out), "--quiet"]) == 0
     write_targeting_inputs(folder)
     assert main(["robot-target", "--registration", str(folder / "reg" / "registration.json"), "--robot-calibration",
                  str(out / "robot_calibration.json"), "--reference", str(folder / "reference.csv"), "--plan",

@@ -30,8 +30,7 @@ def recordings(tmp_path_factory):
     """A KinHEC recording (robot log, flange sensor on port 3 beside a reference) and the targeting inputs."""
     folder = tmp_path_factory.mktemp("panel")
     case = kinhec_case("panda", "joint_sinusoid", seed=11, outlier_fraction=0.04)
-    case.write_tum(folder / "robot.tum")
-    case.write_csv(folder / "tracker.csv", port=3, with_reference=True)
+    case.write_recordings(folder)
     return folder, case, write_targeting_inputs(folder)
 
 
