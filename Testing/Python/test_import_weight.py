@@ -25,6 +25,13 @@ HEAVY = ("scipy.stats", "scipy.optimize", "matplotlib", "pyvista", "slicer", "vt
          "pydicom", "dask")
 
 
+def _printed_by(script: str):
+    """What ``script``, run by a fresh interpreter (nothing imported before it), prints last, as JSON."""
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
 def test_core_modules_load_no_stage_specific_library():
     script = (
         "import importlib, json, sys\n"
@@ -35,9 +42,7 @@ def test_core_modules_load_no_stage_specific_library():
         "    loaded[name] = [h for h in heavy if h in sys.modules and h not in sum(loaded.values(), [])]\n"
         "print(json.dumps(loaded))\n"
     )
-    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
-    assert result.returncode == 0, result.stderr
-    loaded = json.loads(result.stdout.strip().splitlines()[-1])
+    loaded = _printed_by(script)
     assert set(loaded) == set(CORE)
     assert {name: found for name, found in loaded.items() if found} == {}
 
@@ -52,8 +57,6 @@ def test_the_parser_loads_no_command():
         "build_parser().parse_args(['robot-go', '--robot', 'franka://h', '--tracker', 'igtl://h', '--target', 't'])\n"
         "print(json.dumps(sorted(n for n in sys.modules if n.startswith('EMRegModule') or n == 'numpy')))\n"
     )
-    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
-    assert result.returncode == 0, result.stderr
-    loaded = json.loads(result.stdout.strip().splitlines()[-1])
+    loaded = _printed_by(script)
     assert loaded == ["EMRegModule", "EMRegModule.cli", "EMRegModule.cli.main", "EMRegModule.cli.options",
                       "EMRegModule.errors", "EMRegModule.interrupts", "EMRegModule.names"]
