@@ -88,7 +88,7 @@ def register_fiducials(fiducials: Fiducials, frame_calibration: FrameCalibration
                                    no_axes[fiducial_index[used]], True, config,
                                    [frame_calibration.points[i] for i in cal_index[used]],
                                    [fiducials.labels[j] for j in fiducial_index[used]],
-                                   points[[k for k in range(len(points)) if k not in set(cal_index.tolist())]])
+                                   points[sorted(set(range(len(points))) - set(cal_index.tolist()))])
     warnings += check_distortion(distortion, config)
     error = registration_error(points[cal_index[used]], fiducial_points[fiducial_index[used]],
                                no_axes[fiducial_index[used]], 0.0, False, residuals[used], distortion=distortion)

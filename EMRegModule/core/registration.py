@@ -293,13 +293,13 @@ def register(
                                         solution.l_mm, model)
     n_used = int(np.count_nonzero(used))
     fle = fre_value * np.sqrt(n_used / (n_used - 2)) if n_used > 2 else float("nan")
-    near_cal, near_images = near_pinholes(solution, points, origins, axes, set(cal_index.tolist()),
-                                          set(image_index.tolist()),
+    paired_images = set(image_index.tolist())
+    paired_cal = set(cal_index.tolist())
+    near_cal, near_images = near_pinholes(solution, points, origins, axes, paired_cal, paired_images,
                                           UNPAIRED_TESTED_FACTOR * config.pairing.point_tolerance_mm)
     tested_cal = np.concatenate([cal_index[used], near_cal]).astype(int)
     tested_images = np.concatenate([image_index[used], near_images]).astype(int)
-    unpaired = np.array([k for k in range(len(labels)) if k not in set(tested_cal.tolist())
-                         and k not in set(cal_index.tolist())], dtype=int)
+    unpaired = np.array(sorted(set(range(len(labels))) - paired_cal - set(near_cal.tolist())), dtype=int)
     distortion = distortion_of_fit(solution, points[tested_cal], origins[tested_images], axes[tested_images], fixed,
                                    config, [frame_calibration.points[i] for i in tested_cal],
                                    [image_ids[j] for j in tested_images], points[unpaired], n_used)
@@ -312,8 +312,6 @@ def register(
         {"image_marker": image_ids[j], "calibration_point": labels[i], "residual_mm": float(r), "outlier": bool(o)}
         for j, i, r, o in zip(image_index, cal_index, pair_residuals, outlier, strict=True)
     ]
-    paired_images = set(image_index.tolist())
-    paired_cal = set(cal_index.tolist())
     moved = _moved_by_field(distortion, solution, points, labels, paired_cal, origins, axes, image_ids,
                             paired_images, config.pairing.point_tolerance_mm, n_used)
     warnings += _unpaired_warnings([m for k, m in enumerate(image_ids) if k not in paired_images],
