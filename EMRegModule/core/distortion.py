@@ -881,11 +881,11 @@ def detectable_rms(scan: _Scan, points: np.ndarray, null: np.ndarray, alpha: flo
     n = len(points)
     centroid = points.mean(axis=0)
     radius = max(float(np.sqrt(np.mean(np.sum((points - centroid) ** 2, axis=1)))), 1.0)
+    factors = [np.linalg.cholesky(_kernel(points, points, radius * fraction) + 1e-9 * np.eye(n))
+               for fraction in POWER_LENGTH_FRACTIONS]
     directions = np.empty((POWER_DRAWS, scan.dof))
     for k in range(POWER_DRAWS):
-        length = radius * POWER_LENGTH_FRACTIONS[k % len(POWER_LENGTH_FRACTIONS)]
-        kernel = _kernel(points, points, length) + 1e-9 * np.eye(n)
-        field_z = scan.basis.T @ (np.linalg.cholesky(kernel) @ rng.standard_normal((n, 3))).reshape(-1)
+        field_z = scan.basis.T @ (factors[k % len(factors)] @ rng.standard_normal((n, 3))).reshape(-1)
         directions[k] = field_z / max(float(np.linalg.norm(field_z)), 1e-300)
     noise_z = noise_sigma_mm * rng.standard_normal((POWER_DRAWS, scan.dof))
     known = prior_sigma_mm is not None and prior_sigma_mm > 0 and np.ndim(null) == 2
