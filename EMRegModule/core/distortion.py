@@ -981,13 +981,15 @@ def _estimate(points_reference: np.ndarray, residuals_reference: np.ndarray, axe
     labels = list(labels) or [f"P{k + 1:02d}" for k in range(len(points))]
     image_markers = list(image_markers)
     n = len(points) if fitted_count is None else min(int(fitted_count), len(points))
-    own = (points[:n], residuals[:n], None if axes is None else axes[:n], None if poses is None else poses[:n])
+    # the pairs: the field and the noise are measured on them; the points after them only add evidence to the test
+    pair_points, pair_residuals = points[:n], residuals[:n]
+    pair_axes, pair_poses = (None if axes is None else axes[:n]), (None if poses is None else poses[:n])
     joined = labels[n:]
-    rms = float(np.sqrt(np.mean(own[1] ** 2))) if n else 0.0
+    rms = float(np.sqrt(np.mean(pair_residuals**2))) if n else 0.0
     note = "" if poses is not None else ("the calibration does not say where the transmitter was (an older "
                                          "frame_calibration.json): no induced-dipole candidates, generic smooth "
                                          "fields only")
-    untested = DistortionEstimate(labels[:n], own[0], own[1], 0.0, 1.0, alpha, rms, tested=False,
+    untested = DistortionEstimate(labels[:n], pair_points, pair_residuals, 0.0, 1.0, alpha, rms, tested=False,
                                   image_markers=image_markers[:n], note="too few pinholes to test")
     if n < 4:
         return untested
@@ -995,8 +997,7 @@ def _estimate(points_reference: np.ndarray, residuals_reference: np.ndarray, axe
     if tested is None:
         return untested if not len(residuals) or np.any(residuals) else replace(untested, note="")
     scan, z, statistic, p_value, best, null = tested
-    # the field and the noise are measured on the pairs alone; the points that only joined the test add evidence
-    mine = tested if n == len(points) else _test(own[0], own[2], own[3], own[1], noise)
+    pair_test = tested if n == len(points) else _test(pair_points, pair_axes, pair_poses, pair_residuals, noise)
     prior = None if noise is None else noise.sigma_mm
 
     def finished(estimate: DistortionEstimate) -> DistortionEstimate:
@@ -1004,11 +1005,11 @@ def _estimate(points_reference: np.ndarray, residuals_reference: np.ndarray, axe
                        detectable_rms_mm=detectable_rms(scan, points, null, alpha, estimate.noise_sigma_mm, prior,
                                                         max_fre_mm=max_fre_mm))
 
-    noise_alone = (float(np.sqrt(mine[1] @ mine[1] / mine[0].dof)), float(mine[0].dof)) if mine is not None \
-        else (float(np.sqrt(z @ z / scan.dof)), float(scan.dof))
+    noise_scan, noise_z = (scan, z) if pair_test is None else pair_test[:2]
+    noise_alone = (float(np.sqrt(noise_z @ noise_z / noise_scan.dof)), float(noise_scan.dof))
     if p_value > alpha:
-        return finished(DistortionEstimate(labels[:n], own[0], own[1], statistic, p_value, alpha, *noise_alone,
-                                           image_markers=image_markers[:n], note=note))
+        return finished(DistortionEstimate(labels[:n], pair_points, pair_residuals, statistic, p_value, alpha,
+                                           *noise_alone, image_markers=image_markers[:n], note=note))
     largest = int(np.argmax(np.sum(residuals**2, axis=1)))
     keep = np.arange(len(points)) != largest
     p_without, share = float("nan"), float("nan")
@@ -1021,15 +1022,16 @@ def _estimate(points_reference: np.ndarray, residuals_reference: np.ndarray, axe
                                            / max(residuals[largest] @ residuals[largest], 1e-300))
     if not _several_points(p_without, share, _outlier_p_value(scan, residuals), axial,
                            _unpaired_near(points, largest, unpaired_reference)):
-        return finished(DistortionEstimate(labels[:n], own[0], own[1], statistic, p_value, alpha, *noise_alone,
-                                           image_markers=image_markers[:n], note=note,
+        return finished(DistortionEstimate(labels[:n], pair_points, pair_residuals, statistic, p_value, alpha,
+                                           *noise_alone, image_markers=image_markers[:n], note=note,
                                            p_value_without_largest=p_without, largest_predicted_share=share,
                                            left_out=labels[largest], one_bad_pair=True))
-    if mine is None:  # too few pairs to fit a field on them alone: on every point tested
+    if pair_test is None:  # too few pairs to fit a field on them alone: on every point tested
         return finished(_fitted(scan, z, best, points, residuals, axes, poses, labels, image_markers, statistic,
                                 p_value, alpha, note, p_without, share, labels[largest]))
-    return finished(_fitted(mine[0], mine[1], mine[4], *own[:2], own[2], own[3], labels[:n], image_markers[:n],
-                            statistic, p_value, alpha, note, p_without, share, labels[largest]))
+    return finished(_fitted(pair_test[0], pair_test[1], pair_test[4], pair_points, pair_residuals, pair_axes,
+                            pair_poses, labels[:n], image_markers[:n], statistic, p_value, alpha, note, p_without,
+                            share, labels[largest]))
 
 
 def _fitted(scan: _Scan, z: np.ndarray, best: int, points: np.ndarray, residuals: np.ndarray,
