@@ -39,7 +39,7 @@ import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage
 
-from ..io.atomic import atomic_path, itk_write_errors, locale_kept
+from ..io.atomic import atomic_path, cannot_write, itk_write_errors
 from ..progress import QUIET, Progress
 from .shapes import F32, Shape
 
@@ -359,10 +359,14 @@ def write_dicom_series(image: sitk.Image, folder: Path, seed: int, description: 
     if np.linalg.det(direction) < 0:
         raise ValueError("DICOM series need a right-handed direction; flip the slice axis first")
     folder = Path(folder)
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}-", dir=folder.parent))
     try:
-        _write_slices(image, tmp, seed, description, progress)
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}-", dir=folder.parent))
+    except OSError as exc:
+        raise cannot_write(folder, exc) from None
+    try:
+        with itk_write_errors():  # a full disk: one line naming the folder, not GDCM's RuntimeError
+            _write_slices(image, tmp, seed, description, progress)
         old = None
         if folder.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{folder.name}-old-", dir=folder.parent))
@@ -370,6 +374,9 @@ def write_dicom_series(image: sitk.Image, folder: Path, seed: int, description: 
         os.replace(tmp, folder)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise cannot_write(folder, exc) from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -398,7 +405,7 @@ def _write_slices(image: sitk.Image, folder: Path, seed: int, description: str, 
     writer = sitk.ImageFileWriter()
     writer.KeepOriginalImageUIDOn()
     n = image.GetSize()[2]
-    with progress.step("write DICOM series", total=n) as step, locale_kept():
+    with progress.step("write DICOM series", total=n) as step:
         for k in range(n):
             slice_k = stored[:, :, k]
             for tag, value in common.items():

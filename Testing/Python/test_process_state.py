@@ -16,6 +16,7 @@ import pytest
 import SimpleITK as sitk
 
 from EMRegModule.cli.main import main
+from EMRegModule.errors import EMRegError
 from EMRegModule.io.image import write_image
 from EMRegModule.simulation.ct import write_dicom_series
 
@@ -75,6 +76,24 @@ def test_writing_a_dicom_series_keeps_the_locale(utf8_locale, tmp_path):
     assert len(list((tmp_path / "ct").glob("*.dcm"))) == 4
     assert locale.setlocale(locale.LC_ALL) == utf8_locale
     assert locale.getpreferredencoding(False) == "UTF-8"
+
+
+def test_a_dicom_series_the_writer_fails_on_is_one_line_naming_it_and_leaves_nothing(tmp_path, monkeypatch):
+    """GDCM raises RuntimeError on a full disk ("DICOM does not support this component type" was what a full /tmp
+    gave): it was a traceback from ``emreg simulate`` of a DICOM case, where an NRRD's is one line."""
+    written = []
+    execute = sitk.ImageFileWriter.Execute
+
+    def fails_on_the_third(self, *args):
+        written.append(1)
+        if len(written) == 3:
+            raise RuntimeError("ITK ERROR: GDCMImageIO: DICOM does not support this component type")
+        return execute(self, *args)
+
+    monkeypatch.setattr(sitk.ImageFileWriter, "Execute", fails_on_the_third)
+    with pytest.raises(EMRegError, match=r"ct: cannot write \(the ITK image writer failed"):
+        write_dicom_series(_slices(), tmp_path / "ct", seed=3)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_writing_a_dicom_file_keeps_the_locale(utf8_locale, tmp_path):
