@@ -171,7 +171,8 @@ class EvaluationSettings(DwellSettings):
 
     The error model's priors (:mod:`EMRegModule.core.error_model`): ``reference_error_mm`` and
     ``reference_error_deg``, the reference sensor's per-axis pose error (default: a quarter of the
-    probe's measured per-dwell error, and the rotation that moves a point 100 mm away by as much);
+    probe's measured per-dwell error, and the rotation that moves a point 160 mm away by as much, the
+    proportion of the trakSTAR's specified static accuracy, 1.4 mm and 0.5 degree RMS);
     ``placement_error_mm`` (0), the 3D RMS error of putting the probe on a target.
 
     ``min_duration_s`` defaults to 0.35 s here: a hand-held probe held still for 0.4 s at 80 Hz
