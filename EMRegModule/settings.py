@@ -301,7 +301,7 @@ class RegistrationSettings:
 
     A registration that detected no distortion vouches only for fields its test could have seen: when the smallest
     field it finds in 90 % of random smooth fields at this session's noise and pinholes
-    (:func:`EMRegModule.core.distortion.detectable_rms`) is above ``max_undetectable_distortion_mm`` (1.0 mm RMS at
+    (:func:`.distortion.power.detectable_rms`) is above ``max_undetectable_distortion_mm`` (1.0 mm RMS at
     the pinholes), the registration warns and its predicted TRE is marked not to be trusted; with
     ``refuse_undetectable_distortion`` (false) it is refused instead. Not refused by default: a frame of few markers
     (8 at the simulator's standard noise: 1.6 mm) cannot see a 1 mm field at any noise a tracker has, and a clean

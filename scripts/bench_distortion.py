@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Benchmark: the distortion check at registration, against the test alone, in the same run.
 
-The check (:func:`EMRegModule.core.distortion.estimate_distortion`) is the test (candidates, Monte Carlo null, the
+The check (:func:`.distortion.detect.estimate_distortion`) is the test (candidates, Monte Carlo null, the
 one-bad-pair check), the field's fit when one is found, and the detectable size (300 random smooth fields, each
 one's smallest detected size by bisection). The baseline is the test alone (``_test``: the candidates and the null
 draws), what the check cost before the detectable size was added. Frames of 8, 16 and 28 pinholes with the
@@ -21,7 +21,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "Testing" / "Python"))
 
-from EMRegModule.core.distortion import NoisePrior, _test, estimate_distortion  # noqa: E402
+from EMRegModule.core.distortion import NoisePrior, estimate_distortion  # noqa: E402
+from EMRegModule.core.distortion.scan import _test  # noqa: E402
 from EMRegModule.core.transforms import invert_rigid, make_transform, random_rotation  # noqa: E402
 from EMRegModule.simulation.distortion import nonrigid_errors, place_object  # noqa: E402
 

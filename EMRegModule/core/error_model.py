@@ -330,7 +330,7 @@ class RegistrationError:
     reveal (mm); ``probe_sigma_dof``: the residual degrees of freedom it was estimated from
     (``3N - P``; infinite when unknown). Stored in ``registration.json`` under ``error_model``.
     ``distortion``: the field distortion found at registration (a
-    :class:`EMRegModule.core.distortion.DistortionEstimate`, stored under ``distortion``; None: not tested);
+    :class:`.distortion.estimate.DistortionEstimate`, stored under ``distortion``; None: not tested);
     when detected, the probe's error is the noise that remains beside the fitted field, and the field
     adds its own term to the budget.
     """
@@ -371,7 +371,7 @@ def registration_error(points_reference: np.ndarray, origins_image: np.ndarray, 
     ``axes_image`` (N, 3): their markers (CT LPS); ``residuals_mm`` (N,): the fit's residuals;
     ``image_sigma_mm`` (N,): per-axis localisation sigma of each marker point in the CT when known
     (it is then kept out of the probe's error, which is the rest of what the residuals show);
-    ``distortion``: the :class:`EMRegModule.core.distortion.DistortionEstimate` of these residuals: when it
+    ``distortion``: the :class:`.distortion.estimate.DistortionEstimate` of these residuals: when it
     detected a field, the probe's error is the noise beside it (``noise_sigma_mm``), not the residuals'.
     """
     fiducials = np.asarray(origins_image, dtype=float) + l_mm * np.asarray(axes_image, dtype=float)

@@ -484,7 +484,7 @@ def _moved_by_field(distortion: DistortionEstimate, solution: OffsetSolution, po
                     image_ids: list[str], paired_images: set[int], tolerance_mm: float,
                     paired_tested: int) -> dict[str, str]:
     """Before an unpaired calibration point is put down to the user: when no distortion was detected, whether the
-    smooth field fitted to the paired pinholes anyway (:func:`EMRegModule.core.distortion.fit_field`) explains where it
+    smooth field fitted to the paired pinholes anyway (:func:`.distortion.detect.fit_field`) explains where it
     lies, i.e. takes it to within ``tolerance_mm`` of an unpaired CT pinhole it was farther from (the field fitted to
     the test's first ``paired_tested`` points, the pairs the fit used). Returns, per such point's label, a line naming
     the distortion, how much and where (Reference frame, mm)."""
@@ -552,7 +552,7 @@ def distortion_of_fit(solution: OffsetSolution, points_reference: np.ndarray, or
                       unpaired_reference: np.ndarray | None = None, fitted_count: int | None = None
                       ) -> DistortionEstimate:
     """The distortion test on the fit's residual vectors, taken into the Reference frame (measured point minus
-    the registered CT pinhole; :func:`EMRegModule.core.distortion.estimate_distortion`), with the transmitter's pose
+    the registered CT pinhole; :func:`.distortion.detect.estimate_distortion`), with the transmitter's pose
     at each point when the calibration kept it, and the calibration points the pairing left out
     (``unpaired_reference``, (K, 3) Reference mm); the first ``fitted_count`` points are the pairs the fit used, the
     others unpaired points near a free pinhole that only join the test (None: all pairs). It carries
@@ -606,7 +606,7 @@ def check_distortion(distortion: DistortionEstimate, config: RegistrationSetting
 def check_fle(distortion: DistortionEstimate, config: RegistrationSettings) -> None:
     """Refuse (:class:`NoSafeAnswerError`) residuals whose per-dwell error, beside any fitted field, is above
     ``[registration] max_fle_ratio`` times the one known apart from them
-    (:attr:`EMRegModule.core.distortion.DistortionEstimate.fle_ratio`): no predicted TRE explains them."""
+    (:attr:`.distortion.estimate.DistortionEstimate.fle_ratio`): no predicted TRE explains them."""
     ratio = distortion.fle_ratio
     if np.isfinite(ratio) and ratio > config.max_fle_ratio:
         beside = " beside the field distortion detected" if distortion.detected else ""
@@ -621,7 +621,7 @@ def check_detectable(distortion: DistortionEstimate, config: RegistrationSetting
     """A warning (or, with ``[registration] refuse_undetectable_distortion``, a refusal: :class:`NoSafeAnswerError`)
     for a registration whose distortion test found nothing but could have missed a field of
     ``[registration] max_undetectable_distortion_mm`` (its
-    :attr:`EMRegModule.core.distortion.DistortionEstimate.detectable_rms_mm` above it): with this much tracking
+    :attr:`.distortion.estimate.DistortionEstimate.detectable_rms_mm` above it): with this much tracking
     noise, or this few pinholes, "no distortion found" does not mean "no distortion"."""
     size = distortion.detectable_rms_mm
     if not (distortion.tested and size > config.max_undetectable_distortion_mm):

@@ -337,7 +337,7 @@ def test_the_false_alarm_rate_holds_on_noise_of_any_size():
 def test_one_bad_pair_needs_every_sign_of_one_to_overrule_the_test():
     """The rule that puts the evidence down to one bad pair: all of an outlier by itself, the others not even weakly
     significant, not predicted by their field, and along its pinhole's axis."""
-    from EMRegModule.core.distortion import _several_points
+    from EMRegModule.core.distortion.detect import _several_points
 
     assert not _several_points(0.4, 0.1, 0.001, 0.95)  # a probe not fully inserted: one point, along its axis
     assert _several_points(0.4, 0.1, 0.2, 0.95)  # not an outlier by itself: the field is spread
