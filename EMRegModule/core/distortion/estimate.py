@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..error_model import fiducial_jacobian
-from .fields import _Bumps, _Dipole, _Modes, _Polynomial
+from .fields import _Bumps, _Dipole, _kernel, _Modes, _Polynomial
 from .power import POWER_LEVEL
 
 #: Share of the largest residual's square the field fitted to the other pinholes must predict, when those alone are
@@ -141,7 +141,8 @@ class DistortionEstimate:
         field: the fitted field squared less its variance (navigation is not corrected by the fitted field, so the
         error holds the true field, whose square the fitted one's overstates by that variance on average; never
         below 0), plus what the fitted family itself misses where it was not fitted (:attr:`.extension_ms`, from its
-        leave-one-out errors at the pinholes: a field of another family than the fitted one); 0 everywhere when no
+        leave-one-out errors at the pinholes: a field of another family than the fitted one), or where more, what a
+        Gaussian process's fitted modes leave unseen at the point (:meth:`._unseen_ms`); 0 everywhere when no
         distortion was detected. (Until issue 37's second round it was the fitted square plus the variance, and never
         less than the mean square measured at the pinholes: that overshot by 1.2-1.4x at targets inside the frame,
         where the rigid fit leaves the least of a field.)"""
@@ -156,7 +157,29 @@ class DistortionEstimate:
             chunk = np.sum(self._operator(points[start:start + 16384], columns) ** 2, axis=1)  # (k, columns)
             fitted[start:start + len(chunk)] = chunk[:, 0]
             variance[start:start + len(chunk)] = np.sum(chunk[:, 1:], axis=1)
-        return np.clip(fitted - variance, 0.0, None) + self.extension_ms
+        return np.clip(fitted - variance, 0.0, None) + np.maximum(self.extension_ms, self._unseen_ms(points))
+
+    def _unseen_ms(self, points: np.ndarray) -> np.ndarray:
+        """For a Gaussian process's modes fitted (a smooth field of no physics): its posterior variance at the points
+        (K,) (mm^2, 3D), the field's mean square at the pinholes times ``1 - k(x) (K + s I)^-1 k(x)``, which is 0 at a
+        pinhole and the whole of it where no pinhole is within the process's length (``s``: the noise beside the
+        field per its variance). The modes' own extension falls to 0 away from the pinholes, where such a field does
+        not; 0 for the other candidates, whose shape says how they extend."""
+        if not isinstance(self.model, _Modes) or not len(points):
+            return np.zeros(len(points))
+        field_ms = self.rms_mm**2
+        if not field_ms > 0:
+            return np.zeros(len(points))
+        centres = np.asarray(self.model.centres_mm, dtype=float)
+        gram = _kernel(centres, centres, self.model.length_mm)
+        ridge = max(3.0 * self.noise_sigma_mm**2 / field_ms, 1e-6)
+        factor = np.linalg.cholesky(gram + ridge * np.eye(len(centres)))
+        out = np.empty(len(points))
+        for start in range(0, len(points), 16384):
+            across = _kernel(points[start:start + 16384], centres, self.model.length_mm)  # (k, B)
+            half = np.linalg.solve(factor, across.T)  # L^-1 k(x)^T, (B, k)
+            out[start:start + len(across)] = field_ms * np.clip(1.0 - np.sum(half**2, axis=0), 0.0, 1.0)
+        return out
 
     def measured_ms(self) -> float:
         """The non-rigid field's mean square over the pinholes (mm^2) with its uncertainty (the fitted field's
