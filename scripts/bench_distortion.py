@@ -3,8 +3,8 @@
 
 The check (:func:`.distortion.detect.estimate_distortion`) is the test (candidates, Monte Carlo null, the
 one-bad-pair check), the field's fit when one is found, and the detectable size (300 random smooth fields, each
-one's smallest detected size by bisection). The baseline is the test alone (``_test``: the candidates and the null
-draws), what the check cost before the detectable size was added. Frames of 8, 16 and 28 pinholes with the
+one's smallest detected size by bisection). The baseline is the test alone (``scan_residuals``: the candidates and
+the null draws), what the check cost before the detectable size was added. Frames of 8, 16 and 28 pinholes with the
 tracker's noise known from the dwells, clean and with a 1 mm induced-dipole field. Prints the median time of each
 and their ratio. Usage: ``.venv/bin/python scripts/bench_distortion.py [--repeats 5]``.
 """
@@ -22,7 +22,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "Testing" / "Python"))
 
 from EMRegModule.core.distortion import NoisePrior, estimate_distortion  # noqa: E402
-from EMRegModule.core.distortion.scan import _test  # noqa: E402
+from EMRegModule.core.distortion.scan import scan_residuals  # noqa: E402
 from EMRegModule.core.transforms import invert_rigid, make_transform, random_rotation  # noqa: E402
 from EMRegModule.simulation.distortion import nonrigid_errors, place_object  # noqa: E402
 
@@ -65,7 +65,7 @@ def main() -> None:
             points, residuals, axes, poses = session(n, size, 11 + n)
             full = timed(estimate_distortion, (points, residuals, axes, 0.002), args.repeats,
                          tracker_to_reference=poses, noise=prior, max_fre_mm=2.0)
-            alone = timed(_test, (points, axes, poses, residuals, prior), args.repeats)
+            alone = timed(scan_residuals, (points, axes, poses, residuals, prior), args.repeats)
             estimate = estimate_distortion(points, residuals, axes, 0.002, tracker_to_reference=poses, noise=prior,
                                            max_fre_mm=2.0)
             print(f"{n:>8} {size:>6.1f} {full * 1e3:>9.0f} {alone * 1e3:>14.0f} {full / alone:>6.2f} "

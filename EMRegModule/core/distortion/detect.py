@@ -10,21 +10,21 @@ import numpy as np
 
 from ..error_model import fiducial_jacobian
 from .estimate import PREDICTED_SHARE, DistortionEstimate
-from .fields import _Dipole, _Seen
+from .fields import Dipole, Seen
 from .power import detectable_rms
 from .scan import (
     LENGTH_FRACTIONS,
     MIN_TRANSMITTER_DISTANCE_MM,
     RANK_TOLERANCE,
     NoisePrior,
-    _arrays,
-    _complement,
-    _outlier_p_value,
-    _projected,
-    _rigid_jacobian,
-    _Scan,
-    _stack,
-    _test,
+    Scan,
+    as_arrays,
+    outlier_p_value,
+    project_residuals,
+    rigid_complement,
+    rigid_jacobian,
+    scan_residuals,
+    stack_columns,
 )
 
 #: The other pinholes alone carry the evidence when their own test's p-value is at most this.
@@ -38,23 +38,24 @@ AXIAL_SHARE = 0.7
 OUTLIER_LEVEL = 0.01
 
 
-def _refine(scan: _Scan, model: Any, points: np.ndarray, poses: np.ndarray | None, z: np.ndarray) -> Any:
+def _refine(scan: Scan, model: Any, points: np.ndarray, poses: np.ndarray | None, z: np.ndarray) -> Any:
     """A dipole's position refined from the best candidate (least remaining sum of squares); others as chosen."""
-    if not isinstance(model, _Dipole):
+    if not isinstance(model, Dipole):
         return model
     from scipy.optimize import minimize
 
     def remaining(position: np.ndarray) -> float:
         if np.linalg.norm(position) < MIN_TRANSMITTER_DISTANCE_MM:
             return float(z @ z)
-        design = scan.basis.T @ _stack(_Dipole(position, model.tracker_to_reference).columns(points, poses, scan.seen))
+        dipole = Dipole(position, model.tracker_to_reference)
+        design = scan.basis.T @ stack_columns(dipole.columns(points, poses, scan.seen))
         q, _ = np.linalg.qr(design)
         return float(z @ z - np.sum((q.T @ z) ** 2))
 
     result = minimize(remaining, model.object_mm, method="Nelder-Mead",
                       options={"xatol": 1.0, "fatol": 1e-6 * float(z @ z), "maxfev": 300,
                                "initial_simplex": model.object_mm + np.vstack([np.zeros(3), 25.0 * np.eye(3)])})
-    return _Dipole(np.asarray(result.x, dtype=float), model.tracker_to_reference) \
+    return Dipole(np.asarray(result.x, dtype=float), model.tracker_to_reference) \
         if result.fun < remaining(model.object_mm) else model
 
 
@@ -92,7 +93,7 @@ def _estimate(points_reference: np.ndarray, residuals_reference: np.ndarray, axe
               max_fre_mm: float = float("inf"), unpaired_reference: np.ndarray | None = None,
               fitted_count: int | None = None) -> DistortionEstimate:
     """:func:`.estimate_distortion` before the noise prior is recorded."""
-    points, residuals, axes, poses = _arrays(points_reference, residuals_reference, axes_reference,
+    points, residuals, axes, poses = as_arrays(points_reference, residuals_reference, axes_reference,
                                              tracker_to_reference)
     labels = list(labels) or [f"P{k + 1:02d}" for k in range(len(points))]
     image_markers = list(image_markers)
@@ -109,11 +110,12 @@ def _estimate(points_reference: np.ndarray, residuals_reference: np.ndarray, axe
                                   image_markers=image_markers[:n], note="too few pinholes to test")
     if n < 4:
         return untested
-    tested = _test(points, axes, poses, residuals, noise)
+    tested = scan_residuals(points, axes, poses, residuals, noise)
     if tested is None:
         return untested if not len(residuals) or np.any(residuals) else replace(untested, note="")
     scan, z, statistic, p_value, best, null = tested
-    pair_test = tested if n == len(points) else _test(pair_points, pair_axes, pair_poses, pair_residuals, noise)
+    pair_test = (tested if n == len(points)
+                 else scan_residuals(pair_points, pair_axes, pair_poses, pair_residuals, noise))
     prior = None if noise is None else noise.sigma_mm
 
     def finished(estimate: DistortionEstimate) -> DistortionEstimate:
@@ -129,14 +131,14 @@ def _estimate(points_reference: np.ndarray, residuals_reference: np.ndarray, axe
     largest = int(np.argmax(np.sum(residuals**2, axis=1)))
     keep = np.arange(len(points)) != largest
     p_without, share = float("nan"), float("nan")
-    rest = _test(points[keep], None if axes is None else axes[keep], None if poses is None else poses[keep],
+    rest = scan_residuals(points[keep], None if axes is None else axes[keep], None if poses is None else poses[keep],
                  residuals[keep], noise, support=1.0) if len(points) > 4 else None
     if rest is not None:
         p_without = rest[3]
         share = _predicted_share(rest[0].candidates[rest[4]], points, poses, axes, residuals, largest)
     axial = 1.0 if axes is None else float((residuals[largest] @ axes[largest]) ** 2
                                            / max(residuals[largest] @ residuals[largest], 1e-300))
-    if not _several_points(p_without, share, _outlier_p_value(scan, residuals), axial,
+    if not _several_points(p_without, share, outlier_p_value(scan, residuals), axial,
                            _unpaired_near(points, largest, unpaired_reference)):
         return finished(DistortionEstimate(labels[:n], pair_points, pair_residuals, statistic, p_value, alpha,
                                            *noise_alone, image_markers=image_markers[:n], note=note,
@@ -150,14 +152,14 @@ def _estimate(points_reference: np.ndarray, residuals_reference: np.ndarray, axe
                             share, labels[largest]))
 
 
-def _fitted(scan: _Scan, z: np.ndarray, best: int, points: np.ndarray, residuals: np.ndarray,
+def _fitted(scan: Scan, z: np.ndarray, best: int, points: np.ndarray, residuals: np.ndarray,
             axes: np.ndarray | None, poses: np.ndarray | None, labels: list[str], image_markers: Sequence[str],
             statistic: float, p_value: float, alpha: float, note: str, p_without: float = float("nan"),
             share: float = float("nan"), left_out: str = "") -> DistortionEstimate:
     """The estimate with candidate ``best`` fitted by least squares (a dipole's position refined first)."""
     model = _refine(scan, scan.candidates[best], points, poses, z)
     at_pinholes = model.columns(points, poses, scan.seen)  # (N, 3, P)
-    design = scan.basis.T @ _stack(at_pinholes)
+    design = scan.basis.T @ stack_columns(at_pinholes)
     # no more directions than the scan tested the candidate with (its rank there): a candidate of more columns than
     # residual dimensions must not fit the noise away (a 60-column cubic polynomial spans all 41 of 28 pinholes)
     u, singular, vt = np.linalg.svd(design, full_matrices=False)
@@ -165,10 +167,10 @@ def _fitted(scan: _Scan, z: np.ndarray, best: int, points: np.ndarray, residuals
     inverse = vt[:rank].T @ (u[:, :rank] / singular[:rank]).T
     amplitudes = inverse @ z
     remaining = z - design @ amplitudes
-    dof = scan.dof - rank - (3 if isinstance(model, _Dipole) else 0)
+    dof = scan.dof - rank - (3 if isinstance(model, Dipole) else 0)
     variance = float(remaining @ remaining) / max(dof, 1)
     covariance = variance * inverse @ inverse.T
-    rigid = np.linalg.pinv(_rigid_jacobian(points, axes))[:6] @ _stack(at_pinholes)
+    rigid = np.linalg.pinv(rigid_jacobian(points, axes))[:6] @ stack_columns(at_pinholes)
     centroid = points.mean(axis=0)
     nonrigid = at_pinholes @ amplitudes - fiducial_jacobian(points, centroid) @ (rigid @ amplitudes)
     return DistortionEstimate(labels, points, residuals, statistic, p_value, alpha, float(np.sqrt(variance)),
@@ -202,9 +204,9 @@ def fit_field(points_reference: np.ndarray, residuals_reference: np.ndarray, axe
     """The smooth field the test picks, fitted to the residuals whether significant or not (None: too few points):
     to ask whether it explains where points left out of the pairing lie (:meth:`.DistortionEstimate.field_at`).
     Frames and units as :func:`.estimate_distortion`."""
-    points, residuals, axes, poses = _arrays(points_reference, residuals_reference, axes_reference,
+    points, residuals, axes, poses = as_arrays(points_reference, residuals_reference, axes_reference,
                                              tracker_to_reference)
-    projected = _projected(points, axes, poses, residuals) if len(points) >= 4 else None
+    projected = project_residuals(points, axes, poses, residuals) if len(points) >= 4 else None
     if projected is None:
         return None
     scan, z = projected
@@ -214,7 +216,7 @@ def fit_field(points_reference: np.ndarray, residuals_reference: np.ndarray, axe
                    (), share, float("nan"), 0.0, "")
 
 
-def _cross_validated(scan: _Scan, points: np.ndarray, poses: np.ndarray | None, residuals: np.ndarray) -> int:
+def _cross_validated(scan: Scan, points: np.ndarray, poses: np.ndarray | None, residuals: np.ndarray) -> int:
     """The candidate that best predicts each pinhole's residual from the others (leave-one-out, closed form:
     ``(I - H_ii)^-1 e_i`` per pinhole, H the fit's hat matrix): the field to extend beyond the pinholes, where a
     candidate chosen by its fit alone may be the one with most columns."""
@@ -222,7 +224,7 @@ def _cross_validated(scan: _Scan, points: np.ndarray, poses: np.ndarray | None, 
     n = len(points)
     scores = []
     for candidate in scan.candidates:
-        design = scan.basis @ (scan.basis.T @ _stack(candidate.columns(points, poses, scan.seen)))
+        design = scan.basis @ (scan.basis.T @ stack_columns(candidate.columns(points, poses, scan.seen)))
         u, singular, _ = np.linalg.svd(design, full_matrices=False)
         u = u[:, singular > singular[0] * 1e-9] if singular[0] > 0 else u[:, :0]
         left = (r - u @ (u.T @ r)).reshape(n, 3)
@@ -266,12 +268,12 @@ def _predicted_share(model: Any, points: np.ndarray, poses: np.ndarray | None, a
                      residuals: np.ndarray, left_out: int) -> float:
     """How much of pinhole ``left_out``'s squared residual ``model`` (the field the other pinholes' test picked),
     fitted to the other pinholes, predicts there (1 - |r - prediction|^2 / |r|^2; 0 or less: nothing)."""
-    basis = _complement(_rigid_jacobian(points, axes))
-    seen = None if poses is None else _Seen(points, poses)
+    basis = rigid_complement(rigid_jacobian(points, axes))
+    seen = None if poses is None else Seen(points, poses)
     rows = np.ones(3 * len(points), dtype=bool)
     rows[3 * left_out:3 * left_out + 3] = False
     r = residuals.reshape(-1)
-    design = basis @ (basis.T @ _stack(model.columns(points, poses, seen)))
+    design = basis @ (basis.T @ stack_columns(model.columns(points, poses, seen)))
     amplitudes, *_ = np.linalg.lstsq(design[rows], r[rows], rcond=None)
     target = residuals[left_out]
     return float(1.0 - np.sum((target - design[~rows] @ amplitudes) ** 2) / np.sum(target**2))

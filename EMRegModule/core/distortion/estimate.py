@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..error_model import fiducial_jacobian
-from .fields import _Bumps, _Dipole, _kernel, _Modes, _Polynomial
+from .fields import Bumps, Dipole, Modes, Polynomial, gaussian_kernel
 from .power import POWER_LEVEL
 
 #: Share of the largest residual's square the field fitted to the other pinholes must predict, when those alone are
@@ -165,18 +165,18 @@ class DistortionEstimate:
         pinhole and the whole of it where no pinhole is within the process's length (``s``: the noise beside the
         field per its variance). The modes' own extension falls to 0 away from the pinholes, where such a field does
         not; 0 for the other candidates, whose shape says how they extend."""
-        if not isinstance(self.model, _Modes) or not len(points):
+        if not isinstance(self.model, Modes) or not len(points):
             return np.zeros(len(points))
         field_ms = self.rms_mm**2
         if not field_ms > 0:
             return np.zeros(len(points))
         centres = np.asarray(self.model.centres_mm, dtype=float)
-        gram = _kernel(centres, centres, self.model.length_mm)
+        gram = gaussian_kernel(centres, centres, self.model.length_mm)
         ridge = max(3.0 * self.noise_sigma_mm**2 / field_ms, 1e-6)
         factor = np.linalg.cholesky(gram + ridge * np.eye(len(centres)))
         out = np.empty(len(points))
         for start in range(0, len(points), 16384):
-            across = _kernel(points[start:start + 16384], centres, self.model.length_mm)  # (k, B)
+            across = gaussian_kernel(points[start:start + 16384], centres, self.model.length_mm)  # (k, B)
             half = np.linalg.solve(factor, across.T)  # L^-1 k(x)^T, (B, k)
             out[start:start + len(across)] = field_ms * np.clip(1.0 - np.sum(half**2, axis=0), 0.0, 1.0)
         return out
@@ -257,23 +257,23 @@ class DistortionEstimate:
             return np.round(np.asarray(values, dtype=float), digits).tolist()
 
         model: dict[str, Any] | None = None
-        if isinstance(self.model, _Dipole):
+        if isinstance(self.model, Dipole):
             model = {"kind": "dipole", "object_tracker_mm": rounded(self.model.object_mm),
                      "TrackerToReference": rounded(self.model.tracker_to_reference, 9),
                      "amplitudes": "polarisability (mm^3): xx, yy, zz, xy, xz, yz in the Tracker frame",
                      "formula": "d(x) = T_R @ dx(inv(T) x): the first-order position error of an induced dipole "
                                 "(EMRegModule.core.em_field.position_error), T = TrackerToReference"}
-        elif isinstance(self.model, _Bumps):
+        elif isinstance(self.model, Bumps):
             model = {"kind": "bumps", "centres_mm": rounded(self.model.centres_mm),
                      "length_scales_mm": rounded(self.model.lengths_mm),
                      "amplitudes": "displacement (mm) x, y, z per bump",
                      "formula": "d(x) = sum_b exp(-|x - c_b|^2 / (2 L_b^2)) a_b"}
-        elif isinstance(self.model, _Polynomial):
+        elif isinstance(self.model, Polynomial):
             model = {"kind": "polynomial", "centre_mm": rounded(self.model.centre_mm), "scale_mm": self.model.scale_mm,
                      "degree": self.model.degree, "exponents": self.model.exponents().tolist(),
                      "amplitudes": "displacement (mm) x, y, z per monomial",
                      "formula": "d(x) = sum_m prod(((x - centre) / scale) ** exponents_m) a_m"}
-        elif isinstance(self.model, _Modes):
+        elif isinstance(self.model, Modes):
             model = {"kind": "modes", "centres_mm": rounded(self.model.centres_mm), "length_mm": self.model.length_mm,
                      "weights": rounded(self.model.weights, 12),
                      "amplitudes": "displacement (mm) x, y, z per mode",
@@ -335,17 +335,17 @@ class DistortionEstimate:
         stored = block.get("model")
         model: Any = None
         if stored and stored.get("kind") == "dipole":
-            model = _Dipole(np.asarray(stored["object_tracker_mm"], dtype=float).reshape(3),
+            model = Dipole(np.asarray(stored["object_tracker_mm"], dtype=float).reshape(3),
                             np.asarray(stored["TrackerToReference"], dtype=float).reshape(4, 4))
         elif stored and stored.get("kind") == "bumps":
-            model = _Bumps(np.asarray(stored["centres_mm"], dtype=float).reshape(-1, 3),
+            model = Bumps(np.asarray(stored["centres_mm"], dtype=float).reshape(-1, 3),
                            np.asarray(stored["length_scales_mm"], dtype=float).reshape(-1))
         elif stored and stored.get("kind") == "polynomial":
-            model = _Polynomial(np.asarray(stored["centre_mm"], dtype=float).reshape(3), float(stored["scale_mm"]),
+            model = Polynomial(np.asarray(stored["centre_mm"], dtype=float).reshape(3), float(stored["scale_mm"]),
                                 int(stored["degree"]))
         elif stored and stored.get("kind") == "modes":
             centres = np.asarray(stored["centres_mm"], dtype=float).reshape(-1, 3)
-            model = _Modes(centres, float(stored["length_mm"]),
+            model = Modes(centres, float(stored["length_mm"]),
                            np.asarray(stored["weights"], dtype=float).reshape(len(centres), -1))
         amplitudes = np.asarray(block.get("amplitudes", []), dtype=float).reshape(-1)
         n = len(amplitudes)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fields import _kernel
-from .scan import SHARE_SUPPORT, _combined_null, _Scan
+from .fields import gaussian_kernel
+from .scan import SHARE_SUPPORT, Scan, joint_null
 
 #: The detectable size: the non-rigid RMS at the pinholes the test finds in this share of random smooth fields
 #: (:func:`.detectable_rms`), drawn (:data:`.POWER_DRAWS` of them, Gaussian processes of :data:`.POWER_LENGTH_FRACTIONS`
@@ -19,7 +19,7 @@ POWER_STEPS = 10
 POWER_WIDENINGS = 10
 
 
-def detectable_rms(scan: _Scan, points: np.ndarray, null: np.ndarray, alpha: float, noise_sigma_mm: float,
+def detectable_rms(scan: Scan, points: np.ndarray, null: np.ndarray, alpha: float, noise_sigma_mm: float,
                    prior_sigma_mm: float | None = None, support: float = SHARE_SUPPORT,
                    max_fre_mm: float = float("inf")) -> float:
     """The smallest non-rigid field (RMS at the pinholes, mm) the test finds in :data:`.POWER_LEVEL` of random smooth
@@ -39,7 +39,7 @@ def detectable_rms(scan: _Scan, points: np.ndarray, null: np.ndarray, alpha: flo
     n = len(points)
     centroid = points.mean(axis=0)
     radius = max(float(np.sqrt(np.mean(np.sum((points - centroid) ** 2, axis=1)))), 1.0)
-    factors = [np.linalg.cholesky(_kernel(points, points, radius * fraction) + 1e-9 * np.eye(n))
+    factors = [np.linalg.cholesky(gaussian_kernel(points, points, radius * fraction) + 1e-9 * np.eye(n))
                for fraction in POWER_LENGTH_FRACTIONS]
     directions = np.empty((POWER_DRAWS, scan.dof))
     for k in range(POWER_DRAWS):
@@ -50,7 +50,7 @@ def detectable_rms(scan: _Scan, points: np.ndarray, null: np.ndarray, alpha: flo
     share_null = np.sort(null[:, 0] if known else null)
     if known:
         known_null = np.sort(null[:, 1])
-        combined_null = _combined_null(null, support)
+        combined_null = joint_null(null, support)
 
     def found(size_mm: np.ndarray) -> np.ndarray:
         z = directions * (np.sqrt(n) * size_mm)[:, None] + noise_z

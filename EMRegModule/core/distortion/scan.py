@@ -1,6 +1,6 @@
 """The distortion test: each candidate field's share of the residuals beyond the rigid fit, and its null.
 
-The residual vector lives in the complement of the rigid fit's Jacobian (``_Scan.basis``). Each candidate
+The residual vector lives in the complement of the rigid fit's Jacobian (``Scan.basis``). Each candidate
 (:mod:`.fields`) is projected there; its share of ``|z|^2`` becomes a tail probability (Beta for the share test, a
 chi-square against a known noise), the smallest over the candidates is the statistic, and its distribution under
 noise alone is drawn by Monte Carlo for the geometry (:func:`.null_statistics`).
@@ -14,7 +14,7 @@ import numpy as np
 
 from ..error_model import fiducial_jacobian
 from ..transforms import mean_rigid
-from .fields import _Bumps, _Dipole, _fibonacci_sphere, _Modes, _Polynomial, _Seen
+from .fields import Bumps, Dipole, Modes, Polynomial, Seen, fibonacci_sphere
 
 #: Bump widths tried, as fractions of the RMS distance of the pinholes from their centroid.
 LENGTH_FRACTIONS = (0.3, 0.5, 0.8)
@@ -53,18 +53,18 @@ class NoisePrior:
     source: str
 
 
-def _rigid_jacobian(points: np.ndarray, axes: np.ndarray | None) -> np.ndarray:
+def rigid_jacobian(points: np.ndarray, axes: np.ndarray | None) -> np.ndarray:
     """The stacked rigid-fit Jacobian (3N, P) at the pinholes (rotation about their centroid, translation, l)."""
     return fiducial_jacobian(points, points.mean(axis=0), axes).reshape(3 * len(points), -1)
 
 
-def _complement(jacobian: np.ndarray) -> np.ndarray:
+def rigid_complement(jacobian: np.ndarray) -> np.ndarray:
     """An orthonormal basis (3N, m) of what the rigid fit leaves: residuals live there."""
     u, s, _ = np.linalg.svd(jacobian, full_matrices=True)
     return u[:, int(np.sum(s > s[0] * 1e-10)):]
 
 
-def _stack(columns: np.ndarray) -> np.ndarray:
+def stack_columns(columns: np.ndarray) -> np.ndarray:
     """(N, 3, P) -> (3N, P), rows point-major (as the rigid Jacobian)."""
     return columns.reshape(-1, columns.shape[-1])
 
@@ -96,18 +96,18 @@ def _share_p_values(fractions: np.ndarray, ranks: np.ndarray, dof: int) -> np.nd
 
 
 @dataclass
-class _Scan:
+class Scan:
     """Candidate fields in the residual basis Q (3N, m): induced dipoles around the frame (with the transmitter's
     poses), single Gaussian bumps, and generic smooth fields (polynomials, a Gaussian process's smoothest modes)."""
 
     basis: np.ndarray
     groups: list
-    seen: _Seen | None = None
+    seen: Seen | None = None
 
     @classmethod
-    def of(cls, points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None) -> _Scan:
-        basis = _complement(_rigid_jacobian(points, axes))
-        seen = None if poses is None else _Seen(points, poses)
+    def of(cls, points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None) -> Scan:
+        basis = rigid_complement(rigid_jacobian(points, axes))
+        seen = None if poses is None else Seen(points, poses)
         kinds = [_bump_candidates(points)] + [[c] for c in _generic_candidates(points)]
         if seen is not None:
             kinds.insert(0, _dipole_candidates(seen, poses))
@@ -115,7 +115,7 @@ class _Scan:
         for candidates in kinds:
             if not candidates:
                 continue
-            design = np.stack([basis.T @ _stack(c.columns(points, poses, seen)) for c in candidates])
+            design = np.stack([basis.T @ stack_columns(c.columns(points, poses, seen)) for c in candidates])
             q, r = np.linalg.qr(design)  # (C, m, P)
             diagonal = np.abs(np.diagonal(r, axis1=-2, axis2=-1))
             keep = diagonal > RANK_TOLERANCE * diagonal.max(axis=-1, keepdims=True)  # drop dependent columns
@@ -184,13 +184,13 @@ def _generic_candidates(points: np.ndarray) -> list:
     :data:`.GP_MODES` smoothest modes of Gaussian processes :data:`.GP_LENGTH_FRACTIONS` of the frame's size long."""
     centroid = points.mean(axis=0)
     radius = max(float(np.sqrt(np.mean(np.sum((points - centroid) ** 2, axis=1)))), 1.0)
-    fields: list = [_Polynomial(centroid, radius, degree) for degree in POLYNOMIAL_DEGREES]
-    fields += [_Modes.of(points, radius * fraction, modes) for fraction in GP_LENGTH_FRACTIONS for modes in GP_MODES
+    fields: list = [Polynomial(centroid, radius, degree) for degree in POLYNOMIAL_DEGREES]
+    fields += [Modes.of(points, radius * fraction, modes) for fraction in GP_LENGTH_FRACTIONS for modes in GP_MODES
                if modes < len(points)]
     return fields
 
 
-def _dipole_candidates(seen: _Seen, poses: np.ndarray) -> list[_Dipole]:
+def _dipole_candidates(seen: Seen, poses: np.ndarray) -> list[Dipole]:
     """Objects around the pinholes (Tracker frame): :data:`.OBJECT_DIRECTIONS` x :data:`.OBJECT_GAPS_MM`."""
     points_tracker = seen.points_tracker
     centre = points_tracker.mean(axis=0)
@@ -198,27 +198,27 @@ def _dipole_candidates(seen: _Seen, poses: np.ndarray) -> list[_Dipole]:
     mean = mean_rigid(poses)
     candidates = []
     for gap in OBJECT_GAPS_MM:
-        for direction in _fibonacci_sphere(OBJECT_DIRECTIONS):
+        for direction in fibonacci_sphere(OBJECT_DIRECTIONS):
             position = centre + direction * (radius + gap)
             if np.linalg.norm(position) >= MIN_TRANSMITTER_DISTANCE_MM:
-                candidates.append(_Dipole(position, mean))
+                candidates.append(Dipole(position, mean))
     return candidates
 
 
-def _bump_candidates(points: np.ndarray) -> list[_Bumps]:
+def _bump_candidates(points: np.ndarray) -> list[Bumps]:
     """Single bumps at the pinholes and pushed out from them, of :data:`.LENGTH_FRACTIONS` widths."""
     centroid = points.mean(axis=0)
     radius = float(np.sqrt(np.mean(np.sum((points - centroid) ** 2, axis=1))))
     places = np.concatenate([points, centroid + OUTWARD * (points - centroid)])
-    return [_Bumps(place[None], np.array([max(radius * f, 1.0)])) for place in places for f in LENGTH_FRACTIONS]
+    return [Bumps(place[None], np.array([max(radius * f, 1.0)])) for place in places for f in LENGTH_FRACTIONS]
 
 
-def null_statistics(scan: _Scan, draws: int = NULL_DRAWS, seed: int = 0,
+def null_statistics(scan: Scan, draws: int = NULL_DRAWS, seed: int = 0,
                     residuals: np.ndarray | None = None, known_noise: bool = False) -> np.ndarray:
     """The test statistic (the smallest candidate p-value) under noise alone (draws,) for this geometry
     (deterministic: seeded). Without ``residuals``: isotropic Gaussian noise (exact for it, whatever its size);
     with ``residuals`` (N, 3): those vectors shuffled among the pinholes (a permutation null). ``known_noise``: the
-    statistics of the share and of the known-noise tests of the same draws (draws, 2) (:meth:`._Scan.best_both`, the
+    statistics of the share and of the known-noise tests of the same draws (draws, 2) (:meth:`.Scan.best_both`, the
     noise drawn of unit size)."""
     rng = np.random.default_rng(seed)
     if residuals is None:
@@ -233,7 +233,7 @@ def null_statistics(scan: _Scan, draws: int = NULL_DRAWS, seed: int = 0,
     return out if known_noise else out[:, 0]
 
 
-def _p_value(scan: _Scan, statistic: float, residuals: np.ndarray | None = None,
+def _p_value(scan: Scan, statistic: float, residuals: np.ndarray | None = None,
              null: np.ndarray | None = None) -> float:
     """The Monte Carlo p-value of a statistic (a smallest candidate p-value: small is significant) against
     ``null`` (draws,) or the share test's :func:`.null_statistics`."""
@@ -242,18 +242,18 @@ def _p_value(scan: _Scan, statistic: float, residuals: np.ndarray | None = None,
     return float((1 + np.count_nonzero(null <= statistic * (1 + 1e-9))) / (len(null) + 1))
 
 
-def _projected(points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None,
-               residuals: np.ndarray) -> tuple[_Scan, np.ndarray] | None:
+def project_residuals(points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None,
+               residuals: np.ndarray) -> tuple[Scan, np.ndarray] | None:
     """The candidates' scan of these pinholes and the residuals projected beyond the rigid fit, ``z`` (None: too few
     degrees of freedom to test, or nothing left beyond the fit)."""
-    scan = _Scan.of(points, axes, poses)
+    scan = Scan.of(points, axes, poses)
     if not scan.groups or scan.dof < MIN_DOF + 3:
         return None
     z = scan.basis.T @ residuals.reshape(-1)
     return (scan, z) if np.any(z) else None
 
 
-def _arrays(points_reference: np.ndarray, residuals_reference: np.ndarray, axes_reference: np.ndarray | None,
+def as_arrays(points_reference: np.ndarray, residuals_reference: np.ndarray, axes_reference: np.ndarray | None,
             tracker_to_reference: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
                                                               np.ndarray | None]:
     """The inputs of :func:`.estimate_distortion` / :func:`.fit_field` as float arrays: points and residuals (N, 3),
@@ -265,14 +265,14 @@ def _arrays(points_reference: np.ndarray, residuals_reference: np.ndarray, axes_
     return points, residuals, axes, poses
 
 
-def _test(points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None, residuals: np.ndarray,
+def scan_residuals(points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None, residuals: np.ndarray,
           noise: NoisePrior | None = None, support: float = SHARE_SUPPORT
-          ) -> tuple[_Scan, np.ndarray, float, float, int, np.ndarray] | None:
+          ) -> tuple[Scan, np.ndarray, float, float, int, np.ndarray] | None:
     """The scan, z, statistic's share, p-value, best candidate and the null draws of residuals (None: too few to
     test). With a ``noise`` prior: the share test and the known-noise test both, the smaller p-value's own and its
     candidate (the known-noise one only when the share test's p-value is at most ``support``); the null draws are
     then (draws, 2), else (draws,)."""
-    projected = _projected(points, axes, poses, residuals)
+    projected = project_residuals(points, axes, poses, residuals)
     if projected is None:
         return None
     scan, z = projected
@@ -288,7 +288,7 @@ def _test(points: np.ndarray, axes: np.ndarray | None, poses: np.ndarray | None,
     return scan, z, float(share), _combined_p_value(null, p_value, p_known, support), int(best), null
 
 
-def _combined_null(null: np.ndarray, support: float) -> np.ndarray:
+def joint_null(null: np.ndarray, support: float) -> np.ndarray:
     """The two tests' combined statistic over the null draws (draws, 2), sorted: per draw, the smaller of its share
     and known-noise p-values within the draws (the latter only where the former is at most ``support``)."""
     def p_values(column: np.ndarray) -> np.ndarray:
@@ -302,12 +302,12 @@ def _combined_p_value(null: np.ndarray, p_share: float, p_known: float, support:
     """The p-value of the two tests together: the smaller of the share test's and the known-noise test's
     (the latter only where the former is at most ``support``), against the same statistic over the null draws
     (draws, 2) of both (exact for the pair, where twice the smaller, Bonferroni, would halve the power)."""
-    draws = _combined_null(null, support)
+    draws = joint_null(null, support)
     observed = min(p_share, p_known) if p_share <= support else p_share
     return float((1 + np.count_nonzero(draws <= observed * (1 + 1e-9))) / (len(draws) + 1))
 
 
-def _outlier_p_value(scan: _Scan, residuals: np.ndarray, draws: int = NULL_DRAWS, seed: int = 1) -> float:
+def outlier_p_value(scan: Scan, residuals: np.ndarray, draws: int = NULL_DRAWS, seed: int = 1) -> float:
     """The Monte Carlo p-value of the largest residual's share of the residual sum of squares under isotropic noise
     (the same geometry: the rigid fit shrinks some points' residuals more than others')."""
     def largest_share(r: np.ndarray) -> np.ndarray:
