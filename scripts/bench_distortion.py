@@ -25,6 +25,7 @@ from EMRegModule.core.distortion import NoisePrior, estimate_distortion  # noqa:
 from EMRegModule.core.distortion.scan import scan_residuals  # noqa: E402
 from EMRegModule.core.transforms import invert_rigid, make_transform, random_rotation  # noqa: E402
 from EMRegModule.simulation.distortion import nonrigid_errors, place_object  # noqa: E402
+from EMRegModule.simulation.field_families import place_field  # noqa: E402
 
 
 def session(n: int, size_mm: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -70,6 +71,33 @@ def main() -> None:
                                            max_fre_mm=2.0)
             print(f"{n:>8} {size:>6.1f} {full * 1e3:>9.0f} {alone * 1e3:>14.0f} {full / alone:>6.2f} "
                   f"{str(estimate.detected):>9} {estimate.detectable_rms_mm:>14.2f}")
+
+    map_term(args.repeats)
+
+
+def map_term(repeats: int) -> None:
+    """The distortion term of ``tre_map.nrrd`` (64^3 points) for a field fitted by a Gaussian process's modes: the
+    whole term (``mean_square_at``) and, within it, the process's posterior variance added in issue 37's third round
+    (``_unseen_ms``); the ratio is the whole against the whole without that part, in the same run."""
+    for seed in range(40):
+        rng = np.random.default_rng([41, seed])
+        points, _, axes, poses = session(28, 0.0, 100 + seed)
+        reference_to_tracker = invert_rigid(poses[0])
+        field = place_field("gp", rng, points, reference_to_tracker, np.eye(4), 1.0)
+        residuals = rng.normal(0.0, 0.25, points.shape) + nonrigid_errors(field, points, reference_to_tracker,
+                                                                            np.eye(4))[1]
+        estimate = estimate_distortion(points, residuals, axes, 0.002)
+        if estimate.detected and estimate.to_json()["field"]["model"]["kind"] == "modes":
+            break
+    else:
+        print("no Gaussian-process modes fit among the fields tried")
+        return
+    axis = np.linspace(-150.0, 150.0, 64)
+    grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    whole = timed(estimate.mean_square_at, (grid,), repeats)
+    unseen = timed(estimate._unseen_ms, (grid,), repeats)
+    print(f"tre_map distortion term, 64^3 points, Gaussian-process modes fit: {whole * 1e3:.0f} ms, of which the "
+          f"posterior variance {unseen * 1e3:.0f} ms; ratio to the term without it {whole / (whole - unseen):.2f}")
 
 
 if __name__ == "__main__":

@@ -176,7 +176,9 @@ class DistortionEstimate:
         factor = np.linalg.cholesky(gram + ridge * np.eye(len(centres)))
         out = np.empty(len(points))
         for start in range(0, len(points), 16384):
-            across = gaussian_kernel(points[start:start + 16384], centres, self.model.length_mm)  # (k, B)
+            chunk = points[start:start + 16384]
+            squared = np.sum(chunk**2, axis=1)[:, None] + np.sum(centres**2, axis=1)[None] - 2.0 * chunk @ centres.T
+            across = np.exp(-np.clip(squared, 0.0, None) / (2.0 * self.model.length_mm**2))  # k(x), (k, B)
             half = np.linalg.solve(factor, across.T)  # L^-1 k(x)^T, (B, k)
             out[start:start + len(across)] = field_ms * np.clip(1.0 - np.sum(half**2, axis=0), 0.0, 1.0)
         return out
