@@ -623,9 +623,9 @@ def check_detectable(distortion: DistortionEstimate, config: RegistrationSetting
     ``[registration] max_undetectable_distortion_mm`` (its
     :attr:`.distortion.estimate.DistortionEstimate.detectable_rms_mm` above it): with this much tracking
     noise, or this few pinholes, "no distortion found" does not mean "no distortion"."""
-    size = distortion.detectable_rms_mm
-    if not (distortion.tested and size > config.max_undetectable_distortion_mm):
+    if not distortion.undetectable:  # its limit is config.max_undetectable_distortion_mm (distortion_of_fit)
         return []
+    size = distortion.detectable_rms_mm
     words = (f"with this tracking noise (about {distortion.noise_sigma_mm:.2f} mm per axis per dwell) and "
              f"{len(distortion.labels) + len(distortion.tested_unpaired)} pinholes, the distortion test could miss a "
              f"field of {size_words(size)} RMS at the pinholes, above the limit of "

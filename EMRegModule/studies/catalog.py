@@ -338,7 +338,7 @@ def _trust_rows(frame: Frame, params: dict, rng: np.random.Generator) -> list[di
     blamed = any(BLAME in w for w in registration.warnings for BLAME in USER_BLAMED)
     row.update(detected=bool(estimate.detected), p_value=estimate.p_value, estimated_rms_mm=estimate.rms_mm,
                detectable_rms_mm=estimate.detectable_rms_mm,
-               flagged=bool(not estimate.detected and estimate.detectable_rms_mm > estimate.undetectable_limit_mm),
+               flagged=estimate.undetectable,
                truth_paired_rms_mm=truth_rms, paired=len(registration.pairs), fre_mm=registration.fre_mm,
                unpaired=len(registration.unpaired_calibration_points),
                user_blamed=blamed and not estimate.detected)

@@ -20,6 +20,7 @@ from .scan import (
     Scan,
     as_arrays,
     outlier_p_value,
+    pinhole_radius,
     project_residuals,
     rigid_complement,
     rigid_jacobian,
@@ -259,7 +260,7 @@ def _unpaired_near(points: np.ndarray, index: int, unpaired: np.ndarray | None) 
     distance from their centroid of pinhole ``index`` (all Reference, mm)."""
     if unpaired is None or not len(unpaired):
         return False
-    radius = float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
+    radius = pinhole_radius(points)
     gaps = np.linalg.norm(np.asarray(unpaired, dtype=float).reshape(-1, 3) - points[index], axis=1)
     return bool(np.any(gaps < NEIGHBOUR_FRACTION * radius))
 

@@ -119,7 +119,20 @@ class DistortionEstimate:
     def detected(self) -> bool:
         return self.tested and self.p_value <= self.alpha and not self.one_bad_pair
 
+    @property
+    def undetectable(self) -> bool:
+        """A test that found nothing but could have missed a field of ``undetectable_limit_mm``
+        (``detectable_rms_mm`` above it): the warning, the untrusted prediction, the refusal when asked."""
+        return self.tested and not self.detected and self.detectable_rms_mm > self.undetectable_limit_mm
+
     # --- the fitted field -------------------------------------------------------------------
+
+    def _amplitude_columns(self) -> np.ndarray:
+        """The fitted amplitudes and the square-root factor of their covariance side by side (P, 1 + P): the field's
+        columns give the fitted field, then its variance as their sum of squares."""
+        values, vectors = np.linalg.eigh(np.asarray(self.amplitude_covariance, dtype=float))
+        return np.concatenate([np.asarray(self.amplitudes, dtype=float).reshape(-1, 1),
+                               vectors * np.sqrt(np.clip(values, 0.0, None))], axis=1)
 
     def _operator(self, points: np.ndarray, columns: np.ndarray) -> np.ndarray:
         """``G(x) @ columns`` (K, 3, C) for amplitude columns (P, C): the model's field at x minus the rigid
@@ -149,9 +162,7 @@ class DistortionEstimate:
         points = np.asarray(points_reference, dtype=float).reshape(-1, 3)
         if not self.detected or self.model is None:
             return np.zeros(len(points))
-        values, vectors = np.linalg.eigh(np.asarray(self.amplitude_covariance, dtype=float))
-        columns = np.concatenate([np.asarray(self.amplitudes, dtype=float).reshape(-1, 1),
-                                  vectors * np.sqrt(np.clip(values, 0.0, None))], axis=1)
+        columns = self._amplitude_columns()
         fitted, variance = np.empty(len(points)), np.empty(len(points))
         for start in range(0, len(points), 16384):
             chunk = np.sum(self._operator(points[start:start + 16384], columns) ** 2, axis=1)  # (k, columns)
@@ -188,9 +199,7 @@ class DistortionEstimate:
         variance there): the distortion measured at registration; 0 when none was detected."""
         if not self.detected or self.model is None:
             return 0.0
-        values, vectors = np.linalg.eigh(np.asarray(self.amplitude_covariance, dtype=float))
-        columns = np.concatenate([np.asarray(self.amplitudes, dtype=float).reshape(-1, 1),
-                                  vectors * np.sqrt(np.clip(values, 0.0, None))], axis=1)
+        columns = self._amplitude_columns()
         return float(np.mean(np.sum(self._operator(np.asarray(self.points_mm, dtype=float), columns) ** 2,
                                     axis=(1, 2))))
 
@@ -211,7 +220,7 @@ class DistortionEstimate:
             reasons.append(f"the residuals are more coherent than noise (p = {self.p_value:.2g}) without reaching the "
                            f"false-alarm rate of the distortion test ({self.alpha:g}){why}: a field distortion may be "
                            "hiding in the tracking error the prediction assumes")
-        if self.tested and not self.detected and self.detectable_rms_mm > self.undetectable_limit_mm:
+        if self.undetectable:
             reasons.append(f"with this tracking noise and these {len(self.labels) + len(self.tested_unpaired)} "
                            "pinholes, the distortion test could "
                            f"miss a field of {size_words(self.detectable_rms_mm)} RMS at the pinholes (above "

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .fields import gaussian_kernel
-from .scan import SHARE_SUPPORT, Scan, joint_null
+from .scan import SHARE_SUPPORT, Scan, joint_null, pinhole_radius
 
 #: The detectable size: the non-rigid RMS at the pinholes the test finds in this share of random smooth fields
 #: (:func:`.detectable_rms`), drawn (:data:`.POWER_DRAWS` of them, Gaussian processes of :data:`.POWER_LENGTH_FRACTIONS`
@@ -37,8 +37,7 @@ def detectable_rms(scan: Scan, points: np.ndarray, null: np.ndarray, alpha: floa
     candidate follows is never found, however large)."""
     rng = np.random.default_rng(7)
     n = len(points)
-    centroid = points.mean(axis=0)
-    radius = max(float(np.sqrt(np.mean(np.sum((points - centroid) ** 2, axis=1)))), 1.0)
+    radius = max(pinhole_radius(points), 1.0)
     factors = [np.linalg.cholesky(gaussian_kernel(points, points, radius * fraction) + 1e-9 * np.eye(n))
                for fraction in POWER_LENGTH_FRACTIONS]
     directions = np.empty((POWER_DRAWS, scan.dof))

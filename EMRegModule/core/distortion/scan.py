@@ -179,11 +179,17 @@ class Scan:
         return out
 
 
+def pinhole_radius(points: np.ndarray) -> float:
+    """The pinholes' RMS distance from their centroid (mm): the frame's size, which the candidates' widths and the
+    neighbour and power rules scale with."""
+    return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
+
+
 def _generic_candidates(points: np.ndarray) -> list:
     """Smooth fields of no physical family (Reference frame): polynomials of :data:`.POLYNOMIAL_DEGREES` and the
     :data:`.GP_MODES` smoothest modes of Gaussian processes :data:`.GP_LENGTH_FRACTIONS` of the frame's size long."""
     centroid = points.mean(axis=0)
-    radius = max(float(np.sqrt(np.mean(np.sum((points - centroid) ** 2, axis=1)))), 1.0)
+    radius = max(pinhole_radius(points), 1.0)
     fields: list = [Polynomial(centroid, radius, degree) for degree in POLYNOMIAL_DEGREES]
     fields += [Modes.of(points, radius * fraction, modes) for fraction in GP_LENGTH_FRACTIONS for modes in GP_MODES
                if modes < len(points)]
@@ -208,7 +214,7 @@ def _dipole_candidates(seen: Seen, poses: np.ndarray) -> list[Dipole]:
 def _bump_candidates(points: np.ndarray) -> list[Bumps]:
     """Single bumps at the pinholes and pushed out from them, of :data:`.LENGTH_FRACTIONS` widths."""
     centroid = points.mean(axis=0)
-    radius = float(np.sqrt(np.mean(np.sum((points - centroid) ** 2, axis=1))))
+    radius = pinhole_radius(points)
     places = np.concatenate([points, centroid + OUTWARD * (points - centroid)])
     return [Bumps(place[None], np.array([max(radius * f, 1.0)])) for place in places for f in LENGTH_FRACTIONS]
 
